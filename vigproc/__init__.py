@@ -1,0 +1,1 @@
+"""vigproc: lens vignetting estimation, correction, per-lens profiles and forensics."""

@@ -1,0 +1,62 @@
+"""Typed errors raised by vigproc.
+
+Every error a user can provoke with bad input derives from :class:`VigprocError`;
+the command line turns these into a one-line message and a non-zero exit code
+(see :data:`EXIT_CODES`), never a traceback.
+"""
+
+from __future__ import annotations
+
+
+class VigprocError(Exception):
+    """Base class of all errors vigproc raises on purpose."""
+
+    exit_code = 1
+
+
+class InvalidImageError(VigprocError, ValueError):
+    """The pixel data cannot be used (wrong shape, too small, NaN/Inf, constant...)."""
+
+    exit_code = 3
+
+
+class ImageReadError(VigprocError, OSError):
+    """A file could not be read as an image (missing, corrupt, truncated, unsupported)."""
+
+    exit_code = 4
+
+
+class UnsupportedFormatError(ImageReadError):
+    """The file's format is not one vigproc reads."""
+
+    exit_code = 4
+
+
+class ImageWriteError(VigprocError, OSError):
+    """An output could not be written."""
+
+    exit_code = 5
+
+
+class ModelError(VigprocError, ValueError):
+    """Vignetting model parameters are missing, absurd or inconsistent."""
+
+    exit_code = 6
+
+
+class PriorError(VigprocError, ValueError):
+    """The natural-image prior could not be fitted or loaded."""
+
+    exit_code = 7
+
+
+EXIT_CODES = {
+    "ok": 0,
+    "error": 1,
+    "usage": 2,
+    "invalid_image": InvalidImageError.exit_code,
+    "read": ImageReadError.exit_code,
+    "write": ImageWriteError.exit_code,
+    "model": ModelError.exit_code,
+    "prior": PriorError.exit_code,
+}

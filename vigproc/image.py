@@ -1,0 +1,120 @@
+"""Pixel-array helpers shared by the estimators: validation, luminance, log, binning.
+
+All functions are pure and take float images in linear light.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vigproc.errors import InvalidImageError
+
+#: Rec. ITU-R BT.709 luminance weights for linear RGB.
+LUMA_709 = np.array([0.2126, 0.7152, 0.0722])
+#: Linear intensities are floored here before the log, so that a zero pixel does
+#: not produce −inf (about half an 8-bit sRGB code step above black).
+LOG_FLOOR = 1e-4
+#: Largest frame accepted by the estimators (a decompression-bomb guard).
+MAX_PIXELS = 1_000_000_000
+
+
+def as_channels_last(img: np.ndarray, channel_axis: int | None) -> np.ndarray:
+    """Return ``img`` as H×W or H×W×C (channels last) without copying when possible."""
+    a = np.asarray(img)
+    if a.ndim == 2:
+        if channel_axis is not None:
+            raise InvalidImageError("a 2-D image has no channel axis; pass channel_axis=None")
+        return a
+    if a.ndim == 3:
+        if channel_axis is None:
+            raise InvalidImageError(f"3-D image of shape {a.shape} needs a channel_axis")
+        return np.moveaxis(a, channel_axis, -1)
+    raise InvalidImageError(f"expected an H×W or H×W×C image, got shape {a.shape}")
+
+
+def check_image(img: np.ndarray, channel_axis: int | None = -1, min_size: int = 8) -> np.ndarray:
+    """Validate a linear image and return it as float H×W or H×W×C.
+
+    Raises
+    ------
+    InvalidImageError
+        Wrong dimensions, non-numeric data, fewer than ``min_size`` px on a side,
+        more than :data:`MAX_PIXELS`, any NaN/Inf, no positive pixel, or a
+        constant image (nothing to estimate from).
+    """
+    a = np.asarray(img)
+    if a.ndim == 3 and channel_axis is not None and a.shape[channel_axis] == 1:
+        a = np.squeeze(a, axis=channel_axis)
+        channel_axis = None
+    if a.ndim == 2:
+        channel_axis = None
+    a = as_channels_last(a, channel_axis)
+    if a.dtype.kind not in "fiu" or a.dtype == np.bool_:
+        raise InvalidImageError(f"image must be numeric, got dtype {a.dtype}")
+    if a.ndim == 3 and not 1 <= a.shape[2] <= 4:
+        raise InvalidImageError(f"expected 1-4 channels, got {a.shape[2]} (wrong channel_axis?)")
+    h, w = a.shape[:2]
+    if h < min_size or w < min_size:
+        raise InvalidImageError(f"image of {w}x{h} px is too small (need at least {min_size} px a side)")
+    if h * w > MAX_PIXELS:
+        raise InvalidImageError(f"image of {w}x{h} px exceeds the {MAX_PIXELS} px limit")
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+        n = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
+        raise InvalidImageError(f"image has {n} NaN/Inf values; vigproc needs finite linear intensities")
+    hi = a.max()
+    if not hi > 0:
+        raise InvalidImageError("image has no positive pixel: linear intensities must be > 0")
+    if a.min() == hi:
+        raise InvalidImageError("image is constant: there is nothing to estimate vignetting from")
+    return a
+
+
+def luminance(img: np.ndarray) -> np.ndarray:
+    """Linear luminance (float64) of an H×W or H×W×C channels-last image.
+
+    RGB(A) uses the Rec. 709 weights; other channel counts use the channel mean.
+    """
+    a = np.asarray(img, dtype=np.float64)
+    if a.ndim == 2:
+        return a
+    if a.shape[2] >= 3:
+        return a[..., :3] @ LUMA_709
+    return a.mean(axis=2)
+
+
+def log_image(lum: np.ndarray, floor: float = LOG_FLOOR) -> np.ndarray:
+    """log of a linear image, floored at ``floor`` (Lyu 2010, Eq. 3: i_v = log I_v)."""
+    return np.log(np.maximum(lum, floor))
+
+
+def bin_mean(a: np.ndarray, k: int, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Average ``k``×``k`` blocks of a 2-D array (the remainder rows/cols are dropped).
+
+    Parameters
+    ----------
+    a : ndarray, H×W
+    k : int
+        Block size (1 returns a copy).
+    mask : ndarray of bool, H×W, optional
+        Pixels to use; a block is valid only when all its pixels are.
+
+    Returns
+    -------
+    binned : ndarray, (H//k)×(W//k), float64
+    valid : ndarray of bool, same shape
+    """
+    h, w = a.shape
+    hb, wb = h // k, w // k
+    blocks = np.asarray(a[: hb * k, : wb * k], dtype=np.float64).reshape(hb, k, wb, k)
+    binned = blocks.mean(axis=(1, 3))
+    if mask is None:
+        valid = np.ones((hb, wb), dtype=bool)
+    else:
+        valid = mask[: hb * k, : wb * k].reshape(hb, k, wb, k).all(axis=(1, 3))
+    return binned, valid
+
+
+def binned_coords(n: int, k: int) -> np.ndarray:
+    """Centre coordinates (relative to the full frame's centre) of ``n // k`` bins of size k."""
+    nb = n // k
+    return np.arange(nb) * k + (k - 1) / 2.0 - (n - 1) / 2.0

@@ -1,0 +1,876 @@
+"""Image input/output: read any supported image as float32 *linear* light, write atomically.
+
+Reading
+-------
+:func:`read_image` returns an ``HxW`` (single channel) or ``HxWx3`` (colour)
+``float32`` array whose values are proportional to scene light, plus an
+:class:`ImageInfo` describing what was read and which transfer curve was assumed.
+
+* JPEG, PNG, TIFF and OpenEXR go through OpenImageIO.  Integer formats come back
+  nominally in ``[0, 1]``; float formats are returned as stored (no clipping).
+* Camera RAW files (anything LibRaw decodes: DNG, CR2, NEF, ARW, KDC, RAF, ...) go
+  through rawpy with a linear (gamma 1), non-auto-brightened, camera-white-balanced
+  16-bit development, scaled to ``[0, 1]``.
+* The format is decided by *content*: a PNG renamed ``.jpg`` is read as PNG, a
+  text file renamed ``.jpg`` raises :class:`~vigproc.errors.UnsupportedFormatError`.
+* Orientation is never applied (neither the EXIF ``Orientation`` tag nor the RAW
+  flip): the pixel grid stays in sensor order, which is what a vignetting model
+  centred on the optical axis needs, and keeps RAW and developed files consistent.
+
+Transfer functions (``transfer="auto"``)
+----------------------------------------
+Observed with OpenImageIO 3.2 (``oiio:ColorSpace`` as reported on read):
+
+=========================  =======================================================
+file                       reported colour space
+=========================  =======================================================
+JPEG (any)                 ``srgb_rec709_scene``
+PNG 8/16-bit, no chunk     ``srgb_rec709_scene`` (also with an ``sRGB`` chunk)
+PNG with ``gAMA`` 1/2.2    ``g22_rec709_scene`` and ``oiio:Gamma`` = 2.2
+PNG with ``gAMA`` 1.0      ``lin_rec709_scene``
+TIFF (int or float)        nothing, unless EXIF ColorSpace = 1 -> ``srgb_rec709_scene``
+OpenEXR half/float         nothing unless written with a colour space
+=========================  =======================================================
+
+Rules: float formats (EXR, float TIFF) are linear; integer files whose colour
+space is missing or sRGB are sRGB-encoded; a gamma (``oiio:Gamma`` or a
+``gNN_`` colour-space name) is honoured as a pure power law; a linear colour
+space (``lin_*``, ``linear``, ACES...) means linear.  A TIFF written by
+:func:`write_image` with ``transfer="linear"`` carries the marker
+:data:`LINEAR_TIFF_MARKER` in its ``ImageDescription`` (TIFF has no standard tag
+OpenImageIO maps to "linear") and is read back as linear.
+
+Writing
+-------
+:func:`write_image` writes TIFF (8/16-bit or float), OpenEXR (half or float) and
+PNG (8/16-bit) atomically: a temporary file in the destination directory is
+written, fsync'ed and renamed over the destination with :func:`os.replace`.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import re
+import stat
+import tempfile
+from dataclasses import dataclass
+from typing import Callable, Union
+
+import numpy as np
+import OpenImageIO as oiio
+
+from vigproc.errors import (
+    ImageReadError,
+    ImageWriteError,
+    InvalidImageError,
+    UnsupportedFormatError,
+)
+
+try:  # rawpy is optional at import time: without it RAW files are "unsupported".
+    import rawpy
+except ImportError:  # pragma: no cover - rawpy is installed in the project venv
+    rawpy = None  # type: ignore[assignment]
+
+__all__ = [
+    "ImageInfo",
+    "LINEAR_TIFF_MARKER",
+    "RAW_EXTENSIONS",
+    "SUPPORTED_OIIO_FORMATS",
+    "linear_to_srgb",
+    "read_image",
+    "srgb_to_linear",
+    "write_image",
+]
+
+logger = logging.getLogger(__name__)
+
+PathLike = Union[str, "os.PathLike[str]", bytes]
+
+#: OpenImageIO format names :func:`read_image` accepts (others, e.g. GIF, BMP, are rejected).
+SUPPORTED_OIIO_FORMATS = frozenset({"jpeg", "png", "tiff", "openexr"})
+
+#: Extensions tried with LibRaw *first* (content still decides: see :func:`read_image`).
+RAW_EXTENSIONS = frozenset(
+    {
+        ".3fr", ".ari", ".arw", ".bay", ".cap", ".cr2", ".cr3", ".crw", ".dcr", ".dcs",
+        ".dng", ".drf", ".eip", ".erf", ".fff", ".gpr", ".iiq", ".k25", ".kdc", ".mdc",
+        ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".ptx", ".pxn", ".r3d",
+        ".raf", ".raw", ".rw2", ".rwl", ".rwz", ".sr2", ".srf", ".srw", ".sti", ".x3f",
+    }
+)
+
+#: Written into the ImageDescription of linear integer/float TIFFs by :func:`write_image`.
+LINEAR_TIFF_MARKER = "vigproc:transfer=linear"
+
+# Below this many bits per sensor pixel a RAW cannot hold its image (even lossy
+# DNG needs ~2 bits/px; the 1996 Kodak DC50 KDC has ~1.9); such files are
+# metadata stubs or badly truncated, and LibRaw would silently return zeros/garbage.
+_RAW_MIN_BITS_PER_PIXEL = 0.25
+
+_MAGIC: tuple[tuple[int, bytes, str], ...] = (
+    (0, b"\x89PNG\r\n\x1a\n", "png"),
+    (0, b"\xff\xd8\xff", "jpeg"),
+    (0, b"II*\x00", "tiff"),
+    (0, b"MM\x00*", "tiff"),
+    (0, b"II+\x00", "tiff"),  # BigTIFF
+    (0, b"MM\x00+", "tiff"),
+    (0, b"v/1\x01", "openexr"),
+    (0, b"GIF87a", "gif"),
+    (0, b"GIF89a", "gif"),
+    (8, b"WEBP", "webp"),
+    (4, b"jP  ", "jpeg2000"),
+    (0, b"\xff\x4f\xff\x51", "jpeg2000"),
+)
+# Content kinds that can never be a camera RAW (so no LibRaw attempt for them).
+_NON_RAW_KINDS = frozenset({"png", "jpeg", "openexr", "gif", "webp", "jpeg2000"})
+
+_FLOAT_FORMATS = frozenset({"half", "float", "double"})
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What :func:`read_image` read and how it decoded it.
+
+    Attributes
+    ----------
+    path : str
+        The path as given (``os.fspath``).
+    format : str
+        ``'jpeg'``, ``'png'``, ``'tiff'``, ``'openexr'`` or ``'raw'``.
+    width, height : int
+        Size of the returned array (after RAW half-size, if any).
+    channels : int
+        Channels of the returned array: 1 (``HxW``) or 3 (``HxWx3``); alpha is dropped.
+    bit_depth : str
+        Stored sample type: ``'uint8'``, ``'uint16'``, ``'half'``, ``'float'``...
+        (``'uint16'`` for RAW: the LibRaw development depth).
+    transfer : str
+        Transfer curve that was inverted: ``'linear'``, ``'srgb'`` or ``'gamma<g>'``.
+    colorspace : str or None
+        Colour space the file declared as reported by OpenImageIO
+        (``oiio:ColorSpace``), ``None`` if it declared none (always ``None`` for RAW).
+    """
+
+    path: str
+    format: str
+    width: int
+    height: int
+    channels: int
+    bit_depth: str
+    transfer: str
+    colorspace: str | None
+
+
+# --------------------------------------------------------------------------- #
+# Transfer curves
+# --------------------------------------------------------------------------- #
+
+
+def _as_float(x: np.ndarray | float) -> np.ndarray:
+    a = np.asarray(x)
+    if not np.issubdtype(a.dtype, np.floating):
+        a = a.astype(np.float64)
+    return a
+
+
+def srgb_to_linear(x: np.ndarray | float) -> np.ndarray:
+    """Decode sRGB-encoded values to linear light (IEC 61966-2-1).
+
+    Parameters
+    ----------
+    x : array_like
+        Encoded values, nominally in ``[0, 1]``.  Values outside are extended
+        symmetrically (``f(-v) = -f(v)``) and by the power segment above 1.
+
+    Returns
+    -------
+    numpy.ndarray
+        Linear values, same shape; float dtype of the input is kept (integers
+        become float64).
+    """
+    a = _as_float(x)
+    v = np.abs(a)
+    lin = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    return np.copysign(lin, a).astype(a.dtype, copy=False)
+
+
+def linear_to_srgb(x: np.ndarray | float) -> np.ndarray:
+    """Encode linear light with the sRGB curve (inverse of :func:`srgb_to_linear`).
+
+    Parameters
+    ----------
+    x : array_like
+        Linear values, nominally in ``[0, 1]``.
+
+    Returns
+    -------
+    numpy.ndarray
+        sRGB-encoded values, same shape and float dtype rules as :func:`srgb_to_linear`.
+    """
+    a = _as_float(x)
+    v = np.abs(a)
+    enc = np.where(v <= 0.0031308, v * 12.92, 1.055 * v ** (1.0 / 2.4) - 0.055)
+    return np.copysign(enc, a).astype(a.dtype, copy=False)
+
+
+def _gamma_to_linear(x: np.ndarray, gamma: float) -> np.ndarray:
+    a = _as_float(x)
+    return np.copysign(np.abs(a) ** gamma, a).astype(a.dtype, copy=False)
+
+
+_GAMMA_RE = re.compile(r"^gamma\s*([0-9]*\.?[0-9]+)$")
+
+
+def _parse_transfer(transfer: str, *, allow_auto: bool) -> str:
+    """Normalise a user transfer name; ``'gamma2.2'`` style names are accepted."""
+    if not isinstance(transfer, str):
+        raise ValueError(f"transfer must be a string, got {transfer!r}")
+    t = transfer.strip().lower()
+    if t in ("linear", "srgb") or (allow_auto and t == "auto"):
+        return t
+    m = _GAMMA_RE.match(t)
+    if m and float(m.group(1)) > 0:
+        return _gamma_name(float(m.group(1)))
+    allowed = "'auto', 'linear', 'srgb' or 'gamma<g>'" if allow_auto else "'linear' or 'srgb'"
+    raise ValueError(f"unknown transfer {transfer!r}: expected {allowed}")
+
+
+def _gamma_name(g: float) -> str:
+    if abs(g - 1.0) < 1e-3:
+        return "linear"
+    return f"gamma{g:.4g}"
+
+
+def _decoder(transfer: str) -> Callable[[np.ndarray], np.ndarray]:
+    if transfer == "linear":
+        return lambda v: _as_float(v)
+    if transfer == "srgb":
+        return srgb_to_linear
+    g = float(transfer[len("gamma"):])
+    return lambda v: _gamma_to_linear(v, g)
+
+
+@functools.lru_cache(maxsize=16)
+def _decode_lut(transfer: str, levels: int) -> np.ndarray:
+    # Computed in float64 so 8/16-bit codes decode exactly (to float32 rounding).
+    codes = np.arange(levels, dtype=np.float64) / (levels - 1)
+    lut = _decoder(transfer)(codes).astype(np.float32)
+    lut.setflags(write=False)
+    return lut
+
+
+def _auto_transfer(is_float: bool, colorspace: str | None, gamma: float, description: str) -> str:
+    """Decide the transfer curve from file metadata (rules in the module docstring)."""
+    if is_float:
+        if colorspace and not _is_linear_name(colorspace.lower()):
+            logger.warning(
+                "float image declares colour space %r; float data is treated as linear",
+                colorspace,
+            )
+        return "linear"
+    if LINEAR_TIFF_MARKER in description:
+        return "linear"
+    cs = (colorspace or "").strip().lower()
+    if not cs:
+        return _gamma_name(gamma) if gamma > 0 else "srgb"
+    if _is_linear_name(cs):
+        return "linear"
+    if cs.startswith("srgb") or cs == "rec709":  # OIIO maps legacy "Rec709" to sRGB too
+        return "srgb"
+    if gamma > 0:
+        return _gamma_name(gamma)
+    m = re.match(r"^g(\d)(\d)_", cs) or re.match(r"^gamma\s*([0-9])\.?([0-9]*)", cs)
+    if m:
+        return _gamma_name(float(f"{m.group(1)}.{m.group(2) or 0}"))
+    logger.warning("unknown colour space %r on an integer image; assuming sRGB", colorspace)
+    return "srgb"
+
+
+def _is_linear_name(cs: str) -> bool:
+    return cs.startswith("lin") or "linear" in cs or cs.startswith("aces") or cs == "raw"
+
+
+# --------------------------------------------------------------------------- #
+# Reading
+# --------------------------------------------------------------------------- #
+
+
+def _q(path: str) -> str:
+    # repr() keeps messages on one line even for names containing newlines.
+    return repr(path)
+
+
+def _fspath(path: PathLike) -> str:
+    p = os.fspath(path)
+    return os.fsdecode(p) if isinstance(p, bytes) else p
+
+
+def _unencodable(path: str) -> bool:
+    # Names that are not valid UTF-8 on disk (surrogate-escaped by Python) cannot
+    # be passed to OpenImageIO, whose binding only takes UTF-8 strings.
+    try:
+        path.encode("utf-8")
+    except UnicodeEncodeError:
+        return True
+    return False
+
+
+def _check_regular_file(path: str) -> int:
+    """Stat ``path``; return its size or raise a typed error."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise ImageReadError(f"cannot read image {_q(path)}: file not found") from None
+    except PermissionError:
+        raise ImageReadError(f"cannot read image {_q(path)}: permission denied") from None
+    except (OSError, ValueError) as exc:  # ValueError: embedded NUL byte
+        raise ImageReadError(f"cannot read image {_q(path)}: {exc}") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise ImageReadError(f"cannot read image {_q(path)}: is a directory")
+    if not stat.S_ISREG(st.st_mode):
+        # FIFOs/devices would block or stream forever.
+        raise ImageReadError(f"cannot read image {_q(path)}: not a regular file")
+    if st.st_size == 0:
+        raise ImageReadError(f"cannot read image {_q(path)}: file is empty (0 bytes)")
+    if _unencodable(path):
+        raise ImageReadError(f"cannot read image {_q(path)}: file name is not valid UTF-8; rename the file")
+    return st.st_size
+
+
+def _read_head(path: str, n: int = 64) -> bytes:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(n)
+    except OSError as exc:
+        raise ImageReadError(f"cannot read image {_q(path)}: {exc.strerror or exc}") from None
+
+
+def _sniff(head: bytes) -> str | None:
+    for offset, magic, kind in _MAGIC:
+        if head[offset : offset + len(magic)] == magic:
+            return kind
+    return None
+
+
+class _RawUnsupported(Exception):
+    """LibRaw does not recognise the file (internal: lets the caller try OpenImageIO)."""
+
+
+def read_image(
+    path: PathLike,
+    *,
+    transfer: str = "auto",
+    raw_half_size: bool = False,
+    max_pixels: int = 200_000_000,
+) -> tuple[np.ndarray, ImageInfo]:
+    """Read an image as float32 linear light.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Image file (JPEG, PNG, TIFF, OpenEXR or a camera RAW LibRaw decodes).
+        The format is decided by content; the extension only decides whether
+        LibRaw is tried first.  The file is never modified.
+    transfer : {'auto', 'linear', 'srgb', 'gamma<g>'}
+        Transfer curve to invert.  ``'auto'`` follows the file's metadata (see the
+        module docstring); the others force a curve for OpenImageIO formats.
+        RAW files are always developed linearly and ignore this argument.
+    raw_half_size : bool
+        Develop RAW files at half resolution (each 2x2 Bayer block -> one pixel,
+        no demosaicing).  Ignored for other formats.
+    max_pixels : int
+        Refuse images with more than this many pixels (width * height) before any
+        pixel is decoded, to defuse decompression bombs.
+
+    Returns
+    -------
+    pixels : numpy.ndarray
+        ``float32``, ``HxW`` for single-channel images, ``HxWx3`` for colour
+        (alpha and extra channels dropped).  Integer formats and RAW are nominally
+        in ``[0, 1]``; float formats are returned as stored.
+    info : ImageInfo
+        What was read and how it was decoded.
+
+    Raises
+    ------
+    ImageReadError
+        Missing, unreadable, empty, truncated or corrupt file.
+    UnsupportedFormatError
+        Content is not a supported image format (or a RAW LibRaw cannot decode).
+    InvalidImageError
+        Zero or absurd dimensions, or no usable channels.
+    ValueError
+        Unknown ``transfer`` name.
+    """
+    fspath = _fspath(path)
+    want = _parse_transfer(transfer, allow_auto=True)
+    size = _check_regular_file(fspath)
+    head = _read_head(fspath)
+    kind = _sniff(head)
+    ext = os.path.splitext(fspath)[1].lower()
+
+    raw_first = ext in RAW_EXTENSIONS and kind not in _NON_RAW_KINDS
+    raw_note = ""
+    if raw_first:
+        try:
+            return _read_raw(fspath, size, want, raw_half_size, max_pixels)
+        except _RawUnsupported as exc:
+            raw_note = str(exc)
+            logger.debug("%s: LibRaw does not recognise it (%s); trying OpenImageIO", fspath, exc)
+
+    inp, err = _oiio_open(fspath)
+    if inp is None:
+        if err and (("exceeds the" in err and "limit" in err) or "claimed to be" in err):
+            raise InvalidImageError(
+                f"cannot read image {_q(fspath)}: declared size is absurd "
+                f"(possible decompression bomb): {_one_line(err)}"
+            )
+        if kind in SUPPORTED_OIIO_FORMATS:
+            raise ImageReadError(
+                f"cannot read image {_q(fspath)}: corrupt or truncated {kind.upper()} file: "
+                f"{_one_line(err)}"
+            )
+        if not raw_first and kind is None:
+            try:
+                # Content unknown and the name does not claim RAW: any LibRaw
+                # failure to open means "not a RAW", not "broken RAW".
+                return _read_raw(fspath, size, want, raw_half_size, max_pixels, probing=True)
+            except _RawUnsupported as exc:
+                raw_note = str(exc)
+        if kind is not None:
+            raise UnsupportedFormatError(
+                f"cannot read image {_q(fspath)}: {kind} files are not supported "
+                "(JPEG, PNG, TIFF, OpenEXR and camera RAW are)"
+            )
+        start = head[:8]
+        raise UnsupportedFormatError(
+            f"cannot read image {_q(fspath)}: content is not a recognised image format "
+            f"(JPEG, PNG, TIFF, OpenEXR or camera RAW; file starts with {start!r})"
+            + (f"; OpenImageIO: {_one_line(err)}" if err else "")
+        )
+
+    try:
+        spec = inp.spec()
+        if kind == "tiff" and _tiff_looks_raw(head, spec):
+            # OIIO would read IFD0 (usually a thumbnail, or the undemosaiced CFA).
+            inp.close()
+            inp = None
+            if raw_first:
+                raise UnsupportedFormatError(
+                    f"cannot read image {_q(fspath)}: camera RAW that LibRaw cannot decode"
+                    + (f" ({raw_note})" if raw_note else "")
+                )
+            try:
+                return _read_raw(fspath, size, want, raw_half_size, max_pixels)
+            except _RawUnsupported as exc:
+                raise UnsupportedFormatError(
+                    f"cannot read image {_q(fspath)}: looks like a TIFF-based camera RAW "
+                    f"but LibRaw cannot decode it ({exc})"
+                ) from None
+        return _read_oiio(inp, fspath, want, max_pixels)
+    finally:
+        if inp is not None:
+            inp.close()
+
+
+def _one_line(msg: str | None) -> str:
+    return " / ".join(s.strip() for s in (msg or "unknown error").splitlines() if s.strip())
+
+
+def _oiio_open(path: str) -> tuple[oiio.ImageInput | None, str]:
+    oiio.geterror()  # clear stale global errors so the message is about this file
+    config = oiio.ImageSpec()
+    # Keep colour values as stored; OIIO would otherwise premultiply by alpha.
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    try:
+        inp = oiio.ImageInput.open(path, config)
+    except Exception as exc:  # binding-level failures (e.g. unencodable path)
+        return None, f"{type(exc).__name__}: {exc}"
+    if inp is None:
+        return None, oiio.geterror()
+    return inp, ""
+
+
+def _tiff_looks_raw(head: bytes, spec: oiio.ImageSpec) -> bool:
+    """Whether a TIFF-structured file is really a camera RAW (DNG, CR2, NEF, KDC...)."""
+    if head[8:10] == b"CR":  # Canon CR2 signature after the TIFF header
+        return True
+    photometric = spec.get_int_attribute("tiff:PhotometricInterpretation", -1)
+    if photometric in (32803, 34892):  # CFA, LinearRaw (DNG)
+        return True
+    # NewSubfileType bit 0 on the first IFD: it is a reduced-resolution preview,
+    # the real image lives in a SubIFD -- the layout of DNG/NEF/KDC/ARW...
+    return bool(spec.get_int_attribute("tiff:subfiletype", 0) & 1)
+
+
+def _select_channels(spec: oiio.ImageSpec) -> list[int]:
+    names = [str(n) for n in spec.channelnames]
+    upper = [n.upper() for n in names]
+    alpha = spec.alpha_channel
+    if all(c in upper for c in ("R", "G", "B")):
+        return [upper.index("R"), upper.index("G"), upper.index("B")]
+    if "Y" in upper:
+        return [upper.index("Y")]
+    usable = [i for i in range(spec.nchannels) if i != alpha and upper[i] not in ("A", "Z")]
+    if len(usable) >= 3:
+        return usable[:3]
+    return usable[:1]
+
+
+def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int) -> tuple[np.ndarray, ImageInfo]:
+    fmt = inp.format_name()
+    spec = inp.spec()
+    if fmt not in SUPPORTED_OIIO_FORMATS:
+        raise UnsupportedFormatError(
+            f"cannot read image {_q(path)}: {fmt} files are not supported "
+            "(JPEG, PNG, TIFF, OpenEXR and camera RAW are)"
+        )
+    if spec.deep:
+        raise UnsupportedFormatError(f"cannot read image {_q(path)}: deep images are not supported")
+    w, h, d = int(spec.width), int(spec.height), int(spec.depth)
+    if w <= 0 or h <= 0 or d <= 0:
+        raise InvalidImageError(f"cannot read image {_q(path)}: zero dimension ({w}x{h})")
+    if d > 1:
+        raise UnsupportedFormatError(f"cannot read image {_q(path)}: volume images (depth {d}) are not supported")
+    # Checked on the header only: no pixel has been decoded yet.
+    if w * h > max_pixels:
+        raise InvalidImageError(
+            f"cannot read image {_q(path)}: declared size {w}x{h} = {w * h} pixels exceeds "
+            f"the limit of {max_pixels} pixels (possible decompression bomb)"
+        )
+    chans = _select_channels(spec)
+    if not chans:
+        raise InvalidImageError(f"cannot read image {_q(path)}: no colour channel (channels {list(spec.channelnames)})")
+
+    stored = str(spec.format)
+    is_float = stored in _FLOAT_FORMATS
+    colorspace = spec.get_string_attribute("oiio:ColorSpace", "") or None
+    gamma = float(spec.get_float_attribute("oiio:Gamma", 0.0))
+    description = spec.get_string_attribute("ImageDescription", "")
+    tr = _auto_transfer(is_float, colorspace, gamma, description) if want == "auto" else want
+
+    # 8/16-bit are read as integers and decoded through an exact float64 LUT.
+    read_as = stored if stored in ("uint8", "uint16") else "float"
+    try:
+        data = inp.read_image(0, 0, 0, spec.nchannels, read_as)
+    except Exception as exc:  # binding-level failure (e.g. MemoryError)
+        raise ImageReadError(f"cannot read image {_q(path)}: {type(exc).__name__}: {exc}") from None
+    err = inp.geterror()
+    if data is None:
+        raise ImageReadError(f"cannot read image {_q(path)}: corrupt or truncated {fmt.upper()} file: {_one_line(err)}")
+    if err:
+        if re.search(r"extraneous bytes before marker", err) and "Premature" not in err:
+            # libjpeg skipped garbage between markers; the scan decoded completely.
+            logger.warning("%s: %s", path, _one_line(err))
+        else:
+            raise ImageReadError(
+                f"cannot read image {_q(path)}: corrupt or truncated {fmt.upper()} file: {_one_line(err)}"
+            )
+    data = np.asarray(data).reshape(h, w, spec.nchannels)
+    if len(chans) == 1:
+        data = data[..., chans[0]]
+    elif chans != list(range(spec.nchannels)):  # avoid a copy for plain RGB
+        data = data[..., chans]
+
+    if read_as in ("uint8", "uint16"):
+        levels = 256 if read_as == "uint8" else 65536
+        pixels = _decode_lut(tr, levels)[data]
+    else:
+        pixels = np.ascontiguousarray(data, dtype=np.float32)
+        if tr != "linear":
+            pixels = _decoder(tr)(pixels).astype(np.float32, copy=False)
+    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
+
+    info = ImageInfo(
+        path=path,
+        format=fmt,
+        width=w,
+        height=h,
+        channels=1 if pixels.ndim == 2 else int(pixels.shape[2]),
+        bit_depth=stored,
+        transfer=tr,
+        colorspace=colorspace,
+    )
+    logger.debug("read %s: %s", path, info)
+    return pixels, info
+
+
+def _read_raw(
+    path: str, size: int, want: str, half_size: bool, max_pixels: int, *, probing: bool = False
+) -> tuple[np.ndarray, ImageInfo]:
+    """Develop a RAW linearly with LibRaw.
+
+    Raises ``_RawUnsupported`` if LibRaw does not recognise the file (with
+    ``probing=True``: if LibRaw fails to open it for any reason).
+    """
+    if rawpy is None:  # pragma: no cover
+        raise _RawUnsupported("rawpy is not installed")
+    if want != "linear" and want != "auto":
+        logger.warning("%s: transfer=%r ignored for RAW files (always developed linearly)", path, want)
+    try:
+        raw = rawpy.imread(path)
+    except rawpy.LibRawFileUnsupportedError as exc:
+        raise _RawUnsupported(_libraw_msg(exc)) from None
+    except (rawpy.LibRawError, OSError, ValueError, UnicodeError) as exc:
+        if probing:
+            raise _RawUnsupported(_libraw_msg(exc)) from None
+        if isinstance(exc, rawpy.LibRawTooBigError):
+            raise InvalidImageError(
+                f"cannot read image {_q(path)}: RAW dimensions are absurd ({_libraw_msg(exc)})"
+            ) from None
+        raise ImageReadError(f"cannot read image {_q(path)}: RAW file is truncated or corrupt ({_libraw_msg(exc)})") from None
+    try:
+        sizes = raw.sizes
+        rw, rh = int(sizes.raw_width), int(sizes.raw_height)
+        if rw <= 0 or rh <= 0 or sizes.width <= 0 or sizes.height <= 0:
+            raise InvalidImageError(f"cannot read image {_q(path)}: RAW has zero dimension ({rw}x{rh})")
+        if rw * rh > max_pixels:
+            raise InvalidImageError(
+                f"cannot read image {_q(path)}: RAW sensor size {rw}x{rh} exceeds the limit of "
+                f"{max_pixels} pixels"
+            )
+        if size * 8 < _RAW_MIN_BITS_PER_PIXEL * rw * rh:
+            raise ImageReadError(
+                f"cannot read image {_q(path)}: RAW file is truncated or its image data was stripped "
+                f"({size} bytes for a {rw}x{rh} sensor)"
+            )
+        rgb = raw.postprocess(
+            gamma=(1.0, 1.0),  # linear output
+            no_auto_bright=True,  # no data-dependent exposure scaling
+            adjust_maximum_thr=0.0,  # keep the white level fixed (default lowers it per image)
+            use_camera_wb=True,
+            output_bps=16,
+            half_size=half_size,
+            # 0 = never rotate: sensor order, as OIIO does (it ignores EXIF Orientation).
+            user_flip=0,
+        )
+    except (InvalidImageError, ImageReadError):
+        raise
+    except rawpy.LibRawTooBigError as exc:
+        raise InvalidImageError(f"cannot read image {_q(path)}: RAW dimensions are absurd ({_libraw_msg(exc)})") from None
+    except (rawpy.LibRawError, OSError, ValueError, MemoryError) as exc:
+        raise ImageReadError(f"cannot read image {_q(path)}: RAW decoding failed ({_libraw_msg(exc)})") from None
+    finally:
+        raw.close()
+
+    pixels = np.asarray(rgb, dtype=np.float32)
+    pixels *= np.float32(1.0 / 65535.0)
+    if pixels.ndim == 3 and pixels.shape[2] == 1:
+        pixels = pixels[..., 0]
+    h, w = pixels.shape[:2]
+    info = ImageInfo(
+        path=path,
+        format="raw",
+        width=int(w),
+        height=int(h),
+        channels=1 if pixels.ndim == 2 else int(pixels.shape[2]),
+        bit_depth="uint16",
+        transfer="linear",
+        colorspace=None,
+    )
+    logger.debug("read RAW %s: %s", path, info)
+    return pixels, info
+
+
+def _libraw_msg(exc: BaseException) -> str:
+    msg = exc.args[0] if exc.args else exc
+    if isinstance(msg, bytes):
+        msg = msg.decode("utf-8", "replace")
+    return f"{type(exc).__name__}: {msg}"
+
+
+# --------------------------------------------------------------------------- #
+# Writing
+# --------------------------------------------------------------------------- #
+
+_EXT_FORMAT = {".tif": "tiff", ".tiff": "tiff", ".png": "png", ".exr": "openexr"}
+_FORMAT_ALIASES = {"tif": "tiff", "tiff": "tiff", "png": "png", "exr": "openexr", "openexr": "openexr"}
+_FORMAT_EXT = {"tiff": ".tif", "png": ".png", "openexr": ".exr"}
+_FORMAT_DEPTHS = {
+    "tiff": ("uint16", "uint8", "float"),
+    "png": ("uint16", "uint8"),
+    "openexr": ("half", "float"),
+}
+
+
+def _umask() -> int:
+    try:  # Linux: read without the racy set-and-restore dance
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    old = os.umask(0o022)
+    os.umask(old)
+    return old
+
+
+def write_image(
+    path: PathLike,
+    img: np.ndarray,
+    *,
+    format: str | None = None,
+    bit_depth: str | None = None,
+    transfer: str = "linear",
+) -> None:
+    """Write a linear image atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination.  Replaced atomically (temporary file in the same directory,
+        fsync, :func:`os.replace`); never left partially written.
+    img : numpy.ndarray
+        ``HxW``, ``HxWx1`` or ``HxWx3`` linear values (any real dtype).  Integer
+        outputs clip to ``[0, 1]``; float outputs are written as given.
+    format : {'tiff', 'png', 'openexr'}, optional
+        Defaults to the extension (``.tif``/``.tiff``, ``.png``, ``.exr``).
+    bit_depth : {'uint8', 'uint16', 'half', 'float'}, optional
+        Defaults to ``'uint16'`` for TIFF/PNG and ``'half'`` for EXR.  TIFF takes
+        uint8/uint16/float, PNG uint8/uint16, EXR half/float.
+    transfer : {'linear', 'srgb'}
+        Encoding of the stored values; ``'srgb'`` is for integer depths only.  The
+        file is tagged so that :func:`read_image` decodes it back to ``img``.
+
+    Raises
+    ------
+    InvalidImageError
+        ``img`` has an unusable shape or NaN/Inf for an integer output.
+    ImageWriteError
+        Bad format/depth/transfer combination or any I/O failure.
+    """
+    fspath = _fspath(path)
+    q = _q(fspath)
+    if _unencodable(fspath):
+        raise ImageWriteError(f"cannot write {q}: file name is not valid UTF-8")
+    ext = os.path.splitext(fspath)[1].lower()
+    if format is None:
+        fmt = _EXT_FORMAT.get(ext)
+        if fmt is None:
+            raise ImageWriteError(f"cannot write {q}: unknown extension {ext!r} (use .tif, .png or .exr, or pass format=)")
+    else:
+        fmt = _FORMAT_ALIASES.get(str(format).lower())
+        if fmt is None:
+            raise ImageWriteError(f"cannot write {q}: unsupported format {format!r} (tiff, png, openexr)")
+    depth = bit_depth or _FORMAT_DEPTHS[fmt][0]
+    if depth not in _FORMAT_DEPTHS[fmt]:
+        raise ImageWriteError(f"cannot write {q}: {fmt} does not take bit_depth={depth!r} (allowed: {_FORMAT_DEPTHS[fmt]})")
+    try:
+        tr = _parse_transfer(transfer, allow_auto=False)
+    except ValueError as exc:
+        raise ImageWriteError(f"cannot write {q}: {exc}") from None
+    if tr not in ("linear", "srgb"):  # no portable tag to read a pure gamma back
+        raise ImageWriteError(f"cannot write {q}: transfer must be 'linear' or 'srgb', got {transfer!r}")
+    is_int = depth in ("uint8", "uint16")
+    if tr == "srgb" and not is_int:
+        raise ImageWriteError(f"cannot write {q}: transfer='srgb' needs an integer bit_depth (float data is linear)")
+
+    arr = np.asarray(img)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[..., 0]
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3) or arr.size == 0:
+        raise InvalidImageError(f"cannot write {q}: image must be HxW or HxWx3 and non-empty, got shape {arr.shape}")
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer) or arr.dtype == bool):
+        raise InvalidImageError(f"cannot write {q}: unsupported array dtype {arr.dtype}")
+    h, w = arr.shape[:2]
+    nch = 1 if arr.ndim == 2 else 3
+    data = arr.astype(np.float32, copy=False)
+
+    if is_int:
+        if not np.all(np.isfinite(data)):
+            raise InvalidImageError(f"cannot write {q}: NaN/Inf cannot be stored as {depth}")
+        if tr == "srgb":
+            data = linear_to_srgb(data)
+        top = 255.0 if depth == "uint8" else 65535.0
+        # Quantise here (round half up, clipped) rather than trusting OIIO's conversion.
+        data = np.floor(np.clip(data, 0.0, 1.0) * np.float32(top) + np.float32(0.5)).astype(depth)
+    # Always HxWxC: OIIO's Python binding takes a 2-D array as (width, height)
+    # or scanline-major depending on version, which silently transposes gray images.
+    data = np.ascontiguousarray(data.reshape(h, w, nch))
+
+    spec = oiio.ImageSpec(w, h, nch, depth)
+    spec.attribute("Software", "vigproc")
+    if fmt == "tiff":
+        spec.attribute("compression", "zip")
+        if tr == "srgb":
+            spec.attribute("oiio:ColorSpace", "srgb_rec709_scene")  # -> EXIF ColorSpace = sRGB
+        else:
+            # TIFF has no tag OIIO reads back as linear: use our marker; EXIF
+            # ColorSpace "uncalibrated" (also avoids a spurious libtiff EXIF error).
+            spec.attribute("ImageDescription", LINEAR_TIFF_MARKER)
+            spec.attribute("Exif:ColorSpace", 65535)
+    else:
+        spec.attribute("oiio:ColorSpace", "srgb_rec709_scene" if tr == "srgb" else "lin_rec709_scene")
+
+    directory = os.path.dirname(os.path.abspath(fspath))
+    name = os.path.basename(fspath)
+    # Temp name keeps a format extension so OIIO picks the right writer; the
+    # basename is shortened so prefix+suffix stay within NAME_MAX.
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{name[:100]}.tmp-", suffix=_FORMAT_EXT[fmt], dir=directory)
+    except (OSError, ValueError) as exc:
+        raise ImageWriteError(f"cannot write {q}: cannot create a temporary file in {directory!r}: {exc}") from None
+    os.close(fd)
+    done = False
+    try:
+        _oiio_write(tmp, spec, data, q)
+        try:
+            mode = stat.S_IMODE(os.stat(fspath).st_mode)  # keep an existing file's mode
+        except OSError:
+            mode = 0o666 & ~_umask()  # mkstemp made it 0600
+        os.chmod(tmp, mode)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, fspath)
+        done = True
+    except ImageWriteError:
+        raise
+    except OSError as exc:
+        raise ImageWriteError(f"cannot write {q}: {exc.strerror or exc}") from None
+    finally:
+        if not done:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+    _fsync_dir(directory)
+    logger.debug("wrote %s (%s, %s, %s, %dx%dx%d)", fspath, fmt, depth, tr, w, h, nch)
+
+
+def _oiio_write(tmp: str, spec: oiio.ImageSpec, data: np.ndarray, q: str) -> None:
+    oiio.geterror()
+    out = oiio.ImageOutput.create(tmp)
+    if out is None:
+        raise ImageWriteError(f"cannot write {q}: {_one_line(oiio.geterror())}")
+    ok = False
+    try:
+        ok = bool(out.open(tmp, spec)) and bool(out.write_image(data))
+    except Exception as exc:  # binding-level failure
+        out.close()
+        raise ImageWriteError(f"cannot write {q}: {type(exc).__name__}: {exc}") from None
+    ok = bool(out.close()) and ok
+    err = out.geterror()
+    if not ok:
+        raise ImageWriteError(f"cannot write {q}: {_one_line(err or oiio.geterror())}")
+    if err:  # success with a message: libtiff chatter, keep it out of the user's way
+        logger.debug("%s: OpenImageIO reported while writing: %s", tmp, _one_line(err))
+
+
+def _fsync_dir(directory: str) -> None:
+    # Makes the rename durable; best effort (not all filesystems allow it).
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
