@@ -76,7 +76,7 @@ class NaturalPrior:
             "n_blocks": self.n_blocks,
             "block": self.block,
             "source": self.source,
-            **{k: getattr(self, k).round(12).tolist() for k in ("gamma", "beta", "mean", "std")},
+            **{k: getattr(self, k).tolist() for k in ("gamma", "beta", "mean", "std")},
         }
 
     @classmethod

@@ -1,0 +1,30 @@
+"""Shared fixtures: small synthetic images with known vignetting, and the shared data path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def textured(h: int, w: int, seed: int = 0, contrast: float = 0.3) -> np.ndarray:
+    """A positive 'natural-like' texture: log-normal with 1/f-ish smoothing."""
+    rng = np.random.default_rng(seed)
+    noise = rng.normal(size=(h, w))
+    f = np.fft.rfft2(noise)
+    fy = np.fft.fftfreq(h)[:, None]
+    fx = np.fft.rfftfreq(w)[None, :]
+    f /= np.maximum(np.hypot(fx, fy), 1.0 / max(h, w)) ** 0.9
+    tex = np.fft.irfft2(f, s=(h, w))
+    tex = contrast * tex / tex.std()
+    return 0.4 * np.exp(tex)
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    if not SHARED.is_dir():
+        pytest.skip(f"shared data not present at {SHARED}")
+    return SHARED

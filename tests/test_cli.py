@@ -1,0 +1,96 @@
+"""The command line, run as a real subprocess: outputs, JSON, exit codes, hostile names."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vigproc.bench.synthetic import table1_model
+from vigproc.io import read_image, write_image
+
+from conftest import textured
+
+VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+
+
+def run(*args, cwd=None):
+    return subprocess.run([*VIGPROC, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+@pytest.fixture
+def vignetted_tiff(tmp_path):
+    truth = table1_model(2).rescale(240, 160)
+    img = textured(160, 240, seed=1, contrast=0.05) * truth.field()
+    path = tmp_path / "frame.tif"
+    write_image(path, np.repeat(img[..., None], 3, axis=2).astype(np.float32), bit_depth="float")
+    return path, truth
+
+
+def test_estimate_json(vignetted_tiff):
+    path, truth = vignetted_tiff
+    r = run("estimate", path, "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["model"]["width"] == 240
+    c = np.array(doc["model"]["center"])
+    assert np.linalg.norm(c - np.array(truth.center)) < 0.15 * np.linalg.norm(truth.center)
+
+
+def test_correct_writes_outputs_atomically_and_keeps_input(vignetted_tiff, tmp_path):
+    path, truth = vignetted_tiff
+    before = path.read_bytes()
+    out = tmp_path / "out"
+    r = run("correct", path, "-o", out, "--picture", "--json")
+    assert r.returncode == 0, r.stderr
+    assert path.read_bytes() == before
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["frame.corrected.tif", "frame.vignetting.png", "frame.vigproc.json"]
+    corrected, _ = read_image(out / "frame.corrected.tif")
+    src, _ = read_image(path)
+    # the corners were brightened relative to the centre
+    assert corrected[0, 0, 0] / corrected[80, 120, 0] > 2 * src[0, 0, 0] / src[80, 120, 0]
+
+
+def test_hostile_names_stay_inside_output(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    weird = tmp_path / "a b 'q' \"dq\" ; $(rm -rf x) \u00e9\n.tif"
+    weird.write_bytes(path.read_bytes())
+    out = tmp_path / "out"
+    r = run("correct", weird, "-o", out)
+    assert r.returncode == 0, r.stderr
+    produced = list(out.iterdir())
+    assert len(produced) == 2 and all(p.parent == out for p in produced)
+
+
+@pytest.mark.parametrize("content,code", [(b"", 4), (b"not an image at all", 4)])
+def test_bad_files_exit_nonzero_without_traceback(tmp_path, content, code):
+    bad = tmp_path / "bad.jpg"
+    bad.write_bytes(content)
+    r = run("estimate", bad)
+    assert r.returncode == code
+    assert "Traceback" not in r.stderr and "bad.jpg" in r.stderr
+
+
+def test_missing_file_and_partial_failure(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    r = run("correct", path, tmp_path / "missing.tif", "-o", tmp_path / "o")
+    assert r.returncode == 1
+    assert "missing.tif" in r.stderr and "Traceback" not in r.stderr
+    assert (tmp_path / "o" / "frame.corrected.tif").exists()
+
+
+def test_constant_image_is_a_clear_error(tmp_path):
+    p = tmp_path / "flat.tif"
+    write_image(p, np.full((64, 64, 3), 0.5, np.float32), bit_depth="float")
+    r = run("estimate", p)
+    assert r.returncode == 3 and "constant" in r.stderr
+
+
+def test_demo_runs_on_bundled_samples(tmp_path):
+    r = run("demo", "-o", tmp_path / "demo")
+    assert r.returncode == 0, r.stderr
+    assert len(list((tmp_path / "demo").glob("*.corrected.tif"))) == 3
+    assert len(list((tmp_path / "demo").glob("*.vignetting.png"))) == 3

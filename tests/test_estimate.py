@@ -1,0 +1,104 @@
+"""The estimators on images with known vignetting."""
+
+import numpy as np
+import pytest
+
+import vigproc
+from vigproc.bench.synthetic import relative_errors, table1_model
+from vigproc.errors import InvalidImageError
+
+from conftest import textured
+
+
+@pytest.mark.parametrize("setting", [1, 2, 3])
+def test_default_recovers_table1_on_mild_texture(setting):
+    truth = table1_model(setting)
+    img = textured(320, 480, seed=setting, contrast=0.05) * truth.field()
+    m = vigproc.estimate(img, channel_axis=None)
+    assert not m.quality.fallback
+    rp, rc, _ = relative_errors(m, truth)
+    assert rp < 0.10
+    if setting > 1:
+        assert rc < 0.10
+    err = np.log2(m.field() / truth.field())
+    assert np.sqrt(np.mean(err**2)) < 0.1
+
+
+def test_default_falls_back_on_vignetting_free_texture():
+    m = vigproc.estimate(textured(320, 480, seed=11, contrast=0.3), channel_axis=None)
+    assert m.quality.fallback
+    assert m.is_identity
+    assert m.candidate is not None
+
+
+def test_ga_is_exact_for_a_gaussian_field():
+    # GA's Eq. (7) model is exact for φ = exp(-½ (v-c)ᵀP(v-c)) on a flat scene
+    h, w = 320, 480
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    dx, dy = x - (w - 1) / 2 + 30, y - (h - 1) / 2 - 20
+    p = (2e-5, 4e-6, 3e-5)
+    img = np.exp(-0.5 * (p[0] * dx * dx + 2 * p[1] * dx * dy + p[2] * dy * dy))
+    m = vigproc.estimate(img, "ga", channel_axis=None)
+    np.testing.assert_allclose(m.p, p, rtol=1e-6)
+    np.testing.assert_allclose(m.center, (-30, 20), atol=1e-3)
+
+
+def test_lyu2010_runs_and_stays_valid():
+    truth = table1_model(2)
+    img = textured(320, 480, seed=5, contrast=0.1) * truth.field()
+    m = vigproc.estimate(img, "lyu2010", channel_axis=None)
+    assert m.method == "lyu2010"
+    assert np.all(np.isfinite(m.field()))
+    assert m.quality.objective >= 0
+
+
+def test_colour_and_channel_axis():
+    truth = table1_model(1)
+    g = textured(320, 480, seed=2, contrast=0.1) * truth.field()
+    rgb = np.stack([g, g * 0.8, g * 1.1], axis=-1)
+    a = vigproc.estimate(rgb)
+    b = vigproc.estimate(np.moveaxis(rgb, -1, 0), channel_axis=0)
+    assert a.center == b.center and a.p == b.p
+
+
+def test_estimate_at_other_resolution_maps_to_full_frame():
+    truth = table1_model(2).rescale(960, 640)
+    img = textured(640, 960, seed=4, contrast=0.05) * truth.field()
+    for method in ("default", "ga"):
+        m = vigproc.estimate(img, method, channel_axis=None)
+        assert (m.width, m.height) == (960, 640)
+    rp, rc, _ = relative_errors(vigproc.estimate(img, channel_axis=None), truth)
+    assert rp < 0.1 and rc < 0.1
+
+
+def test_correct_removes_known_field():
+    truth = table1_model(3)
+    clean = textured(320, 480, seed=8)
+    out = vigproc.correct((clean * truth.field()).astype(np.float32), truth, channel_axis=None)
+    np.testing.assert_allclose(out, clean, rtol=1e-5)
+    half = vigproc.correct(clean * truth.field(), truth, channel_axis=None, strength=0.0)
+    np.testing.assert_allclose(half, clean * truth.field(), rtol=1e-6)
+
+
+@pytest.mark.parametrize("img,msg", [
+    (np.full((64, 64), np.nan), "NaN"),
+    (np.full((64, 64), 0.5), "constant"),
+    (np.zeros((64, 64)), "no positive"),
+    (-np.ones((64, 64)), "no positive"),
+    (np.ones((4, 4)), "too small"),
+    (np.ones((8, 8, 8, 8)), "H×W"),
+    (np.ones((64, 64, 9)), "channels"),
+])
+def test_bad_input_is_a_typed_error(img, msg):
+    with pytest.raises(InvalidImageError, match=msg):
+        vigproc.estimate(img, channel_axis=-1 if img.ndim == 3 else None)
+
+
+def test_small_image_for_paper_method():
+    with pytest.raises(InvalidImageError, match="too small"):
+        vigproc.estimate(textured(40, 60), "lyu2010", channel_axis=None)
+
+
+def test_unknown_method():
+    with pytest.raises(ValueError, match="unknown method"):
+        vigproc.estimate(textured(64, 64), "magic", channel_axis=None)

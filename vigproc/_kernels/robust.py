@@ -1,0 +1,195 @@
+"""Numba kernels of the default (robust per-pixel) estimator.
+
+The data are log-intensity differences d = L(v + s·e) − L(v) between valid pixels of
+a binned working copy, for steps s and directions e ∈ {x, y}. A model F(v; θ) = log φ
+predicts them as F(v + s·e) − F(v); the residual e = d − ΔF is scored with the
+Cauchy loss ρ(e) = log(1 + (e/σ_s)²), minimised by iteratively reweighted
+Gauss-Newton (weights w = 1 / (1 + (e/σ_s)²)).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+N_PARAMS = 12
+#: Loss kinds: Cauchy ρ(u) = log(1 + u²); Huber ρ(u) = u²/2 (|u| ≤ 1), |u| − ½ otherwise.
+CAUCHY = 0
+HUBER = 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rho_w(u2, kind):
+    """Loss ρ and IRLS weight w (with ρ'(u) ∝ w·u) for squared normalised residual u²."""
+    if kind == CAUCHY:
+        return np.log1p(u2), 1.0 / (1.0 + u2)
+    if u2 <= 1.0:
+        return 0.5 * u2, 1.0
+    a = np.sqrt(u2)
+    return a - 0.5, 1.0 / a
+
+
+@njit(cache=True, nogil=True)
+def kw_field_and_jacobian(xs, ys, theta, F, J):
+    """log φ and ∂ log φ / ∂θ on the grid (xs, ys), θ = (cx, cy, p1, p2, p3, α1..α7).
+
+    Coordinates and θ are in any consistent unit (the estimator uses the frame's
+    half-diagonal). Returns the smallest G on the grid.
+    """
+    cx, cy, p1, p2, p3 = theta[0], theta[1], theta[2], theta[3], theta[4]
+    na = theta.shape[0] - 5
+    gmin = np.inf
+    for j in range(ys.shape[0]):
+        dy = ys[j] - cy
+        for i in range(xs.shape[0]):
+            dx = xs[i] - cx
+            q = p1 * dx * dx + 2.0 * p2 * dx * dy + p3 * dy * dy
+            if q < 0.0:
+                q = 0.0
+            r = np.sqrt(q)
+            # G = 1 − Σ α_k r^k and dG/dr, by Horner
+            g = 0.0
+            dg = 0.0
+            for k in range(na - 1, -1, -1):
+                dg = dg * r + (k + 1) * theta[5 + k]
+                g = (g + theta[5 + k]) * r
+            g = 1.0 - g
+            dg = -dg
+            if g < gmin:
+                gmin = g
+            gs = g if g > 1e-9 else 1e-9
+            F[j, i] = -2.0 * np.log1p(0.25 * q) + np.log(gs)
+            rs = r if r > 1e-9 else 1e-9
+            dfdq = -0.5 / (1.0 + 0.25 * q) + dg / (2.0 * rs * gs)
+            J[j, i, 0] = dfdq * (-2.0) * (p1 * dx + p2 * dy)
+            J[j, i, 1] = dfdq * (-2.0) * (p2 * dx + p3 * dy)
+            J[j, i, 2] = dfdq * dx * dx
+            J[j, i, 3] = dfdq * 2.0 * dx * dy
+            J[j, i, 4] = dfdq * dy * dy
+            rk = 1.0
+            for k in range(na):
+                rk *= r
+                J[j, i, 5 + k] = -rk / gs
+    return gmin
+
+
+@njit(cache=True, nogil=True)
+def kw_field(xs, ys, theta, F):
+    """log φ on the grid only (cheap trial evaluations); returns the smallest G."""
+    cx, cy, p1, p2, p3 = theta[0], theta[1], theta[2], theta[3], theta[4]
+    na = theta.shape[0] - 5
+    gmin = np.inf
+    for j in range(ys.shape[0]):
+        dy = ys[j] - cy
+        for i in range(xs.shape[0]):
+            dx = xs[i] - cx
+            q = p1 * dx * dx + 2.0 * p2 * dx * dy + p3 * dy * dy
+            if q < 0.0:
+                q = 0.0
+            r = np.sqrt(q)
+            g = 0.0
+            for k in range(na - 1, -1, -1):
+                g = (g + theta[5 + k]) * r
+            g = 1.0 - g
+            if g < gmin:
+                gmin = g
+            F[j, i] = -2.0 * np.log1p(0.25 * q) + np.log(g if g > 1e-9 else 1e-9)
+    return gmin
+
+
+@njit(cache=True, nogil=True)
+def robust_loss(L, valid, F, steps, sigma, kind=CAUCHY):
+    """Σ ρ(e) over all valid pairs, and the number of pairs."""
+    h, w = L.shape
+    loss = 0.0
+    n = 0
+    for si in range(steps.shape[0]):
+        s = steps[si]
+        inv = 1.0 / (sigma[si] * sigma[si])
+        for j in range(h):
+            for i in range(w):
+                if not valid[j, i]:
+                    continue
+                if i + s < w and valid[j, i + s]:
+                    e = (L[j, i + s] - L[j, i]) - (F[j, i + s] - F[j, i])
+                    loss += _rho_w(e * e * inv, kind)[0]
+                    n += 1
+                if j + s < h and valid[j + s, i]:
+                    e = (L[j + s, i] - L[j, i]) - (F[j + s, i] - F[j, i])
+                    loss += _rho_w(e * e * inv, kind)[0]
+                    n += 1
+    return loss, n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _accumulate(H, g, jv, e, wt):
+    n = jv.shape[0]
+    for a in range(n):
+        ja = jv[a] * wt
+        g[a] += ja * e
+        for b in range(a, n):
+            H[a, b] += ja * jv[b]
+
+
+@njit(cache=True, nogil=True)
+def normal_equations(L, valid, F, J, steps, sigma, kind=CAUCHY):
+    """IRLS Gauss-Newton system for the robust loss ``kind``.
+
+    Returns
+    -------
+    H : (n, n) Σ w/σ² j jᵀ over pairs (j = ΔJ), symmetric
+    g : (n,)   Σ w/σ² j e
+    loss : Σ ρ(e)
+    n_pairs : int
+    """
+    h, w = L.shape
+    n = J.shape[2]
+    H = np.zeros((n, n))
+    g = np.zeros(n)
+    jv = np.empty(n)
+    loss = 0.0
+    npairs = 0
+    for si in range(steps.shape[0]):
+        s = steps[si]
+        inv = 1.0 / (sigma[si] * sigma[si])
+        for j in range(h):
+            for i in range(w):
+                if not valid[j, i]:
+                    continue
+                for d in range(2):
+                    if d == 0:
+                        j2, i2 = j, i + s
+                    else:
+                        j2, i2 = j + s, i
+                    if i2 >= w or j2 >= h or not valid[j2, i2]:
+                        continue
+                    e = (L[j2, i2] - L[j, i]) - (F[j2, i2] - F[j, i])
+                    rho, wt = _rho_w(e * e * inv, kind)
+                    loss += rho
+                    npairs += 1
+                    for a in range(n):
+                        jv[a] = J[j2, i2, a] - J[j, i, a]
+                    _accumulate(H, g, jv, e, inv * wt)
+    for a in range(n):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g, loss, npairs
+
+
+@njit(cache=True, nogil=True)
+def pair_residuals(L, valid, F, s):
+    """All residuals of step ``s`` (both directions), for robust scale estimates."""
+    h, w = L.shape
+    out = np.empty(2 * h * w)
+    n = 0
+    for j in range(h):
+        for i in range(w):
+            if not valid[j, i]:
+                continue
+            if i + s < w and valid[j, i + s]:
+                out[n] = (L[j, i + s] - L[j, i]) - (F[j, i + s] - F[j, i])
+                n += 1
+            if j + s < h and valid[j + s, i]:
+                out[n] = (L[j + s, i] - L[j, i]) - (F[j + s, i] - F[j, i])
+                n += 1
+    return out[:n]

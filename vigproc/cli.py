@@ -1,0 +1,307 @@
+"""The ``vigproc`` command line.
+
+Every user-facing failure is a :class:`~vigproc.errors.VigprocError` turned into one
+line on stderr and its exit code; no traceback reaches the user.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from dataclasses import asdict
+from importlib import resources
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from vigproc.errors import ImageWriteError, VigprocError
+
+log = logging.getLogger("vigproc")
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".dng", ".cr2", ".cr3", ".nef", ".arw",
+                  ".raf", ".orf", ".rw2", ".pef", ".srw", ".kdc"}
+
+
+def _images_in(folder: Path, limit: int | None = None) -> list[Path]:
+    if not folder.is_dir():
+        raise VigprocError(f"not a folder: {folder}")
+    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise VigprocError(f"no images found under {folder}")
+    return files[:limit] if limit else files
+
+
+def _safe_output(outdir: Path, src: Path, suffix: str) -> Path:
+    """Output path inside ``outdir`` named after ``src``; never escapes ``outdir``."""
+    name = src.stem.replace(os.sep, "_").lstrip(".") or "image"
+    out = (outdir / f"{name}{suffix}").resolve()
+    if out.parent != outdir.resolve():
+        raise ImageWriteError(f"refusing to write outside {outdir}: {out}")
+    return out
+
+
+# ----------------------------------------------------------------- commands
+def cmd_estimate(args: argparse.Namespace) -> int:
+    from vigproc.estimate import estimate
+    from vigproc.io import read_image
+
+    img, info = read_image(args.file, transfer=args.input_transfer)
+    m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed)
+    if args.json:
+        print(json.dumps({"file": str(args.file), "model": m.to_dict()}, indent=1))
+    else:
+        q = m.quality
+        print(f"{args.file}: {info.width}x{info.height} {info.format} ({info.transfer})")
+        print(f"  method      {m.method}")
+        print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
+        print(f"  P (px^-2)   p1={m.p[0]:.4g} p2={m.p[1]:.4g} p3={m.p[2]:.4g}")
+        print(f"  alpha       {', '.join(f'{a:.4g}' for a in m.alpha)}")
+        print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame")
+        if q is not None and m.method == "robust":
+            state = "NOT applied (weak evidence)" if q.fallback else "applied"
+            print(f"  confidence  {q.confidence:.2f} (SNR {q.snr:.1f}, ±{q.field_sigma_ev:.3f} EV): {state}")
+    return 0
+
+
+def _process_one(path: Path, outdir: Path, method: str, transfer: str, picture: bool) -> dict:
+    from vigproc.correct import correct
+    from vigproc.estimate import estimate
+    from vigproc.io import read_image, write_image
+    from vigproc.picture import vignetting_picture
+
+    t0 = time.perf_counter()
+    img, info = read_image(path, transfer=transfer)
+    m = estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)
+    out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None)
+    dst = _safe_output(outdir, path, ".corrected.tif")
+    write_image(dst, out, bit_depth="float")
+    rec = {"file": str(path), "output": str(dst), "model": m.to_dict(), "seconds": round(time.perf_counter() - t0, 4)}
+    if picture:
+        pic = _safe_output(outdir, path, ".vignetting.png")
+        write_image(pic, vignetting_picture(m if m.candidate is None else m.candidate), bit_depth="uint8", transfer="srgb")
+        rec["picture"] = str(pic)
+    side = _safe_output(outdir, path, ".vigproc.json")
+    from vigproc.atomic import atomic_write_text
+
+    atomic_write_text(side, json.dumps(rec, indent=1) + "\n")
+    return rec
+
+
+def cmd_correct(args: argparse.Namespace) -> int:
+    outdir = Path(args.output)
+    outdir.mkdir(parents=True, exist_ok=True)
+    files = [Path(f) for f in args.files]
+    failed = 0
+    results = []
+    for f in files:
+        try:
+            rec = _process_one(f, outdir, args.method, args.input_transfer, args.picture)
+            results.append(rec)
+            q = rec["model"].get("quality") or {}
+            if not args.json:
+                tag = "no correction (weak evidence)" if q.get("fallback") else f"{q.get('field_ev_rms', 0):.2f} EV fall-off removed"
+                print(f"{f} -> {rec['output']}  [{tag}]")
+        except VigprocError as exc:
+            failed += 1
+            results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
+            print(f"vigproc: {exc}", file=sys.stderr)
+    if args.json:
+        print(json.dumps({"results": results, "done": len(files) - failed, "failed": failed}, indent=1))
+    else:
+        print(f"{len(files) - failed} corrected, {failed} failed; outputs in {outdir}")
+    return 0 if failed == 0 else 1
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Estimate and correct the bundled sample images with the embedded defaults."""
+    samples = resources.files("vigproc.data").joinpath("samples")
+    files = sorted(Path(str(samples)).glob("*.jpg"))
+    if not files:
+        raise VigprocError("the bundled samples are missing from this installation")
+    ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
+                            input_transfer="auto", picture=True, json=False)
+    return cmd_correct(ns)
+
+
+def cmd_prior_fit(args: argparse.Namespace) -> int:
+    from vigproc.io import read_image
+    from vigproc.prior import fit_prior
+
+    files = _images_in(Path(args.folder), args.limit)
+
+    def images():
+        for f in files:
+            try:
+                yield read_image(f)[0]
+            except VigprocError as exc:
+                log.warning("skipping %s", exc)
+
+    source = args.source or f"vigproc prior fit {args.folder} --blocks-per-image {args.blocks_per_image} --seed {args.seed}"
+    prior = fit_prior(images(), blocks_per_image=args.blocks_per_image, seed=args.seed, source=source)
+    prior.save(args.output)
+    print(f"fitted on {prior.n_blocks} blocks ({len(files)} images) -> {args.output}")
+    return 0
+
+
+def _estimator(method: str, seed: int = 0):
+    from vigproc.estimate import estimate
+
+    return lambda v: estimate(v, method, channel_axis=None, seed=seed)
+
+
+def cmd_bench_synthetic(args: argparse.Namespace) -> int:
+    from vigproc.bench import synthetic as S
+    from vigproc.io import read_image
+
+    files = _images_in(Path(args.images), args.limit)
+    ims = [S.protocol_image(read_image(f, transfer="linear")[0]) for f in files]
+    methods = {"ga": "ga", "lyu2010-rand": "lyu2010-rand", "lyu2010": "lyu2010", "default": "default"}
+    chosen = {k: _estimator(v) for k, v in methods.items() if k in args.methods}
+    for fn in chosen.values():  # JIT warm-up outside the timings
+        fn(ims[0])
+    print(f"Lyu 2010 synthetic protocol: {len(ims)} images from {args.images}, "
+          f"{'8-bit quantised' if args.quantize else 'float'}")
+    print(S.HEADER)
+    rows = S.run(ims, chosen, quantize=args.quantize, progress=print)
+    if args.json:
+        S.write_json(rows, Path(args.json), {"images": str(args.images), "n": len(ims), "quantize": args.quantize})
+    return 0
+
+
+def cmd_bench_lensfun(args: argparse.Namespace) -> int:
+    from vigproc.bench import lensfun as B
+    from vigproc.bench.synthetic import protocol_image
+    from vigproc.io import read_image
+
+    files = _images_in(Path(args.images), args.limit)
+    ims = [protocol_image(read_image(f)[0]) for f in files]
+    results = []
+    print(f"lensfun protocol: {args.lenses} lenses x {args.frames_per_lens} frames from {len(ims)} images "
+          f"(linearised, 480x320); RMS of log2(estimated/true field)")
+    print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'p90 EV':>9}{'uncorr EV':>11}{'fallbk':>8}{'s/img':>8}")
+    for name in args.methods:
+        fn = _estimator(name)
+        fn(ims[0])
+        r = B.run_lensfun(ims, name, fn, args.lenses, args.frames_per_lens)
+        results.append(asdict(r))
+        print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}{r.uncorrected_median_ev:>11.3f}"
+              f"{r.fallbacks:>8}{r.seconds_per_image:>8.3f}")
+    print("do no harm (same images, no vignetting): RMS log2 of the applied field")
+    print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'cand. med':>11}{'fallbk':>8}")
+    for name in args.methods:
+        r = B.run_flat(ims, name, _estimator(name))
+        results.append(asdict(r))
+        print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.candidate_median_ev:>11.3f}{r.fallbacks:>8}")
+    if args.json:
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(args.json), json.dumps(results, indent=1) + "\n")
+    return 0
+
+
+def cmd_bench_speed(args: argparse.Namespace) -> int:
+    from vigproc.bench.synthetic import table1_model
+    from vigproc.estimate import estimate
+
+    rng = np.random.default_rng(0)
+    img = np.exp(rng.normal(-1.0, 0.3, (320, 480))) * table1_model(2).field()
+    for method in ("ga", "default"):
+        estimate(img, method, channel_axis=None)  # JIT warm-up
+        ts = []
+        for _ in range(args.repeat):
+            t0 = time.perf_counter()
+            estimate(img, method, channel_axis=None)
+            ts.append(time.perf_counter() - t0)
+        print(f"{method:<10} 480x320: median {1000 * np.median(ts):.1f} ms, min {1000 * np.min(ts):.1f} ms over {args.repeat} runs")
+    return 0
+
+
+# ------------------------------------------------------------------ parser
+def build_parser() -> argparse.ArgumentParser:
+    from vigproc.estimate import METHODS
+
+    p = argparse.ArgumentParser(prog="vigproc", description="Lens vignetting: estimate, correct, learn, check.")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def transfer_opt(sp):
+        sp.add_argument("--input-transfer", choices=("auto", "linear", "srgb"), default="auto",
+                        help="how to decode stored values to linear light (default: from the file's metadata)")
+
+    sp = sub.add_parser("estimate", help="estimate the vignetting of one image")
+    sp.add_argument("file")
+    sp.add_argument("--method", choices=METHODS, default="default")
+    sp.add_argument("--json", action="store_true")
+    sp.add_argument("--seed", type=int, default=0)
+    transfer_opt(sp)
+    sp.set_defaults(fn=cmd_estimate)
+
+    sp = sub.add_parser("correct", help="estimate and remove vignetting, writing float TIFFs")
+    sp.add_argument("files", nargs="+")
+    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("--method", choices=METHODS, default="default")
+    sp.add_argument("--picture", action="store_true", help="also write a PNG picture of each estimated field")
+    sp.add_argument("--json", action="store_true")
+    transfer_opt(sp)
+    sp.set_defaults(fn=cmd_correct)
+
+    sp = sub.add_parser("demo", help="correct the bundled sample images (the README's first command)")
+    sp.add_argument("-o", "--output", default="vigproc-demo")
+    sp.set_defaults(fn=cmd_demo)
+
+    sp = sub.add_parser("prior", help="natural-image prior of the paper's method")
+    psub = sp.add_subparsers(dest="prior_command", required=True)
+    fp = psub.add_parser("fit", help="fit the prior on a folder of vignetting-free images")
+    fp.add_argument("folder")
+    fp.add_argument("-o", "--output", required=True)
+    fp.add_argument("--blocks-per-image", type=int, default=4)
+    fp.add_argument("--seed", type=int, default=0)
+    fp.add_argument("--limit", type=int)
+    fp.add_argument("--source", help="provenance text stored in the prior")
+    fp.set_defaults(fn=cmd_prior_fit)
+
+    sp = sub.add_parser("bench", help="benchmarks (print measured figures)")
+    bsub = sp.add_subparsers(dest="bench_command", required=True)
+    bp = bsub.add_parser("synthetic", help="Lyu 2010 Tables 2-3 protocol")
+    bp.add_argument("--images", required=True)
+    bp.add_argument("--limit", type=int)
+    bp.add_argument("--quantize", action="store_true")
+    bp.add_argument("--methods", nargs="+", default=["ga", "lyu2010-rand", "lyu2010", "default"],
+                    choices=["ga", "lyu2010-rand", "lyu2010", "default"])
+    bp.add_argument("--json")
+    bp.set_defaults(fn=cmd_bench_synthetic)
+    bp = bsub.add_parser("lensfun", help="real lens profiles from lensfun applied to natural images")
+    bp.add_argument("--images", required=True)
+    bp.add_argument("--limit", type=int)
+    bp.add_argument("--lenses", type=int, default=20)
+    bp.add_argument("--frames-per-lens", type=int, default=5)
+    bp.add_argument("--methods", nargs="+", default=["default"], choices=list(METHODS))
+    bp.add_argument("--json")
+    bp.set_defaults(fn=cmd_bench_lensfun)
+    bp = bsub.add_parser("speed", help="estimator timings on a 480x320 frame")
+    bp.add_argument("--repeat", type=int, default=20)
+    bp.set_defaults(fn=cmd_bench_speed)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.fn(args) or 0)
+    except VigprocError as exc:
+        print(f"vigproc: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("vigproc: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,120 @@
+"""Public estimation API: one linear image in, a :class:`VignettingModel` out."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import numpy as np
+
+from vigproc.errors import InvalidImageError
+from vigproc.image import bin_mean, check_image, log_image, luminance
+from vigproc.model import VignettingModel
+from vigproc.prior import NaturalPrior, default_prior
+from vigproc.robust import RobustSettings, estimate_robust
+
+log = logging.getLogger(__name__)
+
+#: Methods :func:`estimate` accepts; "default" is vigproc's robust estimator.
+METHODS = ("default", "robust", "lyu2010", "lyu2010-rand", "ga")
+#: Long side of the working copy used by the paper's methods (its protocol size).
+LYU_WORK_SIZE = 480
+#: A pixel at or above this fraction of the frame's maximum counts as clipped
+#: when more than ``CLIP_MIN_FRACTION`` of the pixels reach it.
+CLIP_LEVEL = 0.995
+CLIP_MIN_FRACTION = 1e-3
+
+
+def clipped_mask(img: np.ndarray) -> np.ndarray | None:
+    """Pixels that are not clipped highlights (any channel), or None if none are clipped.
+
+    Clipped areas have zero gradient whatever the vignetting, so they would pull the
+    estimate towards "no vignetting".
+    """
+    peak = float(img.max())
+    hot = img >= CLIP_LEVEL * peak
+    if img.ndim == 3:
+        hot = hot.any(axis=2)
+    if hot.mean() < CLIP_MIN_FRACTION:
+        return None
+    return ~hot
+
+
+def _from_working(m: VignettingModel, k: int, width: int, height: int) -> VignettingModel:
+    """Map a model estimated on a k×k-binned copy (remainder cropped) to the full frame."""
+    if k == 1 and (m.width, m.height) == (width, height):
+        return m
+    # the binned frame's centre sits (W_b·k − W)/2 px from the full frame's centre
+    ox = (m.width * k - width) / 2.0
+    oy = (m.height * k - height) / 2.0
+    p1, p2, p3 = m.p
+    return replace(
+        m, width=width, height=height,
+        center=(m.center[0] * k + ox, m.center[1] * k + oy),
+        p=(p1 / k**2, p2 / k**2, p3 / k**2),
+    )
+
+
+def estimate(
+    img: np.ndarray, method: str = "default", *, channel_axis: int | None = -1,
+    prior: NaturalPrior | None = None, settings: RobustSettings | None = None,
+    seed: int | None = None,
+) -> VignettingModel:
+    """Estimate the vignetting function of one linear image.
+
+    Parameters
+    ----------
+    img : ndarray
+        H×W or H×W×C (``channel_axis``) linear intensities, any float/int dtype.
+        Colour images are reduced to Rec. 709 luminance.
+    method : {"default", "robust", "lyu2010", "lyu2010-rand", "ga"}
+        "default"/"robust": vigproc's robust per-pixel estimator, with fall-back to
+        no correction when the evidence is weak. "lyu2010": the paper's Gaussian
+        approximation followed by the ML fit of Eq. (6). "lyu2010-rand": the ML fit
+        from a random start. "ga": Gaussian approximation only (Eqs. 17–20).
+    channel_axis : int or None
+        Axis of colour channels; None for a 2-D image.
+    prior : NaturalPrior, optional
+        Natural-image prior for the paper's methods (default: the shipped one).
+    settings : RobustSettings, optional
+        Tuning of the default estimator.
+    seed : int, optional
+        Seed for "lyu2010-rand".
+
+    Returns
+    -------
+    VignettingModel
+        Parameters for the input's full H×W frame.
+
+    Raises
+    ------
+    InvalidImageError
+        Bad dimensions, NaN/Inf, no positive pixel, constant image, or too small
+        for the method (the paper's methods need 51×51 px at the working size).
+
+    References
+    ----------
+    S. Lyu, ACM MM&Sec 2010 (methods "lyu2010", "ga").
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    a = check_image(img, channel_axis)
+    h, w = a.shape[:2]
+    keep = clipped_mask(a)
+    lum = luminance(a)
+    if method in ("default", "robust"):
+        return estimate_robust(lum, settings or RobustSettings(), keep)
+
+    from vigproc.lyu2010 import estimate_lyu2010
+
+    k = max(1, -(-max(h, w) // LYU_WORK_SIZE))
+    work, _ = bin_mean(lum, k)
+    if min(work.shape) < 2 * (prior or default_prior()).delta_max + 1:
+        raise InvalidImageError(
+            f"image of {w}x{h} px is too small for method {method!r} (needs 51 px a side)"
+        )
+    m = estimate_lyu2010(
+        log_image(work), prior or default_prior(), ml=method != "ga",
+        random_start=method == "lyu2010-rand", seed=seed,
+    )
+    return _from_working(m, k, w, h)
