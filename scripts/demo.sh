@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# The main job on the bundled sample images with the embedded defaults: estimate and
+# correct each one, writing corrected float TIFFs, a picture of each estimated
+# vignetting and a JSON record into ${1:-vigproc-demo}/.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+bash "$root/scripts/bootstrap.sh"
+exec "$root/.venv/bin/vigproc" demo -o "${1:-vigproc-demo}"
