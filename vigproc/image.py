@@ -104,6 +104,9 @@ def bin_mean(a: np.ndarray, k: int, mask: np.ndarray | None = None) -> tuple[np.
     valid : ndarray of bool, same shape
     """
     h, w = a.shape
+    if k == 1:
+        valid = np.ones((h, w), dtype=bool) if mask is None else mask.copy()
+        return np.array(a, dtype=np.float64), valid
     hb, wb = h // k, w // k
     blocks = np.asarray(a[: hb * k, : wb * k], dtype=np.float64).reshape(hb, k, wb, k)
     binned = blocks.mean(axis=(1, 3))

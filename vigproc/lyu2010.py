@@ -234,8 +234,7 @@ def estimate_lyu2010(
     center, p = gaussian_approximation(means, prior, h, w)
     alpha = np.zeros(N_ALPHA)
     if not ml:
-        mm, _ = model_derivative_means(h, w, center, p, alpha, dmax)
-        q = FitQuality(objective=ml_objective_terms(means, mm, prior), seconds=time.perf_counter() - t0)
+        q = FitQuality(seconds=time.perf_counter() - t0)
         return VignettingModel(w, h, center=center, p=p, alpha=tuple(alpha), method="ga", quality=q)
     method = "lyu2010"
     if random_start:

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from vigproc._kernels.field import log_field_grid
+from vigproc._kernels.field import log_field_grid, log_field_grid_parallel
 from vigproc.errors import ModelError
 
 #: Degree of the geometric polynomial G (Lyu 2010 fixes k = 7).
@@ -185,7 +185,9 @@ class VignettingModel:
         if m.is_identity:
             out.fill(0.0)
             return out
-        gmin = log_field_grid(
+        # threads pay off only on large grids
+        kernel = log_field_grid_parallel if out.size >= 1 << 20 else log_field_grid
+        gmin = kernel(
             frame_coords(out.shape[1]),
             frame_coords(out.shape[0]),
             m.center[0],

@@ -15,6 +15,7 @@ images of ``shared/data/natural`` (see :data:`SHIPPED_PRIOR` for the command).
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -107,10 +108,14 @@ class NaturalPrior:
             raise PriorError(f"cannot read prior {path}: {exc}") from None
 
 
+@functools.lru_cache(maxsize=1)
 def default_prior() -> NaturalPrior:
-    """The prior shipped with vigproc (fitted on shared/data/natural)."""
+    """The prior shipped with vigproc (fitted on shared/data/natural); read-only arrays."""
     text = resources.files("vigproc.data").joinpath(SHIPPED_PRIOR).read_text()
-    return NaturalPrior.from_dict(json.loads(text))
+    prior = NaturalPrior.from_dict(json.loads(text))
+    for a in (prior.gamma, prior.beta, prior.mean, prior.std):
+        a.setflags(write=False)
+    return prior
 
 
 def ggd_moment_match(samples: np.ndarray) -> tuple[float, float]:

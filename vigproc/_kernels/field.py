@@ -38,25 +38,40 @@ def log_phi_point(dx, dy, p1, p2, p3, alpha):
     return -2.0 * np.log1p(0.25 * q) + np.log(g)
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, inline="always")
+def _log_field_row(xs, dy, cx, p1, p2, p3, alpha, out_row):
+    gmin = np.inf
+    for i in range(xs.shape[0]):
+        dx = xs[i] - cx
+        q = p1 * dx * dx + 2.0 * p2 * dx * dy + p3 * dy * dy
+        if q < 0.0:
+            q = 0.0
+        g = _poly_g(np.sqrt(q), alpha)
+        if g < gmin:
+            gmin = g
+        if g < G_FLOOR:
+            g = G_FLOOR
+        out_row[i] = -2.0 * np.log1p(0.25 * q) + np.log(g)
+    return gmin
+
+
+@njit(cache=True, nogil=True)
 def log_field_grid(xs, ys, cx, cy, p1, p2, p3, alpha, out):
-    """Fill ``out[j, i]`` with log φ at (xs[i], ys[j]); returns min G on the grid."""
+    """Fill ``out[j, i]`` with log φ at (xs[i], ys[j]); returns min G on the grid.
+
+    Serial: for strips and working copies, where thread start-up would dominate.
+    """
+    gmin = np.inf
+    for j in range(ys.shape[0]):
+        gmin = min(gmin, _log_field_row(xs, ys[j] - cy, cx, p1, p2, p3, alpha, out[j]))
+    return gmin
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def log_field_grid_parallel(xs, ys, cx, cy, p1, p2, p3, alpha, out):
+    """:func:`log_field_grid` with rows spread over threads, for full frames."""
     ny = ys.shape[0]
-    nx = xs.shape[0]
     gmin_rows = np.empty(ny)
     for j in prange(ny):
-        dy = ys[j] - cy
-        gmin = np.inf
-        for i in range(nx):
-            dx = xs[i] - cx
-            q = p1 * dx * dx + 2.0 * p2 * dx * dy + p3 * dy * dy
-            if q < 0.0:
-                q = 0.0
-            g = _poly_g(np.sqrt(q), alpha)
-            if g < gmin:
-                gmin = g
-            if g < G_FLOOR:
-                g = G_FLOOR
-            out[j, i] = -2.0 * np.log1p(0.25 * q) + np.log(g)
-        gmin_rows[j] = gmin
+        gmin_rows[j] = _log_field_row(xs, ys[j] - cy, cx, p1, p2, p3, alpha, out[j])
     return gmin_rows.min() if ny > 0 else np.inf

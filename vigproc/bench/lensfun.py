@@ -8,6 +8,14 @@ fields are 1 at their centres, no gain is fitted away); "uncorrected" is φ̂ �
 
 "Do no harm": the same images without vignetting; the false field is the RMS of
 log2 φ̂ (EV) of what the estimator would apply.
+
+The "vignetting-free" photos are not free of radial fall-off: measured here, 53–56 %
+of the radial log-gradients in their outer ring point inwards (50 % for a symmetric
+scene; adding a real lens of 0.24 EV RMS makes it 58 %). An estimator that sees that
+fall-off is charged for it by the absolute error. The *differential* error compares
+the change of the estimate, log φ̂(vignetted) − log φ̂(clean), with the injected field:
+it measures how well the added vignetting is recovered, whatever the photo carried
+(it uses the candidate fits, i.e. before the do-no-harm fall-back).
 """
 
 from __future__ import annotations
@@ -35,6 +43,7 @@ class LensfunResult:
     median_ev: float
     p90_ev: float
     uncorrected_median_ev: float
+    differential_median_ev: float
     fallbacks: int
     seconds_per_image: float
 
@@ -55,12 +64,14 @@ def run_lensfun(
 ) -> LensfunResult:
     import time
 
-    errs, unc, secs, fb = [], [], [], 0
+    errs, unc, diff, secs, fb = [], [], [], [], 0
+    clean_cache: dict[int, np.ndarray] = {}
     lenses = bench_lenses(n_lenses)
     for idx, (lens, pa) in enumerate(lenses):
         # each lens gets the next ``frames_per_lens`` images, cycling through the set
         for j in range(frames_per_lens):
-            im = images[(idx * frames_per_lens + j) % len(images)]
+            k = (idx * frames_per_lens + j) % len(images)
+            im = images[k]
             h, w = im.shape
             true_log = np.log(pa_field((h, w), pa.k1, pa.k2, pa.k3))
             t0 = time.perf_counter()
@@ -68,9 +79,13 @@ def run_lensfun(
             secs.append(time.perf_counter() - t0)
             errs.append(rms_ev(m.log_field((h, w)) - true_log))
             unc.append(rms_ev(true_log))
+            if k not in clean_cache:
+                c0 = fn(im)
+                clean_cache[k] = (c0.candidate or c0).log_field((h, w))
+            diff.append(rms_ev((m.candidate or m).log_field((h, w)) - clean_cache[k] - true_log))
             fb += bool(m.quality and m.quality.fallback)
     return LensfunResult(method, len(lenses), len(errs), float(np.median(errs)), float(np.percentile(errs, 90)),
-                         float(np.median(unc)), fb, float(np.mean(secs)))
+                         float(np.median(unc)), float(np.median(diff)), fb, float(np.mean(secs)))
 
 
 def run_flat(images: Sequence[np.ndarray], method: str, fn: Callable[[np.ndarray], VignettingModel]) -> FlatResult:
