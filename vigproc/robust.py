@@ -42,12 +42,12 @@ import numpy as np
 from vigproc._kernels.robust import (
     CAUCHY,
     HUBER,
-    kw_field,
     kw_field_and_jacobian,
     normal_equations,
     pair_residuals,
     robust_loss,
 )
+from vigproc._kernels.field import log_field_grid
 from vigproc.image import bin_mean, binned_coords, log_image
 from vigproc.model import N_ALPHA, FitQuality, VignettingModel
 
@@ -251,6 +251,11 @@ def _constraint_system(theta: np.ndarray, wc: WorkingCopy, weight: float) -> tup
         g[5:] -= weight * jac.T @ res
         pen += weight * float(res @ res)
     return H, g, pen
+
+
+def kw_field(xs: np.ndarray, ys: np.ndarray, theta: np.ndarray, out: np.ndarray) -> float:
+    """log φ for the 12-vector θ on the grid (xs, ys) into ``out``; returns the smallest G."""
+    return log_field_grid(xs, ys, theta[0], theta[1], theta[2], theta[3], theta[4], theta[5:], out)
 
 
 def _p_from_shape(sh: np.ndarray) -> np.ndarray:

@@ -27,18 +27,6 @@ def _poly_g(r, alpha):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def log_phi_point(dx, dy, p1, p2, p3, alpha):
-    """log φ at one offset (dx, dy) from the vignetting centre."""
-    q = p1 * dx * dx + 2.0 * p2 * dx * dy + p3 * dy * dy
-    if q < 0.0:
-        q = 0.0
-    g = _poly_g(np.sqrt(q), alpha)
-    if g < G_FLOOR:
-        g = G_FLOOR
-    return -2.0 * np.log1p(0.25 * q) + np.log(g)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _log_field_row(xs, dy, cx, p1, p2, p3, alpha, out_row):
     gmin = np.inf
     for i in range(xs.shape[0]):

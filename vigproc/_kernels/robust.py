@@ -74,30 +74,6 @@ def kw_field_and_jacobian(xs, ys, theta, F, J):
 
 
 @njit(cache=True, nogil=True)
-def kw_field(xs, ys, theta, F):
-    """log φ on the grid only (cheap trial evaluations); returns the smallest G."""
-    cx, cy, p1, p2, p3 = theta[0], theta[1], theta[2], theta[3], theta[4]
-    na = theta.shape[0] - 5
-    gmin = np.inf
-    for j in range(ys.shape[0]):
-        dy = ys[j] - cy
-        for i in range(xs.shape[0]):
-            dx = xs[i] - cx
-            q = p1 * dx * dx + 2.0 * p2 * dx * dy + p3 * dy * dy
-            if q < 0.0:
-                q = 0.0
-            r = np.sqrt(q)
-            g = 0.0
-            for k in range(na - 1, -1, -1):
-                g = (g + theta[5 + k]) * r
-            g = 1.0 - g
-            if g < gmin:
-                gmin = g
-            F[j, i] = -2.0 * np.log1p(0.25 * q) + np.log(g if g > 1e-9 else 1e-9)
-    return gmin
-
-
-@njit(cache=True, nogil=True)
 def robust_loss(L, valid, F, steps, sigma, kind=CAUCHY):
     """Σ ρ(e) over all valid pairs, and the number of pairs."""
     h, w = L.shape
