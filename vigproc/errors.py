@@ -32,6 +32,14 @@ class UnsupportedFormatError(ImageReadError):
     exit_code = 4
 
 
+class FileNameError(ImageReadError):
+    """A file name cannot be passed to a helper program (exiftool) without being misread."""
+
+
+class MetadataError(ImageReadError):
+    """Metadata cannot identify the camera/lens, or a required field is missing."""
+
+
 class ImageWriteError(VigprocError, OSError):
     """An output could not be written."""
 

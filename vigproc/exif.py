@@ -1,0 +1,1225 @@
+"""EXIF lens identity for vignetting profiles.
+
+A vignetting profile belongs to a camera body + lens and varies with focal
+length, aperture and (a little) focus distance.  This module turns a photograph's
+metadata into a normalised, deterministic :class:`LensKey` holding exactly those
+fields, read with ExifTool.
+
+Reading
+-------
+:class:`ExifReader` wraps **one** persistent ``exiftool -stay_open`` process
+(PyExifTool's :class:`exiftool.ExifToolHelper`).  Measured on the 92 shared
+camera JPEGs (:func:`bench_exif`): ~7 ms per file through the open process (plus
+~60 ms start-up once) against ~90 ms per file with a process per file, so a batch
+is read with one process and, per chunk of files, one ExifTool command.
+:meth:`ExifReader.read_many` never raises for a bad file: each result is a
+:class:`LensKey` or a typed :class:`~vigproc.errors.VigprocError` naming the file
+and the cause, so one bad file cannot stop a batch.  :func:`read_lens_key` is the
+one-shot convenience (own process, opened and closed per call).
+
+File names
+----------
+PyExifTool sends arguments to the process one per line (ExifTool's ``-@`` argfile
+protocol).  What was found with ExifTool 12.57:
+
+* spaces, quotes, ``$``, ``@``, ``#``, ``*``, ``?``, ``%``, ``=``, tabs, backslashes
+  and non-ASCII (UTF-8) names pass through unchanged;
+* a **newline** splits the name into two arguments: ``a\\nb.jpg`` is read as the two
+  files ``a`` and ``b.jpg`` (a misread if those exist); a trailing carriage
+  return is stripped; leading white space is stripped and a leading ``-``/``#``
+  makes the line an option/comment.  Absolute paths (always used here) cure the
+  last two; names with CR/LF are sent as an argfile ``#[CSTR]`` line with C
+  escapes, which ExifTool 12.57 decodes correctly **except** that it keeps a
+  backslash before ``$`` and ``@``: a name with a line break *and* ``$`` or ``@``
+  cannot be passed and gets :class:`FileNameError`;
+* names that are not valid UTF-8 reach ExifTool as raw bytes but come back with
+  ``?`` in place of the bad bytes, so they are read alone (one command for that
+  file) and not matched by name.
+
+Every result is matched back to its input by ExifTool's ``SourceFile``; a file
+ExifTool did not report gets an error, never another file's metadata.
+
+Normalisation
+-------------
+Text fields (see :func:`normalise_text`): Unicode NFKC; control, line-separator
+and format characters (C0/C1, bidi overrides, zero-width) removed or turned into a
+space; white space collapsed and stripped; ``casefold()``.  Values that carry no
+information (``unknown``, ``n/a``, ``----``, ``0``, punctuation/zeros only,
+``(Binary data ...)``) are *missing*; absurdly long values (> 200 characters) are
+*missing* with a warning.  A model repeating the make (``Canon Canon EOS 10D``) is
+reduced to ``canon eos 10d``.  Lens names must contain a digit (a focal length) to
+count; unresolved numeric IDs (``65535``, Nikon ``7A 02 ...`` byte strings),
+``Unknown 18-55mm``-style names and bare specs (``18.0-55.0 mm``, ``100.0mm
+f/2.8``: what ExifTool or a DNG converter writes for an unidentified lens) are
+missing.
+
+Numbers come from ExifTool's numeric (``TAG#``, i.e. per-tag ``-n``) values.  A
+value outside its physical range (focal length <= 0 or > 10000 mm, f-number < 0.5
+or > 1000, negative distance) or two sources disagreeing by more than 20 % make
+the field *missing* and log a warning: a contradiction never yields a value.  A
+bad primary value is not replaced by a fallback (a Magic Lantern DNG writes
+FNumber 0 and ApertureValue 1: both wrong).
+
+Every field that is missing is listed in :attr:`LensKey.missing`; the reasons are
+in :attr:`LensKey.problems`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import stat
+import threading
+import time
+import unicodedata
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Mapping, Sequence, Union
+
+import exiftool
+
+from vigproc.errors import FileNameError, ImageReadError, MetadataError, UnsupportedFormatError, VigprocError
+
+__all__ = [
+    "ExifReader",
+    "FileNameError",
+    "KEY_FIELDS",
+    "LensKey",
+    "MetadataError",
+    "bench_exif",
+    "lens_key_from_metadata",
+    "normalise_text",
+    "read_lens_key",
+]
+
+logger = logging.getLogger(__name__)
+
+PathLike = Union[str, "os.PathLike[str]", bytes]
+
+#: The identity/condition fields of a :class:`LensKey`, in key order.
+KEY_FIELDS: tuple[str, ...] = (
+    "make", "model", "lens", "lens_serial", "focal_mm", "fnumber", "focus_distance_m",
+)
+
+MAX_TEXT_LEN = 200
+# Longer raw strings are not even cleaned (cost bound for hostile metadata).
+_MAX_RAW_LEN = 4096
+# Disagreement between two sources of one number that counts as a contradiction.
+_REL_TOL = 0.20
+# Distances at least this large are "infinity" (Canon encodes inf as 655.35 m,
+# EXIF SubjectDistance as 0xFFFFFFFF); the vignetting is the same beyond.
+_INF_DISTANCE_M = 600.0
+# Physical ranges: focal length in mm, f-number (0.5 ~ the limit of a lens in air).
+_MAX_FOCAL = 10000.0
+_MIN_FNUMBER = 0.5
+_MAX_FNUMBER = 1000.0
+
+# Tags requested from ExifTool.  "#" = numeric value (per-tag -n); text tags keep
+# their print conversion because Composite:LensID is only a name when printed.
+_TAGS: tuple[str, ...] = (
+    "-File:FileType", "-File:MIMEType", "-ExifTool:Error", "-ExifTool:Warning",
+    "-Make", "-Model",
+    "-Composite:LensID", "-LensModel", "-Lens", "-LensType", "-LensSerialNumber",
+    "-FocalLength#", "-FocalLengthIn35mmFormat#", "-Composite:FocalLength35efl#",
+    "-FNumber#", "-ApertureValue#", "-Composite:Aperture#",
+    "-Composite:FocusDistance#", "-FocusDistance#", "-FocusDistanceUpper#",
+    "-FocusDistanceLower#", "-SubjectDistance#",
+    "-Composite:ImageSize#",
+)
+# -G: family-0 group names ("EXIF:Make", "MakerNotes:LensType", "XMP:Lens", ...).
+# -fast: do not scan JPEGs to the end for trailers (no lens data there); ~10 %
+# faster on the shared camera JPEGs with identical keys.  (-fast2 would skip
+# maker notes, i.e. most lens IDs.)
+_COMMON_ARGS = ["-G", "-fast"]
+# Files per ExifTool command: bounds the JSON held in memory and what one fatal
+# ExifTool failure can take down before the per-file fallback.
+_CHUNK = 256
+
+_IMAGE_MIME_PREFIXES = ("image/",)
+
+
+# --------------------------------------------------------------------------- #
+# errors
+# --------------------------------------------------------------------------- #
+
+
+def _q(path: str) -> str:
+    # repr() keeps messages on one line even for names containing newlines.
+    return repr(path)
+
+
+def _path_error(cls: type[ImageReadError], path: str, cause: str) -> ImageReadError:
+    """Build a typed error whose message names the file and the cause."""
+    err = cls(f"cannot read EXIF of {_q(path)}: {cause}")
+    err.path = path  # type: ignore[attr-defined]
+    err.cause = cause  # type: ignore[attr-defined]
+    return err
+
+
+# --------------------------------------------------------------------------- #
+# text normalisation
+# --------------------------------------------------------------------------- #
+
+_JUNK = frozenset(
+    {
+        "", "unknown", "n/a", "na", "none", "null", "nil", "undef", "undefined",
+        "not available", "not specified", "(none)", "unknown ()", "unknown ( )",
+        "-", "--", "---", "----", "?", "0",
+    }
+)
+_ONLY_PUNCT_OR_ZERO = re.compile(r"^[\W_0]*$")
+_HEX_BYTES = re.compile(r"^[0-9a-f]{2}( [0-9a-f]{2})+$")
+_DIGITS = re.compile(r"^[\d.\s]+$")
+_UNKNOWN_PREFIX = re.compile(r"^unknown\b")
+_OR_SPLIT = re.compile(r"\s+or\s+")
+# A bare focal/aperture spec ("18.0-55.0 mm", "100.0mm f/2.8") names no lens:
+# ExifTool and DNG converters write it when the lens is unidentified.
+_NUM = r"\d+(?:\.\d+)?"
+_SPEC_ONLY = re.compile(
+    rf"^{_NUM}(?:\s*-\s*{_NUM})?\s*mm(?:\s*f\s*/?\s*{_NUM}(?:\s*-\s*{_NUM})?)?$"
+)
+
+
+def _clean(value: Any) -> tuple[str | None, str | None]:
+    """Normalise one metadata text value.
+
+    Returns
+    -------
+    (text, problem)
+        ``text`` is the normalised string or None; ``problem`` explains a
+        rejection that deserves a warning (absurd length), else None.
+    """
+    if isinstance(value, list):  # repeated tag: first non-empty element decides
+        value = next((v for v in value if v not in (None, "")), None)
+    if value is None or isinstance(value, (bool, dict)):
+        return None, None
+    if isinstance(value, float):
+        text = repr(value) if math.isfinite(value) else ""
+    else:
+        text = str(value)
+    if len(text) > _MAX_RAW_LEN:
+        return None, f"implausibly long text ({len(text)} characters)"
+    text = unicodedata.normalize("NFKC", text)
+    out = []
+    for ch in text:
+        cat = unicodedata.category(ch)
+        if cat in ("Cc", "Zl", "Zp"):  # control / line breaks: a word boundary
+            out.append(" ")
+        elif cat in ("Cf", "Cs", "Co", "Cn"):  # invisible, bidi, unassigned: dropped
+            continue
+        else:
+            out.append(ch)
+    text = " ".join("".join(out).split())
+    text = unicodedata.normalize("NFKC", text.casefold())
+    if text.startswith("(binary data"):
+        return None, None
+    if len(text) > MAX_TEXT_LEN:
+        return None, f"implausibly long text ({len(text)} characters)"
+    if text in _JUNK or _ONLY_PUNCT_OR_ZERO.match(text):
+        return None, None
+    return text, None
+
+
+def normalise_text(value: Any) -> str | None:
+    """Normalise a metadata string for use in a key (None when it carries no information).
+
+    Parameters
+    ----------
+    value : Any
+        A value as ExifTool reports it (str, number or list).
+
+    Returns
+    -------
+    str or None
+        NFKC, control/format characters removed, white space collapsed,
+        casefolded; None for empty, placeholder (``Unknown``, ``N/A``, ``----``,
+        ``0``...), binary or longer-than-200-character values.
+    """
+    return _clean(value)[0]
+
+
+def _lens_text(value: Any) -> tuple[str | None, str | None]:
+    """Normalise a lens name; unresolved IDs and "Unknown ..." names are missing."""
+    text, problem = _clean(value)
+    if text is None:
+        return None, problem
+    if (_UNKNOWN_PREFIX.match(text) or _HEX_BYTES.match(text) or _DIGITS.match(text)
+            or _SPEC_ONLY.match(text)):
+        return None, None
+    if not any(c.isdigit() for c in text):  # e.g. Nikon LensType "G": flags, not a name
+        return None, None
+    return text, None
+
+
+def _dedupe_model(make: str | None, model: str | None) -> str | None:
+    """Drop a make prefix that is repeated in the model ("canon canon eos 10d" -> "canon eos 10d")."""
+    if not make or not model:
+        return model
+    first = make.split()[0]
+    changed = True
+    while changed:
+        changed = False
+        for prefix in (make, first):
+            rest = model[len(prefix) + 1:]
+            if model.startswith(prefix + " ") and rest.startswith(first):
+                model, changed = rest, True
+                break
+    return model
+
+
+def _squash(text: str) -> str:
+    # Loose form for comparing lens names from different tags ("EF16-35mm f/2.8L"
+    # vs "Canon EF 16-35mm f/2.8L"): letters, digits and dots only.
+    return "".join(c for c in text if c.isalnum() or c == ".")
+
+
+def _esc(part: str | None) -> str:
+    # "|" separates key components and "?" marks a missing one: escape so a
+    # hostile value cannot forge another key.
+    if part is None:
+        return "?"
+    return part.replace("%", "%25").replace("|", "%7C").replace("?", "%3F")
+
+
+def _fmt_num(x: float | None) -> str:
+    if x is None:
+        return "?"
+    if math.isinf(x):
+        return "inf"
+    s = f"{x:.2f}".rstrip("0").rstrip(".")
+    return s or "0"
+
+
+# --------------------------------------------------------------------------- #
+# the key
+# --------------------------------------------------------------------------- #
+
+
+@dataclass(frozen=True)
+class LensKey:
+    """Normalised camera + lens identity and shooting conditions of one photograph.
+
+    Text fields are normalised (see :func:`normalise_text`); any field may be
+    None, and then it is listed in :attr:`missing` -- degradation is explicit.
+
+    Attributes
+    ----------
+    make, model : str or None
+        Camera maker and model (EXIF, else maker notes / XMP).
+    lens : str or None
+        Lens name: Composite:LensID, else EXIF:LensModel, MakerNotes:LensModel,
+        XMP:LensModel, XMP-aux:Lens, MakerNotes:Lens, MakerNotes:LensType.  When
+        the LensID is ambiguous ("A or B"), the alternative that another lens tag
+        names (compared ignoring spaces/punctuation, also without the
+        alternative's first word, e.g. the brand) is chosen; if none does,
+        ``lens`` is the alternatives sorted and joined with ``" or "``.
+    lens_serial : str or None
+        Lens serial number (EXIF, maker notes, XMP); all-zero serials are missing.
+    focal_mm : float or None
+        Real (not 35 mm-equivalent) focal length in mm.
+    fnumber : float or None
+        F-number.
+    focus_distance_m : float or None
+        Focus distance in metres (``math.inf`` for infinity); Canon's
+        upper/lower bounds are averaged.
+    missing : tuple of str
+        Names of the fields above that are None, in field order.
+    lens_candidates : tuple of str
+        All alternatives of an ambiguous LensID (sorted), else empty.
+    focal_35mm : float or None
+        35 mm-equivalent focal length (informational; not compared).
+    width, height : int or None
+        Image size as recorded (informational; not compared).
+    lens_source : str or None
+        The tag the lens came from (informational).
+    problems : tuple of str
+        Why fields are missing when that is not plain absence (contradictions,
+        absurd values); not compared.
+    source : str or None
+        The file the key was read from; not compared.
+    """
+
+    make: str | None
+    model: str | None
+    lens: str | None
+    lens_serial: str | None = None
+    focal_mm: float | None = None
+    fnumber: float | None = None
+    focus_distance_m: float | None = None
+    missing: tuple[str, ...] = ()
+    lens_candidates: tuple[str, ...] = ()
+    focal_35mm: float | None = field(default=None, compare=False)
+    width: int | None = field(default=None, compare=False)
+    height: int | None = field(default=None, compare=False)
+    lens_source: str | None = field(default=None, compare=False)
+    problems: tuple[str, ...] = field(default=(), compare=False)
+    source: str | None = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        # `missing` is derived, so a hand-built or deserialised key cannot lie about it.
+        derived = tuple(f for f in KEY_FIELDS if getattr(self, f) is None)
+        object.__setattr__(self, "missing", derived)
+
+    @property
+    def ambiguous(self) -> bool:
+        """True when the lens could not be resolved to one of several LensID alternatives."""
+        return len(self.lens_candidates) > 1 and self.lens not in self.lens_candidates
+
+    def lens_id(self, with_serial: bool = False) -> str:
+        """Deterministic camera + lens identifier, suitable as a database key.
+
+        Parameters
+        ----------
+        with_serial : bool
+            Append ``|sn:<serial>`` (``?`` when unknown) to tell lens units apart.
+
+        Returns
+        -------
+        str
+            ``"make|model|lens"``, e.g. ``"canon|canon eos 5d mark ii|ef24-105mm
+            f/4l is usm"``; a missing part is ``?``; ``|``, ``%`` and ``?`` inside
+            values are percent-escaped.  No focal length or aperture.
+        """
+        parts = [_esc(self.make), _esc(self.model), _esc(self.lens)]
+        if with_serial:
+            parts.append("sn:" + _esc(self.lens_serial))
+        return "|".join(parts)
+
+    def key_string(self) -> str:
+        """The full key: lens id with serial, focal length, f-number and focus distance.
+
+        Returns
+        -------
+        str
+            e.g. ``"canon|canon eos 40d|?|sn:?|f:135|n:7.1|d:?"`` (numbers rounded
+            to 0.01).
+        """
+        return (
+            f"{self.lens_id(with_serial=True)}|f:{_fmt_num(self.focal_mm)}"
+            f"|n:{_fmt_num(self.fnumber)}|d:{_fmt_num(self.focus_distance_m)}"
+        )
+
+    def profile_key(self, focal_bins: Sequence[float], aperture_bins: Sequence[float]) -> str:
+        """Lens id plus the nearest focal-length and f-number bins (nearest in log scale).
+
+        Parameters
+        ----------
+        focal_bins, aperture_bins : sequence of float
+            Positive bin centres (e.g. the focal lengths / f-numbers a profile was
+            calibrated at).
+
+        Returns
+        -------
+        str
+            ``"<lens_id>|f:<bin>|n:<bin>"``; ``?`` for a missing value.
+        """
+
+        def nearest(x: float | None, bins: Sequence[float], name: str) -> float | None:
+            good = [float(b) for b in bins if b is not None and math.isfinite(b) and b > 0]
+            if not good:
+                raise ValueError(f"{name} must contain positive finite numbers")
+            if x is None:
+                return None
+            return min(good, key=lambda b: (abs(math.log(b / x)), b))
+
+        f = nearest(self.focal_mm, focal_bins, "focal_bins")
+        n = nearest(self.fnumber, aperture_bins, "aperture_bins")
+        return f"{self.lens_id()}|f:{_fmt_num(f)}|n:{_fmt_num(n)}"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict (infinite distance as the string ``"inf"``)."""
+        d = {
+            "make": self.make, "model": self.model, "lens": self.lens,
+            "lens_serial": self.lens_serial, "focal_mm": self.focal_mm,
+            "fnumber": self.fnumber,
+            "focus_distance_m": (
+                "inf" if self.focus_distance_m is not None and math.isinf(self.focus_distance_m)
+                else self.focus_distance_m
+            ),
+            "missing": list(self.missing),
+            "focal_35mm": self.focal_35mm,
+            "lens_candidates": list(self.lens_candidates),
+            "width": self.width, "height": self.height,
+            "lens_source": self.lens_source, "problems": list(self.problems),
+            "source": self.source,
+        }
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "LensKey":
+        """Rebuild a key from :meth:`to_dict` output, re-validating every field.
+
+        Raises
+        ------
+        MetadataError
+            If ``d`` is not a mapping or a field has the wrong type/value (stored
+            keys are input too).
+        """
+
+        def bad(cause: str) -> MetadataError:
+            err = MetadataError(f"invalid stored lens key: {cause}")
+            err.path, err.cause = None, cause  # type: ignore[attr-defined]
+            return err
+
+        if not isinstance(d, Mapping):
+            raise bad(f"expected a mapping, got {type(d).__name__}")
+        unknown = set(d) - _DICT_FIELDS
+        if unknown:
+            raise bad(f"unknown fields {sorted(map(str, unknown))}")
+
+        def text(name: str) -> str | None:
+            v = d.get(name)
+            if v is None:
+                return None
+            if not isinstance(v, str):
+                raise bad(f"{name} must be a string or null")
+            out = normalise_text(v)
+            if out != v:
+                raise bad(f"{name} {v!r} is not normalised")
+            return out
+
+        def num(name: str, lo: float, hi: float, allow_inf: bool = False) -> float | None:
+            v = d.get(name)
+            if v is None:
+                return None
+            if allow_inf and v == "inf":
+                return math.inf
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise bad(f"{name} must be a finite number or null")
+            if not lo <= v <= hi:
+                raise bad(f"{name}={v} outside [{lo}, {hi}]")
+            return float(v)
+
+        def intval(name: str) -> int | None:
+            v = d.get(name)
+            if v is None:
+                return None
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise bad(f"{name} must be a positive integer or null")
+            return v
+
+        def strlist(name: str) -> tuple[str, ...]:
+            v = d.get(name, [])
+            if not isinstance(v, (list, tuple)) or not all(isinstance(x, str) for x in v):
+                raise bad(f"{name} must be a list of strings")
+            return tuple(v)
+
+        key = cls(
+            make=text("make"), model=text("model"), lens=text("lens"),
+            lens_serial=text("lens_serial"),
+            focal_mm=num("focal_mm", 1e-9, _MAX_FOCAL),
+            fnumber=num("fnumber", _MIN_FNUMBER, _MAX_FNUMBER),
+            focus_distance_m=num("focus_distance_m", 0.0, math.inf, allow_inf=True),
+            lens_candidates=tuple(sorted(strlist("lens_candidates"))),
+            focal_35mm=num("focal_35mm", 1e-9, _MAX_FOCAL * 10),
+            width=intval("width"), height=intval("height"),
+            lens_source=d.get("lens_source") if isinstance(d.get("lens_source"), str) else None,
+            problems=strlist("problems"),
+            source=d.get("source") if isinstance(d.get("source"), str) else None,
+        )
+        stored_missing = d.get("missing")
+        if stored_missing is not None and tuple(stored_missing) != key.missing:
+            raise bad(f"'missing' {stored_missing!r} disagrees with the fields {list(key.missing)!r}")
+        return key
+
+
+_DICT_FIELDS = frozenset(
+    {
+        "make", "model", "lens", "lens_serial", "focal_mm", "fnumber", "focus_distance_m",
+        "missing", "lens_candidates", "focal_35mm", "width", "height", "lens_source", "problems", "source",
+    }
+)
+
+
+# --------------------------------------------------------------------------- #
+# metadata dict -> LensKey
+# --------------------------------------------------------------------------- #
+
+
+# Group priority per tag: EXIF is what the camera wrote in the standard place;
+# maker notes next; XMP last (often rewritten by editors).  Unlisted groups
+# follow, alphabetically, so the choice is deterministic.  Composite values are
+# derived from these, so they never count as an independent second source.
+_GROUP_ORDER = ("EXIF", "MakerNotes", "SigmaRaw", "QuickTime", "XMP")
+
+
+def _sources(meta: Mapping[str, Any], tag: str) -> list[tuple[str, Any]]:
+    """All ``(group, value)`` for ``tag`` except Composite, in priority order."""
+    found = []
+    suffix = ":" + tag
+    for key, value in meta.items():
+        if isinstance(key, str) and key.endswith(suffix):
+            group = key[: -len(suffix)]
+            if group != "Composite":
+                found.append((group, value))
+
+    def rank(item: tuple[str, Any]) -> tuple[int, str]:
+        g = item[0]
+        return (_GROUP_ORDER.index(g) if g in _GROUP_ORDER else len(_GROUP_ORDER), g)
+
+    return sorted(found, key=rank)
+
+
+def _as_float(value: Any) -> float | None:
+    if isinstance(value, list):
+        value = value[0] if value else None
+    if isinstance(value, bool) or value is None:
+        return None
+    if isinstance(value, (int, float)):
+        return float(value)
+    if isinstance(value, str):
+        s = value.strip().lower()
+        if s in ("inf", "infinity", "+inf"):
+            return math.inf
+        s = re.sub(r"\s*(mm|m)$", "", s)
+        try:
+            x = float(s)
+        except ValueError:
+            return None
+        return x if not math.isnan(x) else None
+    return None
+
+
+class _Builder:
+    """Collects field values and the reasons fields are missing for one file."""
+
+    def __init__(self, source: str | None) -> None:
+        self.source = source
+        self.problems: list[str] = []
+
+    def problem(self, msg: str) -> None:
+        self.problems.append(msg)
+        logger.warning("%s: %s", _q(self.source) if self.source is not None else "<metadata>", msg)
+
+    def text_field(self, meta: Mapping[str, Any], tag: str, name: str) -> str | None:
+        """First informative text value of ``tag``; other sources must not contradict it."""
+        chosen: tuple[str, str] | None = None
+        for group, raw in _sources(meta, tag):
+            text, prob = _clean(raw)
+            if prob:
+                self.problem(f"{name}: {group}:{tag} rejected: {prob}")
+            if text is None:
+                continue
+            if chosen is None:
+                chosen = (group, text)
+            elif not (text.startswith(chosen[1]) or chosen[1].startswith(text)):
+                self.problem(
+                    f"{name}: contradictory {chosen[0]}:{tag}={chosen[1]!r} and {group}:{tag}={text!r}"
+                )
+                return None
+        return chosen[1] if chosen else None
+
+    def number_field(
+        self,
+        meta: Mapping[str, Any],
+        tags: Sequence[str],
+        name: str,
+        valid: Any,
+        expect: str,
+        zero_is_unknown: bool = False,
+    ) -> float | None:
+        """First present value among ``tags`` (in group priority).
+
+        An invalid first value, or another source disagreeing with it by more
+        than 20 %, makes the field missing (None) and records a problem.
+        """
+        values: list[tuple[str, float]] = []
+        for tag in tags:
+            for group, raw in _sources(meta, tag):
+                x = _as_float(raw)
+                if x is None or (zero_is_unknown and x == 0):
+                    continue
+                values.append((f"{group}:{tag}", x))
+        if not values:
+            return None
+        label, primary = values[0]
+        if not valid(primary):
+            self.problem(f"{name}: {label}={primary:g} is not a valid value (expected {expect})")
+            return None
+        for other_label, x in values[1:]:
+            if not valid(x):
+                continue  # an absurd secondary value does not discredit the primary
+            if math.isinf(primary) or math.isinf(x):
+                continue  # "infinity" vs a far distance is no contradiction
+            if abs(x - primary) > _REL_TOL * max(abs(primary), abs(x)):
+                self.problem(f"{name}: contradictory {label}={primary:g} and {other_label}={x:g}")
+                return None
+        return round(primary, 6)
+
+
+def _choose_lens(
+    meta: Mapping[str, Any], b: _Builder
+) -> tuple[str | None, tuple[str, ...], str | None]:
+    """Pick the lens name.  Returns ``(lens, candidates, source_tag)``."""
+    fallbacks: list[tuple[str, str]] = []
+    for tag_key in ("EXIF:LensModel", "MakerNotes:LensModel", "XMP:LensModel", "XMP:Lens",
+                    "MakerNotes:Lens", "MakerNotes:LensType"):
+        if tag_key in meta:
+            text, prob = _lens_text(meta[tag_key])
+            if prob:
+                b.problem(f"lens: {tag_key} rejected: {prob}")
+            if text is not None:
+                fallbacks.append((tag_key, text))
+    # Any other group's LensType (e.g. SigmaRaw) after the named ones.
+    for group, raw in _sources(meta, "LensType"):
+        key = f"{group}:LensType"
+        if key != "MakerNotes:LensType":
+            text, _ = _lens_text(raw)
+            if text is not None:
+                fallbacks.append((key, text))
+
+    raw_id = meta.get("Composite:LensID")
+    lens_id_text, prob = _clean(raw_id)
+    if prob:
+        b.problem(f"lens: Composite:LensID rejected: {prob}")
+    if lens_id_text is not None:
+        parts = [p.strip() for p in _OR_SPLIT.split(lens_id_text) if p.strip()]
+        if len(parts) > 1:
+            # Alternatives are kept even without a digit ("... or tamron lens"):
+            # dropping one would fake certainty.
+            candidates = tuple(sorted(set(parts)))
+            if len(candidates) == 1:
+                lens, _ = _lens_text(candidates[0])
+                if lens is not None:
+                    return lens, (), "Composite:LensID"
+            else:
+                for tag_key, other in fallbacks:
+                    so = _squash(other)
+                    for cand in candidates:
+                        words = cand.split(" ", 1)
+                        if so and (_squash(cand) == so or (len(words) == 2 and _squash(words[1]) == so)):
+                            return cand, candidates, f"Composite:LensID+{tag_key}"
+                b.problem(f"lens: ambiguous Composite:LensID ({len(candidates)} alternatives)")
+                return " or ".join(candidates), candidates, "Composite:LensID"
+        else:
+            lens, _ = _lens_text(lens_id_text)
+            if lens is not None:
+                return lens, (), "Composite:LensID"
+    if fallbacks:
+        tag_key, text = fallbacks[0]
+        return text, (), tag_key
+    return None, (), None
+
+
+def _valid_focal(x: float) -> bool:
+    return 0 < x <= _MAX_FOCAL
+
+
+def _valid_fnumber(x: float) -> bool:
+    return _MIN_FNUMBER <= x <= _MAX_FNUMBER
+
+
+def _valid_distance(x: float) -> bool:
+    return x >= 0  # inf allowed
+
+
+def _focus_distance(meta: Mapping[str, Any], b: _Builder) -> float | None:
+    """Focus distance in m: FocusDistance tags, else Canon bounds, else SubjectDistance."""
+
+    def norm(x: float) -> float:
+        return math.inf if x >= _INF_DISTANCE_M else x
+
+    def failed() -> bool:
+        return any(p.startswith("focus_distance_m:") for p in b.problems)
+
+    # 0 means "not recorded" in all of these tags.
+    d = b.number_field(meta, ("FocusDistance",), "focus_distance_m", _valid_distance, ">= 0",
+                       zero_is_unknown=True)
+    if d is not None or failed():
+        return norm(d) if d is not None else None
+    comp = _as_float(meta.get("Composite:FocusDistance"))
+    if comp is not None and comp != 0:
+        if comp < 0:
+            b.problem(f"focus_distance_m: Composite:FocusDistance={comp:g} is negative")
+            return None
+        return norm(comp)
+    upper = _as_float(meta.get("MakerNotes:FocusDistanceUpper"))
+    lower = _as_float(meta.get("MakerNotes:FocusDistanceLower"))
+    if upper is not None and upper != 0:
+        if upper < 0 or (lower is not None and lower < 0):
+            b.problem("focus_distance_m: negative MakerNotes:FocusDistanceUpper/Lower")
+            return None
+        if norm(upper) == math.inf:
+            return math.inf
+        if lower is not None and lower > 0:
+            if lower > upper:
+                b.problem(
+                    f"focus_distance_m: contradictory MakerNotes:FocusDistanceLower={lower:g} "
+                    f"> FocusDistanceUpper={upper:g}"
+                )
+                return None
+            return round((upper + lower) / 2, 6)
+        return round(upper, 6)
+    # SubjectDistance last: compacts often fill it with a rough guess.
+    d = b.number_field(meta, ("SubjectDistance",), "focus_distance_m", _valid_distance, ">= 0",
+                       zero_is_unknown=True)
+    return norm(d) if d is not None else None
+
+
+def _image_size(meta: Mapping[str, Any]) -> tuple[int | None, int | None]:
+    size = meta.get("Composite:ImageSize")
+    if isinstance(size, str):
+        m = re.match(r"^\s*(\d+)\s*[x ]\s*(\d+)\s*$", size)
+        if m:
+            w, h = int(m.group(1)), int(m.group(2))
+            if 0 < w < 10**6 and 0 < h < 10**6:
+                return w, h
+    return None, None
+
+
+def lens_key_from_metadata(meta: Mapping[str, Any], source: str | None = None) -> LensKey:
+    """Build a :class:`LensKey` from one ExifTool JSON record (``-G`` group names).
+
+    Parameters
+    ----------
+    meta : mapping
+        Tag -> value, keys like ``"EXIF:Make"``, ``"Composite:LensID"``; numeric
+        tags as numbers (ExifTool ``TAG#`` / ``-n``).  Treated as hostile.
+    source : str, optional
+        File name, used in warnings and stored in :attr:`LensKey.source`.
+
+    Returns
+    -------
+    LensKey
+        Never raises for bad values: they become missing fields with a problem
+        recorded and a warning logged.
+    """
+    b = _Builder(source)
+    make = b.text_field(meta, "Make", "make")
+    model = _dedupe_model(make, b.text_field(meta, "Model", "model"))
+    lens, candidates, lens_source = _choose_lens(meta, b)
+    serial = None
+    for group, raw in _sources(meta, "LensSerialNumber"):
+        serial, prob = _clean(raw)
+        if prob:
+            b.problem(f"lens_serial: {group}:LensSerialNumber rejected: {prob}")
+        if serial is not None:
+            break
+    focal = b.number_field(meta, ("FocalLength",), "focal_mm", _valid_focal, f"0 < mm <= {_MAX_FOCAL:g}")
+    fnum_range = f"{_MIN_FNUMBER:g}..{_MAX_FNUMBER:g}"
+    fnum = b.number_field(meta, ("FNumber",), "fnumber", _valid_fnumber, fnum_range)
+    if fnum is None and not any(p.startswith("fnumber:") for p in b.problems):
+        # ApertureValue only as a fallback, never as a cross-check: some cameras
+        # write a wrong one next to a right FNumber (Ricoh RR330: f/2.88 vs APEX 4).
+        fnum = b.number_field(meta, ("ApertureValue",), "fnumber", _valid_fnumber, fnum_range)
+    if fnum is None and not any(p.startswith("fnumber:") for p in b.problems):
+        # Composite:Aperture only when nothing else exists (it is derived from them).
+        ap = _as_float(meta.get("Composite:Aperture"))
+        if ap is not None:
+            if _valid_fnumber(ap):
+                fnum = round(ap, 6)
+            else:
+                b.problem(f"fnumber: Composite:Aperture={ap:g} is not a valid value")
+    dist = _focus_distance(meta, b)
+    f35 = None
+    for k in ("Composite:FocalLength35efl", "EXIF:FocalLengthIn35mmFormat"):
+        x = _as_float(meta.get(k))
+        if x is not None and 0 < x <= _MAX_FOCAL * 10:
+            f35 = round(x, 6)
+            break
+    w, h = _image_size(meta)
+    return LensKey(
+        make=make, model=model, lens=lens, lens_serial=serial, focal_mm=focal,
+        fnumber=fnum, focus_distance_m=dist, lens_candidates=candidates,
+        focal_35mm=f35, width=w, height=h, lens_source=lens_source, problems=tuple(b.problems),
+        source=source,
+    )
+
+
+# --------------------------------------------------------------------------- #
+# reading files
+# --------------------------------------------------------------------------- #
+
+
+@dataclass
+class _Job:
+    display: str  # the path as the caller gave it (for messages)
+    arg: Union[str, bytes]  # what is sent to ExifTool
+    expect: str | None  # the SourceFile ExifTool will report (None: do not match by name)
+    solo: bool = False  # read in its own command
+
+
+def _prepare(path: PathLike) -> _Job | ImageReadError:
+    """Check a path and decide how to pass it to ExifTool."""
+    try:
+        p = os.fspath(path)
+    except TypeError:
+        return _path_error(ImageReadError, repr(path), f"not a path ({type(path).__name__})")
+    display = os.fsdecode(p) if isinstance(p, bytes) else p
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        return _path_error(ImageReadError, display, "file not found")
+    except PermissionError:
+        return _path_error(ImageReadError, display, "permission denied")
+    except ValueError as exc:  # embedded NUL
+        return _path_error(FileNameError, display, f"invalid file name ({exc})")
+    except OSError as exc:
+        return _path_error(ImageReadError, display, exc.strerror or str(exc))
+    if stat.S_ISDIR(st.st_mode):
+        # ExifTool would read every file inside.
+        return _path_error(ImageReadError, display, "is a directory")
+    if not stat.S_ISREG(st.st_mode):
+        # A FIFO/device could block the shared ExifTool process forever.
+        return _path_error(ImageReadError, display, "not a regular file")
+    if st.st_size == 0:
+        return _path_error(ImageReadError, display, "file is empty (0 bytes)")
+    # Absolute: a name starting with "-", "#" or white space is never an option,
+    # comment or trimmed argfile line.  No normpath: "link/../x" must stay as is.
+    absolute = display if os.path.isabs(display) else os.path.join(os.getcwd(), display)
+    try:
+        absolute.encode("utf-8")
+    except UnicodeEncodeError:
+        try:
+            raw = os.fsencode(absolute)
+        except UnicodeEncodeError:
+            return _path_error(FileNameError, display, "file name cannot be encoded for the file system")
+        if b"\n" in raw or b"\r" in raw:
+            return _path_error(
+                FileNameError, display,
+                "file name is not valid UTF-8 and contains a line break; ExifTool cannot be given it safely; rename the file",
+            )
+        return _Job(display, raw, None, solo=True)
+    if "\n" in absolute or "\r" in absolute:
+        if "$" in absolute or "@" in absolute:
+            return _path_error(
+                FileNameError, display,
+                "file name contains a line break together with '$' or '@', which ExifTool's argument "
+                "protocol (-stay_open/-@ #[CSTR]) cannot carry; rename the file",
+            )
+        esc = (absolute.replace("\\", "\\\\").replace('"', '\\"')
+               .replace("\n", "\\n").replace("\r", "\\r"))
+        return _Job(display, "#[CSTR]" + esc, absolute)
+    return _Job(display, absolute, absolute)
+
+
+_STDERR_LINE = re.compile(r"^(Error|Warning): (.*?) - (.*)$")
+
+
+def _stderr_causes(stderr: str) -> dict[str, str]:
+    causes: dict[str, str] = {}
+    for line in stderr.splitlines():
+        m = _STDERR_LINE.match(line)
+        if m:
+            causes.setdefault(m.group(3), f"exiftool: {m.group(2)}")
+    return causes
+
+
+def _safe_msg(text: Any) -> str:
+    # ExifTool messages can quote file content: keep them short and printable.
+    s = "".join(c if c.isprintable() else " " for c in str(text))
+    return " ".join(s.split())[:200]
+
+
+class ExifReader:
+    """Read :class:`LensKey` s through one persistent ExifTool process.
+
+    Parameters
+    ----------
+    executable : str, optional
+        ExifTool program (default: ``exiftool`` on ``PATH``).
+    require : iterable of str
+        Fields of :data:`KEY_FIELDS` that must be present; a file missing one
+        gets :class:`MetadataError`.  Regardless of this, a file without any of
+        make, model and lens gets :class:`MetadataError` (no identity at all).
+    chunk_size : int
+        Files per ExifTool command in :meth:`read_many`.
+
+    Notes
+    -----
+    Use as a context manager (the process is started on entry and stopped on
+    exit) or call :meth:`start` / :meth:`close`.  Not safe for concurrent use by
+    several threads beyond the internal lock serialising commands.
+
+    Examples
+    --------
+    >>> with ExifReader() as reader:                      # doctest: +SKIP
+    ...     keys = reader.read_many(paths)
+    """
+
+    def __init__(
+        self,
+        executable: str | None = None,
+        *,
+        require: Iterable[str] = (),
+        chunk_size: int = _CHUNK,
+    ) -> None:
+        self.require = tuple(require)
+        bad = [f for f in self.require if f not in KEY_FIELDS]
+        if bad:
+            raise ValueError(f"unknown required fields {bad}; choose from {KEY_FIELDS}")
+        if chunk_size < 1:
+            raise ValueError("chunk_size must be >= 1")
+        self.chunk_size = int(chunk_size)
+        self._executable = executable
+        self._et: exiftool.ExifToolHelper | None = None
+        self._lock = threading.Lock()
+        #: Number of ExifTool processes this reader has launched (1 unless one died).
+        self.launches = 0
+
+    # ---- process lifetime ------------------------------------------------- #
+
+    def start(self) -> "ExifReader":
+        """Start the ExifTool process (no-op when running).
+
+        Raises
+        ------
+        VigprocError
+            If ExifTool cannot be started.
+        """
+        if self._et is not None and self._et.running:
+            return self
+        kwargs: dict[str, Any] = {"common_args": list(_COMMON_ARGS), "encoding": "utf-8"}
+        if self._executable:
+            kwargs["executable"] = self._executable
+        # check_execute=False: a batch with one bad file exits with status 1,
+        # which is per-file information, not a failure of the command.
+        et = exiftool.ExifToolHelper(check_execute=False, auto_start=False, **kwargs)
+        try:
+            et.run()
+        except (OSError, RuntimeError, exiftool.exceptions.ExifToolException) as exc:
+            raise VigprocError(f"cannot start exiftool: {exc}") from exc
+        self._et = et
+        self.launches += 1
+        logger.debug("exiftool %s started (pid %s)", et.version, self.pid)
+        return self
+
+    def close(self) -> None:
+        """Stop the ExifTool process."""
+        et, self._et = self._et, None
+        if et is not None and et.running:
+            try:
+                et.terminate()
+            except Exception:  # noqa: BLE001 - shutting down: nothing useful to do
+                logger.debug("exiftool terminate failed", exc_info=True)
+
+    def __enter__(self) -> "ExifReader":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # pragma: no cover - best effort
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001
+            pass
+
+    @property
+    def pid(self) -> int | None:
+        """Process id of the running ExifTool, or None."""
+        proc = getattr(self._et, "_process", None)
+        return proc.pid if proc is not None else None
+
+    @property
+    def version(self) -> str | None:
+        """ExifTool version string, or None when not running."""
+        return self._et.version if self._et is not None and self._et.running else None
+
+    # ---- reading ---------------------------------------------------------- #
+
+    def read(self, path: PathLike) -> LensKey:
+        """Read one file.
+
+        Raises
+        ------
+        ImageReadError, UnsupportedFormatError, FileNameError, MetadataError
+            Typed errors naming the file and the cause.
+        """
+        result = self.read_many([path])[0]
+        if isinstance(result, BaseException):
+            raise result
+        return result
+
+    def read_many(self, paths: Iterable[PathLike]) -> list[LensKey | VigprocError]:
+        """Read many files with one ExifTool command per chunk (one process).
+
+        Parameters
+        ----------
+        paths : iterable of path-like
+
+        Returns
+        -------
+        list
+            One entry per input, in order: a :class:`LensKey` or the typed error
+            for that file (returned, not raised).
+        """
+        metas = self.read_metadata_many(paths)
+        out: list[LensKey | VigprocError] = []
+        for item in metas:
+            if isinstance(item, VigprocError):
+                out.append(item)
+                continue
+            display, meta = item
+            out.append(self._to_key(display, meta))
+        return out
+
+    def read_metadata_many(
+        self, paths: Iterable[PathLike]
+    ) -> list[tuple[str, dict[str, Any]] | VigprocError]:
+        """Raw ExifTool records (``-G`` keys) for each path, or its typed error."""
+        jobs: list[_Job | ImageReadError] = [_prepare(p) for p in paths]
+        results: list[tuple[str, dict[str, Any]] | VigprocError | None] = [None] * len(jobs)
+        batch: list[int] = []
+        for i, job in enumerate(jobs):
+            if isinstance(job, VigprocError):
+                results[i] = job
+            elif job.solo:
+                results[i] = self._run_jobs([job])[0]
+            else:
+                batch.append(i)
+        for start in range(0, len(batch), self.chunk_size):
+            idx = batch[start:start + self.chunk_size]
+            chunk_jobs = [jobs[i] for i in idx]
+            for i, res in zip(idx, self._run_jobs(chunk_jobs)):  # type: ignore[arg-type]
+                results[i] = res
+        return results  # type: ignore[return-value]
+
+    def _execute(self, args: list[Union[str, bytes]]) -> tuple[list[Any], str]:
+        """One ExifTool command; returns (JSON records, stderr)."""
+        with self._lock:
+            self.start()
+            assert self._et is not None
+            out = self._et.execute("-j", *_TAGS, *args, raw_bytes=True)
+            err = self._et.last_stderr or b""
+        text = out.decode("utf-8", errors="replace").strip()
+        records = json.loads(text) if text else []
+        if not isinstance(records, list):
+            raise ValueError("exiftool JSON output is not a list")
+        return records, err.decode("utf-8", errors="replace")
+
+    def _run_jobs(self, jobs: list[_Job]) -> list[tuple[str, dict[str, Any]] | VigprocError]:
+        try:
+            records, stderr = self._execute([j.arg for j in jobs])
+        except Exception as exc:  # noqa: BLE001 - any failure of the command itself
+            logger.warning("exiftool command failed for %d file(s): %s", len(jobs), _safe_msg(exc))
+            self._restart()
+            if len(jobs) > 1:
+                # Isolate the culprit: the others must still be read.
+                return [self._run_jobs([j])[0] for j in jobs]
+            return [_path_error(ImageReadError, jobs[0].display, f"exiftool failed: {_safe_msg(exc)}")]
+        by_name: dict[str, deque[dict[str, Any]]] = {}
+        for rec in records:
+            if isinstance(rec, dict) and isinstance(rec.get("SourceFile"), str):
+                by_name.setdefault(rec["SourceFile"], deque()).append(rec)
+        causes = _stderr_causes(stderr)
+        out: list[tuple[str, dict[str, Any]] | VigprocError] = []
+        for job in jobs:
+            rec: dict[str, Any] | None = None
+            if job.expect is None:  # solo job, matched by being alone
+                if len(records) == 1 and isinstance(records[0], dict):
+                    rec = records[0]
+            else:
+                queue = by_name.get(job.expect)
+                if queue:
+                    rec = queue.popleft()
+            if rec is None:
+                cause = causes.get(job.expect or "", "exiftool returned no metadata for this file")
+                out.append(_path_error(ImageReadError, job.display, _safe_msg(cause)))
+                continue
+            out.append(self._check_record(job.display, rec))
+        return out
+
+    def _restart(self) -> None:
+        with self._lock:
+            self.close()
+        # start() happens lazily on the next command
+
+    @staticmethod
+    def _check_record(display: str, rec: dict[str, Any]) -> tuple[str, dict[str, Any]] | VigprocError:
+        error = rec.get("ExifTool:Error")
+        if error:
+            msg = _safe_msg(error)
+            cls = UnsupportedFormatError if re.search(r"unknown file type|format error|not supported", msg, re.I) else ImageReadError
+            return _path_error(cls, display, f"exiftool: {msg}")
+        warning = rec.get("ExifTool:Warning")
+        if warning:
+            logger.info("%s: exiftool warning: %s", _q(display), _safe_msg(warning))
+        mime = rec.get("File:MIMEType")
+        ftype = _safe_msg(rec.get("File:FileType") or "unknown")
+        if not (isinstance(mime, str) and mime.startswith(_IMAGE_MIME_PREFIXES)):
+            return _path_error(UnsupportedFormatError, display, f"not an image (exiftool file type {ftype})")
+        return display, rec
+
+    def _to_key(self, display: str, meta: dict[str, Any]) -> LensKey | VigprocError:
+        key = lens_key_from_metadata(meta, source=display)
+        if key.make is None and key.model is None and key.lens is None:
+            why = "; ".join(key.problems)
+            return _path_error(
+                MetadataError, display,
+                "no camera make, model or lens in the metadata" + (f" ({why})" if why else ""),
+            )
+        lacking = [f for f in self.require if getattr(key, f) is None]
+        if lacking:
+            why = [p for p in key.problems if p.split(":", 1)[0] in lacking]
+            return _path_error(
+                MetadataError, display,
+                f"required EXIF field(s) missing: {', '.join(lacking)}" + (f" ({'; '.join(why)})" if why else ""),
+            )
+        return key
+
+
+def read_lens_key(path: PathLike, **kwargs: Any) -> LensKey:
+    """Read one file's :class:`LensKey` with a reader of its own (starts/stops ExifTool).
+
+    For more than a few files use :class:`ExifReader` (one process for all).
+
+    Raises
+    ------
+    ImageReadError, UnsupportedFormatError, FileNameError, MetadataError
+    """
+    with ExifReader(**kwargs) as reader:
+        return reader.read(path)
+
+
+def bench_exif(paths: Sequence[PathLike], repeat: int = 1) -> dict[str, float]:
+    """Time EXIF reading: one persistent process vs one process per file.
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+    repeat : int
+        Batch timings are the best of ``repeat`` runs.
+
+    Returns
+    -------
+    dict
+        ``n_files``; ``startup_ms`` (starting the process); ``batch_ms_per_file``
+        (one :meth:`ExifReader.read_many` call, process already running);
+        ``batch_total_ms_per_file`` (including the start-up);
+        ``per_process_ms_per_file`` (:func:`read_lens_key` per file: a new
+        process each); ``speedup`` (per-process / batch-including-start-up).
+    """
+    paths = list(paths)
+    n = len(paths)
+    if n == 0:
+        raise ValueError("bench_exif needs at least one path")
+    best_batch = math.inf
+    startup = math.inf
+    for _ in range(max(1, repeat)):
+        t0 = time.perf_counter()
+        with ExifReader() as reader:
+            t1 = time.perf_counter()
+            reader.read_many(paths)
+            t2 = time.perf_counter()
+        startup = min(startup, t1 - t0)
+        best_batch = min(best_batch, t2 - t1)
+    t0 = time.perf_counter()
+    for p in paths:
+        try:
+            read_lens_key(p)
+        except VigprocError:
+            pass
+    per_process = time.perf_counter() - t0
+    batch_total = (startup + best_batch) / n
+    return {
+        "n_files": float(n),
+        "startup_ms": startup * 1e3,
+        "batch_ms_per_file": best_batch / n * 1e3,
+        "batch_total_ms_per_file": batch_total * 1e3,
+        "per_process_ms_per_file": per_process / n * 1e3,
+        "speedup": (per_process / n) / batch_total if batch_total > 0 else math.inf,
+    }
