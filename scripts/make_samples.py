@@ -6,6 +6,7 @@ unrestricted usage. Run from the repository root with ../shared beside it:
 """
 
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,11 @@ def main() -> None:
         o.open(str(out), spec)
         o.write_image(codes)
         o.close()
+        if kind == "lensfun":
+            # lens EXIF as a camera would write it (list arguments: no shell)
+            subprocess.run(["exiftool", "-q", "-overwrite_original", f"-Make={lens.maker}", "-Model=vigproc sample",
+                            f"-LensModel={lens.model}", f"-FocalLength={pa.focal}", f"-FNumber={pa.aperture}",
+                            "--", str(out)], check=True)
         meta.append({"file": out.name, "source": f"Kodak Lossless True Color Image Suite, {name}",
                      "vignetting": desc, "corner_attenuation": round(float(phi[0, 0]), 4)})
     (DST / "samples.json").write_text(json.dumps(meta, indent=1) + "\n")

@@ -45,18 +45,33 @@ def _safe_output(outdir: Path, src: Path, suffix: str) -> Path:
     return out
 
 
+def _lens(reader, path: Path) -> dict:
+    """The frame's lens key as a JSON-able dict; an unidentifiable lens is reported, not fatal."""
+    from vigproc.errors import ImageReadError
+
+    try:
+        key = reader.read(path)
+    except ImageReadError as exc:  # no/contradictory EXIF: the frame can still be estimated
+        return {"lens_id": None, "error": str(exc)}
+    return {"lens_id": key.lens_id(), "key": key.to_dict()}
+
+
 # ----------------------------------------------------------------- commands
 def cmd_estimate(args: argparse.Namespace) -> int:
     from vigproc.estimate import estimate
+    from vigproc.exif import ExifReader
     from vigproc.io import read_image
 
     img, info = read_image(args.file, transfer=args.input_transfer)
+    with ExifReader() as reader:
+        lens = _lens(reader, Path(args.file))
     m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed)
     if args.json:
-        print(json.dumps({"file": str(args.file), "model": m.to_dict()}, indent=1))
+        print(json.dumps({"file": str(args.file), "lens": lens, "model": m.to_dict()}, indent=1))
     else:
         q = m.quality
         print(f"{args.file}: {info.width}x{info.height} {info.format} ({info.transfer})")
+        print(f"  lens        {lens['lens_id'] or 'unknown (' + lens['error'] + ')'}")
         print(f"  method      {m.method}")
         print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
         print(f"  P (px^-2)   p1={m.p[0]:.4g} p2={m.p[1]:.4g} p3={m.p[2]:.4g}")
@@ -68,7 +83,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _process_one(path: Path, outdir: Path, method: str, transfer: str, picture: bool) -> dict:
+def _process_one(path: Path, outdir: Path, method: str, transfer: str, picture: bool, reader) -> dict:
     from vigproc.correct import correct
     from vigproc.estimate import estimate
     from vigproc.io import read_image, write_image
@@ -80,7 +95,8 @@ def _process_one(path: Path, outdir: Path, method: str, transfer: str, picture: 
     out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None)
     dst = _safe_output(outdir, path, ".corrected.tif")
     write_image(dst, out, bit_depth="float")
-    rec = {"file": str(path), "output": str(dst), "model": m.to_dict(), "seconds": round(time.perf_counter() - t0, 4)}
+    rec = {"file": str(path), "output": str(dst), "lens": _lens(reader, path), "model": m.to_dict(),
+           "seconds": round(time.perf_counter() - t0, 4)}
     if picture:
         pic = _safe_output(outdir, path, ".vignetting.png")
         write_image(pic, vignetting_picture(m if m.candidate is None else m.candidate), bit_depth="uint8", transfer="srgb")
@@ -93,23 +109,27 @@ def _process_one(path: Path, outdir: Path, method: str, transfer: str, picture: 
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
+    from vigproc.exif import ExifReader
+
     outdir = Path(args.output)
     outdir.mkdir(parents=True, exist_ok=True)
     files = [Path(f) for f in args.files]
     failed = 0
     results = []
-    for f in files:
-        try:
-            rec = _process_one(f, outdir, args.method, args.input_transfer, args.picture)
-            results.append(rec)
-            q = rec["model"].get("quality") or {}
-            if not args.json:
-                tag = "no correction (weak evidence)" if q.get("fallback") else f"{q.get('field_ev_rms', 0):.2f} EV fall-off removed"
-                print(f"{f} -> {rec['output']}  [{tag}]")
-        except VigprocError as exc:
-            failed += 1
-            results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
-            print(f"vigproc: {exc}", file=sys.stderr)
+    with ExifReader() as reader:  # one exiftool process for the whole batch
+        for f in files:
+            try:
+                rec = _process_one(f, outdir, args.method, args.input_transfer, args.picture, reader)
+                results.append(rec)
+                q = rec["model"].get("quality") or {}
+                if not args.json:
+                    tag = ("no correction (weak evidence)" if q.get("fallback")
+                           else f"{q.get('field_ev_rms', 0):.2f} EV fall-off removed")
+                    print(f"{f} -> {rec['output']}  [{tag}; lens {rec['lens']['lens_id'] or 'unknown'}]")
+            except VigprocError as exc:
+                failed += 1
+                results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
+                print(f"vigproc: {exc}", file=sys.stderr)
     if args.json:
         print(json.dumps({"results": results, "done": len(files) - failed, "failed": failed}, indent=1))
     else:
