@@ -3,7 +3,6 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -48,6 +47,10 @@ def test_correct_writes_outputs_atomically_and_keeps_input(vignetted_tiff, tmp_p
     assert path.read_bytes() == before
     names = sorted(p.name for p in out.iterdir())
     assert names == ["frame.corrected.tif", "frame.vignetting.png", "frame.vigproc.json"]
+    from vigproc.metadata import read_record
+
+    rec = read_record(out / "frame.corrected.tif")
+    assert rec is not None and rec["model"].width == 240
     corrected, _ = read_image(out / "frame.corrected.tif")
     src, _ = read_image(path)
     # the corners were brightened relative to the centre
@@ -94,3 +97,49 @@ def test_demo_runs_on_bundled_samples(tmp_path):
     assert r.returncode == 0, r.stderr
     assert len(list((tmp_path / "demo").glob("*.corrected.tif"))) == 3
     assert len(list((tmp_path / "demo").glob("*.vignetting.png"))) == 3
+
+
+def test_bench_io_runs(tmp_path):
+    r = run("bench", "io", "--width", "64", "--height", "48", "--repeat", "1")
+    assert r.returncode == 0, r.stderr
+    for label in ("TIFF 16-bit", "TIFF float", "EXR half", "EXR float", "PNG 16-bit"):
+        assert label in r.stdout
+
+
+def test_usage_errors_exit_2_without_traceback():
+    r = run("estimate")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+def test_same_stem_inputs_get_distinct_outputs(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    a, b = tmp_path / "x" / "frame.tif", tmp_path / "y" / "frame.tif"
+    for p in (a, b):
+        p.parent.mkdir()
+        p.write_bytes(path.read_bytes())
+    out = tmp_path / "out"
+    r = run("correct", a, b, "-o", out)
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in out.glob("*.tif")) == ["frame-2.corrected.tif", "frame.corrected.tif"]
+
+
+def test_estimate_raw_uses_half_size_and_reports_full_frame(tmp_path):
+    from dngfixture import make_dng
+
+    from vigproc.model import VignettingModel
+
+    h, w = 256, 384
+    truth = VignettingModel(w, h, center=(12.0, -8.0), p=(1 / 210.0**2, 0, 1 / 210.0**2),
+                            alpha=(0.02, 0.01, 0, 0, 0, 0, 0))
+    dng = tmp_path / "shot one.dng"
+    make_dng(dng, width=w, height=h, field=truth.field(), scene=textured(h, w, seed=3, contrast=0.05),
+             exif={"Make": "Canon", "Model": "Canon EOS 5D", "LensModel": "EF24-105mm f/4L IS USM",
+                   "FocalLength": 24, "FNumber": 4})
+    r = run("estimate", dng, "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    m = VignettingModel.from_dict(doc["model"])
+    assert (m.width, m.height) == (w, h)
+    err = np.log2(m.field() / truth.field())
+    assert np.sqrt(np.mean(err**2)) < 0.1
+    assert doc["lens"]["lens_id"].startswith("canon|canon eos 5d|")

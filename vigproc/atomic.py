@@ -7,11 +7,59 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Iterator
 
 from vigproc.errors import ImageWriteError
+
+
+def new_file_mode_mask() -> int:
+    """The process umask (what a plain ``open()`` would apply to a new file's mode)."""
+    try:  # Linux: read it without the racy set-and-restore
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    old = os.umask(0o022)
+    os.umask(old)
+    return old
+
+
+def fsync_dir(directory: str | Path) -> None:
+    """fsync a folder so a rename into it is durable; best effort (not every
+    filesystem allows it)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def publish(tmp: str | Path, dst: str | Path) -> None:
+    """Make a finished temporary file ``dst``: fsync it, give it ``dst``'s current mode
+    (or the umask default for a new file; mkstemp made it 0600), rename it onto
+    ``dst`` and fsync the folder. Raises OSError."""
+    try:
+        mode = stat.S_IMODE(os.stat(dst).st_mode)
+    except OSError:
+        mode = 0o666 & ~new_file_mode_mask()
+    os.chmod(tmp, mode)
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, dst)
+    fsync_dir(os.path.dirname(os.path.abspath(dst)))
 
 
 @contextlib.contextmanager
@@ -31,9 +79,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        with open(tmp_path, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp_path, path)
+        publish(tmp_path, path)
     except BaseException:
         with contextlib.suppress(OSError):
             tmp_path.unlink()

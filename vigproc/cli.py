@@ -36,13 +36,26 @@ def _images_in(folder: Path, limit: int | None = None) -> list[Path]:
     return files[:limit] if limit else files
 
 
-def _safe_output(outdir: Path, src: Path, suffix: str) -> Path:
-    """Output path inside ``outdir`` named after ``src``; never escapes ``outdir``."""
-    name = src.stem.replace(os.sep, "_").lstrip(".") or "image"
+def _safe_output(outdir: Path, stem: str, suffix: str) -> Path:
+    """Output path inside ``outdir`` named ``stem + suffix``; never escapes ``outdir``."""
+    name = stem.replace(os.sep, "_").lstrip(".") or "image"
     out = (outdir / f"{name}{suffix}").resolve()
     if out.parent != outdir.resolve():
         raise ImageWriteError(f"refusing to write outside {outdir}: {out}")
     return out
+
+
+def _output_stems(files: Sequence[Path]) -> list[str]:
+    """One distinct output stem per input: ``a.jpg`` and ``a.png`` (or two ``a.jpg``
+    from different folders) must not overwrite each other's outputs."""
+    seen: dict[str, int] = {}
+    stems = []
+    for f in files:
+        base = f.stem
+        n = seen.get(base.casefold(), 0) + 1
+        seen[base.casefold()] = n
+        stems.append(base if n == 1 else f"{base}-{n}")
+    return stems
 
 
 def _lens(reader, path: Path) -> dict:
@@ -62,10 +75,14 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from vigproc.exif import ExifReader
     from vigproc.io import read_image
 
-    img, info = read_image(args.file, transfer=args.input_transfer)
+    # RAW: estimate on LibRaw's half-size development (the fast path) and report the
+    # model for the full frame; other formats are read as they are
+    img, info = read_image(args.file, transfer=args.input_transfer, raw_half_size=True)
     with ExifReader() as reader:
         lens = _lens(reader, Path(args.file))
     m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed)
+    if info.format == "raw":
+        m = m.rescale(2 * m.width, 2 * m.height)
     if args.json:
         print(json.dumps({"file": str(args.file), "lens": lens, "model": m.to_dict()}, indent=1))
     else:
@@ -83,25 +100,29 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _process_one(path: Path, outdir: Path, method: str, transfer: str, picture: bool, reader) -> dict:
+def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str, picture: bool, reader) -> dict:
     from vigproc.correct import correct
     from vigproc.estimate import estimate
     from vigproc.io import read_image, write_image
+    from vigproc.metadata import make_record, write_corrected
     from vigproc.picture import vignetting_picture
 
     t0 = time.perf_counter()
     img, info = read_image(path, transfer=transfer)
     m = estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)
     out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None)
-    dst = _safe_output(outdir, path, ".corrected.tif")
-    write_image(dst, out, bit_depth="float")
+    dst = _safe_output(outdir, stem, ".corrected.tif")
+    if dst == path.resolve():
+        raise ImageWriteError(f"refusing to overwrite the input {path}")
+    # the source's EXIF/XMP plus an XMP record of the correction, written atomically
+    write_corrected(dst, out, path, make_record(m), bit_depth="float")
     rec = {"file": str(path), "output": str(dst), "lens": _lens(reader, path), "model": m.to_dict(),
            "seconds": round(time.perf_counter() - t0, 4)}
     if picture:
-        pic = _safe_output(outdir, path, ".vignetting.png")
+        pic = _safe_output(outdir, stem, ".vignetting.png")
         write_image(pic, vignetting_picture(m if m.candidate is None else m.candidate), bit_depth="uint8", transfer="srgb")
         rec["picture"] = str(pic)
-    side = _safe_output(outdir, path, ".vigproc.json")
+    side = _safe_output(outdir, stem, ".vigproc.json")
     from vigproc.atomic import atomic_write_text
 
     atomic_write_text(side, json.dumps(rec, indent=1) + "\n")
@@ -117,9 +138,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
     failed = 0
     results = []
     with ExifReader() as reader:  # one exiftool process for the whole batch
-        for f in files:
+        for f, stem in zip(files, _output_stems(files)):
             try:
-                rec = _process_one(f, outdir, args.method, args.input_transfer, args.picture, reader)
+                rec = _process_one(f, stem, outdir, args.method, args.input_transfer, args.picture, reader)
                 results.append(rec)
                 q = rec["model"].get("quality") or {}
                 if not args.json:
@@ -144,7 +165,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not files:
         raise VigprocError("the bundled samples are missing from this installation")
     ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
-                            input_transfer="auto", picture=True, json=False)
+                            input_transfer=args.input_transfer, picture=True, json=False)
     return cmd_correct(ns)
 
 
@@ -157,7 +178,7 @@ def cmd_prior_fit(args: argparse.Namespace) -> int:
     def images():
         for f in files:
             try:
-                yield read_image(f)[0]
+                yield read_image(f, transfer=args.input_transfer)[0]
             except VigprocError as exc:
                 log.warning("skipping %s", exc)
 
@@ -179,7 +200,7 @@ def cmd_bench_synthetic(args: argparse.Namespace) -> int:
     from vigproc.io import read_image
 
     files = _images_in(Path(args.images), args.limit)
-    ims = [S.protocol_image(read_image(f, transfer="linear")[0]) for f in files]
+    ims = [S.protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
     methods = {"ga": "ga", "lyu2010-rand": "lyu2010-rand", "lyu2010": "lyu2010", "default": "default"}
     chosen = {k: _estimator(v) for k, v in methods.items() if k in args.methods}
     for fn in chosen.values():  # JIT warm-up outside the timings
@@ -199,7 +220,7 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     from vigproc.io import read_image
 
     files = _images_in(Path(args.images), args.limit)
-    ims = [protocol_image(read_image(f)[0]) for f in files]
+    ims = [protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
     results = []
     print(f"lensfun protocol: {args.lenses} lenses x {args.frames_per_lens} frames from {len(ims)} images "
           f"(linearised, 480x320); RMS of log2(estimated/true field)")
@@ -233,7 +254,7 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
     folder = Path(args.images) if args.images else Path(str(resources.files("vigproc.data").joinpath("samples")))
     files = _images_in(folder, args.limit)
     phi = table1_model(2).field()
-    frames = [protocol_image(read_image(f)[0]) * phi for f in files]
+    frames = [protocol_image(read_image(f, transfer=args.input_transfer)[0]) * phi for f in files]
     print(f"{len(frames)} frames of 480x320 from {folder}, {args.repeat} rounds, one thread")
     for method in args.methods:
         estimate(frames[0], method, channel_axis=None)  # JIT warm-up
@@ -244,6 +265,28 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
                 estimate(fr, method, channel_axis=None)
                 ts.append(time.perf_counter() - t0)
         print(f"{method:<14} median {1000 * np.median(ts):8.2f} ms  p90 {1000 * np.percentile(ts, 90):8.2f} ms")
+    return 0
+
+
+def cmd_bench_io(args: argparse.Namespace) -> int:
+    """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
+    from vigproc.bench.io import bench_formats, bench_raw
+    from vigproc.exif import bench_exif
+
+    print(f"reading a {args.width}x{args.height} RGB frame (best of {args.repeat}); 'bytes' = reading the file's bytes")
+    print(f"{'format':<20}{'MP':>7}{'MB':>9}{'read ms':>10}{'bytes ms':>10}{'ratio':>7}")
+    rows = bench_formats(args.height, args.width, args.repeat)
+    if args.raw:
+        rows += bench_raw(sorted(p for p in Path(args.raw).rglob("*") if p.is_file()), args.repeat)
+    for r in rows:
+        print(f"{r.label:<20}{r.megapixels:>7.1f}{r.megabytes:>9.1f}{r.read_ms:>10.1f}{r.bytes_ms:>10.1f}"
+              f"{r.read_ms / max(r.bytes_ms, 1e-9):>7.1f}")
+    if args.exif:
+        files = _images_in(Path(args.exif))
+        e = bench_exif(files, repeat=args.repeat)
+        print(f"EXIF lens key, {int(e['n_files'])} files: {e['batch_ms_per_file']:.1f} ms/file in one exiftool "
+              f"process ({e['batch_total_ms_per_file']:.1f} with its {e['startup_ms']:.0f} ms start-up), "
+              f"{e['per_process_ms_per_file']:.1f} ms/file with a process per file ({e['speedup']:.1f}x)")
     return 0
 
 
@@ -278,6 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("demo", help="correct the bundled sample images (the README's first command)")
     sp.add_argument("-o", "--output", default="vigproc-demo")
+    transfer_opt(sp)
     sp.set_defaults(fn=cmd_demo)
 
     sp = sub.add_parser("prior", help="natural-image prior of the paper's method")
@@ -289,6 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--seed", type=int, default=0)
     fp.add_argument("--limit", type=int)
     fp.add_argument("--source", help="provenance text stored in the prior")
+    transfer_opt(fp)
     fp.set_defaults(fn=cmd_prior_fit)
 
     sp = sub.add_parser("bench", help="benchmarks (print measured figures)")
@@ -297,6 +342,8 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--images", required=True)
     bp.add_argument("--limit", type=int)
     bp.add_argument("--quantize", action="store_true")
+    bp.add_argument("--input-transfer", choices=("auto", "linear", "srgb"), default="linear",
+                    help="the paper's protocol takes stored values as linear (default)")
     bp.add_argument("--methods", nargs="+", default=["ga", "lyu2010-rand", "lyu2010", "default"],
                     choices=["ga", "lyu2010-rand", "lyu2010", "default"])
     bp.add_argument("--json")
@@ -306,6 +353,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--limit", type=int)
     bp.add_argument("--lenses", type=int, default=20)
     bp.add_argument("--frames-per-lens", type=int, default=5)
+    transfer_opt(bp)
     bp.add_argument("--methods", nargs="+", default=["default"], choices=list(METHODS))
     bp.add_argument("--json")
     bp.set_defaults(fn=cmd_bench_lensfun)
@@ -314,7 +362,15 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--limit", type=int, default=10)
     bp.add_argument("--repeat", type=int, default=5)
     bp.add_argument("--methods", nargs="+", default=["ga", "default"], choices=list(METHODS))
+    transfer_opt(bp)
     bp.set_defaults(fn=cmd_bench_speed)
+    bp = bsub.add_parser("io", help="frame read times per format and EXIF per file in batch")
+    bp.add_argument("--width", type=int, default=6000)
+    bp.add_argument("--height", type=int, default=4000)
+    bp.add_argument("--repeat", type=int, default=3)
+    bp.add_argument("--raw", help="folder of RAW files to time (full and half size)")
+    bp.add_argument("--exif", help="folder of images to time EXIF reading on")
+    bp.set_defaults(fn=cmd_bench_io)
     return p
 
 
@@ -330,6 +386,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("vigproc: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a bug, not bad input: still no traceback unless asked (-vv)
+        log.debug("internal error", exc_info=True)
+        print(f"vigproc: internal error ({type(exc).__name__}: {exc}); rerun with -vv for details",
+              file=sys.stderr)
+        return 70
 
 
 if __name__ == "__main__":

@@ -61,6 +61,7 @@ from typing import Callable, Union
 import numpy as np
 import OpenImageIO as oiio
 
+from vigproc.atomic import publish
 from vigproc.errors import (
     ImageReadError,
     ImageWriteError,
@@ -695,19 +696,6 @@ _FORMAT_DEPTHS = {
 }
 
 
-def _umask() -> int:
-    try:  # Linux: read without the racy set-and-restore dance
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    old = os.umask(0o022)
-    os.umask(old)
-    return old
-
-
 def write_image(
     path: PathLike,
     img: np.ndarray,
@@ -817,17 +805,7 @@ def write_image(
     done = False
     try:
         _oiio_write(tmp, spec, data, q)
-        try:
-            mode = stat.S_IMODE(os.stat(fspath).st_mode)  # keep an existing file's mode
-        except OSError:
-            mode = 0o666 & ~_umask()  # mkstemp made it 0600
-        os.chmod(tmp, mode)
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, fspath)
+        publish(tmp, fspath)
         done = True
     except ImageWriteError:
         raise
@@ -839,7 +817,6 @@ def write_image(
                 os.unlink(tmp)
             except OSError:
                 pass
-    _fsync_dir(directory)
     logger.debug("wrote %s (%s, %s, %s, %dx%dx%d)", fspath, fmt, depth, tr, w, h, nch)
 
 
@@ -860,17 +837,3 @@ def _oiio_write(tmp: str, spec: oiio.ImageSpec, data: np.ndarray, q: str) -> Non
         raise ImageWriteError(f"cannot write {q}: {_one_line(err or oiio.geterror())}")
     if err:  # success with a message: libtiff chatter, keep it out of the user's way
         logger.debug("%s: OpenImageIO reported while writing: %s", tmp, _one_line(err))
-
-
-def _fsync_dir(directory: str) -> None:
-    # Makes the rename durable; best effort (not all filesystems allow it).
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)

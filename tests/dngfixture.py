@@ -1,0 +1,259 @@
+"""Small synthetic Bayer DNGs with a known vignetting field, for RAW end-to-end tests.
+
+:func:`make_dng` writes the TIFF/DNG structure directly (one uncompressed 16-bit
+CFA strip in IFD0, the DNG colour tags LibRaw needs), then adds the camera and
+lens EXIF with the ``exiftool`` program, the way a real file carries them.  No
+third-party DNG writer is needed.
+
+The raw values are built so that LibRaw's linear development
+(:func:`vigproc.io.read_image`) gives back ``scene * field`` for every colour
+channel: a grey scene is multiplied per CFA colour by ``AsShotNeutral`` (what a
+camera with that white balance would record), and the camera colour matrix is
+the XYZ -> linear sRGB matrix, so the camera-to-sRGB conversion is the identity
+after white balance.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import struct
+import subprocess
+from typing import Any, Mapping
+
+import numpy as np
+
+__all__ = ["DEFAULT_EXIF", "EXIFTOOL", "make_dng", "smooth_scene"]
+
+EXIFTOOL = shutil.which("exiftool")
+
+#: Camera and lens EXIF written by default (exiftool tag names).
+DEFAULT_EXIF: dict[str, Any] = {
+    "Make": "Vigproc",
+    "Model": "Synthetic DNG 1",
+    "LensMake": "Vigproc Optics",
+    "LensModel": "VP 35mm F2.0 Test",
+    "LensSerialNumber": "LS-0042",
+    "SerialNumber": "BODY-1234",
+    "FocalLength": 35,
+    "FocalLengthIn35mmFormat": 35,
+    "FNumber": 2.0,
+    "ExposureTime": "1/125",
+    "ISO": 200,
+    "DateTimeOriginal": "2024:05:06 07:08:09",
+}
+
+# TIFF field types
+_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL = 1, 2, 3, 4, 5, 10
+_TYPE_SIZE = {_BYTE: 1, _ASCII: 1, _SHORT: 2, _LONG: 4, _RATIONAL: 8, _SRATIONAL: 8}
+
+# XYZ(D65) -> linear sRGB: a camera whose native space is linear sRGB.
+_XYZ_TO_SRGB = (
+    (3.2406, -1.5372, -0.4986),
+    (-0.9689, 1.8758, 0.0415),
+    (0.0557, -0.2040, 1.0570),
+)
+
+
+def smooth_scene(height: int, width: int, seed: int = 0, contrast: float = 0.25) -> np.ndarray:
+    """A positive, mildly textured grey scene (smooth 1/f noise around 0.4).
+
+    Parameters
+    ----------
+    height, width : int
+    seed : int
+    contrast : float
+        Standard deviation of the log texture.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``HxW`` float64, values around 0.4 (roughly 0.15..0.9).
+    """
+    rng = np.random.default_rng(seed)
+    f = np.fft.rfft2(rng.normal(size=(height, width)))
+    fy = np.fft.fftfreq(height)[:, None]
+    fx = np.fft.rfftfreq(width)[None, :]
+    f /= np.maximum(np.hypot(fx, fy), 1.0 / max(height, width)) ** 1.2
+    tex = np.fft.irfft2(f, s=(height, width))
+    return 0.4 * np.exp(contrast * tex / tex.std())
+
+
+def _rational(x: float) -> tuple[int, int]:
+    den = 10000  # 4 decimals: enough for colour matrices and neutrals
+    return int(round(x * den)), den
+
+
+def _entry(tag: int, typ: int, values: Any) -> tuple[int, int, int, bytes]:
+    """Encode one IFD entry's value bytes (little-endian)."""
+    if typ == _ASCII:
+        raw = values.encode("ascii", "replace") + b"\0"
+        return tag, typ, len(raw), raw
+    vals = list(values) if isinstance(values, (list, tuple)) else [values]
+    if typ == _BYTE:
+        raw = bytes(vals)
+    elif typ == _SHORT:
+        raw = struct.pack(f"<{len(vals)}H", *vals)
+    elif typ == _LONG:
+        raw = struct.pack(f"<{len(vals)}I", *vals)
+    elif typ in (_RATIONAL, _SRATIONAL):
+        fmt = "i" if typ == _SRATIONAL else "I"
+        raw = b"".join(struct.pack(f"<{fmt}{fmt}", *_rational(v)) for v in vals)
+    else:  # pragma: no cover - only the types above are used
+        raise ValueError(typ)
+    return tag, typ, len(vals), raw
+
+
+def _write_tiff(path: str, entries: list[tuple[int, int, Any]], strip: bytes) -> None:
+    """Write a single-IFD little-endian TIFF whose only strip is ``strip``.
+
+    ``entries`` must not contain StripOffsets/StripByteCounts (added here).
+    """
+    enc = [_entry(t, ty, v) for t, ty, v in entries]
+    n = len(enc) + 2
+    ifd_off = 8
+    ifd_size = 2 + 12 * n + 4
+    data_off = ifd_off + ifd_size
+    # out-of-line values (over 4 bytes) follow the IFD, word aligned; then the strip
+    blobs = b""
+    offsets: dict[int, int] = {}
+    for tag, _typ, _cnt, raw in enc:
+        if len(raw) > 4:
+            if (data_off + len(blobs)) % 2:
+                blobs += b"\0"
+            offsets[tag] = data_off + len(blobs)
+            blobs += raw
+    strip_off = data_off + len(blobs)
+    strip_off += (-strip_off) % 8
+    enc += [
+        _entry(273, _LONG, strip_off),
+        _entry(279, _LONG, len(strip)),
+    ]
+    enc.sort(key=lambda e: e[0])
+    out = bytearray(b"II*\0" + struct.pack("<I", ifd_off))
+    out += struct.pack("<H", n)
+    for tag, typ, cnt, raw in enc:
+        if len(raw) > 4:
+            out += struct.pack("<HHII", tag, typ, cnt, offsets[tag])
+        else:
+            out += struct.pack("<HHI", tag, typ, cnt) + raw.ljust(4, b"\0")
+    out += struct.pack("<I", 0)  # no next IFD
+    out += blobs
+    out += b"\0" * (strip_off - len(out))
+    out += strip
+    with open(path, "wb") as fh:
+        fh.write(out)
+
+
+def make_dng(
+    path: str | os.PathLike[str],
+    *,
+    width: int = 384,
+    height: int = 256,
+    field: np.ndarray | None = None,
+    scene: np.ndarray | None = None,
+    exif: Mapping[str, Any] | None = None,
+    neutral: tuple[float, float, float] = (0.5, 1.0, 0.7),
+    black: int = 512,
+    white: int = 16383,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """Write a small RGGB Bayer DNG of ``scene * field`` that LibRaw decodes.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file (``.dng``).
+    width, height : int
+        Sensor size in pixels; both must be even.
+    field : numpy.ndarray, optional
+        ``HxW`` attenuation (1 = no fall-off) sampled at the sensor pixels;
+        default all ones.
+    scene : numpy.ndarray, optional
+        ``HxW`` grey scene radiance in ``[0, 1)`` of the raw range; default
+        :func:`smooth_scene`.
+    exif : mapping, optional
+        Tags written by exiftool (tag name -> value); default :data:`DEFAULT_EXIF`.
+        Pass ``{}`` for none.
+    neutral : (float, float, float)
+        ``AsShotNeutral``: the camera's raw response to grey, per R, G, B.
+    black, white : int
+        ``BlackLevel`` and ``WhiteLevel`` of the 16-bit samples.
+    noise : float
+        Standard deviation of additive Gaussian noise, as a fraction of the
+        ``white - black`` range.
+    seed : int
+        Seed of the default scene and of the noise.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``HxW`` float64: the linear image LibRaw's development should give back
+        (``scene * field`` without noise and quantisation).
+    """
+    if width % 2 or height % 2 or width < 16 or height < 16:
+        raise ValueError(f"width and height must be even and >= 16, got {width}x{height}")
+    if scene is None:
+        scene = smooth_scene(height, width, seed)
+    if field is None:
+        field = np.ones((height, width))
+    scene = np.asarray(scene, dtype=np.float64)
+    field = np.asarray(field, dtype=np.float64)
+    if scene.shape != (height, width) or field.shape != (height, width):
+        raise ValueError(f"scene {scene.shape} and field {field.shape} must be {(height, width)}")
+    truth = scene * field
+    if truth.max() * max(neutral) >= 1.0 or truth.min() < 0:
+        raise ValueError("scene * field * neutral must stay within [0, 1) of the raw range")
+
+    # RGGB: the raw value a camera with this white balance records for grey
+    gain = np.empty((height, width))
+    gain[0::2, 0::2] = neutral[0]
+    gain[0::2, 1::2] = neutral[1]
+    gain[1::2, 0::2] = neutral[1]
+    gain[1::2, 1::2] = neutral[2]
+    rng = np.random.default_rng(seed + 1)
+    sig = truth * gain + (rng.normal(scale=noise, size=truth.shape) if noise > 0 else 0.0)
+    raw = np.clip(np.rint(black + sig * (white - black)), 0, white).astype("<u2")
+
+    tags = DEFAULT_EXIF if exif is None else exif
+    make = str(tags.get("Make", "Vigproc"))
+    model = str(tags.get("Model", "Synthetic DNG"))
+    entries: list[tuple[int, int, Any]] = [
+        (254, _LONG, 0),  # NewSubfileType: main image
+        (256, _LONG, width),
+        (257, _LONG, height),
+        (258, _SHORT, 16),  # BitsPerSample
+        (259, _SHORT, 1),  # Compression: none
+        (262, _SHORT, 32803),  # PhotometricInterpretation: CFA
+        (274, _SHORT, 1),  # Orientation
+        (277, _SHORT, 1),  # SamplesPerPixel
+        (278, _LONG, height),  # RowsPerStrip
+        (284, _SHORT, 1),  # PlanarConfiguration
+        (33421, _SHORT, (2, 2)),  # CFARepeatPatternDim
+        (33422, _BYTE, (0, 1, 1, 2)),  # CFAPattern: RGGB
+        (50706, _BYTE, (1, 4, 0, 0)),  # DNGVersion
+        (50707, _BYTE, (1, 1, 0, 0)),  # DNGBackwardVersion
+        (50708, _ASCII, f"{make} {model}"),  # UniqueCameraModel
+        (50710, _BYTE, (0, 1, 2)),  # CFAPlaneColor
+        (50711, _SHORT, 1),  # CFALayout: rectangular
+        (50714, _LONG, black),  # BlackLevel
+        (50717, _LONG, white),  # WhiteLevel
+        (50721, _SRATIONAL, [v for row in _XYZ_TO_SRGB for v in row]),  # ColorMatrix1
+        (50728, _RATIONAL, neutral),  # AsShotNeutral
+        (50778, _SHORT, 21),  # CalibrationIlluminant1: D65
+    ]
+    fspath = os.fspath(path)
+    _write_tiff(fspath, entries, raw.tobytes())
+
+    if tags:
+        if EXIFTOOL is None:
+            raise RuntimeError("the exiftool program is needed to write the DNG's EXIF")
+        args = [EXIFTOOL, "-q", "-overwrite_original"]
+        args += [f"-{k}={v}" for k, v in tags.items()]
+        # absolute path: a name starting with '-' must not look like an option
+        args += ["--", os.path.abspath(fspath)]
+        res = subprocess.run(args, capture_output=True, text=True)
+        if res.returncode != 0 or "Warning" in res.stderr:
+            raise RuntimeError(f"exiftool failed on {fspath!r}: {res.stderr.strip()}")
+    return truth
