@@ -27,7 +27,7 @@ from vigproc.errors import (
 )
 from vigproc.io import ImageInfo, linear_to_srgb, read_image, srgb_to_linear, write_image
 
-RAW_DIR = Path("/work/shared/data/raw")
+RAW_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "raw"  # ../shared beside the repo
 # The two RAWs README.md / files.csv list as decodable by rawpy.
 DECODABLE_RAWS = ("rawpy/RAW_KODAK_DC50.KDC", "tinydng/colorchart.dng")
 
