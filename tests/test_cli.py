@@ -143,3 +143,17 @@ def test_estimate_raw_uses_half_size_and_reports_full_frame(tmp_path):
     err = np.log2(m.field() / truth.field())
     assert np.sqrt(np.mean(err**2)) < 0.1
     assert doc["lens"]["lens_id"].startswith("canon|canon eos 5d|")
+
+
+@pytest.mark.parametrize("fmt,suffix", [("tiff16", ".tif"), ("exr-half", ".exr"), ("exr-float", ".exr")])
+def test_output_formats_carry_the_record(tmp_path, vignetted_tiff, fmt, suffix):
+    from vigproc.metadata import read_record
+
+    path, _ = vignetted_tiff
+    out = tmp_path / "out"
+    r = run("correct", path, "-o", out, "--output-format", fmt)
+    assert r.returncode == 0, r.stderr
+    dst = out / f"frame.corrected{suffix}"
+    img, info = read_image(dst)
+    assert img.shape[:2] == (160, 240) and info.transfer == "linear"
+    assert read_record(dst)["model"].width == 240

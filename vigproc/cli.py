@@ -23,6 +23,14 @@ from vigproc.errors import ImageWriteError, VigprocError
 
 log = logging.getLogger("vigproc")
 
+#: --output-format choices: (file suffix, write bit depth).
+OUTPUT_FORMATS = {
+    "tiff-float": (".tif", "float"),
+    "tiff16": (".tif", "uint16"),
+    "exr-half": (".exr", "half"),
+    "exr-float": (".exr", "float"),
+}
+
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".dng", ".cr2", ".cr3", ".nef", ".arw",
                   ".raf", ".orf", ".rw2", ".pef", ".srw", ".kdc"}
 
@@ -100,7 +108,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str, picture: bool, reader) -> dict:
+def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str, picture: bool, reader,
+                 output_format: str = "tiff-float") -> dict:
     from vigproc.correct import correct
     from vigproc.estimate import estimate
     from vigproc.io import read_image, write_image
@@ -110,12 +119,14 @@ def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str
     t0 = time.perf_counter()
     img, info = read_image(path, transfer=transfer)
     m = estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)
-    out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None)
-    dst = _safe_output(outdir, stem, ".corrected.tif")
+    suffix, depth = OUTPUT_FORMATS[output_format]
+    # integer outputs cannot hold values above the white point: clip those
+    out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None, clip=1.0 if depth == "uint16" else None)
+    dst = _safe_output(outdir, stem, ".corrected" + suffix)
     if dst == path.resolve():
         raise ImageWriteError(f"refusing to overwrite the input {path}")
     # the source's EXIF/XMP plus an XMP record of the correction, written atomically
-    write_corrected(dst, out, path, make_record(m), bit_depth="float")
+    write_corrected(dst, out, path, make_record(m), bit_depth=depth)
     rec = {"file": str(path), "output": str(dst), "lens": _lens(reader, path), "model": m.to_dict(),
            "seconds": round(time.perf_counter() - t0, 4)}
     if picture:
@@ -140,7 +151,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     with ExifReader() as reader:  # one exiftool process for the whole batch
         for f, stem in zip(files, _output_stems(files)):
             try:
-                rec = _process_one(f, stem, outdir, args.method, args.input_transfer, args.picture, reader)
+                rec = _process_one(f, stem, outdir, args.method, args.input_transfer, args.picture, reader,
+                                   args.output_format)
                 results.append(rec)
                 q = rec["model"].get("quality") or {}
                 if not args.json:
@@ -165,7 +177,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not files:
         raise VigprocError("the bundled samples are missing from this installation")
     ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
-                            input_transfer=args.input_transfer, picture=True, json=False)
+                            input_transfer=args.input_transfer, picture=True, json=False,
+                            output_format="tiff-float")
     return cmd_correct(ns)
 
 
@@ -310,7 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
     transfer_opt(sp)
     sp.set_defaults(fn=cmd_estimate)
 
-    sp = sub.add_parser("correct", help="estimate and remove vignetting, writing float TIFFs")
+    sp = sub.add_parser("correct", help="estimate and remove vignetting (linear TIFF or EXR outputs)")
+    sp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="tiff-float",
+                    help="linear output: float or 16-bit TIFF, half or float OpenEXR (default tiff-float)")
     sp.add_argument("files", nargs="+")
     sp.add_argument("-o", "--output", required=True)
     sp.add_argument("--method", choices=METHODS, default="default")
