@@ -281,6 +281,42 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_correct(args: argparse.Namespace) -> int:
+    """Full-resolution correction against a plain copy and a numpy divide, in one run."""
+    from vigproc.bench.synthetic import table1_model
+    from vigproc.correct import correct
+
+    h, w = args.height, args.width
+    img = np.random.default_rng(0).random((h, w, 3), dtype=np.float32)
+    model = table1_model(2).rescale(w, h) if abs(w / h - 1.5) < 0.02 else table1_model(2).rescale(480, 320)
+    out = np.empty_like(img)
+    field = model.field((h, w)).astype(np.float32)
+
+    def numpy_divide() -> None:
+        np.divide(img, field[..., None], out=out)
+
+    cases = [
+        ("copy (memory floor)", lambda: np.copyto(out, img)),
+        ("numpy divide by precomputed field", numpy_divide),
+        ("vigproc.correct, field on the fly", lambda: correct(img, model, out=out)),
+        ("vigproc.correct, new output array", lambda: correct(img, model)),
+    ]
+    print(f"{w}x{h} RGB float32 ({img.nbytes / 1e6:.0f} MB), median of {args.repeat} after warm-up, "
+          f"{__import__('numba').get_num_threads()} threads")
+    base = None
+    for name, fn in cases:
+        fn()
+        ts = []
+        for _ in range(args.repeat):
+            t0 = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t0)
+        ms = 1000 * float(np.median(ts))
+        base = base or ms
+        print(f"{name:<38}{ms:>9.1f} ms {ms / base:>6.2f}x copy")
+    return 0
+
+
 def cmd_bench_io(args: argparse.Namespace) -> int:
     """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
     from vigproc.bench.io import bench_formats, bench_raw
@@ -386,6 +422,11 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--raw", help="folder of RAW files to time (full and half size)")
     bp.add_argument("--exif", help="folder of images to time EXIF reading on")
     bp.set_defaults(fn=cmd_bench_io)
+    bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")
+    bp.add_argument("--width", type=int, default=6000)
+    bp.add_argument("--height", type=int, default=4000)
+    bp.add_argument("--repeat", type=int, default=15)
+    bp.set_defaults(fn=cmd_bench_correct)
     return p
 
 
