@@ -23,9 +23,65 @@ def _check_strength(strength: float) -> float:
     return s
 
 
+#: Relative error allowed from interpolating the gain between evaluated columns.
+GAIN_TOLERANCE = 1e-6
+#: Largest interpolation step (columns).
+MAX_GAIN_STEP = 16
+
+
+def exact_radius(model: VignettingModel, step: int, tol: float = GAIN_TOLERANCE) -> float:
+    """Radius (px) around the centre where gains must be evaluated exactly at ``step``.
+
+    α1·r is a cone at the centre; near it r'' ≈ √λmax(P)/d at distance d, so linear
+    interpolation over h columns errs by about |α1|·√λmax·h²/(8d) relative, which is
+    within ``tol`` for d > |α1|·√λmax·h²/(8·tol).
+    """
+    if step <= 1:
+        return 0.0
+    lam = float(np.linalg.eigvalsh(model.shape_matrix).max())
+    return abs(model.alpha[0]) * np.sqrt(max(lam, 0.0)) * step * step / (8 * tol) + step + 1.0
+
+
+def gain_step(model: VignettingModel, width: int, height: int, tol: float = GAIN_TOLERANCE) -> int:
+    """Column step at which linear interpolation of 1/φ stays within ``tol`` (relative).
+
+    Linear interpolation over a step h errs by at most h²/8·max|g''|; the relative
+    second difference of the exact gain g = 1/φ is measured along 9 rows spanning
+    the frame (the corners, where it is largest, included), away from the centre's
+    cone (:func:`exact_radius`), which is evaluated exactly.
+    """
+    m = model if (model.width, model.height) == (width, height) else model.rescale(width, height)
+    if m.is_identity or width < 3:
+        return MAX_GAIN_STEP if m.is_identity else 1
+    rows = np.linspace(0, height - 1, 9).round().astype(int)
+    g = np.exp(-_sample_rows(m, width, height, rows))
+    curv = np.abs(g[:, 2:] - 2 * g[:, 1:-1] + g[:, :-2]) / g[:, 1:-1]
+    xs = np.arange(1, width - 1) - ((width - 1) / 2 + m.center[0])
+    ys = rows[:, None] - ((height - 1) / 2 + m.center[1])
+    for step in range(MAX_GAIN_STEP, 1, -1):
+        away = np.hypot(xs[None, :], ys) >= exact_radius(m, step, tol)
+        if away.mean() < 0.9:  # the exact disc would cover much of the frame: no gain
+            continue
+        if step * step * float(curv[away].max()) / 8 <= tol:
+            return step
+    return 1
+
+
+def _sample_rows(m: VignettingModel, width: int, height: int, rows: np.ndarray) -> np.ndarray:
+    from vigproc._kernels.field import log_field_grid
+    from vigproc.model import frame_coords
+
+    out = np.empty((rows.shape[0], width))
+    ys = frame_coords(height)[rows]
+    log_field_grid(frame_coords(width), ys, m.center[0], m.center[1], *m.p,
+                   np.asarray(m.alpha, dtype=np.float64), out)
+    return out
+
+
 def correct_stripe(
     stripe: np.ndarray, model: VignettingModel, row0: int, frame_shape: tuple[int, int], *,
     strength: float = 1.0, clip: float | None = None, out: np.ndarray | None = None,
+    step: int | None = None,
 ) -> np.ndarray:
     """Correct rows ``row0 .. row0 + h − 1`` of a frame of ``frame_shape`` = (H, W).
 
@@ -40,6 +96,8 @@ def correct_stripe(
     strength, clip : see :func:`correct`
     out : ndarray, float32, same shape as ``stripe``, optional
         Destination (may be ``stripe`` itself when it is float32: in place).
+    step : int, optional
+        Gain interpolation step in columns (1 = exact); default :func:`gain_step`.
 
     Returns
     -------
@@ -58,8 +116,9 @@ def correct_stripe(
     if o.shape != x.shape or o.dtype != np.float32:
         raise InvalidImageError(f"out must be float32 of shape {stripe.shape}, got {out.dtype} {out.shape}")
     cy = (fh - 1) / 2.0 + m.center[1]
+    step = gain_step(m, fw, fh) if step is None else int(step)
     correct_rows(x, o, int(row0), m.center[0], cy, *m.p, np.asarray(m.alpha, dtype=np.float64),
-                 s, -1.0 if clip is None else float(clip))
+                 s, -1.0 if clip is None else float(clip), step, exact_radius(m, step))
     return out
 
 

@@ -41,19 +41,55 @@ def _row_gains(xs, dy, p1, p2, p3, alpha, strength, gains):
             gains[i] = np.exp(np.float32(strength) * np.log(gains[i]))
 
 
+@njit(cache=True, nogil=True, fastmath=True)
+def _row_gains_interp(xs, dy, p1, p2, p3, alpha, strength, step, knots, gains):
+    """Gains at every ``step``-th column (and the last), linearly interpolated between.
+
+    The caller picks ``step`` so the interpolation error stays below a bound
+    (:func:`vigproc.correct.gain_step`); step 1 is exact evaluation.
+    """
+    w = xs.shape[0]
+    if step == 1:
+        _row_gains(xs, dy, p1, p2, p3, alpha, strength, gains)
+        return
+    nk = knots.shape[0]
+    kx = np.empty(nk, dtype=np.float32)
+    for t in range(nk):
+        kx[t] = xs[min(t * step, w - 1)]
+    kg = np.empty(nk, dtype=np.float32)
+    _row_gains(kx, dy, p1, p2, p3, alpha, strength, kg)
+    for t in range(nk - 1):
+        i0 = t * step
+        i1 = min(i0 + step, w - 1)
+        g0 = kg[t]
+        d = (kg[t + 1] - g0) / np.float32(i1 - i0) if i1 > i0 else np.float32(0.0)
+        for i in range(i0, i1):
+            gains[i] = g0 + d * np.float32(i - i0)
+    gains[w - 1] = kg[nk - 1]
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def correct_rows(img, out, row0, cx, cy, p1, p2, p3, alpha, strength, clip):
+def correct_rows(img, out, row0, cx, cy, p1, p2, p3, alpha, strength, clip, step=1, exact_radius=0.0):
     """out[j, i, :] = img[j, i, :] / φ^strength for the rows of ``img`` (h×W×C).
 
     ``row0`` is the frame row of ``img[0]``, so a stripe of a larger frame can be
     corrected on its own. ``cx`` is the centre's x offset from the frame centre and
-    ``cy`` the centre's absolute row. ``clip`` ≤ 0 means no clipping.
+    ``cy`` the centre's absolute row. ``clip`` ≤ 0 means no clipping. With
+    ``step`` > 1 the gain is interpolated between columns, except within
+    ``exact_radius`` px of the centre, where α1·r makes it a cone (not smooth).
     """
     h, w, c = img.shape
     xs = (np.arange(w) - ((w - 1) / 2.0 + cx)).astype(np.float32)
+    nk = (w - 1 + step - 1) // step + 1  # knots at 0, step, 2·step, ..., and w−1
     for j in prange(h):
         gains = np.empty(w, dtype=np.float32)
-        _row_gains(xs, (row0 + j) - cy, p1, p2, p3, alpha, strength, gains)
+        dy = (row0 + j) - cy
+        _row_gains_interp(xs, dy, p1, p2, p3, alpha, strength, step, np.empty(nk), gains)
+        if step > 1 and abs(dy) < exact_radius:
+            i0 = max(0, int(np.floor((w - 1) / 2.0 + cx - exact_radius)))
+            i1 = min(w, int(np.ceil((w - 1) / 2.0 + cx + exact_radius)) + 1)
+            if i1 > i0:
+                _row_gains(xs[i0:i1], dy, p1, p2, p3, alpha, strength, gains[i0:i1])
         _apply_row(img[j].reshape(w * c), out[j].reshape(w * c), gains, c, np.float32(clip))
 
 
