@@ -317,6 +317,25 @@ def cmd_bench_correct(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_profile(args: argparse.Namespace) -> int:
+    """Profile accuracy after 1, 5, 20 frames of real lens fields, per pooling method."""
+    from vigproc.bench import profile as B
+    from vigproc.bench.synthetic import protocol_image
+    from vigproc.io import read_image
+
+    files = _images_in(Path(args.images), args.limit)
+    ims = [protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
+    fn = _estimator("default")
+    fn(ims[0])
+    rows = B.run(ims, fn, args.lenses, args.counts)
+    print(f"profile accuracy: {args.lenses} lensfun lenses, frames from {len(ims)} images (480x320); "
+          "RMS of log2(pooled/true field)")
+    print(f"{'pooling':<14}{'frames':>7}{'lenses':>8}{'median EV':>11}{'p90 EV':>9}")
+    for r in rows:
+        print(f"{r.pooling:<14}{r.n_frames:>7}{r.n_lenses:>8}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}")
+    return 0
+
+
 def cmd_bench_io(args: argparse.Namespace) -> int:
     """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
     from vigproc.bench.io import bench_formats, bench_raw
@@ -422,6 +441,13 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--raw", help="folder of RAW files to time (full and half size)")
     bp.add_argument("--exif", help="folder of images to time EXIF reading on")
     bp.set_defaults(fn=cmd_bench_io)
+    bp = bsub.add_parser("profile", help="profile accuracy versus number of frames (lensfun lenses)")
+    bp.add_argument("--images", required=True)
+    bp.add_argument("--limit", type=int)
+    bp.add_argument("--lenses", type=int, default=20)
+    bp.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20])
+    transfer_opt(bp)
+    bp.set_defaults(fn=cmd_bench_profile)
     bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")
     bp.add_argument("--width", type=int, default=6000)
     bp.add_argument("--height", type=int, default=4000)

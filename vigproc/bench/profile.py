@@ -1,0 +1,85 @@
+"""Profile accuracy versus number of frames (issue 4's protocol).
+
+For each lens of :func:`vigproc.lensfun.bench_lenses` (widest aperture), frames are
+natural images multiplied by the lens's "pa" field; each frame is estimated on its
+own (the default estimator's fit, kept even when it would fall back, with its
+covariance), and the per-frame estimates are pooled three ways after n frames:
+
+* ``information``: inverse-variance pooling of the normalised parameters
+  (:func:`vigproc.profiles.pool_information`, what the store does);
+* ``mean-theta``: the plain mean of the normalised parameters;
+* ``mean-field``: the mean of the per-frame log-fields (field-space pooling, the
+  best a refit of the pooled field could do).
+
+The error is the RMS over the frame of log2(φ̂/φ), in EV.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+
+from vigproc.errors import ModelError
+from vigproc.lensfun import bench_lenses, pa_field
+from vigproc.model import VignettingModel
+
+POOLINGS = ("information", "mean-theta", "mean-field")
+
+
+@dataclass
+class ProfileAccuracy:
+    pooling: str
+    n_frames: int
+    n_lenses: int
+    median_ev: float
+    p90_ev: float
+
+
+def _rms_ev(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(x * x)) / math.log(2.0))
+
+
+def run(
+    images: Sequence[np.ndarray], estimate: Callable[[np.ndarray], VignettingModel],
+    n_lenses: int = 20, counts: Sequence[int] = (1, 5, 20),
+) -> list[ProfileAccuracy]:
+    """Pooled-profile errors after each of ``counts`` frames, per pooling method."""
+    from vigproc.profiles import denormalise, normalise, pool_information, pool_mean
+
+    nmax = max(counts)
+    errors: dict[tuple[str, int], list[float]] = {(p, n): [] for p in POOLINGS for n in counts}
+    for li, (_lens, pa) in enumerate(bench_lenses(n_lenses)):
+        h, w = images[0].shape
+        true_log = np.log(pa_field((h, w), pa.k1, pa.k2, pa.k3))
+        thetas, covs, fields = [], [], []
+        for j in range(nmax):
+            im = images[(li * nmax + j) % len(images)]
+            m = estimate(im * np.exp(true_log))
+            m = m.candidate if m.candidate is not None else m
+            if m.covariance is None:  # an identity model without a fit: no evidence
+                continue
+            th, cov, _ = normalise(m)
+            thetas.append(th)
+            covs.append(cov)
+            fields.append(m.log_field((h, w)))
+        for n in counts:
+            if len(thetas) < n:
+                continue
+            th_i, _ = pool_information(thetas[:n], covs[:n])
+            for name, th in (("information", th_i), ("mean-theta", pool_mean(thetas[:n]))):
+                try:
+                    lf = denormalise(th, None, w, h).log_field((h, w))
+                except ModelError:  # an invalid pooled model counts as no correction
+                    lf = np.zeros((h, w))
+                errors[(name, n)].append(_rms_ev(lf - true_log))
+            errors[("mean-field", n)].append(_rms_ev(np.mean(fields[:n], axis=0) - true_log))
+    out = []
+    for p in POOLINGS:
+        for n in counts:
+            e = errors[(p, n)]
+            if e:
+                out.append(ProfileAccuracy(p, n, len(e), float(np.median(e)), float(np.percentile(e, 90))))
+    return out
