@@ -59,6 +59,7 @@ References
 from __future__ import annotations
 
 import functools
+import os
 import importlib.util
 import logging
 import math
@@ -243,7 +244,9 @@ def load_lenses(db_paths: Iterable[str | Path] | None = None) -> list[LensfunLen
     .. [1] lensfun database format, ``docs/database.txt`` / ``lensfun.h.in``.
     """
     files = _resolve_xml_files(db_paths)
-    return list(_load_lenses_cached(files))
+    # the cache key includes each file's mtime and size: a rewritten file is re-read
+    stamps = tuple((f, os.stat(f).st_mtime_ns, os.stat(f).st_size) for f in files)
+    return list(_load_lenses_cached(stamps))
 
 
 def _resolve_xml_files(db_paths: Iterable[str | Path] | None) -> tuple[str, ...]:
@@ -262,7 +265,8 @@ def _resolve_xml_files(db_paths: Iterable[str | Path] | None) -> tuple[str, ...]
 
 
 @functools.lru_cache(maxsize=8)
-def _load_lenses_cached(files: tuple[str, ...]) -> tuple[LensfunLens, ...]:
+def _load_lenses_cached(stamps: tuple[tuple[str, int, int], ...]) -> tuple[LensfunLens, ...]:
+    files = [f for f, _, _ in stamps]
     lenses: list[LensfunLens] = []
     for file in files:
         lenses.extend(_parse_file(file))

@@ -1,0 +1,352 @@
+"""Tests for vigproc.lensfun_io (lensfun pa <-> Kang-Weiss, lensfun XML export)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vigproc.errors import ModelError
+from vigproc.lensfun import LensfunLens, PaVignetting, bench_lenses, interpolate_pa, load_lenses, pa_field
+from vigproc.lensfun_io import (
+    LENSFUN_DB_VERSION,
+    LensfunEntry,
+    _KwProblem,
+    export_lensfun_xml,
+    find_lens,
+    import_lensfun,
+    kw_from_pa,
+    pa_from_model,
+    pa_misfit_ev,
+)
+from vigproc.model import VignettingModel
+
+#: Measured (3:2 frames, bench_lenses(20)): max 6.8e-4 EV, median 2.7e-4 EV.
+KW_BOUND_EV = 2e-3
+#: Measured: pa_from_model(kw_from_pa(k)) reproduces k's field to max 1.7e-5 EV.
+ROUND_TRIP_BOUND_EV = 1e-4
+KNOWN_MAKER = "Canon"
+KNOWN_MODEL = "Canon EF-S 10-22mm f/3.5-4.5 USM"  # slr-canon.xml
+W, H = 600, 400
+
+
+def _rms_ev(log_a: np.ndarray, log_b: np.ndarray) -> float:
+    d = log_a - log_b
+    return float(np.sqrt(np.mean(d * d)) / math.log(2.0))
+
+
+@pytest.fixture(scope="module")
+def bench() -> list[tuple[LensfunLens, PaVignetting]]:
+    return bench_lenses(20)
+
+
+@pytest.fixture(scope="module")
+def bench_fits(bench: list[tuple[LensfunLens, PaVignetting]]) -> list[tuple[PaVignetting, VignettingModel]]:
+    return [(pa, kw_from_pa(pa.k1, pa.k2, pa.k3, W, H)) for _, pa in bench]
+
+
+# ------------------------------------------------------------ pa -> Kang-Weiss
+
+
+def test_kw_from_pa_matches_all_bench_lenses(bench_fits: list[tuple[PaVignetting, VignettingModel]]) -> None:
+    errors = []
+    for pa, model in bench_fits:
+        # independent check: vigproc's own field kernel at every pixel vs lensfun's pa field
+        err = _rms_ev(model.log_field((H, W)), np.log(pa_field((H, W), pa.k1, pa.k2, pa.k3)))
+        errors.append(err)
+        assert model.quality is not None
+        assert model.quality.objective == pytest.approx(err, rel=0.2, abs=2e-5)
+    print(f"kw_from_pa over {len(errors)} lenses: max {max(errors):.2e} EV, median {np.median(errors):.2e} EV")
+    assert len(errors) == 20
+    assert max(errors) < KW_BOUND_EV
+
+
+def test_kw_from_pa_is_centred_circular_lit_and_monotone(
+    bench_fits: list[tuple[PaVignetting, VignettingModel]],
+) -> None:
+    for _, model in bench_fits:
+        assert model.method == "lensfun"
+        assert model.center == (0.0, 0.0)
+        assert model.p[0] == model.p[2] > 0 and model.p[1] == 0.0
+        # along the half-diagonal up to the corner: G > 0, fall-off monotone
+        t = np.linspace(0.0, 1.0, 400)
+        corner = np.array([(W - 1) / 2.0, (H - 1) / 2.0])
+        r = np.sqrt(model.p[0]) * np.hypot(*corner) * t
+        g = 1.0 - (r[:, None] ** np.arange(1, 8)) @ np.asarray(model.alpha)
+        assert g.min() > 0.0
+        log_phi = -2.0 * np.log1p(0.25 * r * r) + np.log(g)
+        assert np.all(np.diff(log_phi) <= 1e-9)
+
+
+@pytest.mark.parametrize("size", [(400, 600), (500, 500), (1000, 150)])
+def test_kw_from_pa_other_aspect_ratios(bench: list[tuple[LensfunLens, PaVignetting]], size: tuple[int, int]) -> None:
+    w, h = size
+    for _, pa in bench[:5]:
+        model = kw_from_pa(pa.k1, pa.k2, pa.k3, w, h)
+        assert _rms_ev(model.log_field((h, w)), np.log(pa_field((h, w), pa.k1, pa.k2, pa.k3))) < KW_BOUND_EV
+
+
+def test_kw_from_pa_corner_rho(bench: list[tuple[LensfunLens, PaVignetting]]) -> None:
+    # image of twice the calibration crop factor: its corner is at rho = 0.5
+    pa = bench[0][1]
+    model = kw_from_pa(pa.k1, pa.k2, pa.k3, W, H, corner_rho=0.5)
+    ys, xs = np.mgrid[0:H, 0:W]
+    rho = np.hypot(xs - (W - 1) / 2, ys - (H - 1) / 2) / math.hypot((W - 1) / 2, (H - 1) / 2) * 0.5
+    r2 = rho * rho
+    expected = np.log(1 + pa.k1 * r2 + pa.k2 * r2**2 + pa.k3 * r2**3)
+    assert _rms_ev(model.log_field((H, W)), expected) < KW_BOUND_EV
+    assert pa_misfit_ev(model, pa.k1, pa.k2, pa.k3, corner_rho=0.5) < KW_BOUND_EV
+
+
+def test_kw_from_pa_flat_and_invalid() -> None:
+    assert kw_from_pa(0.0, 0.0, 0.0, W, H).is_identity
+    with pytest.raises(ModelError):
+        kw_from_pa(-1.5, 0.0, 0.0, W, H)  # attenuation negative at the corner
+    with pytest.raises(ModelError):
+        kw_from_pa(math.nan, 0.0, 0.0, W, H)
+    with pytest.raises(ModelError):
+        kw_from_pa(-0.3, 0.0, 0.0, 0, H)
+
+
+@pytest.mark.parametrize(
+    "alpha",
+    [
+        [0.9, 0, 0, 0, 0, 0, 0.035],  # G floor active (0 < G < 0.01 at the corner)
+        [-0.5, 0.3, 0, 0.1, 0, 0, 0.0],  # monotonicity penalty active
+        [0.2, -0.8, 0.5, 0.2, 0, 0, 0.1],  # no penalty
+    ],
+)
+def test_kw_jacobian_matches_finite_differences(alpha: list[float]) -> None:
+    u = np.linspace(0.0, 1.0, 50)
+    uc = np.linspace(0.0, 1.0, 65)
+    prob = _KwProblem(u, np.ones(50), np.log(1 - 0.5 * u**2), uc, np.full(65, 1e-9))
+    x = np.r_[0.05, alpha]
+    step = 1e-7
+    numeric = np.array([(prob.residuals(x + e) - prob.residuals(x - e)) / (2 * step) for e in np.eye(8) * step]).T
+    np.testing.assert_allclose(prob.jacobian(x), numeric, atol=1e-6)
+
+
+# ------------------------------------------------------------------ import
+
+
+def test_import_lensfun_known_lens_reproduces_pa_field() -> None:
+    lens = find_lens(KNOWN_MAKER, KNOWN_MODEL)
+    assert lens is not None
+    for focal, aperture in [(10.0, 3.5), (16.0, 5.6), (13.0, 4.5)]:  # calibrated and interpolated points
+        model = import_lensfun(KNOWN_MAKER, KNOWN_MODEL, focal, aperture, width=W, height=H)
+        pa = interpolate_pa(lens, focal, aperture, 1000.0)
+        assert model.method == "lensfun"
+        assert (model.width, model.height) == (W, H)
+        assert _rms_ev(model.log_field((H, W)), np.log(pa_field((H, W), pa.k1, pa.k2, pa.k3))) < KW_BOUND_EV
+
+
+def test_import_lensfun_accepts_a_lens_object_and_a_model_alone() -> None:
+    lens = find_lens(KNOWN_MAKER, KNOWN_MODEL)
+    assert lens is not None
+    a = import_lensfun(lens, None, 10.0, 3.5, width=W, height=H)
+    b = import_lensfun("  canon ef-s 10-22MM   f/3.5-4.5 usm ", None, 10.0, 3.5, width=W, height=H)
+    assert a.p == pytest.approx(b.p) and a.alpha == pytest.approx(b.alpha)
+
+
+def test_import_lensfun_with_image_crop_factor() -> None:
+    lens = find_lens(KNOWN_MAKER, KNOWN_MODEL)
+    assert lens is not None
+    crop = lens.crop_factor * 1.25  # a smaller sensor: its corner sits at rho = 0.8
+    model = import_lensfun(KNOWN_MAKER, KNOWN_MODEL, 10.0, 3.5, width=W, height=H, crop_factor=crop)
+    pa = interpolate_pa(lens, 10.0, 3.5)
+    assert pa_misfit_ev(model, pa.k1, pa.k2, pa.k3, corner_rho=0.8) < KW_BOUND_EV
+    full = import_lensfun(KNOWN_MAKER, KNOWN_MODEL, 10.0, 3.5, width=W, height=H)
+    assert model.field_ev_rms() < full.field_ev_rms()  # less of the fall-off is in the frame
+
+
+def test_import_unknown_lens_raises() -> None:
+    with pytest.raises(ModelError, match="no pa vignetting calibration"):
+        import_lensfun("Nobody", "Imaginary 42mm f/0.7", 42.0, 0.7, width=W, height=H)
+
+
+def test_import_out_of_range_focal_raises() -> None:
+    with pytest.raises(ModelError, match="too far"):
+        import_lensfun(KNOWN_MAKER, KNOWN_MODEL, 500.0, 3.5, width=W, height=H)
+    with pytest.raises(ModelError):
+        import_lensfun(KNOWN_MAKER, KNOWN_MODEL, -10.0, 3.5, width=W, height=H)
+
+
+def test_find_lens_matching() -> None:
+    exact = find_lens("CANON", "canon ef-s 10-22mm f/3.5-4.5 usm")
+    assert exact is not None and exact.model == KNOWN_MODEL
+    sub = find_lens("canon", "EF-S 10-22mm")
+    assert sub is not None and sub.model == KNOWN_MODEL
+    assert find_lens(None, KNOWN_MODEL) == exact
+    assert find_lens("Nobody", "Imaginary 42mm") is None
+    with pytest.raises(ModelError, match="ambiguous") as info:
+        find_lens(None, "50mm")
+    assert " / " in str(info.value)  # candidates are listed
+    with pytest.raises(ModelError):
+        find_lens("Canon", "   ")
+
+
+def test_find_lens_calibrated_on_several_sensors() -> None:
+    with pytest.raises(ModelError, match="crop factors"):
+        find_lens("Canon", "Canon EF 50mm f/1.4 USM")
+    ff = find_lens("Canon", "Canon EF 50mm f/1.4 USM", crop_factor=1.0)
+    aps = find_lens("Canon", "Canon EF 50mm f/1.4 USM", crop_factor=1.6)
+    assert ff is not None and aps is not None
+    assert ff.crop_factor == 1.0 and aps.crop_factor == pytest.approx(1.611)
+
+
+# ------------------------------------------------------- Kang-Weiss -> pa
+
+
+def test_pa_from_model_round_trips_bench_fields(bench_fits: list[tuple[PaVignetting, VignettingModel]]) -> None:
+    errors, misfits = [], []
+    for pa, model in bench_fits:
+        fit = pa_from_model(model)
+        errors.append(_rms_ev(np.log(pa_field((H, W), fit.k1, fit.k2, fit.k3)),
+                              np.log(pa_field((H, W), pa.k1, pa.k2, pa.k3))))
+        misfits.append(fit.rms_ev)
+        # the reported misfit is the pa fit's distance to the model's field
+        assert fit.rms_ev == pytest.approx(pa_misfit_ev(model, fit.k1, fit.k2, fit.k3), rel=1e-6, abs=1e-9)
+    print(f"pa_from_model: misfit max {max(misfits):.2e} EV, median {np.median(misfits):.2e} EV; "
+          f"round trip field error max {max(errors):.2e} EV")
+    assert max(errors) < ROUND_TRIP_BOUND_EV
+    assert max(misfits) < KW_BOUND_EV
+
+
+def test_pa_from_model_identity_and_off_centre(caplog: pytest.LogCaptureFixture) -> None:
+    assert pa_from_model(VignettingModel.identity(W, H)) == (0.0, 0.0, 0.0, 0.0)
+    p = (1.4 / math.hypot(W / 2, H / 2)) ** 2
+    centred = VignettingModel(W, H, p=(p, 0.0, p), alpha=(0.0, 0.1, 0, 0, 0, 0, 0))
+    with caplog.at_level(logging.WARNING, logger="vigproc.lensfun_io"):
+        good = pa_from_model(centred)
+    assert not caplog.records
+    off = VignettingModel(W, H, center=(60.0, -20.0), p=(p, 0.0, 1.3 * p), alpha=centred.alpha)
+    with caplog.at_level(logging.WARNING, logger="vigproc.lensfun_io"):
+        bad = pa_from_model(off)
+    assert any("off-centre" in r.getMessage() for r in caplog.records)
+    assert good.rms_ev < KW_BOUND_EV
+    assert bad.rms_ev > 10 * good.rms_ev  # the radial fit cannot follow; callers see it
+    assert bad.rms_ev == pytest.approx(pa_misfit_ev(off, bad.k1, bad.k2, bad.k3), rel=1e-6)
+
+
+# ------------------------------------------------------------------ export
+
+
+def _entries() -> list[LensfunEntry]:
+    out = []
+    for focal, aperture, distance in [(24.0, 2.8, 1000.0), (24.0, 5.6, 1000.0), (70.0, 2.8, 1000.0), (70.0, 2.8, 2.0)]:
+        pa = interpolate_pa(find_lens(KNOWN_MAKER, KNOWN_MODEL), 10.0 + (focal - 24) / 46 * 12, aperture + 0.7)
+        model = kw_from_pa(pa.k1, pa.k2, pa.k3, W, H)
+        k1, k2, k3, _ = pa_from_model(model)
+        out.append(LensfunEntry("Vigproc", "Vigproc 24-70mm f/2.8", "Canon EF", 1.0, focal, aperture, distance,
+                                k1, k2, k3))
+    out.append(LensfunEntry("Vigproc", "Vigproc 24-70mm f/2.8", "Canon RF", 1.0, 35.0, 2.8, 1000.0,
+                            -0.2, 0.05, -0.01))
+    out.append(LensfunEntry("Other", "Other 50mm f/1.8", "Sony E", 1.534, 50.0, 1.8, 1000.0, -0.4, 0.1, 0.0))
+    return out
+
+
+def test_export_then_load_lenses(tmp_path: Path) -> None:
+    entries = _entries()
+    path = tmp_path / "vigproc.xml"
+    assert export_lensfun_xml(entries, path) == 2
+    text = path.read_text(encoding="utf-8")
+    assert f'<lensdatabase version="{LENSFUN_DB_VERSION}">' in text
+    lenses = {lens.model: lens for lens in load_lenses([path])}
+    assert set(lenses) == {"Vigproc 24-70mm f/2.8", "Other 50mm f/1.8"}
+    zoom = lenses["Vigproc 24-70mm f/2.8"]
+    assert zoom.maker == "Vigproc" and zoom.mounts == ("Canon EF", "Canon RF") and zoom.crop_factor == 1.0
+    points = {(v.focal, v.aperture, v.distance): (v.k1, v.k2, v.k3) for v in zoom.vignetting}
+    for e in entries[:5]:
+        assert points[(e.focal, e.aperture, e.distance)] == pytest.approx((e.k1, e.k2, e.k3), abs=1e-12)
+    assert lenses["Other 50mm f/1.8"].crop_factor == 1.534
+
+
+def test_export_then_lensfunpy(tmp_path: Path) -> None:
+    lensfunpy = pytest.importorskip("lensfunpy")
+    entries = _entries()
+    path = tmp_path / "vigproc.xml"
+    export_lensfun_xml(entries, path)
+    db = lensfunpy.Database(paths=[str(path)], load_common=False, load_bundled=False)
+    lenses = {(lens.maker, lens.model): lens for lens in db.lenses}
+    assert set(lenses) == {("Vigproc", "Vigproc 24-70mm f/2.8"), ("Other", "Other 50mm f/1.8")}
+    zoom = lenses[("Vigproc", "Vigproc 24-70mm f/2.8")]
+    assert sorted(zoom.mounts) == ["Canon EF", "Canon RF"]
+    assert zoom.crop_factor == pytest.approx(1.0)
+    for e in entries[:5]:
+        calib = zoom.interpolate_vignetting(e.focal, e.aperture, e.distance)
+        assert calib.terms == pytest.approx([e.k1, e.k2, e.k3], abs=1e-4)
+    other = lenses[("Other", "Other 50mm f/1.8")]
+    assert other.interpolate_vignetting(50.0, 1.8, 1000.0).terms == pytest.approx([-0.4, 0.1, 0.0], abs=1e-4)
+
+
+def test_lensfunpy_rejects_database_version_2() -> None:
+    lensfunpy = pytest.importorskip("lensfunpy")
+    xml = ('<lensdatabase version="{v}"><lens><maker>A</maker><model>A 50mm</model><mount>Generic</mount>'
+           '<cropfactor>1</cropfactor><calibration><vignetting model="pa" focal="50" aperture="2" '
+           'distance="1000" k1="-0.3" k2="0" k3="0"/></calibration></lens></lensdatabase>')
+    db = lensfunpy.Database(xml=xml.format(v=LENSFUN_DB_VERSION), load_common=False, load_bundled=False)
+    assert len(db.lenses) == 1
+    with pytest.raises(lensfunpy.XMLFormatError):
+        lensfunpy.Database(xml=xml.format(v=2), load_common=False, load_bundled=False)
+
+
+HOSTILE_MAKER = 'Acme "Optics" & <Sons> \'Ltd\''
+HOSTILE_MODEL = 'Zoom-Ærø 50mm f/1.8 <b>&amp;</b> "☃" 𝔘 ]]> -->'
+
+
+def test_hostile_strings_survive_export(tmp_path: Path) -> None:
+    path = tmp_path / "hostile.xml"
+    export_lensfun_xml([(HOSTILE_MAKER, HOSTILE_MODEL, 'Mount "<&>"', 1.5, 50.0, 1.8, 1000.0,
+                         -0.31, 0.12, -0.05)], path)
+    (lens,) = load_lenses([path])
+    assert (lens.maker, lens.model, lens.mounts) == (HOSTILE_MAKER, HOSTILE_MODEL, ('Mount "<&>"',))
+    assert find_lens(HOSTILE_MAKER.upper(), HOSTILE_MODEL, db_paths=[path]) == lens
+    lensfunpy = pytest.importorskip("lensfunpy")
+    db = lensfunpy.Database(paths=[str(path)], load_common=False, load_bundled=False)
+    (lf,) = db.lenses
+    assert (lf.maker, lf.model) == (HOSTILE_MAKER, HOSTILE_MODEL)
+    assert lf.interpolate_vignetting(50.0, 1.8, 1000.0).terms == pytest.approx([-0.31, 0.12, -0.05], abs=1e-4)
+
+
+@pytest.mark.parametrize(
+    "entry",
+    [
+        ("", "M", "Mount", 1.0, 50.0, 2.0, 1000.0, -0.3, 0.0, 0.0),
+        ("Maker", "Bad\x00name", "Mount", 1.0, 50.0, 2.0, 1000.0, -0.3, 0.0, 0.0),
+        ("Maker", "Bad\nname", "Mount", 1.0, 50.0, 2.0, 1000.0, -0.3, 0.0, 0.0),
+        ("Maker", "M", "Mount", 0.0, 50.0, 2.0, 1000.0, -0.3, 0.0, 0.0),
+        ("Maker", "M", "Mount", 1.0, -50.0, 2.0, 1000.0, -0.3, 0.0, 0.0),
+        ("Maker", "M", "Mount", 1.0, 50.0, 2.0, 1000.0, math.inf, 0.0, 0.0),
+        ("Maker", "M", "Mount", 1.0, 50.0, 2.0),
+        (None, "M", "Mount", 1.0, 50.0, 2.0, 1000.0, -0.3, 0.0, 0.0),
+    ],
+)
+def test_export_rejects_bad_entries(tmp_path: Path, entry: tuple) -> None:
+    path = tmp_path / "bad.xml"
+    with pytest.raises(ModelError):
+        export_lensfun_xml([entry], path)
+    assert not path.exists()
+
+
+def test_export_rejects_nothing_and_replaces_atomically(tmp_path: Path) -> None:
+    path = tmp_path / "db.xml"
+    with pytest.raises(ModelError):
+        export_lensfun_xml([], path)
+    path.write_text("old", encoding="utf-8")
+    export_lensfun_xml(_entries()[-1:], path)
+    assert "Other 50mm f/1.8" in path.read_text(encoding="utf-8")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["db.xml"]  # no temporary left behind
+
+
+def test_reexport_to_the_same_path_is_reread(tmp_path):
+    from vigproc.lensfun import load_lenses
+
+    path = tmp_path / "same.xml"
+    entry = ("Vigproc", "Test 50mm f/2", "Generic", 1.0, 50.0, 2.0, 1000.0, -0.3, 0.1, -0.05)
+    export_lensfun_xml([entry], path)
+    first = load_lenses([path])[0].vignetting[0].k1
+    export_lensfun_xml([entry[:7] + (-0.5, 0.1, -0.05)], path)
+    assert first == -0.3 and load_lenses([path])[0].vignetting[0].k1 == -0.5
