@@ -157,3 +157,40 @@ def test_output_formats_carry_the_record(tmp_path, vignetted_tiff, fmt, suffix):
     img, info = read_image(dst)
     assert img.shape[:2] == (160, 240) and info.transfer == "linear"
     assert read_record(dst)["model"].width == 240
+
+
+def test_profile_store_flow(tmp_path, monkeypatch):
+    """learn pools frames per lens; a trusted stored profile is applied with no estimation."""
+    from dngfixture import make_dng
+
+    from vigproc.lensfun import bench_lenses, pa_field
+    from vigproc.model import VignettingModel
+
+    monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path / "store.sqlite"))
+    lens, pa = bench_lenses(1)[0]
+    h, w = 256, 384
+    # the frames claim the lens setting whose lensfun calibration they carry
+    exif = {"Make": "Canon", "Model": "Canon EOS 5D", "LensModel": "EF24-105mm f/4L IS USM",
+            "FocalLength": pa.focal, "FNumber": pa.aperture}
+    dngs = []
+    for i in range(2):
+        p = tmp_path / f"f{i}.dng"
+        make_dng(p, width=w, height=h, field=pa_field((h, w), pa.k1, pa.k2, pa.k3),
+                 scene=textured(h, w, seed=10 + i, contrast=0.05), exif=exif)
+        dngs.append(p)
+    r = run("profile", "learn", *dngs)
+    assert r.returncode == 0, r.stderr
+    r = run("profile", "list")
+    assert "frames=2" in r.stdout and "learning" in r.stdout
+    lens_id = json.loads(run("estimate", dngs[0], "--json").stdout)["lens"]["lens_id"]
+    r = run("profile", "import-lensfun", lens.maker, lens.model, "--focal", pa.focal, "--aperture", pa.aperture,
+            "--width", w, "--height", h, "--lens-id", lens_id, "--crop-factor", lens.crop_factor)
+    assert r.returncode == 0, r.stderr
+    # the learned (untrusted) profile and the imported one share the key: the import replaced it
+    r = run("correct", dngs[0], "-o", tmp_path / "out", "--profile", "auto", "--json")
+    assert r.returncode == 0, r.stderr
+    rec = json.loads(r.stdout)["results"][0]
+    assert rec["source"] == "stored-profile"
+    m = VignettingModel.from_dict(rec["model"])
+    err = np.log2(m.field() / pa_field((h, w), pa.k1, pa.k2, pa.k3))
+    assert np.sqrt(np.mean(err**2)) < 0.01

@@ -108,17 +108,58 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str, picture: bool, reader,
-                 output_format: str = "tiff-float") -> dict:
-    from vigproc.correct import correct
+def _lens_model(lens_key, width: int, height: int):
+    """The lensfun calibration of the frame's lens at its focal length and aperture."""
+    from vigproc.errors import ModelError
+    from vigproc.lensfun_io import import_lensfun
+
+    if lens_key is None or lens_key.lens is None or lens_key.focal_mm is None or lens_key.fnumber is None:
+        raise ModelError("lensfun needs the lens, focal length and f-number from EXIF")
+    distance = lens_key.focus_distance_m if lens_key.focus_distance_m not in (None, float("inf")) else 1000.0
+    return import_lensfun(None, lens_key.lens, lens_key.focal_mm, lens_key.fnumber, distance,
+                          width=width, height=height)
+
+
+def _choose_model(img, path: Path, profile: str, method: str, reader, store):
+    """Model to apply and where it came from: a trusted stored profile (no estimation),
+    a profile file, lensfun, or a fresh estimate."""
+    from vigproc.errors import ImageReadError
     from vigproc.estimate import estimate
+
+    h, w = img.shape[:2]
+    ca = -1 if img.ndim == 3 else None
+    if profile not in ("auto", "estimate", "lensfun"):
+        from vigproc.profiles import import_profile
+
+        return import_profile(profile).model(w, h), "profile-file"
+    try:
+        lens_key = reader.read(path)
+    except ImageReadError:
+        lens_key = None
+    if profile == "lensfun":
+        return _lens_model(lens_key, w, h), "lensfun"
+    if profile == "auto" and lens_key is not None and store is not None:
+        from vigproc.errors import VigprocError as _VE
+
+        try:
+            hit = store.lookup(lens_key, w, h, trusted_only=True)
+        except _VE:
+            hit = None
+        if hit is not None:
+            return hit.model(w, h), "stored-profile"
+    return estimate(img, method, channel_axis=ca), "estimate"
+
+
+def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str, picture: bool, reader,
+                 output_format: str = "tiff-float", profile: str = "estimate", store=None) -> dict:
+    from vigproc.correct import correct
     from vigproc.io import read_image, write_image
     from vigproc.metadata import make_record, write_corrected
     from vigproc.picture import vignetting_picture
 
     t0 = time.perf_counter()
     img, info = read_image(path, transfer=transfer)
-    m = estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)
+    m, source = _choose_model(img, path, profile, method, reader, store)
     suffix, depth = OUTPUT_FORMATS[output_format]
     # integer outputs cannot hold values above the white point: clip those
     out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None, clip=1.0 if depth == "uint16" else None)
@@ -127,7 +168,7 @@ def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str
         raise ImageWriteError(f"refusing to overwrite the input {path}")
     # the source's EXIF/XMP plus an XMP record of the correction, written atomically
     write_corrected(dst, out, path, make_record(m), bit_depth=depth)
-    rec = {"file": str(path), "output": str(dst), "lens": _lens(reader, path), "model": m.to_dict(),
+    rec = {"file": str(path), "output": str(dst), "lens": _lens(reader, path), "source": source, "model": m.to_dict(),
            "seconds": round(time.perf_counter() - t0, 4)}
     if picture:
         pic = _safe_output(outdir, stem, ".vignetting.png")
@@ -140,6 +181,18 @@ def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str
     return rec
 
 
+def m_ev(rec: dict) -> float:
+    from vigproc.model import VignettingModel
+
+    return VignettingModel.from_dict(rec["model"]).field_ev_rms()
+
+
+def _open_store(args: argparse.Namespace):
+    from vigproc.profiles import ProfileStore
+
+    return ProfileStore(args.profile_db)
+
+
 def cmd_correct(args: argparse.Namespace) -> int:
     from vigproc.exif import ExifReader
 
@@ -148,21 +201,24 @@ def cmd_correct(args: argparse.Namespace) -> int:
     files = [Path(f) for f in args.files]
     failed = 0
     results = []
+    store = _open_store(args) if args.profile == "auto" else None
     with ExifReader() as reader:  # one exiftool process for the whole batch
         for f, stem in zip(files, _output_stems(files)):
             try:
                 rec = _process_one(f, stem, outdir, args.method, args.input_transfer, args.picture, reader,
-                                   args.output_format)
+                                   args.output_format, args.profile, store)
                 results.append(rec)
                 q = rec["model"].get("quality") or {}
                 if not args.json:
                     tag = ("no correction (weak evidence)" if q.get("fallback")
-                           else f"{q.get('field_ev_rms', 0):.2f} EV fall-off removed")
+                           else f"{rec['source']}: {m_ev(rec):.2f} EV fall-off removed")
                     print(f"{f} -> {rec['output']}  [{tag}; lens {rec['lens']['lens_id'] or 'unknown'}]")
             except VigprocError as exc:
                 failed += 1
                 results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
                 print(f"vigproc: {exc}", file=sys.stderr)
+    if store is not None:
+        store.close()
     if args.json:
         print(json.dumps({"results": results, "done": len(files) - failed, "failed": failed}, indent=1))
     else:
@@ -178,7 +234,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise VigprocError("the bundled samples are missing from this installation")
     ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
                             input_transfer=args.input_transfer, picture=True, json=False,
-                            output_format="tiff-float")
+                            output_format="tiff-float", profile="estimate", profile_db=None)
     return cmd_correct(ns)
 
 
@@ -367,6 +423,103 @@ def cmd_bench_io(args: argparse.Namespace) -> int:
     return 0
 
 
+def _profile_line(i: int, p) -> str:
+    t = "trusted" if p.trusted else "learning"
+    sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
+    return f"[{i}] {p.key}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
+
+
+def _pick_profile(store, ident: str):
+    """A stored profile by its index in ``profile list`` or its exact key text."""
+    from vigproc.profiles import ProfileStoreError
+
+    profiles = store.list()
+    if ident.isdigit() and int(ident) < len(profiles):
+        return profiles[int(ident)]
+    for p in profiles:
+        if str(p.key) == ident:
+            return p
+    raise ProfileStoreError(f"no stored profile {ident!r} (see 'vigproc profile list')")
+
+
+def cmd_profile(args: argparse.Namespace) -> int:
+    from vigproc.profiles import ProfileKey, export_profile
+
+    with _open_store(args) as store:
+        if args.profile_command == "list":
+            for i, p in enumerate(store.list()):
+                print(_profile_line(i, p))
+        elif args.profile_command == "show":
+            p = _pick_profile(store, args.id)
+            print(_profile_line(0, p).split("] ", 1)[1])
+            m = p.model(args.width, args.height)
+            print(json.dumps(m.to_dict(), indent=1))
+            if args.plot:
+                from vigproc.io import write_image
+                from vigproc.picture import vignetting_picture
+
+                write_image(args.plot, vignetting_picture(m), bit_depth="uint8", transfer="srgb")
+                print(f"picture -> {args.plot}")
+        elif args.profile_command == "learn":
+            from vigproc.estimate import estimate
+            from vigproc.exif import ExifReader
+            from vigproc.io import read_image
+
+            files = [Path(f) for f in args.files]
+            done = failed = 0
+            with ExifReader() as reader:
+                for f in files:
+                    try:
+                        img, _ = read_image(f, transfer=args.input_transfer)
+                        h, w = img.shape[:2]
+                        key = ProfileKey.from_lens(reader.read(f), w, h)
+                        m = estimate(img, channel_axis=-1 if img.ndim == 3 else None)
+                        fit = m.candidate if m.candidate is not None else m
+                        if fit.covariance is None:
+                            raise VigprocError(f"{f}: no usable fit to learn from")
+                        p = store.learn(key, fit)
+                        done += 1
+                        print(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}")
+                    except VigprocError as exc:
+                        failed += 1
+                        print(f"vigproc: {exc}", file=sys.stderr)
+            print(f"{done} frames learned, {failed} failed")
+            return 0 if failed == 0 else 1
+        elif args.profile_command == "import":
+            p = store.import_file(args.file)
+            print(f"imported {p.key}")
+        elif args.profile_command == "export":
+            export_profile(_pick_profile(store, args.id), args.file)
+            print(f"exported -> {args.file}")
+        elif args.profile_command == "import-lensfun":
+            from vigproc.lensfun_io import import_lensfun
+            from vigproc.profiles import Profile, aperture_bin, aspect_label, focal_bin, normalise
+
+            m = import_lensfun(args.maker, args.model, args.focal, args.aperture, args.distance,
+                               width=args.width, height=args.height, crop_factor=args.crop_factor)
+            theta, _, aspect = normalise(m)
+            lens_id = args.lens_id or f"{args.maker}|{args.model}"
+            key = ProfileKey(lens_id.casefold(), focal_bin(args.focal), aperture_bin(args.aperture), aspect_label(aspect))
+            store.put(Profile(key=key, theta=theta, covariance=None, provenance="lensfun", trusted=True,
+                                  notes=f"lensfun {args.maker} {args.model} at {args.focal} mm f/{args.aperture}"))
+            print(f"imported from lensfun: {key}")
+        elif args.profile_command == "export-lensfun":
+            from vigproc.lensfun_io import export_lensfun_xml, pa_from_model
+
+            entries = []
+            for p in store.list():
+                if p.provenance != "learned" or p.key.focal_bin == "any" or p.key.aperture_bin == "any":
+                    continue
+                k1, k2, k3, rms = pa_from_model(p.model(3000, 2000))
+                make, _, rest = p.key.lens_id.partition("|")
+                entries.append((make or "unknown", rest.replace("|", " ") or p.key.lens_id, args.mount,
+                                args.crop_factor, float(p.key.focal_bin[2:-2]), float(p.key.aperture_bin[2:]),
+                                1000.0, k1, k2, k3))
+            n = export_lensfun_xml(entries, args.file)
+            print(f"{len(entries)} calibrations of {n} lenses -> {args.file}")
+    return 0
+
+
 # ------------------------------------------------------------------ parser
 def build_parser() -> argparse.ArgumentParser:
     from vigproc.estimate import METHODS
@@ -394,6 +547,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True)
     sp.add_argument("--method", choices=METHODS, default="default")
     sp.add_argument("--picture", action="store_true", help="also write a PNG picture of each estimated field")
+    sp.add_argument("--profile", default="estimate",
+                    help="auto (a trusted stored profile of the frame's lens, else estimate), estimate, "
+                         "lensfun (the frame's lens from lensfun's database) or PATH of a profile file")
+    sp.add_argument("--profile-db", help="profile store (default: $VIGPROC_PROFILE_DB or the user data folder)")
     sp.add_argument("--json", action="store_true")
     transfer_opt(sp)
     sp.set_defaults(fn=cmd_correct)
@@ -402,6 +559,45 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", default="vigproc-demo")
     transfer_opt(sp)
     sp.set_defaults(fn=cmd_demo)
+
+    sp = sub.add_parser("profile", help="the per-lens profile store")
+    sp.add_argument("--profile-db", help="profile store (default: $VIGPROC_PROFILE_DB or the user data folder)")
+    psub = sp.add_subparsers(dest="profile_command", required=True)
+    psub.add_parser("list", help="stored profiles").set_defaults(fn=cmd_profile)
+    q = psub.add_parser("show", help="one profile as a model for a frame size, optionally as a picture")
+    q.add_argument("id", help="index from 'profile list' or the key text")
+    q.add_argument("--width", type=int, default=6000)
+    q.add_argument("--height", type=int, default=4000)
+    q.add_argument("--plot", help="write a PNG picture of the fall-off")
+    q.set_defaults(fn=cmd_profile)
+    q = psub.add_parser("learn", help="estimate frames and pool them into their lenses' profiles")
+    q.add_argument("files", nargs="+")
+    transfer_opt(q)
+    q.set_defaults(fn=cmd_profile)
+    q = psub.add_parser("import", help="import a profile file (profiles/README.md)")
+    q.add_argument("file")
+    q.set_defaults(fn=cmd_profile)
+    q = psub.add_parser("export", help="export a stored profile to a file")
+    q.add_argument("id")
+    q.add_argument("file")
+    q.set_defaults(fn=cmd_profile)
+    q = psub.add_parser("import-lensfun", help="store lensfun's calibration of a lens as a profile")
+    q.add_argument("maker")
+    q.add_argument("model")
+    q.add_argument("--focal", type=float, required=True)
+    q.add_argument("--aperture", type=float, required=True)
+    q.add_argument("--distance", type=float, default=1000.0)
+    q.add_argument("--width", type=int, default=6000)
+    q.add_argument("--height", type=int, default=4000)
+    q.add_argument("--lens-id", help="store under this lens id: the 'lens' line that 'vigproc estimate' "
+                   "prints for your camera (default: 'maker|model')")
+    q.add_argument("--crop-factor", type=float, help="the camera's crop factor (lenses calibrated on several sensors)")
+    q.set_defaults(fn=cmd_profile)
+    q = psub.add_parser("export-lensfun", help="write learned profiles as a lensfun XML database")
+    q.add_argument("file")
+    q.add_argument("--mount", default="Generic")
+    q.add_argument("--crop-factor", type=float, default=1.0)
+    q.set_defaults(fn=cmd_profile)
 
     sp = sub.add_parser("prior", help="natural-image prior of the paper's method")
     psub = sp.add_subparsers(dest="prior_command", required=True)
@@ -477,6 +673,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("vigproc: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped into e.g. head: nothing left to say
+        sys.stderr.close()
+        return 0
     except Exception as exc:  # a bug, not bad input: still no traceback unless asked (-vv)
         log.debug("internal error", exc_info=True)
         print(f"vigproc: internal error ({type(exc).__name__}: {exc}); rerun with -vv for details",
