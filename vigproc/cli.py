@@ -66,6 +66,16 @@ def _output_stems(files: Sequence[Path]) -> list[str]:
     return stems
 
 
+def _progress(items: Sequence, what: str):
+    """A tqdm progress bar on stderr for long interactive runs; the plain items otherwise
+    (pipes, logs and --json output stay clean)."""
+    if len(items) < 2 or not sys.stderr.isatty():
+        return items
+    from tqdm import tqdm
+
+    return tqdm(items, desc=what, unit="file", leave=False)
+
+
 def _lens(reader, path: Path) -> dict:
     """The frame's lens key as a JSON-able dict; an unidentifiable lens is reported, not fatal."""
     from vigproc.errors import ImageReadError
@@ -203,7 +213,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     results = []
     store = _open_store(args) if args.profile == "auto" else None
     with ExifReader() as reader:  # one exiftool process for the whole batch
-        for f, stem in zip(files, _output_stems(files)):
+        for f, stem in _progress(list(zip(files, _output_stems(files))), "correcting"):
             try:
                 rec = _process_one(f, stem, outdir, args.method, args.input_transfer, args.picture, reader,
                                    args.output_format, args.profile, store)
@@ -468,7 +478,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
             files = [Path(f) for f in args.files]
             done = failed = 0
             with ExifReader() as reader:
-                for f in files:
+                for f in _progress(files, "learning"):
                     try:
                         img, _ = read_image(f, transfer=args.input_transfer)
                         h, w = img.shape[:2]
