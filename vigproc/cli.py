@@ -165,7 +165,7 @@ def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str
     from vigproc.correct import correct
     from vigproc.io import read_image, write_image
     from vigproc.metadata import make_record, write_corrected
-    from vigproc.picture import vignetting_picture
+    from vigproc.picture import falloff_figure
 
     t0 = time.perf_counter()
     img, info = read_image(path, transfer=transfer)
@@ -182,7 +182,10 @@ def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str
            "seconds": round(time.perf_counter() - t0, 4)}
     if picture:
         pic = _safe_output(outdir, stem, ".vignetting.png")
-        write_image(pic, vignetting_picture(m if m.candidate is None else m.candidate), bit_depth="uint8", transfer="srgb")
+        shown = m if m.candidate is None else m.candidate
+        title = f"{path.name}: " + ("not applied (weak evidence), " if m.candidate is not None else "") + \
+            f"{shown.field_ev_rms():.2f} EV RMS"
+        write_image(pic, falloff_figure(shown, title=title), bit_depth="uint8", transfer="srgb")
         rec["picture"] = str(pic)
     side = _safe_output(outdir, stem, ".vigproc.json")
     from vigproc.atomic import atomic_write_text
@@ -466,9 +469,9 @@ def cmd_profile(args: argparse.Namespace) -> int:
             print(json.dumps(m.to_dict(), indent=1))
             if args.plot:
                 from vigproc.io import write_image
-                from vigproc.picture import vignetting_picture
+                from vigproc.picture import falloff_figure
 
-                write_image(args.plot, vignetting_picture(m), bit_depth="uint8", transfer="srgb")
+                write_image(args.plot, falloff_figure(m, title=str(p.key)), bit_depth="uint8", transfer="srgb")
                 print(f"picture -> {args.plot}")
         elif args.profile_command == "learn":
             from vigproc.estimate import estimate
