@@ -76,15 +76,16 @@ def _progress(items: Sequence, what: str):
     return tqdm(items, desc=what, unit="file", leave=False)
 
 
-def _lens(reader, path: Path) -> dict:
-    """The frame's lens key as a JSON-able dict; an unidentifiable lens is reported, not fatal."""
+def _read_lens(reader, path: Path):
+    """The frame's LensKey (or None) and a JSON-able record of it; an unidentifiable lens
+    is reported, not fatal."""
     from vigproc.errors import ImageReadError
 
     try:
         key = reader.read(path)
     except ImageReadError as exc:  # no/contradictory EXIF: the frame can still be estimated
-        return {"lens_id": None, "error": str(exc)}
-    return {"lens_id": key.lens_id(), "key": key.to_dict()}
+        return None, {"lens_id": None, "error": str(exc)}
+    return key, {"lens_id": key.lens_id(), "key": key.to_dict()}
 
 
 # ----------------------------------------------------------------- commands
@@ -97,7 +98,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     # model for the full frame; other formats are read as they are
     img, info = read_image(args.file, transfer=args.input_transfer, raw_half_size=True)
     with ExifReader() as reader:
-        lens = _lens(reader, Path(args.file))
+        _, lens = _read_lens(reader, Path(args.file))
     m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed)
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
@@ -130,10 +131,9 @@ def _lens_model(lens_key, width: int, height: int):
                           width=width, height=height)
 
 
-def _choose_model(img, path: Path, profile: str, method: str, reader, store):
+def _choose_model(img, path: Path, lens_key, profile: str, method: str, store):
     """Model to apply and where it came from: a trusted stored profile (no estimation),
     a profile file, lensfun, or a fresh estimate."""
-    from vigproc.errors import ImageReadError
     from vigproc.estimate import estimate
 
     h, w = img.shape[:2]
@@ -142,18 +142,13 @@ def _choose_model(img, path: Path, profile: str, method: str, reader, store):
         from vigproc.profiles import import_profile
 
         return import_profile(profile).model(w, h), "profile-file"
-    try:
-        lens_key = reader.read(path)
-    except ImageReadError:
-        lens_key = None
     if profile == "lensfun":
         return _lens_model(lens_key, w, h), "lensfun"
     if profile == "auto" and lens_key is not None and store is not None:
-        from vigproc.errors import VigprocError as _VE
-
         try:
             hit = store.lookup(lens_key, w, h, trusted_only=True)
-        except _VE:
+        except VigprocError as exc:  # an odd key or a busy store: estimate instead
+            log.warning("profile lookup for %s failed: %s", path, exc)
             hit = None
         if hit is not None:
             return hit.model(w, h), "stored-profile"
@@ -169,7 +164,8 @@ def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str
 
     t0 = time.perf_counter()
     img, info = read_image(path, transfer=transfer)
-    m, source = _choose_model(img, path, profile, method, reader, store)
+    lens_key, lens = _read_lens(reader, path)
+    m, source = _choose_model(img, path, lens_key, profile, method, store)
     suffix, depth = OUTPUT_FORMATS[output_format]
     # integer outputs cannot hold values above the white point: clip those
     out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None, clip=1.0 if depth == "uint16" else None)
@@ -178,7 +174,7 @@ def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str
         raise ImageWriteError(f"refusing to overwrite the input {path}")
     # the source's EXIF/XMP plus an XMP record of the correction, written atomically
     write_corrected(dst, out, path, make_record(m), bit_depth=depth)
-    rec = {"file": str(path), "output": str(dst), "lens": _lens(reader, path), "source": source, "model": m.to_dict(),
+    rec = {"file": str(path), "output": str(dst), "lens": lens, "source": source, "model": m.to_dict(),
            "seconds": round(time.perf_counter() - t0, 4)}
     if picture:
         pic = _safe_output(outdir, stem, ".vignetting.png")
@@ -194,7 +190,7 @@ def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str
     return rec
 
 
-def m_ev(rec: dict) -> float:
+def _applied_ev(rec: dict) -> float:
     from vigproc.model import VignettingModel
 
     return VignettingModel.from_dict(rec["model"]).field_ev_rms()
@@ -224,7 +220,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
                 q = rec["model"].get("quality") or {}
                 if not args.json:
                     tag = ("no correction (weak evidence)" if q.get("fallback")
-                           else f"{rec['source']}: {m_ev(rec):.2f} EV fall-off removed")
+                           else f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed")
                     print(f"{f} -> {rec['output']}  [{tag}; lens {rec['lens']['lens_id'] or 'unknown'}]")
             except VigprocError as exc:
                 failed += 1
