@@ -64,3 +64,14 @@ def test_identity_is_flat():
     m = VignettingModel.identity(64, 48)
     assert m.is_identity
     assert np.all(m.field() == 1.0)
+
+
+def test_log_field_at_points_matches_the_grid_kernel():
+    m = table2()
+    grid = m.log_field()
+    ys, xs = np.mgrid[0:320:37, 0:480:41]
+    pts = m.log_field_at(xs - (480 - 1) / 2, ys - (320 - 1) / 2)
+    np.testing.assert_allclose(pts, grid[ys, xs], rtol=1e-12, atol=1e-12)
+    with pytest.raises(ModelError, match="geometric factor"):
+        VignettingModel(100, 100, p=(1e-3, 0, 1e-3), alpha=(0.9, 0, 0, 0, 0, 0, 0)).log_field_at(
+            np.array([45.0]), np.array([45.0]))

@@ -168,23 +168,6 @@ def _log_pa(rho: np.ndarray, k1: float, k2: float, k3: float) -> np.ndarray:
     return np.log(pa)
 
 
-def _model_log_phi(model: VignettingModel, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    """log phi of ``model`` at pixel offsets (dx, dy) from the frame centre (numpy, any points)."""
-    if model.is_identity:
-        return np.zeros_like(dx)
-    ex, ey = dx - model.center[0], dy - model.center[1]
-    p1, p2, p3 = model.p
-    q = np.maximum(p1 * ex * ex + 2.0 * p2 * ex * ey + p3 * ey * ey, 0.0)
-    r = np.sqrt(q)
-    g = 1.0 - (r[:, None] ** _K) @ np.asarray(model.alpha)
-    if np.any(g <= 0.0):
-        raise ModelError(
-            f"the geometric factor G falls to {g.min():.3g} inside the frame: the model "
-            "would black out part of the image"
-        )
-    return -2.0 * np.log1p(0.25 * q) + np.log(g)
-
-
 def pa_misfit_ev(
     model: VignettingModel, k1: float, k2: float, k3: float, *, corner_rho: float = 1.0,
     samples: int = GRID_SAMPLES,
@@ -211,7 +194,7 @@ def pa_misfit_ev(
     """
     dx, dy, half_diag = _frame_samples(model.width, model.height, samples)
     rho = np.hypot(dx, dy) / half_diag * corner_rho
-    diff = _model_log_phi(model, dx, dy) - _log_pa(rho, k1, k2, k3)
+    diff = model.log_field_at(dx, dy) - _log_pa(rho, k1, k2, k3)
     return float(np.sqrt(np.mean(diff * diff)) / _LN2)
 
 
@@ -663,7 +646,7 @@ def pa_from_model(model: VignettingModel) -> PaFit:
             "model centre is %.1f %% of the half-diagonal off-centre, ellipticity %.3f: lensfun's pa "
             "model is centred and circular, exporting the radially averaged fall-off", 100 * offset, ellipticity,
         )
-    target = _model_log_phi(model, dx, dy)
+    target = model.log_field_at(dx, dy)
     if not np.any(np.abs(target) > 1e-12):
         return PaFit(0.0, 0.0, 0.0, 0.0)
     rho = np.hypot(dx, dy) / half_diag

@@ -203,6 +203,33 @@ class VignettingModel:
             )
         return out
 
+    def log_field_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """log φ at arbitrary points (x, y), pixels from the frame centre (numpy).
+
+        The point-wise counterpart of :meth:`log_field` (which evaluates a grid with
+        the Numba kernel), for curves and fits.
+
+        Raises
+        ------
+        ModelError
+            If G falls to zero or below at any of the points.
+        """
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        if self.is_identity:
+            return np.zeros(np.broadcast(x, y).shape)
+        ex, ey = x - self.center[0], y - self.center[1]
+        p1, p2, p3 = self.p
+        q = np.maximum(p1 * ex * ex + 2.0 * p2 * ex * ey + p3 * ey * ey, 0.0)
+        r = np.sqrt(q)
+        g = 1.0 - (r[..., None] ** np.arange(1, N_ALPHA + 1)) @ np.asarray(self.alpha)
+        if np.any(g <= 0.0):
+            raise ModelError(
+                f"the geometric factor G falls to {g.min():.3g} inside the frame: the model "
+                "would black out part of the image"
+            )
+        return -2.0 * np.log1p(0.25 * q) + np.log(g)
+
     def field(self, shape: tuple[int, int] | None = None) -> np.ndarray:
         """φ on an H×W grid: the attenuation, 1.0 at the vignetting centre."""
         return np.exp(self.log_field(shape))

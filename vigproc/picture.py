@@ -71,16 +71,10 @@ def _falloff_along(model: VignettingModel, u: np.ndarray, n: int = 400) -> tuple
         if abs(u[k]) > 1e-12:
             lims += [(-half - c[k]) / u[k], (half - c[k]) / u[k]]
     lims = np.sort(lims)
-    t = np.linspace(max(lims[0], lims[1]) if len(lims) == 4 else lims[0],
-                    min(lims[2], lims[3]) if len(lims) == 4 else lims[1], n)
+    # the two middle limits bound the part of the line inside both axes' ranges
+    t = np.linspace(lims[1], lims[2], n) if len(lims) == 4 else np.linspace(lims[0], lims[1], n)
     pts = c[None, :] + t[:, None] * u[None, :]
-    d = pts - c
-    p1, p2, p3 = model.p
-    q = np.maximum(p1 * d[:, 0] ** 2 + 2 * p2 * d[:, 0] * d[:, 1] + p3 * d[:, 1] ** 2, 0)
-    r = np.sqrt(q)
-    g = 1 - sum(a * r ** (i + 1) for i, a in enumerate(model.alpha))
-    ev = (-2 * np.log1p(q / 4) + np.log(np.maximum(g, 1e-9))) / math.log(2.0)
-    return t, ev
+    return t, model.log_field_at(pts[:, 0], pts[:, 1]) / math.log(2.0)
 
 
 def falloff_figure(model: VignettingModel, title: str = "") -> np.ndarray:

@@ -162,8 +162,8 @@ def _robust_scales(wc: WorkingCopy, F: np.ndarray, steps: np.ndarray, scale: flo
     return sig
 
 
-def quadratic_start(wc: WorkingCopy, steps: np.ndarray, iters: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """Robust (IRLS) fit of F = −½ vᵀPv + bᵀv: returns θ₀ (12 params) and the scales σ_s.
+def quadratic_start(wc: WorkingCopy, steps: np.ndarray, iters: int = 6) -> np.ndarray:
+    """Robust (IRLS) fit of F = −½ vᵀPv + bᵀv: returns θ₀ (12 params).
 
     The log-field is linear in (p1, p2, p3, b1, b2), so each IRLS step is an exact
     weighted least-squares solve; c = P⁻¹ b. This is Lyu's Gaussian approximation
@@ -191,7 +191,7 @@ def quadratic_start(wc: WorkingCopy, steps: np.ndarray, iters: int = 6) -> tuple
     theta = np.zeros(12)
     theta[:2] = c
     theta[2:5] = pm[0, 0], pm[0, 1], pm[1, 1]
-    return theta, sigma
+    return theta
 
 
 def _radii(theta: np.ndarray, wc: WorkingCopy, n: int = 24) -> np.ndarray:
@@ -315,7 +315,7 @@ def fit_robust(wc: WorkingCopy, s: RobustSettings) -> tuple[np.ndarray, np.ndarr
     near-circular fall-off of real lenses while s (the strength) stays free.
     """
     steps = np.asarray(s.steps, dtype=np.int64)
-    theta, sigma = quadratic_start(wc, steps)
+    theta = quadratic_start(wc, steps)
     phi = _to_internal(theta)
     phi[3:5] = np.clip(phi[3:5], -0.9, 0.9)
     h, w = wc.L.shape
