@@ -23,47 +23,7 @@ from vigproc.errors import ImageWriteError, VigprocError
 
 log = logging.getLogger("vigproc")
 
-#: --output-format choices: (file suffix, write bit depth).
-OUTPUT_FORMATS = {
-    "tiff-float": (".tif", "float"),
-    "tiff16": (".tif", "uint16"),
-    "exr-half": (".exr", "half"),
-    "exr-float": (".exr", "float"),
-}
-
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".dng", ".cr2", ".cr3", ".nef", ".arw",
-                  ".raf", ".orf", ".rw2", ".pef", ".srw", ".kdc"}
-
-
-def _images_in(folder: Path, limit: int | None = None) -> list[Path]:
-    if not folder.is_dir():
-        raise VigprocError(f"not a folder: {folder}")
-    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-    if not files:
-        raise VigprocError(f"no images found under {folder}")
-    return files[:limit] if limit else files
-
-
-def _safe_output(outdir: Path, stem: str, suffix: str) -> Path:
-    """Output path inside ``outdir`` named ``stem + suffix``; never escapes ``outdir``."""
-    name = stem.replace(os.sep, "_").lstrip(".") or "image"
-    out = (outdir / f"{name}{suffix}").resolve()
-    if out.parent != outdir.resolve():
-        raise ImageWriteError(f"refusing to write outside {outdir}: {out}")
-    return out
-
-
-def _output_stems(files: Sequence[Path]) -> list[str]:
-    """One distinct output stem per input: ``a.jpg`` and ``a.png`` (or two ``a.jpg``
-    from different folders) must not overwrite each other's outputs."""
-    seen: dict[str, int] = {}
-    stems = []
-    for f in files:
-        base = f.stem
-        n = seen.get(base.casefold(), 0) + 1
-        seen[base.casefold()] = n
-        stems.append(base if n == 1 else f"{base}-{n}")
-    return stems
+from vigproc.pipeline import OUTPUT_FORMATS, images_in as _images_in  # noqa: E402  (re-exported names)
 
 
 def _progress(items: Sequence, what: str):
@@ -76,29 +36,18 @@ def _progress(items: Sequence, what: str):
     return tqdm(items, desc=what, unit="file", leave=False)
 
 
-def _read_lens(reader, path: Path):
-    """The frame's LensKey (or None) and a JSON-able record of it; an unidentifiable lens
-    is reported, not fatal."""
-    from vigproc.errors import ImageReadError
-
-    try:
-        key = reader.read(path)
-    except ImageReadError as exc:  # no/contradictory EXIF: the frame can still be estimated
-        return None, {"lens_id": None, "error": str(exc)}
-    return key, {"lens_id": key.lens_id(), "key": key.to_dict()}
-
-
 # ----------------------------------------------------------------- commands
 def cmd_estimate(args: argparse.Namespace) -> int:
     from vigproc.estimate import estimate
     from vigproc.exif import ExifReader
     from vigproc.io import read_image
+    from vigproc.pipeline import read_lens
 
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
     # model for the full frame; other formats are read as they are
     img, info = read_image(args.file, transfer=args.input_transfer, raw_half_size=True)
     with ExifReader() as reader:
-        _, lens = _read_lens(reader, Path(args.file))
+        _, lens = read_lens(reader, Path(args.file))
     m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed)
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
@@ -119,77 +68,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _lens_model(lens_key, width: int, height: int):
-    """The lensfun calibration of the frame's lens at its focal length and aperture."""
-    from vigproc.errors import ModelError
-    from vigproc.lensfun_io import import_lensfun
-
-    if lens_key is None or lens_key.lens is None or lens_key.focal_mm is None or lens_key.fnumber is None:
-        raise ModelError("lensfun needs the lens, focal length and f-number from EXIF")
-    distance = lens_key.focus_distance_m if lens_key.focus_distance_m not in (None, float("inf")) else 1000.0
-    return import_lensfun(None, lens_key.lens, lens_key.focal_mm, lens_key.fnumber, distance,
-                          width=width, height=height)
-
-
-def _choose_model(img, path: Path, lens_key, profile: str, method: str, store):
-    """Model to apply and where it came from: a trusted stored profile (no estimation),
-    a profile file, lensfun, or a fresh estimate."""
-    from vigproc.estimate import estimate
-
-    h, w = img.shape[:2]
-    ca = -1 if img.ndim == 3 else None
-    if profile not in ("auto", "estimate", "lensfun"):
-        from vigproc.profiles import import_profile
-
-        return import_profile(profile).model(w, h), "profile-file"
-    if profile == "lensfun":
-        return _lens_model(lens_key, w, h), "lensfun"
-    if profile == "auto" and lens_key is not None and store is not None:
-        try:
-            hit = store.lookup(lens_key, w, h, trusted_only=True)
-        except VigprocError as exc:  # an odd key or a busy store: estimate instead
-            log.warning("profile lookup for %s failed: %s", path, exc)
-            hit = None
-        if hit is not None:
-            return hit.model(w, h), "stored-profile"
-    return estimate(img, method, channel_axis=ca), "estimate"
-
-
-def _process_one(path: Path, stem: str, outdir: Path, method: str, transfer: str, picture: bool, reader,
-                 output_format: str = "tiff-float", profile: str = "estimate", store=None) -> dict:
-    from vigproc.correct import correct
-    from vigproc.io import read_image, write_image
-    from vigproc.metadata import make_record, write_corrected
-    from vigproc.picture import falloff_figure
-
-    t0 = time.perf_counter()
-    img, info = read_image(path, transfer=transfer)
-    lens_key, lens = _read_lens(reader, path)
-    m, source = _choose_model(img, path, lens_key, profile, method, store)
-    suffix, depth = OUTPUT_FORMATS[output_format]
-    # integer outputs cannot hold values above the white point: clip those
-    out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None, clip=1.0 if depth == "uint16" else None)
-    dst = _safe_output(outdir, stem, ".corrected" + suffix)
-    if dst == path.resolve():
-        raise ImageWriteError(f"refusing to overwrite the input {path}")
-    # the source's EXIF/XMP plus an XMP record of the correction, written atomically
-    write_corrected(dst, out, path, make_record(m), bit_depth=depth)
-    rec = {"file": str(path), "output": str(dst), "lens": lens, "source": source, "model": m.to_dict(),
-           "seconds": round(time.perf_counter() - t0, 4)}
-    if picture:
-        pic = _safe_output(outdir, stem, ".vignetting.png")
-        shown = m if m.candidate is None else m.candidate
-        title = f"{path.name}: " + ("not applied (weak evidence), " if m.candidate is not None else "") + \
-            f"{shown.field_ev_rms():.2f} EV RMS"
-        write_image(pic, falloff_figure(shown, title=title), bit_depth="uint8", transfer="srgb")
-        rec["picture"] = str(pic)
-    side = _safe_output(outdir, stem, ".vigproc.json")
-    from vigproc.atomic import atomic_write_text
-
-    atomic_write_text(side, json.dumps(rec, indent=1) + "\n")
-    return rec
-
-
 def _applied_ev(rec: dict) -> float:
     from vigproc.model import VignettingModel
 
@@ -203,31 +81,34 @@ def _open_store(args: argparse.Namespace):
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from vigproc.exif import ExifReader
+    from vigproc.pipeline import Processor, Settings, output_stems
 
     outdir = Path(args.output)
     outdir.mkdir(parents=True, exist_ok=True)
     files = [Path(f) for f in args.files]
+    settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
+                        output_format=args.output_format, picture=args.picture)
     failed = 0
     results = []
     store = _open_store(args) if args.profile == "auto" else None
-    with ExifReader() as reader:  # one exiftool process for the whole batch
-        for f, stem in _progress(list(zip(files, _output_stems(files))), "correcting"):
-            try:
-                rec = _process_one(f, stem, outdir, args.method, args.input_transfer, args.picture, reader,
-                                   args.output_format, args.profile, store)
-                results.append(rec)
-                q = rec["model"].get("quality") or {}
-                if not args.json:
-                    tag = ("no correction (weak evidence)" if q.get("fallback")
-                           else f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed")
-                    print(f"{f} -> {rec['output']}  [{tag}; lens {rec['lens']['lens_id'] or 'unknown'}]")
-            except VigprocError as exc:
-                failed += 1
-                results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
-                print(f"vigproc: {exc}", file=sys.stderr)
-    if store is not None:
-        store.close()
+    try:
+        with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
+            for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
+                try:
+                    rec = proc.process_file(f, outdir, stem).to_dict()
+                    results.append(rec)
+                    q = rec["model"].get("quality") or {}
+                    if not args.json:
+                        tag = ("no correction (weak evidence)" if q.get("fallback")
+                               else f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed")
+                        print(f"{f} -> {rec['output']}  [{tag}; lens {rec['lens']['lens_id'] or 'unknown'}]")
+                except VigprocError as exc:
+                    failed += 1
+                    results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
+                    print(f"vigproc: {exc}", file=sys.stderr)
+    finally:
+        if store is not None:
+            store.close()
     if args.json:
         print(json.dumps({"results": results, "done": len(files) - failed, "failed": failed}, indent=1))
     else:
@@ -470,23 +351,21 @@ def cmd_profile(args: argparse.Namespace) -> int:
                 write_image(args.plot, falloff_figure(m, title=str(p.key)), bit_depth="uint8", transfer="srgb")
                 print(f"picture -> {args.plot}")
         elif args.profile_command == "learn":
-            from vigproc.estimate import estimate
-            from vigproc.exif import ExifReader
             from vigproc.io import read_image
+            from vigproc.pipeline import Processor, Settings, read_lens
 
             files = [Path(f) for f in args.files]
             done = failed = 0
-            with ExifReader() as reader:
+            settings = Settings(mode="learn", transfer=args.input_transfer)
+            with Processor(settings, store=store) as proc:
                 for f in _progress(files, "learning"):
                     try:
                         img, _ = read_image(f, transfer=args.input_transfer)
-                        h, w = img.shape[:2]
-                        key = ProfileKey.from_lens(reader.read(f), w, h)
-                        m = estimate(img, channel_axis=-1 if img.ndim == 3 else None)
-                        fit = m.candidate if m.candidate is not None else m
-                        if fit.covariance is None:
-                            raise VigprocError(f"{f}: no usable fit to learn from")
-                        p = store.learn(key, fit)
+                        lens_key, lens = read_lens(proc.reader, f)
+                        if lens_key is None:
+                            raise VigprocError(f"{f}: cannot learn, lens unknown ({lens['error']})")
+                        _, rec = proc.process_image(img, lens_key, where=str(f))
+                        p = store.get(ProfileKey.from_lens(lens_key, img.shape[1], img.shape[0]))
                         done += 1
                         print(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}")
                     except VigprocError as exc:
@@ -568,6 +447,17 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", default="vigproc-demo")
     transfer_opt(sp)
     sp.set_defaults(fn=cmd_demo)
+
+    # further commands live in their own modules under vigproc/commands (watch, check,
+    # batch, hook, ...); each exposes register(subparsers)
+    import importlib
+    import pkgutil
+
+    import vigproc.commands
+
+    for mod in sorted(m.name for m in pkgutil.iter_modules(vigproc.commands.__path__)):
+        if not mod.startswith("_"):
+            importlib.import_module(f"vigproc.commands.{mod}").register(sub)
 
     sp = sub.add_parser("profile", help="the per-lens profile store")
     sp.add_argument("--profile-db", help="profile store (default: $VIGPROC_PROFILE_DB or the user data folder)")

@@ -1,0 +1,6 @@
+"""Sub-commands of ``vigproc`` that live in their own modules.
+
+Each module here exposes ``register(subparsers)``, which adds its parser(s) and sets
+``fn`` to a callable taking the parsed ``argparse.Namespace`` and returning an exit
+code.  :func:`vigproc.cli.build_parser` registers every module found here.
+"""

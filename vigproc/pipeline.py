@@ -1,0 +1,364 @@
+"""One frame through vigproc, the way every front end runs it.
+
+file → linear image + lens key → model (stored profile, profile file, lensfun or a
+fresh estimate) → correction, profile update or verdict → output file + JSON sidecar.
+
+The command line (``correct``, ``demo``), the watch-folder daemon, batch jobs and the
+pipeline hook all call :class:`Processor`, so a frame is handled identically whoever
+asks.  A :class:`Processor` owns (or borrows) one exiftool process and one profile
+store; it is not shared between threads (make one per worker).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from vigproc.errors import ImageWriteError, ModelError, VigprocError
+
+log = logging.getLogger(__name__)
+
+#: What a frame can be processed for.
+MODES = ("correct", "check", "learn", "estimate")
+
+#: --output-format choices: (file suffix, write bit depth).
+OUTPUT_FORMATS = {
+    "tiff-float": (".tif", "float"),
+    "tiff16": (".tif", "uint16"),
+    "exr-half": (".exr", "half"),
+    "exr-float": (".exr", "float"),
+}
+
+#: File name suffixes vigproc reads (RAW through rawpy, the rest through OpenImageIO).
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".dng", ".cr2", ".cr3", ".nef",
+                            ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw", ".kdc"})
+
+#: Sidecar suffix: the sidecar is written last, so its presence means the frame is done.
+SIDECAR_SUFFIX = ".vigproc.json"
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How frames are processed.
+
+    Attributes
+    ----------
+    mode : str
+        ``correct`` (write a corrected image), ``learn`` (pool the estimate into the
+        lens's stored profile), ``estimate`` (model only) or ``check`` (forensic
+        verdict: does the vignetting match the lens the EXIF names?).
+    profile : str
+        ``auto`` (a trusted stored profile of the frame's lens, else estimate),
+        ``estimate``, ``lensfun`` or the path of a profile file.
+    method : str
+        Estimator for frames without a profile (see :data:`vigproc.estimate.METHODS`).
+    transfer : str
+        How stored values decode to linear light: ``auto``, ``linear`` or ``srgb``.
+    output_format : str
+        One of :data:`OUTPUT_FORMATS`.
+    strength : float
+        Fraction of the fall-off removed (1 = all of it).
+    picture : bool
+        Also write a PNG of the fall-off.
+    """
+
+    mode: str = "correct"
+    profile: str = "auto"
+    method: str = "default"
+    transfer: str = "auto"
+    output_format: str = "tiff-float"
+    strength: float = 1.0
+    picture: bool = False
+
+    def __post_init__(self) -> None:
+        from vigproc.estimate import METHODS
+
+        if self.mode not in MODES:
+            raise VigprocError(f"unknown mode {self.mode!r} (choose from {', '.join(MODES)})")
+        if self.method not in METHODS:
+            raise VigprocError(f"unknown method {self.method!r} (choose from {', '.join(METHODS)})")
+        if self.output_format not in OUTPUT_FORMATS:
+            raise VigprocError(f"unknown output format {self.output_format!r}")
+        if self.transfer not in ("auto", "linear", "srgb"):
+            raise VigprocError(f"unknown input transfer {self.transfer!r}")
+        if not (np.isfinite(self.strength) and 0.0 <= self.strength <= 2.0):
+            raise VigprocError(f"strength must be within [0, 2], got {self.strength}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+@dataclass
+class FrameResult:
+    """What was done to one frame (the JSON sidecar's content)."""
+
+    file: str
+    mode: str
+    lens: dict[str, Any]
+    source: str | None = None  # where the model came from
+    model: Any = None  # VignettingModel applied (or estimated), None if none
+    applied: bool = False  # whether a correction was divided out
+    output: str | None = None
+    picture: str | None = None
+    profile: str | None = None  # the profile updated in learn mode
+    verdict: dict[str, Any] | None = None  # check mode
+    seconds: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "extra"}
+        if self.model is not None:
+            d["model"] = self.model.to_dict()
+        d.update(self.extra)
+        return {k: v for k, v in d.items() if v is not None}
+
+
+# ------------------------------------------------------------------ naming
+def safe_output(outdir: Path, stem: str, suffix: str) -> Path:
+    """Output path inside ``outdir`` named ``stem + suffix``; never escapes ``outdir``.
+
+    ``stem`` may come from a hostile file name: separators are flattened and leading
+    dots dropped, and the result is checked to resolve inside ``outdir``.
+    """
+    name = stem.replace(os.sep, "_").replace("/", "_").replace("\x00", "_").lstrip(".") or "image"
+    out = (outdir / f"{name}{suffix}").resolve()
+    if out.parent != outdir.resolve():
+        raise ImageWriteError(f"refusing to write outside {outdir}: {out}")
+    return out
+
+
+def output_stems(files: Sequence[Path]) -> list[str]:
+    """One distinct output stem per input: ``a.jpg`` and ``a.png`` (or two ``a.jpg``
+    from different folders) must not overwrite each other's outputs."""
+    seen: dict[str, int] = {}
+    stems = []
+    for f in files:
+        base = f.stem
+        n = seen.get(base.casefold(), 0) + 1
+        seen[base.casefold()] = n
+        stems.append(base if n == 1 else f"{base}-{n}")
+    return stems
+
+
+def images_in(folder: Path, limit: int | None = None) -> list[Path]:
+    """Image files under ``folder`` (recursive, sorted)."""
+    if not folder.is_dir():
+        raise VigprocError(f"not a folder: {folder}")
+    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise VigprocError(f"no images found under {folder}")
+    return files[:limit] if limit else files
+
+
+# ------------------------------------------------------------------ steps
+def read_lens(reader, path: Path):
+    """The frame's LensKey (or None) and a JSON-able record of it; an unidentifiable
+    lens is reported, not fatal (the frame can still be estimated)."""
+    from vigproc.errors import ImageReadError
+
+    if reader is None:
+        return None, {"lens_id": None, "error": "EXIF not read"}
+    try:
+        key = reader.read(path)
+    except ImageReadError as exc:
+        return None, {"lens_id": None, "error": str(exc)}
+    return key, {"lens_id": key.lens_id(), "key": key.to_dict()}
+
+
+def lensfun_model(lens_key, width: int, height: int):
+    """The lensfun calibration of the frame's lens at its focal length and aperture."""
+    from vigproc.lensfun_io import import_lensfun
+
+    if lens_key is None or lens_key.lens is None or lens_key.focal_mm is None or lens_key.fnumber is None:
+        raise ModelError("lensfun needs the lens, focal length and f-number from EXIF")
+    distance = lens_key.focus_distance_m if lens_key.focus_distance_m not in (None, float("inf")) else 1000.0
+    return import_lensfun(None, lens_key.lens, lens_key.focal_mm, lens_key.fnumber, distance,
+                          width=width, height=height)
+
+
+def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where: str = "frame"):
+    """Model to apply and where it came from: ``profile-file``, ``lensfun``,
+    ``stored-profile`` (a trusted profile of the lens: no estimation) or ``estimate``."""
+    from vigproc.estimate import estimate
+
+    h, w = img.shape[:2]
+    ca = -1 if img.ndim == 3 else None
+    profile = settings.profile
+    if profile not in ("auto", "estimate", "lensfun"):
+        from vigproc.profiles import import_profile
+
+        return import_profile(profile).model(w, h), "profile-file"
+    if profile == "lensfun":
+        return lensfun_model(lens_key, w, h), "lensfun"
+    if profile == "auto" and lens_key is not None and store is not None:
+        try:
+            hit = store.lookup(lens_key, w, h, trusted_only=True)
+        except VigprocError as exc:  # an odd key or a busy store: estimate instead
+            log.warning("profile lookup for %s failed: %s", where, exc)
+            hit = None
+        if hit is not None:
+            return hit.model(w, h), "stored-profile"
+    return estimate(img, settings.method, channel_axis=ca), "estimate"
+
+
+# ------------------------------------------------------------------ processor
+class Processor:
+    """Runs frames through vigproc with fixed :class:`Settings`.
+
+    Parameters
+    ----------
+    settings : Settings
+    store : ProfileStore, optional
+        Needed by ``profile="auto"`` and by the learn and check modes; borrowed, not
+        closed.
+    reader : ExifReader, optional
+        Borrowed if given; otherwise one is started on first use and closed by
+        :meth:`close`.
+    """
+
+    def __init__(self, settings: Settings, *, store=None, reader=None) -> None:
+        self.settings = settings
+        self.store = store
+        self._reader = reader
+        self._own_reader = reader is None
+
+    @property
+    def reader(self):
+        if self._reader is None:
+            from vigproc.exif import ExifReader
+
+            self._reader = ExifReader().start()
+        return self._reader
+
+    def close(self) -> None:
+        if self._own_reader and self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
+    def __enter__(self) -> Processor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- in memory --------------------------------------------------------
+    def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image"):
+        """Process an in-memory linear image (H×W or H×W×C, channels last).
+
+        Returns
+        -------
+        (ndarray or None, FrameResult)
+            The corrected float32 image in ``correct`` mode (None otherwise) and the
+            record of what was done.  ``FrameResult.file`` is ``where``.
+        """
+        s = self.settings
+        t0 = time.perf_counter()
+        lens = ({"lens_id": lens_key.lens_id(), "key": lens_key.to_dict()} if lens_key is not None
+                else {"lens_id": None, "error": "no lens data given"})
+        res = FrameResult(file=where, mode=s.mode, lens=lens)
+        out = None
+        if s.mode == "check":
+            from vigproc.forensics import check_image  # noqa: PLC0415 - only check mode needs it
+
+            verdict = check_image(img, lens_key, store=self.store, method=s.method)
+            res.verdict = verdict.to_dict()
+            res.source = "estimate"
+            res.model = getattr(verdict, "estimate", None)
+        elif s.mode == "learn":
+            res.model, res.source, res.profile = self._learn(img, lens_key)
+        else:
+            m, res.source = choose_model(img, lens_key, s, self.store if s.profile == "auto" else None,
+                                         where=where)
+            res.model = m
+            if s.mode == "correct":
+                from vigproc.correct import correct
+
+                depth = OUTPUT_FORMATS[s.output_format][1]
+                # integer outputs cannot hold values above the white point: clip those
+                out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
+                              clip=1.0 if depth == "uint16" else None)
+                res.applied = m.candidate is None and s.strength > 0
+        res.seconds = round(time.perf_counter() - t0, 4)
+        return out, res
+
+    def _learn(self, img: np.ndarray, lens_key):
+        from vigproc.estimate import estimate
+        from vigproc.profiles import ProfileKey
+
+        if self.store is None:
+            raise VigprocError("learn mode needs a profile store")
+        if lens_key is None:
+            raise VigprocError("cannot learn: the frame's lens is unknown (no usable EXIF)")
+        h, w = img.shape[:2]
+        key = ProfileKey.from_lens(lens_key, w, h)
+        m = estimate(img, self.settings.method, channel_axis=-1 if img.ndim == 3 else None)
+        # a fit too weak to apply to this frame alone still carries evidence for the lens
+        fit = m.candidate if m.candidate is not None else m
+        if fit.covariance is None:
+            raise ModelError("no usable fit to learn from (no uncertainty)")
+        p = self.store.learn(key, fit)
+        return fit, "estimate", str(p.key)
+
+    # -- files ------------------------------------------------------------
+    def process_file(self, path: str | os.PathLike[str], outdir: str | os.PathLike[str], stem: str | None = None,
+                     *, extra: dict[str, Any] | None = None) -> FrameResult:
+        """Read ``path``, process it, write its outputs into ``outdir``.
+
+        Outputs (all atomic; the input is never modified): ``STEM.corrected.tif|exr``
+        in correct mode, ``STEM.vignetting.png`` with ``picture``, and always the
+        sidecar ``STEM.vigproc.json``, written last.
+
+        Raises
+        ------
+        VigprocError
+            Unreadable or bad input, failed estimate, output not writable.
+        """
+        from vigproc.atomic import atomic_write_text
+        from vigproc.io import read_image
+
+        s = self.settings
+        t0 = time.perf_counter()
+        path = Path(path)
+        outdir = Path(outdir)
+        stem = path.stem if stem is None else stem
+        img, _info = read_image(path, transfer=s.transfer)
+        lens_key, lens = read_lens(self.reader, path)
+        out, res = self.process_image(img, lens_key, where=str(path))
+        res.lens = lens
+        if out is not None:
+            from vigproc.metadata import make_record, write_corrected
+
+            suffix, depth = OUTPUT_FORMATS[s.output_format]
+            dst = safe_output(outdir, stem, ".corrected" + suffix)
+            if dst == path.resolve():
+                raise ImageWriteError(f"refusing to overwrite the input {path}")
+            # the source's EXIF/XMP plus an XMP record of the correction
+            write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=depth)
+            res.output = str(dst)
+        if s.picture and res.model is not None:
+            self._picture(path, outdir, stem, res)
+        if extra:
+            res.extra.update(extra)
+        res.seconds = round(time.perf_counter() - t0, 4)
+        atomic_write_text(safe_output(outdir, stem, SIDECAR_SUFFIX), json.dumps(res.to_dict(), indent=1) + "\n")
+        return res
+
+    @staticmethod
+    def _picture(path: Path, outdir: Path, stem: str, res: FrameResult) -> None:
+        from vigproc.io import write_image
+        from vigproc.picture import falloff_figure
+
+        m = res.model
+        shown = m if m.candidate is None else m.candidate
+        title = f"{path.name}: " + ("not applied (weak evidence), " if m.candidate is not None else "") + \
+            f"{shown.field_ev_rms():.2f} EV RMS"
+        pic = safe_output(outdir, stem, ".vignetting.png")
+        write_image(pic, falloff_figure(shown, title=title), bit_depth="uint8", transfer="srgb")
+        res.picture = str(pic)
