@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import time
 from dataclasses import asdict
@@ -19,7 +18,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vigproc.errors import ImageWriteError, VigprocError
+from vigproc.errors import VigprocError
 
 log = logging.getLogger("vigproc")
 
