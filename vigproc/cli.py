@@ -454,9 +454,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     import vigproc.commands
 
-    for mod in sorted(m.name for m in pkgutil.iter_modules(vigproc.commands.__path__)):
-        if not mod.startswith("_"):
-            importlib.import_module(f"vigproc.commands.{mod}").register(sub)
+    command_modules = [importlib.import_module(f"vigproc.commands.{m.name}")
+                       for m in sorted(pkgutil.iter_modules(vigproc.commands.__path__), key=lambda m: m.name)
+                       if not m.name.startswith("_")]
+    for mod in command_modules:
+        mod.register(sub)
 
     sp = sub.add_parser("profile", help="the per-lens profile store")
     sp.add_argument("--profile-db", help="profile store (default: $VIGPROC_PROFILE_DB or the user data folder)")
@@ -556,6 +558,9 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--height", type=int, default=4000)
     bp.add_argument("--repeat", type=int, default=15)
     bp.set_defaults(fn=cmd_bench_correct)
+    for mod in command_modules:  # benchmarks of the command modules (register_bench is optional)
+        if hasattr(mod, "register_bench"):
+            mod.register_bench(bsub)
     return p
 
 

@@ -4,3 +4,6 @@ Each module here exposes ``register(subparsers)``, which adds its parser(s) and 
 ``fn`` to a callable taking the parsed ``argparse.Namespace`` and returning an exit
 code.  :func:`vigproc.cli.build_parser` registers every module found here.
 """
+
+A module may also expose ``register_bench(bench_subparsers)`` to add a
+``vigproc bench NAME`` benchmark.
