@@ -23,6 +23,14 @@ def textured(h: int, w: int, seed: int = 0, contrast: float = 0.3) -> np.ndarray
     return 0.4 * np.exp(tex)
 
 
+def photo_like(h: int, w: int, seed: int = 0, contrast: float = 0.05) -> np.ndarray:
+    """A texture that, like a real photograph, carries the average scene fall-off of
+    natural photos (:mod:`vigproc.scene`), which the default estimator divides out."""
+    from vigproc.scene import default_scene_falloff
+
+    return textured(h, w, seed=seed, contrast=contrast) * default_scene_falloff().model(w, h).field()
+
+
 @pytest.fixture
 def shared_data() -> Path:
     if not SHARED.is_dir():

@@ -10,7 +10,7 @@ import pytest
 from vigproc.bench.synthetic import table1_model
 from vigproc.io import read_image, write_image
 
-from conftest import textured
+from conftest import photo_like
 
 VIGPROC = [sys.executable, "-m", "vigproc.cli"]
 
@@ -22,7 +22,7 @@ def run(*args, cwd=None):
 @pytest.fixture
 def vignetted_tiff(tmp_path):
     truth = table1_model(2).rescale(240, 160)
-    img = textured(160, 240, seed=1, contrast=0.05) * truth.field()
+    img = photo_like(160, 240, seed=1) * truth.field()
     path = tmp_path / "frame.tif"
     write_image(path, np.repeat(img[..., None], 3, axis=2).astype(np.float32), bit_depth="float")
     return path, truth
@@ -132,7 +132,7 @@ def test_estimate_raw_uses_half_size_and_reports_full_frame(tmp_path):
     truth = VignettingModel(w, h, center=(12.0, -8.0), p=(1 / 210.0**2, 0, 1 / 210.0**2),
                             alpha=(0.02, 0.01, 0, 0, 0, 0, 0))
     dng = tmp_path / "shot one.dng"
-    make_dng(dng, width=w, height=h, field=truth.field(), scene=textured(h, w, seed=3, contrast=0.05),
+    make_dng(dng, width=w, height=h, field=truth.field(), scene=photo_like(h, w, seed=3),
              exif={"Make": "Canon", "Model": "Canon EOS 5D", "LensModel": "EF24-105mm f/4L IS USM",
                    "FocalLength": 24, "FNumber": 4})
     r = run("estimate", dng, "--json")
@@ -176,7 +176,7 @@ def test_profile_store_flow(tmp_path, monkeypatch):
     for i in range(2):
         p = tmp_path / f"f{i}.dng"
         make_dng(p, width=w, height=h, field=pa_field((h, w), pa.k1, pa.k2, pa.k3),
-                 scene=textured(h, w, seed=10 + i, contrast=0.05), exif=exif)
+                 scene=photo_like(h, w, seed=10 + i), exif=exif)
         dngs.append(p)
     r = run("profile", "learn", *dngs)
     assert r.returncode == 0, r.stderr

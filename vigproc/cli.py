@@ -147,6 +147,30 @@ def cmd_prior_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_prior_fit_scene(args: argparse.Namespace) -> int:
+    from vigproc.atomic import atomic_write_text
+    from vigproc.bench.synthetic import protocol_image
+    from vigproc.estimate import estimate
+    from vigproc.io import read_image
+    from vigproc.robust import RobustSettings
+    from vigproc.scene import fit_scene_falloff
+
+    files = _images_in(Path(args.folder), args.limit)
+    ims = []
+    for f in _progress(files, "reading"):
+        try:  # the benchmark's framing: 3:2 landscape, 480x320, linear luminance
+            ims.append(protocol_image(read_image(f, transfer=args.input_transfer)[0]))
+        except VigprocError as exc:
+            log.warning("skipping %s", exc)
+    source = f"vigproc prior fit-scene {args.folder} --iterations {args.iterations}"
+    scene = fit_scene_falloff(ims, lambda im, sc: estimate(im, settings=RobustSettings(scene=sc)),
+                              iterations=args.iterations, source=source)
+    atomic_write_text(Path(args.output), json.dumps(scene.to_dict(), indent=1) + "\n")
+    print(f"scene fall-off from {scene.n_images} photos: {scene.field_ev_rms:.3f} EV RMS, "
+          f"photos scatter {scene.scatter_ev:.3f} EV around it -> {args.output}")
+    return 0
+
+
 def _estimator(method: str, seed: int = 0):
     from vigproc.estimate import estimate
 
@@ -510,6 +534,14 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--source", help="provenance text stored in the prior")
     transfer_opt(fp)
     fp.set_defaults(fn=cmd_prior_fit)
+    fp = psub.add_parser("fit-scene", help="fit the scene fall-off prior of the default estimator "
+                                            "on a folder of vignetting-free photos")
+    fp.add_argument("folder")
+    fp.add_argument("-o", "--output", required=True)
+    fp.add_argument("--iterations", type=int, default=1)
+    fp.add_argument("--limit", type=int)
+    transfer_opt(fp)
+    fp.set_defaults(fn=cmd_prior_fit_scene)
 
     sp = sub.add_parser("bench", help="benchmarks (print measured figures)")
     bsub = sp.add_subparsers(dest="bench_command", required=True)
