@@ -206,13 +206,15 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     results = []
     print(f"lensfun protocol: {args.lenses} lenses x {args.frames_per_lens} frames from {len(ims)} images "
           f"(linearised, 480x320); RMS of log2(estimated/true field)")
-    print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'p90 EV':>9}{'uncorr EV':>11}{'differ. EV':>12}{'fallbk':>8}{'s/img':>8}")
+    print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'p90 EV':>9}{'uncorr EV':>11}{'gain-free':>11}"
+          f"{'uncorr gf':>11}{'differ. EV':>12}{'fallbk':>8}{'s/img':>8}")
     for name in args.methods:
         fn = _estimator(name)
         fn(ims[0])
         r = B.run_lensfun(ims, name, fn, args.lenses, args.frames_per_lens)
         results.append(asdict(r))
         print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}{r.uncorrected_median_ev:>11.3f}"
+              f"{r.gain_free_median_ev:>11.3f}{r.gain_free_uncorrected_ev:>11.3f}"
               f"{r.differential_median_ev:>12.3f}{r.fallbacks:>8}{r.seconds_per_image:>8.3f}")
     print("do no harm (same images, no vignetting): RMS log2 of the applied field")
     print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'cand. med':>11}{'fallbk':>8}")

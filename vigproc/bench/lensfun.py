@@ -5,6 +5,8 @@ focal length, widest aperture), each natural image (linearised, 480×320, the fr
 taken as the lens's full calibration frame) is multiplied by the lens's "pa" field.
 The error of an estimate is the RMS over the frame of log2(φ̂ / φ), in EV (both
 fields are 1 at their centres, no gain is fitted away); "uncorrected" is φ̂ ≡ 1.
+The gain-free figure is the same RMS about the frame mean of log2(φ̂/φ), i.e. up to a
+global exposure gain (a correction is only defined up to one).
 
 "Do no harm": the same images without vignetting; the false field is the RMS of
 log2 φ̂ (EV) of what the estimator would apply.
@@ -35,6 +37,12 @@ def rms_ev(log_ratio: np.ndarray) -> float:
     return float(np.sqrt(np.mean(log_ratio * log_ratio)) / math.log(2.0))
 
 
+def gain_free_ev(log_ratio: np.ndarray) -> float:
+    """RMS of a natural-log field about its mean, in EV: the error up to a global
+    gain (exposure is arbitrary; this is the figure the PSNR's best gain also ignores)."""
+    return float(np.std(log_ratio) / math.log(2.0))
+
+
 @dataclass
 class LensfunResult:
     method: str
@@ -43,6 +51,8 @@ class LensfunResult:
     median_ev: float
     p90_ev: float
     uncorrected_median_ev: float
+    gain_free_median_ev: float
+    gain_free_uncorrected_ev: float
     differential_median_ev: float
     fallbacks: int
     seconds_per_image: float
@@ -65,6 +75,7 @@ def run_lensfun(
     import time
 
     errs, unc, diff, secs, fb = [], [], [], [], 0
+    gf, gf_unc = [], []
     clean_cache: dict[int, np.ndarray] = {}
     lenses = bench_lenses(n_lenses)
     for idx, (lens, pa) in enumerate(lenses):
@@ -79,13 +90,16 @@ def run_lensfun(
             secs.append(time.perf_counter() - t0)
             errs.append(rms_ev(m.log_field((h, w)) - true_log))
             unc.append(rms_ev(true_log))
+            gf.append(gain_free_ev(m.log_field((h, w)) - true_log))
+            gf_unc.append(gain_free_ev(true_log))
             if k not in clean_cache:
                 c0 = fn(im)
                 clean_cache[k] = (c0.candidate or c0).log_field((h, w))
             diff.append(rms_ev((m.candidate or m).log_field((h, w)) - clean_cache[k] - true_log))
             fb += bool(m.quality and m.quality.fallback)
     return LensfunResult(method, len(lenses), len(errs), float(np.median(errs)), float(np.percentile(errs, 90)),
-                         float(np.median(unc)), float(np.median(diff)), fb, float(np.mean(secs)))
+                         float(np.median(unc)), float(np.median(gf)), float(np.median(gf_unc)),
+                         float(np.median(diff)), fb, float(np.mean(secs)))
 
 
 def run_flat(images: Sequence[np.ndarray], method: str, fn: Callable[[np.ndarray], VignettingModel]) -> FlatResult:
