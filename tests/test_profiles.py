@@ -334,6 +334,39 @@ def test_schema_version_and_idempotent_migration(tmp_path):
     assert mode == "wal"
 
 
+def test_frame_id_pools_each_frame_once(tmp_path):
+    with ProfileStore(tmp_path / "p.sqlite") as s:
+        first = s.learn(KEY, synthetic_model(0), frame_id="sha-a")
+        again = s.learn(KEY, synthetic_model(1), frame_id="sha-a")  # same frame, offered again
+        assert again.n_frames == first.n_frames == 1
+        np.testing.assert_array_equal(again.theta, first.theta)
+        assert s.learn(KEY, synthetic_model(1), frame_id="sha-b").n_frames == 2
+        assert s.learn(KEY, synthetic_model(2)).n_frames == 3  # no id: always pooled
+        other = ProfileKey(KEY.lens_id, KEY.focal_bin, aperture_bin(8.0), KEY.aspect)
+        assert s.learn(other, synthetic_model(0), frame_id="sha-a").n_frames == 1  # per profile
+        s.put(s.get(KEY))  # replaced evidence forgets which frames it held
+        assert s.learn(KEY, synthetic_model(0), frame_id="sha-a").n_frames == 4
+        with pytest.raises(ProfileStoreError, match="frame_id"):
+            s.learn(KEY, synthetic_model(0), frame_id="")
+
+
+def test_migration_from_schema_1_keeps_profiles(tmp_path):
+    db = tmp_path / "p.sqlite"
+    with ProfileStore(db) as s:
+        s.learn(KEY, synthetic_model(0))
+    con = sqlite3.connect(db)  # turn it back into a v1 store, as a previous release wrote it
+    con.execute("DROP TABLE pooled_frames")
+    con.execute("DELETE FROM schema_version WHERE version > 1")
+    con.commit()
+    con.close()
+    with ProfileStore(db) as s:
+        assert s.schema_version == SCHEMA_VERSION >= 2
+        assert s.get(KEY).n_frames == 1
+        assert s.learn(KEY, synthetic_model(1), frame_id="x").n_frames == 2
+        assert s.learn(KEY, synthetic_model(1), frame_id="x").n_frames == 2
+        assert s.check() == []
+
+
 def test_default_location_from_environment(tmp_path, monkeypatch):
     target = tmp_path / "deep" / "er" / "profiles.sqlite"
     monkeypatch.setenv(DB_ENV, str(target))

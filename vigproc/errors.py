@@ -58,13 +58,25 @@ class PriorError(VigprocError, ValueError):
     exit_code = 7
 
 
+#: Every exit code of the ``vigproc`` command, stable across releases.  Errors
+#: defined in other modules carry theirs as ``exit_code``; the tests check that
+#: they agree with this table.
 EXIT_CODES = {
     "ok": 0,
-    "error": 1,
+    "error": 1,  # some files failed, or an error without a more specific code
     "usage": 2,
     "invalid_image": InvalidImageError.exit_code,
     "read": ImageReadError.exit_code,
     "write": ImageWriteError.exit_code,
     "model": ModelError.exit_code,
     "prior": PriorError.exit_code,
+    "profile_store": 8,  # vigproc.profiles.ProfileStoreError
+    "journal": 9,  # vigproc.journal.JournalError
+    "batch": 10,  # vigproc.batch.BatchError
+    "forensics": 11,  # vigproc.forensics.ForensicsError
+    "plugin": 12,  # vigproc.extensions.ExtensionError
+    "inconsistent": 20,  # vigproc check: a frame does not match its claimed lens
+    "undecided": 21,  # vigproc check: unknown lens or too little signal, nothing inconsistent
+    "internal": 70,  # a bug (EX_SOFTWARE): a one-line message; vigproc hook reports it as JSON
+    "interrupted": 130,  # Ctrl-C (128 + SIGINT)
 }

@@ -50,27 +50,25 @@ SQLite, "Write-Ahead Logging", https://www.sqlite.org/wal.html and
 from __future__ import annotations
 
 import builtins
-import contextlib
 import json
 import logging
 import math
 import os
-import random
 import re
 import sqlite3
-import time
 import unicodedata
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from vigproc._kernels.robust import kw_field_and_jacobian
 from vigproc.atomic import atomic_write_text
-from vigproc.errors import ModelError, VigprocError
+from vigproc.db import SQLiteFile
+from vigproc.errors import EXIT_CODES, ModelError, VigprocError
 from vigproc.exif import LensKey, normalise_text
 from vigproc.model import N_ALPHA, PARAM_NAMES, FitQuality, VignettingModel, frame_coords
 
@@ -107,7 +105,7 @@ logger = logging.getLogger(__name__)
 class ProfileStoreError(VigprocError):
     """The profile store or a profile file cannot be used (corrupt, locked, invalid)."""
 
-    exit_code = 8
+    exit_code = EXIT_CODES["profile_store"]
 
 
 # --------------------------------------------------------------------------- #
@@ -893,9 +891,25 @@ def _migration_1(con: sqlite3.Connection) -> None:
     )
 
 
+def _migration_2(con: sqlite3.Connection) -> None:
+    """v2: the frames pooled into each profile, by content id, so that a frame offered
+    again (a restarted daemon, a resumed batch, the same file under another name) is
+    not pooled twice.  Recorded in the same transaction as the profile update."""
+    con.execute(
+        """
+        CREATE TABLE pooled_frames (
+            frame      TEXT NOT NULL,
+            profile_id INTEGER NOT NULL REFERENCES profiles (id) ON DELETE CASCADE,
+            pooled     TEXT NOT NULL,
+            PRIMARY KEY (frame, profile_id)
+        )
+        """
+    )
+
+
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
-#: Append a function for v2; never edit a released one.
-MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1,)
+#: Append a function for the next version; never edit a released one.
+MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2)
 #: Schema version this code writes.
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -913,7 +927,7 @@ def _unblob(b: Any, shape: tuple[int, ...], name: str) -> np.ndarray | None:
     return np.frombuffer(b, dtype="<f8").reshape(shape).astype(np.float64)
 
 
-class ProfileStore:
+class ProfileStore(SQLiteFile):
     """SQLite store of lens profiles, safe for concurrent processes.
 
     Parameters
@@ -942,116 +956,14 @@ class ProfileStore:
         vigproc, or stays locked beyond ``timeout``.
     """
 
+    error = ProfileStoreError
+    what = "profile store"
+
     def __init__(self, path: str | os.PathLike[str] | None = None, *, timeout: float = DEFAULT_TIMEOUT) -> None:
-        self.path = Path(path).expanduser() if path is not None else default_db_path()
-        self.timeout = float(timeout)
-        self._con: sqlite3.Connection | None = None
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise ProfileStoreError(f"cannot create the folder of profile store {self.path}: {exc.strerror or exc}") from None
-        if self.path.is_dir():
-            raise ProfileStoreError(f"profile store {self.path} is a folder, not a database file")
-        try:
-            self._con = sqlite3.connect(str(self.path), timeout=self.timeout, isolation_level=None)
-        except sqlite3.Error as exc:
-            raise ProfileStoreError(f"cannot open profile store {self.path}: {exc}") from None
-        try:
-            with self._errors("open"):
-                self._con.execute(f"PRAGMA busy_timeout = {int(self.timeout * 1000)}")
-                self._retry_busy(self._setup)
-        except BaseException:
-            self.close()
-            raise
+        super().__init__(path if path is not None else default_db_path(), timeout=timeout)
 
-    def _setup(self) -> None:
-        con = self.con
-        mode = str(con.execute("PRAGMA journal_mode").fetchone()[0]).lower()
-        if mode != "wal":  # WAL is persistent: only a new (or foreign-mode) file needs the switch
-            mode = str(con.execute("PRAGMA journal_mode = WAL").fetchone()[0]).lower()
-            if mode != "wal":
-                logger.warning("profile store %s: journal mode is %s, not WAL (file system without shared memory?)",
-                               self.path, mode)
-        con.execute("PRAGMA synchronous = FULL")
-        con.execute("PRAGMA foreign_keys = ON")
+    def _setup_schema(self) -> None:
         self._migrate()
-
-    def _retry_busy(self, fn: Callable[[], None]) -> None:
-        """Run ``fn``, retrying on SQLITE_BUSY until the timeout.
-
-        SQLite returns BUSY *without* calling the busy handler when waiting could
-        deadlock, e.g. two processes that both read a new file and then both want the
-        exclusive lock to switch it to WAL; one of them must back off and retry.
-        """
-        deadline = time.monotonic() + self.timeout
-        delay = 0.005
-        while True:
-            try:
-                fn()
-                return
-            except sqlite3.OperationalError as exc:
-                low = str(exc).lower()
-                if not ("locked" in low or "busy" in low) or time.monotonic() + delay > deadline:
-                    raise
-                if self.con.in_transaction:
-                    self.con.execute("ROLLBACK")
-                time.sleep(delay * (0.5 + random.random()))
-                delay = min(delay * 2, 0.25)
-
-    # ------------------------------------------------------------ plumbing
-    @contextlib.contextmanager
-    def _errors(self, op: str) -> Iterator[None]:
-        """Turn sqlite3 errors into ProfileStoreError naming the file and the cause."""
-        try:
-            yield
-        except sqlite3.Error as exc:
-            msg = str(exc)
-            low = msg.lower()
-            if "locked" in low or "busy" in low:
-                why = f"locked by another process for more than {self.timeout:g} s ({msg})"
-            elif "not a database" in low or "malformed" in low or "corrupt" in low:
-                why = f"the file is corrupt or not an SQLite database ({msg})"
-            elif "readonly" in low or "read-only" in low:
-                why = f"the file is read-only ({msg})"
-            else:
-                why = msg
-            raise ProfileStoreError(f"profile store {self.path}: {op} failed: {why}") from None
-
-    @property
-    def con(self) -> sqlite3.Connection:
-        if self._con is None:
-            raise ProfileStoreError(f"profile store {self.path} is closed")
-        return self._con
-
-    @contextlib.contextmanager
-    def _txn(self) -> Iterator[sqlite3.Connection]:
-        """One write transaction: BEGIN IMMEDIATE takes the write lock up front (waiting
-        up to the busy timeout), so a read-modify-write cannot interleave with another
-        writer (no lost updates) and cannot hit SQLite's upgrade deadlock."""
-        con = self.con
-        con.execute("BEGIN IMMEDIATE")
-        try:
-            yield con
-        except BaseException:
-            if con.in_transaction:  # SQLite may already have rolled back (e.g. disk full)
-                con.execute("ROLLBACK")
-            raise
-        con.execute("COMMIT")
-
-    def _transact(self, op: str, body: Callable[[sqlite3.Connection], Any]) -> Any:
-        """Run ``body(con)`` in one write transaction; retried as a whole if SQLite
-        reports BUSY without waiting (the transaction was rolled back, so a retry
-        cannot apply anything twice); errors become ProfileStoreError."""
-        out: list[Any] = []
-
-        def attempt() -> None:
-            out.clear()
-            with self._txn() as con:
-                out.append(body(con))
-
-        with self._errors(op):
-            self._retry_busy(attempt)
-        return out[0]
 
     def _version(self) -> int | None:
         """Recorded schema version; None for an empty (new) database."""
@@ -1173,7 +1085,8 @@ class ProfileStore:
         )
         return found[0] if found else None
 
-    def _upsert(self, con: sqlite3.Connection, p: Profile) -> None:
+    def _upsert(self, con: sqlite3.Connection, p: Profile) -> int:
+        """Insert or update ``p``; returns its row id (kept across updates)."""
         cols = ", ".join(_COLUMNS)
         marks = ", ".join("?" for _ in _COLUMNS)
         updates = ", ".join(f"{c} = excluded.{c}" for c in _COLUMNS[4:])
@@ -1182,6 +1095,15 @@ class ProfileStore:
             f"ON CONFLICT (lens_id, focal_bin, aperture_bin, aspect) DO UPDATE SET {updates}",
             self._profile_to_row(p),
         )
+        return self._row_id(con, p.key)
+
+    @staticmethod
+    def _row_id(con: sqlite3.Connection, key: ProfileKey) -> int | None:
+        row = con.execute(
+            "SELECT id FROM profiles WHERE lens_id = ? AND focal_bin = ? AND aperture_bin = ? AND aspect = ?",
+            (key.lens_id, key.focal_bin, key.aperture_bin, key.aspect),
+        ).fetchone()
+        return None if row is None else int(row[0])
 
     # ------------------------------------------------------------ API
     def get(self, key: ProfileKey) -> Profile | None:
@@ -1239,7 +1161,13 @@ class ProfileStore:
             )
         if profile.covariance is not None:
             _check_covariance(profile.covariance, f"profile {profile.key}")
-        self._transact(f"storing {profile.key}", lambda con: self._upsert(con, profile))
+
+        def body(con: sqlite3.Connection) -> None:
+            row_id = self._upsert(con, profile)
+            # the stored evidence was replaced: no frame is pooled into it any more
+            con.execute("DELETE FROM pooled_frames WHERE profile_id = ?", (row_id,))
+
+        self._transact(f"storing {profile.key}", body)
 
     def import_file(self, path: str | os.PathLike[str]) -> Profile:
         """:func:`import_profile` then :meth:`put`; returns the stored profile."""
@@ -1247,7 +1175,8 @@ class ProfileStore:
         self.put(p)
         return p
 
-    def learn(self, key: ProfileKey, model: VignettingModel, *, notes: str | None = None) -> Profile:
+    def learn(self, key: ProfileKey, model: VignettingModel, *, notes: str | None = None,
+              frame_id: str | None = None) -> Profile:
         """Pool one frame's estimate into the profile under ``key``; returns the new profile.
 
         The frame adds Λ_i = Σ_i⁻¹ and η_i = Λ_i θ_i (normalised units) to the
@@ -1264,12 +1193,23 @@ class ProfileStore:
         evidence; one without (no information) is superseded by the learned frames
         (provenance becomes "learned"; the notes say so).
 
+        Parameters
+        ----------
+        frame_id : str, optional
+            The frame's content id (e.g. the file's SHA-256).  A frame already pooled
+            into this profile is not pooled again: the profile is returned unchanged.
+            The id is recorded in the same transaction as the update, so a crash
+            between pooling a frame and recording elsewhere that it was done (the
+            daemon's or a batch job's journal) cannot make a rerun pool it twice.
+
         Raises
         ------
         ProfileStoreError
             No covariance in ``model``, aspect ratio not the key's, invalid values,
             database locked or corrupt.
         """
+        if frame_id is not None and (not isinstance(frame_id, str) or not frame_id or len(frame_id) > 256):
+            raise ProfileStoreError(f"frame_id must be a non-empty string of at most 256 characters, got {frame_id!r}")
         if not isinstance(key, ProfileKey):
             raise ProfileStoreError(f"learn() needs a ProfileKey, got {type(key).__name__}")
         if aspect_label(model.width / model.height) != key.aspect:
@@ -1286,6 +1226,12 @@ class ProfileStore:
 
         def body(con: sqlite3.Connection) -> tuple[Profile | None, Profile]:
             old = self._get(key)
+            if old is not None and frame_id is not None:
+                seen = con.execute("SELECT 1 FROM pooled_frames WHERE frame = ? AND profile_id = ?",
+                                   (frame_id, self._row_id(con, key))).fetchone()
+                if seen is not None:
+                    logger.info("profile %s: frame %s is already pooled; not again", key, frame_id[:16])
+                    return old, old
             now = _now()
             extra = ""
             if old is None:
@@ -1328,7 +1274,10 @@ class ProfileStore:
                 scatter_sigma_ev=scatter, notes="\n".join(note_parts)[:MAX_NOTES],
                 _exact=exact, _welford=welford,
             )
-            self._upsert(con, profile)
+            row_id = self._upsert(con, profile)
+            if frame_id is not None:
+                con.execute("INSERT OR IGNORE INTO pooled_frames (frame, profile_id, pooled) VALUES (?, ?, ?)",
+                            (frame_id, row_id, now))
             return old, profile
 
         old, profile = self._transact(f"learning {key}", body)
@@ -1373,21 +1322,6 @@ class ProfileStore:
                     except ProfileStoreError as exc:
                         problems.append(str(exc))
         return problems
-
-    def close(self) -> None:
-        """Close the connection (idempotent)."""
-        con, self._con = self._con, None
-        if con is not None:
-            try:
-                con.close()
-            except sqlite3.Error:  # closing: nothing useful to do
-                logger.debug("closing %s failed", self.path, exc_info=True)
-
-    def __enter__(self) -> ProfileStore:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"ProfileStore({str(self.path)!r})"
