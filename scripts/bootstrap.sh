@@ -6,12 +6,22 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 
+sudo_cmd=""
+if [ "$(id -u)" -ne 0 ]; then sudo_cmd="sudo"; fi
 if ! command -v exiftool >/dev/null 2>&1; then
     echo "bootstrap: installing exiftool (Debian package libimage-exiftool-perl)" >&2
-    sudo_cmd=""
-    if [ "$(id -u)" -ne 0 ]; then sudo_cmd="sudo"; fi
     $sudo_cmd apt-get update -qq >/dev/null
     DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq libimage-exiftool-perl >/dev/null
+fi
+# darktable (Debian's 4.x, with Lua) runs the darktable plugin headless in the tests
+# (tests/test_plugins_hosts.py); about 10 s and 117 MB. VIGPROC_NO_DARKTABLE=1 skips
+# it (that test is then skipped); a failed install is not fatal.
+if [ "${VIGPROC_NO_DARKTABLE:-0}" != "1" ] && ! command -v darktable-cli >/dev/null 2>&1 \
+        && command -v apt-get >/dev/null 2>&1; then
+    echo "bootstrap: installing darktable for the plugin test (VIGPROC_NO_DARKTABLE=1 skips this)" >&2
+    { $sudo_cmd apt-get update -qq >/dev/null \
+        && DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends darktable \
+        >/dev/null; } || echo "bootstrap: darktable not installed; its test will be skipped" >&2
 fi
 
 py="${PYTHON:-python3}"

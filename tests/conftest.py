@@ -36,3 +36,12 @@ def shared_data() -> Path:
     if not SHARED.is_dir():
         pytest.skip(f"shared data not present at {SHARED}")
     return SHARED
+
+
+@pytest.fixture(autouse=True)
+def _private_profile_store(tmp_path_factory, monkeypatch):
+    """Commands default to ``--profile auto``, which opens the user's profile store:
+    each test gets its own (inherited by the subprocesses it starts), so the suite
+    never reads or writes the store of the person running it.  Tests that want a
+    particular store set VIGPROC_PROFILE_DB themselves."""
+    monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path_factory.mktemp("store") / "profiles.sqlite"))

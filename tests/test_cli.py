@@ -180,6 +180,8 @@ def test_profile_store_flow(tmp_path, monkeypatch):
         dngs.append(p)
     r = run("profile", "learn", *dngs)
     assert r.returncode == 0, r.stderr
+    r = run("profile", "learn", dngs[0])  # a frame learned again (a rerun) is not pooled twice
+    assert r.returncode == 0, r.stderr
     r = run("profile", "list")
     assert "frames=2" in r.stdout and "learning" in r.stdout
     lens_id = json.loads(run("estimate", dngs[0], "--json").stdout)["lens"]["lens_id"]

@@ -4,8 +4,11 @@
 >>> m = vigproc.estimate(img)            # img: H×W or H×W×C linear float
 >>> phi = m.field((H, W))                # attenuation, 1.0 at the vignetting centre
 >>> out = vigproc.correct(img, m)
+
+Photo pipelines: :class:`vigproc.Pipeline` (:mod:`vigproc.api`, the stable interface).
 """
 
+from vigproc.api import Pipeline, Result
 from vigproc.correct import correct
 from vigproc.errors import (
     ImageReadError,
@@ -24,6 +27,6 @@ __version__ = "0.1.0"
 
 __all__ = [
     "METHODS", "FitQuality", "ImageReadError", "ImageWriteError", "InvalidImageError",
-    "ModelError", "PriorError", "RobustSettings", "UnsupportedFormatError", "VignettingModel",
-    "VigprocError", "correct", "estimate",
+    "ModelError", "Pipeline", "PriorError", "Result", "RobustSettings", "UnsupportedFormatError",
+    "VignettingModel", "VigprocError", "correct", "estimate",
 ]

@@ -86,7 +86,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     outdir.mkdir(parents=True, exist_ok=True)
     files = [Path(f) for f in args.files]
     settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
-                        output_format=args.output_format, picture=args.picture)
+                        output_format=args.output_format, picture=args.picture, strength=args.strength)
     failed = 0
     results = []
     store = _open_store(args) if args.profile == "auto" else None
@@ -123,7 +123,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise VigprocError("the bundled samples are missing from this installation")
     ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
                             input_transfer=args.input_transfer, picture=True, json=False,
-                            output_format="tiff-float", profile="estimate", profile_db=None)
+                            output_format="tiff-float", profile="estimate", profile_db=None,
+                            strength=1.0)
     return cmd_correct(ns)
 
 
@@ -377,7 +378,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
                 print(f"picture -> {args.plot}")
         elif args.profile_command == "learn":
             from vigproc.io import read_image
-            from vigproc.pipeline import Processor, Settings, read_lens
+            from vigproc.pipeline import Processor, Settings, file_sha256, read_lens
 
             files = [Path(f) for f in args.files]
             done = failed = 0
@@ -389,7 +390,8 @@ def cmd_profile(args: argparse.Namespace) -> int:
                         lens_key, lens = read_lens(proc.reader, f)
                         if lens_key is None:
                             raise VigprocError(f"{f}: cannot learn, lens unknown ({lens['error']})")
-                        _, rec = proc.process_image(img, lens_key, where=str(f))
+                        # keyed by content: learning a file again does not pool it twice
+                        proc.process_image(img, lens_key, where=str(f), frame_id=file_sha256(f))
                         p = store.get(ProfileKey.from_lens(lens_key, img.shape[1], img.shape[0]))
                         done += 1
                         print(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}")
@@ -441,36 +443,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="count", default=0)
     sub = p.add_subparsers(dest="command", required=True)
 
-    def transfer_opt(sp):
-        sp.add_argument("--input-transfer", choices=("auto", "linear", "srgb"), default="auto",
-                        help="how to decode stored values to linear light (default: from the file's metadata)")
+    from vigproc.commands._options import add_method, add_processing, add_transfer
 
     sp = sub.add_parser("estimate", help="estimate the vignetting of one image")
     sp.add_argument("file")
-    sp.add_argument("--method", choices=METHODS, default="default")
+    add_method(sp)
     sp.add_argument("--json", action="store_true")
     sp.add_argument("--seed", type=int, default=0)
-    transfer_opt(sp)
+    add_transfer(sp)
     sp.set_defaults(fn=cmd_estimate)
 
-    sp = sub.add_parser("correct", help="estimate and remove vignetting (linear TIFF or EXR outputs)")
-    sp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="tiff-float",
-                    help="linear output: float or 16-bit TIFF, half or float OpenEXR (default tiff-float)")
+    sp = sub.add_parser("correct", help="remove vignetting: a stored profile of the lens, else an estimate "
+                                        "(linear TIFF or EXR outputs)")
     sp.add_argument("files", nargs="+")
     sp.add_argument("-o", "--output", required=True)
-    sp.add_argument("--method", choices=METHODS, default="default")
-    sp.add_argument("--picture", action="store_true", help="also write a PNG picture of each estimated field")
-    sp.add_argument("--profile", default="estimate",
-                    help="auto (a trusted stored profile of the frame's lens, else estimate), estimate, "
-                         "lensfun (the frame's lens from lensfun's database) or PATH of a profile file")
-    sp.add_argument("--profile-db", help="profile store (default: $VIGPROC_PROFILE_DB or the user data folder)")
+    add_processing(sp)
     sp.add_argument("--json", action="store_true")
-    transfer_opt(sp)
     sp.set_defaults(fn=cmd_correct)
 
     sp = sub.add_parser("demo", help="correct the bundled sample images (the README's first command)")
     sp.add_argument("-o", "--output", default="vigproc-demo")
-    transfer_opt(sp)
+    add_transfer(sp)
     sp.set_defaults(fn=cmd_demo)
 
     # further commands live in their own modules under vigproc/commands (watch, check,
@@ -498,7 +491,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("learn", help="estimate frames and pool them into their lenses' profiles")
     q.add_argument("files", nargs="+")
-    transfer_opt(q)
+    add_transfer(q)
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("import", help="import a profile file (profiles/README.md)")
     q.add_argument("file")
@@ -534,7 +527,7 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--seed", type=int, default=0)
     fp.add_argument("--limit", type=int)
     fp.add_argument("--source", help="provenance text stored in the prior")
-    transfer_opt(fp)
+    add_transfer(fp)
     fp.set_defaults(fn=cmd_prior_fit)
     fp = psub.add_parser("fit-scene", help="fit the scene fall-off prior of the default estimator "
                                             "on a folder of vignetting-free photos")
@@ -542,7 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("-o", "--output", required=True)
     fp.add_argument("--iterations", type=int, default=1)
     fp.add_argument("--limit", type=int)
-    transfer_opt(fp)
+    add_transfer(fp)
     fp.set_defaults(fn=cmd_prior_fit_scene)
 
     sp = sub.add_parser("bench", help="benchmarks (print measured figures)")
@@ -562,7 +555,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--limit", type=int)
     bp.add_argument("--lenses", type=int, default=20)
     bp.add_argument("--frames-per-lens", type=int, default=5)
-    transfer_opt(bp)
+    add_transfer(bp)
     bp.add_argument("--methods", nargs="+", default=["default"], choices=list(METHODS))
     bp.add_argument("--json")
     bp.set_defaults(fn=cmd_bench_lensfun)
@@ -571,7 +564,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--limit", type=int, default=10)
     bp.add_argument("--repeat", type=int, default=5)
     bp.add_argument("--methods", nargs="+", default=["ga", "default"], choices=list(METHODS))
-    transfer_opt(bp)
+    add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_speed)
     bp = bsub.add_parser("io", help="frame read times per format and EXIF per file in batch")
     bp.add_argument("--width", type=int, default=6000)
@@ -585,7 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--limit", type=int)
     bp.add_argument("--lenses", type=int, default=20)
     bp.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20])
-    transfer_opt(bp)
+    add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_profile)
     bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")
     bp.add_argument("--width", type=int, default=6000)

@@ -67,11 +67,12 @@ def estimate(
     img : ndarray
         H×W or H×W×C (``channel_axis``) linear intensities, any float/int dtype.
         Colour images are reduced to Rec. 709 luminance.
-    method : {"default", "robust", "lyu2010", "lyu2010-rand", "ga"}
+    method : {"default", "robust", "lyu2010", "lyu2010-rand", "ga"} or str
         "default"/"robust": vigproc's robust per-pixel estimator, with fall-back to
         no correction when the evidence is weak. "lyu2010": the paper's Gaussian
         approximation followed by the ML fit of Eq. (6). "lyu2010-rand": the ML fit
         from a random start. "ga": Gaussian approximation only (Eqs. 17–20).
+        Any other name: an installed estimator plugin (:mod:`vigproc.extensions`).
     channel_axis : int or None
         Axis of colour channels; None for a 2-D image.
     prior : NaturalPrior, optional
@@ -88,6 +89,10 @@ def estimate(
 
     Raises
     ------
+    UnknownMethodError
+        ``method`` is neither built in nor an installed estimator plugin.
+    ExtensionError
+        The estimator plugin is broken or returned no valid model.
     InvalidImageError
         Bad dimensions, NaN/Inf, no positive pixel, constant image, or too small
         for the method (the paper's methods need 51×51 px at the working size).
@@ -97,7 +102,12 @@ def estimate(
     S. Lyu, ACM MM&Sec 2010 (methods "lyu2010", "ga").
     """
     if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+        # an installed estimator plugin (vigproc.extensions), else UnknownMethodError
+        from vigproc.extensions import estimator
+
+        plugin = estimator(method)
+        a = check_image(img, channel_axis)
+        return plugin(a, channel_axis=-1 if a.ndim == 3 else None, seed=seed)
     a = check_image(img, channel_axis)
     h, w = a.shape[:2]
     keep = clipped_mask(a)

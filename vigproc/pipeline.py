@@ -11,6 +11,7 @@ store; it is not shared between threads (make one per worker).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -21,7 +22,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from vigproc.errors import ImageWriteError, ModelError, VigprocError
+from vigproc.errors import ImageReadError, ImageWriteError, ModelError, VigprocError
 
 log = logging.getLogger(__name__)
 
@@ -55,10 +56,13 @@ class Settings:
         lens's stored profile), ``estimate`` (model only) or ``check`` (forensic
         verdict: does the vignetting match the lens the EXIF names?).
     profile : str
-        ``auto`` (a trusted stored profile of the frame's lens, else estimate),
-        ``estimate``, ``lensfun`` or the path of a profile file.
+        ``auto`` (a trusted stored profile of the frame's lens, else the first
+        installed profile-source plugin that has one, else estimate), ``estimate``,
+        ``lensfun``, ``source:NAME`` (that profile-source plugin only) or the path
+        of a profile file.
     method : str
-        Estimator for frames without a profile (see :data:`vigproc.estimate.METHODS`).
+        Estimator for frames without a profile (see :data:`vigproc.estimate.METHODS`,
+        or an installed estimator plugin, :mod:`vigproc.extensions`).
     transfer : str
         How stored values decode to linear light: ``auto``, ``linear`` or ``srgb``.
     output_format : str
@@ -83,7 +87,10 @@ class Settings:
         if self.mode not in MODES:
             raise VigprocError(f"unknown mode {self.mode!r} (choose from {', '.join(MODES)})")
         if self.method not in METHODS:
-            raise VigprocError(f"unknown method {self.method!r} (choose from {', '.join(METHODS)})")
+            from vigproc.extensions import UnknownMethodError, method_names
+
+            if self.method not in method_names():
+                raise UnknownMethodError(f"unknown method {self.method!r} (choose from {', '.join(method_names())})")
         if self.output_format not in OUTPUT_FORMATS:
             raise VigprocError(f"unknown output format {self.output_format!r}")
         if self.transfer not in ("auto", "linear", "srgb"):
@@ -183,14 +190,45 @@ def lensfun_model(lens_key, width: int, height: int):
                           width=width, height=height)
 
 
-def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where: str = "frame"):
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """Hex SHA-256 of a file's content, streamed (a frame's content id).
+
+    Raises
+    ------
+    ImageReadError
+        The file cannot be read.
+    """
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 20):
+                h.update(chunk)
+    except OSError as exc:
+        raise ImageReadError(f"cannot read {os.fspath(path)!r}: {exc.strerror or exc}") from None
+    return h.hexdigest()
+
+
+def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where: str = "frame",
+                 sources=None):
     """Model to apply and where it came from: ``profile-file``, ``lensfun``,
-    ``stored-profile`` (a trusted profile of the lens: no estimation) or ``estimate``."""
+    ``stored-profile`` (a trusted profile of the lens: no estimation), ``source:NAME``
+    (a profile-source plugin) or ``estimate``.
+
+    ``sources`` are the loaded profile-source plugins ``{name: ProfileSource}``
+    consulted by ``profile="auto"`` (default: none)."""
     from vigproc.estimate import estimate
 
     h, w = img.shape[:2]
     ca = -1 if img.ndim == 3 else None
     profile = settings.profile
+    if profile.startswith("source:"):
+        from vigproc.extensions import profile_source
+
+        src = profile_source(profile[len("source:"):])
+        m = src.lookup(lens_key, w, h) if lens_key is not None else None
+        if m is None:
+            raise ModelError(f"profile source {src.name!r} has no profile for the lens of {where}")
+        return m, profile
     if profile not in ("auto", "estimate", "lensfun"):
         from vigproc.profiles import import_profile
 
@@ -205,6 +243,15 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
             hit = None
         if hit is not None:
             return hit.model(w, h), "stored-profile"
+    if profile == "auto" and lens_key is not None:
+        for name, src in sorted((sources or {}).items()):
+            try:
+                m = src.lookup(lens_key, w, h)
+            except VigprocError as exc:  # one broken plugin must not stop the frame
+                log.warning("profile source %s for %s: %s", name, where, exc)
+                continue
+            if m is not None:
+                return m, f"source:{name}"
     return estimate(img, settings.method, channel_axis=ca), "estimate"
 
 
@@ -221,13 +268,26 @@ class Processor:
     reader : ExifReader, optional
         Borrowed if given; otherwise one is started on first use and closed by
         :meth:`close`.
+    sources : dict, optional
+        Loaded profile-source plugins for ``profile="auto"``
+        (:func:`vigproc.extensions.load_profile_sources`); discovered on first use
+        if not given.
     """
 
-    def __init__(self, settings: Settings, *, store=None, reader=None) -> None:
+    def __init__(self, settings: Settings, *, store=None, reader=None, sources=None) -> None:
         self.settings = settings
         self.store = store
         self._reader = reader
         self._own_reader = reader is None
+        self._sources = sources
+
+    @property
+    def sources(self) -> dict:
+        if self._sources is None:
+            from vigproc.extensions import load_profile_sources
+
+            self._sources = load_profile_sources()
+        return self._sources
 
     @property
     def reader(self):
@@ -249,8 +309,11 @@ class Processor:
         self.close()
 
     # -- in memory --------------------------------------------------------
-    def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image"):
+    def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image", frame_id: str | None = None):
         """Process an in-memory linear image (H×W or H×W×C, channels last).
+
+        ``frame_id`` (learn mode): the frame's content id; a frame already pooled
+        into its lens's profile is not pooled again (:meth:`ProfileStore.learn`).
 
         Returns
         -------
@@ -272,10 +335,10 @@ class Processor:
             res.source = "estimate"
             res.model = getattr(verdict, "estimate", None)
         elif s.mode == "learn":
-            res.model, res.source, res.profile = self._learn(img, lens_key)
+            res.model, res.source, res.profile = self._learn(img, lens_key, frame_id)
         else:
             m, res.source = choose_model(img, lens_key, s, self.store if s.profile == "auto" else None,
-                                         where=where)
+                                         where=where, sources=self.sources if s.profile == "auto" else None)
             res.model = m
             if s.mode == "correct":
                 from vigproc.correct import correct
@@ -288,7 +351,7 @@ class Processor:
         res.seconds = round(time.perf_counter() - t0, 4)
         return out, res
 
-    def _learn(self, img: np.ndarray, lens_key):
+    def _learn(self, img: np.ndarray, lens_key, frame_id: str | None):
         from vigproc.estimate import estimate
         from vigproc.profiles import ProfileKey
 
@@ -303,17 +366,21 @@ class Processor:
         fit = m.candidate if m.candidate is not None else m
         if fit.covariance is None:
             raise ModelError("no usable fit to learn from (no uncertainty)")
-        p = self.store.learn(key, fit)
+        p = self.store.learn(key, fit, frame_id=frame_id)
         return fit, "estimate", str(p.key)
 
     # -- files ------------------------------------------------------------
     def process_file(self, path: str | os.PathLike[str], outdir: str | os.PathLike[str], stem: str | None = None,
-                     *, extra: dict[str, Any] | None = None) -> FrameResult:
+                     *, extra: dict[str, Any] | None = None, frame_id: str | None = None) -> FrameResult:
         """Read ``path``, process it, write its outputs into ``outdir``.
 
         Outputs (all atomic; the input is never modified): ``STEM.corrected.tif|exr``
         in correct mode, ``STEM.vignetting.png`` with ``picture``, and always the
         sidecar ``STEM.vigproc.json``, written last.
+
+        In learn mode the frame is pooled under ``frame_id``, by default the file's
+        SHA-256, so learning the same file twice (a rerun, a copy under another
+        name) refines the profile once.
 
         Raises
         ------
@@ -330,7 +397,9 @@ class Processor:
         stem = path.stem if stem is None else stem
         img, _info = read_image(path, transfer=s.transfer)
         lens_key, lens = read_lens(self.reader, path)
-        out, res = self.process_image(img, lens_key, where=str(path))
+        if s.mode == "learn" and frame_id is None:
+            frame_id = file_sha256(path)
+        out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id)
         res.lens = lens
         if out is not None:
             from vigproc.metadata import make_record, write_corrected

@@ -1,0 +1,252 @@
+"""``vigproc hook`` (JSON answer, stable exit codes, requests, hostile names) and ``vigproc plugins``."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vigproc.bench.synthetic import table1_model
+from vigproc.cli import main
+from vigproc.io import read_image, write_image
+
+from conftest import textured
+from test_api import ESTIMATORS, PLUGIN_CODE, install_plugin
+
+VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+pytestmark = pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
+
+
+def sha(p: Path) -> str:
+    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+@pytest.fixture(autouse=True)
+def private_store(tmp_path, monkeypatch):
+    monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path / "profiles.sqlite"))
+
+
+@pytest.fixture
+def frame(tmp_path) -> Path:
+    """A vignetted linear float TIFF with camera and lens EXIF."""
+    img = textured(160, 240, seed=1, contrast=0.05) * table1_model(2).rescale(240, 160).field()
+    path = tmp_path / "in" / "frame.tif"
+    path.parent.mkdir()
+    write_image(path, np.repeat(img[..., None], 3, axis=2).astype(np.float32), bit_depth="float")
+    subprocess.run(["exiftool", "-q", "-overwrite_original", "-Make=Canon", "-Model=Canon EOS 5D",
+                    "-LensModel=EF50mm f/1.8 II", "-FocalLength=50", "-FNumber=2.8", str(path)], check=True)
+    return path
+
+
+def run_cli(*args, stdin: bytes | None = None, env: dict | None = None):
+    r = subprocess.run([*VIGPROC, *map(os.fsdecode, args)], input=stdin, capture_output=True, timeout=300,
+                       env={**os.environ, **(env or {})})
+    return r.returncode, r.stdout, r.stderr.decode("utf-8", "replace")
+
+
+def hook(capsys, monkeypatch, *args, stdin: bytes | None = None):
+    """``vigproc hook`` in this process: (exit code, answer)."""
+    if stdin is not None:
+        monkeypatch.setattr(sys, "stdin", io.TextIOWrapper(io.BytesIO(stdin)))
+    capsys.readouterr()
+    code = main(["hook", *map(os.fsdecode, args)])
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    answer = json.loads(out)  # stdout is exactly one JSON document
+    assert answer["exit_code"] == code
+    return code, answer
+
+
+# ------------------------------------------------------------------ end to end
+def test_correct_answers_json_and_writes_outputs(frame, tmp_path):
+    before = sha(frame)
+    out = tmp_path / "out"
+    code, stdout, stderr = run_cli("hook", "-o", out, "--", frame)
+    assert code == 0, stderr
+    answer = json.loads(stdout)
+    assert answer["protocol"] == 1 and answer["ok"] == 1 and answer["failed"] == 0
+    r = answer["results"][0]
+    assert r["status"] == "ok" and r["applied"] and r["source"] == "estimate"
+    assert r["lens"]["lens_id"] == "canon|canon eos 5d|ef50mm f/1.8 ii"
+    assert r["falloff_ev"] > 1 and "EV fall-off removed" in r["summary"]
+    assert sorted(p.name for p in out.iterdir()) == ["frame.corrected.tif", "frame.vigproc.json"]
+    assert r["output"] == str(out / "frame.corrected.tif") and r["sidecar"] == str(out / "frame.vigproc.json")
+    assert sha(frame) == before
+    corrected, _ = read_image(out / "frame.corrected.tif")
+    src, _ = read_image(frame)
+    assert corrected[-3, -3, 0] / corrected[80, 120, 0] > 3 * src[-3, -3, 0] / src[80, 120, 0]
+
+
+def test_request_on_stdin_with_host_lens_and_exact_output(frame, tmp_path):
+    target = tmp_path / "dk" / "BatchTool-1.digikamtempfile.tif"
+    target.parent.mkdir()
+    req = {"mode": "correct", "output_format": "tiff16", "files": [
+        {"path": str(frame), "output": str(target),
+         "lens": {"make": "Nikon", "model": "Nikon D700", "lens": "AF-S 24-70mm f/2.8G", "focal_mm": 35,
+                  "fnumber": 4}},
+        {"path": str(frame), "output": str(tmp_path / "dk" / "x.jpg")},  # wrong suffix for TIFF
+        {"path": str(frame), "output": str(frame)},  # never overwrite the input
+    ]}
+    code, stdout, stderr = run_cli("hook", "--request", "-", stdin=json.dumps(req).encode())
+    answer = json.loads(stdout)
+    assert code == 1 and answer["ok"] == 1, stderr
+    ok, bad_suffix, onto_input = answer["results"]
+    assert ok["status"] == "ok" and ok["output"] == str(target)
+    assert ok["lens"]["lens_id"] == "nikon|nikon d700|af-s 24-70mm f/2.8g"  # the host's lens, not the file's
+    assert bad_suffix["exit_code"] == 2 and bad_suffix["type"] == "UsageError" and ".tif" in bad_suffix["error"]
+    assert onto_input["exit_code"] == 5
+    assert os.listdir(target.parent) == [target.name]  # no sidecar, no temporary folder left
+    img, info = read_image(target)
+    assert info.bit_depth == "uint16" and img.shape == (160, 240, 3)
+
+
+def test_hostile_file_names(frame, tmp_path, capsys, monkeypatch):
+    names = ["a b 'q' \"dq\" ; $(touch PWNED) `touch PWNED`\n\\ é.tif", "-rf.tif", "..tif"]
+    src = tmp_path / "hostile"
+    src.mkdir()
+    paths = [src / n for n in names]
+    raw = os.path.join(os.fsencode(src), b"caf\xe9 latin-1.tif")  # not UTF-8
+    for p in [*paths, raw]:
+        shutil.copyfile(frame, p)
+    out = tmp_path / "out"
+    code, answer = hook(capsys, monkeypatch, "--mode", "correct", "-o", out, "--", *paths, raw)
+    assert code == 1 and answer["ok"] == 3
+    assert [r["file"] for r in answer["results"]] == [*map(str, paths), os.fsdecode(raw)]
+    for r in answer["results"][:3]:
+        assert Path(r["output"]).parent == out and Path(r["sidecar"]).parent == out
+    assert len(os.listdir(out)) == 6
+    # OpenImageIO cannot open such names: a clear per-file error, not a crash or a misread
+    assert answer["results"][3]["exit_code"] == 4 and "not valid UTF-8" in answer["results"][3]["error"]
+    assert not list(tmp_path.rglob("PWNED")) and not Path("PWNED").exists()
+
+
+# ------------------------------------------------------------------ exit codes and requests
+@pytest.fixture
+def constant(tmp_path) -> Path:
+    p = tmp_path / "in" / "flat.tif"
+    p.parent.mkdir(exist_ok=True)
+    write_image(p, np.full((64, 64), 0.5, np.float32), bit_depth="float")
+    return p
+
+
+def test_exit_codes(frame, constant, tmp_path, capsys, monkeypatch):
+    missing = tmp_path / "nope.tif"
+    out = tmp_path / "out"
+    assert hook(capsys, monkeypatch, "-o", out, missing)[0] == 4  # every file: unreadable
+    assert hook(capsys, monkeypatch, "-o", out, missing, missing)[0] == 4
+    assert hook(capsys, monkeypatch, "-o", out, missing, constant)[0] == 1  # different errors
+    code, answer = hook(capsys, monkeypatch, "-o", out, frame, missing)
+    assert code == 1 and answer["ok"] == 1 and answer["results"][1]["type"] == "ImageReadError"
+    code, answer = hook(capsys, monkeypatch, "-o", out, constant)
+    assert code == 3 and answer["results"][0]["type"] == "InvalidImageError"
+    code, answer = hook(capsys, monkeypatch, frame)  # correct needs somewhere to write
+    assert code == 2 and "output folder" in answer["results"][0]["error"]
+    code, answer = hook(capsys, monkeypatch)
+    assert code == 2 and "no files" in answer["error"] and answer["results"] == []
+
+
+def test_internal_error_fails_one_file_only(frame, tmp_path, capsys, monkeypatch):
+    from vigproc.pipeline import Processor
+
+    real = Processor.process_file
+
+    def flaky(self, path, *a, **kw):
+        if Path(path).name == "bug.tif":
+            raise ZeroDivisionError("simulated bug")
+        return real(self, path, *a, **kw)
+
+    monkeypatch.setattr(Processor, "process_file", flaky)
+    bug = frame.with_name("bug.tif")
+    shutil.copyfile(frame, bug)
+    code, answer = hook(capsys, monkeypatch, "-o", tmp_path / "out", bug, frame)
+    assert code == 1 and answer["results"][1]["status"] == "ok"
+    assert answer["results"][0]["exit_code"] == 70 and "ZeroDivisionError" in answer["results"][0]["error"]
+    code, _ = hook(capsys, monkeypatch, "-o", tmp_path / "out", bug)
+    assert code == 70
+
+
+@pytest.mark.parametrize("request_bytes, match", [
+    (b"not json", "not valid JSON"),
+    (b"[]", "JSON object"),
+    (b'{"files": ["a.tif"], "colour": 1}', "unknown request fields"),
+    (b'{"files": "a.tif"}', "must be a list"),
+    (b'{"files": ["a.tif"], "strength": "1"}', "must be a number"),
+    (b'{"files": ["a.tif"], "mode": "learn"}', "unknown mode"),
+    (b'{"files": ["a.tif"], "method": "nope"}', "unknown method"),
+])
+def test_bad_requests_are_usage_errors(request_bytes, match, capsys, monkeypatch):
+    code, answer = hook(capsys, monkeypatch, "--request", "-", stdin=request_bytes)
+    assert code == 2 and match in answer["error"]
+
+
+def test_bad_entries_fail_alone(frame, tmp_path, capsys, monkeypatch):
+    req = {"mode": "estimate", "files": [str(frame), {"path": "a\x00b.tif"}, {"path": str(frame), "lens": ["x"]},
+                                         {"path": str(frame), "colour": 1}, 42]}
+    code, answer = hook(capsys, monkeypatch, "--request", "-", stdin=json.dumps(req).encode())
+    assert code == 1 and [r["status"] for r in answer["results"]] == ["ok"] + ["error"] * 4
+    assert all(r["exit_code"] == 2 for r in answer["results"][1:])
+
+
+def test_estimate_without_output_folder_writes_nothing(frame, tmp_path, capsys, monkeypatch):
+    files = lambda: sorted(p for p in tmp_path.rglob("*") if not p.name.startswith("profiles.sqlite"))
+    before = files()
+    code, answer = hook(capsys, monkeypatch, "--mode", "estimate", "--", frame)
+    assert code == 0
+    r = answer["results"][0]
+    assert r["model"]["width"] == 240 and not r["applied"] and "output" not in r
+    assert files() == before
+
+
+def test_check_mode_answers_a_verdict(frame, capsys, monkeypatch):
+    try:
+        import vigproc.forensics  # noqa: F401
+    except Exception as exc:  # missing, or mid-edit by its author
+        pytest.skip(f"vigproc.forensics (issue 7) not usable in this checkout: {type(exc).__name__}")
+    code, answer = hook(capsys, monkeypatch, "--mode", "check", "--", frame)
+    r = answer["results"][0]
+    if r.get("type") == "ForensicsError":
+        pytest.skip(f"forensics not calibrated in this checkout: {r['error']}")
+    assert code == 0, r
+    assert r["verdict"]["verdict"] in ("consistent", "inconsistent", "unknown-lens", "insufficient-signal")
+    assert r["summary"] == "check: " + r["verdict"]["verdict"]
+
+
+# ------------------------------------------------------------------ plugins
+def test_plugins_command_and_plugin_methods_in_the_hook(frame, tmp_path, capsys, monkeypatch):
+    site = install_plugin(tmp_path / "site", "vp-hook-plugins", "vp_hook_plugin", PLUGIN_CODE, {
+        ESTIMATORS: {"centre-only": "vp_hook_plugin:centre_only", "missing": "vp_hook_nope:fn"}})
+    monkeypatch.syspath_prepend(str(site))
+    capsys.readouterr()
+    assert main(["plugins"]) == 0
+    text = capsys.readouterr().out
+    assert "centre-only" in text and "ok, use --method centre-only" in text
+    assert "BROKEN" in text and "vp_hook_nope" in text
+    assert main(["plugins", "--json", "--strict"]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["broken"] == 1
+    assert {e["name"]: e["ok"] for e in doc["extensions"]} == {"centre-only": True, "missing": False}
+    code, answer = hook(capsys, monkeypatch, "--mode", "estimate", "--method", "centre-only", "--", frame)
+    assert code == 0 and answer["results"][0]["model"]["method"] == "centre-only"
+    code, answer = hook(capsys, monkeypatch, "--mode", "estimate", "--method", "missing", "--", frame)
+    r = answer["results"][0]
+    assert code == 12 and r["type"] == "ExtensionError" and "failed to load" in r["error"]
+    code, answer = hook(capsys, monkeypatch, "--mode", "estimate", "--method", "nope", "--", frame)
+    assert code == 2 and "unknown method" in answer["error"]
+
+
+def test_a_plugin_is_found_by_a_separate_process(frame, tmp_path):
+    """Entry points of an installed distribution reach the real command (here via PYTHONPATH)."""
+    site = install_plugin(tmp_path / "site", "vp-proc-plugins", "vp_proc_plugin", PLUGIN_CODE, {
+        ESTIMATORS: {"centre-only": "vp_proc_plugin:centre_only"}})
+    code, stdout, stderr = run_cli("hook", "--mode", "estimate", "--method", "centre-only", "--", frame,
+                                   env={"PYTHONPATH": str(site)})
+    assert code == 0, stderr
+    assert json.loads(stdout)["results"][0]["model"]["method"] == "centre-only"

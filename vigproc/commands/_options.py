@@ -1,0 +1,54 @@
+"""Command-line options shared by every command that processes frames, so that
+``correct``, ``watch``, ``batch``, ``hook``, ``check`` and ``forensics`` spell and
+document them the same way (and accept installed estimator plugins alike)."""
+
+from __future__ import annotations
+
+import argparse
+
+PROFILE_HELP = ("auto (a trusted stored profile of the frame's lens, else an installed profile-source plugin, "
+                "else estimate), estimate, lensfun (lensfun's calibration of the frame's lens), source:NAME "
+                "(that profile-source plugin) or PATH of a profile file")
+
+
+def add_transfer(sp: argparse.ArgumentParser, default: str = "auto") -> None:
+    sp.add_argument("--input-transfer", choices=("auto", "linear", "srgb"), default=default,
+                    help="how to decode stored values to linear light (default: %(default)s; auto: from the "
+                         "file's metadata)")
+
+
+def add_method(sp: argparse.ArgumentParser) -> None:
+    from vigproc.estimate import METHODS
+
+    # not argparse choices: installed estimator plugins are valid too (checked by Settings)
+    sp.add_argument("--method", default="default", metavar="NAME",
+                    help=f"estimator: {', '.join(METHODS)} or an installed estimator plugin "
+                         "(see 'vigproc plugins'; default: default)")
+
+
+def add_profile(sp: argparse.ArgumentParser, default: str = "auto") -> None:
+    sp.add_argument("--profile", default=default, help=PROFILE_HELP + f" (default {default})")
+
+
+def add_profile_db(sp: argparse.ArgumentParser) -> None:
+    sp.add_argument("--profile-db", help="profile store (default: $VIGPROC_PROFILE_DB or the user data folder)")
+
+
+def add_output(sp: argparse.ArgumentParser, *, picture: bool = True) -> None:
+    """Options of the corrected output: format, strength and (optionally) the picture."""
+    from vigproc.pipeline import OUTPUT_FORMATS
+
+    sp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="tiff-float",
+                    help="linear output: float or 16-bit TIFF, half or float OpenEXR (default tiff-float)")
+    sp.add_argument("--strength", type=float, default=1.0, help="fraction of the fall-off removed (default 1)")
+    if picture:
+        sp.add_argument("--picture", action="store_true", help="also write a PNG picture of each estimated field")
+
+
+def add_processing(sp: argparse.ArgumentParser, *, profile_default: str = "auto", picture: bool = True) -> None:
+    """Everything a frame-processing command takes besides its files and folders."""
+    add_profile(sp, profile_default)
+    add_profile_db(sp)
+    add_method(sp)
+    add_output(sp, picture=picture)
+    add_transfer(sp)
