@@ -1,0 +1,630 @@
+"""The watch-folder daemon, run as a real subprocess on real folders.
+
+Files are copied in, some written slowly in chunks, some corrupt, some with hostile
+names or writers' temporary names; the daemon is killed with SIGKILL mid-run and
+restarted, stopped with SIGTERM while busy, made to crash its worker, to hang and to
+hit a full disk.  Every good file must end with exactly one output and sidecar, every
+bad one quarantined with a reason, nothing lost, nothing done twice.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import textured
+from vigproc.daemon import (
+    DISK_FULL,
+    PERMANENT,
+    TRANSIENT,
+    SettleTracker,
+    _move,
+    classify_error,
+    is_temporary_name,
+    output_stem,
+)
+from vigproc.errors import ImageReadError, ImageWriteError
+from vigproc.journal import Journal, fingerprint
+from vigproc.profiles import ProfileStoreError
+
+REPO = Path(__file__).resolve().parents[1]
+PROFILE = REPO / "profiles" / "examples" / "sony-rx100-10.4mm-f1.8.json"  # 3:2 frames
+VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+
+
+@pytest.fixture(autouse=True)
+def _private_profile_store(tmp_path, monkeypatch):
+    """No daemon started here may touch the user's profile store."""
+    monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path / "default-profiles.sqlite"))
+
+
+# ====================================================================== units
+def test_temporary_names_are_ignored():
+    temp = [".x.jpg", ".x.jpg.Ab12Cd", "._x.jpg", ".~lock.x.jpg#", "~$x.jpg", "x.jpg~", "x.jpg.part",
+            "x.jpg.crdownload", "x.JPG.TMP", "x.jpg.!ut", "x.jpg.filepart", "x.download", "x.jpg.partial", ""]
+    real = ["x.jpg", "-x.jpg", "~x.jpg", "x y.jpg", "x.part.jpg", "x.tmp.tif", "写真.png"]
+    assert [n for n in temp if not is_temporary_name(n)] == []
+    assert [n for n in real if is_temporary_name(n)] == []
+
+
+def test_output_stems_are_distinct_stable_and_safe():
+    rels = ["x.jpg", "x.png", "a/x.jpg", "b/x.jpg", "a%2Fx.jpg", "a_x.jpg", ".x.jpg", "%2Ex.jpg",
+            "new\nline.jpg", "new%0Aline.jpg", os.fsdecode(b"latin-\xe9.jpg"), "latin-%E9.jpg",
+            "a/" * 150 + "long.jpg", "a/" * 150 + "long2.jpg", "é" * 200 + ".jpg", "é" * 201 + ".jpg"]
+    stems = [output_stem(r) for r in rels]
+    assert len(set(stems)) == len(rels)  # one-to-one
+    assert stems == [output_stem(r) for r in rels]  # deterministic
+    for s in stems:
+        assert "/" not in s and not s.startswith(".") and not any(ord(c) < 32 for c in s)
+        assert len(s.encode("utf-8")) <= 180
+        s.encode("utf-8")  # no surrogates: every output name is valid UTF-8
+
+
+def test_errors_are_classified():
+    assert classify_error(ImageReadError("cannot read 'x.jpg': corrupt or truncated JPEG"))[0] == PERMANENT
+    assert classify_error(ImageWriteError("cannot write 'x.tif': No space left on device"))[0] == DISK_FULL
+    assert classify_error(OSError(28, "No space left on device"))[0] == DISK_FULL
+    assert classify_error(OSError(16, "Device or resource busy"))[0] == TRANSIENT
+    assert classify_error(ProfileStoreError("store: learn failed: locked by another process for more than 30 s"))[0] \
+        == TRANSIENT
+    kind, reason = classify_error(ModuleNotFoundError("No module named 'vigproc.forensics'"))
+    assert kind == PERMANENT and "vigproc.forensics" in reason
+    kind, reason = classify_error(ZeroDivisionError("division by zero"))
+    assert kind == PERMANENT and reason.startswith("internal error (ZeroDivisionError")
+    assert "\n" not in classify_error(ImageReadError("two\nlines"))[1]
+
+
+def test_text_log_lines_cannot_be_forged_by_file_names():
+    import logging
+
+    from vigproc.daemon import JsonLogFormatter, TextLogFormatter
+
+    rec = logging.LogRecord("vigproc.watch", logging.INFO, __file__, 1, "done %s", ("a\nFAKE ERROR line\r.jpg",), None)
+    text = TextLogFormatter().format(rec)
+    assert "\n" not in text and "\r" not in text and "a\\nFAKE" in text
+    assert json.loads(JsonLogFormatter().format(rec))["msg"] == "done a\nFAKE ERROR line\r.jpg"
+
+
+def test_settle_tracker_waits_for_a_quiet_file(tmp_path):
+    now = [0.0]
+    tr = SettleTracker(2.0, clock=lambda: now[0])
+    p = tmp_path / "a.jpg"
+    p.write_bytes(b"12")
+    tr.see(str(p))
+    now[0] = 1.9
+    assert tr.ripe() == []
+    with open(p, "ab") as fh:  # the writer adds a chunk
+        fh.write(b"34")
+    now[0] = 2.5
+    assert tr.ripe() == []  # changed: its clock restarts now
+    now[0] = 4.4
+    assert tr.ripe() == []
+    now[0] = 4.6
+    assert tr.ripe() == [str(p)] and len(tr) == 0
+    tr.see(str(p))
+    p.unlink()
+    now[0] = 10.0
+    assert tr.ripe() == [] and len(tr) == 0  # gone
+    os.mkfifo(tmp_path / "f.jpg")
+    tr.see(str(tmp_path / "f.jpg"))
+    assert len(tr) == 0  # not a regular file
+
+
+def test_own_folders_inside_the_watch_folder_are_not_watched(tmp_path):
+    from vigproc.daemon import Daemon as D, WatchConfig
+
+    in_dir = tmp_path / "in"
+    cfg = WatchConfig(in_dir=in_dir, out_dir=in_dir / "out", settings={"mode": "correct", "profile": "estimate"},
+                      quarantine_dir=in_dir / "q", journal=in_dir / "j.sqlite")
+    (in_dir / "sub").mkdir(parents=True)
+    cfg.validate()
+    d = D(cfg)
+    wanted = {rel: d._wanted(str(cfg.in_dir / rel)) for rel in
+              ["a.jpg", "sub/a.png", "out/a.corrected.tif", "q/bad.jpg", "outside.jpg.part", ".cache/a.jpg",
+               "@eaDir/a.jpg", "a.txt", "sub/.a.jpg", "output/a.jpg"]}
+    assert [r for r, w in wanted.items() if w] == ["a.jpg", "sub/a.png", "output/a.jpg"]
+    assert not d._wanted(str(tmp_path / "elsewhere.jpg"))
+
+
+def test_move_never_overwrites_or_loses(tmp_path):
+    src_dir, dst = tmp_path / "in", tmp_path / "archive"
+    src_dir.mkdir()
+    a = src_dir / "a.jpg"
+    a.write_bytes(b"first")
+    fa = fingerprint(a)
+    assert _move(str(a), dst, "a.jpg", fa) == dst / "a.jpg" and not a.exists()
+    a.write_bytes(b"second version")  # same name, other content: kept beside, not over
+    fb = fingerprint(a)
+    moved = _move(str(a), dst, "a.jpg", fb)
+    assert moved != dst / "a.jpg" and moved.read_bytes() == b"second version"
+    assert (dst / "a.jpg").read_bytes() == b"first"
+    a.write_bytes(b"first")  # a move interrupted after the link: the copy is there already
+    assert _move(str(a), dst, "a.jpg", fingerprint(a)) == dst / "a.jpg" and not a.exists()
+
+
+# ====================================================================== harness
+def _image(h: int, w: int, seed: int) -> np.ndarray:
+    return np.stack([textured(h, w, seed=seed + c) for c in range(3)], -1).astype(np.float32)
+
+
+def _write_png_tif(path: Path, seed: int, size=(64, 96)) -> None:
+    from vigproc.io import write_image
+
+    fmt = "png" if path.suffix.lower() == ".png" else "tiff"
+    write_image(path, np.clip(_image(*size, seed), 0, 1), bit_depth="uint16", format=fmt)
+
+
+def _write_jpeg(path: Path, seed: int, size=(64, 96)) -> None:
+    import OpenImageIO as oiio
+
+    data = np.round(255 * np.clip(_image(*size, seed), 0, 1) ** (1 / 2.2)).astype(np.uint8)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(size[1], size[0], 3, oiio.UINT8))
+    assert out.write_image(data)
+    out.close()
+
+
+def make_good(stage: Path, rel: str, seed: int) -> Path:
+    """A small 3:2 image at ``stage/rel`` (JPEG, PNG or TIFF by suffix)."""
+    p = stage / rel
+    p.parent.mkdir(parents=True, exist_ok=True)
+    sizes = [(64, 96), (96, 144), (160, 240)]
+    if p.suffix.lower() in (".jpg", ".jpeg"):
+        _write_jpeg(p, seed, sizes[seed % 3])
+    else:
+        _write_png_tif(p, seed, sizes[seed % 3])
+    return p
+
+
+def sha(p: Path) -> str:
+    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+class Daemon:
+    """``vigproc watch`` as a subprocess with JSON logs in a file."""
+
+    def __init__(self, in_dir: Path, out_dir: Path, log: Path, *extra: str, env: dict | None = None) -> None:
+        self.in_dir, self.out_dir, self.log = in_dir, out_dir, log
+        self.args = [*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--workers", "2", "--log-json",
+                     "--profile", str(PROFILE), "--output-format", "tiff16", "--retry-base", "0.3", *extra]
+        self.env = env
+        self.proc: subprocess.Popen | None = None
+
+    def start(self) -> Daemon:
+        self._fh = open(self.log, "ab")
+        self.proc = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=self._fh, env=self.env)
+        return self
+
+    def stop(self, sig=signal.SIGTERM, timeout: float = 90) -> int:
+        self.proc.send_signal(sig)
+        try:
+            return self.proc.wait(timeout=timeout)
+        finally:
+            self._fh.close()
+
+    def kill9(self) -> None:
+        os.kill(self.proc.pid, signal.SIGKILL)
+        self.proc.wait(timeout=30)
+        self._fh.close()
+
+    def events(self) -> list[dict]:
+        out = []
+        for line in self.log.read_bytes().decode("utf-8", "replace").splitlines():
+            if line.startswith("{"):
+                out.append(json.loads(line))
+        return out
+
+    def wait_for(self, what: str, pred, timeout: float = 120) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if pred():
+                return
+            if self.proc is not None and self.proc.poll() is not None:
+                break
+            time.sleep(0.1)
+        tail = self.log.read_bytes().decode("utf-8", "replace")[-4000:]
+        raise AssertionError(f"timed out waiting for {what} (daemon exit code {self.proc.poll()}); log tail:\n{tail}")
+
+
+def journal_entries(out_dir: Path) -> dict:
+    """path -> Entry of every job in the daemon's default journal."""
+    import sqlite3
+
+    db = out_dir / ".vigproc-watch.sqlite"
+    if not db.exists():
+        return {}
+    con = sqlite3.connect(db)
+    try:
+        jobs = [r[0] for r in con.execute("SELECT DISTINCT job FROM entries")]
+    except sqlite3.Error:  # not created yet
+        jobs = []
+    finally:
+        con.close()
+    out = {}
+    for job in jobs:
+        with Journal(db, job=job) as j:
+            out.update({e.path: e for e in j.entries()})
+    return out
+
+
+def sidecars(out_dir: Path) -> list[Path]:
+    return sorted(out_dir.glob("*.vigproc.json"))
+
+
+def slow_write(src: Path, dst: Path, chunks: int = 6, pause: float = 0.15) -> threading.Thread:
+    """Copy ``src`` to ``dst`` in chunks with pauses (shorter than the settle time)."""
+    data = src.read_bytes()
+
+    def run():
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        step = -(-len(data) // chunks)
+        with open(dst, "wb") as fh:
+            for i in range(0, len(data), step):
+                fh.write(data[i:i + step])
+                fh.flush()
+                time.sleep(pause)
+
+    t = threading.Thread(target=run)
+    t.start()
+    return t
+
+
+# ====================================================================== end to end
+GOOD_NAMES = [
+    "plain.png", "with space.png", "quote's \"double\".png", "-leading-dash.tif", "ünïcödé 写真.png",
+    "new\nline.png", "50%.tif", "100%d.png", "$(touch pwned).png", "sub dir/x.png", "other/x.png", "other/x.tif",
+    "deep/a/b/c.tif", "camera one.jpg", "UPPER.PNG", "semi;colon.tif", "back\\slash.png", "tab\there.png",
+]
+BAD = {  # name -> bytes
+    "random.jpg": os.urandom(3000),
+    "empty.tif": b"",
+    "text.png": b"this is just text, not a PNG\n" * 20,
+    "sub dir/fake raw.dng": b"II*\x00" + os.urandom(500),
+}
+IGNORED = ["~$office.png", ".hidden.png", "downloading.png.crdownload", "in progress.jpg.part", "notes.txt"]
+
+
+def test_daemon_end_to_end_kill9_restart_and_drain(tmp_path):
+    stage, in_dir, out_dir, qdir = (tmp_path / n for n in ("stage", "in", "out", "quarantine"))
+    for d in (stage, in_dir):
+        d.mkdir()
+    log = tmp_path / "daemon.log"
+    good: dict[str, str] = {}  # rel -> sha256 of the final content
+
+    def add_good(rel: str, seed: int, how: str = "copy") -> threading.Thread | None:
+        src = make_good(stage, f"s{seed}/{Path(rel).name}", seed)
+        good[rel] = sha(src)
+        dst = in_dir / rel
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        if how == "slow":
+            return slow_write(src, dst)
+        if how == "rename":  # a writer that uses a temporary name, then renames
+            tmp = dst.with_name(dst.name + ".part")
+            shutil.copyfile(src, tmp)
+            time.sleep(0.3)
+            os.rename(tmp, dst)
+            return None
+        shutil.copyfile(src, dst)
+        return None
+
+    def add_bad(rel: str, data: bytes) -> None:
+        (in_dir / rel).parent.mkdir(parents=True, exist_ok=True)
+        (in_dir / rel).write_bytes(data)
+
+    for i, name in enumerate(IGNORED):
+        p = in_dir / name
+        p.write_bytes(b"not for us")
+    common = ["--quarantine", str(qdir), "--settle", "0.6"]
+
+    # ---- run 1: native events; files arrive while it runs; killed with SIGKILL mid-run
+    d1 = Daemon(in_dir, out_dir, log, *common).start()
+    threads = []
+    for i, name in enumerate(GOOD_NAMES):
+        if i % 6 == 5:
+            threads.append(add_good(name, i, "slow"))
+        elif i % 6 == 4:
+            add_good(name, i, "rename")
+        else:
+            add_good(name, i)
+    for name, data in BAD.items():
+        add_bad(name, data)
+    # a truncated PNG: a real image cut short
+    trunc = make_good(stage, "trunc/truncated.png", 99)
+    add_bad("truncated.png", trunc.read_bytes()[: trunc.stat().st_size // 2])
+    for t in threads:
+        t.join()
+    d1.wait_for("a few outputs", lambda: len(sidecars(out_dir)) >= 5)
+    d1.kill9()
+    worker_pids = [e["worker_pid"] for e in d1.events() if e.get("event") == "worker-ready"]
+    assert len(worker_pids) >= 2
+    deadline = time.monotonic() + 10
+    while any(Path(f"/proc/{p}").exists() and "zombie" not in Path(f"/proc/{p}/status").read_text().lower()
+              for p in worker_pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [p for p in worker_pids if Path(f"/proc/{p}").exists()
+             and "zombie" not in Path(f"/proc/{p}/status").read_text().lower()]
+    assert alive == [], "workers must die with the daemon (no orphan keeps writing)"
+    n_after_kill = len(sidecars(out_dir))
+
+    # ---- while it is down: more files arrive
+    for i, name in enumerate(["while down 1.png", "while down/2.tif", "while down 3.jpg"]):
+        add_good(name, 100 + i)
+    add_bad("while down bad.jpg", b"\xff\xd8\xff\xe0 truncated jpeg")
+
+    # ---- run 2: polling observer; catches up, then SIGTERM while busy must drain and exit 0
+    d2 = Daemon(in_dir, out_dir, log, *common, "--poll", "0.3").start()
+    n_bad = len(BAD) + 2
+
+    def all_settled() -> bool:
+        e = journal_entries(out_dir)
+        return (sum(x.state == "done" for x in e.values()) >= len(good)
+                and sum(x.state == "quarantined" for x in e.values()) >= n_bad)
+
+    d2.wait_for("every file of run 1 and the downtime", all_settled)
+    late = [f"late {i}.png" if i % 3 else f"late {i}.tif" for i in range(8)]
+    for i, name in enumerate(late):
+        add_good(name, 200 + i)
+    d2.wait_for("a late file in progress",
+                lambda: any(e.state == "running" for e in journal_entries(out_dir).values()), timeout=60)
+    assert d2.stop(signal.SIGTERM) == 0
+    entries = journal_entries(out_dir)
+    assert not [p for p, e in entries.items() if e.state == "running"], "SIGTERM must drain work in progress"
+    for p, e in entries.items():  # whatever a drained run recorded done has its sidecar
+        if e.state == "done":
+            assert Path(e.result["sidecar"]).is_file()
+
+    # ---- run 3: native events again; finishes the late files; then SIGINT
+    d3 = Daemon(in_dir, out_dir, log, *common).start()
+    d3.wait_for("the late files",
+                lambda: sum(e.state == "done" for e in journal_entries(out_dir).values()) >= len(good))
+    time.sleep(1.0)  # give a wrongly taken ignored file the chance to show up
+    assert d3.stop(signal.SIGINT) == 0
+
+    # ================= the checks
+    entries = journal_entries(out_dir)
+    in_root = in_dir.resolve()
+    # every good file: done, exactly one output + sidecar for its final content, input untouched
+    outputs = sorted(p.name for p in out_dir.iterdir() if not p.name.startswith("."))
+    expected = sorted([output_stem(rel) + ".corrected.tif" for rel in good]
+                      + [output_stem(rel) + ".vigproc.json" for rel in good])
+    assert outputs == expected
+    for rel, digest in good.items():
+        path = str(in_root / rel)
+        e = entries[path]
+        assert e.state == "done", (rel, e.state, e.reason)
+        assert sha(in_dir / rel) == digest  # inputs never modified, nor moved
+        sc = json.loads((out_dir / (output_stem(rel) + ".vigproc.json")).read_text())
+        assert sc["input_sha256"] == digest and sc["input"] == rel and sc["source"] == "profile-file"
+        assert Path(sc["output"]).name == output_stem(rel) + ".corrected.tif"
+        assert e.claims <= 2
+    # a good file is handed out twice only if it was in flight when killed (2 workers x 2 queued)
+    assert sum(entries[str(in_root / rel)].claims > 1 for rel in good) <= 4
+    # nothing done twice: at most one "done" event per file and content over the three runs
+    # (a log line can be lost to the SIGKILL after its journal commit, never repeated; a
+    # writer that stalled past --settle may have had a partial version done before)
+    events = d3.events()
+    done_by_version = Counter((ev["file"], ev["sha256"]) for ev in events if ev.get("event") == "done")
+    assert {v: n for v, n in done_by_version.items() if n > 1} == {}
+    assert {f for f, _ in done_by_version} <= {str(in_root / rel) for rel in good}
+    # every bad file quarantined with a reason, moved to the quarantine folder with its reason file
+    bad = [*BAD, "truncated.png", "while down bad.jpg"]
+    for rel in bad:
+        e = entries[str(in_root / rel)]
+        assert e.state == "quarantined" and e.reason and "cannot read" in e.reason, (rel, e.state, e.reason)
+        assert not (in_dir / rel).exists()
+        assert (qdir / output_stem(rel)).is_file()
+        why = json.loads((qdir / (output_stem(rel) + ".reason.json")).read_text())
+        assert why["reason"] == e.reason
+    # writers' temporary names and other files were never touched
+    for name in IGNORED:
+        assert (in_dir / name).read_bytes() == b"not for us"
+        assert str(in_root / name) not in entries
+    assert set(entries) == {str(in_root / r) for r in [*good, *bad]}
+    # no temporary leftovers in the output folder
+    assert [p.name for p in out_dir.iterdir() if ".tmp" in p.name] == []
+    assert n_after_kill >= 5
+    # --status: a stopped daemon, with the journal's counts
+    st = subprocess.run([*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--profile", str(PROFILE),
+                         "--status", "--json"], capture_output=True, text=True, timeout=60)
+    assert st.returncode == 3, st.stderr
+    status = json.loads(st.stdout)
+    assert status["running"] is False
+    assert status["journal_counts"]["done"] == len(good)
+    assert status["journal_counts"]["quarantined"] == len(bad)
+    assert status["daemon"]["state"] == "stopped"
+
+
+# ====================================================================== faults
+_FAULTS = r'''
+"""Test-only faults, injected into every vigproc process through sitecustomize."""
+import importlib.abc, importlib.machinery, os, sys, time
+
+MARK = os.environ["VIGPROC_TEST_FAULT_DIR"]
+
+
+def _patch(module):
+    orig = module.Processor.process_file
+
+    def process_file(self, path, *a, **kw):
+        name = os.path.basename(str(path))
+        if "CRASH" in name:
+            os._exit(3)  # as a decoder segfault would
+        if "HANG" in name:
+            time.sleep(3600)
+        if "FULL" in name:
+            marker = os.path.join(MARK, "full-count")
+            n = int(open(marker).read()) if os.path.exists(marker) else 0
+            if n < 2:
+                open(marker, "w").write(str(n + 1))
+                from vigproc.errors import ImageWriteError
+                raise ImageWriteError(f"cannot write output of {name}: No space left on device")
+        return orig(self, path, *a, **kw)
+
+    module.Processor.process_file = process_file
+
+
+class _Finder(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name != "vigproc.pipeline":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        run = spec.loader.exec_module
+
+        def exec_module(module):
+            run(module)
+            _patch(module)
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+sys.meta_path.insert(0, _Finder())
+'''
+
+
+def test_worker_crash_hang_and_full_disk(tmp_path):
+    stage, in_dir, out_dir = (tmp_path / n for n in ("stage", "in", "out"))
+    for d in (stage, in_dir, tmp_path / "site"):
+        d.mkdir()
+    (tmp_path / "site" / "sitecustomize.py").write_text(_FAULTS)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), os.environ.get("PYTHONPATH", "")]),
+           "VIGPROC_TEST_FAULT_DIR": str(tmp_path)}
+    names = ["a CRASH.png", "b HANG.png", "c FULL.png", "d ok.png", "e ok.tif", "f ok.png"]
+    for i, n in enumerate(names):
+        make_good(stage, n, i)
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.3", "--timeout", "4", "--max-crashes", "2",
+               env=env).start()
+    for n in names:
+        shutil.copyfile(stage / n, in_dir / n)
+
+    def finished() -> bool:
+        e = journal_entries(out_dir)
+        return len(e) == len(names) and all(x.state in ("done", "quarantined") for x in e.values())
+
+    d.wait_for("all files finished", finished, timeout=150)
+    assert d.stop() == 0
+    e = {Path(p).name: x for p, x in journal_entries(out_dir).items()}
+    assert e["a CRASH.png"].state == "quarantined" and "died" in e["a CRASH.png"].reason
+    assert e["b HANG.png"].state == "quarantined" and "timed out" in e["b HANG.png"].reason
+    assert e["c FULL.png"].state == "done" and e["c FULL.png"].attempts == 2  # retried through the full disk
+    for n in ("d ok.png", "e ok.tif", "f ok.png"):
+        # a file queued behind a crash goes back without an attempt counted against it
+        assert e[n].state == "done" and e[n].attempts == 0 and e[n].crashes == 0
+    assert len(sidecars(out_dir)) == 4
+    restarts = [ev for ev in d.events() if ev.get("event") == "worker-restart"]
+    assert len(restarts) == 4  # two crashes, two hangs; the daemon itself never stopped
+
+
+def test_second_daemon_on_the_same_folders_is_refused_and_bad_arguments(tmp_path):
+    in_dir, out_dir = tmp_path / "in", tmp_path / "out"
+    in_dir.mkdir()
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2").start()
+    d.wait_for("the start", lambda: any(ev.get("event") == "start" for ev in d.events()), timeout=60)
+    r = subprocess.run([*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--profile", str(PROFILE)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and "already running" in r.stderr and "Traceback" not in r.stderr
+    st = subprocess.run([*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--profile", str(PROFILE),
+                         "--status"], capture_output=True, text=True, timeout=60)
+    assert st.returncode == 0 and "running, pid" in st.stdout
+    assert d.stop() == 0
+    for args, msg in [
+        ([str(tmp_path / "missing"), "-o", str(out_dir)], "does not exist"),
+        ([str(in_dir), "-o", str(in_dir)], "cannot be the watch folder"),
+        ([str(in_dir), "-o", str(out_dir), "--workers", "0"], "--workers"),
+        ([str(in_dir), "-o", str(out_dir), "--profile", str(tmp_path / "nope.json")], "nope.json"),
+    ]:
+        r = subprocess.run([*VIGPROC, "watch", *args], capture_output=True, text=True, timeout=60)
+        assert r.returncode != 0 and msg in r.stderr and "Traceback" not in r.stderr, (args, r.stderr)
+        assert len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.skipif(shutil.which("exiftool") is None, reason="the DNG fixture needs exiftool for its EXIF")
+def test_learn_mode_pools_each_frame_once_across_a_kill(tmp_path):
+    from dngfixture import make_dng
+
+    from vigproc.bench.synthetic import table1_model
+    from vigproc.profiles import ProfileStore
+
+    in_dir, out_dir, db = tmp_path / "in", tmp_path / "out", tmp_path / "profiles.sqlite"
+    in_dir.mkdir()
+    truth = table1_model(1).rescale(192, 128)
+    n = 4
+    for i in range(n):
+        make_dng(in_dir / f"frame {i}.dng", width=192, height=128, field=truth.field(),
+                 scene=textured(128, 192, seed=i, contrast=0.2), seed=i)
+    args = ("--mode", "learn", "--profile-db", str(db), "--settle", "0.2")
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args).start()
+    d.wait_for("one frame learned", lambda: len(sidecars(out_dir)) >= 1, timeout=120)
+    d.kill9()
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args).start()
+    d.wait_for("all frames learned", lambda: sum(e.state == "done" for e in journal_entries(out_dir).values()) == n,
+               timeout=180)
+    assert d.stop() == 0
+    with ProfileStore(db) as store:
+        profiles = store.list()
+    assert len(profiles) == 1 and profiles[0].n_frames == n  # each frame pooled exactly once
+    for sc in sidecars(out_dir):
+        rec = json.loads(sc.read_text())
+        assert rec["mode"] == "learn" and rec["profile"] == str(profiles[0].key)
+
+
+def test_check_mode_gives_a_verdict_or_a_clear_per_file_error(tmp_path):
+    import importlib.util
+
+    in_dir, out_dir = tmp_path / "in", tmp_path / "out"
+    in_dir.mkdir()
+    for i in range(2):
+        make_good(in_dir, f"c{i}.png", i)
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--mode", "check", "--settle", "0.2",
+               "--profile-db", str(tmp_path / "p.sqlite")).start()
+    d.wait_for("both files finished", lambda: sum(e.state in ("done", "quarantined")
+                                                  for e in journal_entries(out_dir).values()) == 2, timeout=120)
+    assert d.stop() == 0
+    entries = journal_entries(out_dir).values()
+    if importlib.util.find_spec("vigproc.forensics") is None:
+        for e in entries:
+            assert e.state == "quarantined" and "vigproc.forensics" in e.reason
+    else:  # a verdict, or a clear reason why this installation cannot give one (e.g. no calibration)
+        for e in entries:
+            if e.state == "done":
+                assert "verdict" in json.loads(Path(e.result["sidecar"]).read_text())
+            else:
+                assert e.reason and not e.reason.startswith("internal error"), e.reason
+
+
+def test_archive_moves_done_inputs_only(tmp_path):
+    in_dir, out_dir, arch, qdir = (tmp_path / n for n in ("in", "out", "archive", "quarantine"))
+    in_dir.mkdir()
+    digests = {}
+    for i, rel in enumerate(["a.png", "sub/b.tif", "sub/c.png"]):
+        digests[rel] = sha(make_good(in_dir, rel, i))
+    (in_dir / "bad.png").write_bytes(b"not a png")
+    (in_dir / "keep.txt").write_bytes(b"not an image")
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2", "--archive", str(arch),
+               "--quarantine", str(qdir)).start()
+    d.wait_for("everything moved", lambda: sorted(p.name for p in in_dir.rglob("*") if p.is_file()) == ["keep.txt"],
+               timeout=120)
+    assert d.stop() == 0
+    for rel, digest in digests.items():  # archived under the same relative path, content intact
+        assert sha(arch / rel) == digest
+        assert (out_dir / (output_stem(rel) + ".corrected.tif")).is_file()
+    assert (qdir / "bad.png").read_bytes() == b"not a png" and not (arch / "bad.png").exists()
+    # a restart neither re-processes nor re-moves anything
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2", "--archive", str(arch)).start()
+    d.wait_for("the second start", lambda: sum(ev.get("event") == "start" for ev in d.events()) == 2, timeout=60)
+    time.sleep(1)
+    assert d.stop() == 0
+    assert Counter(ev.get("event") for ev in d.events())["done"] == len(digests)
