@@ -1,0 +1,147 @@
+"""``vigproc check FILES...``: does each frame's vignetting match the lens its EXIF names?
+
+Exit codes (documented in ``vigproc check --help``):
+
+* 0 -- every frame is consistent with its lens;
+* :data:`EXIT_INCONSISTENT` (20) -- at least one frame (or pooled group) is inconsistent;
+* 1 -- some files could not be checked (and none was inconsistent);
+* :data:`EXIT_UNDECIDED` (21) -- no inconsistency and no error, but some frames got
+  "unknown-lens" or "insufficient-signal".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from vigproc.errors import EXIT_CODES, VigprocError
+
+#: Exit code when a frame is inconsistent with its claimed lens.
+EXIT_INCONSISTENT = EXIT_CODES["inconsistent"]
+#: Exit code when nothing is inconsistent but some frames could not be decided.
+EXIT_UNDECIDED = EXIT_CODES["undecided"]
+
+_EPILOG = f"""exit codes: 0 every frame consistent; {EXIT_INCONSISTENT} at least one frame (or pooled
+group) inconsistent; 1 some files failed (none inconsistent); {EXIT_UNDECIDED} some frames undecided
+(unknown lens or insufficient signal), none inconsistent, no failures."""
+
+
+def register(subparsers) -> None:
+    from vigproc.commands._options import add_method, add_profile_db, add_transfer
+
+    sp = subparsers.add_parser(
+        "check", help="forensics: does each frame's vignetting match the lens its EXIF names?",
+        description="Estimate each frame's vignetting and compare it with the profile of the lens its "
+                    "metadata claims (a stored profile, else lensfun): consistent, inconsistent, "
+                    "unknown-lens or insufficient-signal, with a calibrated false-alarm probability.",
+        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sp.add_argument("files", nargs="+")
+    add_profile_db(sp)
+    sp.add_argument("--no-store", action="store_true", help="compare with lensfun only, not with stored profiles")
+    sp.add_argument("--report", help="write a readable report: PATH.html (self-contained) or PATH.png")
+    sp.add_argument("--json", action="store_true", help="print the verdicts as JSON")
+    sp.add_argument("--pool", action="store_true",
+                    help="also pool the evidence of all frames that claim the same lens profile")
+    sp.add_argument("--calibration", help="a calibration of the check made with 'vigproc forensics calibrate' "
+                                          "on photographs like yours (default: the shipped one)")
+    sp.add_argument("--alpha", type=float, help="false-alarm probability below which a frame is inconsistent "
+                                                "(default: the calibration's, 0.05)")
+    add_method(sp)
+    add_transfer(sp)
+    sp.set_defaults(fn=cmd_check)
+
+
+def _line(name: str, v: dict) -> str:
+    p = v.get("p_false_alarm")
+    tail = "" if p is None else f"  p={p:.3g}  D²={v['score']:.2f}"
+    return f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}"
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from vigproc.forensics import Calibration, check_image, default_calibration, pool_verdicts
+    from vigproc.io import read_image
+    from vigproc.pipeline import Processor, Settings, read_lens
+
+    files = [Path(f) for f in args.files]
+    settings = Settings(mode="check", method=args.method, transfer=args.input_transfer)
+    calibration = Calibration.load(args.calibration) if args.calibration else default_calibration()
+    if args.alpha is not None and not 0.0 < args.alpha < 1.0:
+        raise VigprocError(f"--alpha must be within (0, 1), got {args.alpha}")
+    store = None
+    if not args.no_store:
+        from vigproc.profiles import ProfileStore
+
+        store = ProfileStore(args.profile_db)
+    results, items, verdicts = [], [], []
+    failed = 0
+    try:
+        with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
+            for f in files:
+                try:
+                    img, _ = read_image(f, transfer=args.input_transfer)
+                    lens_key, lens = read_lens(proc.reader, f)
+                    # the pipeline's check step, with this run's calibration and threshold
+                    v = check_image(img, lens_key, store=proc.store, method=settings.method,
+                                    calibration=calibration, alpha=args.alpha)
+                except VigprocError as exc:
+                    failed += 1
+                    results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
+                    print(f"vigproc: {exc}", file=sys.stderr)
+                    continue
+                rec = {"file": str(f), "lens": lens, **v.to_dict()}
+                results.append(rec)
+                verdicts.append((f, v))
+                if args.report:
+                    from vigproc.report import ReportItem, thumbnail
+
+                    items.append(ReportItem(f.name, v, thumbnail(img)))
+                del img
+                if not args.json:
+                    print(_line(str(f), rec))
+    finally:
+        if store is not None:
+            store.close()
+    pooled = []
+    if args.pool:
+        groups: dict[tuple, list] = {}
+        for f, v in verdicts:
+            if v.whitened is not None:
+                groups.setdefault((v.expected_source, v.profile), []).append(v)
+        for (source, profile), vs in sorted(groups.items(), key=lambda kv: str(kv[0])):
+            if len(vs) < 2:
+                continue
+            pv = pool_verdicts(vs, calibration=calibration)
+            d = pv.to_dict()
+            pooled.append(d)
+            if args.report:
+                from vigproc.report import ReportItem
+
+                items.append(ReportItem(f"{len(vs)} frames of {profile}", pv, None))
+            if not args.json:
+                print(_line(f"pooled, {len(vs)} frames of {profile}", d))
+    counts: dict[str, int] = {}
+    for r in results + pooled:
+        if "verdict" in r:
+            counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
+    if counts.get("inconsistent"):
+        code = EXIT_INCONSISTENT
+    elif failed:
+        code = 1
+    elif counts.get("unknown-lens") or counts.get("insufficient-signal"):
+        code = EXIT_UNDECIDED
+    else:
+        code = 0
+    if args.report and items:
+        from vigproc.report import write_report
+
+        out = write_report(args.report, items)
+        if not args.json:
+            print(f"report -> {out}")
+    if args.json:
+        print(json.dumps({"results": results, "pooled": pooled, "counts": counts, "failed": failed,
+                          "exit_code": code}, indent=1))
+    else:
+        print(", ".join(f"{n} {k}" for k, n in sorted(counts.items())) + f"; {failed} failed")
+    return code

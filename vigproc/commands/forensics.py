@@ -1,0 +1,258 @@
+"""``vigproc forensics train|evaluate|calibrate`` and ``vigproc bench forensics``.
+
+* ``train DIR... -o MODEL.json``: each subfolder of each DIR is a class (its name is
+  the label; the same name in several DIRs is one class); every image is estimated
+  and the classifier is trained on the estimates (:mod:`vigproc.identify`).
+* ``evaluate MODEL.json DIR``: the subfolders of DIR, named like the classes, are
+  classified; prints the confusion matrix as in Lyu 2010 Fig. 6.
+* ``calibrate --images DIR... -o FILE``: the null distribution of the consistency
+  check (:func:`vigproc.forensics.fit_calibration`) from vignetting-free photographs
+  × real lensfun lens fields.  The shipped ``vigproc/data/forensics_calibration.json``
+  was made this way (the command is recorded in the file).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vigproc.commands._options import add_method, add_transfer
+from vigproc.errors import VigprocError
+
+log = logging.getLogger(__name__)
+
+#: --classifier choices: name -> (kind, features).
+CLASSIFIERS = {"vigproc": ("gaussian", "falloff"), "lyu2010": ("nn", "lyu2010")}
+
+
+def register(subparsers) -> None:
+
+    sp = subparsers.add_parser("forensics", help="lens identification from vignetting (Lyu 2010 Fig. 6) "
+                                                 "and the calibration of 'vigproc check'")
+    fsub = sp.add_subparsers(dest="forensics_command", required=True)
+    q = fsub.add_parser("train", help="train a lens classifier: each subfolder of DIR is a class")
+    q.add_argument("dirs", nargs="+", metavar="DIR")
+    q.add_argument("-o", "--output", required=True, help="classifier file (JSON)")
+    q.add_argument("--classifier", choices=list(CLASSIFIERS), default="vigproc",
+                   help="vigproc: Gaussian on the ring fall-off, pooled spread (default); "
+                        "lyu2010: the paper's nearest neighbour on (p1, p2, p3, α1..α7)")
+    q.add_argument("--shrinkage", type=float, default=1.0,
+                   help="vigproc classifier: 1 = one spread for all classes (default), 0 = one per class")
+    add_method(q)
+    add_transfer(q)
+    q.set_defaults(fn=cmd_train)
+    q = fsub.add_parser("evaluate", help="classify labelled folders and print the confusion matrix")
+    q.add_argument("model")
+    q.add_argument("dir")
+    q.add_argument("--frames", type=int, default=1,
+                   help="decide on groups of N frames of a class at once (multi-frame evidence)")
+    q.add_argument("--json", action="store_true")
+    add_transfer(q)
+    q.set_defaults(fn=cmd_evaluate)
+    q = fsub.add_parser("calibrate", help="calibrate 'vigproc check' on vignetting-free photographs "
+                                          "x real lensfun lens fields")
+    q.add_argument("--images", nargs="+", required=True, help="folders of vignetting-free photographs")
+    q.add_argument("-o", "--output", required=True)
+    q.add_argument("--lenses", type=int, default=16, help="lensfun lenses (two apertures each)")
+    q.add_argument("--per-image", type=int, default=4, help="lens fields per photograph")
+    q.add_argument("--alpha", type=float, default=0.05, help="false-alarm probability of the verdict")
+    q.add_argument("--limit", type=int)
+    add_method(q)
+    add_transfer(q)
+    q.set_defaults(fn=cmd_calibrate)
+
+
+def register_bench(bench_subparsers) -> None:
+    bp = bench_subparsers.add_parser("forensics", help="lens identification (Fig. 6) and the consistency "
+                                                       "check on real lensfun fields: accuracy, ROC AUC")
+    bp.add_argument("--images", nargs="+", required=True, help="folders of photographs (not the prior's)")
+    bp.add_argument("--lenses", type=int, default=8)
+    bp.add_argument("--frames", type=int, default=5, help="frames per multi-frame decision")
+    bp.add_argument("--alpha", type=float, default=0.05)
+    bp.add_argument("--seed", type=int, default=0)
+    bp.add_argument("--limit", type=int, help="photographs per folder")
+    bp.add_argument("--json")
+    add_transfer(bp)
+    bp.set_defaults(fn=cmd_bench_forensics)
+
+
+# ------------------------------------------------------------------ helpers
+def _class_dirs(root: Path) -> list[Path]:
+    if not root.is_dir():
+        raise VigprocError(f"not a folder: {root}")
+    subs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not subs:
+        raise VigprocError(f"{root} has no class subfolders (one subfolder of images per lens)")
+    return subs
+
+
+def _estimates(files: list[Path], method: str, transfer: str, what: str):
+    """Estimate each file; unreadable ones are reported and skipped."""
+    from vigproc.estimate import estimate
+    from vigproc.io import read_image
+
+    out = []
+    for f in files:
+        try:
+            img, _ = read_image(f, transfer=transfer)
+            out.append((f, estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)))
+        except VigprocError as exc:
+            print(f"vigproc: {exc} (skipped)", file=sys.stderr)
+    if not out:
+        raise VigprocError(f"no usable image in {what}")
+    return out
+
+
+def _protocol_images(folders, limit, transfer):
+    from vigproc.bench.synthetic import protocol_image
+    from vigproc.io import read_image
+    from vigproc.pipeline import images_in
+
+    ims = []
+    for folder in folders:
+        for f in images_in(Path(folder), limit):
+            try:
+                ims.append(protocol_image(read_image(f, transfer=transfer)[0]))
+            except VigprocError as exc:
+                log.warning("skipping %s", exc)
+    if len(ims) < 10:
+        raise VigprocError(f"need at least 10 readable photographs, found {len(ims)}")
+    return ims
+
+
+# ------------------------------------------------------------------ commands
+def cmd_train(args: argparse.Namespace) -> int:
+    from vigproc.identify import feature_vector, train_classifier
+    from vigproc.pipeline import images_in
+
+    kind, feats = CLASSIFIERS[args.classifier]
+    X, labels = [], []
+    for root in args.dirs:
+        for sub in _class_dirs(Path(root)):
+            est = _estimates(images_in(sub), args.method, args.input_transfer, str(sub))
+            X += [feature_vector(m, feats) for _, m in est]
+            labels += [sub.name] * len(est)
+            print(f"{sub.name}: {len(est)} frames")
+    source = ("vigproc forensics train " + " ".join(shlex.quote(str(d)) for d in args.dirs)
+              + f" --classifier {args.classifier} --shrinkage {args.shrinkage:g} --method {args.method}")
+    clf = train_classifier(np.array(X), labels, kind=kind, features=feats, shrinkage=args.shrinkage,
+                           method=args.method, source=source)
+    clf.save(args.output)
+    print(f"{args.classifier} classifier, {len(clf.labels)} classes, {len(labels)} frames -> {args.output}")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from vigproc.identify import LensClassifier, accuracy, confusion_matrix, feature_vector, format_confusion
+    from vigproc.pipeline import images_in
+
+    clf = LensClassifier.load(args.model)
+    if args.frames < 1:
+        raise VigprocError("--frames must be at least 1")
+    known = {name: i for i, name in enumerate(clf.labels)}
+    true, pred, unknown = [], [], []
+    for sub in _class_dirs(Path(args.dir)):
+        if sub.name not in known:
+            unknown.append(sub.name)
+            continue
+        est = _estimates(images_in(sub), clf.method, args.input_transfer, str(sub))
+        X = np.array([feature_vector(m, clf.features) for _, m in est])
+        if args.frames == 1:
+            pred += list(clf.predict(X))
+            true += [known[sub.name]] * len(X)
+        else:  # consecutive groups of N frames (sorted file order); a short remainder is dropped
+            for k in range(0, len(X) - args.frames + 1, args.frames):
+                pred.append(clf.predict_pooled(X[k : k + args.frames]))
+                true.append(known[sub.name])
+    if unknown:
+        print(f"vigproc: classes the model does not know, not evaluated: {', '.join(unknown)}", file=sys.stderr)
+    if not true:
+        raise VigprocError(f"no subfolder of {args.dir} is named like a class of the model "
+                           f"({', '.join(clf.labels)})")
+    cm = confusion_matrix(true, pred, len(clf.labels))
+    acc, mean_acc = accuracy(cm)
+    if args.json:
+        print(json.dumps({"labels": list(clf.labels), "confusion": cm.tolist(), "accuracy": acc,
+                          "mean_class_accuracy": mean_acc, "frames_per_decision": args.frames}, indent=1))
+    else:
+        print(format_confusion(cm, clf.labels))
+        print(f"accuracy {100 * acc:.1f} % ({len(true)} decisions of {args.frames} frame(s)); "
+              f"mean per-class accuracy {100 * mean_acc:.1f} %")
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from vigproc.bench.forensics import bench_classes, calibration_residuals
+    from vigproc.estimate import estimate
+    from vigproc.forensics import estimator_fingerprint, fit_calibration
+
+    ims = _protocol_images(args.images, args.limit, args.input_transfer)
+    classes = bench_classes(args.lenses)
+    print(f"calibrating on {len(ims)} photographs x {args.per_image} of {len(classes)} lens fields")
+    res, groups, weak = calibration_residuals(ims, lambda v: estimate(v, args.method, channel_axis=None), classes,
+                                              per_image=args.per_image, progress=print)
+    source = ("vigproc forensics calibrate --images " + " ".join(shlex.quote(str(d)) for d in args.images)
+              + f" --lenses {args.lenses} --per-image {args.per_image} --alpha {args.alpha:g} --method {args.method}"
+              + (f" --limit {args.limit}" if args.limit else ""))
+    cal = fit_calibration(res, groups, weak=weak, method=args.method, alpha=args.alpha, source=source,
+                          fingerprint=estimator_fingerprint(args.method))
+    cal.save(args.output)
+    null = cal.null_d2(1, decided=True)
+    print(f"{cal.n_frames} frames of {cal.n_images} photographs; image bias μ (EV at ρ=0.3..0.85): "
+          + ", ".join(f"{v:+.2f}" for v in cal.mean[:4]) + "; spread σ: "
+          + ", ".join(f"{v:.2f}" for v in np.sqrt(np.diag(cal.covariance_matrix))[:4])
+          + f"; {np.mean(weak):.0%} weak; D² at p={args.alpha:g} (frames with a verdict): "
+          f"{np.quantile(null, 1 - args.alpha):.1f} -> {args.output}")
+    return 0
+
+
+def cmd_bench_forensics(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from vigproc.bench import forensics as B
+    from vigproc.estimate import estimate
+    from vigproc.identify import format_confusion
+
+    ims = _protocol_images(args.images, args.limit, args.input_transfer)
+    fn = lambda v: estimate(v, "default", channel_axis=None)  # noqa: E731
+    fn(ims[0])  # JIT warm-up
+    t0 = time.perf_counter()
+    r = B.run(ims, fn, n_lenses=args.lenses, frames=args.frames, seed=args.seed, alpha=args.alpha, progress=print)
+    print(f"\nforensics benchmark: {len(r.classes)} classes ({args.lenses} lensfun lenses x 2 apertures), "
+          f"{r.n_train_images} training / {r.n_test_images} test photographs from {', '.join(args.images)} "
+          f"(480x320, linearised); {time.perf_counter() - t0:.0f} s")
+    print("\nclasses:")
+    for i, c in enumerate(r.classes):
+        print(f"  [{i + 1}] {c['label']} ({c['focal']:g} mm)")
+    print("\nlens identification (accuracy in %; chance: "
+          f"{100 / len(r.classes):.1f} for lens+aperture, {200 / len(r.classes):.1f} for the lens)")
+    print(f"{'classifier':<48}{'frames':>7}{'tests':>7}{'lens+ap.':>10}{'per-class':>11}{'lens':>7}")
+    for row in r.identification:
+        print(f"{row.classifier:<48}{row.n_frames:>7}{row.n_tests:>7}{100 * row.accuracy:>10.1f}"
+              f"{100 * row.mean_class_accuracy:>11.1f}{100 * row.lens_accuracy:>7.1f}")
+    for row in r.identification:
+        if row.confusion:
+            print(f"\nconfusion matrix, {row.classifier}, one frame:")
+            print(format_confusion(np.array(row.confusion), [f"{c['label']}" for c in r.classes], width=4))
+    print(f"\nconsistency check (calibrated on {r.calibration_frames} training frames; inconsistent when the "
+          f"false-alarm probability < {r.alpha:g}; rates are of frames with a verdict)")
+    hdr = (f"{'case':<52}{'frames':>7}{'null':>6}{'alt':>7}{'AUC':>7}{'AUC dec.':>9}{'FA %':>7}{'det %':>7}"
+           f"{'undec. %':>10}")
+    print(hdr)
+    for row in r.check + r.separation:
+        print(f"{row.case:<52}{row.n_frames:>7}{row.n_null:>6}{row.n_alt:>7}{row.auc:>7.3f}{row.auc_decided:>9.3f}"
+              f"{100 * row.false_alarm:>7.1f}{100 * row.detection:>7.1f}"
+              f"{100 * row.null_undecided:>5.0f}/{100 * row.alt_undecided:<4.0f}")
+    if args.json:
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(args.json), json.dumps(asdict(r), indent=1) + "\n")
+        print(f"-> {args.json}")
+    return 0
