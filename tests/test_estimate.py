@@ -123,3 +123,43 @@ def test_small_image_for_paper_method():
 def test_unknown_method():
     with pytest.raises(ValueError, match="unknown method"):
         vigproc.estimate(textured(64, 64), "magic", channel_axis=None)
+
+
+def test_centred_refit_only_without_evidence_of_an_off_centre_fall_off(monkeypatch):
+    """Model selection: a centred lens gets the centred refit; Table 1 setting 3
+    (centre well off the middle, clear evidence) keeps the free fit."""
+    import vigproc.robust as R
+    from conftest import photo_like
+    from vigproc.lensfun import bench_lenses, pa_field
+
+    calls = []
+    real = R.fit_robust
+
+    def spy(wc, s, start=None):
+        calls.append(s.sigma_center)
+        return real(wc, s, start)
+
+    monkeypatch.setattr(R, "fit_robust", spy)
+    _, pa = bench_lenses(1)[0]
+    centred = photo_like(320, 480, seed=1) * pa_field((320, 480), pa.k1, pa.k2, pa.k3)
+    m = vigproc.estimate(centred, channel_axis=None)
+    assert calls == [RobustSettings().sigma_center, RobustSettings().centred_sigma_center]
+    assert np.hypot(*(m.candidate or m).center) < 0.02 * np.hypot(480, 320) / 2
+    calls.clear()
+    truth = table1_model(3)
+    off = textured(320, 480, seed=3, contrast=0.05) * truth.field()
+    m = vigproc.estimate(off, channel_axis=None, settings=RobustSettings(scene_prior=False))
+    assert calls == [RobustSettings().sigma_center]
+    assert relative_errors(m, truth)[1] < 0.10
+    calls.clear()
+    vigproc.estimate(centred, channel_axis=None, settings=RobustSettings(centred_z=float("inf")))
+    assert len(calls) == 1  # selection off
+
+
+def test_centre_z():
+    from vigproc.robust import centre_z
+
+    cov = np.diag([0.01**2, 0.02**2] + [1.0] * 10)
+    assert centre_z(np.array([0.03, 0.0] + [0.0] * 10), cov) == pytest.approx(3.0)
+    assert centre_z(np.array([0.0, -0.08] + [0.0] * 10), cov) == pytest.approx(4.0)
+    assert centre_z(np.zeros(12), np.zeros((12, 12))) == float("inf")
