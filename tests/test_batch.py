@@ -295,6 +295,40 @@ def test_cli_batch_list_json_and_errors(archive, tmp_path, capsys):
         assert len(lines) == 1 and text in lines[0] and "Traceback" not in err, err
 
 
+def test_cli_batch_outputs_are_never_inputs(archive, tmp_path, capsys):
+    src = tmp_path / "in"
+    src.mkdir()
+    shutil.copy(archive / "f0.tif", src / "f0.tif")
+    (src / "x\nvigproc: FAKE.tif").write_bytes(b"not an image")
+    base = ["--mode", "estimate", "--profile", "estimate", "--workers", "1", "--no-progress"]
+    # OUT == DIR: every rerun would process the outputs of the one before
+    for out in (src, tmp_path / "in" / ".." / "in"):
+        assert main(["batch", str(src), *base, "-o", str(out)]) == 10
+        assert "cannot be the source folder" in capsys.readouterr().err
+    assert sorted(p.name for p in src.iterdir()) == ["f0.tif", "x\nvigproc: FAKE.tif"]
+    # a missing or empty source: an error, and no output folder left behind
+    (tmp_path / "empty").mkdir()
+    for source, text in ((tmp_path / "nowhere", "no such folder"), (tmp_path / "empty", "no images")):
+        assert main(["batch", str(source), *base, "-o", str(tmp_path / "new")]) == 10
+        assert text in capsys.readouterr().err and not (tmp_path / "new").exists()
+    # OUT inside DIR: its subtree is not input, rerun after rerun; failures print one line each
+    for _ in range(2):
+        assert main(["batch", str(src), *base, "-o", str(src / "out")]) == 1
+        err = capsys.readouterr().err.splitlines()
+        failed = [ln for ln in err if "failed:" in ln]
+        assert len(failed) == 1 and "x\\nvigproc: FAKE.tif" in failed[0], err
+        assert not any(ln.startswith("vigproc: FAKE") for ln in err)
+    assert sorted(p.name for p in (src / "out").iterdir() if not p.name.startswith(".")) == ["f0.tif" + SIDECAR_SUFFIX]
+    # a list naming a file inside OUT: skipped, so outputs of an earlier run are never redone
+    write_image(src / "out" / "old.tif", np.ones((8, 8)), bit_depth="uint16")
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"{src / 'out' / 'old.tif'}\n{src / 'f0.tif'}\n")
+    items, missing = B.collect(listing, src / "out")
+    assert [i.path for i in items] == [str(src / "f0.tif")] and missing == []
+    with pytest.raises(B.BatchError, match="no images"):
+        B.collect(listing, src)
+
+
 # ------------------------------------------------------------ dask.distributed
 @pytest.fixture(scope="module")
 def cluster():

@@ -123,6 +123,57 @@ def test_same_stem_inputs_get_distinct_outputs(tmp_path, vignetted_tiff):
     assert sorted(p.name for p in out.glob("*.tif")) == ["frame-2.corrected.tif", "frame.corrected.tif"]
 
 
+def test_output_stems_are_unique_deterministic_and_safe():
+    from pathlib import Path
+
+    from vigproc.pipeline import output_stems, safe_output
+
+    names = ["x/a.tif", "y/a.png", "a-2.tif", "A.tif", "a-3.jpg", "new\nline.tif", "-rf.tif", "..tif", ".h.tif",
+             "%2Drf.tif", "a b é 100%.tif", "tab\there.tif", "b.tif", "b.png", "b-2.png"]
+    files = [Path(n) for n in names]
+    stems = output_stems(files)
+    assert stems == ["a", "a-4", "a-2", "A-5", "a-3", "new%0Aline", "%2Drf", "%2E", "%2Eh", "%2Drf-2",
+                     "a b é 100%", "tab%09here", "b", "b-3", "b-2"]
+    assert stems == output_stems(files)  # the same inputs in the same order: the same names
+    assert len({s.casefold() for s in stems}) == len(stems)  # distinct, also on case-insensitive filesystems
+    for s in stems:  # each stem is its file name: nothing left for safe_output to fold together
+        assert safe_output(Path("/o"), s, ".vigproc.json").name == s + ".vigproc.json"
+        assert not s.startswith(("-", ".")) and not any(ord(c) < 32 for c in s)
+
+
+def test_correct_never_overwrites_an_input_and_names_never_collide(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    o = tmp_path / "o"
+    o.mkdir()
+    for n in ("a.corrected.tif", "a.tif", "b.tif", "b-2.tif"):
+        (o / n).write_bytes(path.read_bytes())
+    (o / "b.png").write_bytes(b"not an image")  # reserves b-? without an output
+    victim = (o / "a.corrected.tif").read_bytes()
+    r = run("correct", o / "a.corrected.tif", o / "a.tif", o / "b.tif", o / "b.png", o / "b-2.tif", "-o", o)
+    assert r.returncode == 1
+    assert (o / "a.corrected.tif").read_bytes() == victim  # a.tif's output would have replaced it
+    err = r.stderr.splitlines()
+    assert len(err) == 2 and "a.tif" in err[0] and "input of this run" in err[0], r.stderr
+    assert not (o / "a.vigproc.json").exists()  # a refused frame writes nothing
+    made = {json.loads(p.read_text())["file"]: p.name for p in o.glob("*.vigproc.json")}
+    assert made == {str(o / "a.corrected.tif"): "a.corrected.vigproc.json", str(o / "b.tif"): "b.vigproc.json",
+                    str(o / "b-2.tif"): "b-2.vigproc.json"}
+
+
+def test_file_names_cannot_forge_message_lines(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    good = tmp_path / "ok\nvigproc: 0 corrected.tif"
+    good.write_bytes(path.read_bytes())
+    bad = tmp_path / "x\nvigproc: FAKE\r\u2028.tif"
+    bad.write_bytes(b"not an image")
+    r = run("correct", good, bad, "-o", tmp_path / "out")
+    assert r.returncode == 1
+    assert len(r.stderr.splitlines()) == 1 and "FAKE" in r.stderr, r.stderr
+    assert len(r.stdout.splitlines()) == 2, r.stdout  # the file's line and the summary
+    r = run("estimate", bad)
+    assert r.returncode == 4 and len(r.stderr.splitlines()) == 1 and "x\\nvigproc: FAKE" in r.stderr
+
+
 def test_estimate_raw_uses_half_size_and_reports_full_frame(tmp_path):
     from dngfixture import make_dng
 

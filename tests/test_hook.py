@@ -122,10 +122,62 @@ def test_hostile_file_names(frame, tmp_path, capsys, monkeypatch):
     assert [r["file"] for r in answer["results"]] == [*map(str, paths), os.fsdecode(raw)]
     for r in answer["results"][:3]:
         assert Path(r["output"]).parent == out and Path(r["sidecar"]).parent == out
+    # control characters and a leading '-' or '.' percent-encoded, as the watch daemon names outputs
+    assert [Path(r["output"]).name for r in answer["results"][:3]] == [
+        "a b 'q' \"dq\" ; $(touch PWNED) `touch PWNED`%0A\\ é.corrected.tif", "%2Drf.corrected.tif",
+        "%2E.corrected.tif"]
     assert len(os.listdir(out)) == 6
     # OpenImageIO cannot open such names: a clear per-file error, not a crash or a misread
     assert answer["results"][3]["exit_code"] == 4 and "not valid UTF-8" in answer["results"][3]["error"]
     assert not list(tmp_path.rglob("PWNED")) and not Path("PWNED").exists()
+
+
+def test_output_names_never_collide(frame, tmp_path, capsys, monkeypatch):
+    src = tmp_path / "src"
+    src.mkdir()
+    names = ["a.tif", "a.png", "a-2.tif"]
+    for n in names:
+        shutil.copyfile(frame, src / n)
+    for _ in range(2):  # a rerun writes the same names
+        out = tmp_path / "out"
+        code, answer = hook(capsys, monkeypatch, "--mode", "estimate", "-o", out, "--", *[src / n for n in names])
+        assert code == 0
+        assert [Path(r["sidecar"]).name for r in answer["results"]] == [
+            "a.vigproc.json", "a-3.vigproc.json", "a-2.vigproc.json"]
+        for r in answer["results"]:  # each sidecar is its own input's, none overwritten by another
+            assert json.loads(Path(r["sidecar"]).read_text())["file"] == r["file"]
+
+
+def test_outputs_never_replace_an_input_of_the_call(frame, tmp_path, capsys, monkeypatch):
+    o = tmp_path / "o"
+    o.mkdir()
+    first, second = o / "a.corrected.tif", o / "a.tif"
+    shutil.copyfile(frame, first)
+    shutil.copyfile(frame, second)
+    os.utime(first, (1, 1))  # a different file of the same content
+    before = sha(first)
+    code, answer = hook(capsys, monkeypatch, "-o", o, "--", first, second)
+    assert code == 1 and answer["results"][0]["status"] == "ok"
+    r = answer["results"][1]
+    assert r["exit_code"] == 5 and r["type"] == "ImageWriteError" and "input of this run" in r["error"]
+    assert sha(first) == before and os.stat(first).st_mtime == 1
+    assert not (o / "a.vigproc.json").exists()  # nothing written for the refused file
+    # an exact output file onto another input of the call: refused as well
+    req = {"files": [{"path": str(first), "output": str(second)}, str(second)]}
+    before = sha(second)
+    code, answer = hook(capsys, monkeypatch, "--request", "-", "-o", tmp_path / "out2", stdin=json.dumps(req).encode())
+    assert code == 1 and answer["results"][0]["exit_code"] == 5 and answer["results"][1]["status"] == "ok"
+    assert sha(second) == before
+
+
+def test_file_names_cannot_forge_stderr_lines(tmp_path):
+    bad = tmp_path / "x\nvigproc: FAKE\r.tif"
+    bad.write_bytes(b"not an image")
+    code, stdout, stderr = run_cli("hook", "--mode", "estimate", "--", bad, tmp_path / "nope\n.tif")
+    assert code == 4 and json.loads(stdout)["results"][0]["file"] == str(bad)
+    lines = stderr.splitlines()
+    assert len(lines) == 2 and all(ln.startswith("vigproc: '") for ln in lines), stderr
+    assert not any(ln.startswith("vigproc: FAKE") for ln in lines)
 
 
 # ------------------------------------------------------------------ exit codes and requests

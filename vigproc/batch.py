@@ -182,7 +182,12 @@ def read_list(list_file: str | os.PathLike[str]) -> tuple[list[BatchItem], list[
 
 
 def collect(source: str | os.PathLike[str], outdir: str | os.PathLike[str]) -> tuple[list[BatchItem], list[str]]:
-    """Inputs of a job: a folder (recursive, the output folder excluded) or a list file.
+    """Inputs of a job: a folder (recursive, the output folder excluded) or a list file
+    (listed files inside the output folder skipped).
+
+    Outputs are never inputs: a rerun would otherwise process the outputs of the run
+    before (``x.tif.corrected.tif.corrected.tif`` ...) and a listed output could be
+    replaced while it is read.
 
     Returns
     -------
@@ -192,13 +197,22 @@ def collect(source: str | os.PathLike[str], outdir: str | os.PathLike[str]) -> t
     Raises
     ------
     BatchError
-        Missing source, unreadable list, or no images at all.
+        Missing source, the output folder is the source folder, unreadable list, or
+        no images at all.
     """
     src = Path(source)
+    out = Path(outdir).resolve()
     if src.is_dir():
-        items, missing = collect_dir(src, exclude=[outdir]), []
+        if src.resolve() == out:
+            raise BatchError(f"the output folder cannot be the source folder itself ({str(out)!r}); "
+                             "pass another -o")
+        items, missing = collect_dir(src, exclude=[out]), []
     elif src.is_file():
         items, missing = read_list(src)
+        keep = [i for i in items if not Path(i.path).is_relative_to(out)]  # listed paths are resolved
+        if len(keep) < len(items):
+            log.warning("skipping %d listed file(s) inside the output folder %s", len(items) - len(keep), out)
+            items = keep
     else:
         raise BatchError(f"no such folder or file list: {source}")
     if not items and not missing:

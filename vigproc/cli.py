@@ -18,7 +18,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vigproc.errors import VigprocError
+from vigproc.errors import VigprocError, one_line
 
 log = logging.getLogger("vigproc")
 
@@ -80,11 +80,12 @@ def _open_store(args: argparse.Namespace):
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from vigproc.pipeline import Processor, Settings, output_stems
+    from vigproc.pipeline import InputFiles, Processor, Settings, output_stems
 
     outdir = Path(args.output)
     outdir.mkdir(parents=True, exist_ok=True)
     files = [Path(f) for f in args.files]
+    inputs = InputFiles(files)  # no output may replace an input of this run
     settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
                         output_format=args.output_format, picture=args.picture, strength=args.strength)
     failed = 0
@@ -94,17 +95,17 @@ def cmd_correct(args: argparse.Namespace) -> int:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
             for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
                 try:
-                    rec = proc.process_file(f, outdir, stem).to_dict()
+                    rec = proc.process_file(f, outdir, stem, protect=inputs).to_dict()
                     results.append(rec)
                     q = rec["model"].get("quality") or {}
                     if not args.json:
                         tag = ("no correction (weak evidence)" if q.get("fallback")
                                else f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed")
-                        print(f"{f} -> {rec['output']}  [{tag}; lens {rec['lens']['lens_id'] or 'unknown'}]")
+                        print(one_line(f"{f} -> {rec['output']}  [{tag}; lens {rec['lens']['lens_id'] or 'unknown'}]"))
                 except VigprocError as exc:
                     failed += 1
                     results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
-                    print(f"vigproc: {exc}", file=sys.stderr)
+                    print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
     finally:
         if store is not None:
             store.close()
@@ -394,10 +395,10 @@ def cmd_profile(args: argparse.Namespace) -> int:
                         proc.process_image(img, lens_key, where=str(f), frame_id=file_sha256(f))
                         p = store.get(ProfileKey.from_lens(lens_key, img.shape[1], img.shape[0]))
                         done += 1
-                        print(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}")
+                        print(one_line(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}"))
                     except VigprocError as exc:
                         failed += 1
-                        print(f"vigproc: {exc}", file=sys.stderr)
+                        print(one_line(f"vigproc: {exc}"), file=sys.stderr)
             print(f"{done} frames learned, {failed} failed")
             return 0 if failed == 0 else 1
         elif args.profile_command == "import":
@@ -591,14 +592,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class _OneLineFormatter(logging.Formatter):
+    """Log messages quote file names: one line per message whatever a name holds
+    (a traceback at -vv keeps its lines)."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        return one_line(super().formatMessage(record))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), format="%(levelname)s %(name)s: %(message)s")
+    handler = logging.StreamHandler()
+    handler.setFormatter(_OneLineFormatter("%(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), handlers=[handler])
     try:
         return int(args.fn(args) or 0)
     except VigprocError as exc:
-        print(f"vigproc: {exc}", file=sys.stderr)
+        print(one_line(f"vigproc: {exc}"), file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         print("vigproc: interrupted", file=sys.stderr)
@@ -608,7 +619,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     except Exception as exc:  # a bug, not bad input: still no traceback unless asked (-vv)
         log.debug("internal error", exc_info=True)
-        print(f"vigproc: internal error ({type(exc).__name__}: {exc}); rerun with -vv for details",
+        print(one_line(f"vigproc: internal error ({type(exc).__name__}: {exc}); rerun with -vv for details"),
               file=sys.stderr)
         return 70
 

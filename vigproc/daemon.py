@@ -68,7 +68,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from vigproc.errors import VigprocError
+from vigproc.errors import VigprocError, one_line
 from vigproc.journal import FileChangedError, Fingerprint, FingerprintError, Journal, JournalError, fingerprint
 
 __all__ = [
@@ -412,13 +412,11 @@ class TextLogFormatter(logging.Formatter):
     """``time level process: message``, one line per record: control characters of
     hostile file names are escaped, so a name cannot forge log lines."""
 
-    _ESCAPES = {c: f"\\x{c:02x}" for c in range(32)} | {10: "\\n", 13: "\\r", 9: "\\t"}
-
     def __init__(self) -> None:
         super().__init__("%(asctime)s %(levelname)s %(processName)s: %(message)s")
 
     def format(self, record: logging.LogRecord) -> str:
-        return super().format(record).translate(self._ESCAPES)
+        return one_line(super().format(record))
 
 
 def configure_logging(json_lines: bool, level: int) -> None:

@@ -7,6 +7,21 @@ the command line turns these into a one-line message and a non-zero exit code
 
 from __future__ import annotations
 
+#: Escapes of the characters that would end or rewrite a line of text (C0 and C1
+#: controls, DEL, Unicode line and paragraph separators): applied to messages that
+#: carry file names, so a hostile name cannot forge lines on stderr or in a log.
+CONTROL_ESCAPES = ({c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0))}
+                   | {10: "\\n", 13: "\\r", 9: "\\t", 0x2028: "\\u2028", 0x2029: "\\u2029"})
+
+
+def one_line(text: str) -> str:
+    """``text`` with its control characters escaped (see :data:`CONTROL_ESCAPES`).
+
+    >>> one_line("cannot read 'a\\nvigproc: all done'")
+    "cannot read 'a\\\\nvigproc: all done'"
+    """
+    return text.translate(CONTROL_ESCAPES)
+
 
 class VigprocError(Exception):
     """Base class of all errors vigproc raises on purpose."""

@@ -18,7 +18,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Container, Iterable, Sequence
 
 import numpy as np
 
@@ -141,17 +141,82 @@ def safe_output(outdir: Path, stem: str, suffix: str) -> Path:
     return out
 
 
+def safe_stem(stem: str) -> str:
+    """``stem`` as an output name can carry it: control characters, bytes that are not
+    UTF-8, separators, a leading ``-`` (read as an option by the next tool) and a
+    leading ``.`` (hidden) percent-encoded, as the watch daemon names its outputs
+    (:func:`vigproc.daemon.output_stem`); other names, spaces and letters of any
+    script included, are kept."""
+    out = []
+    for i, ch in enumerate(stem):
+        o = ord(ch)
+        if o < 0x20 or o == 0x7F or ch in ("/", os.sep) or (i == 0 and ch in "-."):
+            out.append(f"%{o:02X}")
+        elif 0xDC80 <= o <= 0xDCFF:  # a byte that is not UTF-8 (surrogate escape)
+            out.append(f"%{o - 0xDC00:02X}")
+        else:
+            out.append(ch)
+    return "".join(out) or "image"
+
+
 def output_stems(files: Sequence[Path]) -> list[str]:
     """One distinct output stem per input: ``a.jpg`` and ``a.png`` (or two ``a.jpg``
-    from different folders) must not overwrite each other's outputs."""
-    seen: dict[str, int] = {}
+    from different folders) must not overwrite each other's outputs.
+
+    The first input of a name keeps it (made safe by :func:`safe_stem`); a later one
+    gets the first ``-2``, ``-3``... not taken by *any* input's own name, so
+    ``a.tif a.png a-2.tif`` give ``a``, ``a-3``, ``a-2``.  Names are compared
+    case-insensitively (such filesystems merge them); the same inputs in the same
+    order always get the same stems."""
+    bases = [safe_stem(f.stem) for f in files]
+    taken = {b.casefold() for b in bases}
+    first: set[str] = set()
     stems = []
-    for f in files:
-        base = f.stem
-        n = seen.get(base.casefold(), 0) + 1
-        seen[base.casefold()] = n
-        stems.append(base if n == 1 else f"{base}-{n}")
+    for base in bases:
+        key = base.casefold()
+        if key not in first:
+            first.add(key)
+            stems.append(base)
+            continue
+        n = 2
+        while f"{base}-{n}".casefold() in taken:
+            n += 1
+        stem = f"{base}-{n}"
+        taken.add(stem.casefold())
+        stems.append(stem)
     return stems
+
+
+class InputFiles:
+    """The input files of one run (``correct``, ``hook``): no output of the run may
+    replace one of them (``-o o`` with inputs ``o/a.tif`` and ``o/a.corrected.tif``
+    would otherwise overwrite the second with the first's output).
+
+    Pass it to :meth:`Processor.process_file` as ``protect``.  An input is matched by
+    its resolved path and, when it exists, by its file identity (the same file under
+    another spelling: a case-insensitive filesystem, a hard link)."""
+
+    def __init__(self, files: Iterable[str | os.PathLike[str]]) -> None:
+        self._paths: set[Path] = set()
+        self._ids: set[tuple[int, int]] = set()
+        for f in files:
+            try:
+                self._paths.add(Path(f).resolve())
+                st = os.stat(f)
+            except (OSError, RuntimeError, ValueError):  # missing or unusable: fails on its own later
+                continue
+            self._ids.add((st.st_dev, st.st_ino))
+
+    def __contains__(self, path: object) -> bool:
+        if not isinstance(path, (str, os.PathLike)):
+            return False
+        try:
+            if Path(path).resolve() in self._paths:
+                return True
+            st = os.stat(path)
+        except (OSError, RuntimeError, ValueError):
+            return False
+        return (st.st_dev, st.st_ino) in self._ids
 
 
 def images_in(folder: Path, limit: int | None = None) -> list[Path]:
@@ -371,12 +436,15 @@ class Processor:
 
     # -- files ------------------------------------------------------------
     def process_file(self, path: str | os.PathLike[str], outdir: str | os.PathLike[str], stem: str | None = None,
-                     *, extra: dict[str, Any] | None = None, frame_id: str | None = None) -> FrameResult:
+                     *, extra: dict[str, Any] | None = None, frame_id: str | None = None,
+                     protect: Container[Any] = ()) -> FrameResult:
         """Read ``path``, process it, write its outputs into ``outdir``.
 
         Outputs (all atomic; the input is never modified): ``STEM.corrected.tif|exr``
         in correct mode, ``STEM.vignetting.png`` with ``picture``, and always the
-        sidecar ``STEM.vigproc.json``, written last.
+        sidecar ``STEM.vigproc.json``, written last.  No output may be ``path``
+        itself or in ``protect`` (the other inputs of the run, :class:`InputFiles`):
+        then nothing is written.
 
         In learn mode the frame is pooled under ``frame_id``, by default the file's
         SHA-256, so learning the same file twice (a rerun, a copy under another
@@ -386,6 +454,8 @@ class Processor:
         ------
         VigprocError
             Unreadable or bad input, failed estimate, output not writable.
+        ImageWriteError
+            Also when an output would replace ``path`` or a protected file.
         """
         from vigproc.atomic import atomic_write_text
         from vigproc.io import read_image
@@ -395,6 +465,15 @@ class Processor:
         path = Path(path)
         outdir = Path(outdir)
         stem = path.stem if stem is None else stem
+        suffix, depth = OUTPUT_FORMATS[s.output_format]
+        dst = safe_output(outdir, stem, ".corrected" + suffix)
+        sidecar = safe_output(outdir, stem, SIDECAR_SUFFIX)
+        # checked before anything is written: a refused frame leaves no partial outputs
+        own = path.resolve()
+        for target in (dst if s.mode == "correct" else None, sidecar,
+                       safe_output(outdir, stem, ".vignetting.png") if s.picture else None):
+            if target is not None and (target == own or target in protect):
+                raise ImageWriteError(f"refusing to overwrite {str(target)!r}: it is an input of this run")
         img, _info = read_image(path, transfer=s.transfer)
         lens_key, lens = read_lens(self.reader, path)
         if s.mode == "learn" and frame_id is None:
@@ -404,10 +483,6 @@ class Processor:
         if out is not None:
             from vigproc.metadata import make_record, write_corrected
 
-            suffix, depth = OUTPUT_FORMATS[s.output_format]
-            dst = safe_output(outdir, stem, ".corrected" + suffix)
-            if dst == path.resolve():
-                raise ImageWriteError(f"refusing to overwrite the input {path}")
             # the source's EXIF/XMP plus an XMP record of the correction
             write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=depth)
             res.output = str(dst)
@@ -416,7 +491,7 @@ class Processor:
         if extra:
             res.extra.update(extra)
         res.seconds = round(time.perf_counter() - t0, 4)
-        atomic_write_text(safe_output(outdir, stem, SIDECAR_SUFFIX), json.dumps(res.to_dict(), indent=1) + "\n")
+        atomic_write_text(sidecar, json.dumps(res.to_dict(), indent=1) + "\n")
         return res
 
     @staticmethod

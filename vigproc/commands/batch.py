@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from vigproc.errors import one_line
 
 log = logging.getLogger(__name__)
 
@@ -78,12 +79,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     config = read_config(args.config) if args.config else {}
     settings = Settings(mode=args.mode, profile=args.profile, method=args.method, transfer=args.input_transfer,
                         output_format=args.output_format, strength=args.strength, picture=args.picture)
-    outdir = Path(args.output)
-    try:
-        outdir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise B.BatchError(f"cannot create output folder {outdir}: {exc.strerror or exc}") from None
-    outdir = outdir.resolve()
+    outdir = Path(args.output).resolve()
     items, missing = B.collect(args.source, outdir)
 
     profile_file = None
@@ -134,6 +130,11 @@ def cmd_batch(args: argparse.Namespace) -> int:
                 if fs in B.NETWORK_FS:
                     log.warning("profile store %s is on a %s network filesystem; SQLite wants a local disk",
                                 store.path, fs)
+        # created only now: a bad source, option, cluster or store leaves no empty output folder behind
+        try:
+            outdir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise B.BatchError(f"cannot create output folder {outdir}: {exc.strerror or exc}") from None
         spec = B.JobSpec(settings=settings, outdir=str(outdir), numba_threads=getattr(backend, "numba_threads", 1),
                          profile_file=profile_file, store_snapshot=snapshot)
         summary = B.run_batch(items, spec, backend, journal_path=journal, job=job, store=store, retries=retries,
@@ -182,8 +183,8 @@ def print_summary(summary, outdir: Path, *, as_json: bool = False) -> None:
     for key, p in sorted(s.profiles.items()):
         sigma = "±?" if p["field_sigma_ev"] is None else f"±{p['field_sigma_ev']:.3f} EV"
         print(f"  profile {key}: {p['n_frames']} frames, {sigma}, {'trusted' if p['trusted'] else 'learning'}")
-    for e in s.errors[:20]:
-        print(f"  failed: {e['file']}: {e['error']}", file=sys.stderr)
+    for e in s.errors[:20]:  # names and errors escaped: a file name cannot forge a line
+        print(one_line(f"  failed: {e['file']}: {e['error']}"), file=sys.stderr)
     if len(s.errors) > 20 or s.failed > len(s.errors):
         print(f"  ... {s.failed - min(20, len(s.errors))} more failures (see the journal or --json)", file=sys.stderr)
     print(f"outputs in {outdir}; journal {s.journal}" + ("; rerun the same command to resume" if s.interrupted
@@ -197,7 +198,8 @@ def register(subparsers) -> None:
     sp = subparsers.add_parser(
         "batch", help="process a whole archive (folder or file list), resumable, on local cores or a Dask cluster",
         description="Process every image under DIR (recursive; hidden files skipped) or listed in LIST (one path "
-                    "per line, relative to the list's folder). Outputs mirror the input tree under OUT. Interrupt "
+                    "per line, relative to the list's folder). Outputs mirror the input tree under OUT (not DIR "
+                    "itself; nothing inside OUT is ever taken as input). Interrupt "
                     "at any time and rerun the same command to resume: done files are not redone.")
     sp.add_argument("source", metavar="DIR|LIST")
     sp.add_argument("--mode", choices=MODES, required=True)

@@ -24,6 +24,11 @@ exactly (correct mode; no sidecar; its suffix must match ``output_format``, e.g.
 ``.tif`` for ``tiff16``); ``lens`` replaces
 the lens metadata read from the file (see :func:`vigproc.api.lens_key`).
 
+With ``-o``, outputs are named ``STEM.corrected.tif`` and ``STEM.vigproc.json``
+(control characters and a leading ``-`` or ``.`` of STEM percent-encoded; a later
+input with an earlier one's STEM gets ``STEM-N``).  No output ever replaces an
+input of the same call: that file fails with exit code 5.
+
 Answer::
 
     {"protocol": 1, "vigproc": "0.1.0", "mode": "correct", "ok": 1, "failed": 1, "exit_code": 1,
@@ -53,7 +58,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from vigproc.errors import EXIT_CODES, ImageWriteError, VigprocError
+from vigproc.errors import EXIT_CODES, ImageWriteError, VigprocError, one_line
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +157,7 @@ class _HostLens:
 
 
 # ------------------------------------------------------------------ one file
-def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str) -> dict[str, Any]:
+def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) -> dict[str, Any]:
     from vigproc.api import Result
     from vigproc.atomic import fsync_dir
     from vigproc.io import read_image
@@ -168,8 +173,8 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str) -> dict[
         if target.suffix.lower() not in _SUFFIXES[s.output_format]:
             raise UsageError(f"output {job['output']!r}: format {s.output_format} writes "
                          f"{' or '.join(_SUFFIXES[s.output_format])} files")
-        if target.exists() and target.resolve() == path.resolve():
-            raise ImageWriteError(f"refusing to overwrite the input {job['path']!r}")
+        if target.exists() and (target.resolve() == path.resolve() or target in inputs):
+            raise ImageWriteError(f"refusing to overwrite the input {job['output']!r}")
         # the pipeline writes into a private folder beside the target; one rename publishes it
         try:
             work = tempfile.mkdtemp(prefix=".vigproc-hook-", dir=target.parent)
@@ -184,7 +189,7 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str) -> dict[
         out.update(Result.from_frame(res).to_dict(), output=str(target))
         return out
     if outdir is not None:
-        res = proc.process_file(path, outdir, stem)
+        res = proc.process_file(path, outdir, stem, protect=inputs)
         out.update(Result.from_frame(res).to_dict(), output=res.output,
                    sidecar=str(safe_output(outdir, stem, SIDECAR_SUFFIX)))
         if res.picture:
@@ -224,7 +229,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run a hook call; returns the answer document (see the module docstring)."""
     from vigproc import __version__
     from vigproc.api import RequestError, lens_key
-    from vigproc.pipeline import Processor, Settings, output_stems
+    from vigproc.pipeline import InputFiles, Processor, Settings, output_stems
 
     req = _read_request(args.request) if args.request else {}
     opt = {k: getattr(args, k) for k in ("mode", "profile", "profile_db", "method", "strength", "output_format",
@@ -268,6 +273,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             j = {"path": path if isinstance(path, str) else "", "failed": exc}
         jobs.append(j)
     stems = output_stems([Path(j["path"] or "x") for j in jobs])
+    inputs = InputFiles(j["path"] for j in jobs if "failed" not in j)  # no output may replace one
 
     store = None
     if settings.profile == "auto" or settings.mode == "check":
@@ -283,7 +289,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     results.append(_error(j["path"], j["failed"]))
                     continue
                 try:
-                    results.append(_process(proc, j, outdir, stem))
+                    results.append(_process(proc, j, outdir, stem, inputs))
                 except KeyboardInterrupt:
                     raise
                 except Exception as exc:  # one bad file never stops the others
@@ -306,19 +312,21 @@ def cmd_hook(args: argparse.Namespace) -> int:
     try:
         answer = run(args)
     except VigprocError as exc:
-        print(f"vigproc: {exc}", file=sys.stderr)
+        print(one_line(f"vigproc: {exc}"), file=sys.stderr)
         answer = {"protocol": PROTOCOL, "vigproc": __version__, "error": str(exc), "type": type(exc).__name__,
                   "exit_code": exc.exit_code, "results": []}
     except KeyboardInterrupt:
         raise
     except Exception as exc:
         log.debug("internal error", exc_info=True)
-        print(f"vigproc: internal error ({type(exc).__name__}: {exc}); rerun with -vv for details", file=sys.stderr)
+        print(one_line(f"vigproc: internal error ({type(exc).__name__}: {exc}); rerun with -vv for details"),
+              file=sys.stderr)
         answer = {"protocol": PROTOCOL, "vigproc": __version__, "error": f"internal error ({type(exc).__name__})",
                   "type": "InternalError", "exit_code": EXIT_CODES["internal"], "results": []}
     for r in answer["results"]:
         if r["status"] != "ok":
-            print(f"vigproc: {r['file']!r}: {r['error']}", file=sys.stderr)
+            # the error may quote the file name: one line each, whatever the name holds
+            print(one_line(f"vigproc: {r['file']!r}: {r['error']}"), file=sys.stderr)
     # ASCII JSON: any host can read it whatever its locale; one document, then a newline
     sys.stdout.write(json.dumps(answer, ensure_ascii=True) + "\n")
     sys.stdout.flush()
