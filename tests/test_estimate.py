@@ -163,3 +163,24 @@ def test_centre_z():
     assert centre_z(np.array([0.03, 0.0] + [0.0] * 10), cov) == pytest.approx(3.0)
     assert centre_z(np.array([0.0, -0.08] + [0.0] * 10), cov) == pytest.approx(4.0)
     assert centre_z(np.zeros(12), np.zeros((12, 12))) == float("inf")
+
+
+def test_joint_fit_of_several_frames():
+    from vigproc.errors import InvalidImageError
+    from vigproc.robust import estimate_robust, estimate_robust_joint
+
+    truth = table1_model(2)
+    s = RobustSettings(scene_prior=False)
+    frames = [textured(320, 480, seed=40 + i, contrast=0.05) * truth.field() for i in range(3)]
+    one = estimate_robust(frames[0], s)
+    # one frame: exactly the single-frame fit (no separator rows, same data weight)
+    np.testing.assert_allclose(estimate_robust_joint(frames[:1], s).log_field(), (one.candidate or one).log_field(),
+                               atol=1e-9)
+    m = estimate_robust_joint(frames, s)
+    assert m.covariance is not None and m.method == "robust-joint"
+    err = np.log2(m.field() / truth.field())
+    assert np.sqrt(np.mean(err**2)) < 0.1
+    with pytest.raises(InvalidImageError):
+        estimate_robust_joint([], s)
+    with pytest.raises(InvalidImageError):
+        estimate_robust_joint([frames[0], frames[1][:, :400]], s)

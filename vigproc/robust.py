@@ -436,6 +436,67 @@ def centre_z(theta: np.ndarray, cov: np.ndarray) -> float:
         return math.inf
 
 
+def _scene_divided(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | None = None) -> WorkingCopy:
+    """The working copy of one frame, with the scene prior divided out if enabled."""
+    wc = working_copy(lum, settings, mask)
+    if settings.scene_prior:
+        scene = settings.scene if settings.scene is not None else default_scene_falloff()
+        if any(scene.theta):  # fit φ_lens = φ / φ_scene: divide the scene prior out
+            wc = replace(wc, L=wc.L - scene.log_field(wc.xs, wc.ys))
+    return wc
+
+
+def estimate_robust_joint(lums: list[np.ndarray], settings: RobustSettings = RobustSettings()) -> VignettingModel:
+    """One model fitted jointly to several frames of the same lens (same size).
+
+    The frames' working copies are stacked, separated by invalid rows so that no
+    log-difference pairs pixels of two frames, and fitted as one image whose data
+    are worth ``n_eff`` per frame; the centred/free model selection is the same as
+    for one frame.  No fall-back: the pooled fit is returned with its covariance.
+
+    This is the "joint multi-frame fit" of the profile protocol (``vigproc bench
+    profile``, row ``joint``), measured against pooling per-frame estimates.
+
+    Raises
+    ------
+    InvalidImageError
+        No frames, frames of different sizes, or too few usable pixels.
+    """
+    from vigproc.errors import InvalidImageError
+
+    if not lums:
+        raise InvalidImageError("a joint fit needs at least one frame")
+    h, w = lums[0].shape
+    if any(lum.shape != (h, w) for lum in lums):
+        raise InvalidImageError("a joint fit needs frames of one size")
+    t0 = time.perf_counter()
+    wcs = [_scene_divided(lum, settings) for lum in lums]
+    gap = max(settings.steps)
+    rows_L, rows_v, rows_y = [], [], []
+    for i, wc in enumerate(wcs):
+        if i:  # invalid separator rows: no step crosses from one frame into the next
+            rows_L.append(np.zeros((gap, wc.L.shape[1])))
+            rows_v.append(np.zeros((gap, wc.L.shape[1]), dtype=bool))
+            rows_y.append(np.zeros(gap))
+        rows_L.append(wc.L)
+        rows_v.append(wc.valid)
+        rows_y.append(wc.ys)
+    joint = replace(wcs[0], L=np.vstack(rows_L), valid=np.vstack(rows_v), ys=np.concatenate(rows_y))
+    if joint.valid.sum() < 64:
+        raise InvalidImageError("too few usable pixels for a joint fit")
+    s = replace(settings, n_eff=settings.n_eff * len(lums))
+    theta, cov, info = fit_robust(joint, s)
+    if math.isfinite(s.centred_z) and centre_z(theta, cov) < s.centred_z:
+        theta, cov, info = fit_robust(joint, replace(s, sigma_center=s.centred_sigma_center))
+    ev_rms, ev_sigma = field_uncertainty_ev(theta, cov, wcs[0])
+    th_px, cov_px = _to_pixels(theta, cov, wcs[0].radius)
+    q = FitQuality(confidence=1.0, field_ev_rms=ev_rms, field_sigma_ev=ev_sigma,
+                   snr=ev_rms / ev_sigma if ev_sigma > 0 else math.inf, objective=float(info["objective"]),
+                   iterations=int(info["iterations"]), seconds=time.perf_counter() - t0)
+    covt = tuple(tuple(float(v) for v in row) for row in cov_px)
+    return VignettingModel.from_vector(th_px, w, h, method="robust-joint", covariance=covt, quality=q)
+
+
 def estimate_robust(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
                     mask: np.ndarray | None = None) -> VignettingModel:
     """Estimate φ from an H×W linear luminance image with the default estimator.
@@ -456,11 +517,7 @@ def estimate_robust(lum: np.ndarray, settings: RobustSettings = RobustSettings()
     """
     t0 = time.perf_counter()
     h, w = lum.shape
-    wc = working_copy(lum, settings, mask)
-    if settings.scene_prior:
-        scene = settings.scene if settings.scene is not None else default_scene_falloff()
-        if any(scene.theta):  # fit φ_lens = φ / φ_scene: divide the scene prior out
-            wc = replace(wc, L=wc.L - scene.log_field(wc.xs, wc.ys))
+    wc = _scene_divided(lum, settings, mask)
     if wc.valid.sum() < 64:
         q = FitQuality(confidence=0.0, fallback=True, seconds=time.perf_counter() - t0)
         log.info("too few usable pixels (%d bins); no correction", int(wc.valid.sum()))

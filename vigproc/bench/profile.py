@@ -9,7 +9,9 @@ covariance), and the per-frame estimates are pooled three ways after n frames:
   (:func:`vigproc.profiles.pool_information`, what the store does);
 * ``mean-theta``: the plain mean of the normalised parameters;
 * ``mean-field``: the mean of the per-frame log-fields (field-space pooling, the
-  best a refit of the pooled field could do).
+  best a refit of the pooled field could do);
+* ``joint``: one robust fit to the first n frames' data together
+  (:func:`vigproc.robust.estimate_robust_joint`), the joint multi-frame fit.
 
 The error is the RMS over the frame of log2(φ̂/φ), in EV.
 """
@@ -26,7 +28,7 @@ from vigproc.errors import ModelError
 from vigproc.lensfun import bench_lenses, pa_field
 from vigproc.model import VignettingModel
 
-POOLINGS = ("information", "mean-theta", "mean-field")
+POOLINGS = ("information", "mean-theta", "mean-field", "joint")
 
 
 @dataclass
@@ -45,8 +47,10 @@ def _rms_ev(x: np.ndarray) -> float:
 def run(
     images: Sequence[np.ndarray], estimate: Callable[[np.ndarray], VignettingModel],
     n_lenses: int = 20, counts: Sequence[int] = (1, 5, 20),
+    joint: Callable[[list[np.ndarray]], VignettingModel] | None = None,
 ) -> list[ProfileAccuracy]:
-    """Pooled-profile errors after each of ``counts`` frames, per pooling method."""
+    """Pooled-profile errors after each of ``counts`` frames, per pooling method
+    (``joint`` only when a joint estimator is given)."""
     from vigproc.profiles import denormalise, normalise, pool_information, pool_mean
 
     nmax = max(counts)
@@ -54,10 +58,11 @@ def run(
     for li, (_lens, pa) in enumerate(bench_lenses(n_lenses)):
         h, w = images[0].shape
         true_log = np.log(pa_field((h, w), pa.k1, pa.k2, pa.k3))
-        thetas, covs, fields = [], [], []
+        thetas, covs, fields, frames = [], [], [], []
         for j in range(nmax):
             im = images[(li * nmax + j) % len(images)]
-            m = estimate(im * np.exp(true_log))
+            frames.append(im * np.exp(true_log))
+            m = estimate(frames[-1])
             m = m.candidate if m.candidate is not None else m
             if m.covariance is None:  # an identity model without a fit: no evidence
                 continue
@@ -76,6 +81,9 @@ def run(
                     lf = np.zeros((h, w))
                 errors[(name, n)].append(_rms_ev(lf - true_log))
             errors[("mean-field", n)].append(_rms_ev(np.mean(fields[:n], axis=0) - true_log))
+        for n in counts:
+            if joint is not None and len(frames) >= n:
+                errors[("joint", n)].append(_rms_ev(joint(frames[:n]).log_field((h, w)) - true_log))
     out = []
     for p in POOLINGS:
         for n in counts:
