@@ -590,3 +590,32 @@ def test_learning_onto_import_without_uncertainty(tmp_path):
         p = store.learn(imp.key, synthetic_model(0))
     assert p.provenance == "learned" and p.n_frames == 1
     assert "superseded a lensfun profile" in p.notes
+
+
+def test_learning_with_evidence_refits_jointly(tmp_path):
+    """With each frame's evidence the profile is one joint fit to all frames, which is
+    closer to the truth than pooling the frames' estimates (the bench's finding)."""
+    from conftest import photo_like
+
+    from vigproc.estimate import estimate, frame_evidence
+    from vigproc.robust import estimate_robust_joint, evidence_copy
+
+    lens, pa = bench_lenses(1)[0]
+    h, w = 160, 240
+    truth = pa_field((h, w), pa.k1, pa.k2, pa.k3)
+    frames = [photo_like(h, w, seed=60 + i) * truth for i in range(3)]
+    key = ProfileKey("vigproc|test|joint", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        for i, f in enumerate(frames):
+            m = estimate(f, "default", channel_axis=None)
+            p = store.learn(key, m.candidate or m, frame_id=f"f{i}", evidence=frame_evidence(f, channel_axis=None))
+        assert p.n_frames == 3
+        joint = estimate_robust_joint(frames)
+        np.testing.assert_allclose(p.model(w, h).log_field(), joint.log_field(), atol=1e-6)
+        # the same frame again changes nothing; bad evidence is refused
+        again = store.learn(key, m.candidate or m, frame_id="f2", evidence=frame_evidence(frames[2], channel_axis=None))
+        assert again.n_frames == 3
+        with pytest.raises(ProfileStoreError, match="evidence"):
+            store.learn(key, m.candidate or m, frame_id="f9", evidence=b"not evidence")
+        wc = evidence_copy(frame_evidence(frames[0], channel_axis=None))
+        assert wc.L.shape == (wc.ys.size, wc.xs.size) and (wc.width, wc.height) == (w, h)

@@ -336,7 +336,7 @@ class Outcome:
     status: str
     fingerprint: Any = None
     record: dict[str, Any] | None = None
-    evidence: list[tuple[Any, Any]] = field(default_factory=list)  # (ProfileKey, VignettingModel)
+    evidence: list[tuple[Any, Any, Any]] = field(default_factory=list)  # (ProfileKey, VignettingModel, bytes|None)
     error: str | None = None
     error_type: str | None = None
     transient: bool = False
@@ -352,9 +352,10 @@ class _Evidence:
     def __init__(self) -> None:
         self.items: list[tuple[Any, Any]] = []
 
-    def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None):
+    def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
+              evidence: bytes | None = None):
         # the client pools under the fingerprint it journals (same content id)
-        self.items.append((key, model))
+        self.items.append((key, model, evidence))
         return _Learned(key)
 
     def close(self) -> None:
@@ -1197,9 +1198,9 @@ class _Run:
             s.skipped += 1  # same content done meanwhile (e.g. listed twice)
             return
         if self.store is not None:  # learn: pool here, the one writer of the store
-            for key, model in res.evidence:
+            for key, model, evidence in res.evidence:
                 # keyed by content: a frame pooled before a crash, then redone, is not pooled twice
-                p = self.store.learn(key, model, frame_id=fp.sha256)
+                p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence)
                 s.profiles[str(p.key)] = {"n_frames": p.n_frames, "trusted": p.trusted,
                                           "field_sigma_ev": p.field_sigma_ev}
         self.journal.done(task.path, fp, result)

@@ -311,7 +311,7 @@ def cmd_bench_profile(args: argparse.Namespace) -> int:
     fn(ims[0])
     from vigproc.robust import estimate_robust_joint
 
-    rows = B.run(ims, fn, args.lenses, args.counts, joint=estimate_robust_joint)
+    rows = B.run(ims, fn, args.lenses, args.counts, joint=estimate_robust_joint, store=True)
     print(f"profile accuracy: {args.lenses} lensfun lenses, frames from {len(ims)} images (480x320); "
           "RMS of log2(pooled/true field)")
     print(f"{'pooling':<14}{'frames':>7}{'lenses':>8}{'median EV':>11}{'p90 EV':>9}")

@@ -128,3 +128,23 @@ def estimate(
         random_start=method == "lyu2010-rand", seed=seed,
     )
     return _from_working(m, k, w, h)
+
+
+def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
+                   settings: RobustSettings | None = None) -> bytes:
+    """A frame's data for a joint multi-frame fit (:func:`vigproc.robust.frame_evidence`),
+    prepared exactly as :func:`estimate` prepares it for the default method
+    (luminance, clipped pixels masked, scene prior divided out).
+
+    The profile store keeps it per frame and refits the lens's profile jointly on all
+    of them (:meth:`vigproc.profiles.ProfileStore.learn`).
+
+    Raises
+    ------
+    InvalidImageError
+        As :func:`estimate`.
+    """
+    from vigproc.robust import frame_evidence as _evidence
+
+    a = check_image(img, channel_axis)
+    return _evidence(luminance(a), settings or RobustSettings(), clipped_mask(a))

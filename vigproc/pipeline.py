@@ -431,7 +431,13 @@ class Processor:
         fit = m.candidate if m.candidate is not None else m
         if fit.covariance is None:
             raise ModelError("no usable fit to learn from (no uncertainty)")
-        p = self.store.learn(key, fit, frame_id=frame_id)
+        evidence = None
+        if self.settings.method in ("default", "robust"):
+            # the frame's data, so the store can refit the lens jointly on all its frames
+            from vigproc.estimate import frame_evidence
+
+            evidence = frame_evidence(img, channel_axis=-1 if img.ndim == 3 else None)
+        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence)
         return fit, "estimate", str(p.key)
 
     # -- files ------------------------------------------------------------

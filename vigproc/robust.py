@@ -446,31 +446,24 @@ def _scene_divided(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray |
     return wc
 
 
-def estimate_robust_joint(lums: list[np.ndarray], settings: RobustSettings = RobustSettings()) -> VignettingModel:
-    """One model fitted jointly to several frames of the same lens (same size).
+def fit_joint(wcs: list[WorkingCopy], settings: RobustSettings) -> tuple[np.ndarray, np.ndarray, dict]:
+    """One fit to several frames' working copies (same bin grid), in normalised units.
 
-    The frames' working copies are stacked, separated by invalid rows so that no
-    log-difference pairs pixels of two frames, and fitted as one image whose data
-    are worth ``n_eff`` per frame; the centred/free model selection is the same as
-    for one frame.  No fall-back: the pooled fit is returned with its covariance.
-
-    This is the "joint multi-frame fit" of the profile protocol (``vigproc bench
-    profile``, row ``joint``), measured against pooling per-frame estimates.
+    The copies are stacked, separated by invalid rows so that no log-difference pairs
+    bins of two frames, and fitted as one image whose data are worth ``n_eff`` per
+    frame; the centred/free model selection is the same as for one frame.
 
     Raises
     ------
     InvalidImageError
-        No frames, frames of different sizes, or too few usable pixels.
+        No frames, frames of different bin grids, or too few usable bins.
     """
     from vigproc.errors import InvalidImageError
 
-    if not lums:
+    if not wcs:
         raise InvalidImageError("a joint fit needs at least one frame")
-    h, w = lums[0].shape
-    if any(lum.shape != (h, w) for lum in lums):
+    if any(wc.L.shape != wcs[0].L.shape for wc in wcs):
         raise InvalidImageError("a joint fit needs frames of one size")
-    t0 = time.perf_counter()
-    wcs = [_scene_divided(lum, settings) for lum in lums]
     gap = max(settings.steps)
     rows_L, rows_v, rows_y = [], [], []
     for i, wc in enumerate(wcs):
@@ -484,17 +477,89 @@ def estimate_robust_joint(lums: list[np.ndarray], settings: RobustSettings = Rob
     joint = replace(wcs[0], L=np.vstack(rows_L), valid=np.vstack(rows_v), ys=np.concatenate(rows_y))
     if joint.valid.sum() < 64:
         raise InvalidImageError("too few usable pixels for a joint fit")
-    s = replace(settings, n_eff=settings.n_eff * len(lums))
+    s = replace(settings, n_eff=settings.n_eff * len(wcs))
     theta, cov, info = fit_robust(joint, s)
     if math.isfinite(s.centred_z) and centre_z(theta, cov) < s.centred_z:
         theta, cov, info = fit_robust(joint, replace(s, sigma_center=s.centred_sigma_center))
+    return theta, cov, info
+
+
+def estimate_robust_joint(lums: list[np.ndarray], settings: RobustSettings = RobustSettings()) -> VignettingModel:
+    """One model fitted jointly to several H×W linear luminance frames of one lens
+    (:func:`fit_joint`).  No fall-back: the fit is returned with its covariance.
+
+    This is the "joint multi-frame fit" of the profile protocol (``vigproc bench
+    profile``), measured against pooling per-frame estimates; the profile store
+    refits its profiles this way from the frames' evidence (:func:`frame_evidence`).
+
+    Raises
+    ------
+    InvalidImageError
+        No frames, frames of different sizes, or too few usable pixels.
+    """
+    from vigproc.errors import InvalidImageError
+
+    if lums and any(lum.shape != lums[0].shape for lum in lums):
+        raise InvalidImageError("a joint fit needs frames of one size")
+    return joint_model([_scene_divided(lum, settings) for lum in lums], settings)
+
+
+def joint_model(wcs: list[WorkingCopy], settings: RobustSettings = RobustSettings()) -> VignettingModel:
+    """:func:`fit_joint` as a :class:`VignettingModel` of the first copy's frame size."""
+    t0 = time.perf_counter()
+    theta, cov, info = fit_joint(wcs, settings)
     ev_rms, ev_sigma = field_uncertainty_ev(theta, cov, wcs[0])
     th_px, cov_px = _to_pixels(theta, cov, wcs[0].radius)
     q = FitQuality(confidence=1.0, field_ev_rms=ev_rms, field_sigma_ev=ev_sigma,
                    snr=ev_rms / ev_sigma if ev_sigma > 0 else math.inf, objective=float(info["objective"]),
                    iterations=int(info["iterations"]), seconds=time.perf_counter() - t0)
     covt = tuple(tuple(float(v) for v in row) for row in cov_px)
-    return VignettingModel.from_vector(th_px, w, h, method="robust-joint", covariance=covt, quality=q)
+    return VignettingModel.from_vector(th_px, wcs[0].width, wcs[0].height, method="robust-joint",
+                                       covariance=covt, quality=q)
+
+
+#: Format tag of :func:`frame_evidence` blobs.
+EVIDENCE_FORMAT = "vigproc.robust-evidence/1"
+
+
+def frame_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
+                   mask: np.ndarray | None = None) -> bytes:
+    """What a frame contributes to a joint fit: its scene-divided working copy
+    (≈ 30 KB at 96×64 bins), as bytes for the profile store."""
+    import io
+    import json
+
+    wc = _scene_divided(lum, settings, mask)
+    buf = io.BytesIO()
+    meta = json.dumps({"format": EVIDENCE_FORMAT, "radius": wc.radius, "width": wc.width, "height": wc.height})
+    np.savez_compressed(buf, L=wc.L.astype(np.float32), valid=wc.valid, xs=wc.xs, ys=wc.ys,
+                        meta=np.frombuffer(meta.encode(), dtype=np.uint8))
+    return buf.getvalue()
+
+
+def evidence_copy(blob: bytes) -> WorkingCopy:
+    """The working copy of a :func:`frame_evidence` blob.
+
+    Raises
+    ------
+    ValueError
+        Not such a blob, or inconsistent arrays.
+    """
+    import io
+    import json
+
+    try:
+        with np.load(io.BytesIO(blob), allow_pickle=False) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+            L = z["L"].astype(np.float64)
+            valid, xs, ys = z["valid"].astype(bool), z["xs"].astype(np.float64), z["ys"].astype(np.float64)
+    except Exception as exc:  # noqa: BLE001 - any decoding failure means "not evidence"
+        raise ValueError(f"not frame evidence: {exc}") from None
+    if meta.get("format") != EVIDENCE_FORMAT or L.shape != valid.shape or L.shape != (ys.size, xs.size) \
+            or not np.all(np.isfinite(L[valid])):
+        raise ValueError("not frame evidence: inconsistent arrays")
+    return WorkingCopy(L=L, valid=valid, xs=xs, ys=ys, radius=float(meta["radius"]), width=int(meta["width"]),
+                       height=int(meta["height"]))
 
 
 def estimate_robust(lum: np.ndarray, settings: RobustSettings = RobustSettings(),

@@ -11,7 +11,10 @@ covariance), and the per-frame estimates are pooled three ways after n frames:
 * ``mean-field``: the mean of the per-frame log-fields (field-space pooling, the
   best a refit of the pooled field could do);
 * ``joint``: one robust fit to the first n frames' data together
-  (:func:`vigproc.robust.estimate_robust_joint`), the joint multi-frame fit.
+  (:func:`vigproc.robust.estimate_robust_joint`), the joint multi-frame fit;
+* ``store``: what the profile store holds after learning the n frames one by one
+  with their evidence (:meth:`vigproc.profiles.ProfileStore.learn`: information sums,
+  then the joint refit), in a temporary store.
 
 The error is the RMS over the frame of log2(φ̂/φ), in EV.
 """
@@ -28,7 +31,7 @@ from vigproc.errors import ModelError
 from vigproc.lensfun import bench_lenses, pa_field
 from vigproc.model import VignettingModel
 
-POOLINGS = ("information", "mean-theta", "mean-field", "joint")
+POOLINGS = ("information", "mean-theta", "mean-field", "joint", "store")
 
 
 @dataclass
@@ -44,13 +47,35 @@ def _rms_ev(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x * x)) / math.log(2.0))
 
 
+def _learned_fields(frames, estimate, counts, li, w, h):
+    """(n, log field of the stored profile after n frames) through a real store."""
+    import tempfile
+    from pathlib import Path
+
+    from vigproc.estimate import frame_evidence
+    from vigproc.profiles import ProfileKey, ProfileStore, aspect_label
+
+    key = ProfileKey(f"bench|lens|{li}", "any", "any", aspect_label(w / h))
+    with tempfile.TemporaryDirectory(prefix="vigproc-bench-") as tmp, \
+            ProfileStore(Path(tmp) / "profiles.sqlite") as st:
+        for j, f in enumerate(frames[:max(counts)]):
+            m = estimate(f)
+            m = m.candidate if m.candidate is not None else m
+            if m.covariance is None:
+                continue
+            p = st.learn(key, m, frame_id=f"frame{j:04d}", evidence=frame_evidence(f, channel_axis=None))
+            if j + 1 in counts:
+                yield j + 1, p.model(w, h).log_field((h, w))
+
+
 def run(
     images: Sequence[np.ndarray], estimate: Callable[[np.ndarray], VignettingModel],
     n_lenses: int = 20, counts: Sequence[int] = (1, 5, 20),
     joint: Callable[[list[np.ndarray]], VignettingModel] | None = None,
+    store: bool = False,
 ) -> list[ProfileAccuracy]:
     """Pooled-profile errors after each of ``counts`` frames, per pooling method
-    (``joint`` only when a joint estimator is given)."""
+    (``joint`` only when a joint estimator is given, ``store`` only when asked)."""
     from vigproc.profiles import denormalise, normalise, pool_information, pool_mean
 
     nmax = max(counts)
@@ -84,6 +109,9 @@ def run(
         for n in counts:
             if joint is not None and len(frames) >= n:
                 errors[("joint", n)].append(_rms_ev(joint(frames[:n]).log_field((h, w)) - true_log))
+        if store:
+            for n, lf in _learned_fields(frames, estimate, counts, li, w, h):
+                errors[("store", n)].append(_rms_ev(lf - true_log))
     out = []
     for p in POOLINGS:
         for n in counts:
