@@ -910,7 +910,7 @@ def _migration_2(con: sqlite3.Connection) -> None:
 
 def _migration_3(con: sqlite3.Connection) -> None:
     """v3: each pooled frame may keep its evidence for a joint refit of the profile
-    (:func:`vigproc.robust.frame_evidence`, ≈ 30 KB a frame)."""
+    (:func:`vigproc.robust.frame_evidence`, ≈ 25 KB a frame)."""
     con.execute("ALTER TABLE pooled_frames ADD COLUMN evidence BLOB")
 
 

@@ -525,7 +525,7 @@ EVIDENCE_FORMAT = "vigproc.robust-evidence/1"
 def frame_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
                    mask: np.ndarray | None = None) -> bytes:
     """What a frame contributes to a joint fit: its scene-divided working copy
-    (≈ 30 KB at 96×64 bins), as bytes for the profile store."""
+    (≈ 25 KB at 96×64 bins), as bytes for the profile store."""
     import io
     import json
 
