@@ -141,6 +141,23 @@ def test_output_stems_are_unique_deterministic_and_safe():
         assert not s.startswith(("-", ".")) and not any(ord(c) < 32 for c in s)
 
 
+def test_long_names_are_shortened_distinctly(tmp_path, vignetted_tiff):
+    from pathlib import Path
+
+    from vigproc.pipeline import MAX_STEM_BYTES, output_stems
+
+    long_a, long_b = "é" * 150 + "a", "é" * 150 + "b"  # 301 bytes each, same 180-byte prefix
+    stems = output_stems([Path(long_a + ".tif"), Path(long_b + ".tif"), Path("short.tif")])
+    assert stems[2] == "short"
+    assert all(len(s.encode()) <= MAX_STEM_BYTES for s in stems) and stems[0] != stems[1]
+    # a 250-byte name still gets its outputs (NAME_MAX is 255 bytes with the suffixes)
+    src = tmp_path / ("x" * 246 + ".tif")
+    src.write_bytes(vignetted_tiff[0].read_bytes())
+    r = run("correct", src, "-o", tmp_path / "out", "--profile", "estimate")
+    assert r.returncode == 0, r.stderr
+    assert len(list((tmp_path / "out").glob("*.corrected.tif"))) == 1
+
+
 def test_correct_never_overwrites_an_input_and_names_never_collide(tmp_path, vignetted_tiff):
     path, _ = vignetted_tiff
     o = tmp_path / "o"

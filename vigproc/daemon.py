@@ -70,6 +70,7 @@ from typing import Any, Callable, Iterable
 
 from vigproc.errors import VigprocError, one_line
 from vigproc.journal import FileChangedError, Fingerprint, FingerprintError, Journal, JournalError, fingerprint
+from vigproc.pipeline import shorten_stem
 
 __all__ = [
     "Daemon",
@@ -140,11 +141,6 @@ def is_candidate_name(name: str) -> bool:
     return not is_temporary_name(name) and os.path.splitext(name)[1].lower() in _image_suffixes()
 
 
-#: Longest output stem in UTF-8 bytes: stem + ".corrected.tif.vigproc.json" etc. stays
-#: well inside NAME_MAX (255 bytes).
-MAX_STEM_BYTES = 180
-
-
 def output_stem(rel: str) -> str:
     """A deterministic, distinct output stem for an input's path relative to the watch folder.
 
@@ -152,7 +148,8 @@ def output_stem(rel: str) -> str:
     ``a%2Fx.jpg``, so ``a/x.jpg``, ``b/x.jpg`` and ``a/x.png`` differ), with ``%``,
     ``/``, control characters, bytes that are not UTF-8 and a leading dot
     percent-encoded: the mapping is one-to-one and the same after a restart.
-    Names over :data:`MAX_STEM_BYTES` are cut and given a hash of the full path.
+    Names over :data:`vigproc.pipeline.MAX_STEM_BYTES` are cut and given a hash of the
+    full path (:func:`vigproc.pipeline.shorten_stem`).
 
     Examples
     --------
@@ -171,15 +168,7 @@ def output_stem(rel: str) -> str:
     stem = "".join(out)
     if stem.startswith("."):
         stem = "%2E" + stem[1:]
-    if len(stem.encode("utf-8")) > MAX_STEM_BYTES:
-        digest = hashlib.sha256(os.fsencode(rel)).hexdigest()[:16]
-        cut = stem
-        while len(cut.encode("utf-8")) > MAX_STEM_BYTES - 17:
-            cut = cut[:-1]
-        if "%" in cut[-2:]:  # do not leave half an escape
-            cut = cut[:cut.rindex("%")]
-        stem = f"{cut}~{digest}"
-    return stem
+    return shorten_stem(stem, os.fsencode(rel))
 
 
 # ------------------------------------------------------------------ errors

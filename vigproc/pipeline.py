@@ -141,6 +141,26 @@ def safe_output(outdir: Path, stem: str, suffix: str) -> Path:
     return out
 
 
+#: Longest output stem in bytes: with the longest suffix (``.corrected.tif``,
+#: ``.vigproc.json``, ``.vignetting.png``) a name stays well within the usual 255.
+MAX_STEM_BYTES = 180
+
+
+def shorten_stem(stem: str, identity: bytes) -> str:
+    """``stem`` cut to :data:`MAX_STEM_BYTES` (UTF-8) if longer, with ``~`` and 16 hex
+    digits of the SHA-256 of ``identity`` (the full name) appended, so two long names
+    that share a prefix still differ; shorter stems are returned unchanged."""
+    if len(stem.encode("utf-8")) <= MAX_STEM_BYTES:
+        return stem
+    digest = hashlib.sha256(identity).hexdigest()[:16]
+    cut = stem
+    while len(cut.encode("utf-8")) > MAX_STEM_BYTES - 17:
+        cut = cut[:-1]
+    if "%" in cut[-2:]:  # do not leave half an escape
+        cut = cut[:cut.rindex("%")]
+    return f"{cut}~{digest}"
+
+
 def safe_stem(stem: str) -> str:
     """``stem`` as an output name can carry it: control characters, bytes that are not
     UTF-8, separators, a leading ``-`` (read as an option by the next tool) and a
@@ -165,10 +185,11 @@ def output_stems(files: Sequence[Path]) -> list[str]:
 
     The first input of a name keeps it (made safe by :func:`safe_stem`); a later one
     gets the first ``-2``, ``-3``... not taken by *any* input's own name, so
-    ``a.tif a.png a-2.tif`` give ``a``, ``a-3``, ``a-2``.  Names are compared
+    ``a.tif a.png a-2.tif`` give ``a``, ``a-3``, ``a-2``.  Stems longer than
+    :data:`MAX_STEM_BYTES` are shortened (:func:`shorten_stem`).  Names are compared
     case-insensitively (such filesystems merge them); the same inputs in the same
     order always get the same stems."""
-    bases = [safe_stem(f.stem) for f in files]
+    bases = [shorten_stem(safe_stem(f.stem), os.fsencode(f.stem)) for f in files]
     taken = {b.casefold() for b in bases}
     first: set[str] = set()
     stems = []
