@@ -254,6 +254,7 @@ def run(
     images: Sequence[np.ndarray], estimate: Callable[[np.ndarray], VignettingModel], *,
     n_lenses: int = 8, frames: int = 5, seed: int = 0, alpha: float = 0.05,
     progress: Callable[[str], None] | None = None,
+    joint: Callable[[list[np.ndarray]], VignettingModel] | None = None,
 ) -> ForensicsBenchResult:
     """The whole benchmark (see the module docstring).
 
@@ -270,6 +271,9 @@ def run(
         Train/test split and multi-frame groups.
     alpha : float
         False-alarm probability threshold of the check.
+    joint : callable, optional
+        Frames → one VignettingModel (a joint multi-frame fit); adds identification
+        rows that classify each group of ``frames`` by the features of its joint fit.
     """
     from vigproc.forensics import expected_from_field, fit_calibration, frame_features, score
     from vigproc.identify import accuracy, confusion_matrix, feature_vector, train_classifier
@@ -315,6 +319,19 @@ def run(
                     lens_ok.append(lens_of[p] == lens_of[c])
             per = np.array(ok, dtype=float)
             ident.append(IdentRow(name, frames, len(ok), float(per.mean()), float(per.mean()), float(np.mean(lens_ok))))
+            if joint is not None:
+                # the same groups, decided on one joint fit of their frames (same rng state)
+                grng = np.random.default_rng(seed + 2)
+                ok, lens_ok = [], []
+                for c in range(len(classes)):
+                    for g in _groups(grng, np.flatnonzero(y_te == c), frames):
+                        m = joint([images[te[k].image] * classes[c].field(h, w) for k in g])
+                        p = back[clf.predict(feature_vector(m, feats)[None, :])][0]
+                        ok.append(p == c)
+                        lens_ok.append(lens_of[p] == lens_of[c])
+                per = np.array(ok, dtype=float)
+                ident.append(IdentRow(name + ", joint fit", frames, len(ok), float(per.mean()), float(per.mean()),
+                                      float(np.mean(lens_ok))))
 
     # ---- consistency check
     resid = np.array([f.features - frame_features(classes[f.cls].true_model(w, h)) for f in tr])

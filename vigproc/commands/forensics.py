@@ -224,7 +224,10 @@ def cmd_bench_forensics(args: argparse.Namespace) -> int:
     fn = lambda v: estimate(v, "default", channel_axis=None)  # noqa: E731
     fn(ims[0])  # JIT warm-up
     t0 = time.perf_counter()
-    r = B.run(ims, fn, n_lenses=args.lenses, frames=args.frames, seed=args.seed, alpha=args.alpha, progress=print)
+    from vigproc.robust import estimate_robust_joint
+
+    r = B.run(ims, fn, n_lenses=args.lenses, frames=args.frames, seed=args.seed, alpha=args.alpha, progress=print,
+              joint=estimate_robust_joint)
     print(f"\nforensics benchmark: {len(r.classes)} classes ({args.lenses} lensfun lenses x 2 apertures), "
           f"{r.n_train_images} training / {r.n_test_images} test photographs from {', '.join(args.images)} "
           f"(480x320, linearised); {time.perf_counter() - t0:.0f} s")
