@@ -70,7 +70,7 @@ from typing import Any, Callable, Iterable
 
 from vigproc.errors import VigprocError, one_line
 from vigproc.journal import FileChangedError, Fingerprint, FingerprintError, Journal, JournalError, fingerprint
-from vigproc.pipeline import shorten_stem
+from vigproc.pipeline import percent_encode, shorten_stem
 
 __all__ = [
     "Daemon",
@@ -156,18 +156,7 @@ def output_stem(rel: str) -> str:
     >>> output_stem("a/x.jpg"), output_stem("100%.jpg"), output_stem("new\\nline.png")
     ('a%2Fx.jpg', '100%25.jpg', 'new%0Aline.png')
     """
-    out = []
-    for ch in rel:
-        o = ord(ch)
-        if ch in ("%", "/", os.sep) or o < 0x20 or o == 0x7F:
-            out.append(f"%{o:02X}")
-        elif 0xDC80 <= o <= 0xDCFF:  # a byte that is not UTF-8 (surrogate escape)
-            out.append(f"%{o - 0xDC00:02X}")
-        else:
-            out.append(ch)
-    stem = "".join(out)
-    if stem.startswith("."):
-        stem = "%2E" + stem[1:]
+    stem = percent_encode(rel, also="%", leading=".")  # "%" too: one-to-one, so names never collide
     return shorten_stem(stem, os.fsencode(rel))
 
 

@@ -148,3 +148,19 @@ def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
 
     a = check_image(img, channel_axis)
     return _evidence(luminance(a), settings or RobustSettings(), clipped_mask(a))
+
+
+def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
+                           settings: RobustSettings | None = None) -> tuple[VignettingModel, bytes]:
+    """``estimate(img, "default")`` and :func:`frame_evidence` of the same frame,
+    preparing the frame once (learn mode needs both).
+
+    Raises
+    ------
+    InvalidImageError
+        As :func:`estimate`.
+    """
+    from vigproc.robust import estimate_robust_with_evidence
+
+    a = check_image(img, channel_axis)
+    return estimate_robust_with_evidence(luminance(a), settings or RobustSettings(), clipped_mask(a))

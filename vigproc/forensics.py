@@ -319,14 +319,25 @@ class Calibration:
 
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ForensicsError(f"cannot read calibration {path}: {exc}") from None
-        try:
-            return cls.from_dict(json.loads(text))
-        except json.JSONDecodeError as exc:
-            raise ForensicsError(f"calibration {path} is not valid JSON: {exc}") from None
+        return cls.from_dict(read_json(path, "calibration"))
+
+
+def read_json(path: str | Path, what: str) -> Any:
+    """The JSON document in ``path`` (a calibration, a classifier).
+
+    Raises
+    ------
+    ForensicsError
+        Unreadable, not UTF-8 or not JSON, naming ``what`` and the file.
+    """
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ForensicsError(f"cannot read {what} {path}: {exc}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ForensicsError(f"{what} {path} is not valid JSON: {exc}") from None
 
 
 def _null_d2(cal: Calibration, n_frames: int, decided: bool) -> np.ndarray:

@@ -39,7 +39,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from vigproc.forensics import ForensicsError, ring_falloff
+from vigproc.forensics import ForensicsError, read_json, ring_falloff
 from vigproc.model import VignettingModel
 
 log = logging.getLogger(__name__)
@@ -231,14 +231,7 @@ class LensClassifier:
 
     @classmethod
     def load(cls, path: str | Path) -> LensClassifier:
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ForensicsError(f"cannot read classifier {path}: {exc}") from None
-        try:
-            return cls.from_dict(json.loads(text))
-        except json.JSONDecodeError as exc:
-            raise ForensicsError(f"classifier {path} is not valid JSON: {exc}") from None
+        return cls.from_dict(read_json(path, "classifier"))
 
 
 def train_classifier(

@@ -161,22 +161,29 @@ def shorten_stem(stem: str, identity: bytes) -> str:
     return f"{cut}~{digest}"
 
 
+def percent_encode(name: str, *, also: str = "", leading: str = "") -> str:
+    """``name`` with control characters, separators, bytes that are not UTF-8 (surrogate
+    escapes), the characters in ``also`` anywhere and those in ``leading`` as the first
+    character written as ``%XX``; everything else (spaces, letters of any script) kept."""
+    out = []
+    for i, ch in enumerate(name):
+        o = ord(ch)
+        if o < 0x20 or o == 0x7F or ch in ("/", os.sep) or ch in also or (i == 0 and ch in leading):
+            out.append(f"%{o:02X}")
+        elif 0xDC80 <= o <= 0xDCFF:  # a byte that is not UTF-8 (surrogate escape)
+            out.append(f"%{o - 0xDC00:02X}")
+        else:
+            out.append(ch)
+    return "".join(out)
+
+
 def safe_stem(stem: str) -> str:
     """``stem`` as an output name can carry it: control characters, bytes that are not
     UTF-8, separators, a leading ``-`` (read as an option by the next tool) and a
     leading ``.`` (hidden) percent-encoded, as the watch daemon names its outputs
     (:func:`vigproc.daemon.output_stem`); other names, spaces and letters of any
     script included, are kept."""
-    out = []
-    for i, ch in enumerate(stem):
-        o = ord(ch)
-        if o < 0x20 or o == 0x7F or ch in ("/", os.sep) or (i == 0 and ch in "-."):
-            out.append(f"%{o:02X}")
-        elif 0xDC80 <= o <= 0xDCFF:  # a byte that is not UTF-8 (surrogate escape)
-            out.append(f"%{o - 0xDC00:02X}")
-        else:
-            out.append(ch)
-    return "".join(out) or "image"
+    return percent_encode(stem, leading="-.") or "image"
 
 
 def output_stems(files: Sequence[Path]) -> list[str]:
@@ -438,7 +445,7 @@ class Processor:
         return out, res
 
     def _learn(self, img: np.ndarray, lens_key, frame_id: str | None):
-        from vigproc.estimate import estimate
+        from vigproc.estimate import estimate, estimate_with_evidence
         from vigproc.profiles import ProfileKey
 
         if self.store is None:
@@ -447,17 +454,17 @@ class Processor:
             raise VigprocError("cannot learn: the frame's lens is unknown (no usable EXIF)")
         h, w = img.shape[:2]
         key = ProfileKey.from_lens(lens_key, w, h)
-        m = estimate(img, self.settings.method, channel_axis=-1 if img.ndim == 3 else None)
+        ca = -1 if img.ndim == 3 else None
+        evidence = None
+        if self.settings.method in ("default", "robust"):
+            # with the frame's data, so the store can refit the lens jointly on all its frames
+            m, evidence = estimate_with_evidence(img, channel_axis=ca)
+        else:
+            m = estimate(img, self.settings.method, channel_axis=ca)
         # a fit too weak to apply to this frame alone still carries evidence for the lens
         fit = m.candidate if m.candidate is not None else m
         if fit.covariance is None:
             raise ModelError("no usable fit to learn from (no uncertainty)")
-        evidence = None
-        if self.settings.method in ("default", "robust"):
-            # the frame's data, so the store can refit the lens jointly on all its frames
-            from vigproc.estimate import frame_evidence
-
-            evidence = frame_evidence(img, channel_axis=-1 if img.ndim == 3 else None)
         p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence)
         return fit, "estimate", str(p.key)
 

@@ -1234,7 +1234,7 @@ class ProfileStore(SQLiteFile):
             from vigproc.robust import evidence_copy
 
             try:
-                evidence_copy(evidence)
+                grid = evidence_copy(evidence).L.shape  # the bin grid a joint refit uses
             except ValueError as exc:
                 raise ProfileStoreError(f"unusable frame evidence: {exc}") from None
             if frame_id is None:
@@ -1312,7 +1312,7 @@ class ProfileStore(SQLiteFile):
                 con.execute("INSERT OR IGNORE INTO pooled_frames (frame, profile_id, pooled, evidence) "
                             "VALUES (?, ?, ?, ?)", (frame_id, row_id, now, evidence))
             if evidence is not None:
-                joint = self._joint_refit(con, row_id, key, evidence)
+                joint = self._joint_refit(con, row_id, key, grid)
                 if joint is not None:
                     j_theta, j_cov, n_joint = joint
                     pooled, cov_sigma, scatter = _profile_stats(j_theta, j_cov, aspect, welford)
@@ -1330,14 +1330,13 @@ class ProfileStore(SQLiteFile):
         return profile
 
     def _joint_refit(self, con: sqlite3.Connection, row_id: int, key: ProfileKey,
-                     current: bytes) -> tuple[np.ndarray, np.ndarray, int] | None:
+                     grid: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, int] | None:
         """θ and covariance (normalised) of one joint fit to the profile's frames'
-        evidence on the current frame's bin grid; None with fewer than two frames or
-        when the joint fit is not a valid model (the pooled θ stays)."""
+        evidence on ``grid`` (the current frame's bins); None with fewer than two frames
+        or when the joint fit is not a valid model (the pooled θ stays)."""
         from vigproc.errors import InvalidImageError
         from vigproc.robust import evidence_copy, joint_model
 
-        grid = evidence_copy(current).L.shape
         wcs = []
         # chosen and stacked in frame-id order: the same frames give the same fit whatever
         # order they came in (a batch job's workers finish in any order)

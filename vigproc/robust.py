@@ -526,10 +526,13 @@ def frame_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
                    mask: np.ndarray | None = None) -> bytes:
     """What a frame contributes to a joint fit: its scene-divided working copy
     (≈ 25 KB at 96×64 bins), as bytes for the profile store."""
+    return _evidence_bytes(_scene_divided(lum, settings, mask))
+
+
+def _evidence_bytes(wc: WorkingCopy) -> bytes:
     import io
     import json
 
-    wc = _scene_divided(lum, settings, mask)
     buf = io.BytesIO()
     meta = json.dumps({"format": EVIDENCE_FORMAT, "radius": wc.radius, "width": wc.width, "height": wc.height})
     np.savez_compressed(buf, L=wc.L.astype(np.float32), valid=wc.valid, xs=wc.xs, ys=wc.ys,
@@ -581,8 +584,21 @@ def estimate_robust(lum: np.ndarray, settings: RobustSettings = RobustSettings()
         and the rejected fit as ``candidate``.
     """
     t0 = time.perf_counter()
-    h, w = lum.shape
+    return _fit_copy(_scene_divided(lum, settings, mask), settings, t0)
+
+
+def estimate_robust_with_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
+                                  mask: np.ndarray | None = None) -> tuple[VignettingModel, bytes]:
+    """:func:`estimate_robust` and the frame's :func:`frame_evidence`, from one working
+    copy (learn mode needs both; binning a large frame twice would cost as much as the fit)."""
+    t0 = time.perf_counter()
     wc = _scene_divided(lum, settings, mask)
+    return _fit_copy(wc, settings, t0), _evidence_bytes(wc)
+
+
+def _fit_copy(wc: WorkingCopy, settings: RobustSettings, t0: float) -> VignettingModel:
+    """The single-frame fit of a working copy, with the do-no-harm fall-back."""
+    h, w = wc.height, wc.width
     if wc.valid.sum() < 64:
         q = FitQuality(confidence=0.0, fallback=True, seconds=time.perf_counter() - t0)
         log.info("too few usable pixels (%d bins); no correction", int(wc.valid.sum()))

@@ -47,8 +47,9 @@ def _rms_ev(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x * x)) / math.log(2.0))
 
 
-def _learned_fields(frames, estimate, counts, li, w, h):
-    """(n, log field of the stored profile after n frames) through a real store."""
+def _learned_fields(frames, fits, counts, li, w, h):
+    """(n, log field of the stored profile after n frames) through a real store;
+    ``fits`` are the frames' estimates already made (None: no usable fit)."""
     import tempfile
     from pathlib import Path
 
@@ -58,10 +59,8 @@ def _learned_fields(frames, estimate, counts, li, w, h):
     key = ProfileKey(f"bench|lens|{li}", "any", "any", aspect_label(w / h))
     with tempfile.TemporaryDirectory(prefix="vigproc-bench-") as tmp, \
             ProfileStore(Path(tmp) / "profiles.sqlite") as st:
-        for j, f in enumerate(frames[:max(counts)]):
-            m = estimate(f)
-            m = m.candidate if m.candidate is not None else m
-            if m.covariance is None:
+        for j, (f, m) in enumerate(zip(frames[:max(counts)], fits)):
+            if m is None:
                 continue
             p = st.learn(key, m, frame_id=f"frame{j:04d}", evidence=frame_evidence(f, channel_axis=None))
             if j + 1 in counts:
@@ -83,12 +82,13 @@ def run(
     for li, (_lens, pa) in enumerate(bench_lenses(n_lenses)):
         h, w = images[0].shape
         true_log = np.log(pa_field((h, w), pa.k1, pa.k2, pa.k3))
-        thetas, covs, fields, frames = [], [], [], []
+        thetas, covs, fields, frames, fits = [], [], [], [], []
         for j in range(nmax):
             im = images[(li * nmax + j) % len(images)]
             frames.append(im * np.exp(true_log))
             m = estimate(frames[-1])
             m = m.candidate if m.candidate is not None else m
+            fits.append(m if m.covariance is not None else None)
             if m.covariance is None:  # an identity model without a fit: no evidence
                 continue
             th, cov, _ = normalise(m)
@@ -110,7 +110,7 @@ def run(
             if joint is not None and len(frames) >= n:
                 errors[("joint", n)].append(_rms_ev(joint(frames[:n]).log_field((h, w)) - true_log))
         if store:
-            for n, lf in _learned_fields(frames, estimate, counts, li, w, h):
+            for n, lf in _learned_fields(frames, fits, counts, li, w, h):
                 errors[("store", n)].append(_rms_ev(lf - true_log))
     out = []
     for p in POOLINGS:
