@@ -156,6 +156,59 @@ def test_centred_refit_only_without_evidence_of_an_off_centre_fall_off(monkeypat
     assert len(calls) == 1  # selection off
 
 
+def test_shape_z_measures_departure_from_a_centred_circle():
+    from vigproc.robust import shape_z
+
+    cov = np.diag([0.01**2, 0.01**2, 0.02**2, 0.01**2, 0.02**2] + [1.0] * 7)
+    circle = np.array([0.0, 0.0, 1.0, 0.0, 1.0] + [0.0] * 7)
+    assert shape_z(circle, cov) == pytest.approx(0.0)
+    # p1 − p3 = 0.1 with var(p1) + var(p3) = 8e-4: z = 0.1 / sqrt(8e-4)
+    ellipse = circle.copy()
+    ellipse[2] = 1.1
+    assert shape_z(ellipse, cov) == pytest.approx(0.1 / np.sqrt(8e-4))
+    off = circle.copy()
+    off[:2] = 0.03, 0.04  # 3 and 4 sigma: |z| = 5
+    assert shape_z(off, cov) == pytest.approx(5.0)
+    assert shape_z(ellipse, np.zeros((12, 12))) == float("inf")
+
+
+def test_centred_refit_holds_the_fall_off_circular(monkeypatch):
+    """The selection's refit tightens both the centre and the ellipticity priors;
+    selection="centre" only the centre."""
+    import vigproc.robust as R
+    from conftest import photo_like
+    from vigproc.lensfun import bench_lenses, pa_field
+
+    seen = []
+    real = R.fit_robust
+
+    def spy(wc, s, start=None):
+        seen.append((s.sigma_center, s.sigma_ellipticity))
+        return real(wc, s, start)
+
+    monkeypatch.setattr(R, "fit_robust", spy)
+    _, pa = bench_lenses(1)[0]
+    img = photo_like(320, 480, seed=2) * pa_field((320, 480), pa.k1, pa.k2, pa.k3)
+    d = RobustSettings()
+    m = vigproc.estimate(img, channel_axis=None)
+    assert seen == [(d.sigma_center, d.sigma_ellipticity), (d.centred_sigma_center, d.centred_sigma_ellipticity)]
+    fit = m.candidate or m
+    p1, p2, p3 = fit.p
+    assert abs(p1 - p3) < 0.1 * (p1 + p3) and abs(p2) < 0.1 * (p1 + p3)
+    seen.clear()
+    vigproc.estimate(img, channel_axis=None, settings=RobustSettings(selection="centre"))
+    assert seen[-1] == (d.centred_sigma_center, d.sigma_ellipticity)
+
+
+def test_power_loss_recovers_a_table1_field():
+    truth = table1_model(2)
+    img = textured(320, 480, seed=4, contrast=0.05) * truth.field()
+    m = vigproc.estimate(img, channel_axis=None, settings=RobustSettings(loss="power", scene_prior=False))
+    err = np.log2(m.field() / truth.field())
+    assert np.sqrt(np.mean((err - err.mean()) ** 2)) < 0.05  # up to an exposure gain
+    assert relative_errors(m, truth)[1] < 0.10
+
+
 def test_centre_z():
     from vigproc.robust import centre_z
 
@@ -184,3 +237,17 @@ def test_joint_fit_of_several_frames():
         estimate_robust_joint([], s)
     with pytest.raises(InvalidImageError):
         estimate_robust_joint([frames[0], frames[1][:, :400]], s)
+
+
+def test_power_loss_kernel_is_the_smoothed_hyper_laplacian():
+    from vigproc._kernels.robust import CAUCHY, POWER, POWER_EXPONENT, robust_loss
+
+    L = np.array([[0.0, 0.3]])
+    valid = np.ones((1, 2), dtype=bool)
+    F = np.zeros((1, 2))
+    steps = np.array([1], dtype=np.int64)
+    eps = np.array([0.01])
+    loss, n = robust_loss(L, valid, F, steps, eps, POWER)
+    assert n == 1
+    assert loss == pytest.approx((1 + 30.0**2) ** (POWER_EXPONENT / 2) - 1)
+    assert robust_loss(L, valid, F, steps, eps, CAUCHY)[0] == pytest.approx(np.log1p(30.0**2))

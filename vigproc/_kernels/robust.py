@@ -13,9 +13,15 @@ import numpy as np
 from numba import njit
 
 N_PARAMS = 12
-#: Loss kinds: Cauchy ρ(u) = log(1 + u²); Huber ρ(u) = u²/2 (|u| ≤ 1), |u| − ½ otherwise.
+#: Loss kinds: Cauchy ρ(u) = log(1 + u²); Huber ρ(u) = u²/2 (|u| ≤ 1), |u| − ½ otherwise;
+#: POWER ρ(u) = (1 + u²)^(p/2) − 1, a smoothed hyper-Laplacian |u|^p (p = POWER_EXPONENT).
 CAUCHY = 0
 HUBER = 1
+POWER = 2
+#: Exponent of the POWER loss: the heavy-tailed (hyper-Laplacian) law of natural-image
+#: log-gradients, p ≈ 0.8 (Levin et al., SIGGRAPH 2007), as used by the radial-gradient
+#: method of Zheng et al. (2009) for vignetting.
+POWER_EXPONENT = 0.8
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -23,6 +29,9 @@ def _rho_w(u2, kind):
     """Loss ρ and IRLS weight w (with ρ'(u) ∝ w·u) for squared normalised residual u²."""
     if kind == CAUCHY:
         return np.log1p(u2), 1.0 / (1.0 + u2)
+    if kind == POWER:
+        t = (1.0 + u2) ** (0.5 * POWER_EXPONENT - 1.0)
+        return t * (1.0 + u2) - 1.0, 0.5 * POWER_EXPONENT * t
     if u2 <= 1.0:
         return 0.5 * u2, 1.0
     a = np.sqrt(u2)
