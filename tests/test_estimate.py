@@ -239,6 +239,13 @@ def test_joint_fit_of_several_frames():
         estimate_robust_joint([frames[0], frames[1][:, :400]], s)
 
 
+def test_settings_reject_unknown_choices():
+    with pytest.raises(ValueError, match="loss"):
+        RobustSettings(loss="cauchyy")
+    with pytest.raises(ValueError, match="selection"):
+        RobustSettings(selection="circle")
+
+
 def test_power_loss_kernel_is_the_smoothed_hyper_laplacian():
     from vigproc._kernels.robust import CAUCHY, POWER, POWER_EXPONENT, robust_loss
 

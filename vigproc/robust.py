@@ -154,6 +154,13 @@ class RobustSettings:
     centred_sigma_ellipticity: float = 0.02
     selection: str = "shape"
 
+    def __post_init__(self) -> None:
+        # a misspelt choice must not silently fall back to another loss or test
+        if self.loss not in ("cauchy", "huber", "power"):
+            raise ValueError(f"loss must be 'cauchy', 'huber' or 'power', not {self.loss!r}")
+        if self.selection not in ("shape", "centre"):
+            raise ValueError(f"selection must be 'shape' or 'centre', not {self.selection!r}")
+
 
 @dataclass(frozen=True)
 class WorkingCopy:
@@ -348,7 +355,7 @@ def _prior_system(phi: np.ndarray, s: RobustSettings) -> tuple[np.ndarray, np.nd
 
 
 def _kind(s: RobustSettings) -> int:
-    return {"huber": HUBER, "power": POWER}.get(s.loss, CAUCHY)
+    return {"cauchy": CAUCHY, "huber": HUBER, "power": POWER}[s.loss]
 
 
 def _total(wc, F, steps, sigma, scale, phi, s, penalty_w):
@@ -457,25 +464,9 @@ def field_uncertainty_ev(model_theta: np.ndarray, cov: np.ndarray, wc: WorkingCo
     return float(np.sqrt(np.mean(F * F)) / ln2), float(np.sqrt(np.mean(np.maximum(var, 0))) / ln2)
 
 
-def centre_z(theta: np.ndarray, cov: np.ndarray) -> float:
-    """Distance of the fitted centre from the frame centre in standard deviations
-    (Mahalanobis, with the fit's own 2×2 centre covariance)."""
-    c = np.asarray(theta[:2], dtype=float)
-    cc = np.asarray(cov)[:2, :2]
-    try:
-        return float(np.sqrt(max(c @ np.linalg.solve(cc, c), 0.0)))
-    except np.linalg.LinAlgError:
-        return math.inf
-
-
-def shape_z(theta: np.ndarray, cov: np.ndarray) -> float:
-    """How far the fit is from a centred, circular fall-off, in standard deviations:
-    the Mahalanobis norm of (cx, cy, p1 − p3, p2), which is 0 exactly for c = 0, P ∝ I,
-    with the fit's own covariance (4 degrees of freedom)."""
-    M = np.zeros((4, 12))
-    M[0, 0] = M[1, 1] = 1.0
-    M[2, 2], M[2, 4] = 1.0, -1.0
-    M[3, 3] = 1.0
+def _mahalanobis(theta: np.ndarray, cov: np.ndarray, M: np.ndarray) -> float:
+    """Norm of the linear functions M·θ in standard deviations of the fit's own
+    covariance (inf when that covariance is singular)."""
     d = M @ np.asarray(theta, dtype=float)
     C = M @ np.asarray(cov) @ M.T
     try:
@@ -484,22 +475,41 @@ def shape_z(theta: np.ndarray, cov: np.ndarray) -> float:
         return math.inf
 
 
+#: Selectors for the model-selection tests: the centre (cx, cy) ...
+_CENTRE = np.eye(2, 12)
+#: ... and the centre with the ellipticity terms (p1 − p3, p2), all 0 for a centred circle.
+_SHAPE = np.vstack([_CENTRE, np.eye(1, 12, 2) - np.eye(1, 12, 4), np.eye(1, 12, 3)])
+
+
+def centre_z(theta: np.ndarray, cov: np.ndarray) -> float:
+    """Distance of the fitted centre from the frame centre in standard deviations
+    (Mahalanobis, with the fit's own 2×2 centre covariance)."""
+    return _mahalanobis(theta, cov, _CENTRE)
+
+
+def shape_z(theta: np.ndarray, cov: np.ndarray) -> float:
+    """How far the fit is from a centred, circular fall-off, in standard deviations:
+    the Mahalanobis norm of (cx, cy, p1 − p3, p2), which is 0 exactly for c = 0, P ∝ I,
+    with the fit's own covariance (4 degrees of freedom)."""
+    return _mahalanobis(theta, cov, _SHAPE)
+
+
 def _select(wc: WorkingCopy, s: RobustSettings) -> tuple[np.ndarray, np.ndarray, dict]:
     """Free fit, then model selection: unless the free fit departs from a centred
     (``selection="centre"``) or centred circular (``"shape"``) fall-off by at least
     ``centred_z`` standard deviations, refit with the centre (and ellipticity) held
-    near the frame centre (a circle) by tight priors."""
+    near the frame centre (a circle) by tight priors, from the neutral start
+    (measured better than warm-starting at the free fit)."""
     theta, cov, info = fit_robust(wc, s)
     if not math.isfinite(s.centred_z):
         return theta, cov, info
     if s.selection == "shape":
-        if shape_z(theta, cov) < s.centred_z:
-            return fit_robust(wc, replace(s, sigma_center=s.centred_sigma_center,
-                                          sigma_ellipticity=s.centred_sigma_ellipticity))
-    elif centre_z(theta, cov) < s.centred_z:
-        # from the neutral start: measured better than warm-starting at the free fit
-        return fit_robust(wc, replace(s, sigma_center=s.centred_sigma_center))
-    return theta, cov, info
+        z = shape_z(theta, cov)
+        held = replace(s, sigma_center=s.centred_sigma_center, sigma_ellipticity=s.centred_sigma_ellipticity)
+    else:
+        z = centre_z(theta, cov)
+        held = replace(s, sigma_center=s.centred_sigma_center)
+    return fit_robust(wc, held) if z < s.centred_z else (theta, cov, info)
 
 
 def _scene_divided(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | None = None) -> WorkingCopy:
