@@ -18,7 +18,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vigproc.errors import VigprocError, one_line
+from vigproc.errors import PriorError, VigprocError, one_line
 
 log = logging.getLogger("vigproc")
 
@@ -164,7 +164,8 @@ def cmd_prior_fit_scene(args: argparse.Namespace) -> int:
             ims.append(protocol_image(read_image(f, transfer=args.input_transfer)[0]))
         except VigprocError as exc:
             log.warning("skipping %s", exc)
-    source = f"vigproc prior fit-scene {args.folder} --iterations {args.iterations}"
+    source = (f"vigproc prior fit-scene {args.folder} --iterations {args.iterations} "
+              f"--input-transfer {args.input_transfer}")
     scene = fit_scene_falloff(ims, lambda im, sc: estimate(im, settings=RobustSettings(scene=sc)),
                               iterations=args.iterations, source=source)
     atomic_write_text(Path(args.output), json.dumps(scene.to_dict(), indent=1) + "\n")
@@ -173,28 +174,62 @@ def cmd_prior_fit_scene(args: argparse.Namespace) -> int:
     return 0
 
 
-def _estimator(method: str, seed: int = 0):
+def _scene_settings(spec: str):
+    """RobustSettings for a bench's ``--scene-prior``: "shipped", "none" or a file
+    written by ``vigproc prior fit-scene``."""
+    from vigproc.robust import RobustSettings
+    from vigproc.scene import SceneFalloff
+
+    if spec == "shipped":
+        return RobustSettings()
+    if spec == "none":
+        return RobustSettings(scene_prior=False)
+    try:
+        text = Path(spec).read_text()
+    except OSError as exc:
+        raise PriorError(f"cannot read the scene prior {spec!r}: {exc.strerror or exc}") from exc
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise PriorError(f"the scene prior {spec!r} is not JSON: {exc}") from exc
+    try:
+        return RobustSettings(scene=SceneFalloff.from_dict(data))
+    except PriorError as exc:
+        raise PriorError(f"{spec!r}: {exc}") from exc
+
+
+def _estimator(method: str, seed: int = 0, settings=None):
+    """A bench's estimator: ``vigproc.estimate`` on a gray frame (``settings`` tune
+    the default one), or the "rgs" peer."""
     from vigproc.estimate import estimate
 
-    return lambda v: estimate(v, method, channel_axis=None, seed=seed)
+    if method == "rgs":
+        from vigproc.bench.peers import estimate_rgs
+
+        return estimate_rgs
+    return lambda v: estimate(v, method, channel_axis=None, seed=seed, settings=settings)
 
 
 def cmd_bench_synthetic(args: argparse.Namespace) -> int:
     from vigproc.bench import synthetic as S
     from vigproc.io import read_image
 
+    settings = _scene_settings(args.scene_prior)
     files = _images_in(Path(args.images), args.limit)
     ims = [S.protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
-    methods = {"ga": "ga", "lyu2010-rand": "lyu2010-rand", "lyu2010": "lyu2010", "default": "default"}
-    chosen = {k: _estimator(v) for k, v in methods.items() if k in args.methods}
+    order = ("ga", "lyu2010-rand", "lyu2010", "default", "rgs")
+    chosen = {k: _estimator(k, settings=settings) for k in order if k in args.methods}
     for fn in chosen.values():  # JIT warm-up outside the timings
         fn(ims[0])
     print(f"Lyu 2010 synthetic protocol: {len(ims)} images from {args.images}, "
-          f"{'8-bit quantised' if args.quantize else 'float'}")
+          f"{'8-bit quantised' if args.quantize else 'float'}, input transfer {args.input_transfer}, "
+          f"scene prior {args.scene_prior}")
     print(S.HEADER)
     rows = S.run(ims, chosen, quantize=args.quantize, progress=print)
     if args.json:
-        S.write_json(rows, Path(args.json), {"images": str(args.images), "n": len(ims), "quantize": args.quantize})
+        meta = {"images": str(args.images), "n": len(ims), "quantize": args.quantize,
+                "input_transfer": args.input_transfer, "scene_prior": args.scene_prior}
+        S.write_json(rows, Path(args.json), meta)
     return 0
 
 
@@ -203,15 +238,17 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     from vigproc.bench.synthetic import protocol_image
     from vigproc.io import read_image
 
+    settings = _scene_settings(args.scene_prior)
     files = _images_in(Path(args.images), args.limit)
     ims = [protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
     results = []
     print(f"lensfun protocol: {args.lenses} lenses x {args.frames_per_lens} frames from {len(ims)} images "
-          f"(linearised, 480x320); RMS of log2(estimated/true field)")
+          f"(input transfer {args.input_transfer}, 480x320, scene prior {args.scene_prior}); "
+          "RMS of log2(estimated/true field)")
     print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'p90 EV':>9}{'uncorr EV':>11}{'gain-free':>11}"
           f"{'uncorr gf':>11}{'differ. EV':>12}{'fallbk':>8}{'s/img':>8}")
     for name in args.methods:
-        fn = _estimator(name)
+        fn = _estimator(name, settings=settings)
         fn(ims[0])
         r = B.run_lensfun(ims, name, fn, args.lenses, args.frames_per_lens)
         results.append(asdict(r))
@@ -221,7 +258,7 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     print("do no harm (same images, no vignetting): RMS log2 of the applied field")
     print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'cand. med':>11}{'fallbk':>8}")
     for name in args.methods:
-        r = B.run_flat(ims, name, _estimator(name))
+        r = B.run_flat(ims, name, _estimator(name, settings=settings))
         results.append(asdict(r))
         print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.candidate_median_ev:>11.3f}{r.fallbacks:>8}")
     if args.json:
@@ -550,7 +587,9 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--input-transfer", choices=("auto", "linear", "srgb"), default="linear",
                     help="the paper's protocol takes stored values as linear (default)")
     bp.add_argument("--methods", nargs="+", default=["ga", "lyu2010-rand", "lyu2010", "default"],
-                    choices=["ga", "lyu2010-rand", "lyu2010", "default"])
+                    choices=["ga", "lyu2010-rand", "lyu2010", "default", "rgs"],
+                    help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
+    _add_scene_prior(bp)
     bp.add_argument("--json")
     bp.set_defaults(fn=cmd_bench_synthetic)
     bp = bsub.add_parser("lensfun", help="real lens profiles from lensfun applied to natural images")
@@ -559,7 +598,9 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--lenses", type=int, default=20)
     bp.add_argument("--frames-per-lens", type=int, default=5)
     add_transfer(bp)
-    bp.add_argument("--methods", nargs="+", default=["default"], choices=list(METHODS))
+    bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],
+                    help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
+    _add_scene_prior(bp)
     bp.add_argument("--json")
     bp.set_defaults(fn=cmd_bench_lensfun)
     bp = bsub.add_parser("speed", help="estimator timings on 480x320 frames")
@@ -592,6 +633,12 @@ def build_parser() -> argparse.ArgumentParser:
         if hasattr(mod, "register_bench"):
             mod.register_bench(bsub)
     return p
+
+
+def _add_scene_prior(bp: argparse.ArgumentParser) -> None:
+    bp.add_argument("--scene-prior", default="shipped", metavar="shipped|none|FILE",
+                    help="scene prior of the default estimator: the shipped one (fitted on linearised "
+                         "photos), none, or a file from 'vigproc prior fit-scene' (default: shipped)")
 
 
 class _OneLineFormatter(logging.Formatter):

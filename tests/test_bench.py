@@ -1,0 +1,96 @@
+"""Benchmark pieces: the radial-gradient-symmetry peer and the benches' scene-prior option."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from vigproc.bench.peers import estimate_rgs, radial_polynomial
+from vigproc.bench.synthetic import table1_model
+from vigproc.io import write_image
+from vigproc.lensfun import bench_lenses, pa_field
+
+from conftest import textured
+
+VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+
+
+def _gain_free_ev(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.std(np.log2(a / b)))
+
+
+def test_rgs_recovers_a_centred_real_lens():
+    """A real lens's centred radial fall-off on a texture without fall-off of its own."""
+    h, w = 320, 480
+    _, pa = bench_lenses(1)[0]
+    truth = pa_field((h, w), pa.k1, pa.k2, pa.k3)
+    base = textured(h, w, seed=3, contrast=0.05)
+    m = estimate_rgs(base * truth)
+    assert m.method == "rgs"
+    assert m.center == (0.0, 0.0) or np.hypot(*m.center) < 1.0  # centred by construction
+    err = _gain_free_ev(m.field((h, w)), truth)
+    assert err < 0.25 * _gain_free_ev(np.ones_like(truth), truth), err
+
+
+def test_rgs_sees_no_fall_off_in_a_flat_texture():
+    base = textured(320, 480, seed=4, contrast=0.05)
+    m = estimate_rgs(base)
+    assert float(np.sqrt(np.mean(np.log2(m.field((320, 480))) ** 2))) < 0.05
+
+
+def test_rgs_polynomial_fits_an_exact_radial_field():
+    """log φ = −0.4 r² − 0.1 r⁴ (r in half-diagonals): the fitted even polynomial
+    matches it over the frame to within 5 % of its range."""
+    h, w = 200, 300
+    radius = 0.5 * np.hypot(w, h)
+    y, x = np.mgrid[0:h, 0:w]
+    r2 = ((x - (w - 1) / 2) ** 2 + (y - (h - 1) / 2) ** 2) / radius**2
+    true_log = -0.4 * r2 - 0.1 * r2 * r2
+    a = radial_polynomial(np.exp(true_log) * textured(h, w, seed=5, contrast=0.02), work_size=100)
+    fit_log = sum(a[i] * r2 ** (i + 1) for i in range(len(a)))
+    assert np.max(np.abs(fit_log - true_log)) < 0.05 * np.ptp(true_log)
+
+
+def test_rgs_cannot_follow_off_centre_vignetting():
+    """Its documented limit: Table 1 setting 2 (off-centre, elliptical) is returned centred."""
+    truth = table1_model(2)
+    m = estimate_rgs(textured(320, 480, seed=6, contrast=0.05) * truth.field())
+    assert np.hypot(*m.center) < 0.2 * np.hypot(*truth.center)
+
+
+def _bench(*args):
+    return subprocess.run([*VIGPROC, "bench", *map(str, args)], capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture
+def image_folder(tmp_path):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for i in range(3):
+        g = textured(160, 240, seed=10 + i, contrast=0.05)
+        write_image(d / f"im{i}.png", np.repeat(g[..., None], 3, axis=2).astype(np.float32), bit_depth="uint16")
+    return d
+
+
+def test_bench_lensfun_scene_prior_and_peer(image_folder, tmp_path):
+    out = tmp_path / "lf.json"
+    r = _bench("lensfun", "--images", image_folder, "--lenses", "2", "--frames-per-lens", "1",
+               "--input-transfer", "linear", "--scene-prior", "none", "--methods", "default", "rgs",
+               "--json", out)
+    assert r.returncode == 0, r.stderr
+    assert "scene prior none" in r.stdout and "input transfer linear" in r.stdout
+    rows = json.loads(out.read_text())
+    assert [row["method"] for row in rows] == ["default", "rgs", "default", "rgs"]
+
+
+@pytest.mark.parametrize("content, message", [(None, "cannot read"), ("{", "not JSON"),
+                                              ('{"schema": "x"}', "not a scene fall-off")])
+def test_bench_bad_scene_prior_is_a_clear_error(image_folder, tmp_path, content, message):
+    path = tmp_path / "scene.json"
+    if content is not None:
+        path.write_text(content)
+    r = _bench("synthetic", "--images", image_folder, "--methods", "default", "--scene-prior", path)
+    assert r.returncode != 0 and message in r.stderr and "Traceback" not in r.stderr
+    assert r.stdout == ""  # refused before any figure is printed
