@@ -592,26 +592,30 @@ def test_learning_onto_import_without_uncertainty(tmp_path):
     assert "superseded a lensfun profile" in p.notes
 
 
-def test_learning_with_evidence_refits_jointly(tmp_path):
-    """With each frame's evidence the profile is one joint fit to all frames, which is
-    closer to the truth than pooling the frames' estimates (the bench's finding)."""
+def test_learning_with_evidence_pools_centred_fits(tmp_path):
+    """With each frame's evidence the profile is the debiased mean of the frames'
+    centred fits (vigproc.pooling), whatever order the frames arrive in."""
     from conftest import photo_like
 
     from vigproc.estimate import estimate, frame_evidence
-    from vigproc.robust import estimate_robust_joint, evidence_copy
+    from vigproc.pooling import centred_fit, pool_fits
+    from vigproc.robust import evidence_copy
 
     lens, pa = bench_lenses(1)[0]
     h, w = 160, 240
     truth = pa_field((h, w), pa.k1, pa.k2, pa.k3)
     frames = [photo_like(h, w, seed=60 + i) * truth for i in range(3)]
     key = ProfileKey("vigproc|test|joint", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
-    with ProfileStore(tmp_path / "p.sqlite") as store:
-        for i, f in enumerate(frames):
-            m = estimate(f, "default", channel_axis=None)
-            p = store.learn(key, m.candidate or m, frame_id=f"f{i}", evidence=frame_evidence(f, channel_axis=None))
-        assert p.n_frames == 3
-        joint = estimate_robust_joint(frames)
-        np.testing.assert_allclose(p.model(w, h).log_field(), joint.log_field(), atol=1e-6)
+    expected = pool_fits([centred_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
+    for order in ((0, 1, 2), (2, 0, 1)):
+        with ProfileStore(tmp_path / f"p{order[0]}.sqlite") as store:
+            for i in order:
+                m = estimate(frames[i], "default", channel_axis=None)
+                p = store.learn(key, m.candidate or m, frame_id=f"f{i}",
+                                evidence=frame_evidence(frames[i], channel_axis=None))
+            assert p.n_frames == 3
+            np.testing.assert_allclose(p.model(w, h).log_field(), expected.log_field(), atol=1e-6)
+    with ProfileStore(tmp_path / "p0.sqlite") as store:
         # the same frame again changes nothing; bad evidence is refused
         again = store.learn(key, m.candidate or m, frame_id="f2", evidence=frame_evidence(frames[2], channel_axis=None))
         assert again.n_frames == 3

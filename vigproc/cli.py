@@ -149,29 +149,46 @@ def cmd_prior_fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_prior_fit_scene(args: argparse.Namespace) -> int:
+def _fit_falloff(args: argparse.Namespace, what: str, source: str, estimate_with, iterations: int) -> int:
+    """Fit a mean fall-off (:func:`vigproc.scene.fit_scene_falloff`) on a folder's photos
+    in the benchmarks' framing (3:2 landscape, 480x320, linear luminance) and write it."""
     from vigproc.atomic import atomic_write_text
     from vigproc.bench.synthetic import protocol_image
-    from vigproc.estimate import estimate
     from vigproc.io import read_image
-    from vigproc.robust import RobustSettings
     from vigproc.scene import fit_scene_falloff
 
-    files = _images_in(Path(args.folder), args.limit)
     ims = []
-    for f in _progress(files, "reading"):
-        try:  # the benchmark's framing: 3:2 landscape, 480x320, linear luminance
+    for f in _progress(_images_in(Path(args.folder), args.limit), "reading"):
+        try:
             ims.append(protocol_image(read_image(f, transfer=args.input_transfer)[0]))
         except VigprocError as exc:
             log.warning("skipping %s", exc)
+    fitted = fit_scene_falloff(ims, estimate_with, iterations=iterations, source=source)
+    atomic_write_text(Path(args.output), json.dumps(fitted.to_dict(), indent=1) + "\n")
+    print(f"{what} from {fitted.n_images} photos: {fitted.field_ev_rms:.3f} EV RMS, "
+          f"photos scatter {fitted.scatter_ev:.3f} EV around it -> {args.output}")
+    return 0
+
+
+def cmd_prior_fit_scene(args: argparse.Namespace) -> int:
+    from vigproc.estimate import estimate
+    from vigproc.robust import RobustSettings
+
     source = (f"vigproc prior fit-scene {args.folder} --iterations {args.iterations} "
               f"--input-transfer {args.input_transfer}")
-    scene = fit_scene_falloff(ims, lambda im, sc: estimate(im, settings=RobustSettings(scene=sc)),
-                              iterations=args.iterations, source=source)
-    atomic_write_text(Path(args.output), json.dumps(scene.to_dict(), indent=1) + "\n")
-    print(f"scene fall-off from {scene.n_images} photos: {scene.field_ev_rms:.3f} EV RMS, "
-          f"photos scatter {scene.scatter_ev:.3f} EV around it -> {args.output}")
-    return 0
+    return _fit_falloff(args, "scene fall-off", source,
+                        lambda im, sc: estimate(im, channel_axis=None, settings=RobustSettings(scene=sc)),
+                        args.iterations)
+
+
+def cmd_prior_fit_profile_bias(args: argparse.Namespace) -> int:
+    from vigproc.estimate import estimate
+    from vigproc.pooling import CENTRED
+
+    source = f"vigproc prior fit-profile-bias {args.folder} --input-transfer {args.input_transfer}"
+    # one round: the plain mean of the centred fits (vigproc.pooling subtracts it)
+    return _fit_falloff(args, "profile bias", source,
+                        lambda im, _prior: estimate(im, channel_axis=None, settings=CENTRED), 1)
 
 
 def _scene_settings(spec: str):
@@ -577,6 +594,13 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--limit", type=int)
     add_transfer(fp)
     fp.set_defaults(fn=cmd_prior_fit_scene)
+    fp = psub.add_parser("fit-profile-bias", help="fit the profile bias that pooling subtracts (vigproc.pooling) "
+                                                  "on a folder of vignetting-free photos")
+    fp.add_argument("folder")
+    fp.add_argument("-o", "--output", required=True)
+    fp.add_argument("--limit", type=int)
+    add_transfer(fp)
+    fp.set_defaults(fn=cmd_prior_fit_profile_bias)
 
     sp = sub.add_parser("bench", help="benchmarks (print measured figures)")
     bsub = sp.add_subparsers(dest="bench_command", required=True)

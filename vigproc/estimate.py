@@ -132,12 +132,13 @@ def estimate(
 
 def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
                    settings: RobustSettings | None = None) -> bytes:
-    """A frame's data for a joint multi-frame fit (:func:`vigproc.robust.frame_evidence`),
-    prepared exactly as :func:`estimate` prepares it for the default method
-    (luminance, clipped pixels masked, scene prior divided out).
+    """A frame's data for its lens's profile (:func:`vigproc.robust.frame_evidence`,
+    pooled by :mod:`vigproc.pooling`), prepared as :func:`estimate` prepares it for
+    the default method (luminance, clipped pixels masked, binned, log), before the
+    scene prior.
 
-    The profile store keeps it per frame and refits the lens's profile jointly on all
-    of them (:meth:`vigproc.profiles.ProfileStore.learn`).
+    The profile store keeps it per frame and pools the lens's profile from all of
+    them (:meth:`vigproc.profiles.ProfileStore.learn`).
 
     Raises
     ------

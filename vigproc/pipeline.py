@@ -457,7 +457,7 @@ class Processor:
         ca = -1 if img.ndim == 3 else None
         evidence = None
         if self.settings.method in ("default", "robust"):
-            # with the frame's data, so the store can refit the lens jointly on all its frames
+            # with the frame's data, so the store can pool the lens's profile from all its frames
             m, evidence = estimate_with_evidence(img, channel_axis=ca)
         else:
             m = estimate(img, self.settings.method, channel_axis=ca)

@@ -909,7 +909,7 @@ def _migration_2(con: sqlite3.Connection) -> None:
 
 
 def _migration_3(con: sqlite3.Connection) -> None:
-    """v3: each pooled frame may keep its evidence for a joint refit of the profile
+    """v3: each pooled frame may keep its evidence for a refit of the profile
     (:func:`vigproc.robust.frame_evidence`, ≈ 25 KB a frame)."""
     con.execute("ALTER TABLE pooled_frames ADD COLUMN evidence BLOB")
 
@@ -917,11 +917,12 @@ def _migration_3(con: sqlite3.Connection) -> None:
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
 #: Append a function for the next version; never edit a released one.
 MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3)
-#: A profile is refitted jointly on at most this many frames' evidence: those with
-#: the smallest frame ids (content hashes, so a random sample that does not depend on
-#: the order frames arrive in); the refit runs inside the learning transaction and
-#: costs ~35 ms a frame (1.3 s per learn at 40 frames, measured).
+#: A profile is pooled from at most this many frames' evidence (:mod:`vigproc.pooling`):
+#: those with the smallest frame ids (content hashes, so a random sample that does not
+#: depend on the order frames arrive in); it runs inside the learning transaction.
 MAX_JOINT_FRAMES = 40
+#: Centred fits of frames kept in memory per store object.
+_FIT_CACHE_SIZE = 4096
 #: Schema version this code writes.
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -972,6 +973,8 @@ class ProfileStore(SQLiteFile):
     what = "profile store"
 
     def __init__(self, path: str | os.PathLike[str] | None = None, *, timeout: float = DEFAULT_TIMEOUT) -> None:
+        # frame id (a content hash) -> its centred fit: a long-lived learner fits each frame once
+        self._fit_cache: dict[str, Any] = {}
         super().__init__(path if path is not None else default_db_path(), timeout=timeout)
 
     def _setup_schema(self) -> None:
@@ -1214,12 +1217,12 @@ class ProfileStore(SQLiteFile):
             between pooling a frame and recording elsewhere that it was done (the
             daemon's or a batch job's journal) cannot make a rerun pool it twice.
         evidence : bytes, optional
-            The frame's data for a joint fit (:func:`vigproc.estimate.frame_evidence`).
-            Kept with the frame; once two or more frames of the profile have evidence
-            (on one bin grid), the profile's θ and covariance come from one robust fit
-            to all of them together (:func:`vigproc.robust.fit_joint`, at most
-            :data:`MAX_JOINT_FRAMES`), which measured better than pooling per-frame
-            estimates (``vigproc bench profile``).  The information sums are still kept.
+            The frame's data (:func:`vigproc.estimate.frame_evidence`), kept with the
+            frame.  Once frames of the profile have evidence (on one bin grid), the
+            profile's θ and covariance are the debiased mean of their centred fits
+            (:mod:`vigproc.pooling`, at most :data:`MAX_JOINT_FRAMES` frames), which
+            measured better than one joint fit and than pooling per-frame estimates
+            (``vigproc bench profile``).  The information sums are still kept.
             Needs ``frame_id`` (default: the SHA-256 of the evidence).
 
         Raises
@@ -1234,7 +1237,7 @@ class ProfileStore(SQLiteFile):
             from vigproc.robust import evidence_copy
 
             try:
-                grid = evidence_copy(evidence).L.shape  # the bin grid a joint refit uses
+                grid = evidence_copy(evidence).L.shape  # the bin grid the pooled refit uses
             except ValueError as exc:
                 raise ProfileStoreError(f"unusable frame evidence: {exc}") from None
             if frame_id is None:
@@ -1287,7 +1290,7 @@ class ProfileStore(SQLiteFile):
             cov = _scaled_pinv(lam, f"pooled information of {key}")
             theta = cov @ eta
             if not _valid_theta(theta, aspect):
-                # with evidence the joint refit below usually replaces θ: no need to alarm anyone
+                # with evidence the pooled refit below usually replaces θ: no need to alarm anyone
                 say = logger.warning if evidence is None else logger.debug
                 fallback = welford.theta_mean
                 if _valid_theta(fallback, aspect):
@@ -1312,7 +1315,7 @@ class ProfileStore(SQLiteFile):
                 con.execute("INSERT OR IGNORE INTO pooled_frames (frame, profile_id, pooled, evidence) "
                             "VALUES (?, ?, ?, ?)", (frame_id, row_id, now, evidence))
             if evidence is not None:
-                joint = self._joint_refit(con, row_id, key, grid)
+                joint = self._pooled_refit(con, row_id, key, grid)
                 if joint is not None:
                     j_theta, j_cov, n_joint = joint
                     pooled, cov_sigma, scatter = _profile_stats(j_theta, j_cov, aspect, welford)
@@ -1320,7 +1323,7 @@ class ProfileStore(SQLiteFile):
                                       cov_sigma_ev=cov_sigma, scatter_sigma_ev=scatter,
                                       trusted=_is_trusted(n_frames, pooled))
                     self._upsert(con, profile)
-                    logger.debug("profile %s: joint refit on %d frames", key, n_joint)
+                    logger.debug("profile %s: pooled from %d frames' evidence", key, n_joint)
             return old, profile
 
         old, profile = self._transact(f"learning {key}", body)
@@ -1329,39 +1332,49 @@ class ProfileStore(SQLiteFile):
                         profile.field_sigma_ev)
         return profile
 
-    def _joint_refit(self, con: sqlite3.Connection, row_id: int, key: ProfileKey,
-                     grid: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, int] | None:
-        """θ and covariance (normalised) of one joint fit to the profile's frames'
-        evidence on ``grid`` (the current frame's bins); None with fewer than two frames
-        or when the joint fit is not a valid model (the pooled θ stays)."""
-        from vigproc.errors import InvalidImageError
-        from vigproc.robust import evidence_copy, joint_model
+    def _pooled_refit(self, con: sqlite3.Connection, row_id: int, key: ProfileKey,
+                      grid: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """θ and covariance (normalised) of the profile pooled from its frames' evidence
+        on ``grid`` (the current frame's bins) by :mod:`vigproc.pooling`; None when no
+        frame's evidence gives a fit or the pooled model is not valid (the θ pooled
+        from the frames' estimates stays)."""
+        from vigproc.pooling import centred_fit, pool_fits
+        from vigproc.robust import evidence_copy
 
-        wcs = []
-        # chosen and stacked in frame-id order: the same frames give the same fit whatever
+        fits, size = [], None
+        # chosen in frame-id order: the same frames give the same profile whatever
         # order they came in (a batch job's workers finish in any order)
         rows = con.execute("SELECT frame, evidence FROM pooled_frames WHERE profile_id = ? AND evidence IS NOT NULL "
                            "ORDER BY frame LIMIT ?", (row_id, MAX_JOINT_FRAMES)).fetchall()
-        for _frame, blob in rows:
-            try:
-                wc = evidence_copy(bytes(blob))
-            except ValueError as exc:  # a damaged blob costs that frame's evidence, not the profile
-                logger.warning("profile %s: skipping a frame's evidence: %s", key, exc)
-                continue
-            if wc.L.shape == grid:
-                wcs.append(wc)
-        if len(wcs) < 2:
+        for frame, blob in rows:
+            cached = self._fit_cache.get(frame)
+            if cached is None:
+                try:
+                    wc = evidence_copy(bytes(blob))
+                    cached = (centred_fit(wc), wc.L.shape, (wc.width, wc.height))
+                except (ValueError, VigprocError) as exc:  # a damaged blob costs that frame, not the profile
+                    logger.warning("profile %s: skipping a frame's evidence: %s", key, exc)
+                    continue
+                if len(self._fit_cache) >= _FIT_CACHE_SIZE:
+                    self._fit_cache.pop(next(iter(self._fit_cache)))
+                self._fit_cache[frame] = cached
+            fit, shape, frame_size = cached
+            if shape == grid:
+                fits.append(fit)
+                size = frame_size
+        if not fits or size is None:
             return None
+        width, height = size
         try:
-            m = joint_model(wcs)
-        except InvalidImageError as exc:
-            logger.warning("profile %s: joint refit failed (%s); keeping the pooled estimate", key, exc)
+            m = pool_fits(fits, width, height)
+        except ModelError as exc:
+            logger.warning("profile %s: pooling the frames failed (%s); keeping the pooled estimate", key, exc)
             return None
         theta, cov, _ = normalise(m)
         if cov is None or not _valid_theta(theta, key.aspect_ratio):
-            logger.warning("profile %s: the joint refit is not a valid model; keeping the pooled estimate", key)
+            logger.warning("profile %s: the pooled fit is not a valid model; keeping the pooled estimate", key)
             return None
-        return theta, cov, len(wcs)
+        return theta, cov, len(fits)
 
     def list(self, lens_id: str | None = None) -> builtins.list[Profile]:
         """All profiles (of one ``lens_id`` if given), ordered by key."""

@@ -514,7 +514,11 @@ def _select(wc: WorkingCopy, s: RobustSettings) -> tuple[np.ndarray, np.ndarray,
 
 def _scene_divided(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | None = None) -> WorkingCopy:
     """The working copy of one frame, with the scene prior divided out if enabled."""
-    wc = working_copy(lum, settings, mask)
+    return divide_scene(working_copy(lum, settings, mask), settings)
+
+
+def divide_scene(wc: WorkingCopy, settings: RobustSettings) -> WorkingCopy:
+    """``wc`` with the scene prior divided out if ``settings`` enable it."""
     if settings.scene_prior:
         scene = settings.scene if settings.scene is not None else default_scene_falloff()
         if any(scene.theta):  # fit φ_lens = φ / φ_scene: divide the scene prior out
@@ -590,15 +594,19 @@ def joint_model(wcs: list[WorkingCopy], settings: RobustSettings = RobustSetting
                                        covariance=covt, quality=q)
 
 
-#: Format tag of :func:`frame_evidence` blobs.
-EVIDENCE_FORMAT = "vigproc.robust-evidence/1"
+#: Format tag of :func:`frame_evidence` blobs: the working copy before the scene
+#: division.  Format 1 (vigproc ≤ session 4) stored it after the division by the
+#: scene prior shipped at the time.
+EVIDENCE_FORMAT = "vigproc.robust-evidence/2"
+_EVIDENCE_V1 = "vigproc.robust-evidence/1"
 
 
 def frame_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
                    mask: np.ndarray | None = None) -> bytes:
-    """What a frame contributes to a joint fit: its scene-divided working copy
-    (≈ 25 KB at 96×64 bins), as bytes for the profile store."""
-    return _evidence_bytes(_scene_divided(lum, settings, mask))
+    """What a frame contributes to its lens's profile: its binned log working copy,
+    before any scene prior (≈ 25 KB at 96×64 bins), as bytes for the profile store
+    (:mod:`vigproc.pooling`)."""
+    return _evidence_bytes(working_copy(lum, settings, mask))
 
 
 def _evidence_bytes(wc: WorkingCopy) -> bytes:
@@ -613,7 +621,11 @@ def _evidence_bytes(wc: WorkingCopy) -> bytes:
 
 
 def evidence_copy(blob: bytes) -> WorkingCopy:
-    """The working copy of a :func:`frame_evidence` blob.
+    """The working copy of a :func:`frame_evidence` blob, before the scene division.
+
+    A format-1 blob held the copy divided by the scene prior of its day; the shipped
+    scene prior is multiplied back in (exact unless the shipped prior has changed
+    since the blob was written).
 
     Raises
     ------
@@ -630,9 +642,11 @@ def evidence_copy(blob: bytes) -> WorkingCopy:
             valid, xs, ys = z["valid"].astype(bool), z["xs"].astype(np.float64), z["ys"].astype(np.float64)
     except Exception as exc:  # noqa: BLE001 - any decoding failure means "not evidence"
         raise ValueError(f"not frame evidence: {exc}") from None
-    if meta.get("format") != EVIDENCE_FORMAT or L.shape != valid.shape or L.shape != (ys.size, xs.size) \
-            or not np.all(np.isfinite(L[valid])):
+    if meta.get("format") not in (EVIDENCE_FORMAT, _EVIDENCE_V1) or L.shape != valid.shape \
+            or L.shape != (ys.size, xs.size) or not np.all(np.isfinite(L[valid])):
         raise ValueError("not frame evidence: inconsistent arrays")
+    if meta["format"] == _EVIDENCE_V1:
+        L = L + default_scene_falloff().log_field(xs, ys)
     return WorkingCopy(L=L, valid=valid, xs=xs, ys=ys, radius=float(meta["radius"]), width=int(meta["width"]),
                        height=int(meta["height"]))
 
@@ -664,8 +678,8 @@ def estimate_robust_with_evidence(lum: np.ndarray, settings: RobustSettings = Ro
     """:func:`estimate_robust` and the frame's :func:`frame_evidence`, from one working
     copy (learn mode needs both; binning a large frame twice would cost as much as the fit)."""
     t0 = time.perf_counter()
-    wc = _scene_divided(lum, settings, mask)
-    return _fit_copy(wc, settings, t0), _evidence_bytes(wc)
+    raw = working_copy(lum, settings, mask)
+    return _fit_copy(divide_scene(raw, settings), settings, t0), _evidence_bytes(raw)
 
 
 def _fit_copy(wc: WorkingCopy, settings: RobustSettings, t0: float) -> VignettingModel:

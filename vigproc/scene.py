@@ -111,15 +111,21 @@ class SceneFalloff:
 NONE = SceneFalloff(theta=(0.0,) * N_PARAMS, source="none")
 
 
-@functools.lru_cache(maxsize=1)
-def default_scene_falloff() -> SceneFalloff:
-    """The scene prior shipped with vigproc (package data, read once)."""
+@functools.lru_cache(maxsize=4)
+def shipped_falloff(name: str) -> SceneFalloff:
+    """A mean fall-off shipped as package data (``vigproc/data/NAME``), read once;
+    none (with a warning) when the file is missing."""
     try:
-        text = resources.files("vigproc.data").joinpath(SHIPPED).read_text()
+        text = resources.files("vigproc.data").joinpath(name).read_text()
     except FileNotFoundError:
-        log.warning("the shipped scene fall-off is missing; estimating without it")
+        log.warning("the shipped fall-off %s is missing; working without it", name)
         return NONE
     return SceneFalloff.from_dict(json.loads(text))
+
+
+def default_scene_falloff() -> SceneFalloff:
+    """The scene prior shipped with vigproc (package data, read once)."""
+    return shipped_falloff(SHIPPED)
 
 
 def _grid(aspect: float, n: int = 48) -> tuple[np.ndarray, np.ndarray, int, int]:

@@ -14,7 +14,8 @@ covariance), and the per-frame estimates are pooled three ways after n frames:
   (:func:`vigproc.robust.estimate_robust_joint`), the joint multi-frame fit;
 * ``store``: what the profile store holds after learning the n frames one by one
   with their evidence (:meth:`vigproc.profiles.ProfileStore.learn`: information sums,
-  then the joint refit), in a temporary store.
+  then the debiased mean of centred fits of :mod:`vigproc.pooling`), in a temporary
+  store.
 
 The error is the RMS over the frame of log2(φ̂/φ), in EV.
 """
