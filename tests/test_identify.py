@@ -21,7 +21,7 @@ from vigproc.identify import (
     format_confusion,
     train_classifier,
 )
-from vigproc.profiles import normalise
+from vigproc.normalised import normalise
 
 from conftest import textured
 

@@ -49,7 +49,7 @@ def test_pooled_profile_never_brightens():
     """A bias larger than the frames' fall-off leaves no correction, not a brightening."""
     frames = [textured(H, W, seed=80 + i, contrast=0.05) for i in range(2)]
     from vigproc.bench.synthetic import table1_model
-    from vigproc.profiles import normalise
+    from vigproc.normalised import normalise
 
     strong = SceneFalloff(theta=tuple(normalise(table1_model(1))[0]))  # far more fall-off than the frames
     pooled = pool_fits(_fits(frames), W, H, bias=strong)
@@ -90,7 +90,7 @@ def test_format_1_evidence_gets_the_scene_prior_back():
 def test_pooled_covariance_is_the_frames_field_uncertainty_over_n():
     """The same frame's fit pooled four times: the pooled field's σ is the frame's / 2,
     in the pooled model's own parametrisation (not the frames')."""
-    from vigproc.profiles import _field_sigma_ev, normalise
+    from vigproc.normalised import _field_sigma_ev, normalise
 
     _, pa = bench_lenses(1)[0]
     img = textured(H, W, seed=95, contrast=0.05) * pa_field((H, W), pa.k1, pa.k2, pa.k3)

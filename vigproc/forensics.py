@@ -514,7 +514,7 @@ class Expected:
 
 def _feature_covariance_from_theta(theta: np.ndarray, theta_cov: np.ndarray, width: int, height: int) -> np.ndarray:
     """First-order propagation of a normalised-θ covariance to :func:`frame_features`."""
-    from vigproc.profiles import denormalise
+    from vigproc.normalised import denormalise
 
     base = frame_features(denormalise(theta, None, width, height))
     k = theta.size

@@ -69,7 +69,7 @@ def feature_vector(model: VignettingModel, features: str = "falloff") -> np.ndar
     -------
     ndarray
     """
-    from vigproc.profiles import normalise
+    from vigproc.normalised import normalise
 
     m = model.candidate if model.candidate is not None else model
     if features == "lyu2010":

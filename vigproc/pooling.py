@@ -39,8 +39,9 @@ import numpy as np
 
 from vigproc.errors import InvalidImageError, ModelError
 from vigproc.model import VignettingModel
+from vigproc.normalised import denormalise, fit_model_to_field, normalise
 from vigproc.robust import RobustSettings, WorkingCopy, fit_robust
-from vigproc.scene import SceneFalloff, shipped_falloff
+from vigproc.scene import SceneFalloff, _grid, shipped_falloff
 
 #: The shipped profile bias (package data), fitted by ``vigproc prior fit-profile-bias``.
 SHIPPED_BIAS = "profile_bias.json"
@@ -105,9 +106,6 @@ def pool_fits(fits: Sequence[FrameFit], width: int, height: int,
     ModelError
         No fits, or the pooled field cannot be fitted.
     """
-    from vigproc.profiles import denormalise, fit_model_to_field, normalise
-    from vigproc.scene import _grid
-
     if not fits:
         raise ModelError("no frames to pool")
     bias = default_profile_bias() if bias is None else bias

@@ -88,7 +88,7 @@ class SceneFalloff:
 
     def model(self, width: int, height: int):
         """The scene fall-off as a :class:`~vigproc.model.VignettingModel` of a frame."""
-        from vigproc.profiles import denormalise
+        from vigproc.normalised import denormalise
 
         return denormalise(np.asarray(self.theta), None, width, height, method="scene")
 
@@ -160,7 +160,7 @@ def fit_scene_falloff(
     -------
     SceneFalloff
     """
-    from vigproc.profiles import fit_model_to_field, normalise
+    from vigproc.normalised import fit_model_to_field, normalise
 
     if len(images) < 10:
         raise PriorError(f"fit the scene fall-off on at least 10 photos, got {len(images)}")

@@ -108,7 +108,7 @@ def estimate_rgs(lum: np.ndarray) -> VignettingModel:
     VignettingModel
         For the H×W frame, ``method="rgs"``.
     """
-    from vigproc.profiles import fit_model_to_field
+    from vigproc.normalised import fit_model_to_field
 
     h, w = lum.shape
     a = radial_polynomial(lum)
