@@ -592,6 +592,52 @@ def test_learning_onto_import_without_uncertainty(tmp_path):
     assert "superseded a lensfun profile" in p.notes
 
 
+def test_pooled_fits_are_cached_by_evidence_not_by_frame_id(tmp_path):
+    """Two lenses whose frames a caller names alike: each profile is pooled from its own
+    frames' evidence (the store's fit cache must not hand one lens the other's fits)."""
+    from conftest import photo_like
+
+    from vigproc.estimate import estimate, frame_evidence
+    from vigproc.pooling import centred_fit, pool_fits
+    from vigproc.robust import evidence_copy
+
+    h, w = 160, 240
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        for li, (_lens, pa) in enumerate(bench_lenses(2)):
+            frames = [photo_like(h, w, seed=40 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(2)]
+            key = ProfileKey(f"vigproc|test|lens{li}", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+            for i, f in enumerate(frames):
+                m = estimate(f, "default", channel_axis=None)
+                p = store.learn(key, m.candidate or m, frame_id=f"frame{i}", evidence=frame_evidence(f, channel_axis=None))
+            own = pool_fits([centred_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
+            np.testing.assert_allclose(p.model(w, h).log_field(), own.log_field(), atol=1e-6)
+
+
+def test_with_evidence_the_scatter_is_that_of_the_pooled_fits(tmp_path):
+    """The trust decision uses the scatter of what the profile pools (the frames'
+    centred fits), not of the frames' single-frame estimates."""
+    from conftest import photo_like
+
+    from vigproc.estimate import estimate, frame_evidence
+    from vigproc.normalised import _field_and_jacobian
+    from vigproc.pooling import centred_fit
+    from vigproc.robust import evidence_copy
+
+    _lens, pa = bench_lenses(1)[0]
+    h, w = 160, 240
+    frames = [photo_like(h, w, seed=50 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(3)]
+    key = ProfileKey("vigproc|test|scatter", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        for i, f in enumerate(frames):
+            m = estimate(f, "default", channel_axis=None)
+            p = store.learn(key, m.candidate or m, frame_id=f"f{i}", evidence=frame_evidence(f, channel_axis=None))
+    fields = [_field_and_jacobian(centred_fit(evidence_copy(frame_evidence(f, channel_axis=None))).theta, w / h)[0]
+              for f in frames]
+    expected = float(np.sqrt(np.mean(np.var(fields, axis=0, ddof=1))))
+    assert p.scatter_sigma_ev == pytest.approx(expected, rel=1e-9)
+    assert p.field_sigma_ev >= p.scatter_sigma_ev / np.sqrt(3) - 1e-12
+
+
 def test_learning_with_evidence_pools_centred_fits(tmp_path):
     """With each frame's evidence the profile is the debiased mean of the frames'
     centred fits (vigproc.pooling), whatever order the frames arrive in."""
