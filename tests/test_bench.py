@@ -94,3 +94,16 @@ def test_bench_bad_scene_prior_is_a_clear_error(image_folder, tmp_path, content,
     r = _bench("synthetic", "--images", image_folder, "--methods", "default", "--scene-prior", path)
     assert r.returncode != 0 and message in r.stderr and "Traceback" not in r.stderr
     assert r.stdout == ""  # refused before any figure is printed
+
+
+def test_bench_profile_reports_when_profiles_become_trusted():
+    from vigproc.bench import profile as P
+    from vigproc.estimate import estimate
+
+    ims = [textured(160, 240, seed=20 + i, contrast=0.05) for i in range(4)]
+    rows, trust = P.run(ims, lambda v: estimate(v, channel_axis=None), n_lenses=2, counts=(1, 4), store=True)
+    assert {r.pooling for r in rows} >= {"information", "store"}
+    assert trust.n_lenses == 2 and trust.max_frames == 4 and 0 <= trust.n_trusted <= 2
+    assert trust.single_frame_median_ev > 0
+    if trust.n_trusted:  # trusted needs >= 3 frames
+        assert 3 <= trust.median_frames <= 4

@@ -365,12 +365,15 @@ def cmd_bench_profile(args: argparse.Namespace) -> int:
     fn(ims[0])
     from vigproc.robust import estimate_robust_joint
 
-    rows = B.run(ims, fn, args.lenses, args.counts, joint=estimate_robust_joint, store=True)
+    rows, trust = B.run(ims, fn, args.lenses, args.counts, joint=estimate_robust_joint, store=True)
     print(f"profile accuracy: {args.lenses} lensfun lenses, frames from {len(ims)} images (480x320); "
           "RMS of log2(pooled/true field)")
     print(f"{'pooling':<14}{'frames':>7}{'lenses':>8}{'median EV':>11}{'p90 EV':>9}")
     for r in rows:
         print(f"{r.pooling:<14}{r.n_frames:>7}{r.n_lenses:>8}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}")
+    print(f"trusted store profiles: {trust.n_trusted}/{trust.n_lenses} lenses within {trust.max_frames} frames, "
+          f"after a median {trust.median_frames:.0f} frames, error then {trust.median_ev:.3f} EV median "
+          f"(p90 {trust.p90_ev:.3f}); each frame estimated alone: {trust.single_frame_median_ev:.3f} EV median")
     return 0
 
 
