@@ -107,3 +107,37 @@ def test_bench_profile_reports_when_profiles_become_trusted():
     assert trust.single_frame_median_ev > 0
     if trust.n_trusted:  # trusted needs >= 3 frames
         assert 3 <= trust.median_frames <= 4
+
+
+@pytest.fixture
+def clean_folder(tmp_path):
+    d = tmp_path / "clean"
+    d.mkdir()
+    for i in range(10):
+        g = textured(160, 240, seed=30 + i, contrast=0.05)
+        write_image(d / f"c{i}.png", np.repeat(g[..., None], 3, axis=2).astype(np.float32), bit_depth="uint16")
+    return d
+
+
+@pytest.mark.parametrize("command", ["fit-scene", "fit-profile-bias"])
+def test_prior_fit_commands_write_a_loadable_falloff(clean_folder, tmp_path, command):
+    from vigproc.scene import SceneFalloff
+
+    out = tmp_path / "out" / "falloff.json"
+    out.parent.mkdir()
+    r = subprocess.run([*VIGPROC, "prior", command, clean_folder, "-o", out, "--input-transfer", "linear"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    f = SceneFalloff.from_dict(json.loads(out.read_text()))
+    assert f.n_images == 10 and command in f.source and "--input-transfer linear" in f.source
+    # textures without fall-off of their own: a weak mean fall-off
+    assert f.field_ev_rms < 0.1
+
+
+def test_prior_fit_needs_ten_photos(clean_folder, tmp_path):
+    for p in sorted(clean_folder.iterdir())[:2]:
+        p.unlink()
+    r = subprocess.run([*VIGPROC, "prior", "fit-profile-bias", clean_folder, "-o", tmp_path / "b.json"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode != 0 and "at least 10 photos" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "b.json").exists()
