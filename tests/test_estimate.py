@@ -258,3 +258,45 @@ def test_power_loss_kernel_is_the_smoothed_hyper_laplacian():
     assert n == 1
     assert loss == pytest.approx((1 + 30.0**2) ** (POWER_EXPONENT / 2) - 1)
     assert robust_loss(L, valid, F, steps, eps, CAUCHY)[0] == pytest.approx(np.log1p(30.0**2))
+
+
+def test_shape_ratio_separates_real_lenses_from_broad_fall_off():
+    """Real lenses keep the frame centre flat (lensfun: ratio 0.23 in the median);
+    Lyu's Table 1 setting 2 falls off from the centre on (0.45)."""
+    from vigproc.lensfun import bench_lenses
+    from vigproc.lensfun_io import kw_from_pa
+    from vigproc.normalised import normalise
+    from vigproc.robust import REAL_LENS_SHAPE_RATIO, RobustSettings, shape_ratio, working_copy
+
+    wc = working_copy(np.ones((320, 480)), RobustSettings())
+    _, pa = bench_lenses(20)[8]
+    lens = normalise(kw_from_pa(pa.k1, pa.k2, pa.k3, 480, 320))[0]
+    broad = normalise(table1_model(2))[0]
+    assert shape_ratio(lens, wc) < REAL_LENS_SHAPE_RATIO < shape_ratio(broad, wc)
+    assert shape_ratio(np.zeros(12), wc) == 0.0
+
+
+def test_real_lens_method_refuses_broad_fall_off_only():
+    from vigproc.lensfun import bench_lenses, pa_field
+
+    base = textured(320, 480, seed=1, contrast=0.05)
+    broad = base * table1_model(2).field()
+    assert not vigproc.estimate(broad, "default", channel_axis=None).quality.fallback
+    refused = vigproc.estimate(broad, "real-lens", channel_axis=None)
+    assert refused.quality.fallback and refused.is_identity and refused.candidate is not None
+    _, pa = bench_lenses(20)[8]
+    lens = base * pa_field((320, 480), pa.k1, pa.k2, pa.k3)
+    m = vigproc.estimate(lens, "real-lens", channel_axis=None)
+    assert not m.quality.fallback
+    np.testing.assert_allclose(m.log_field(), vigproc.estimate(lens, channel_axis=None).log_field())
+
+
+def test_evidence_only_from_the_robust_methods():
+    from vigproc.estimate import estimate_with_evidence
+    from vigproc.extensions import UnknownMethodError
+
+    img = textured(160, 240, seed=2, contrast=0.05)
+    m, ev = estimate_with_evidence(img, channel_axis=None, method="real-lens")
+    assert isinstance(ev, bytes) and m.width == 240
+    with pytest.raises(UnknownMethodError, match="frame evidence"):
+        estimate_with_evidence(img, channel_axis=None, method="ga")

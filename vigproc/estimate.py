@@ -16,7 +16,9 @@ from vigproc.robust import RobustSettings, estimate_robust
 log = logging.getLogger(__name__)
 
 #: Methods :func:`estimate` accepts; "default" is vigproc's robust estimator.
-METHODS = ("default", "robust", "lyu2010", "lyu2010-rand", "ga")
+METHODS = ("default", "robust", "real-lens", "lyu2010", "lyu2010-rand", "ga")
+#: The methods that are vigproc's robust estimator (and give frame evidence for profiles).
+ROBUST_METHODS = ("default", "robust", "real-lens")
 #: Long side of the working copy used by the paper's methods (its protocol size).
 LYU_WORK_SIZE = 480
 #: A pixel at or above this fraction of the frame's maximum counts as clipped
@@ -55,6 +57,14 @@ def _from_working(m: VignettingModel, k: int, width: int, height: int) -> Vignet
     )
 
 
+def _robust_settings(method: str, settings: RobustSettings | None) -> RobustSettings:
+    """The robust estimator's settings for ``method`` (one of :data:`ROBUST_METHODS`)."""
+    from vigproc.robust import REAL_LENS_SHAPE_RATIO
+
+    s = settings or RobustSettings()
+    return replace(s, max_shape_ratio=REAL_LENS_SHAPE_RATIO) if method == "real-lens" else s
+
+
 def estimate(
     img: np.ndarray, method: str = "default", *, channel_axis: int | None = -1,
     prior: NaturalPrior | None = None, settings: RobustSettings | None = None,
@@ -67,9 +77,12 @@ def estimate(
     img : ndarray
         H×W or H×W×C (``channel_axis``) linear intensities, any float/int dtype.
         Colour images are reduced to Rec. 709 luminance.
-    method : {"default", "robust", "lyu2010", "lyu2010-rand", "ga"} or str
+    method : {"default", "robust", "real-lens", "lyu2010", "lyu2010-rand", "ga"} or str
         "default"/"robust": vigproc's robust per-pixel estimator, with fall-back to
-        no correction when the evidence is weak. "lyu2010": the paper's Gaussian
+        no correction when the evidence is weak. "real-lens": the same, also falling
+        back when the fitted fall-off is broader than real lenses' (for photographs
+        of real lenses: fewer corrections of photos that do not vignette; see
+        :data:`vigproc.robust.REAL_LENS_SHAPE_RATIO`). "lyu2010": the paper's Gaussian
         approximation followed by the ML fit of Eq. (6). "lyu2010-rand": the ML fit
         from a random start. "ga": Gaussian approximation only (Eqs. 17–20).
         Any other name: an installed estimator plugin (:mod:`vigproc.extensions`).
@@ -112,8 +125,8 @@ def estimate(
     h, w = a.shape[:2]
     keep = clipped_mask(a)
     lum = luminance(a)
-    if method in ("default", "robust"):
-        return estimate_robust(lum, settings or RobustSettings(), keep)
+    if method in ROBUST_METHODS:
+        return estimate_robust(lum, _robust_settings(method, settings), keep)
 
     from vigproc.lyu2010 import estimate_lyu2010
 
@@ -152,9 +165,11 @@ def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
 
 
 def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
-                           settings: RobustSettings | None = None) -> tuple[VignettingModel, bytes]:
-    """``estimate(img, "default")`` and :func:`frame_evidence` of the same frame,
-    preparing the frame once (learn mode needs both).
+                           settings: RobustSettings | None = None,
+                           method: str = "default") -> tuple[VignettingModel, bytes]:
+    """``estimate(img, method)`` and :func:`frame_evidence` of the same frame,
+    preparing the frame once (learn mode needs both); ``method`` is one of
+    :data:`ROBUST_METHODS`.
 
     Raises
     ------
@@ -163,5 +178,9 @@ def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
     """
     from vigproc.robust import estimate_robust_with_evidence
 
+    if method not in ROBUST_METHODS:
+        from vigproc.extensions import UnknownMethodError
+
+        raise UnknownMethodError(f"frame evidence comes with {', '.join(ROBUST_METHODS)}, not {method!r}")
     a = check_image(img, channel_axis)
-    return estimate_robust_with_evidence(luminance(a), settings or RobustSettings(), clipped_mask(a))
+    return estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings), clipped_mask(a))
