@@ -300,3 +300,10 @@ def test_evidence_only_from_the_robust_methods():
     assert isinstance(ev, bytes) and m.width == 240
     with pytest.raises(UnknownMethodError, match="frame evidence"):
         estimate_with_evidence(img, channel_axis=None, method="ga")
+
+
+def test_real_lens_estimates_name_their_method():
+    img = textured(160, 240, seed=3, contrast=0.05) * table1_model(1).rescale(240, 160).field()
+    m = vigproc.estimate(img, "real-lens", channel_axis=None)
+    assert m.method == "real-lens"
+    assert vigproc.estimate(img, channel_axis=None).method == "robust"

@@ -61,8 +61,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         print(f"  P (px^-2)   p1={m.p[0]:.4g} p2={m.p[1]:.4g} p3={m.p[2]:.4g}")
         print(f"  alpha       {', '.join(f'{a:.4g}' for a in m.alpha)}")
         print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame")
-        if q is not None and m.method == "robust":
-            state = "NOT applied (weak evidence)" if q.fallback else "applied"
+        if q is not None and m.method in ("robust", "real-lens"):
+            why = "weak evidence or not a real lens's shape" if m.method == "real-lens" else "weak evidence"
+            state = f"NOT applied ({why})" if q.fallback else "applied"
             print(f"  confidence  {q.confidence:.2f} (SNR {q.snr:.1f}, ±{q.field_sigma_ev:.3f} EV): {state}")
     return 0
 

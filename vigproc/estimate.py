@@ -57,6 +57,11 @@ def _from_working(m: VignettingModel, k: int, width: int, height: int) -> Vignet
     )
 
 
+def _named(model: VignettingModel, method: str) -> VignettingModel:
+    """A real-lens estimate says so (the corrected file's record names the method)."""
+    return replace(model, method="real-lens") if method == "real-lens" else model
+
+
 def _robust_settings(method: str, settings: RobustSettings | None) -> RobustSettings:
     """The robust estimator's settings for ``method`` (one of :data:`ROBUST_METHODS`)."""
     from vigproc.robust import REAL_LENS_SHAPE_RATIO
@@ -126,7 +131,7 @@ def estimate(
     keep = clipped_mask(a)
     lum = luminance(a)
     if method in ROBUST_METHODS:
-        return estimate_robust(lum, _robust_settings(method, settings), keep)
+        return _named(estimate_robust(lum, _robust_settings(method, settings), keep), method)
 
     from vigproc.lyu2010 import estimate_lyu2010
 
@@ -183,4 +188,5 @@ def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
 
         raise UnknownMethodError(f"frame evidence comes with {', '.join(ROBUST_METHODS)}, not {method!r}")
     a = check_image(img, channel_axis)
-    return estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings), clipped_mask(a))
+    m, evidence = estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings), clipped_mask(a))
+    return _named(m, method), evidence
