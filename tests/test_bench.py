@@ -64,14 +64,18 @@ def _bench(*args):
     return subprocess.run([*VIGPROC, "bench", *map(str, args)], capture_output=True, text=True, timeout=600)
 
 
+def _texture_folder(d, n: int, seed: int):
+    """``n`` 16-bit PNG textures without fall-off of their own, in a new folder ``d``."""
+    d.mkdir()
+    for i in range(n):
+        g = textured(160, 240, seed=seed + i, contrast=0.05)
+        write_image(d / f"t{i}.png", np.repeat(g[..., None], 3, axis=2).astype(np.float32), bit_depth="uint16")
+    return d
+
+
 @pytest.fixture
 def image_folder(tmp_path):
-    d = tmp_path / "imgs"
-    d.mkdir()
-    for i in range(3):
-        g = textured(160, 240, seed=10 + i, contrast=0.05)
-        write_image(d / f"im{i}.png", np.repeat(g[..., None], 3, axis=2).astype(np.float32), bit_depth="uint16")
-    return d
+    return _texture_folder(tmp_path / "imgs", 3, seed=10)
 
 
 def test_bench_lensfun_scene_prior_and_peer(image_folder, tmp_path):
@@ -111,12 +115,7 @@ def test_bench_profile_reports_when_profiles_become_trusted():
 
 @pytest.fixture
 def clean_folder(tmp_path):
-    d = tmp_path / "clean"
-    d.mkdir()
-    for i in range(10):
-        g = textured(160, 240, seed=30 + i, contrast=0.05)
-        write_image(d / f"c{i}.png", np.repeat(g[..., None], 3, axis=2).astype(np.float32), bit_depth="uint16")
-    return d
+    return _texture_folder(tmp_path / "clean", 10, seed=30)
 
 
 @pytest.mark.parametrize("command", ["fit-scene", "fit-profile-bias"])

@@ -590,21 +590,17 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--source", help="provenance text stored in the prior")
     add_transfer(fp)
     fp.set_defaults(fn=cmd_prior_fit)
-    fp = psub.add_parser("fit-scene", help="fit the scene fall-off prior of the default estimator "
-                                            "on a folder of vignetting-free photos")
-    fp.add_argument("folder")
-    fp.add_argument("-o", "--output", required=True)
-    fp.add_argument("--iterations", type=int, default=1)
-    fp.add_argument("--limit", type=int)
-    add_transfer(fp)
-    fp.set_defaults(fn=cmd_prior_fit_scene)
-    fp = psub.add_parser("fit-profile-bias", help="fit the profile bias that pooling subtracts (vigproc.pooling) "
-                                                  "on a folder of vignetting-free photos")
-    fp.add_argument("folder")
-    fp.add_argument("-o", "--output", required=True)
-    fp.add_argument("--limit", type=int)
-    add_transfer(fp)
-    fp.set_defaults(fn=cmd_prior_fit_profile_bias)
+    for name, what, fn in (("fit-scene", "the scene fall-off prior of the default estimator", cmd_prior_fit_scene),
+                           ("fit-profile-bias", "the profile bias that pooling subtracts (vigproc.pooling)",
+                            cmd_prior_fit_profile_bias)):
+        fp = psub.add_parser(name, help=f"fit {what} on a folder of vignetting-free photos")
+        fp.add_argument("folder")
+        fp.add_argument("-o", "--output", required=True)
+        if name == "fit-scene":
+            fp.add_argument("--iterations", type=int, default=1)
+        fp.add_argument("--limit", type=int)
+        add_transfer(fp)
+        fp.set_defaults(fn=fn)
 
     sp = sub.add_parser("bench", help="benchmarks (print measured figures)")
     bsub = sp.add_subparsers(dest="bench_command", required=True)
