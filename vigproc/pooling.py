@@ -40,7 +40,8 @@ import numpy as np
 from vigproc.errors import InvalidImageError, ModelError
 from vigproc.model import VignettingModel
 from vigproc.normalised import denormalise, fit_model_to_field, normalise
-from vigproc.robust import RobustSettings, WorkingCopy, fit_robust
+from vigproc._kernels.robust import kw_field_and_jacobian
+from vigproc.robust import MIN_VALID_BINS, RobustSettings, WorkingCopy, fit_robust
 from vigproc.scene import SceneFalloff, _grid, shipped_falloff
 
 #: The shipped profile bias (package data), fitted by ``vigproc prior fit-profile-bias``.
@@ -67,7 +68,7 @@ def centred_fit(wc: WorkingCopy, settings: RobustSettings = CENTRED) -> FrameFit
     InvalidImageError
         Too few usable bins.
     """
-    if int(wc.valid.sum()) < 64:
+    if int(wc.valid.sum()) < MIN_VALID_BINS:
         raise InvalidImageError(f"too few usable pixels for a fit ({int(wc.valid.sum())} bins)")
     theta, cov, _ = fit_robust(wc, settings)
     return FrameFit(theta=theta, cov=cov)
@@ -109,33 +110,27 @@ def pool_fits(fits: Sequence[FrameFit], width: int, height: int,
     if not fits:
         raise ModelError("no frames to pool")
     bias = default_profile_bias() if bias is None else bias
-    xs, ys, gw, gh = _grid(width / height)
-    fields = [SceneFalloff(theta=tuple(f.theta)).log_field(xs, ys) for f in fits]
-    mean = np.mean(fields, axis=0) - bias.log_field(xs, ys)
-    target = np.minimum(mean, 0.0)  # a lens does not brighten its corners
+    xs, ys, _, _ = _grid(width / height)
+    fields, jacobians = zip(*(_field_and_jacobian(f.theta, xs, ys) for f in fits))
+    mean = np.mean(fields, axis=0) - bias.log_field(xs, ys).ravel()
+    target = np.minimum(mean, 0.0).reshape(ys.size, xs.size)  # a lens does not brighten its corners
     if float(np.sqrt(np.mean(target * target))) / math.log(2.0) < min_ev:
         fitted = VignettingModel.identity(width, height)
     else:
         fitted, _ = fit_model_to_field(target, width, height)
     theta, _, _ = normalise(fitted)
-    return denormalise(theta, _pooled_covariance(fits, theta, xs, ys), width, height, method="profile-pooled")
+    # covariance of the pooled θ: the frames' field covariances J_i Σ_i J_iᵀ / n², mapped
+    # through the least-squares refit at θ (pseudo-inverse of its Jacobian, since the
+    # Kang-Weiss split between A and G leaves directions the field does not see)
+    g = np.linalg.pinv(_field_and_jacobian(theta, xs, ys)[1], rcond=1e-8)
+    maps = [g @ j for j in jacobians]  # 12×12: frame parameters → pooled parameters
+    cov = sum(a @ f.cov @ a.T for a, f in zip(maps, fits)) / len(fits) ** 2
+    return denormalise(theta, 0.5 * (cov + cov.T), width, height, method="profile-pooled")
 
 
-def _pooled_covariance(fits: Sequence[FrameFit], theta: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """Covariance of the pooled θ: the frames' field covariances J_i Σ_i J_iᵀ / n², mapped
-    through the least-squares refit at θ (pseudo-inverse of its Jacobian, since the
-    Kang-Weiss split between A and G leaves directions the field does not see)."""
-    from vigproc._kernels.robust import kw_field_and_jacobian
-
+def _field_and_jacobian(theta: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """log φ (flattened) and its Jacobian (points × 12) for normalised θ on the grid."""
     F = np.empty((ys.size, xs.size))
-    J = np.empty((ys.size, xs.size, theta.size))
-    cf = np.zeros((F.size, F.size))
-    for f in fits:
-        kw_field_and_jacobian(xs, ys, np.asarray(f.theta, dtype=np.float64), F, J)
-        ji = J.reshape(F.size, -1)
-        cf += ji @ f.cov @ ji.T
-    cf /= len(fits) ** 2
-    kw_field_and_jacobian(xs, ys, np.asarray(theta, dtype=np.float64), F, J)
-    g = np.linalg.pinv(J.reshape(F.size, -1), rcond=1e-8)
-    cov = g @ cf @ g.T
-    return 0.5 * (cov + cov.T)
+    J = np.empty((ys.size, xs.size, len(theta)))
+    kw_field_and_jacobian(xs, ys, np.ascontiguousarray(theta, dtype=np.float64), F, J)
+    return F.ravel(), J.reshape(F.size, -1)

@@ -836,7 +836,7 @@ MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _m
 #: A profile is pooled from at most this many frames' evidence (:mod:`vigproc.pooling`):
 #: those with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in); it runs inside the learning transaction.
-MAX_JOINT_FRAMES = 40
+MAX_POOLED_FRAMES = 40
 #: Centred fits of frames kept in memory per store object.
 _FIT_CACHE_SIZE = 4096
 #: Schema version this code writes.
@@ -1136,7 +1136,7 @@ class ProfileStore(SQLiteFile):
             The frame's data (:func:`vigproc.estimate.frame_evidence`), kept with the
             frame.  Once frames of the profile have evidence (on one bin grid), the
             profile's θ and covariance are the debiased mean of their centred fits
-            (:mod:`vigproc.pooling`, at most :data:`MAX_JOINT_FRAMES` frames), which
+            (:mod:`vigproc.pooling`, at most :data:`MAX_POOLED_FRAMES` frames), which
             measured better than one joint fit and than pooling per-frame estimates
             (``vigproc bench profile``).  The information sums are still kept.
             Needs ``frame_id`` (default: the SHA-256 of the evidence).
@@ -1234,15 +1234,15 @@ class ProfileStore(SQLiteFile):
                 con.execute("INSERT OR IGNORE INTO pooled_frames (frame, profile_id, pooled, evidence) "
                             "VALUES (?, ?, ?, ?)", (frame_id, row_id, now, evidence))
             if evidence is not None:
-                joint = self._pooled_refit(con, row_id, key, grid)
-                if joint is not None:
-                    j_theta, j_cov, n_joint = joint
-                    pooled, cov_sigma, scatter = _profile_stats(j_theta, j_cov, aspect, welford)
-                    profile = replace(profile, theta=j_theta, covariance=j_cov, field_sigma_ev=pooled,
+                refit = self._pooled_refit(con, row_id, key, grid)
+                if refit is not None:
+                    r_theta, r_cov, n_pooled = refit
+                    pooled, cov_sigma, scatter = _profile_stats(r_theta, r_cov, aspect, welford)
+                    profile = replace(profile, theta=r_theta, covariance=r_cov, field_sigma_ev=pooled,
                                       cov_sigma_ev=cov_sigma, scatter_sigma_ev=scatter,
                                       trusted=_is_trusted(n_frames, pooled))
                     self._upsert(con, profile)
-                    logger.debug("profile %s: pooled from %d frames' evidence", key, n_joint)
+                    logger.debug("profile %s: pooled from %d frames' evidence", key, n_pooled)
             return old, profile
 
         old, profile = self._transact(f"learning {key}", body)
@@ -1288,7 +1288,7 @@ class ProfileStore(SQLiteFile):
         # chosen in frame-id order: the same frames give the same profile whatever
         # order they came in (a batch job's workers finish in any order)
         rows = con.execute("SELECT frame, evidence FROM pooled_frames WHERE profile_id = ? AND evidence IS NOT NULL "
-                           "ORDER BY frame LIMIT ?", (row_id, MAX_JOINT_FRAMES)).fetchall()
+                           "ORDER BY frame LIMIT ?", (row_id, MAX_POOLED_FRAMES)).fetchall()
         for _frame, blob in rows:
             try:
                 fit, shape, frame_size = self._frame_fit(bytes(blob))
@@ -1298,7 +1298,7 @@ class ProfileStore(SQLiteFile):
             if shape == grid:
                 fits.append(fit)
                 size = frame_size
-        if not fits or size is None:
+        if not fits:
             return None
         width, height = size
         try:

@@ -304,6 +304,9 @@ def shape_ratio(theta: np.ndarray, wc: WorkingCopy) -> float:
     return log_phi(0.5 * r) / edge if edge < -1e-3 else 0.0
 
 
+#: Fewest usable bins a fit is made from (fewer: no fit, or no correction).
+MIN_VALID_BINS = 64
+
 #: Hard floor of G on [0, r_max] (the frame's corners): a fit may not black out a corner.
 G_MIN = 0.02
 
@@ -595,7 +598,7 @@ def fit_joint(wcs: list[WorkingCopy], settings: RobustSettings) -> tuple[np.ndar
         rows_v.append(wc.valid)
         rows_y.append(wc.ys)
     joint = replace(wcs[0], L=np.vstack(rows_L), valid=np.vstack(rows_v), ys=np.concatenate(rows_y))
-    if joint.valid.sum() < 64:
+    if joint.valid.sum() < MIN_VALID_BINS:
         raise InvalidImageError("too few usable pixels for a joint fit")
     return _select(joint, replace(settings, n_eff=settings.n_eff * len(wcs)))
 
@@ -605,8 +608,8 @@ def estimate_robust_joint(lums: list[np.ndarray], settings: RobustSettings = Rob
     (:func:`fit_joint`).  No fall-back: the fit is returned with its covariance.
 
     This is the "joint multi-frame fit" of the profile protocol (``vigproc bench
-    profile``), measured against pooling per-frame estimates; the profile store
-    refits its profiles this way from the frames' evidence (:func:`frame_evidence`).
+    profile``), measured against pooling per-frame estimates (the profile store's
+    rule until session 4; it now pools centred fits, :mod:`vigproc.pooling`).
 
     Raises
     ------
@@ -725,7 +728,7 @@ def estimate_robust_with_evidence(lum: np.ndarray, settings: RobustSettings = Ro
 def _fit_copy(wc: WorkingCopy, settings: RobustSettings, t0: float) -> VignettingModel:
     """The single-frame fit of a working copy, with the do-no-harm fall-back."""
     h, w = wc.height, wc.width
-    if wc.valid.sum() < 64:
+    if wc.valid.sum() < MIN_VALID_BINS:
         q = FitQuality(confidence=0.0, fallback=True, seconds=time.perf_counter() - t0)
         log.info("too few usable pixels (%d bins); no correction", int(wc.valid.sum()))
         return VignettingModel.identity(w, h, method="robust", quality=q)
@@ -735,10 +738,11 @@ def _fit_copy(wc: WorkingCopy, settings: RobustSettings, t0: float) -> Vignettin
     # confidence: smooth in SNR, 0.5 at the decision threshold
     confidence = float(1.0 / (1.0 + math.exp(-2.0 * (snr - settings.min_snr))))
     accept = snr >= settings.min_snr and ev_rms >= settings.min_ev
-    if accept and math.isfinite(settings.max_shape_ratio) and shape_ratio(theta, wc) > settings.max_shape_ratio:
-        log.info("the fitted fall-off is broader than a real lens's (shape ratio %.2f); no correction",
-                 shape_ratio(theta, wc))
-        accept = False
+    if accept and math.isfinite(settings.max_shape_ratio):
+        ratio = shape_ratio(theta, wc)
+        if ratio > settings.max_shape_ratio:
+            log.info("the fitted fall-off is broader than a real lens's (shape ratio %.2f); no correction", ratio)
+            accept = False
     th_px, cov_px = _to_pixels(theta, cov, wc.radius)
     q = FitQuality(
         confidence=confidence, field_ev_rms=ev_rms, field_sigma_ev=ev_sigma, snr=snr,
