@@ -42,7 +42,7 @@ from vigproc.model import VignettingModel
 from vigproc.normalised import denormalise, fit_model_to_field, normalise
 from vigproc._kernels.robust import kw_field_and_jacobian
 from vigproc.robust import MIN_VALID_BINS, RobustSettings, WorkingCopy, fit_robust
-from vigproc.scene import SceneFalloff, _grid, shipped_falloff
+from vigproc.scene import SceneFalloff, frame_grid, shipped_falloff
 
 #: The shipped profile bias (package data), fitted by ``vigproc prior fit-profile-bias``.
 SHIPPED_BIAS = "profile_bias.json"
@@ -110,7 +110,7 @@ def pool_fits(fits: Sequence[FrameFit], width: int, height: int,
     if not fits:
         raise ModelError("no frames to pool")
     bias = default_profile_bias() if bias is None else bias
-    xs, ys, _, _ = _grid(width / height)
+    xs, ys, _, _ = frame_grid(width / height)
     fields, jacobians = zip(*(_field_and_jacobian(f.theta, xs, ys) for f in fits))
     mean = np.mean(fields, axis=0) - bias.log_field(xs, ys).ravel()
     target = np.minimum(mean, 0.0).reshape(ys.size, xs.size)  # a lens does not brighten its corners

@@ -128,8 +128,9 @@ def default_scene_falloff() -> SceneFalloff:
     return shipped_falloff(SHIPPED)
 
 
-def _grid(aspect: float, n: int = 48) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Pixel-centre normalised coordinates of an n-wide frame of aspect W/H."""
+def frame_grid(aspect: float, n: int = 48) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Pixel-centre coordinates (half-diagonals) of an n-wide frame of aspect W/H:
+    (xs, ys, width, height) of the small grid mean fall-offs are fitted and pooled on."""
     from vigproc.model import frame_coords
 
     w, h = n, max(4, int(round(n / aspect)))
@@ -166,7 +167,7 @@ def fit_scene_falloff(
         raise PriorError(f"fit the scene fall-off on at least 10 photos, got {len(images)}")
     h0, w0 = images[0].shape[:2]
     aspect = w0 / h0
-    xs, ys, gw, gh = _grid(aspect)
+    xs, ys, gw, gh = frame_grid(aspect)
     prior = NONE
     scatter = float("nan")
     for it in range(iterations):

@@ -28,13 +28,13 @@ vignetting correction from gradient distribution symmetries", IEEE TPAMI 35(6),
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
 
-from vigproc.image import bin_mean, log_image
 from vigproc.model import VignettingModel
+from vigproc.robust import RobustSettings, working_copy
+from vigproc.scene import frame_grid
 
 #: Exponent of the hyper-Laplacian gradient prior (Zheng et al., Eq. 5).
 EXPONENT = 0.8
@@ -60,14 +60,9 @@ def radial_polynomial(lum: np.ndarray, work_size: int = 120, order: int = 3, ite
     -------
     ndarray of shape (order,)
     """
-    h, w = lum.shape
-    k = max(1, round(max(h, w) / work_size))
-    b, valid = bin_mean(np.asarray(lum, dtype=np.float64), k)
-    valid &= b > 0.01 * np.percentile(b, 99)  # the estimator's own dark-bin rule
-    L = log_image(b)
-    hb, wb = L.shape
-    radius = 0.5 * math.hypot(wb, hb)
-    X, Y = np.meshgrid((np.arange(wb) - (wb - 1) / 2) / radius, (np.arange(hb) - (hb - 1) / 2) / radius)
+    wc = working_copy(np.asarray(lum, dtype=np.float64), RobustSettings(work_size=work_size))
+    L, valid = wc.L, wc.valid
+    X, Y = np.meshgrid(wc.xs, wc.ys)
     r = np.hypot(X, Y)
     gx = np.zeros_like(L)
     gy = np.zeros_like(L)
@@ -80,8 +75,8 @@ def radial_polynomial(lum: np.ndarray, work_size: int = 120, order: int = 3, ite
     ok[1:-1] &= valid[2:] & valid[:-2]
     g = ((gx * X + gy * Y) / np.maximum(r, 1e-9))[ok]  # radial log-gradient per bin
     rr = r[ok]
-    # d/dr of r^{2i}, times the bin size in half-diagonals
-    D = np.stack([2 * i * rr ** (2 * i - 1) / radius for i in range(1, order + 1)], axis=1)
+    step = wc.xs[1] - wc.xs[0]  # the bin size in half-diagonals
+    D = np.stack([2 * i * rr ** (2 * i - 1) * step for i in range(1, order + 1)], axis=1)
     a = np.zeros(order)
     if g.size < 4 * order:
         return a
@@ -96,7 +91,7 @@ def estimate_rgs(lum: np.ndarray) -> VignettingModel:
     """Radial-gradient-symmetry peer: the centred radial fall-off as a Kang-Weiss model.
 
     The polynomial is clamped to log φ ≤ 0 (a vignetting field does not brighten)
-    and fitted with :func:`vigproc.profiles.fit_model_to_field`, so that the
+    and fitted with :func:`vigproc.normalised.fit_model_to_field`, so that the
     benchmarks score it exactly as they score vigproc's own models.
 
     Parameters
@@ -112,9 +107,8 @@ def estimate_rgs(lum: np.ndarray) -> VignettingModel:
 
     h, w = lum.shape
     a = radial_polynomial(lum)
-    gh, gw = 40, max(4, round(40 * w / h))
-    radius = 0.5 * math.hypot(gw, gh)
-    X, Y = np.meshgrid((np.arange(gw) - (gw - 1) / 2) / radius, (np.arange(gh) - (gh - 1) / 2) / radius)
+    xs, ys, _, _ = frame_grid(w / h)
+    X, Y = np.meshgrid(xs, ys)
     r2 = X * X + Y * Y
     F = np.minimum(sum(a[i] * r2 ** (i + 1) for i in range(len(a))), 0.0)
     if not np.any(F < 0):
