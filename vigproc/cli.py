@@ -154,16 +154,10 @@ def _fit_falloff(args: argparse.Namespace, what: str, source: str, estimate_with
     """Fit a mean fall-off (:func:`vigproc.scene.fit_scene_falloff`) on a folder's photos
     in the benchmarks' framing (3:2 landscape, 480x320, linear luminance) and write it."""
     from vigproc.atomic import atomic_write_text
-    from vigproc.bench.synthetic import protocol_image
-    from vigproc.io import read_image
+    from vigproc.bench.synthetic import read_protocol_images
     from vigproc.scene import fit_scene_falloff
 
-    ims = []
-    for f in _progress(_images_in(Path(args.folder), args.limit), "reading"):
-        try:
-            ims.append(protocol_image(read_image(f, transfer=args.input_transfer)[0]))
-        except VigprocError as exc:
-            log.warning("skipping %s", exc)
+    ims = read_protocol_images(_progress(_images_in(Path(args.folder), args.limit), "reading"), args.input_transfer)
     fitted = fit_scene_falloff(ims, estimate_with, iterations=iterations, source=source)
     atomic_write_text(Path(args.output), json.dumps(fitted.to_dict(), indent=1) + "\n")
     print(f"{what} from {fitted.n_images} photos: {fitted.field_ev_rms:.3f} EV RMS, "

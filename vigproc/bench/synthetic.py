@@ -65,6 +65,21 @@ def protocol_image(img: np.ndarray) -> np.ndarray:
     return resize_area(g, HEIGHT, WIDTH)
 
 
+def read_protocol_images(files: Iterable[Path], transfer: str = "linear") -> list[np.ndarray]:
+    """:func:`protocol_image` of each readable file (decoded with ``transfer``); a file
+    that cannot be read is skipped with a warning."""
+    from vigproc.errors import VigprocError
+    from vigproc.io import read_image
+
+    ims = []
+    for f in files:
+        try:
+            ims.append(protocol_image(read_image(f, transfer=transfer)[0]))
+        except VigprocError as exc:
+            log.warning("skipping %s", exc)
+    return ims
+
+
 def psnr_best_gain(restored: np.ndarray, original: np.ndarray) -> float:
     """PSNR (peak 1) of ``restored`` against ``original`` after the best scalar gain."""
     r = restored.ravel()

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import shlex
 import sys
 import time
@@ -26,7 +25,6 @@ import numpy as np
 from vigproc.commands._options import add_method, add_transfer
 from vigproc.errors import VigprocError
 
-log = logging.getLogger(__name__)
 
 #: --classifier choices: name -> (kind, features).
 CLASSIFIERS = {"vigproc": ("gaussian", "falloff"), "lyu2010": ("nn", "lyu2010")}
@@ -111,17 +109,10 @@ def _estimates(files: list[Path], method: str, transfer: str, what: str):
 
 
 def _protocol_images(folders, limit, transfer):
-    from vigproc.bench.synthetic import protocol_image
-    from vigproc.io import read_image
+    from vigproc.bench.synthetic import read_protocol_images
     from vigproc.pipeline import images_in
 
-    ims = []
-    for folder in folders:
-        for f in images_in(Path(folder), limit):
-            try:
-                ims.append(protocol_image(read_image(f, transfer=transfer)[0]))
-            except VigprocError as exc:
-                log.warning("skipping %s", exc)
+    ims = [im for folder in folders for im in read_protocol_images(images_in(Path(folder), limit), transfer)]
     if len(ims) < 10:
         raise VigprocError(f"need at least 10 readable photographs, found {len(ims)}")
     return ims
