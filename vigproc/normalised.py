@@ -101,13 +101,19 @@ def _field_grid(aspect: float, n: int = FIELD_GRID) -> tuple[np.ndarray, np.ndar
     return u * hx, u * hy
 
 
-def _field_and_jacobian(theta: np.ndarray, aspect: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """log2 φ (flattened) and ∂ log2 φ / ∂θ̃ on the standard grid; min G."""
-    xs, ys = _field_grid(aspect)
+def log_field_and_jacobian(theta: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """ln φ (flattened, rows over ``ys``) and ∂ ln φ / ∂θ̃ (points × 12) for normalised
+    θ̃ on the grid ``xs`` × ``ys`` (half-diagonals); min G over the grid."""
     F = np.empty((ys.size, xs.size))
     J = np.empty((ys.size, xs.size, N_PARAMS))
     gmin = kw_field_and_jacobian(xs, ys, np.ascontiguousarray(theta, dtype=np.float64), F, J)
-    return F.ravel() / _LN2, J.reshape(-1, N_PARAMS) / _LN2, float(gmin)
+    return F.ravel(), J.reshape(F.size, N_PARAMS), float(gmin)
+
+
+def _field_and_jacobian(theta: np.ndarray, aspect: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """log2 φ (flattened) and ∂ log2 φ / ∂θ̃ on the standard grid; min G."""
+    F, J, gmin = log_field_and_jacobian(theta, *_field_grid(aspect))
+    return F / _LN2, J / _LN2, gmin
 
 
 def _field_sigma_ev(theta: np.ndarray, cov: np.ndarray, aspect: float) -> float:

@@ -39,8 +39,7 @@ import numpy as np
 
 from vigproc.errors import InvalidImageError, ModelError
 from vigproc.model import VignettingModel
-from vigproc.normalised import denormalise, fit_model_to_field, normalise
-from vigproc._kernels.robust import kw_field_and_jacobian
+from vigproc.normalised import denormalise, fit_model_to_field, log_field_and_jacobian, normalise
 from vigproc.robust import MIN_VALID_BINS, RobustSettings, WorkingCopy, fit_robust
 from vigproc.scene import SceneFalloff, frame_grid, shipped_falloff
 
@@ -111,7 +110,7 @@ def pool_fits(fits: Sequence[FrameFit], width: int, height: int,
         raise ModelError("no frames to pool")
     bias = default_profile_bias() if bias is None else bias
     xs, ys, _, _ = frame_grid(width / height)
-    fields, jacobians = zip(*(_field_and_jacobian(f.theta, xs, ys) for f in fits))
+    fields, jacobians, _ = zip(*(log_field_and_jacobian(f.theta, xs, ys) for f in fits))
     mean = np.mean(fields, axis=0) - bias.log_field(xs, ys).ravel()
     target = np.minimum(mean, 0.0).reshape(ys.size, xs.size)  # a lens does not brighten its corners
     if float(np.sqrt(np.mean(target * target))) / math.log(2.0) < min_ev:
@@ -122,15 +121,8 @@ def pool_fits(fits: Sequence[FrameFit], width: int, height: int,
     # covariance of the pooled θ: the frames' field covariances J_i Σ_i J_iᵀ / n², mapped
     # through the least-squares refit at θ (pseudo-inverse of its Jacobian, since the
     # Kang-Weiss split between A and G leaves directions the field does not see)
-    g = np.linalg.pinv(_field_and_jacobian(theta, xs, ys)[1], rcond=1e-8)
+    g = np.linalg.pinv(log_field_and_jacobian(theta, xs, ys)[1], rcond=1e-8)
     maps = [g @ j for j in jacobians]  # 12×12: frame parameters → pooled parameters
     cov = sum(a @ f.cov @ a.T for a, f in zip(maps, fits)) / len(fits) ** 2
     return denormalise(theta, 0.5 * (cov + cov.T), width, height, method="profile-pooled")
 
-
-def _field_and_jacobian(theta: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """log φ (flattened) and its Jacobian (points × 12) for normalised θ on the grid."""
-    F = np.empty((ys.size, xs.size))
-    J = np.empty((ys.size, xs.size, len(theta)))
-    kw_field_and_jacobian(xs, ys, np.ascontiguousarray(theta, dtype=np.float64), F, J)
-    return F.ravel(), J.reshape(F.size, -1)
