@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from conftest import textured
 
+from vigproc import backends as BK
 from vigproc import batch as B
 from vigproc.cli import main
 from vigproc.io import read_image, write_image
@@ -153,7 +154,7 @@ def test_hostile_file_names(archive, tmp_path):
         shutil.copy(archive / "f0.tif", src / n)
     shutil.copy(archive / "f0.tif", os.path.join(os.fsencode(src), b"latin1-\xe9.tif"))
     items, _ = B.collect(src, tmp_path / "out")
-    s = _run(items, Settings(mode="estimate", profile="estimate"), tmp_path / "out", B.local_backend(1))
+    s = _run(items, Settings(mode="estimate", profile="estimate"), tmp_path / "out", BK.local_backend(1))
     assert s.processed == len(names) and s.quarantined == 1  # the non-UTF-8 name: a clear error, not a crash
     assert sorted(p.name for p in (tmp_path / "out").glob("*" + SIDECAR_SUFFIX)) == sorted(
         n + SIDECAR_SUFFIX for n in names)
@@ -171,12 +172,12 @@ def test_interrupted_run_resumes_without_redoing(archive, tmp_path):
         if summary.processed == 4:
             raise KeyboardInterrupt
 
-    s1 = _run(items, settings, out, B.local_backend(1), on_result=stop_after_4)
+    s1 = _run(items, settings, out, BK.local_backend(1), on_result=stop_after_4)
     assert s1.interrupted and s1.processed == 4
     first = {p: p.stat().st_mtime_ns for p in out.rglob("*" + SIDECAR_SUFFIX)}
     assert len(first) == 4
 
-    s2 = _run(items, settings, out, B.local_backend(1))
+    s2 = _run(items, settings, out, BK.local_backend(1))
     assert not s2.interrupted
     assert (s2.skipped, s2.processed, s2.quarantined) == (4, len(GOOD) - 4, 1)
     assert all(p.stat().st_mtime_ns == t for p, t in first.items())  # done files were not redone
@@ -191,14 +192,14 @@ def test_interrupted_run_resumes_without_redoing(archive, tmp_path):
     # a changed file is new work; a touched one (same content) is not; the broken one stays quarantined
     write_image(src / "f1.tif", _frame(99), bit_depth="uint16")
     os.utime(src / "f2.tif", ns=(time.time_ns(), time.time_ns()))
-    s3 = _run(items, settings, out, B.local_backend(1))
+    s3 = _run(items, settings, out, BK.local_backend(1))
     assert (s3.processed, s3.skipped, s3.quarantined) == (1, len(GOOD) - 1, 1)
     # the deleted outputs of a done file are written again
     (out / "f3.tif.vigproc.json").unlink()
-    s4 = _run(items, settings, out, B.local_backend(1))
+    s4 = _run(items, settings, out, BK.local_backend(1))
     assert (s4.processed, s4.redone) == (1, 1) and (out / "f3.tif.vigproc.json").is_file()
     # quarantined files get another chance when asked (and fail again here)
-    s5 = _run(items, settings, out, B.local_backend(1), retry_quarantined=True)
+    s5 = _run(items, settings, out, BK.local_backend(1), retry_quarantined=True)
     assert (s5.processed, s5.skipped, s5.quarantined) == (0, len(GOOD), 1)
     assert "quarantined by an earlier run" not in s5.errors[0]["error"]
 
@@ -211,7 +212,7 @@ def test_same_failure_everywhere_stops_before_quarantining(tmp_path):
         write_image(src / f"n{i:02d}.tif", _frame(i), bit_depth="uint16")
     items, _ = B.collect(src, tmp_path / "out")
     with pytest.raises(B.BatchError, match=f"first {B.BREAKER_FILES} files all failed"):
-        _run(items, Settings(mode="learn"), tmp_path / "out", B.local_backend(1), store=object())
+        _run(items, Settings(mode="learn"), tmp_path / "out", BK.local_backend(1), store=object())
     with Journal(tmp_path / "out" / B.JOURNAL_NAME, job="test") as j:
         assert j.counts()["quarantined"] == 0
 
@@ -220,8 +221,8 @@ def test_pool_of_two_processes_matches_in_process(archive, tmp_path):
     items, _ = B.collect(archive, tmp_path)
     items = [i for i in items if i.rel != "broken.tif"][:4]
     settings = Settings(mode="estimate", profile="estimate")
-    s1 = _run(items, settings, tmp_path / "one", B.local_backend(1))
-    s2 = _run(items, settings, tmp_path / "two", B.local_backend(2))
+    s1 = _run(items, settings, tmp_path / "one", BK.local_backend(1))
+    s2 = _run(items, settings, tmp_path / "two", BK.local_backend(2))
     assert s1.processed == s2.processed == 4
     assert _sidecars(tmp_path / "one") == _sidecars(tmp_path / "two")
 
@@ -247,7 +248,7 @@ def test_learn_pools_exactly_once_across_a_crash(archive, tmp_path):
         assert j.claim(items[0].path, res.fingerprint, worker="crashed")
         store.learn(key, model, frame_id=res.fingerprint.sha256, evidence=evidence)  # ... and the client dies here
     with ProfileStore(tmp_path / "p.sqlite") as store:
-        s = _run(items, settings, out, B.local_backend(1), store=store)
+        s = _run(items, settings, out, BK.local_backend(1), store=store)
         assert s.processed == 2
         assert store.get(key).n_frames == 2  # f0 once (not twice), f1 once
     with Journal(jpath, job="test") as j:
@@ -261,7 +262,7 @@ def test_one_client_per_job(archive, tmp_path):
     out.mkdir()
     with B._job_lock(out / B.JOURNAL_NAME, "test"):  # another client is running this job
         with pytest.raises(B.BatchError, match="another 'vigproc batch'"):
-            _run(items, Settings(mode="estimate", profile="estimate"), out, B.local_backend(1))
+            _run(items, Settings(mode="estimate", profile="estimate"), out, BK.local_backend(1))
     assert not list(out.glob("*" + SIDECAR_SUFFIX))
 
 
@@ -343,7 +344,7 @@ def cluster():
 
 
 def _dask(client):
-    return B.dask_backend(client, numba_threads=1)
+    return BK.dask_backend(client, numba_threads=1)
 
 
 def test_localcluster_equals_single_process(archive, tmp_path, cluster):
@@ -351,7 +352,7 @@ def test_localcluster_equals_single_process(archive, tmp_path, cluster):
     items = [i for i in items if not i.rel.startswith("f")]  # the odd names (correcting costs ~0.5 s a file)
     good = [i.rel for i in items if i.rel != "broken.tif"]
     settings = Settings(mode="correct", profile="estimate", output_format="tiff-float")
-    one = _run(items, settings, tmp_path / "one", B.local_backend(1))
+    one = _run(items, settings, tmp_path / "one", BK.local_backend(1))
     dist = _run(items, settings, tmp_path / "dask", _dask(cluster))
     assert one.processed == dist.processed == len(good) == 4 and one.quarantined == dist.quarantined == 1
     assert "2 workers" in dist.backend
@@ -372,7 +373,7 @@ def test_localcluster_learn_pools_on_the_client(archive, tmp_path, cluster):
     items, _ = B.collect(archive, tmp_path)
     items = [i for i in items if i.rel != "broken.tif"]
     stores = []
-    for name, backend in (("one", B.local_backend(1)), ("dask", _dask(cluster))):
+    for name, backend in (("one", BK.local_backend(1)), ("dask", _dask(cluster))):
         with ProfileStore(tmp_path / f"{name}.sqlite") as store:
             s = _run(items, Settings(mode="learn"), tmp_path / name, backend, store=store)
             assert s.processed == len(items) and len(s.profiles) == 1

@@ -73,6 +73,7 @@ def _option(args: argparse.Namespace, config: dict[str, Any], name: str, default
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
+    from vigproc import backends as BK
     from vigproc import batch as B
     from vigproc.pipeline import Settings
 
@@ -108,11 +109,11 @@ def cmd_batch(args: argparse.Namespace) -> int:
         _quiet_dask()
         if args.workers is not None:
             log.warning("--workers is ignored with --scheduler (the cluster decides)")
-        client = B.connect(scheduler, timeout=float(_option(args, config, "connect_timeout", 20.0)))
-        backend = B.dask_backend(client, retries=retries, numba_threads=int(_option(args, config, "numba_threads", 1)),
+        client = BK.connect(scheduler, timeout=float(_option(args, config, "connect_timeout", 20.0)))
+        backend = BK.dask_backend(client, retries=retries, numba_threads=int(_option(args, config, "numba_threads", 1)),
                                  owns_client=True)
     else:
-        backend = B.local_backend(_option(args, config, "workers"))
+        backend = BK.local_backend(_option(args, config, "workers"))
 
     store = snapshot = None
     profile_db = _option(args, config, "profile_db")
@@ -279,6 +280,7 @@ def cmd_bench_batch(args: argparse.Namespace) -> int:
     """Files per second of one job with 1 and 2 local workers and a 2-process LocalCluster."""
     import tempfile
 
+    from vigproc import backends as BK
     from vigproc import batch as B
     from vigproc.pipeline import Settings
 
@@ -295,7 +297,7 @@ def cmd_bench_batch(args: argparse.Namespace) -> int:
         items, _ = B.collect(src, root / "out")
         mb = sum(os.path.getsize(i.path) for i in items) / 1e6
         print(f"{len(items)} files of {args.width}x{args.height} RGB 16-bit TIFF ({mb / len(items):.1f} MB each, "
-              f"made in {time.perf_counter() - t0:.1f} s); {B._cores()} cores, load average {load:.2f} at start "
+              f"made in {time.perf_counter() - t0:.1f} s); {BK.cores()} cores, load average {load:.2f} at start "
               "(the machine may be shared)")
         print(f"best of {args.repeat} interleaved runs per row; files/s: 'steady' = (n-1) / (last - first completion); 'wall' includes worker start-up and warm-up; "
               "'cpu/f' = CPU seconds per file of all our processes (client, workers, exiftool), start-up included; "
@@ -333,6 +335,8 @@ _BENCH_DESC = {"local1": "local, 1 worker (in-process)", "local2": "local, 2 wor
 
 def _bench_run(B, items, settings, name: str, out: Path, prof: Path | None) -> dict[str, float]:
     """One job on one backend, from creating the backend to closing it."""
+    from vigproc import backends as BK
+
     t_start = time.perf_counter()
     cpu0 = _cpu_seconds()
     cluster = client = None
@@ -343,9 +347,9 @@ def _bench_run(B, items, settings, name: str, out: Path, prof: Path | None) -> d
         cluster = LocalCluster(n_workers=2, processes=True, threads_per_worker=1, dashboard_address=":0",
                                silence_logs=logging.ERROR)
         client = Client(cluster, set_as_default=False)
-        backend = B.dask_backend(client, numba_threads=1)
+        backend = BK.dask_backend(client, numba_threads=1)
     else:
-        backend = B.local_backend(1 if name == "local1" else 2)
+        backend = BK.local_backend(1 if name == "local1" else 2)
     start_s = time.perf_counter() - t_start
     stamps: list[float] = []
     pf = B.Shipped.of(prof.name, prof.read_bytes()) if prof is not None else None
