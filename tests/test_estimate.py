@@ -307,3 +307,17 @@ def test_real_lens_estimates_name_their_method():
     m = vigproc.estimate(img, "real-lens", channel_axis=None)
     assert m.method == "real-lens"
     assert vigproc.estimate(img, channel_axis=None).method == "robust"
+
+
+def test_fit_stays_valid_beyond_its_corner_pixels():
+    """A fit to a tiny frame must hold G > 0 up to the frame's edges, not only at its
+    corner pixel centres: pictures and RAW full sizes evaluate it on finer grids
+    (a 64x48 sawtooth once gave a model whose G fell below 0 on a 256-px grid)."""
+    y, x = np.mgrid[0:48, 0:64]
+    img = np.stack([((21 * x + 9 * y + c) % 256) / 255.0 for c in range(3)], axis=-1)
+    lin = np.where(img <= 0.04045, img / 12.92, ((img + 0.055) / 1.055) ** 2.4)
+    m = vigproc.estimate(lin)
+    fit = m.candidate if m.candidate is not None else m
+    for w, h in ((256, 192), (640, 480)):
+        assert np.all(np.isfinite(fit.rescale(w, h).log_field()))
+    assert np.isfinite(fit.field_ev_rms())

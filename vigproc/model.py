@@ -237,7 +237,8 @@ class VignettingModel:
     def field_ev_rms(self, shape: tuple[int, int] | None = None) -> float:
         """RMS of log2 φ over the frame, in EV (stops)."""
         if shape is None:
-            s = 256.0 / max(self.width, self.height)
+            # never upsampled: an upsampled grid's corner samples lie outside the frame
+            s = min(1.0, 256.0 / max(self.width, self.height))
             shape = (max(2, round(self.height * s)), max(2, round(self.width * s)))
         lf = self.log_field(shape) / math.log(2.0)
         return float(np.sqrt(np.mean(lf * lf)))

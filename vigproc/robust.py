@@ -258,9 +258,15 @@ def quadratic_start(wc: WorkingCopy, steps: np.ndarray, iters: int = 6) -> np.nd
 
 
 def _radii(theta: np.ndarray, wc: WorkingCopy, n: int = 24) -> np.ndarray:
-    """Radii r sampled from 0 to the largest r inside the frame (reached at a corner)."""
-    hx = (wc.width - 1) / 2 / wc.radius
-    hy = (wc.height - 1) / 2 / wc.radius
+    """Radii r sampled from 0 to the largest r inside the frame (reached at a corner).
+
+    The frame's outer edges (±W/2, ±H/2), not its corner pixel centres: a model is
+    also evaluated at other resolutions (pictures, a RAW's full size), whose corner
+    pixel centres lie further out (a 64-px fit was valid at its own corners and not
+    on a 256-px grid).
+    """
+    hx = wc.width / 2 / wc.radius
+    hy = wc.height / 2 / wc.radius
     cx, cy, p1, p2, p3 = theta[:5]
     qmax = 0.0
     for x in (-hx, hx):
