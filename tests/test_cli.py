@@ -264,3 +264,88 @@ def test_profile_store_flow(tmp_path, monkeypatch):
     m = VignettingModel.from_dict(rec["model"])
     err = np.log2(m.field() / pa_field((h, w), pa.k1, pa.k2, pa.k3))
     assert np.sqrt(np.mean(err**2)) < 0.01
+
+
+def test_single_output_never_replaces_an_input(tmp_path, vignetted_tiff):
+    """A report or classifier named like one of the command's inputs is refused before
+    any work (exit 5), and the input keeps its bytes."""
+    path, _ = vignetted_tiff
+    before = path.read_bytes()
+    r = run("check", path, "--report", path)
+    assert r.returncode == 5 and "it is an input of this run" in r.stderr, r.stderr
+    for c in ("A", "B"):
+        (tmp_path / "tr" / c).mkdir(parents=True)
+        (tmp_path / "tr" / c / "1.tif").write_bytes(before)
+    victim = tmp_path / "tr" / "A" / "1.tif"
+    r = run("forensics", "train", tmp_path / "tr", "-o", victim)
+    assert r.returncode == 5 and "it is an input of this run" in r.stderr, r.stderr
+    assert path.read_bytes() == before and victim.read_bytes() == before
+
+
+@pytest.mark.parametrize("args", [
+    ("correct", "--strength", "nan", "-o", "o", "x.tif"),
+    ("correct", "--strength", "-1", "-o", "o", "x.tif"),
+    ("check", "--alpha", "2", "x.tif"),
+    ("forensics", "train", "d", "-o", "m.json", "--shrinkage", "5"),
+    ("forensics", "evaluate", "m.json", "d", "--frames", "0"),
+    ("profile", "import-lensfun", "a", "b", "--focal", "nan", "--aperture", "2"),
+    ("profile", "show", "0", "--width", "0", "--height", "0"),
+])
+def test_bad_option_values_are_usage_errors(tmp_path, args):
+    r = run(*args, cwd=tmp_path)
+    assert r.returncode == 2, (args, r.returncode, r.stderr)
+    assert "Traceback" not in r.stderr and "is not within" in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_unusable_output_folder_is_a_write_error(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for out in (afile, afile / "sub"):
+        r = run("correct", path, "-o", out)
+        assert r.returncode == 5 and "cannot create output folder" in r.stderr, r.stderr
+
+
+def test_values_beyond_the_output_format_fail_the_frame(tmp_path, vignetted_tiff):
+    """An HDR frame whose corrected values exceed half-float range is not written as Inf."""
+    path, _ = vignetted_tiff
+    img, _ = read_image(path)
+    hdr = tmp_path / "hdr.tif"
+    write_image(hdr, (img * (60000.0 / img.max())).astype(np.float32), bit_depth="float")  # fits in half
+    out = tmp_path / "out"
+    r = run("correct", hdr, "-o", out, "--output-format", "exr-half", "--profile", "estimate")
+    assert r.returncode == 1 and "beyond the 6.55e+04 that exr-half holds" in r.stderr, r.stderr
+    assert not any(p.suffix == ".exr" for p in out.iterdir())
+    r = run("correct", hdr, "-o", out, "--output-format", "exr-float", "--profile", "estimate")
+    assert r.returncode == 0, r.stderr
+    corrected, _ = read_image(out / "hdr.corrected.exr")
+    assert np.all(np.isfinite(corrected))
+
+
+def test_large_negative_values_are_bad_input(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    img, _ = read_image(path)
+    neg = tmp_path / "neg.tif"
+    bad = img.copy()
+    bad[:, : img.shape[1] // 2] = -0.5
+    write_image(neg, bad, bit_depth="float")
+    r = run("estimate", neg)
+    assert r.returncode == 3 and "not linear intensities" in r.stderr and "neg.tif" in r.stderr, r.stderr
+    r = run("correct", neg, "-o", tmp_path / "out", "--profile", "estimate")
+    assert r.returncode == 1 and "not linear intensities" in r.stderr, r.stderr
+    # noise around black (slightly negative values) is fine
+    noisy = tmp_path / "noisy.tif"
+    ok = img.copy()
+    ok[0, :10] = -0.01 * img.max()
+    write_image(noisy, ok, bit_depth="float")
+    assert run("estimate", noisy).returncode == 0
+
+
+def test_absurdly_nested_json_is_a_clear_error(tmp_path):
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    r = run("profile", "--profile-db", tmp_path / "p.sqlite", "import", deep)
+    assert r.returncode == 8 and "not valid profile JSON" in r.stderr, r.stderr
+    r = run("forensics", "evaluate", deep, tmp_path)
+    assert r.returncode == 11 and "not valid JSON" in r.stderr, r.stderr

@@ -628,3 +628,24 @@ def test_archive_moves_done_inputs_only(tmp_path):
     time.sleep(1)
     assert d.stop() == 0
     assert Counter(ev.get("event") for ev in d.events())["done"] == len(digests)
+
+
+def test_quarantine_reason_follows_a_clash_renamed_file(tmp_path):
+    """A second bad file of the same name is kept beside the first, each with its own reason."""
+    in_dir, out_dir, qdir = (tmp_path / n for n in ("in", "out", "quarantine"))
+    in_dir.mkdir()
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2", "--quarantine", str(qdir)).start()
+    first, second = b"just text, not a JPEG\n", b"other text, not a JPEG either\n"
+    digests = [hashlib.sha256(b).hexdigest() for b in (first, second)]
+    (in_dir / "text.jpg").write_bytes(first)
+    d.wait_for("the first file quarantined", lambda: (qdir / "text.jpg").is_file() and not (in_dir / "text.jpg").exists())
+    (in_dir / "text.jpg").write_bytes(second)
+    renamed = qdir / f"text.{digests[1][:12]}.jpg"
+    d.wait_for("the second file quarantined", lambda: renamed.is_file() and not (in_dir / "text.jpg").exists())
+    assert d.stop() == 0
+    assert (qdir / "text.jpg").read_bytes() == first and renamed.read_bytes() == second
+    for moved, digest in zip((qdir / "text.jpg", renamed), digests):
+        why = json.loads(moved.with_name(moved.name + ".reason.json").read_text())
+        assert why["sha256"] == digest and why["file"] == "text.jpg" and "cannot read" in why["reason"]
+    assert sorted(p.name for p in qdir.iterdir()) == sorted(
+        ["text.jpg", "text.jpg.reason.json", renamed.name, renamed.name + ".reason.json"])

@@ -162,12 +162,45 @@ def test_outputs_never_replace_an_input_of_the_call(frame, tmp_path, capsys, mon
     assert r["exit_code"] == 5 and r["type"] == "ImageWriteError" and "input of this run" in r["error"]
     assert sha(first) == before and os.stat(first).st_mtime == 1
     assert not (o / "a.vigproc.json").exists()  # nothing written for the refused file
-    # an exact output file onto another input of the call: refused as well
-    req = {"files": [{"path": str(first), "output": str(second)}, str(second)]}
+    # an exact output file onto another input of the call (relative: inside -o): refused as well
+    req = {"files": [{"path": str(first), "output": "a.tif"}, {"path": str(second), "output": "b.tif"}]}
     before = sha(second)
-    code, answer = hook(capsys, monkeypatch, "--request", "-", "-o", tmp_path / "out2", stdin=json.dumps(req).encode())
+    code, answer = hook(capsys, monkeypatch, "--request", "-", "-o", o, stdin=json.dumps(req).encode())
     assert code == 1 and answer["results"][0]["exit_code"] == 5 and answer["results"][1]["status"] == "ok"
+    assert answer["results"][1]["output"] == str((o / "b.tif").resolve())
     assert sha(second) == before
+
+
+def test_output_files_stay_inside_the_output_folder(frame, tmp_path, capsys, monkeypatch):
+    work, out, elsewhere = tmp_path / "x", tmp_path / "x" / "out", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    out.mkdir(parents=True)
+    (out / "link").symlink_to(elsewhere)
+    monkeypatch.chdir(work)  # "../escaped.tif" once landed here, beside -o, relative to the working folder
+    escapes = ["../escaped.tif", "sub/../../escaped.tif", str(elsewhere / "escaped.tif"), "link/escaped.tif", ".."]
+    req = {"files": [*({"path": str(frame), "output": e} for e in escapes), {"path": str(frame), "output": "ok.tif"}]}
+    code, answer = hook(capsys, monkeypatch, "--request", "-", "-o", out, stdin=json.dumps(req).encode())
+    *refused, ok = answer["results"]
+    assert code == 1 and ok["status"] == "ok" and ok["output"] == str(out.resolve() / "ok.tif")
+    for r in refused:
+        assert r["exit_code"] == 2 and r["type"] == "UsageError" and "inside the output folder" in r["error"], r
+    # one file, as a host sends it: a usage error, and nothing written outside -o
+    req = {"files": [{"path": str(frame), "output": "../escaped.tif"}]}
+    code, answer = hook(capsys, monkeypatch, "--mode", "correct", "-o", out, "--request", "-",
+                        stdin=json.dumps(req).encode())
+    assert code == 2 and answer["results"][0]["exit_code"] == 2
+    assert [p.name for p in tmp_path.rglob("*.tif") if p.parent != frame.parent] == ["ok.tif"]
+    assert sorted(os.listdir(out)) == ["link", "ok.tif"] and os.listdir(elsewhere) == []
+
+
+def test_output_file_and_output_folder_exclude_each_other(frame, tmp_path, capsys, monkeypatch):
+    out, target = tmp_path / "out", tmp_path / "fixed.tif"
+    code, answer = hook(capsys, monkeypatch, "-o", out, f"--output-file={target}", "--", frame)
+    assert code == 2 and "cannot be used together" in answer["error"] and answer["results"] == []
+    code, answer = hook(capsys, monkeypatch, f"--output-file={target}", "--request", "-",
+                        stdin=json.dumps({"output_dir": str(out), "files": [str(frame)]}).encode())
+    assert code == 2 and "cannot be used together" in answer["error"]
+    assert not out.exists() and not target.exists()
 
 
 def test_file_names_cannot_forge_stderr_lines(tmp_path):
@@ -233,6 +266,7 @@ def test_internal_error_fails_one_file_only(frame, tmp_path, capsys, monkeypatch
     (b'{"files": ["a.tif"], "strength": "1"}', "must be a number"),
     (b'{"files": ["a.tif"], "mode": "learn"}', "unknown mode"),
     (b'{"files": ["a.tif"], "method": "nope"}', "unknown method"),
+    (b'{"files": ' + b"[" * 100_000 + b"]" * 100_000 + b"}", "not valid JSON"),  # not a RecursionError
 ])
 def test_bad_requests_are_usage_errors(request_bytes, match, capsys, monkeypatch):
     code, answer = hook(capsys, monkeypatch, "--request", "-", stdin=request_bytes)

@@ -927,7 +927,10 @@ def sweep_temporaries(outdir: str | os.PathLike[str], items: Iterable[BatchItem]
     for it in items:
         rel = PurePosixPath(it.rel)
         # 12 characters: within every writer's cut of the name in its temporary names
-        by_folder[os.path.join(os.fspath(outdir), *rel.parts[:-1])].add("." + output_stem(rel.name)[:12])
+        stem = output_stem(rel.name)[:12]
+        # "..": a writer's temporary inside another's (the image written under the
+        # metadata step's temporary name)
+        by_folder[os.path.join(os.fspath(outdir), *rel.parts[:-1])].update(("." + stem, ".." + stem))
     n = 0
     for folder, prefixes in by_folder.items():
         pre = tuple(prefixes)

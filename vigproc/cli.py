@@ -7,6 +7,7 @@ line on stderr and its exit code; no traceback reaches the user.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
@@ -18,7 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vigproc.errors import PriorError, VigprocError, one_line
+from vigproc.errors import EXIT_CODES, PriorError, VigprocError, one_line
 
 log = logging.getLogger("vigproc")
 
@@ -37,6 +38,14 @@ def _progress(items: Sequence, what: str):
 
 # ----------------------------------------------------------------- commands
 def cmd_estimate(args: argparse.Namespace) -> int:
+    try:
+        return _estimate_file(args)
+    except VigprocError as exc:  # one line naming the file, as the multi-file commands do
+        print(one_line(f"vigproc: {str(args.file)!r}: {exc}"), file=sys.stderr)
+        return exc.exit_code
+
+
+def _estimate_file(args: argparse.Namespace) -> int:
     from vigproc.estimate import estimate
     from vigproc.exif import ExifReader
     from vigproc.io import read_image
@@ -81,10 +90,9 @@ def _open_store(args: argparse.Namespace):
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from vigproc.pipeline import InputFiles, Processor, Settings, output_stems
+    from vigproc.pipeline import InputFiles, Processor, Settings, output_folder, output_stems
 
-    outdir = Path(args.output)
-    outdir.mkdir(parents=True, exist_ok=True)
+    outdir = output_folder(args.output)
     files = [Path(f) for f in args.files]
     inputs = InputFiles(files)  # no output may replace an input of this run
     settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
@@ -202,7 +210,7 @@ def _scene_settings(spec: str):
         raise PriorError(f"cannot read the scene prior {spec!r}: {exc.strerror or exc}") from exc
     try:
         data = json.loads(text)
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, RecursionError) as exc:  # RecursionError: absurdly nested
         raise PriorError(f"the scene prior {spec!r} is not JSON: {exc}") from exc
     try:
         return RobustSettings(scene=SceneFalloff.from_dict(data))
@@ -273,6 +281,73 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
         r = B.run_flat(ims, name, _estimator(name, settings=settings))
         results.append(asdict(r))
         print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.candidate_median_ev:>11.3f}{r.fallbacks:>8}")
+    if args.json:
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(args.json), json.dumps(results, indent=1) + "\n")
+    return 0
+
+
+def cmd_bench_real(args: argparse.Namespace) -> int:
+    """Photographs vignetted by others: pairs with a known field, and real lenses."""
+    from vigproc.bench import real as R
+    from vigproc.errors import VigprocError
+    from vigproc.image import luminance
+    from vigproc.io import read_image
+    from vigproc.pipeline import IMAGE_SUFFIXES
+
+    settings = _scene_settings(args.scene_prior)
+    pairs, photos = R.find_inputs(Path(args.images), IMAGE_SUFFIXES)
+    if not pairs and not photos:
+        raise VigprocError(f"no images in {args.images}")
+
+    def lum(f: Path):
+        return luminance(read_image(f, transfer=args.input_transfer)[0])
+
+    results: list[dict] = []
+    print(f"{len(pairs)} pairs and {len(photos)} photographs from {args.images} (input transfer "
+          f"{args.input_transfer}, full frames, scene prior {args.scene_prior})")
+    fns = {name: _estimator(name, settings=settings) for name in args.methods}
+    if pairs:
+        print(f"pairs: gain-free RMS of log2(estimated/true field) over {R.BLOCK}px blocks, EV")
+        print(f"{'pair':<22}{'true corner':>12}{'uncorr':>8}" + "".join(f"{m:>12}" for m in args.methods))
+        errs: dict[str, list[float]] = {m: [] for m in args.methods}
+        unc = []
+        for v, c in pairs:
+            try:
+                lv, lc = lum(v), lum(c)
+            except VigprocError as exc:
+                log.warning("skipping %s", exc)
+                continue
+            rows = [R.run_pair(lv, lc, v.stem, m, fns[m]) for m in args.methods]
+            results.extend(asdict(r) for r in rows)
+            unc.append(rows[0].uncorrected_ev)
+            for r in rows:
+                errs[r.method].append(r.error_ev)
+            print(f"{v.stem:<22}{rows[0].true_corner_ev:>12.2f}{rows[0].uncorrected_ev:>8.3f}"
+                  + "".join(f"{r.error_ev:>11.3f}{'*' if r.fallback else ' '}" for r in rows))
+        print(f"{'median':<22}{'':>12}{np.median(unc):>8.3f}" + "".join(f"{np.median(errs[m]):>11.3f} " for m in args.methods))
+        print("(* fell back to no correction)")
+    if photos:
+        print("photographs with real vignetting: corner fall-off applied (log2 at the frame corners; "
+              "'-' = no correction) and the crude corner-minus-centre log2 luminance")
+        print(f"{'photograph':<22}{'crude':>8}" + "".join(f"{m:>12}" for m in args.methods))
+        corrected = {m: 0 for m in args.methods}
+        n = 0
+        for f in photos:
+            try:
+                lf = lum(f)
+            except VigprocError as exc:
+                log.warning("skipping %s", exc)
+                continue
+            rows = [R.run_photo(lf, f.stem, m, fns[m]) for m in args.methods]
+            results.extend(asdict(r) for r in rows)
+            n += 1
+            for r in rows:
+                corrected[r.method] += r.corrected
+            print(f"{f.stem:<22}{rows[0].crude_corner_ev:>8.2f}"
+                  + "".join(f"{r.corner_ev:>12.2f}" if r.corrected else f"{'-':>12}" for r in rows))
+        print(f"{'corrected':<22}{'':>8}" + "".join(f"{f'{corrected[m]}/{n}':>12}" for m in args.methods))
     if args.json:
         from vigproc.atomic import atomic_write_text
 
@@ -444,7 +519,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
                         img, _ = read_image(f, transfer=args.input_transfer)
                         lens_key, lens = read_lens(proc.reader, f)
                         if lens_key is None:
-                            raise VigprocError(f"{f}: cannot learn, lens unknown ({lens['error']})")
+                            raise VigprocError(f"cannot learn, lens unknown ({lens['error']})")
                         # keyed by content: learning a file again does not pool it twice
                         proc.process_image(img, lens_key, where=str(f), frame_id=file_sha256(f))
                         p = store.get(ProfileKey.from_lens(lens_key, img.shape[1], img.shape[0]))
@@ -452,7 +527,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
                         print(one_line(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}"))
                     except VigprocError as exc:
                         failed += 1
-                        print(one_line(f"vigproc: {exc}"), file=sys.stderr)
+                        print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
             print(f"{done} frames learned, {failed} failed")
             return 0 if failed == 0 else 1
         elif args.profile_command == "import":
@@ -498,7 +573,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="count", default=0)
     sub = p.add_subparsers(dest="command", required=True)
 
-    from vigproc.commands._options import add_method, add_processing, add_transfer
+    from vigproc.commands._options import add_method, add_processing, add_transfer, number
 
     sp = sub.add_parser("estimate", help="estimate the vignetting of one image")
     sp.add_argument("file")
@@ -540,8 +615,8 @@ def build_parser() -> argparse.ArgumentParser:
     psub.add_parser("list", help="stored profiles").set_defaults(fn=cmd_profile)
     q = psub.add_parser("show", help="one profile as a model for a frame size, optionally as a picture")
     q.add_argument("id", help="index from 'profile list' or the key text")
-    q.add_argument("--width", type=int, default=6000)
-    q.add_argument("--height", type=int, default=4000)
+    q.add_argument("--width", type=number(2, 1_000_000, integer=True), default=6000)
+    q.add_argument("--height", type=number(2, 1_000_000, integer=True), default=4000)
     q.add_argument("--plot", help="write a PNG picture of the fall-off")
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("learn", help="estimate frames and pool them into their lenses' profiles")
@@ -558,19 +633,20 @@ def build_parser() -> argparse.ArgumentParser:
     q = psub.add_parser("import-lensfun", help="store lensfun's calibration of a lens as a profile")
     q.add_argument("maker")
     q.add_argument("model")
-    q.add_argument("--focal", type=float, required=True)
-    q.add_argument("--aperture", type=float, required=True)
-    q.add_argument("--distance", type=float, default=1000.0)
-    q.add_argument("--width", type=int, default=6000)
-    q.add_argument("--height", type=int, default=4000)
+    q.add_argument("--focal", type=number(0.0, 10_000.0, open_lo=True), required=True, help="mm")
+    q.add_argument("--aperture", type=number(0.0, 1_000.0, open_lo=True), required=True, help="f-number")
+    q.add_argument("--distance", type=number(0.0, 1e6, open_lo=True), default=1000.0, help="m (1000: infinity)")
+    q.add_argument("--width", type=number(2, 1_000_000, integer=True), default=6000)
+    q.add_argument("--height", type=number(2, 1_000_000, integer=True), default=4000)
     q.add_argument("--lens-id", help="store under this lens id: the 'lens' line that 'vigproc estimate' "
                    "prints for your camera (default: 'maker|model')")
-    q.add_argument("--crop-factor", type=float, help="the camera's crop factor (lenses calibrated on several sensors)")
+    q.add_argument("--crop-factor", type=number(0.0, 100.0, open_lo=True),
+                   help="the camera's crop factor (lenses calibrated on several sensors)")
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("export-lensfun", help="write learned profiles as a lensfun XML database")
     q.add_argument("file")
     q.add_argument("--mount", default="Generic")
-    q.add_argument("--crop-factor", type=float, default=1.0)
+    q.add_argument("--crop-factor", type=number(0.0, 100.0, open_lo=True), default=1.0)
     q.set_defaults(fn=cmd_profile)
 
     sp = sub.add_parser("prior", help="natural-image prior of the paper's method")
@@ -621,6 +697,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scene_prior(bp)
     bp.add_argument("--json")
     bp.set_defaults(fn=cmd_bench_lensfun)
+    bp = bsub.add_parser("real", help="photographs vignetted by others: known-field pairs and real lenses")
+    bp.add_argument("--images", required=True, help="folder tree, e.g. ../shared/data/vignetted")
+    add_transfer(bp)
+    bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],
+                    help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
+    _add_scene_prior(bp)
+    bp.add_argument("--json")
+    bp.set_defaults(fn=cmd_bench_real)
     bp = bsub.add_parser("speed", help="estimator timings on 480x320 frames")
     bp.add_argument("--images", help="folder of images (default: the bundled samples)")
     bp.add_argument("--limit", type=int, default=10)
@@ -667,20 +751,54 @@ class _OneLineFormatter(logging.Formatter):
         return one_line(super().formatMessage(record))
 
 
+@contextlib.contextmanager
+def _terminate_like_ctrl_c():
+    """SIGTERM (a service manager, ``kill``) stops a command as Ctrl-C does: running
+    work is finished or cleaned up (temporary files removed) instead of the process
+    vanishing mid-write.  Commands with their own handlers (``watch``) replace it; the
+    previous handler is restored on the way out.  Yields a function telling whether
+    SIGTERM arrived (exit 143 = 128 + SIGTERM)."""
+    import signal
+    import threading
+
+    got: list[int] = []
+    if threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield lambda: False
+        return
+
+    def on_term(signum, frame):
+        got.append(signum)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield lambda: bool(got)
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handler = logging.StreamHandler()
     handler.setFormatter(_OneLineFormatter("%(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), handlers=[handler])
+    logging.captureWarnings(True)  # libraries' warnings as one log line each, not raw stderr text
+    with _terminate_like_ctrl_c() as terminated:
+        return _run(args, terminated)
+
+
+def _run(args: argparse.Namespace, terminated) -> int:
     try:
-        return int(args.fn(args) or 0)
+        code = int(args.fn(args) or 0)
+        return EXIT_CODES["terminated"] if terminated() and code == EXIT_CODES["interrupted"] else code
     except VigprocError as exc:
         print(one_line(f"vigproc: {exc}"), file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print("vigproc: interrupted", file=sys.stderr)
-        return 130
+        print("vigproc: terminated" if terminated() else "vigproc: interrupted", file=sys.stderr)
+        return EXIT_CODES["terminated" if terminated() else "interrupted"]
     except BrokenPipeError:  # output piped into e.g. head: nothing left to say
         sys.stderr.close()
         return 0

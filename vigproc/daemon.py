@@ -536,17 +536,23 @@ def _sd_notify(message: str) -> None:
 
 
 # ------------------------------------------------------------------ file moves
-def _move(src: str, dst_dir: Path, name: str, fp: Fingerprint | None) -> Path:
+def _move(src: str, dst_dir: Path, name: str, fp: Fingerprint | None,
+          before: Callable[[Path], None] | None = None) -> Path:
     """Move ``src`` into ``dst_dir`` as ``name`` without overwriting a different file
     (a clash gets the content hash in its name) and without ever losing it: a hard
     link (or an atomically published copy across file systems) is made first, the
     source unlinked after.  If ``name`` already holds this very content (a move
-    interrupted after the link), the source is just unlinked."""
+    interrupted after the link), the source is just unlinked.
+
+    ``before(dst)``, if given, is called with the final destination before the file
+    gets there (a sidecar named after the file, present whenever the file is)."""
     dst_dir.mkdir(parents=True, exist_ok=True)
     dst = dst_dir / name
     if fp is not None:
         try:
             if fingerprint(dst).same_content(fp):
+                if before is not None:  # again: the interrupted move may have lost it
+                    before(dst)
                 os.unlink(src)
                 return dst
         except FingerprintError:
@@ -554,6 +560,8 @@ def _move(src: str, dst_dir: Path, name: str, fp: Fingerprint | None) -> Path:
         if os.path.lexists(dst):
             root, ext = os.path.splitext(name)
             dst = dst_dir / f"{root}.{fp.sha256[:12]}{ext}"
+    if before is not None:
+        before(dst)
     try:
         os.link(src, dst, follow_symlinks=False)
     except FileExistsError:
@@ -1284,11 +1292,12 @@ class Daemon:
             if state == "done":
                 dst = _move(path, cfg.archive_dir / os.path.dirname(rel), os.path.basename(rel), fp)
             else:
-                stem = output_stem(rel)
-                _write_json_quick(cfg.quarantine_dir / (stem + REASON_SUFFIX),
-                                  {"file": rel, "reason": reason, "sha256": fp.sha256, "size": fp.size,
-                                   "job": cfg.job, "time": datetime.now(timezone.utc).isoformat()})
-                dst = _move(path, cfg.quarantine_dir, stem, fp)
+                why = {"file": rel, "reason": reason, "sha256": fp.sha256, "size": fp.size, "job": cfg.job,
+                       "time": datetime.now(timezone.utc).isoformat()}
+                # named after the name the file really gets (a clash adds its hash), so that
+                # a second file of the same name never replaces the first one's reason
+                dst = _move(path, cfg.quarantine_dir, output_stem(rel), fp,
+                            before=lambda d: _write_json_quick(d.with_name(d.name + REASON_SUFFIX), why))
         except (OSError, FingerprintError) as exc:
             log.error("cannot move %s to the %s folder: %s", path, "archive" if state == "done" else "quarantine",
                       getattr(exc, "strerror", None) or exc, extra=_ev("move-error", file=path))

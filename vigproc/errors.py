@@ -94,4 +94,5 @@ EXIT_CODES = {
     "undecided": 21,  # vigproc check: unknown lens or too little signal, nothing inconsistent
     "internal": 70,  # a bug (EX_SOFTWARE): a one-line message; vigproc hook reports it as JSON
     "interrupted": 130,  # Ctrl-C (128 + SIGINT)
+    "terminated": 143,  # SIGTERM (128 + SIGTERM), handled as Ctrl-C
 }

@@ -336,7 +336,7 @@ def read_json(path: str | Path, what: str) -> Any:
         raise ForensicsError(f"cannot read {what} {path}: {exc}") from None
     try:
         return json.loads(text)
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, RecursionError) as exc:  # RecursionError: absurdly nested
         raise ForensicsError(f"{what} {path} is not valid JSON: {exc}") from None
 
 

@@ -32,6 +32,10 @@ def as_channels_last(img: np.ndarray, channel_axis: int | None) -> np.ndarray:
     raise InvalidImageError(f"expected an H×W or H×W×C image, got shape {a.shape}")
 
 
+#: Most negative value accepted, as a fraction of the image's maximum (noise around black).
+NEGATIVE_FRACTION = 0.05
+
+
 def check_image(img: np.ndarray, channel_axis: int | None = -1, min_size: int = 8) -> np.ndarray:
     """Validate a linear image and return it as float H×W or H×W×C.
 
@@ -39,8 +43,9 @@ def check_image(img: np.ndarray, channel_axis: int | None = -1, min_size: int = 
     ------
     InvalidImageError
         Wrong dimensions, non-numeric data, fewer than ``min_size`` px on a side,
-        more than :data:`MAX_PIXELS`, any NaN/Inf, no positive pixel, or a
-        constant image (nothing to estimate from).
+        more than :data:`MAX_PIXELS`, any NaN/Inf, no positive pixel, a
+        constant image (nothing to estimate from), or values below
+        −:data:`NEGATIVE_FRACTION` × the maximum (not linear intensities).
     """
     a = np.asarray(img)
     if a.ndim == 3 and channel_axis is not None and a.shape[channel_axis] == 1:
@@ -64,8 +69,15 @@ def check_image(img: np.ndarray, channel_axis: int | None = -1, min_size: int = 
     hi = a.max()
     if not hi > 0:
         raise InvalidImageError("image has no positive pixel: linear intensities must be > 0")
-    if a.min() == hi:
+    lo = a.min()
+    if lo == hi:
         raise InvalidImageError("image is constant: there is nothing to estimate vignetting from")
+    # slightly negative values are noise around black in developed RAW data (kept in a
+    # correction, left out of an estimate); large ones are not linear intensities
+    if lo < -NEGATIVE_FRACTION * hi:
+        raise InvalidImageError(
+            f"image has values down to {float(lo):.4g} (its maximum is {float(hi):.4g}): not linear intensities "
+            f"(negative values are accepted down to -{NEGATIVE_FRACTION:g} x the maximum, as noise around black)")
     return a
 
 

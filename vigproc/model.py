@@ -341,6 +341,6 @@ class VignettingModel:
     def from_json(cls, text: str) -> VignettingModel:
         try:
             d = json.loads(text)
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, RecursionError) as exc:  # RecursionError: absurdly nested
             raise ModelError(f"vignetting model is not valid JSON: {exc}") from None
         return cls.from_dict(d)

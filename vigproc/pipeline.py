@@ -247,6 +247,48 @@ class InputFiles:
         return (st.st_dev, st.st_ino) in self._ids
 
 
+#: Largest finite value of each float output (IEEE half and single precision).
+_FLOAT_MAX = {"half": 65504.0, "float": float(np.finfo(np.float32).max)}
+
+
+def _check_range(out: np.ndarray, output_format: str) -> None:
+    """A corrected frame must be representable in its output format: values beyond a
+    float format's range would be written as Inf (HDR frames in absolute units in
+    half-float EXR, say)."""
+    limit = _FLOAT_MAX.get(OUTPUT_FORMATS[output_format][1])
+    if limit is None:  # integer formats are clipped to the white point by design
+        return
+    hi, lo = float(out.max()), float(out.min())
+    if not (hi <= limit and lo >= -limit):  # also NaN
+        wider = " (tiff-float and exr-float hold 3.4e38)" if output_format == "exr-half" else ""
+        raise ImageWriteError(
+            f"corrected values reach {max(abs(hi), abs(lo)):.4g}, beyond the {limit:.4g} that {output_format} "
+            f"holds: scale the input down or choose a wider output format{wider}")
+
+
+def output_folder(path: str | os.PathLike[str]) -> Path:
+    """Create (if needed) the output folder of a command.
+
+    Raises
+    ------
+    ImageWriteError
+        It cannot be created or is not a folder (a file, a read-only mount).
+    """
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ImageWriteError(f"cannot create output folder {str(out)!r}: {exc.strerror or exc}") from None
+    return out
+
+
+def refuse_input(output: str | os.PathLike[str] | None, inputs: InputFiles) -> None:
+    """Raise :class:`ImageWriteError` if the single output file of a command (a report,
+    a classifier) is one of its inputs: checked before any work is done."""
+    if output is not None and output in inputs:
+        raise ImageWriteError(f"refusing to overwrite {str(output)!r}: it is an input of this run")
+
+
 def images_in(folder: Path, limit: int | None = None) -> list[Path]:
     """Image files under ``folder`` (recursive, sorted)."""
     if not folder.is_dir():
@@ -414,8 +456,13 @@ class Processor:
             The corrected float32 image in ``correct`` mode (None otherwise) and the
             record of what was done.  ``FrameResult.file`` is ``where``.
         """
+        from vigproc.image import check_image as valid_image
+
         s = self.settings
         t0 = time.perf_counter()
+        # every mode, also a correction by a profile (which estimates nothing): NaN/Inf,
+        # a constant frame or large negative values are bad input, not something to write
+        valid_image(img, -1 if np.ndim(img) == 3 else None, min_size=1)
         lens = ({"lens_id": lens_key.lens_id(), "key": lens_key.to_dict()} if lens_key is not None
                 else {"lens_id": None, "error": "no lens data given"})
         res = FrameResult(file=where, mode=s.mode, lens=lens)
@@ -440,6 +487,7 @@ class Processor:
                 # integer outputs cannot hold values above the white point: clip those
                 out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
                               clip=1.0 if depth == "uint16" else None)
+                _check_range(out, s.output_format)
                 res.applied = m.candidate is None and s.strength > 0
         res.seconds = round(time.perf_counter() - t0, 4)
         return out, res

@@ -104,7 +104,7 @@ class NaturalPrior:
     def load(cls, path: str | Path) -> NaturalPrior:
         try:
             return cls.from_dict(json.loads(Path(path).read_text()))
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, json.JSONDecodeError, RecursionError) as exc:  # RecursionError: absurdly nested
             raise PriorError(f"cannot read prior {path}: {exc}") from None
 
 

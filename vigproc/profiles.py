@@ -55,6 +55,7 @@ import json
 import logging
 import math
 import os
+import stat
 import re
 import sqlite3
 import unicodedata
@@ -1610,7 +1611,10 @@ def import_profile(path: str | os.PathLike[str]) -> Profile:
     """
     where = str(path)
     try:
-        size = os.stat(path).st_size
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):  # a FIFO or device would block or never end
+            raise ProfileStoreError(f"{where}: not a regular file")
+        size = st.st_size
         if size > MAX_FILE_BYTES:
             raise ProfileStoreError(f"{where}: {size} bytes is too large for a profile file (limit {MAX_FILE_BYTES})")
         with open(path, "rb") as fh:
@@ -1622,6 +1626,6 @@ def import_profile(path: str | os.PathLike[str]) -> Profile:
         d = json.loads(text, parse_constant=_reject_constant, object_pairs_hook=_no_duplicates)
     except UnicodeDecodeError as exc:
         raise ProfileStoreError(f"{where}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-    except (json.JSONDecodeError, ValueError) as exc:
+    except (json.JSONDecodeError, ValueError, RecursionError) as exc:  # RecursionError: absurdly nested
         raise ProfileStoreError(f"{where}: not valid profile JSON: {exc}") from None
     return profile_from_dict(d, where)

@@ -5,10 +5,32 @@ document them the same way (and accept installed estimator plugins alike)."""
 from __future__ import annotations
 
 import argparse
+import math
+from typing import Callable
 
 PROFILE_HELP = ("auto (a trusted stored profile of the frame's lens, else an installed profile-source plugin, "
                 "else estimate), estimate, lensfun (lensfun's calibration of the frame's lens), source:NAME "
                 "(that profile-source plugin) or PATH of a profile file")
+
+
+def number(lo: float = -math.inf, hi: float = math.inf, *, integer: bool = False,
+           open_lo: bool = False) -> Callable[[str], float]:
+    """An argparse ``type``: a finite number within [lo, hi] (``open_lo``: above lo),
+    so that a bad value is a usage error (exit 2) before any work is done."""
+    what = "an integer" if integer else "a number"
+    bounds = f"{'(' if open_lo else '['}{lo:g}, {hi:g}]"
+
+    def parse(text: str) -> float:
+        try:
+            v = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        if not math.isfinite(v) or v < lo or v > hi or (open_lo and v == lo):
+            raise argparse.ArgumentTypeError(f"{text} is not within {bounds}")
+        return v
+
+    parse.__name__ = "integer" if integer else "number"  # argparse names the type in its messages
+    return parse
 
 
 def add_transfer(sp: argparse.ArgumentParser, default: str = "auto") -> None:
@@ -40,7 +62,8 @@ def add_output(sp: argparse.ArgumentParser, *, picture: bool = True) -> None:
 
     sp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="tiff-float",
                     help="linear output: float or 16-bit TIFF, half or float OpenEXR (default tiff-float)")
-    sp.add_argument("--strength", type=float, default=1.0, help="fraction of the fall-off removed (default 1)")
+    sp.add_argument("--strength", type=number(0.0, 2.0), default=1.0,
+                    help="fraction of the fall-off removed, 0 to 2 (default 1)")
     if picture:
         sp.add_argument("--picture", action="store_true", help="also write a PNG picture of each estimated field")
 

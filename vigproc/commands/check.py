@@ -16,7 +16,7 @@ import json
 import sys
 from pathlib import Path
 
-from vigproc.errors import EXIT_CODES, VigprocError
+from vigproc.errors import EXIT_CODES, VigprocError, one_line
 
 #: Exit code when a frame is inconsistent with its claimed lens.
 EXIT_INCONSISTENT = EXIT_CODES["inconsistent"]
@@ -29,7 +29,7 @@ group) inconsistent; 1 some files failed (none inconsistent); {EXIT_UNDECIDED} s
 
 
 def register(subparsers) -> None:
-    from vigproc.commands._options import add_method, add_profile_db, add_transfer
+    from vigproc.commands._options import add_method, add_profile_db, add_transfer, number
 
     sp = subparsers.add_parser(
         "check", help="forensics: does each frame's vignetting match the lens its EXIF names?",
@@ -46,7 +46,7 @@ def register(subparsers) -> None:
                     help="also pool the evidence of all frames that claim the same lens profile")
     sp.add_argument("--calibration", help="a calibration of the check made with 'vigproc forensics calibrate' "
                                           "on photographs like yours (default: the shipped one)")
-    sp.add_argument("--alpha", type=float, help="false-alarm probability below which a frame is inconsistent "
+    sp.add_argument("--alpha", type=number(0.0, 0.5, open_lo=True), help="false-alarm probability below which a frame is inconsistent "
                                                 "(default: the calibration's, 0.05)")
     add_method(sp)
     add_transfer(sp)
@@ -62,13 +62,12 @@ def _line(name: str, v: dict) -> str:
 def cmd_check(args: argparse.Namespace) -> int:
     from vigproc.forensics import Calibration, check_image, default_calibration, pool_verdicts
     from vigproc.io import read_image
-    from vigproc.pipeline import Processor, Settings, read_lens
+    from vigproc.pipeline import InputFiles, Processor, Settings, read_lens, refuse_input
 
     files = [Path(f) for f in args.files]
+    refuse_input(args.report, InputFiles(files))
     settings = Settings(mode="check", method=args.method, transfer=args.input_transfer)
     calibration = Calibration.load(args.calibration) if args.calibration else default_calibration()
-    if args.alpha is not None and not 0.0 < args.alpha < 1.0:
-        raise VigprocError(f"--alpha must be within (0, 1), got {args.alpha}")
     store = None
     if not args.no_store:
         from vigproc.profiles import ProfileStore
@@ -88,7 +87,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                 except VigprocError as exc:
                     failed += 1
                     results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
-                    print(f"vigproc: {exc}", file=sys.stderr)
+                    print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
                     continue
                 rec = {"file": str(f), "lens": lens, **v.to_dict()}
                 results.append(rec)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vigproc.commands._options import add_method, add_transfer
+from vigproc.commands._options import add_method, add_transfer, number
 from vigproc.errors import VigprocError
 
 
@@ -41,7 +41,7 @@ def register(subparsers) -> None:
     q.add_argument("--classifier", choices=list(CLASSIFIERS), default="vigproc",
                    help="vigproc: Gaussian on the ring fall-off, pooled spread (default); "
                         "lyu2010: the paper's nearest neighbour on (p1, p2, p3, α1..α7)")
-    q.add_argument("--shrinkage", type=float, default=1.0,
+    q.add_argument("--shrinkage", type=number(0.0, 1.0), default=1.0,
                    help="vigproc classifier: 1 = one spread for all classes (default), 0 = one per class")
     add_method(q)
     add_transfer(q)
@@ -49,7 +49,7 @@ def register(subparsers) -> None:
     q = fsub.add_parser("evaluate", help="classify labelled folders and print the confusion matrix")
     q.add_argument("model")
     q.add_argument("dir")
-    q.add_argument("--frames", type=int, default=1,
+    q.add_argument("--frames", type=number(1, 10_000, integer=True), default=1,
                    help="decide on groups of N frames of a class at once (multi-frame evidence)")
     q.add_argument("--json", action="store_true")
     add_transfer(q)
@@ -60,7 +60,8 @@ def register(subparsers) -> None:
     q.add_argument("-o", "--output", required=True)
     q.add_argument("--lenses", type=int, default=16, help="lensfun lenses (two apertures each)")
     q.add_argument("--per-image", type=int, default=4, help="lens fields per photograph")
-    q.add_argument("--alpha", type=float, default=0.05, help="false-alarm probability of the verdict")
+    q.add_argument("--alpha", type=number(0.0, 0.5, open_lo=True), default=0.05,
+                   help="false-alarm probability of the verdict")
     q.add_argument("--limit", type=int)
     add_method(q)
     add_transfer(q)
@@ -121,16 +122,17 @@ def _protocol_images(folders, limit, transfer):
 # ------------------------------------------------------------------ commands
 def cmd_train(args: argparse.Namespace) -> int:
     from vigproc.identify import feature_vector, train_classifier
-    from vigproc.pipeline import images_in
+    from vigproc.pipeline import InputFiles, images_in, refuse_input
 
     kind, feats = CLASSIFIERS[args.classifier]
+    classes = [(sub, images_in(sub)) for root in args.dirs for sub in _class_dirs(Path(root))]
+    refuse_input(args.output, InputFiles(f for _, files in classes for f in files))
     X, labels = [], []
-    for root in args.dirs:
-        for sub in _class_dirs(Path(root)):
-            est = _estimates(images_in(sub), args.method, args.input_transfer, str(sub))
-            X += [feature_vector(m, feats) for _, m in est]
-            labels += [sub.name] * len(est)
-            print(f"{sub.name}: {len(est)} frames")
+    for sub, files in classes:
+        est = _estimates(files, args.method, args.input_transfer, str(sub))
+        X += [feature_vector(m, feats) for _, m in est]
+        labels += [sub.name] * len(est)
+        print(f"{sub.name}: {len(est)} frames")
     source = ("vigproc forensics train " + " ".join(shlex.quote(str(d)) for d in args.dirs)
               + f" --classifier {args.classifier} --shrinkage {args.shrinkage:g} --method {args.method}")
     clf = train_classifier(np.array(X), labels, kind=kind, features=feats, shrinkage=args.shrinkage,
@@ -145,8 +147,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from vigproc.pipeline import images_in
 
     clf = LensClassifier.load(args.model)
-    if args.frames < 1:
-        raise VigprocError("--frames must be at least 1")
     known = {name: i for i, name in enumerate(clf.labels)}
     true, pred, unknown = [], [], []
     for sub in _class_dirs(Path(args.dir)):
@@ -184,6 +184,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from vigproc.estimate import estimate
     from vigproc.forensics import estimator_fingerprint, fit_calibration
 
+    from vigproc.pipeline import InputFiles, images_in, refuse_input
+
+    refuse_input(args.output, InputFiles(f for d in args.images for f in images_in(Path(d), args.limit)))
     ims = _protocol_images(args.images, args.limit, args.input_transfer)
     classes = bench_classes(args.lenses)
     print(f"calibrating on {len(ims)} photographs x {args.per_image} of {len(classes)} lens fields")

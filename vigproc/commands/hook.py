@@ -23,6 +23,10 @@ options)::
 exactly (correct mode; no sidecar; its suffix must match ``output_format``, e.g.
 ``.tif`` for ``tiff16``); ``lens`` replaces
 the lens metadata read from the file (see :func:`vigproc.api.lens_key`).
+With an output folder (``-o`` or ``output_dir``), a relative ``output`` is taken
+inside it and no ``output`` may lead out of it (``..``, an absolute path
+elsewhere, a symbolic link): that file fails with exit code 2.  ``--output-file``
+and an output folder exclude each other.
 
 With ``-o``, outputs are named ``STEM.corrected.tif`` and ``STEM.vigproc.json``
 (control characters and a leading ``-`` or ``.`` of STEM percent-encoded; a later
@@ -100,6 +104,8 @@ def _read_request(source: str) -> dict[str, Any]:
         req = json.loads(data.decode("utf-8", "surrogateescape"))
     except ValueError as exc:
         raise UsageError(f"request is not valid JSON: {exc}") from None
+    except RecursionError:  # hostile nesting exhausts the decoder's stack
+        raise UsageError("request is not valid JSON: nested too deeply") from None
     if not isinstance(req, dict):
         raise UsageError("request must be a JSON object")
     unknown = set(req) - _REQUEST_KEYS
@@ -131,6 +137,20 @@ def _job(entry: Any) -> dict[str, Any]:
         if v is not None and (not isinstance(v, str) or "\x00" in v or not v):
             raise UsageError(f"file '{k}' must be a non-empty path without NUL characters")
     return {"path": entry["path"], "output": entry.get("output"), "lens": entry.get("lens")}
+
+
+def _inside(outdir: Path, output: str) -> Path:
+    """Where a file's ``output`` goes with an output folder: relative to it, and never out
+    of it (the request comes from a host plugin: ``..``, an absolute path elsewhere or a
+    symbolic link must not let it write anywhere else)."""
+    target = outdir / output  # an absolute output stays absolute
+    try:
+        root, parent = outdir.resolve(), target.parent.resolve()
+    except (OSError, RuntimeError) as exc:  # e.g. a symbolic link loop
+        raise UsageError(f"file 'output' {output!r}: {getattr(exc, 'strerror', None) or exc}") from None
+    if target.name in ("", "..") or (parent != root and root not in parent.parents):
+        raise UsageError(f"file 'output' {output!r} is not a file inside the output folder {str(outdir)!r}")
+    return parent / target.name
 
 
 class _HostLens:
@@ -248,6 +268,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if not entries:
         raise UsageError("no files given (arguments or the request's 'files')")
     if args.output_file is not None:
+        if opt["output_dir"]:
+            raise UsageError("--output-file and an output folder (-o or the request's 'output_dir') "
+                             "cannot be used together")
         if len(entries) != 1:
             raise UsageError(f"--output-file needs exactly one input file, got {len(entries)}")
         e = entries[0]
@@ -266,6 +289,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for e in entries:
         try:
             j = _job(e)
+            if outdir is not None and j["output"] is not None:
+                j["output"] = str(_inside(outdir, j["output"]))
             if j["lens"] is not None:
                 given[str(Path(j["path"]))] = lens_key(j["lens"])
         except (UsageError, RequestError) as exc:  # a bad entry fails alone
