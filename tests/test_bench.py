@@ -140,3 +140,44 @@ def test_prior_fit_needs_ten_photos(clean_folder, tmp_path):
                        capture_output=True, text=True, timeout=600)
     assert r.returncode != 0 and "at least 10 photos" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "b.json").exists()
+
+
+def test_real_bench_pairs_and_photographs(tmp_path):
+    """``vigproc bench real``: NAME_vig with NAME (or NAME without its digits) is a pair
+    with a known field; other images are photographs; the field of a flat white frame
+    is found, and a frame without vignetting of its own has no true fall-off."""
+    from vigproc.bench.real import find_inputs, run_pair
+    from vigproc.estimate import estimate
+    from vigproc.model import VignettingModel
+    from vigproc.pipeline import IMAGE_SUFFIXES
+
+    h, w = 160, 240
+    truth = table1_model(1).rescale(w, h).field()
+    white = np.full((h, w, 3), 0.8, dtype=np.float32)
+    base = textured(h, w, seed=7, contrast=0.05)
+    write_image(tmp_path / "white.tif", white, bit_depth="float")
+    write_image(tmp_path / "white2_vig.tif", white * truth[..., None].astype(np.float32), bit_depth="float")
+    write_image(tmp_path / "scene.tif", np.repeat(base[..., None], 3, 2).astype(np.float32), bit_depth="float")
+    write_image(tmp_path / "scene_vig.tif", np.repeat((base * truth)[..., None], 3, 2).astype(np.float32),
+                bit_depth="float")
+    write_image(tmp_path / "photo.tif", np.repeat((base * truth)[::-1, :, None], 3, 2).astype(np.float32),
+                bit_depth="float")
+    write_image(tmp_path / "white2_Est_truth.tif", truth.astype(np.float32), bit_depth="float")
+    pairs, photos = find_inputs(tmp_path, IMAGE_SUFFIXES)
+    assert sorted((v.name, c.name) for v, c in pairs) == [("scene_vig.tif", "scene.tif"),
+                                                          ("white2_vig.tif", "white.tif")]
+    assert [p.name for p in photos] == ["photo.tif"]
+    flat = run_pair(white[..., 0] * truth, white[..., 0], "white2_vig", "default",
+                    lambda im: estimate(im, channel_axis=None))
+    assert flat.uncorrected_ev > 0.3 and flat.true_corner_ev < -0.5
+    # no correction scores exactly the uncorrected figure
+    none = run_pair(base * truth, base, "scene_vig", "none", lambda im: VignettingModel.identity(w, h))
+    assert none.error_ev == pytest.approx(none.uncorrected_ev)
+    # the exact field scores (nearly) zero
+    exact = run_pair(base * truth, base, "scene_vig", "truth", lambda im: table1_model(1).rescale(w, h))
+    assert exact.error_ev < 0.01
+    r = subprocess.run([*VIGPROC, "bench", "real", "--images", str(tmp_path), "--methods", "default",
+                        "--json", str(tmp_path / "r.json")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = json.loads((tmp_path / "r.json").read_text())
+    assert len(rows) == 3 and "2 pairs and 1 photographs" in r.stdout

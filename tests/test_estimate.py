@@ -321,3 +321,21 @@ def test_fit_stays_valid_beyond_its_corner_pixels():
     for w, h in ((256, 192), (640, 480)):
         assert np.all(np.isfinite(fit.rescale(w, h).log_field()))
     assert np.isfinite(fit.field_ev_rms())
+
+
+def test_flat_field_method_reads_a_frame_without_scene_exactly():
+    """A white frame under a real lens's fall-off: "flat-field" recovers it; the default
+    divides out the scene prior (the darker edges photographs of scenes have), which a
+    frame of no scene does not have, and so under-corrects."""
+    from vigproc.lensfun import bench_lenses, pa_field
+
+    _, pa = bench_lenses(1)[0]
+    h, w = 320, 480
+    truth = pa_field((h, w), pa.k1, pa.k2, pa.k3)
+    rng = np.random.default_rng(0)
+    white = 0.7 * truth * (1 + 0.002 * rng.standard_normal((h, w)))  # a little sensor noise
+    ff = vigproc.estimate(white, "flat-field", channel_axis=None)
+    assert ff.method == "flat-field" and not ff.quality.fallback
+    err_ff = float(np.std(np.log2(ff.field((h, w)) / truth)))
+    err_default = float(np.std(np.log2(vigproc.estimate(white, channel_axis=None).field((h, w)) / truth)))
+    assert err_ff < 0.03 and err_ff < 0.5 * err_default, (err_ff, err_default)

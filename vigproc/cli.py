@@ -70,7 +70,7 @@ def _estimate_file(args: argparse.Namespace) -> int:
         print(f"  P (px^-2)   p1={m.p[0]:.4g} p2={m.p[1]:.4g} p3={m.p[2]:.4g}")
         print(f"  alpha       {', '.join(f'{a:.4g}' for a in m.alpha)}")
         print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame")
-        if q is not None and m.method in ("robust", "real-lens"):
+        if q is not None and m.method in ("robust", "real-lens", "flat-field"):
             why = "weak evidence or not a real lens's shape" if m.method == "real-lens" else "weak evidence"
             state = f"NOT applied ({why})" if q.fallback else "applied"
             print(f"  confidence  {q.confidence:.2f} (SNR {q.snr:.1f}, ±{q.field_sigma_ev:.3f} EV): {state}")
@@ -512,7 +512,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
 
             files = [Path(f) for f in args.files]
             done = failed = 0
-            settings = Settings(mode="learn", transfer=args.input_transfer)
+            settings = Settings(mode="learn", transfer=args.input_transfer, method=args.method)
             with Processor(settings, store=store) as proc:
                 for f in _progress(files, "learning"):
                     try:
@@ -622,6 +622,7 @@ def build_parser() -> argparse.ArgumentParser:
     q = psub.add_parser("learn", help="estimate frames and pool them into their lenses' profiles")
     q.add_argument("files", nargs="+")
     add_transfer(q)
+    add_method(q)
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("import", help="import a profile file (profiles/README.md)")
     q.add_argument("file")

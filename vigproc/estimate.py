@@ -16,9 +16,12 @@ from vigproc.robust import RobustSettings, estimate_robust
 log = logging.getLogger(__name__)
 
 #: Methods :func:`estimate` accepts; "default" is vigproc's robust estimator.
-METHODS = ("default", "robust", "real-lens", "lyu2010", "lyu2010-rand", "ga")
-#: The methods that are vigproc's robust estimator (and give frame evidence for profiles).
-ROBUST_METHODS = ("default", "robust", "real-lens")
+METHODS = ("default", "robust", "real-lens", "flat-field", "lyu2010", "lyu2010-rand", "ga")
+#: The methods that are vigproc's robust estimator.
+ROBUST_METHODS = ("default", "robust", "real-lens", "flat-field")
+#: The robust methods whose frames give evidence for profile pooling (which assumes
+#: photographs of scenes: :mod:`vigproc.pooling` subtracts a scene's mean fall-off).
+EVIDENCE_METHODS = ("default", "robust", "real-lens")
 #: Long side of the working copy used by the paper's methods (its protocol size).
 LYU_WORK_SIZE = 480
 #: A pixel at or above this fraction of the frame's maximum counts as clipped
@@ -58,8 +61,9 @@ def _from_working(m: VignettingModel, k: int, width: int, height: int) -> Vignet
 
 
 def _named(model: VignettingModel, method: str) -> VignettingModel:
-    """A real-lens estimate says so (the corrected file's record names the method)."""
-    return replace(model, method="real-lens") if method == "real-lens" else model
+    """A real-lens or flat-field estimate says so (the corrected file's record names
+    the method)."""
+    return replace(model, method=method) if method in ("real-lens", "flat-field") else model
 
 
 def _robust_settings(method: str, settings: RobustSettings | None) -> RobustSettings:
@@ -67,7 +71,11 @@ def _robust_settings(method: str, settings: RobustSettings | None) -> RobustSett
     from vigproc.robust import REAL_LENS_SHAPE_RATIO
 
     s = settings or RobustSettings()
-    return replace(s, max_shape_ratio=REAL_LENS_SHAPE_RATIO) if method == "real-lens" else s
+    if method == "real-lens":
+        return replace(s, max_shape_ratio=REAL_LENS_SHAPE_RATIO)
+    if method == "flat-field":  # no scene: no scene shading to divide out
+        return replace(s, scene_prior=False)
+    return s
 
 
 def estimate(
@@ -82,12 +90,16 @@ def estimate(
     img : ndarray
         H×W or H×W×C (``channel_axis``) linear intensities, any float/int dtype.
         Colour images are reduced to Rec. 709 luminance.
-    method : {"default", "robust", "real-lens", "lyu2010", "lyu2010-rand", "ga"} or str
+    method : {"default", "robust", "real-lens", "flat-field", "lyu2010", "lyu2010-rand", "ga"} or str
         "default"/"robust": vigproc's robust per-pixel estimator, with fall-back to
         no correction when the evidence is weak. "real-lens": the same, also falling
         back when the fitted fall-off is broader than real lenses' (for photographs
         of real lenses: fewer corrections of photos that do not vignette; see
-        :data:`vigproc.robust.REAL_LENS_SHAPE_RATIO`). "lyu2010": the paper's Gaussian
+        :data:`vigproc.robust.REAL_LENS_SHAPE_RATIO`). "flat-field": the same without
+        the scene prior, for frames of no scene (a white wall, a diffuser over the
+        lens, an evenly lit sky), whose fall-off is all the lens's; on a photograph
+        of a scene it reads the scene's own darker edges as vignetting.
+        "lyu2010": the paper's Gaussian
         approximation followed by the ML fit of Eq. (6). "lyu2010-rand": the ML fit
         from a random start. "ga": Gaussian approximation only (Eqs. 17–20).
         Any other name: an installed estimator plugin (:mod:`vigproc.extensions`).
@@ -174,7 +186,7 @@ def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
                            method: str = "default") -> tuple[VignettingModel, bytes]:
     """``estimate(img, method)`` and :func:`frame_evidence` of the same frame,
     preparing the frame once (learn mode needs both); ``method`` is one of
-    :data:`ROBUST_METHODS`.
+    :data:`EVIDENCE_METHODS`.
 
     Raises
     ------
@@ -183,10 +195,10 @@ def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
     """
     from vigproc.robust import estimate_robust_with_evidence
 
-    if method not in ROBUST_METHODS:
+    if method not in EVIDENCE_METHODS:
         from vigproc.extensions import UnknownMethodError
 
-        raise UnknownMethodError(f"frame evidence comes with {', '.join(ROBUST_METHODS)}, not {method!r}")
+        raise UnknownMethodError(f"frame evidence comes with {', '.join(EVIDENCE_METHODS)}, not {method!r}")
     a = check_image(img, channel_axis)
     m, evidence = estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings), clipped_mask(a))
     return _named(m, method), evidence

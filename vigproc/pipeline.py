@@ -493,7 +493,7 @@ class Processor:
         return out, res
 
     def _learn(self, img: np.ndarray, lens_key, frame_id: str | None):
-        from vigproc.estimate import ROBUST_METHODS, estimate, estimate_with_evidence
+        from vigproc.estimate import EVIDENCE_METHODS, estimate, estimate_with_evidence
         from vigproc.profiles import ProfileKey
 
         if self.store is None:
@@ -504,7 +504,7 @@ class Processor:
         key = ProfileKey.from_lens(lens_key, w, h)
         ca = -1 if img.ndim == 3 else None
         evidence = None
-        if self.settings.method in ROBUST_METHODS:
+        if self.settings.method in EVIDENCE_METHODS:
             # with the frame's data, so the store can pool the lens's profile from all its frames
             m, evidence = estimate_with_evidence(img, channel_axis=ca, method=self.settings.method)
         else:
