@@ -8,9 +8,38 @@
 Photo pipelines: :class:`vigproc.Pipeline` (:mod:`vigproc.api`, the stable interface).
 """
 
-from vigproc.api import Pipeline, Result
-from vigproc.correct import correct
-from vigproc.errors import (
+import os as _os
+
+
+def _numba_cache_fallback(environ=_os.environ, access=_os.access) -> str | None:
+    """Where Numba should cache compiled kernels when its own choices fail, else None.
+
+    Numba caches next to the source or in the user's cache folder; when neither is
+    writable (a system-wide install run by a service user without a home) it refuses
+    to define cached functions at all, so importing vigproc would fail.  Then a private
+    folder in the temporary directory is used instead.
+    """
+    import tempfile
+
+    if environ.get("NUMBA_CACHE_DIR"):
+        return None
+    if access(_os.path.join(_os.path.dirname(__file__), "_kernels"), _os.W_OK):
+        return None
+    home = environ.get("XDG_CACHE_HOME") or _os.path.join(_os.path.expanduser("~"), ".cache")
+    probe = home
+    while probe and not _os.path.exists(probe):  # the nearest existing folder decides
+        probe = _os.path.dirname(probe)
+    if probe and access(probe, _os.W_OK):
+        return None
+    return _os.path.join(tempfile.gettempdir(), f"vigproc-numba-{_os.getuid() if hasattr(_os, 'getuid') else 0}")
+
+
+if (_cache := _numba_cache_fallback()) is not None:
+    _os.environ["NUMBA_CACHE_DIR"] = _cache
+
+from vigproc.api import Pipeline, Result  # noqa: E402  (after the Numba cache decision)
+from vigproc.correct import correct  # noqa: E402
+from vigproc.errors import (  # noqa: E402
     ImageReadError,
     ImageWriteError,
     InvalidImageError,
@@ -19,9 +48,9 @@ from vigproc.errors import (
     UnsupportedFormatError,
     VigprocError,
 )
-from vigproc.estimate import METHODS, estimate
-from vigproc.model import FitQuality, VignettingModel
-from vigproc.robust import RobustSettings
+from vigproc.estimate import METHODS, estimate  # noqa: E402
+from vigproc.model import FitQuality, VignettingModel  # noqa: E402
+from vigproc.robust import RobustSettings  # noqa: E402
 
 __version__ = "0.1.0"
 
