@@ -543,7 +543,10 @@ def cmd_profile(args: argparse.Namespace) -> int:
             m = import_lensfun(args.maker, args.model, args.focal, args.aperture, args.distance,
                                width=args.width, height=args.height, crop_factor=args.crop_factor)
             theta, _, aspect = normalise(m)
-            lens_id = args.lens_id or f"{args.maker}|{args.model}"
+            from vigproc.exif import escape_key_part
+
+            # escaped as lens ids from EXIF are: a "|" in a name must not forge a component
+            lens_id = args.lens_id or f"{escape_key_part(args.maker)}|{escape_key_part(args.model)}"
             key = ProfileKey(lens_id.casefold(), focal_bin(args.focal), aperture_bin(args.aperture), aspect_label(aspect))
             store.put(Profile(key=key, theta=theta, covariance=None, provenance="lensfun", trusted=True,
                                   notes=f"lensfun {args.maker} {args.model} at {args.focal} mm f/{args.aperture}"))

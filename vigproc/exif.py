@@ -276,7 +276,7 @@ def _squash(text: str) -> str:
     return "".join(c for c in text if c.isalnum() or c == ".")
 
 
-def _esc(part: str | None) -> str:
+def escape_key_part(part: str | None) -> str:
     # "|" separates key components and "?" marks a missing one: escape so a
     # hostile value cannot forge another key.
     if part is None:
@@ -383,9 +383,9 @@ class LensKey:
             f/4l is usm"``; a missing part is ``?``; ``|``, ``%`` and ``?`` inside
             values are percent-escaped.  No focal length or aperture.
         """
-        parts = [_esc(self.make), _esc(self.model), _esc(self.lens)]
+        parts = [escape_key_part(self.make), escape_key_part(self.model), escape_key_part(self.lens)]
         if with_serial:
-            parts.append("sn:" + _esc(self.lens_serial))
+            parts.append("sn:" + escape_key_part(self.lens_serial))
         return "|".join(parts)
 
     def key_string(self) -> str:
