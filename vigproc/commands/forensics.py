@@ -164,6 +164,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 true.append(known[sub.name])
     if unknown:
         print(f"vigproc: classes the model does not know, not evaluated: {', '.join(unknown)}", file=sys.stderr)
+    if not true and len(unknown) < len(_class_dirs(Path(args.dir))):
+        raise VigprocError(f"no class folder of {args.dir} has {args.frames} readable frames for one decision")
     if not true:
         raise VigprocError(f"no subfolder of {args.dir} is named like a class of the model "
                            f"({', '.join(clf.labels)})")
