@@ -257,16 +257,12 @@ def quadratic_start(wc: WorkingCopy, steps: np.ndarray, iters: int = 6) -> np.nd
     return theta
 
 
-def _radii(theta: np.ndarray, wc: WorkingCopy, n: int = 24) -> np.ndarray:
-    """Radii r sampled from 0 to the largest r inside the frame (reached at a corner).
-
-    The frame's outer edges (±W/2, ±H/2), not its corner pixel centres: a model is
-    also evaluated at other resolutions (pictures, a RAW's full size), whose corner
-    pixel centres lie further out (a 64-px fit was valid at its own corners and not
-    on a 256-px grid).
-    """
-    hx = wc.width / 2 / wc.radius
-    hy = wc.height / 2 / wc.radius
+def _radii(theta: np.ndarray, wc: WorkingCopy, n: int = 24, edges: bool = False) -> np.ndarray:
+    """Radii r sampled from 0 to the largest r inside the frame (reached at a corner):
+    at its corner pixel centres, or with ``edges`` at its outer edges (±W/2, ±H/2)."""
+    off = 0.0 if edges else 1.0
+    hx = (wc.width - off) / 2 / wc.radius
+    hy = (wc.height - off) / 2 / wc.radius
     cx, cy, p1, p2, p3 = theta[:5]
     qmax = 0.0
     for x in (-hx, hx):
@@ -318,7 +314,10 @@ G_MIN = 0.02
 
 
 def _min_g(theta: np.ndarray, wc: WorkingCopy) -> float:
-    r = _radii(theta, wc, 64)
+    # up to the frame's edges: a model is also evaluated at other resolutions (pictures,
+    # a RAW's full size), whose corner pixel centres lie further out (a 64-px fit was
+    # valid at its own corners and fell below G = 0 on a 256-px grid)
+    r = _radii(theta, wc, 64, edges=True)
     k = np.arange(1, N_ALPHA + 1)
     return float(np.min(1.0 - (r[:, None] ** k) @ theta[5:]))
 
