@@ -202,13 +202,21 @@ class Daemon:
         self.env = env
         self.proc: subprocess.Popen | None = None
 
-    def start(self) -> Daemon:
+    def start(self, new_session: bool = False) -> Daemon:
+        """``new_session``: in a process group of its own, as a terminal runs a command."""
         self._fh = open(self.log, "ab")
-        self.proc = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=self._fh, env=self.env)
+        self.proc = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=self._fh, env=self.env,
+                                     start_new_session=new_session)
         return self
 
     def stop(self, sig=signal.SIGTERM, timeout: float = 90) -> int:
         self.proc.send_signal(sig)
+        try:
+            return self.proc.wait(timeout=timeout)
+        finally:
+            self._fh.close()
+
+    def wait(self, timeout: float = 60) -> int:
         try:
             return self.proc.wait(timeout=timeout)
         finally:
@@ -649,3 +657,145 @@ def test_quarantine_reason_follows_a_clash_renamed_file(tmp_path):
         assert why["sha256"] == digest and why["file"] == "text.jpg" and "cannot read" in why["reason"]
     assert sorted(p.name for p in qdir.iterdir()) == sorted(
         ["text.jpg", "text.jpg.reason.json", renamed.name, renamed.name + ".reason.json"])
+
+
+# ====================================================================== kills, signals, leftovers
+def _exiftool_env(tmp_path: Path, then: str) -> tuple[dict, Path]:
+    """An environment whose metadata-copying exiftool (``VIGPROC_EXIFTOOL``) first writes its
+    arguments to ``marks/<pid>``, then runs the shell command ``then``; and ``marks``.  Every
+    process started with it carries the tag, so that none can hide from :func:`_alive`."""
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    script = tmp_path / "slow-exiftool"
+    script.write_text(f'#!/bin/sh\necho "$@" > "{marks}/$$"\n{then}\n')
+    script.chmod(0o755)
+    return {**os.environ, "VIGPROC_EXIFTOOL": str(script), "VIGPROC_TEST_TAG": str(tmp_path)}, marks
+
+
+def _alive(tag: str) -> list[str]:
+    """Command lines of the live (not zombie) processes whose environment holds ``VIGPROC_TEST_TAG=tag``."""
+    out = []
+    for proc in Path("/proc").iterdir():
+        try:
+            if f"VIGPROC_TEST_TAG={tag}".encode() not in (proc / "environ").read_bytes().split(b"\0"):
+                continue
+            if (proc / "stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+                out.append((proc / "cmdline").read_bytes().replace(b"\0", b" ").decode("utf-8", "replace"))
+        except OSError:  # not a process, gone, or not ours
+            continue
+    return out
+
+
+def _none_alive(tag: str, timeout: float = 10) -> list[str]:
+    deadline = time.monotonic() + timeout
+    while (alive := _alive(tag)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return alive
+
+
+def _temps(out_dir: Path) -> set[str]:
+    return {p.name for p in out_dir.iterdir() if p.name.startswith(".") and ".tmp" in p.name}
+
+
+def test_kill9_charges_only_the_file_in_progress_and_leaves_no_process(tmp_path):
+    """kill -9 of the daemon while a.png is in progress and b.png is queued behind it on
+    the one worker, three times: b.png did not cause the kills and goes back uncharged;
+    a.png is charged each time (a file that kills the daemon must not crash-loop it) and
+    quarantined at the third, which is logged as an error and counted.  No worker or
+    exiftool outlives the daemon."""
+    in_dir, out_dir, qdir = tmp_path / "in", tmp_path / "out", tmp_path / "quarantine"
+    a, b = (str(make_good(in_dir, n, i).resolve()) for i, n in enumerate(["a.png", "b.png"]))
+    env, marks = _exiftool_env(tmp_path, "exec sleep 60")  # a.png is stuck in its metadata copy
+    args = ("--workers", "1", "--settle", "0.2", "--max-crashes", "3", "--quarantine", str(qdir))
+    log = tmp_path / "daemon.log"
+
+    def a_started_b_queued() -> bool:
+        e = journal_entries(out_dir)
+        return (any(marks.iterdir()) and a in e and e[a].state == "running" and e[a].started
+                and b in e and e[b].state == "running")
+
+    for k in range(3):
+        for m in marks.iterdir():
+            m.unlink()
+        d = Daemon(in_dir, out_dir, log, *args, env=env).start()
+        d.wait_for(f"a.png in progress, b.png queued (run {k + 1})", a_started_b_queued, timeout=60)
+        d.kill9()
+        assert _none_alive(str(tmp_path)) == [], "workers and exiftool must die with the daemon"
+    n_events = len(d.events())
+    d = Daemon(in_dir, out_dir, log, *args).start()  # the real exiftool again
+    d.wait_for("b.png done", lambda: journal_entries(out_dir)[b].state == "done", timeout=60)
+    assert d.stop() == 0
+    e = journal_entries(out_dir)
+    assert e[b].crashes == 0 and e[b].attempts == 0
+    assert e[a].state == "quarantined" and e[a].crashes == 3 and "interrupted 3 times" in e[a].reason
+    assert (qdir / "a.png").is_file() and not (qdir / "b.png").exists()
+    events = d.events()[n_events:]
+    assert [(ev["level"], ev["file"]) for ev in events if ev.get("event") == "quarantined"] == [("error", a)]
+    assert [ev["quarantined"] for ev in events if ev.get("event") == "stopped"] == [1]
+
+
+def test_ctrl_c_to_the_process_group_drains_without_quarantining(tmp_path):
+    """Ctrl-C in a terminal signals the daemon's whole process group: the files in progress
+    are finished (their exiftool is not in that group), and one whose exiftool a stop
+    signal killed anyway (systemd may signal every process) goes back without an attempt."""
+    in_dir, out_dir, stage = tmp_path / "in", tmp_path / "out", tmp_path / "stage"
+    in_dir.mkdir()
+    # a slow exiftool: like the real one, it exits on SIGINT even though the worker ignores it
+    slow = "exec perl -e '$SIG{INT} = sub { exit 1 }; sleep 3; exec @ARGV' exiftool \"$@\""
+    env, marks = _exiftool_env(tmp_path, slow)
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2", env=env).start(new_session=True)
+    d.wait_for("both workers", lambda: sum(ev.get("event") == "worker-ready" for ev in d.events()) == 2, timeout=60)
+    for i, n in enumerate(["a.png", "b.png"]):  # one per worker
+        shutil.copyfile(make_good(stage, n, i), in_dir / n)
+
+    def copying() -> dict[str, int]:
+        """Input name -> pid of the exiftool copying its metadata."""
+        return {n: int(m.name) for m in marks.iterdir() for n in ("a.png", "b.png") if n in m.read_text()}
+
+    d.wait_for("both files in their metadata copy", lambda: len(copying()) == 2, timeout=60)
+    os.killpg(d.proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
+    os.kill(copying()["b.png"], signal.SIGTERM)
+    assert d.wait() == 0
+    e = {Path(p).name: x for p, x in journal_entries(out_dir).items()}
+    assert e["a.png"].state == "done", e["a.png"].reason
+    assert e["b.png"].state == "pending" and e["b.png"].attempts == 0, (e["b.png"].state, e["b.png"].reason)
+    assert not [ev for ev in d.events() if ev.get("event") == "quarantined"]
+
+
+def test_temporaries_of_killed_writers_are_removed(tmp_path):
+    """Temporary files are removed when their writer is killed: left by an earlier run for a
+    file that is now pending (at start), of a killed worker (at once), after an abort."""
+    in_dir, out_dir = tmp_path / "in", tmp_path / "out"
+    for i, n in enumerate(["a.png", "b.png"]):
+        make_good(in_dir, n, i)
+    out_dir.mkdir()
+    b = str((in_dir / "b.png").resolve())
+    with Journal(out_dir / ".vigproc-watch.sqlite", job=f"watch:correct:{in_dir.resolve()}->{out_dir.resolve()}") as j:
+        fp = fingerprint(b)
+        assert j.claim(b, fp, worker="an earlier run") and j.failed(b, fp, "busy", transient=True) == "retry"
+    stale = {".b.png.corrected.tif.tmp-x1.tif", "..b.png.corrected.tif.tmp-x1.tif.tmp-y2.tif",
+             ".b.png.corrected.tif.tmp-x1.tif_exiftool_tmp", ".b.png.vigproc.tmp.json"}
+    foreign = {".c.png.corrected.tif.tmp-z.tif", ".b.png notes.txt"}  # another input's; not a temporary
+    for name in stale | foreign:
+        (out_dir / name).write_bytes(b"x")
+    env, marks = _exiftool_env(tmp_path, "exec sleep 60")  # every file gets stuck in its metadata copy
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--workers", "1", "--settle", "0.2", env=env).start()
+    d.wait_for("a file in its metadata copy", lambda: any(marks.iterdir()), timeout=60)
+    assert not stale & set(p.name for p in out_dir.iterdir())
+    assert foreign <= set(p.name for p in out_dir.iterdir())
+    first = _temps(out_dir) - foreign
+    assert first, "the file in progress is being written to a temporary"
+    worker = [ev["worker_pid"] for ev in d.events() if ev.get("event") == "worker-ready"][0]
+    for m in marks.iterdir():
+        m.unlink()
+    os.kill(worker, signal.SIGKILL)
+    d.wait_for("the worker restarted", lambda: any(ev.get("event") == "worker-restart" for ev in d.events()))
+    assert not first & _temps(out_dir)
+    d.wait_for("the next file in its metadata copy", lambda: any(marks.iterdir()), timeout=60)
+    assert _temps(out_dir) - foreign
+    d.proc.send_signal(signal.SIGINT)  # twice: abort
+    time.sleep(0.2)
+    d.proc.send_signal(signal.SIGINT)
+    assert d.wait() == 1
+    assert _temps(out_dir) <= foreign
+    assert _none_alive(str(tmp_path)) == []

@@ -188,15 +188,17 @@ def test_recover_release_quarantine_forget(db):
     with Journal(db, job="j") as j:
         for name in "abc":
             assert j.claim(f"/in/{name}", fp_of(name), worker="w")
+        j.start("/in/a", fp_of("a"))  # a is being processed, b only queued
         j.release("/in/c", fp_of("c"))
         assert j.lookup("/in/c").state == "pending" and j.lookup("/in/c").attempts == 0
     # the process "died" with a and b running
     with Journal(db, job="j") as j:
         assert j.recover(max_crashes=2) == 2
         assert {e.path for e in j.entries("pending")} == {"/in/a", "/in/b", "/in/c"}
-        assert j.lookup("/in/a").crashes == 1
+        assert j.lookup("/in/a").crashes == 1 and j.lookup("/in/b").crashes == 0
         assert j.claim("/in/a", fp_of("a"), worker="w")
-        assert j.lookup("/in/a").claims == 2
+        assert j.lookup("/in/a").claims == 2 and not j.lookup("/in/a").started
+        j.start("/in/a", fp_of("a"))
     with Journal(db, job="j") as j:  # died again on a: a file that crashes vigproc is not retried forever
         assert j.recover(max_crashes=2) == 1
         e = j.lookup("/in/a")
@@ -205,6 +207,31 @@ def test_recover_release_quarantine_forget(db):
         assert j.lookup("/in/unreadable").state == "quarantined"
         assert j.needs_work("/in/unreadable", fp_of("readable now", 5))
         assert j.forget("/in/c") and j.lookup("/in/c") is None and not j.forget("/in/c")
+
+
+def test_recover_never_charges_a_file_that_was_only_claimed(db):
+    """A file queued for a worker (claimed, not started) when the process is killed did
+    not cause the kill: however often that happens, it goes back without a crash."""
+    with Journal(db, job="j") as j:
+        for _ in range(5):
+            assert j.claim("/in/queued", fp_of("q"), worker="w")
+            with pytest.raises(JournalError):
+                j.start("/in/other", fp_of("o"))  # only a running entry can be started
+            assert j.recover(max_crashes=2) == 1
+        e = j.lookup("/in/queued")
+        assert e.state == "pending" and e.crashes == 0 and e.claims == 5
+
+
+def test_journal_of_an_older_vigproc_gains_the_started_column(tmp_path):
+    old = tmp_path / "old.sqlite"
+    with Journal(old, job="j") as j:
+        assert j.claim("/in/a", fp_of("a"), worker="w")
+        j.con.execute("ALTER TABLE entries DROP COLUMN started")  # as an older vigproc wrote it
+    with Journal(old, job="j") as j:
+        e = j.lookup("/in/a")
+        assert e.state == "running" and not e.started
+        j.start("/in/a", fp_of("a"))
+        assert j.lookup("/in/a").started
 
 
 def test_jobs_share_a_database_without_seeing_each_other(db):

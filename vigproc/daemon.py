@@ -27,19 +27,25 @@ Crash safety
 ------------
 The journal is updated in one fsynced transaction per step.  After a kill -9 the
 next start calls :meth:`~vigproc.journal.Journal.recover` (files left running become
-pending; a file interrupted ``max_crashes`` times is quarantined) and rescans the
-folder, so files dropped while the daemon was down are found.  A worker that
-crashes or hangs costs only its file an attempt.  A sidecar that already records
-the same input content and settings (a crash after the sidecar but before the
-journal) is taken as the result instead of processing the file again.  In ``learn``
-mode each frame content is pooled at most once: the input's SHA-256 is the
-``frame_id`` of :meth:`~vigproc.profiles.ProfileStore.learn`, recorded in the
+pending; a file that a worker had started -- not one merely queued for it -- is
+charged a crash, and quarantined at ``max_crashes``, since nothing tells a kill of
+the daemon from a file that takes it down), removes the temporary files of the
+unfinished files and rescans the folder, so files dropped while the daemon was down
+are found.  A worker that crashes or hangs costs only its file an attempt; its
+process group (exiftool included) is killed and its temporaries removed.  A sidecar
+that already records the same input content and settings (a crash after the sidecar
+but before the journal) is taken as the result instead of processing the file again.
+In ``learn`` mode each frame content is pooled at most once: the input's SHA-256 is
+the ``frame_id`` of :meth:`~vigproc.profiles.ProfileStore.learn`, recorded in the
 store's own transaction.
 
 Workers are processes (``spawn``), not threads: a decoder crash on a hostile file
-kills one worker, not the daemon, and the GIL is not shared.  They ignore
-SIGINT/SIGTERM (the main process drains them) and die with the main process
-(``PR_SET_PDEATHSIG`` on Linux; they also exit when their pipe closes).
+kills one worker, not the daemon, and the GIL is not shared.  Each leads a process
+group of its own (a terminal's Ctrl-C does not reach it or its exiftool), ignores
+SIGINT/SIGTERM (the main process drains them) and dies with the main process
+(``PR_SET_PDEATHSIG`` on Linux; they also exit when their pipe closes), and so does
+its exiftool.  An exiftool failure while the daemon stops gives the file back
+without an attempt: a stop signal may have killed it.
 """
 
 from __future__ import annotations
@@ -158,6 +164,22 @@ def output_stem(rel: str) -> str:
     """
     stem = percent_encode(rel, also="%", leading=".")  # "%" too: one-to-one, so names never collide
     return shorten_stem(stem, os.fsencode(rel))
+
+
+#: Markers of the temporary names of vigproc's writers (atomic, io, metadata; exiftool's own),
+#: as :func:`vigproc.batch.sweep_temporaries` knows them.
+_TEMP_MARKERS = (".tmp", ".meta-", "_exiftool_tmp")
+#: Characters of an output stem that every writer keeps in its temporary names.
+_TEMP_KEY = 12
+
+
+def _temp_keys(name: str) -> set[str]:
+    """The output stems (cut to :data:`_TEMP_KEY` characters) that a file name could be a
+    writer's temporary of: ``.STEM...`` or, for a writer's temporary inside another's,
+    ``..STEM...``; empty if the name is not a temporary one."""
+    if not name.startswith(".") or not any(m in name for m in _TEMP_MARKERS):
+        return set()
+    return {name[d:d + n] for d in (1, 2) for n in range(1, _TEMP_KEY + 1)}
 
 
 # ------------------------------------------------------------------ errors
@@ -409,6 +431,10 @@ def _ev(event: str, **fields: Any) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------ worker process
+def _no_op(_signum: int, _frame: Any) -> None:
+    pass
+
+
 def _set_parent_death_signal() -> None:
     """Linux: be killed when the daemon dies (even by kill -9)."""
     if not sys.platform.startswith("linux"):
@@ -448,8 +474,15 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
     """A worker process: one Processor, tasks in, results out, until told to stop or
     the daemon goes away."""
     _set_parent_death_signal()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon drains us; Ctrl-C in a terminal hits
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the whole process group (and systemd may too)
+    # The daemon drains us.  A process group of our own keeps a terminal's Ctrl-C (sent to
+    # the whole foreground group) from us and from the exiftool we start, which would die of it.
+    with contextlib.suppress(OSError):
+        os.setpgrp()
+    for sig in (signal.SIGINT, signal.SIGTERM):  # systemd may signal every process
+        # a no-op handler, not SIG_IGN: an ignored signal stays ignored across exec, and our
+        # exiftool would then outlive us (pyexiftool has it sent SIGTERM when we die)
+        signal.signal(sig, _no_op)
+        signal.siginterrupt(sig, False)
     configure_logging(log_json, log_level)
     wlog = logging.getLogger("vigproc.watch.worker")
     store = proc = None
@@ -500,6 +533,16 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
         if store is not None:
             with contextlib.suppress(Exception):
                 store.close()
+
+
+def _kill_group(process: Any) -> None:
+    """SIGKILL a worker and what it started (exiftool): it leads a process group of its own."""
+    pid = process.pid
+    if pid is not None and pid != os.getpgrp():  # never our own group (if the worker could not leave it)
+        with contextlib.suppress(OSError):
+            os.killpg(pid, signal.SIGKILL)
+    with contextlib.suppress(OSError, ValueError):
+        process.kill()
 
 
 @dataclass
@@ -700,12 +743,9 @@ class Daemon:
 
     def _run(self) -> int:
         cfg = self.cfg
-        interrupted = self.journal.entries("running")
-        n = self.journal.recover(max_crashes=cfg.max_crashes)
-        if n:
-            log.warning("%d file(s) were being processed when the daemon last stopped; they are retried", n,
-                        extra=_ev("recover", count=n))
-        self._remove_stale_temps([e.path for e in interrupted])
+        unfinished = [e.path for state in ("running", "pending", "failed") for e in self.journal.entries(state)]
+        self._recover()
+        self._remove_stale_temps(unfinished)
         if cfg.retry_quarantined:
             k = self.journal.requeue("quarantined")
             log.info("%d quarantined file(s) will be tried again", k, extra=_ev("requeue", count=k))
@@ -735,29 +775,63 @@ class Daemon:
                  self.stats["quarantined"], self.stats["retried"], extra=_ev("stopped", reason=self._stop, **self.stats))
         return 0
 
-    def _remove_stale_temps(self, interrupted: list[str]) -> None:
-        """Temporary files that the outputs of ``interrupted`` inputs (and our status file)
-        were being written to when the last run was killed.  Only names derived from
-        those inputs' stems are touched: the output folder may be shared."""
+    def _recover(self) -> None:
+        """Hand back the files that a killed run left running (see Journal.recover: only
+        those a worker had started are charged a crash, and quarantined after max_crashes)."""
+        interrupted = self.journal.entries("running")
+        if not interrupted:
+            return
+        self.journal.recover(max_crashes=self.cfg.max_crashes)
+        retried = 0
+        for old in interrupted:
+            e = self.journal.lookup(old.path)
+            if e is None or e.state != "quarantined":
+                retried += 1
+                continue
+            self.stats["quarantined"] += 1
+            log.error("quarantined %s: %s", os.path.relpath(e.path, self.cfg.in_dir), e.reason,
+                      extra=_ev("quarantined", file=e.path, kind="crash", reason=e.reason))
+        if retried:
+            log.warning("%d file(s) were being processed when the daemon last stopped; they are retried", retried,
+                        extra=_ev("recover", count=retried))
+
+    def _remove_stale_temps(self, unfinished: list[str]) -> None:
+        """Temporary files that the outputs of ``unfinished`` inputs (running or pending when
+        the last run stopped) and our status file were being written to when their writer
+        was killed: nothing writes them now."""
         cfg = self.cfg
-        prefixes = {f".{cfg.status_file.name}."}
-        for path in interrupted:
-            if _inside(path, str(cfg.in_dir)):
-                p = output_stem(os.path.relpath(path, cfg.in_dir))[:20]
-                while len(p.encode("utf-8")) > 50:
-                    p = p[:-1]
-                prefixes |= {"." + p, ".." + p}  # ours, and a writer's temp nested in ours
-        removed = 0
-        for folder in {cfg.out_dir, cfg.status_file.parent}:
-            with contextlib.suppress(OSError), os.scandir(folder) as it:
-                for e in it:
-                    if e.name.startswith(tuple(prefixes)) and ".tmp" in e.name and e.is_file(follow_symlinks=False):
-                        with contextlib.suppress(OSError):
-                            os.unlink(e.path)
-                            removed += 1
+        removed = self._remove_temps(unfinished)
+        with contextlib.suppress(OSError), os.scandir(cfg.status_file.parent) as it:
+            for e in it:
+                if e.name.startswith(f".{cfg.status_file.name}.") and e.name.endswith(".tmp"):
+                    with contextlib.suppress(OSError):
+                        os.unlink(e.path)
+                        removed += 1
         if removed:
             log.info("removed %d temporary file(s) left by the interrupted run", removed,
                      extra=_ev("cleanup", count=removed))
+
+    def _remove_temps(self, paths: Iterable[str], keep: Iterable[str] = ()) -> int:
+        """Remove the temporary files that the outputs of ``paths`` were being written to by
+        a writer that is dead now.  Only hidden names made from those inputs' output stems
+        and carrying a temporary marker are touched (the output folder may be shared), and
+        none that could be the temporary of a file of ``keep`` (still being written)."""
+        cfg = self.cfg
+
+        def keys(ps: Iterable[str]) -> set[str]:
+            return {output_stem(os.path.relpath(p, cfg.in_dir))[:_TEMP_KEY] for p in ps if _inside(p, str(cfg.in_dir))}
+
+        mine, busy = keys(paths), keys(keep)
+        removed = 0
+        if mine:
+            with contextlib.suppress(OSError), os.scandir(cfg.out_dir) as it:
+                for e in it:
+                    k = _temp_keys(e.name)
+                    if k & mine and not k & busy and e.is_file(follow_symlinks=False):
+                        with contextlib.suppress(OSError):
+                            os.unlink(e.path)
+                            removed += 1
+        return removed
 
     def _take_lock(self) -> None:
         import fcntl
@@ -848,10 +922,8 @@ class Daemon:
         w = self.workers[index]
         with contextlib.suppress(OSError):
             w.conn.close()
+        _kill_group(w.process)  # its exiftool too, which would otherwise live on (and write on)
         w.process.join(timeout=5)
-        if w.process.is_alive():
-            w.process.kill()
-            w.process.join(timeout=5)
         code = w.process.exitcode
         with contextlib.suppress(ValueError):
             w.process.close()
@@ -867,6 +939,7 @@ class Daemon:
                 self._record_failure(t, TRANSIENT, f"{why} (worker exit code {code})", self.cfg.max_crashes)
             else:
                 self._release(t)
+        self._remove_temps([t.path for t in w.tasks], keep=self.inflight)
         w.tasks.clear()
         if not self._stop:
             log.warning("%s %s; starting a new one", w.name, why, extra=_ev("worker-restart", worker=w.name, why=why))
@@ -877,24 +950,28 @@ class Daemon:
     def _shutdown_workers(self) -> None:
         for w in self.workers:
             if self._abort:
-                w.process.kill()
+                _kill_group(w.process)
             elif w.process.is_alive():
                 with contextlib.suppress(OSError, ValueError):
                     w.conn.send(("stop",))
         deadline = time.monotonic() + 10 + (self.cfg.timeout if any(w.tasks for w in self.workers) else 0)
+        unfinished = []
         for w in self.workers:
             w.process.join(timeout=max(deadline - time.monotonic(), 0.1))
             if w.process.is_alive():
-                w.process.kill()
+                _kill_group(w.process)
                 w.process.join(timeout=5)
             for t in w.tasks:  # only after an abort or a startup error
                 self.inflight.pop(t.path, None)
                 self._release(t)
+                unfinished.append(t.path)
             w.tasks.clear()
             with contextlib.suppress(OSError):
                 w.conn.close()
             with contextlib.suppress(ValueError):
                 w.process.close()
+        if unfinished:  # their writers were killed
+            self._remove_temps(unfinished)
 
     # ---------------------------------------------------------- observer
     def _start_observer(self) -> None:
@@ -1186,6 +1263,10 @@ class Daemon:
             return
         if kind == "start":
             task.started = time.monotonic()
+            try:  # from now on a kill of the daemon charges this file a crash (Journal.recover)
+                self.journal.start(task.path, task.fp)
+            except JournalError as exc:
+                log.error("%s: cannot record its start: %s", task.path, exc, extra=_ev("journal-error", file=task.path))
             return
         w.tasks.remove(task)
         self.inflight.pop(task.path, None)
@@ -1195,6 +1276,13 @@ class Daemon:
             self._done(task, payload, w.name)
         else:
             kind_, reason = payload["kind"], payload["reason"]
+            if self._stop and "exiftool" in reason:
+                # the stop signal may have reached exiftool too (systemd can signal every
+                # process): not the file's fault, so it goes back without an attempt
+                self._release(task)
+                log.warning("%s failed while stopping (%s); it will be tried again", task.rel, reason,
+                            extra=_ev("released", file=task.path, reason=reason))
+                return
             if kind_ == PERMANENT and payload.get("type") in _READ_ERRORS and self._young(task):
                 e = self.journal.lookup(task.path)
                 if e is not None and e.attempts == 0:
@@ -1313,7 +1401,7 @@ class Daemon:
             if t is not None and t.started is not None and now - t.started > self.cfg.timeout and not w.stopping:
                 log.error("%s took more than %.0f s on %s; stopping it", w.name, self.cfg.timeout, t.rel,
                           extra=_ev("timeout", file=t.path, worker=w.name))
-                w.process.kill()
+                _kill_group(w.process)
                 w.process.join(timeout=5)
                 self._worker_gone(i, f"timed out after {self.cfg.timeout:.0f} s")
 

@@ -10,6 +10,10 @@ and SHA-256 of the content) it had when it was last handled, and its state::
                         |   \\--failed(permanent, or no attempts left)--> quarantined
                         \\--(process killed) recover()--> pending (or quarantined after max_crashes)
 
+:meth:`Journal.start` marks a claimed entry as actually being worked on.  Only such
+an entry is charged a crash by :meth:`Journal.recover`: a file that was merely
+claimed (queued for a worker) when the process died cannot have caused the death.
+
 A path whose content changes (a new SHA-256 or size) is new work whatever its
 entry's state; a path whose content is unchanged and is ``done`` or ``quarantined``
 is never handed out again.  :meth:`Journal.claim` is one atomic transaction, so
@@ -212,7 +216,7 @@ class Entry:
     fingerprint: Fingerprint
     state: str
     attempts: int  # failed attempts with this content
-    crashes: int  # times a process died while it was running
+    crashes: int  # times a process died while it was started (see Journal.start)
     claims: int  # times it was handed out with this content
     not_before: float  # epoch seconds: no retry before
     worker: str | None
@@ -220,6 +224,7 @@ class Entry:
     result: dict[str, Any] | None  # what done() stored
     first_seen: str
     updated: str
+    started: bool = False  # begun by a worker since it was last claimed (see Journal.start)
 
     @property
     def retrying(self) -> bool:
@@ -242,6 +247,7 @@ CREATE TABLE IF NOT EXISTS entries (
     state      TEXT    NOT NULL CHECK (state IN ('pending', 'running', 'done', 'quarantined')),
     attempts   INTEGER NOT NULL DEFAULT 0,
     crashes    INTEGER NOT NULL DEFAULT 0,
+    started    INTEGER NOT NULL DEFAULT 0,  -- begun since the last claim, not just claimed: see start()
     claims     INTEGER NOT NULL DEFAULT 0,
     not_before REAL    NOT NULL DEFAULT 0,
     worker     TEXT,
@@ -255,7 +261,7 @@ CREATE INDEX IF NOT EXISTS entries_by_state ON entries (job, state, not_before);
 """
 
 _COLUMNS = ("path, size, mtime_ns, sha256, state, attempts, crashes, claims, not_before, worker, reason, result, "
-            "first_seen, updated")
+            "first_seen, updated, started")
 
 
 class Journal(SQLiteFile):
@@ -312,6 +318,9 @@ class Journal(SQLiteFile):
             for statement in _SCHEMA.split(";\n"):  # not executescript: it would COMMIT first
                 if statement.strip():
                     con.execute(statement)
+            # a journal of an older vigproc lacks "started"; older code ignores the column
+            if "started" not in {r[1] for r in con.execute("PRAGMA table_info(entries)")}:
+                con.execute("ALTER TABLE entries ADD COLUMN started INTEGER NOT NULL DEFAULT 0")
             row = con.execute("SELECT value FROM vigproc_journal_meta WHERE key = 'schema'").fetchone()
             if row is None:
                 con.execute("INSERT INTO vigproc_journal_meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
@@ -329,13 +338,14 @@ class Journal(SQLiteFile):
 
     def _entry(self, row: tuple) -> Entry:
         (path, size, mtime, sha, state, attempts, crashes, claims, not_before, worker, reason, result,
-         first_seen, updated) = row
+         first_seen, updated, started) = row
         try:
             res = json.loads(result) if result is not None else None
         except ValueError:
             res = {"unparsed": result}
         return Entry(os.fsdecode(bytes(path)), Fingerprint(int(size), int(mtime), str(sha)), str(state), int(attempts),
-                     int(crashes), int(claims), float(not_before), worker, reason, res, str(first_seen), str(updated))
+                     int(crashes), int(claims), float(not_before), worker, reason, res, str(first_seen), str(updated),
+                     bool(started))
 
     def _backoff(self, attempts: int) -> float:
         return min(self.retry_cap, self.retry_base * 2.0 ** max(attempts - 1, 0)) * random.uniform(0.8, 1.0)
@@ -425,13 +435,14 @@ class Journal(SQLiteFile):
             if (int(size), str(sha)) != (fp.size, fp.sha256):
                 con.execute(
                     "UPDATE entries SET size = ?, mtime_ns = ?, sha256 = ?, state = 'running', attempts = 0, crashes = 0,"
-                    " claims = 1, not_before = 0, worker = ?, reason = NULL, result = NULL, updated = ?"
+                    " started = 0, claims = 1, not_before = 0, worker = ?, reason = NULL, result = NULL, updated = ?"
                     " WHERE job = ? AND path = ?",
                     (fp.size, fp.mtime_ns, fp.sha256, worker, stamp, self.job, key))
                 return True
             if state == "pending" and float(not_before) <= t:
-                con.execute("UPDATE entries SET state = 'running', claims = claims + 1, mtime_ns = ?, worker = ?,"
-                            " updated = ? WHERE job = ? AND path = ?", (fp.mtime_ns, worker, stamp, self.job, key))
+                con.execute("UPDATE entries SET state = 'running', started = 0, claims = claims + 1, mtime_ns = ?,"
+                            " worker = ?, updated = ? WHERE job = ? AND path = ?",
+                            (fp.mtime_ns, worker, stamp, self.job, key))
                 return True
             return False
 
@@ -453,6 +464,23 @@ class Journal(SQLiteFile):
             return change(con, key, row)
 
         return self._transact(op, body)
+
+    def start(self, path: str | os.PathLike[str], fp: Fingerprint) -> None:
+        """Record that work on a claimed file has begun (a worker took it from its queue),
+        so that :meth:`recover` charges it a crash if the process dies now.
+
+        Raises
+        ------
+        JournalError
+            The file is not running with this content.
+        """
+        stamp = _now_iso()
+
+        def change(con: sqlite3.Connection, key: bytes, row: tuple) -> None:
+            con.execute("UPDATE entries SET started = 1, updated = ? WHERE job = ? AND path = ?",
+                        (stamp, self.job, key))
+
+        self._update_running("start", path, fp, change)
 
     def done(self, path: str | os.PathLike[str], fp: Fingerprint, result: dict[str, Any]) -> None:
         """Record a claimed file as processed, with ``result`` (outputs, sidecar; JSON).
@@ -544,6 +572,11 @@ class Journal(SQLiteFile):
     def recover(self, *, max_crashes: int | None = None) -> int:
         """Entries left ``running`` by a process that died become ``pending`` again.
 
+        Only an entry that had been started (:meth:`start`) is charged a crash: one
+        that was merely claimed, e.g. queued behind the running file, goes back as if
+        never handed out.  Nothing tells a kill of the whole process from a file that
+        takes the process down with it, so a started entry is charged either way.
+
         Call it when no other process works on this job (the daemon holds a per-job
         lock while it runs).
 
@@ -551,7 +584,8 @@ class Journal(SQLiteFile):
         ----------
         max_crashes : int, optional
             Quarantine instead an entry that has now been interrupted this many times
-            (a file that kills its worker every time must not crash-loop the job).
+            while started (a file that kills vigproc every time must not crash-loop
+            the job).
 
         Returns
         -------
@@ -561,18 +595,18 @@ class Journal(SQLiteFile):
         stamp = _now_iso()
 
         def body(con: sqlite3.Connection) -> int:
-            rows = con.execute("SELECT path, crashes FROM entries WHERE job = ? AND state = 'running'",
+            rows = con.execute("SELECT path, crashes, started FROM entries WHERE job = ? AND state = 'running'",
                                (self.job,)).fetchall()
-            for key, crashes in rows:
-                n = int(crashes) + 1
-                if max_crashes is not None and n >= max_crashes:
-                    con.execute("UPDATE entries SET state = 'quarantined', crashes = ?, reason = ?, updated = ?"
-                                " WHERE job = ? AND path = ?",
-                                (n, f"interrupted {n} times while being processed (it may crash vigproc); not retried",
-                                 stamp, self.job, key))
+            for key, crashes, started in rows:
+                n = int(crashes) + (1 if started else 0)
+                if started and max_crashes is not None and n >= max_crashes:
+                    con.execute("UPDATE entries SET state = 'quarantined', crashes = ?, started = 0, reason = ?,"
+                                " updated = ? WHERE job = ? AND path = ?",
+                                (n, f"interrupted {n} times while being processed (vigproc was killed or crashed "
+                                 "each time: the file may be the cause); not retried", stamp, self.job, key))
                 else:
-                    con.execute("UPDATE entries SET state = 'pending', crashes = ?, not_before = 0, updated = ?"
-                                " WHERE job = ? AND path = ?", (n, stamp, self.job, key))
+                    con.execute("UPDATE entries SET state = 'pending', crashes = ?, started = 0, not_before = 0,"
+                                " updated = ? WHERE job = ? AND path = ?", (n, stamp, self.job, key))
             return len(rows)
 
         n = int(self._transact("recover", body))

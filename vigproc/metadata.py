@@ -93,14 +93,17 @@ The program is ``$VIGPROC_EXIFTOOL`` if set, else ``exiftool`` on ``PATH``.
 
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
 import math
 import os
 import re
 import shutil
+import signal
 import stat
 import subprocess
+import sys
 import tempfile
 from typing import Any, Mapping
 
@@ -251,8 +254,35 @@ def _trim(name: str, nbytes: int = 60) -> str:
     return name.encode("utf-8", "surrogateescape")[:nbytes].decode("utf-8", "ignore")
 
 
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
 def _one_line(text: str) -> str:
     return " / ".join(s.strip() for s in text.splitlines() if s.strip())
+
+
+def _die_with_parent() -> None:
+    """Linux ``preexec_fn``: exiftool is killed when the process that started it dies, so a
+    killed worker leaves no exiftool writing on into the output folder."""
+    if _prctl is not None:
+        _prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+
+
+def _libc_prctl() -> Any:
+    # looked up here, not in the forked child (no dlopen between fork and exec)
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+_prctl = _libc_prctl()
 
 
 class _Exiftool:
@@ -274,12 +304,14 @@ class _Exiftool:
     ) -> subprocess.CompletedProcess[bytes]:
         """Run exiftool; log its warnings (about ``name``); raise ImageWriteError(``what``...) on failure.
 
-        With ``check=False`` a non-zero exit status is left to the caller.
+        With ``check=False`` a non-zero exit status is left to the caller.  An exiftool
+        killed by a signal always raises, with ``transient`` set (a retry may succeed).
         """
         # -config must come first; it also stops a user's ~/.ExifTool_config loading.
         cmd = [self.exe, "-config", self.config, *args]
         try:
-            res = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, timeout=_TIMEOUT)
+            res = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, timeout=_TIMEOUT,
+                                 preexec_fn=_die_with_parent if _prctl is not None else None)
         except subprocess.TimeoutExpired:
             raise ImageWriteError(f"{what}: exiftool did not finish within {_TIMEOUT:.0f} s") from None
         except OSError as exc:
@@ -292,6 +324,10 @@ class _Exiftool:
                     logger.info("%s: exiftool: %s", name, ln)
                 else:
                     logger.warning("%s: exiftool: %s", name, ln)
+        if res.returncode < 0:  # killed (e.g. a stop signal to every process): not the file's fault
+            exc = ImageWriteError(f"{what}: exiftool was killed by {_signal_name(-res.returncode)}")
+            exc.transient = True
+            raise exc
         if check and (res.returncode != 0 or any(ln.startswith("Error") for ln in errors)):
             msg = _one_line("\n".join(errors) or err) or f"exit status {res.returncode}"
             raise ImageWriteError(f"{what}: exiftool failed: {msg}")
@@ -726,7 +762,9 @@ def write_corrected(
             write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer)
             copy_metadata(src, tmp, record)
         except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
-            raise type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d)) from None
+            err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))
+            err.__dict__.update(exc.__dict__)  # e.g. ``transient``
+            raise err from None
         publish(tmp, d)
         done = True
     except ImageWriteError:
