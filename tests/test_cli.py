@@ -349,3 +349,16 @@ def test_absurdly_nested_json_is_a_clear_error(tmp_path):
     assert r.returncode == 8 and "not valid profile JSON" in r.stderr, r.stderr
     r = run("forensics", "evaluate", deep, tmp_path)
     assert r.returncode == 11 and "not valid JSON" in r.stderr, r.stderr
+
+
+def test_tiff16_says_when_it_clips(tmp_path, vignetted_tiff):
+    """Values above the white point are clipped in a 16-bit output by design, and said."""
+    path, _ = vignetted_tiff
+    img, _ = read_image(path)
+    bright = tmp_path / "bright.tif"
+    write_image(bright, (img * (3.0 / img.max())).astype(np.float32), bit_depth="float")
+    r = run("correct", bright, "-o", tmp_path / "out", "--output-format", "tiff16", "--profile", "estimate")
+    assert r.returncode == 0 and "above the white point and tiff16 clips them" in r.stderr, r.stderr
+    r = run("correct", path, "-o", tmp_path / "out2", "--output-format", "tiff16", "--profile", "estimate",
+            "--strength", "0")
+    assert r.returncode == 0 and "white point" not in r.stderr, r.stderr

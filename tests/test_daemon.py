@@ -138,6 +138,18 @@ def test_own_folders_inside_the_watch_folder_are_not_watched(tmp_path):
     assert not d._wanted(str(tmp_path / "elsewhere.jpg"))
 
 
+def test_archive_and_quarantine_folders_must_be_their_own(tmp_path):
+    from vigproc.daemon import WatchConfig, WatchError
+
+    (tmp_path / "in").mkdir()
+    base = dict(in_dir=tmp_path / "in", out_dir=tmp_path / "out", settings={"mode": "correct", "profile": "estimate"})
+    for extra in ({"archive_dir": tmp_path / "out"}, {"quarantine_dir": tmp_path / "out"},
+                  {"archive_dir": tmp_path / "x", "quarantine_dir": tmp_path / "x"}):
+        with pytest.raises(WatchError, match="must differ|cannot be the output folder"):
+            WatchConfig(**base, **extra).validate()
+    WatchConfig(**base, archive_dir=tmp_path / "a", quarantine_dir=tmp_path / "q").validate()
+
+
 def test_move_never_overwrites_or_loses(tmp_path):
     src_dir, dst = tmp_path / "in", tmp_path / "archive"
     src_dir.mkdir()

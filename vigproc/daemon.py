@@ -367,11 +367,15 @@ class WatchConfig:
             raise WatchError("--timeout and --rescan must be positive")
         if self.max_attempts < 1 or self.max_crashes < 1:
             raise WatchError("--max-attempts and --max-crashes must be at least 1")
+        if self.archive_dir is not None and self.archive_dir == self.quarantine_dir:
+            raise WatchError(f"the archive and quarantine folders must differ ({str(self.archive_dir)!r})")
         for name, d in (("output", self.out_dir), ("quarantine", self.quarantine_dir), ("archive", self.archive_dir)):
             if d is None:
                 continue
             if d == self.in_dir:
                 raise WatchError(f"the {name} folder cannot be the watch folder itself ({str(d)!r})")
+            if name != "output" and d == self.out_dir:  # inputs would land among the outputs
+                raise WatchError(f"the {name} folder cannot be the output folder ({str(d)!r})")
             try:
                 d.mkdir(parents=True, exist_ok=True)
             except OSError as exc:

@@ -266,6 +266,16 @@ def _check_range(out: np.ndarray, output_format: str) -> None:
             f"holds: scale the input down or choose a wider output format{wider}")
 
 
+def _note_clipping(img: np.ndarray, out: np.ndarray, where: str, output_format: str) -> None:
+    """Say when samples end up above the white point of an integer output (clipped there
+    by design): pushed there by the correction, or above it in a float source.  A source's
+    own clipped highlights (exactly 1.0) are not counted."""
+    lost = int(np.count_nonzero(out >= 1.0)) - int(np.count_nonzero(np.asarray(img) == 1.0))
+    if lost > 1e-3 * out.size:
+        log.warning("%s: %.1f %% of the samples are above the white point and %s clips them "
+                    "(a float output format keeps them)", where, 100.0 * lost / out.size, output_format)
+
+
 def output_folder(path: str | os.PathLike[str]) -> Path:
     """Create (if needed) the output folder of a command.
 
@@ -488,6 +498,8 @@ class Processor:
                 out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
                               clip=1.0 if depth == "uint16" else None)
                 _check_range(out, s.output_format)
+                if depth == "uint16":
+                    _note_clipping(img, out, where, s.output_format)
                 res.applied = m.candidate is None and s.strength > 0
         res.seconds = round(time.perf_counter() - t0, 4)
         return out, res
