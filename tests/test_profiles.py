@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
+import os
 import sqlite3
 import time
 from pathlib import Path
@@ -531,6 +532,9 @@ BAD_FILES = [
     (_set(("model", "coordinates"), "pixels"), "coordinates"),
     (_set(("covariance",), [[1.0] * 3] * 3), "covariance"),
     (_set(("covariance",), NON_PSD_COV), "positive semi-definite"),
+    # was accepted, then listed as "±1.9e150 EV"
+    (_set(("covariance",), [[1e300 if i == j else 0.0 for j in range(12)] for i in range(12)]),
+     "use null for an unknown uncertainty"),
     (_set(("lens", "lens_id"), "someone|else|entirely"), "does not match"),
     (_set(("trusted",), "yes"), "trusted"),
     (_set(("created",), "yesterday"), "created"),
@@ -669,3 +673,12 @@ def test_learning_with_evidence_pools_centred_fits(tmp_path):
             store.learn(key, m.candidate or m, frame_id="f9", evidence=b"not evidence")
         wc = evidence_copy(frame_evidence(frames[0], channel_axis=None))
         assert wc.L.shape == (wc.ys.size, wc.xs.size) and (wc.width, wc.height) == (w, h)
+
+
+
+def test_profile_file_that_is_not_a_regular_file(tmp_path):
+    """A FIFO used to block the import forever."""
+    fifo = tmp_path / "p.json"
+    os.mkfifo(fifo)
+    with pytest.raises(ProfileStoreError, match="not a regular file"):
+        import_profile(fifo)

@@ -435,6 +435,10 @@ def _scaled_pinv(m: np.ndarray, what: str) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
+#: Largest variance a profile file may give a (normalised) parameter.
+MAX_FILE_VARIANCE = 1e8
+
+
 def _check_covariance(cov: np.ndarray, what: str) -> np.ndarray:
     cov = np.asarray(cov, dtype=np.float64)
     if cov.shape != (N_PARAMS, N_PARAMS):
@@ -1577,6 +1581,9 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
             raise ProfileStoreError(f"{where}: covariance must be a {N_PARAMS}x{N_PARAMS} list of lists or null")
         rows = [_numbers(r, N_PARAMS, where, "covariance") for r in cov]
         cov_a = _check_covariance(np.asarray(rows), f"{where}: covariance")
+        if float(np.max(np.diag(cov_a))) > MAX_FILE_VARIANCE:  # a standard deviation of 10⁴ says nothing
+            raise ProfileStoreError(f"{where}: covariance has a variance of {float(np.max(np.diag(cov_a))):.3g}, "
+                                    f"above {MAX_FILE_VARIANCE:g} (use null for an unknown uncertainty)")
     created = _timestamp(d, "created", where)
     updated = _timestamp(d, "updated", where)
 
