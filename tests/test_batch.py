@@ -139,10 +139,11 @@ def test_sweep_removes_only_orphaned_temporaries(tmp_path):
     (out / "a").mkdir(parents=True)
     keep = ["x.jpg.corrected.tif", "x.jpg.vigproc.json", ".other.tmp-1.tif", ".vigproc-batch.sqlite", "y.jpg.tmp"]
     gone = [".x.jpg.corrected.tif.tmp-abc.tif", ".x.jpg.vigproc.k2j3.tmp.json",
-            ".x.jpg.corrected.tif.tmp-abc.tif_exiftool_tmp", ".x.jpg.corrected.tif.meta-q.exr"]
+            ".x.jpg.corrected.tif.tmp-abc.tif_exiftool_tmp", ".x.jpg.corrected.tif.meta-q.exr",
+            "..x.jpg.corrected.tif.tmp-abc.tif.tmp-def.tif"]  # a writer's temporary inside another's
     for n in keep + gone:
         (out / "a" / n).write_bytes(b"x")
-    assert B.sweep_temporaries(out, [B.BatchItem("/in/a/x.jpg", "a/x.jpg"), B.BatchItem("/in/b.jpg", "b.jpg")]) == 4
+    assert B.sweep_temporaries(out, [B.BatchItem("/in/a/x.jpg", "a/x.jpg"), B.BatchItem("/in/b.jpg", "b.jpg")]) == 5
     assert sorted(p.name for p in (out / "a").iterdir()) == sorted(keep)
 
 

@@ -15,6 +15,23 @@ from typing import Iterator
 from vigproc.errors import ImageWriteError
 
 
+#: Markers in the temporary names of vigproc's writers (this module, io, metadata, and
+#: exiftool's own).
+TEMP_MARKERS = (".tmp", ".meta-", "_exiftool_tmp")
+#: Characters of an output's name that every writer keeps in its temporary names.
+TEMP_KEY = 12
+
+
+def temporary_keys(name: str) -> set[str]:
+    """The output names (cut to :data:`TEMP_KEY` characters) whose temporary file ``name``
+    could be: ``.NAME...`` or, for a writer's temporary inside another's (the image
+    written under the metadata step's temporary name), ``..NAME...``; empty if ``name``
+    is not a temporary one.  Sweeps of files left by killed writers match on this."""
+    if not name.startswith(".") or not any(m in name for m in TEMP_MARKERS):
+        return set()
+    return {name[d:d + n] for d in (1, 2) for n in range(1, TEMP_KEY + 1)}
+
+
 def new_file_mode_mask() -> int:
     """The process umask (what a plain ``open()`` would apply to a new file's mode)."""
     try:  # Linux: read it without the racy set-and-restore

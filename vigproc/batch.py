@@ -59,6 +59,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Callable, Iterable, Iterator
 
 from vigproc.errors import EXIT_CODES, ImageReadError, ImageWriteError, VigprocError
+from vigproc.atomic import TEMP_KEY, temporary_keys
 from vigproc.pipeline import IMAGE_SUFFIXES, SIDECAR_SUFFIX, Processor, Settings, safe_output
 
 log = logging.getLogger(__name__)
@@ -905,10 +906,6 @@ class _Run:
         self.flush_held()
 
 
-#: Markers of the temporary names of vigproc's atomic writers (atomic, io, metadata).
-_TEMP_MARKERS = (".tmp", ".meta-", "_exiftool_tmp")
-
-
 def sweep_temporaries(outdir: str | os.PathLike[str], items: Iterable[BatchItem]) -> int:
     """Remove temporary files orphaned by tasks that were killed while writing.
 
@@ -926,22 +923,16 @@ def sweep_temporaries(outdir: str | os.PathLike[str], items: Iterable[BatchItem]
     by_folder: dict[str, set[str]] = collections.defaultdict(set)
     for it in items:
         rel = PurePosixPath(it.rel)
-        # 12 characters: within every writer's cut of the name in its temporary names
-        stem = output_stem(rel.name)[:12]
-        # "..": a writer's temporary inside another's (the image written under the
-        # metadata step's temporary name)
-        by_folder[os.path.join(os.fspath(outdir), *rel.parts[:-1])].update(("." + stem, ".." + stem))
+        by_folder[os.path.join(os.fspath(outdir), *rel.parts[:-1])].add(output_stem(rel.name)[:TEMP_KEY])
     n = 0
-    for folder, prefixes in by_folder.items():
-        pre = tuple(prefixes)
+    for folder, stems in by_folder.items():
         try:
             entries = os.scandir(folder)
         except OSError:
             continue
         with entries:
             for e in entries:
-                if e.name.startswith(pre) and any(m in e.name for m in _TEMP_MARKERS) \
-                        and e.is_file(follow_symlinks=False):
+                if temporary_keys(e.name) & stems and e.is_file(follow_symlinks=False):
                     with contextlib.suppress(OSError):
                         os.unlink(e.path)
                         n += 1

@@ -74,6 +74,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
+from vigproc.atomic import TEMP_KEY, temporary_keys
 from vigproc.errors import VigprocError, one_line
 from vigproc.journal import FileChangedError, Fingerprint, FingerprintError, Journal, JournalError, fingerprint
 from vigproc.pipeline import percent_encode, shorten_stem
@@ -164,22 +165,6 @@ def output_stem(rel: str) -> str:
     """
     stem = percent_encode(rel, also="%", leading=".")  # "%" too: one-to-one, so names never collide
     return shorten_stem(stem, os.fsencode(rel))
-
-
-#: Markers of the temporary names of vigproc's writers (atomic, io, metadata; exiftool's own),
-#: as :func:`vigproc.batch.sweep_temporaries` knows them.
-_TEMP_MARKERS = (".tmp", ".meta-", "_exiftool_tmp")
-#: Characters of an output stem that every writer keeps in its temporary names.
-_TEMP_KEY = 12
-
-
-def _temp_keys(name: str) -> set[str]:
-    """The output stems (cut to :data:`_TEMP_KEY` characters) that a file name could be a
-    writer's temporary of: ``.STEM...`` or, for a writer's temporary inside another's,
-    ``..STEM...``; empty if the name is not a temporary one."""
-    if not name.startswith(".") or not any(m in name for m in _TEMP_MARKERS):
-        return set()
-    return {name[d:d + n] for d in (1, 2) for n in range(1, _TEMP_KEY + 1)}
 
 
 # ------------------------------------------------------------------ errors
@@ -823,14 +808,14 @@ class Daemon:
         cfg = self.cfg
 
         def keys(ps: Iterable[str]) -> set[str]:
-            return {output_stem(os.path.relpath(p, cfg.in_dir))[:_TEMP_KEY] for p in ps if _inside(p, str(cfg.in_dir))}
+            return {output_stem(os.path.relpath(p, cfg.in_dir))[:TEMP_KEY] for p in ps if _inside(p, str(cfg.in_dir))}
 
         mine, busy = keys(paths), keys(keep)
         removed = 0
         if mine:
             with contextlib.suppress(OSError), os.scandir(cfg.out_dir) as it:
                 for e in it:
-                    k = _temp_keys(e.name)
+                    k = temporary_keys(e.name)
                     if k & mine and not k & busy and e.is_file(follow_symlinks=False):
                         with contextlib.suppress(OSError):
                             os.unlink(e.path)
