@@ -63,13 +63,13 @@ def check_image(img: np.ndarray, channel_axis: int | None = -1, min_size: int = 
         raise InvalidImageError(f"image of {w}x{h} px is too small (need at least {min_size} px a side)")
     if h * w > MAX_PIXELS:
         raise InvalidImageError(f"image of {w}x{h} px exceeds the {MAX_PIXELS} px limit")
-    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+    # one pass each, no mask: NaN propagates to both extremes and ±Inf shows in one of them
+    hi, lo = a.max(), a.min()
+    if a.dtype.kind == "f" and not (np.isfinite(hi) and np.isfinite(lo)):
         n = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
         raise InvalidImageError(f"image has {n} NaN/Inf values; vigproc needs finite linear intensities")
-    hi = a.max()
     if not hi > 0:
         raise InvalidImageError("image has no positive pixel: linear intensities must be > 0")
-    lo = a.min()
     if lo == hi:
         raise InvalidImageError("image is constant: there is nothing to estimate vignetting from")
     # slightly negative values are noise around black in developed RAW data (kept in a
