@@ -292,10 +292,11 @@ def output_folder(path: str | os.PathLike[str]) -> Path:
     return out
 
 
-def refuse_input(output: str | os.PathLike[str] | None, inputs: InputFiles) -> None:
-    """Raise :class:`ImageWriteError` if the single output file of a command (a report,
-    a classifier) is one of its inputs: checked before any work is done."""
-    if output is not None and output in inputs:
+def refuse_input(output: str | os.PathLike[str] | None, *inputs: Container[Any]) -> None:
+    """Raise :class:`ImageWriteError` if ``output`` is in one of ``inputs`` (an
+    :class:`InputFiles`, or the paths themselves): no output of a run replaces one of
+    its inputs.  Checked before any work is done."""
+    if output is not None and any(output in c for c in inputs):
         raise ImageWriteError(f"refusing to overwrite {str(output)!r}: it is an input of this run")
 
 
@@ -566,8 +567,7 @@ class Processor:
         own = path.resolve()
         for target in (dst if s.mode == "correct" else None, sidecar,
                        safe_output(outdir, stem, ".vignetting.png") if s.picture else None):
-            if target is not None and (target == own or target in protect):
-                raise ImageWriteError(f"refusing to overwrite {str(target)!r}: it is an input of this run")
+            refuse_input(target, (own,), protect)
         img, _info = read_image(path, transfer=s.transfer)
         lens_key, lens = read_lens(self.reader, path)
         if s.mode == "learn" and frame_id is None:

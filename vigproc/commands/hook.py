@@ -249,7 +249,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run a hook call; returns the answer document (see the module docstring)."""
     from vigproc import __version__
     from vigproc.api import RequestError, lens_key
-    from vigproc.pipeline import InputFiles, Processor, Settings, output_stems
+    from vigproc.pipeline import InputFiles, Processor, Settings, output_folder, output_stems
 
     req = _read_request(args.request) if args.request else {}
     opt = {k: getattr(args, k) for k in ("mode", "profile", "profile_db", "method", "strength", "output_format",
@@ -277,12 +277,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if isinstance(e, dict) and e.get("output") is not None:
             raise UsageError("--output-file and the request's 'output' both name the output")
         entries = [{**(e if isinstance(e, dict) else {"path": e}), "output": args.output_file}]
-    outdir = Path(opt["output_dir"]) if opt["output_dir"] else None
-    if outdir is not None:
-        try:
-            outdir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise ImageWriteError(f"cannot create output folder {str(outdir)!r}: {exc.strerror or exc}") from None
+    outdir = output_folder(opt["output_dir"]) if opt["output_dir"] else None
 
     jobs: list[dict[str, Any]] = []
     given = {}
