@@ -291,7 +291,6 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
 def cmd_bench_real(args: argparse.Namespace) -> int:
     """Photographs vignetted by others: pairs with a known field, and real lenses."""
     from vigproc.bench import real as R
-    from vigproc.errors import VigprocError
     from vigproc.image import luminance
     from vigproc.io import read_image
     from vigproc.pipeline import IMAGE_SUFFIXES
@@ -695,19 +694,11 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--limit", type=int)
     bp.add_argument("--lenses", type=int, default=20)
     bp.add_argument("--frames-per-lens", type=int, default=5)
-    add_transfer(bp)
-    bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],
-                    help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
-    _add_scene_prior(bp)
-    bp.add_argument("--json")
+    _add_estimator_bench(bp)
     bp.set_defaults(fn=cmd_bench_lensfun)
     bp = bsub.add_parser("real", help="photographs vignetted by others: known-field pairs and real lenses")
     bp.add_argument("--images", required=True, help="folder tree, e.g. ../shared/data/vignetted")
-    add_transfer(bp)
-    bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],
-                    help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
-    _add_scene_prior(bp)
-    bp.add_argument("--json")
+    _add_estimator_bench(bp)
     bp.set_defaults(fn=cmd_bench_real)
     bp = bsub.add_parser("speed", help="estimator timings on 480x320 frames")
     bp.add_argument("--images", help="folder of images (default: the bundled samples)")
@@ -739,6 +730,18 @@ def build_parser() -> argparse.ArgumentParser:
         if hasattr(mod, "register_bench"):
             mod.register_bench(bsub)
     return p
+
+
+def _add_estimator_bench(bp: argparse.ArgumentParser) -> None:
+    """Options of a benchmark that runs estimators on photographs (lensfun, real)."""
+    from vigproc.commands._options import add_transfer
+    from vigproc.estimate import METHODS
+
+    add_transfer(bp)
+    bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],
+                    help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
+    _add_scene_prior(bp)
+    bp.add_argument("--json")
 
 
 def _add_scene_prior(bp: argparse.ArgumentParser) -> None:
