@@ -25,6 +25,7 @@ import time
 from typing import Any, Iterator
 
 from vigproc.batch import BatchError, JobSpec, Outcome, Task, release_worker_state, run_task, warm_up
+from vigproc.processes import die_with_parent
 
 log = logging.getLogger(__name__)
 
@@ -166,23 +167,8 @@ def _pool_worker_init(numba_threads: int, client_pid: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     with contextlib.suppress(OSError):
         os.setpgrp()
-    _die_with(client_pid)
+    die_with_parent(client_pid)  # a pool worker of a killed client would wait for tasks forever
     warm_up(numba_threads)
-
-
-def _die_with(parent_pid: int) -> None:
-    """Linux: be killed when the client dies (a pool worker of a client killed with
-    SIGKILL would otherwise wait for tasks forever)."""
-    import ctypes
-    import signal
-
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return
-    if os.getppid() != parent_pid:  # it died before prctl took effect
-        os._exit(1)
 
 
 class _WarmUpPlugin:

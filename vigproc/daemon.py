@@ -51,7 +51,6 @@ without an attempt: a stop signal may have killed it.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import errno
 import hashlib
 import json
@@ -78,6 +77,7 @@ from vigproc.atomic import TEMP_KEY, temporary_keys
 from vigproc.errors import VigprocError, one_line
 from vigproc.journal import FileChangedError, Fingerprint, FingerprintError, Journal, JournalError, fingerprint
 from vigproc.pipeline import percent_encode, shorten_stem
+from vigproc.processes import die_with_parent
 
 __all__ = [
     "Daemon",
@@ -424,15 +424,6 @@ def _no_op(_signum: int, _frame: Any) -> None:
     pass
 
 
-def _set_parent_death_signal() -> None:
-    """Linux: be killed when the daemon dies (even by kill -9)."""
-    if not sys.platform.startswith("linux"):
-        return
-    with contextlib.suppress(Exception):
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
-
-
 def _sidecar_result(sidecar: Path, fp: Fingerprint, settings: dict[str, Any]) -> dict[str, Any] | None:
     """The result recorded by an earlier run's sidecar for this very content and these
     settings (its outputs still present), or None."""
@@ -462,7 +453,7 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
                  log_json: bool, log_level: int) -> None:
     """A worker process: one Processor, tasks in, results out, until told to stop or
     the daemon goes away."""
-    _set_parent_death_signal()
+    die_with_parent()  # even when the daemon is killed with SIGKILL
     # The daemon drains us.  A process group of our own keeps a terminal's Ctrl-C (sent to
     # the whole foreground group) from us and from the exiftool we start, which would die of it.
     with contextlib.suppress(OSError):

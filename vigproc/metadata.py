@@ -93,7 +93,6 @@ The program is ``$VIGPROC_EXIFTOOL`` if set, else ``exiftool`` on ``PATH``.
 
 from __future__ import annotations
 
-import ctypes
 import json
 import logging
 import math
@@ -103,7 +102,6 @@ import shutil
 import signal
 import stat
 import subprocess
-import sys
 import tempfile
 from typing import Any, Mapping
 
@@ -114,6 +112,7 @@ from vigproc.atomic import publish
 from vigproc.errors import ImageReadError, ImageWriteError, InvalidImageError, ModelError
 from vigproc.io import write_image
 from vigproc.model import VignettingModel
+from vigproc.processes import AVAILABLE as DIES_WITH_PARENT, die_with_parent
 
 __all__ = [
     "EXR_TAGS",
@@ -265,26 +264,6 @@ def _one_line(text: str) -> str:
     return " / ".join(s.strip() for s in text.splitlines() if s.strip())
 
 
-def _die_with_parent() -> None:
-    """Linux ``preexec_fn``: exiftool is killed when the process that started it dies, so a
-    killed worker leaves no exiftool writing on into the output folder."""
-    if _prctl is not None:
-        _prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
-
-
-def _libc_prctl() -> Any:
-    # looked up here, not in the forked child (no dlopen between fork and exec)
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        return ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-
-
-_prctl = _libc_prctl()
-
-
 class _Exiftool:
     """A private temp folder with the namespace config; runs exiftool with it."""
 
@@ -311,7 +290,7 @@ class _Exiftool:
         cmd = [self.exe, "-config", self.config, *args]
         try:
             res = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, timeout=_TIMEOUT,
-                                 preexec_fn=_die_with_parent if _prctl is not None else None)
+                                 preexec_fn=die_with_parent if DIES_WITH_PARENT else None)
         except subprocess.TimeoutExpired:
             raise ImageWriteError(f"{what}: exiftool did not finish within {_TIMEOUT:.0f} s") from None
         except OSError as exc:
