@@ -704,3 +704,21 @@ def test_exr_extra_channels_select_rgb(tmp_path: Path) -> None:
     img, info = read_image(p)
     assert img.shape == (4, 5, 3) and info.channels == 3
     np.testing.assert_array_equal(img[0, 0], [1.0, 2.0, 3.0])
+
+
+def test_two_channels_are_grey_plus_extra_only_when_the_file_says_grey(tmp_path: Path) -> None:
+    # A grey TIFF with an untagged extra sample (grey + alpha as many tools write it)
+    ga = np.zeros((6, 4, 2), np.float32)
+    ga[..., 0], ga[..., 1] = 0.25, 1.0
+    img, info = read_image(oiio_write(tmp_path / "ga.tif", ga, "float"))
+    assert img.shape == (6, 4) and info.channels == 1
+    np.testing.assert_allclose(img, 0.25)
+
+    # Two named channels that are neither grey nor RGB: refused, not read as the first
+    spec = oiio.ImageSpec(4, 6, 2, "float")
+    spec.channelnames = ("U", "V")
+    p = str(tmp_path / "uv.exr")
+    out = oiio.ImageOutput.create(p)
+    assert out.open(p, spec) and out.write_image(ga) and out.close()
+    with pytest.raises(UnsupportedFormatError, match="neither grey nor RGB"):
+        read_image(p)

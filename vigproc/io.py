@@ -506,7 +506,14 @@ def _tiff_looks_raw(head: bytes, spec: oiio.ImageSpec) -> bool:
     return bool(spec.get_int_attribute("tiff:subfiletype", 0) & 1)
 
 
-def _select_channels(spec: oiio.ImageSpec) -> list[int]:
+def _select_channels(spec: oiio.ImageSpec, path: str) -> list[int]:
+    """The channels to read: [R, G, B], or [grey].
+
+    Alpha and depth are dropped. Two colour-like channels are grey plus an extra
+    sample only when the file says it is grey (TIFF photometric min-is-black/white,
+    the usual grey + alpha without an alpha tag); otherwise they are neither grey nor
+    RGB and the file is refused rather than silently read as its first channel.
+    """
     names = [str(n) for n in spec.channelnames]
     upper = [n.upper() for n in names]
     alpha = spec.alpha_channel
@@ -516,7 +523,18 @@ def _select_channels(spec: oiio.ImageSpec) -> list[int]:
         return [upper.index("Y")]
     usable = [i for i in range(spec.nchannels) if i != alpha and upper[i] not in ("A", "Z")]
     if len(usable) >= 3:
+        if len(usable) > 3:
+            logger.warning("%s: reading channels %s as RGB and ignoring %s", path,
+                           [names[i] for i in usable[:3]], [names[i] for i in usable[3:]])
         return usable[:3]
+    if len(usable) == 2:
+        if spec.get_int_attribute("tiff:PhotometricInterpretation", -1) in (0, 1):
+            logger.info("%s: grey TIFF with an extra sample; reading the grey channel", path)
+            return usable[:1]
+        raise UnsupportedFormatError(
+            f"cannot read image {_q(path)}: two colour channels {[names[i] for i in usable]} "
+            "are neither grey nor RGB"
+        )
     return usable[:1]
 
 
@@ -541,7 +559,7 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int) -> t
             f"cannot read image {_q(path)}: declared size {w}x{h} = {w * h} pixels exceeds "
             f"the limit of {max_pixels} pixels (possible decompression bomb)"
         )
-    chans = _select_channels(spec)
+    chans = _select_channels(spec, path)
     if not chans:
         raise InvalidImageError(f"cannot read image {_q(path)}: no colour channel (channels {list(spec.channelnames)})")
 
