@@ -322,3 +322,18 @@ def test_profile_source_plugin(plugins):
         api.process(img, LENS, profile="source:studio")
     with pytest.raises(ExtensionError, match="unknown profile source"):
         api.process(img, lens, profile="source:nope")
+
+
+def test_a_partial_correction_reports_what_it_removed():
+    """--strength 0.5 divides out half the fall-off (in EV), and says so: the summary
+    and ``removed_ev`` follow the strength, ``falloff_ev`` stays the model's."""
+    rgb = vignetted()
+    _, full = api.Pipeline("correct", profile="estimate").process(rgb)
+    _, half = api.Pipeline("correct", profile="estimate", strength=0.5).process(rgb)
+    assert full.applied and half.applied
+    assert half.falloff_ev == full.falloff_ev > 0.1
+    assert full.removed_ev == full.falloff_ev
+    assert half.removed_ev == pytest.approx(0.5 * full.falloff_ev, abs=1e-3)
+    assert f"{half.removed_ev:.2f} EV fall-off removed" in half.summary
+    assert half.to_dict()["removed_ev"] == half.removed_ev
+    assert api.Pipeline("estimate").process(rgb)[1].removed_ev is None

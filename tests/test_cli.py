@@ -1,6 +1,7 @@
 """The command line, run as a real subprocess: outputs, JSON, exit codes, hostile names."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -362,3 +363,14 @@ def test_tiff16_says_when_it_clips(tmp_path, vignetted_tiff):
     r = run("correct", path, "-o", tmp_path / "out2", "--output-format", "tiff16", "--profile", "estimate",
             "--strength", "0")
     assert r.returncode == 0 and "white point" not in r.stderr, r.stderr
+
+
+def test_correct_reports_the_fall_off_its_strength_removed(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    full = run("correct", path, "-o", tmp_path / "full", "--profile", "estimate")
+    half = run("correct", path, "-o", tmp_path / "half", "--profile", "estimate", "--strength", "0.5")
+    assert full.returncode == 0 and half.returncode == 0, half.stderr
+    ev = [float(re.search(r"([0-9.]+) EV fall-off removed", r.stdout).group(1)) for r in (full, half)]
+    assert ev[0] > 0.1 and abs(ev[1] - ev[0] / 2) <= 0.01, ev
+    side = json.loads(next((tmp_path / "half").glob("*.json")).read_text())
+    assert side["strength"] == 0.5

@@ -141,6 +141,9 @@ class Result:
         The model applied (correct), estimated (estimate, check) or None.
     falloff_ev : float or None
         RMS over the frame of log2 of the model's attenuation, in EV (0 = none).
+    removed_ev : float or None
+        Correct mode: the part of it divided out of the returned image, in EV
+        (``falloff_ev`` × strength when applied, else 0); None in other modes.
     confidence, snr : float or None
         The estimate's support in the image (estimates of the default method).
     fallback : bool
@@ -157,6 +160,7 @@ class Result:
     source: str | None
     model: Any
     falloff_ev: float | None
+    removed_ev: float | None
     confidence: float | None
     snr: float | None
     fallback: bool
@@ -169,9 +173,13 @@ class Result:
         """Build from a :class:`vigproc.pipeline.FrameResult`."""
         m = res.model
         q = getattr(m, "quality", None)
+        falloff = None if m is None else float(m.field_ev_rms())
+        removed = None
+        if res.mode == "correct":
+            removed = round(falloff * res.strength, 4) if res.applied and falloff is not None else 0.0
         return cls(
             mode=res.mode, applied=bool(res.applied), source=res.source, model=m,
-            falloff_ev=None if m is None else round(float(m.field_ev_rms()), 4),
+            falloff_ev=None if falloff is None else round(falloff, 4), removed_ev=removed,
             confidence=None if q is None else _finite(q.confidence),
             snr=None if q is None else _finite(q.snr),
             fallback=bool(q is not None and q.fallback),
@@ -189,14 +197,14 @@ class Result:
             return f"no correction: evidence too weak{conf}"
         ev = self.falloff_ev or 0.0
         if self.mode == "correct":
-            return f"{ev:.2f} EV fall-off removed ({self.source}{conf})" if self.applied else \
+            return f"{self.removed_ev or 0.0:.2f} EV fall-off removed ({self.source}{conf})" if self.applied else \
                 f"not corrected ({self.source})"
         return f"{ev:.2f} EV fall-off estimated ({self.source}{conf})"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able record (the model as :meth:`VignettingModel.to_dict`)."""
         return {"mode": self.mode, "applied": self.applied, "source": self.source,
-                "falloff_ev": self.falloff_ev, "confidence": self.confidence, "snr": self.snr,
+                "falloff_ev": self.falloff_ev, "removed_ev": self.removed_ev, "confidence": self.confidence, "snr": self.snr,
                 "fallback": self.fallback, "verdict": self.verdict, "lens": self.lens,
                 "summary": self.summary, "seconds": self.seconds,
                 "model": None if self.model is None else self.model.to_dict()}

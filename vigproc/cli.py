@@ -78,9 +78,10 @@ def _estimate_file(args: argparse.Namespace) -> int:
 
 
 def _applied_ev(rec: dict) -> float:
+    """The fall-off divided out of a corrected frame (the model's, times the strength)."""
     from vigproc.model import VignettingModel
 
-    return VignettingModel.from_dict(rec["model"]).field_ev_rms()
+    return VignettingModel.from_dict(rec["model"]).field_ev_rms() * rec.get("strength", 1.0)
 
 
 def _open_store(args: argparse.Namespace):

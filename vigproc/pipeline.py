@@ -116,6 +116,7 @@ class FrameResult:
     picture: str | None = None
     profile: str | None = None  # the profile updated in learn mode
     verdict: dict[str, Any] | None = None  # check mode
+    strength: float | None = None  # correct mode: the fraction of the fall-off divided out
     seconds: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -502,6 +503,7 @@ class Processor:
                 if depth == "uint16":
                     _note_clipping(img, out, where, s.output_format)
                 res.applied = m.candidate is None and s.strength > 0
+                res.strength = s.strength
         res.seconds = round(time.perf_counter() - t0, 4)
         return out, res
 

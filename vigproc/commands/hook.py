@@ -37,7 +37,7 @@ Answer::
 
     {"protocol": 1, "vigproc": "0.1.0", "mode": "correct", "ok": 1, "failed": 1, "exit_code": 1,
      "results": [{"file": "/in/a.jpg", "status": "ok", "summary": "0.42 EV fall-off removed (...)",
-                  "applied": true, "falloff_ev": 0.42, "confidence": 0.97, "verdict": null,
+                  "applied": true, "falloff_ev": 0.42, "removed_ev": 0.42, "confidence": 0.97, "verdict": null,
                   "output": "/out/a.corrected.tif", "sidecar": "/out/a.vigproc.json", ...},
                  {"file": "/in/b.tif", "status": "error", "type": "ImageReadError",
                   "exit_code": 4, "error": "..."}]}
