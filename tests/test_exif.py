@@ -704,3 +704,13 @@ def test_bench_exif_returns_both_figures(shared_data: Path) -> None:
     assert res["batch_ms_per_file"] > 0 and res["per_process_ms_per_file"] > 0
     # A process per file pays the Perl start-up every time.
     assert res["per_process_ms_per_file"] > res["batch_ms_per_file"]
+
+
+def test_a_typed_lens_id_keeps_its_escapes() -> None:
+    """``import-lensfun --lens-id`` takes the id ``vigproc estimate`` printed: casefolding
+    it must not turn ``%7C`` into ``%7c``, or the profile is stored under another key."""
+    lens_id = LensKey(make="sigma", model="vigproc sample", lens="105mm f1.4 dg hsm | art 018").lens_id()
+    assert "%7C" in lens_id
+    assert vexif.casefold_lens_id(lens_id) == lens_id
+    assert vexif.casefold_lens_id(lens_id.upper()) == lens_id
+    assert vexif.casefold_lens_id("A%7cB|C%25") == "a%7Cb|c%25"

@@ -430,12 +430,18 @@ def cmd_bench_profile(args: argparse.Namespace) -> int:
     from vigproc.io import read_image
 
     files = _images_in(Path(args.images), args.limit)
+    if len(files) < max(args.counts):
+        # a lens would see an image twice, and the store learns a repeated frame once
+        print(f"vigproc: bench profile: {max(args.counts)} frames per lens need at least as many images; "
+              f"{args.images!r} has {len(files)}", file=sys.stderr)
+        return EXIT_CODES["usage"]
     ims = [protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
     fn = _estimator("default")
     fn(ims[0])
     from vigproc.robust import estimate_robust_joint
 
-    rows, trust = B.run(ims, fn, args.lenses, args.counts, joint=estimate_robust_joint, store=True)
+    joint = None if args.no_joint else estimate_robust_joint
+    rows, trust = B.run(ims, fn, args.lenses, args.counts, joint=joint, store=True)
     print(f"profile accuracy: {args.lenses} lensfun lenses, frames from {len(ims)} images (480x320); "
           "RMS of log2(pooled/true field)")
     print(f"{'pooling':<14}{'frames':>7}{'lenses':>8}{'median EV':>11}{'p90 EV':>9}")
@@ -543,11 +549,11 @@ def cmd_profile(args: argparse.Namespace) -> int:
             m = import_lensfun(args.maker, args.model, args.focal, args.aperture, args.distance,
                                width=args.width, height=args.height, crop_factor=args.crop_factor)
             theta, _, aspect = normalise(m)
-            from vigproc.exif import escape_key_part
+            from vigproc.exif import casefold_lens_id, escape_key_part
 
             # escaped as lens ids from EXIF are: a "|" in a name must not forge a component
             lens_id = args.lens_id or f"{escape_key_part(args.maker)}|{escape_key_part(args.model)}"
-            key = ProfileKey(lens_id.casefold(), focal_bin(args.focal), aperture_bin(args.aperture), aspect_label(aspect))
+            key = ProfileKey(casefold_lens_id(lens_id), focal_bin(args.focal), aperture_bin(args.aperture), aspect_label(aspect))
             store.put(Profile(key=key, theta=theta, covariance=None, provenance="lensfun", trusted=True,
                                   notes=f"lensfun {args.maker} {args.model} at {args.focal} mm f/{args.aperture}"))
             print(f"imported from lensfun: {key}")
@@ -719,7 +725,10 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--images", required=True)
     bp.add_argument("--limit", type=int)
     bp.add_argument("--lenses", type=int, default=20)
-    bp.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20])
+    bp.add_argument("--counts", type=number(1, 100_000, integer=True), nargs="+", default=[1, 5, 20],
+                    help="numbers of frames per lens to report (default 1 5 20)")
+    bp.add_argument("--no-joint", action="store_true",
+                    help="skip the joint multi-frame fit (its cost grows with the frames)")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_profile)
     bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")

@@ -284,6 +284,13 @@ def escape_key_part(part: str | None) -> str:
     return part.replace("%", "%25").replace("|", "%7C").replace("?", "%3F")
 
 
+def casefold_lens_id(lens_id: str) -> str:
+    """A typed lens id in the form :meth:`LensKey.lens_id` gives: casefolded, except its
+    ``%XX`` escapes, which stay as :func:`escape_key_part` writes them (``%7C``)."""
+    parts = re.split(r"(%[0-9A-Fa-f]{2})", lens_id)
+    return "".join(p.upper() if i % 2 else p.casefold() for i, p in enumerate(parts))
+
+
 def _fmt_num(x: float | None) -> str:
     if x is None:
         return "?"

@@ -100,8 +100,12 @@ def run(
         h, w = images[0].shape
         true_log = np.log(pa_field((h, w), pa.k1, pa.k2, pa.k3))
         thetas, covs, fields, frames, fits, applied = [], [], [], [], [], []
+        # lens li takes nmax consecutive images from a start of its own; once the
+        # lenses have to share images, the starts are also shifted by one per
+        # round, so that no two lenses see the same images in the same order
+        start = (li * nmax) % len(images) + (li * nmax) // len(images)
         for j in range(nmax):
-            im = images[(li * nmax + j) % len(images)]
+            im = images[(start + j) % len(images)]
             frames.append(im * np.exp(true_log))
             m = estimate(frames[-1])
             applied.append(m)
