@@ -79,7 +79,7 @@ def image_folder(tmp_path):
 
 
 def test_bench_lensfun_scene_prior_and_peer(image_folder, tmp_path):
-    out = tmp_path / "lf.json"
+    out = tmp_path / "bench-out" / "lf.json"  # a folder that does not exist yet is made
     r = _bench("lensfun", "--images", image_folder, "--lenses", "2", "--frames-per-lens", "1",
                "--input-transfer", "linear", "--scene-prior", "none", "--methods", "default", "rgs",
                "--json", out)
@@ -87,6 +87,14 @@ def test_bench_lensfun_scene_prior_and_peer(image_folder, tmp_path):
     assert "scene prior none" in r.stdout and "input transfer linear" in r.stdout
     rows = json.loads(out.read_text())
     assert [row["method"] for row in rows] == ["default", "rgs", "default", "rgs"]
+
+
+def test_bench_result_file_that_cannot_be_written_is_refused_before_the_run(image_folder, tmp_path):
+    r = _bench("synthetic", "--images", image_folder, "--methods", "ga", "--json", tmp_path)
+    assert r.returncode == 5 and "it is a folder" in r.stderr and r.stdout == "", r.stderr
+    (tmp_path / "file").write_text("")
+    r = _bench("lensfun", "--images", image_folder, "--methods", "ga", "--json", tmp_path / "file" / "x.json")
+    assert r.returncode == 5 and "cannot create output folder" in r.stderr and r.stdout == "", r.stderr
 
 
 @pytest.mark.parametrize("content, message", [(None, "cannot read"), ("{", "not JSON"),

@@ -23,7 +23,7 @@ from vigproc.errors import EXIT_CODES, PriorError, VigprocError, one_line
 
 log = logging.getLogger("vigproc")
 
-from vigproc.pipeline import OUTPUT_FORMATS, images_in as _images_in  # noqa: E402  (re-exported names)
+from vigproc.pipeline import OUTPUT_FORMATS, images_in as _images_in, output_file  # noqa: E402  (re-exported names)
 
 
 def _progress(items: Sequence, what: str):
@@ -143,6 +143,7 @@ def cmd_prior_fit(args: argparse.Namespace) -> int:
     from vigproc.io import read_image
     from vigproc.prior import fit_prior
 
+    output_file(args.output)
     files = _images_in(Path(args.folder), args.limit)
 
     def images():
@@ -166,6 +167,7 @@ def _fit_falloff(args: argparse.Namespace, what: str, source: str, estimate_with
     from vigproc.bench.synthetic import read_protocol_images
     from vigproc.scene import fit_scene_falloff
 
+    output_file(args.output)
     ims = read_protocol_images(_progress(_images_in(Path(args.folder), args.limit), "reading"), args.input_transfer)
     fitted = fit_scene_falloff(ims, estimate_with, iterations=iterations, source=source)
     atomic_write_text(Path(args.output), json.dumps(fitted.to_dict(), indent=1) + "\n")
@@ -236,6 +238,7 @@ def cmd_bench_synthetic(args: argparse.Namespace) -> int:
     from vigproc.io import read_image
 
     settings = _scene_settings(args.scene_prior)
+    output_file(args.json)
     files = _images_in(Path(args.images), args.limit)
     ims = [S.protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
     order = ("ga", "lyu2010-rand", "lyu2010", "default", "rgs")
@@ -260,6 +263,7 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     from vigproc.io import read_image
 
     settings = _scene_settings(args.scene_prior)
+    output_file(args.json)
     files = _images_in(Path(args.images), args.limit)
     ims = [protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
     results = []
@@ -297,6 +301,7 @@ def cmd_bench_real(args: argparse.Namespace) -> int:
     from vigproc.pipeline import IMAGE_SUFFIXES
 
     settings = _scene_settings(args.scene_prior)
+    output_file(args.json)
     pairs, photos = R.find_inputs(Path(args.images), IMAGE_SUFFIXES)
     if not pairs and not photos:
         raise VigprocError(f"no images in {args.images}")

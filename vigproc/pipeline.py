@@ -293,6 +293,24 @@ def output_folder(path: str | os.PathLike[str]) -> Path:
     return out
 
 
+def output_file(path: str | os.PathLike[str] | None) -> Path | None:
+    """Prepare a command's single output file before any work: create its folder if
+    needed (a long benchmark must not fail only when it writes its result).
+
+    Raises
+    ------
+    ImageWriteError
+        The folder cannot be created, or ``path`` is a folder.
+    """
+    if path is None:
+        return None
+    out = Path(path)
+    output_folder(out.parent)
+    if out.is_dir():
+        raise ImageWriteError(f"cannot write {str(out)!r}: it is a folder")
+    return out
+
+
 def refuse_input(output: str | os.PathLike[str] | None, *inputs: Container[Any]) -> None:
     """Raise :class:`ImageWriteError` if ``output`` is in one of ``inputs`` (an
     :class:`InputFiles`, or the paths themselves): no output of a run replaces one of

@@ -62,10 +62,11 @@ def _line(name: str, v: dict) -> str:
 def cmd_check(args: argparse.Namespace) -> int:
     from vigproc.forensics import Calibration, check_image, default_calibration, pool_verdicts
     from vigproc.io import read_image
-    from vigproc.pipeline import InputFiles, Processor, Settings, read_lens, refuse_input
+    from vigproc.pipeline import InputFiles, Processor, Settings, output_file, read_lens, refuse_input
 
     files = [Path(f) for f in args.files]
     refuse_input(args.report, InputFiles(files))
+    output_file(args.report)
     settings = Settings(mode="check", method=args.method, transfer=args.input_transfer)
     calibration = Calibration.load(args.calibration) if args.calibration else default_calibration()
     store = None

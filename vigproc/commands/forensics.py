@@ -122,11 +122,12 @@ def _protocol_images(folders, limit, transfer):
 # ------------------------------------------------------------------ commands
 def cmd_train(args: argparse.Namespace) -> int:
     from vigproc.identify import feature_vector, train_classifier
-    from vigproc.pipeline import InputFiles, images_in, refuse_input
+    from vigproc.pipeline import InputFiles, images_in, output_file, refuse_input
 
     kind, feats = CLASSIFIERS[args.classifier]
     classes = [(sub, images_in(sub)) for root in args.dirs for sub in _class_dirs(Path(root))]
     refuse_input(args.output, InputFiles(f for _, files in classes for f in files))
+    output_file(args.output)
     X, labels = [], []
     for sub, files in classes:
         est = _estimates(files, args.method, args.input_transfer, str(sub))
@@ -186,9 +187,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from vigproc.estimate import estimate
     from vigproc.forensics import estimator_fingerprint, fit_calibration
 
-    from vigproc.pipeline import InputFiles, images_in, refuse_input
+    from vigproc.pipeline import InputFiles, images_in, output_file, refuse_input
 
     refuse_input(args.output, InputFiles(f for d in args.images for f in images_in(Path(d), args.limit)))
+    output_file(args.output)
     ims = _protocol_images(args.images, args.limit, args.input_transfer)
     classes = bench_classes(args.lenses)
     print(f"calibrating on {len(ims)} photographs x {args.per_image} of {len(classes)} lens fields")
@@ -215,7 +217,9 @@ def cmd_bench_forensics(args: argparse.Namespace) -> int:
     from vigproc.bench import forensics as B
     from vigproc.estimate import estimate
     from vigproc.identify import format_confusion
+    from vigproc.pipeline import output_file
 
+    output_file(args.json)
     ims = _protocol_images(args.images, args.limit, args.input_transfer)
     fn = lambda v: estimate(v, "default", channel_axis=None)  # noqa: E731
     fn(ims[0])  # JIT warm-up
