@@ -291,6 +291,9 @@ def test_single_output_never_replaces_an_input(tmp_path, vignetted_tiff):
     ("forensics", "evaluate", "m.json", "d", "--frames", "0"),
     ("profile", "import-lensfun", "a", "b", "--focal", "nan", "--aperture", "2"),
     ("profile", "show", "0", "--width", "0", "--height", "0"),
+    ("watch", "in", "-o", "o", "--workers", "0"),
+    ("batch", "in", "--mode", "correct", "-o", "o", "--workers", "0"),
+    ("bench", "profile", "--images", "in", "--counts", "0"),
 ])
 def test_bad_option_values_are_usage_errors(tmp_path, args):
     r = run(*args, cwd=tmp_path)

@@ -193,7 +193,7 @@ def print_summary(summary, outdir: Path, *, as_json: bool = False) -> None:
 
 
 def register(subparsers) -> None:
-    from vigproc.commands._options import add_processing
+    from vigproc.commands._options import add_processing, number
     from vigproc.pipeline import MODES
 
     sp = subparsers.add_parser(
@@ -205,7 +205,7 @@ def register(subparsers) -> None:
     sp.add_argument("source", metavar="DIR|LIST")
     sp.add_argument("--mode", choices=MODES, required=True)
     sp.add_argument("-o", "--output", required=True, help="output folder (sidecars, corrected images)")
-    sp.add_argument("--workers", type=int, help="local worker processes (default: all cores)")
+    sp.add_argument("--workers", type=number(1, 1024, integer=True), help="local worker processes (default: all cores)")
     sp.add_argument("--scheduler", help="run on a dask.distributed cluster: tcp://HOST:PORT of its scheduler")
     sp.add_argument("--config", help="TOML file with a [batch] table: scheduler, workers, journal, retries, "
                                      "numba_threads, connect_timeout, profile_db")

@@ -110,7 +110,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> None:
-    from vigproc.commands._options import add_processing
+    from vigproc.commands._options import add_processing, number
 
     sp = subparsers.add_parser(
         "watch", help="watch a folder: process every complete image dropped into it, exactly once",
@@ -120,7 +120,7 @@ def register(subparsers) -> None:
     sp.add_argument("in_dir", metavar="IN_DIR")
     sp.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="outputs and JSON sidecars")
     sp.add_argument("--mode", choices=("correct", "check", "learn"), default="correct")
-    sp.add_argument("--workers", type=int, default=_default_workers(),
+    sp.add_argument("--workers", type=number(1, 1024, integer=True), default=_default_workers(),
                     help=f"worker processes (default: half the cores, here {_default_workers()})")
     sp.add_argument("--poll", type=float, metavar="SECONDS",
                     help="poll the folder every SECONDS instead of native file events (network shares)")
