@@ -212,6 +212,8 @@ def test_estimate_raw_uses_half_size_and_reports_full_frame(tmp_path):
     err = np.log2(m.field() / truth.field())
     assert np.sqrt(np.mean(err**2)) < 0.1
     assert doc["lens"]["lens_id"].startswith("canon|canon eos 5d|")
+    r = run("estimate", dng)  # the text names the frame the model is for, not the half-size development
+    assert r.returncode == 0 and f": {w}x{h} raw (linear, estimated on its {w // 2}x{h // 2} half-size" in r.stdout, r.stdout
 
 
 @pytest.mark.parametrize("fmt,suffix", [("tiff16", ".tif"), ("exr-half", ".exr"), ("exr-float", ".exr")])

@@ -63,7 +63,9 @@ def _estimate_file(args: argparse.Namespace) -> int:
         print(json.dumps({"file": str(args.file), "lens": lens, "model": m.to_dict()}, indent=1))
     else:
         q = m.quality
-        print(f"{args.file}: {info.width}x{info.height} {info.format} ({info.transfer})")
+        # the frame the model is for: a RAW's full frame, though estimated at half size
+        half = f", estimated on its {info.width}x{info.height} half-size development" if info.format == "raw" else ""
+        print(f"{args.file}: {m.width}x{m.height} {info.format} ({info.transfer}{half})")
         print(f"  lens        {lens['lens_id'] or 'unknown (' + lens['error'] + ')'}")
         print(f"  method      {m.method}")
         print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
