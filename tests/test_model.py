@@ -36,6 +36,18 @@ def test_json_round_trip_and_rescale():
     np.testing.assert_allclose(m.field((640, 960))[1::2, 1::2].mean(), m.field().mean(), rtol=0.01)
 
 
+def test_quality_with_unknown_figures_is_strict_json():
+    import math
+    from dataclasses import replace
+
+    from vigproc.model import FitQuality
+
+    m = replace(table2(), quality=FitQuality(field_sigma_ev=math.nan, snr=math.inf, objective=math.nan))
+    text = json.dumps(m.to_dict(), allow_nan=False)  # raises on NaN/Inf
+    back = VignettingModel.from_dict(json.loads(text)).quality
+    assert math.isnan(back.field_sigma_ev) and math.isnan(back.objective) and back.snr == math.inf
+
+
 def test_rescale_refuses_aspect_change():
     with pytest.raises(ModelError, match="aspect"):
         table2().rescale(480, 480)

@@ -289,8 +289,9 @@ class VignettingModel:
         if self.covariance is not None:
             d["covariance"] = [list(r) for r in self.covariance]
         if self.quality is not None:
-            q = self.quality.__dict__.copy()
-            q["snr"] = q["snr"] if math.isfinite(q["snr"]) else None
+            # JSON has no NaN/Inf: a non-finite figure is null (snr: infinite; others: unknown)
+            q = {k: None if isinstance(v, float) and not math.isfinite(v) else v
+                 for k, v in self.quality.__dict__.items()}
             d["quality"] = q
         if self.candidate is not None:
             d["candidate"] = self.candidate.to_dict()
@@ -317,6 +318,9 @@ class VignettingModel:
             quality = None
             if q is not None:
                 q = dict(q)
+                for k in ("confidence", "field_ev_rms", "field_sigma_ev", "snr", "objective", "seconds"):
+                    if k in q and q[k] is None:
+                        q[k] = math.inf if k == "snr" else math.nan
                 if q.get("snr") is None:
                     q["snr"] = math.inf
                 quality = FitQuality(**q)
