@@ -133,6 +133,13 @@ def test_tiff_round_trip(src: Path, outdir: Path, depth: str) -> None:
     assert info.transfer == "linear"
     np.testing.assert_allclose(back, img, atol=1e-4 if depth == "uint16" else 0)
 
+    # an output read back (a later pass, a check) gives the camera's lens key: the
+    # record's own Model tag (the model JSON) is not taken for the camera model
+    from vigproc.exif import read_lens_key
+
+    key = read_lens_key(dst)
+    assert key.model is not None and key.problems == (), key.problems
+
     assert sha256(src) == before
     assert sorted(os.listdir(outdir)) == ["photo.tif"]
     assert sorted(os.listdir(src.parent)) == ["photo.jpg"]

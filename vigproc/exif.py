@@ -128,6 +128,9 @@ _TAGS: tuple[str, ...] = (
     "-Composite:FocusDistance#", "-FocusDistance#", "-FocusDistanceUpper#",
     "-FocusDistanceLower#", "-SubjectDistance#",
     "-Composite:ImageSize#",
+    # vigproc's own correction record (metadata.py) has a Model tag, the model JSON:
+    # it is not the camera's Model
+    "--XMP-vigproc:all",
 )
 # -G: family-0 group names ("EXIF:Make", "MakerNotes:LensType", "XMP:Lens", ...).
 # -fast: do not scan JPEGs to the end for trailers (no lens data there); ~10 %
