@@ -137,7 +137,7 @@ def register(subparsers) -> None:
                     help="print the status of the daemon on these folders and exit (0 running, 3 not running)")
     sp.add_argument("--json", action="store_true", help="with --status: JSON")
     sp.add_argument("--status-file", metavar="PATH", help="status file the daemon rewrites every second "
-                    "(default OUT_DIR/.vigproc-watch-<job>.status.json)")
+                    "(default OUT_DIR/.vigproc-watch-<tag>.status.json, <tag> a short hash of the job)")
     sp.add_argument("--rescan", type=float, default=300.0, metavar="SECONDS",
                     help="full rescan period, for events a file system did not deliver (default 300)")
     sp.add_argument("--timeout", type=float, default=900.0, metavar="SECONDS",
