@@ -682,3 +682,85 @@ def test_profile_file_that_is_not_a_regular_file(tmp_path):
     os.mkfifo(fifo)
     with pytest.raises(ProfileStoreError, match="not a regular file"):
         import_profile(fifo)
+
+
+
+def _learn_frames(store, key, frames, first=0):
+    from vigproc.estimate import estimate, frame_evidence
+
+    p = None
+    for i, f in enumerate(frames, start=first):
+        m = estimate(f, "default", channel_axis=None)
+        p = store.learn(key, m.candidate or m, frame_id=f"f{i:03d}", evidence=frame_evidence(f, channel_axis=None))
+    return p
+
+
+def _fits_stored(db) -> tuple[int, int]:
+    con = sqlite3.connect(db)
+    try:
+        return con.execute("SELECT COUNT(fit), COUNT(*) FROM pooled_frames").fetchone()
+    finally:
+        con.close()
+
+
+def test_every_frame_keeps_its_fit_and_a_v3_store_gets_them_once(tmp_path):
+    """Frames keep their centred fit (schema v4), so pooling costs no refit; a store
+    written before v4 gets its frames' fits on the next pooling, with the same profile."""
+    from conftest import photo_like
+
+    _lens, pa = bench_lenses(1)[0]
+    h, w = 120, 180
+    frames = [photo_like(h, w, seed=70 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(4)]
+    key = ProfileKey("vigproc|test|fits", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+    with ProfileStore(tmp_path / "fresh.sqlite") as store:
+        fresh = _learn_frames(store, key, frames)
+    assert _fits_stored(tmp_path / "fresh.sqlite") == (4, 4)
+
+    db = tmp_path / "old.sqlite"
+    with ProfileStore(db) as store:
+        _learn_frames(store, key, frames[:3])
+    con = sqlite3.connect(db)  # back to a v3 store, as the previous release wrote it
+    con.execute("ALTER TABLE pooled_frames DROP COLUMN fit")
+    con.execute("DELETE FROM schema_version WHERE version > 3")
+    con.commit()
+    con.close()
+    with ProfileStore(db) as store:
+        assert store.schema_version == SCHEMA_VERSION
+        assert _fits_stored(db) == (0, 3)
+        p = _learn_frames(store, key, frames[3:], first=3)  # fits the three older frames, once
+    assert _fits_stored(db) == (4, 4)
+    assert p.n_frames == 4
+    np.testing.assert_allclose(p.model(w, h).log_field(), fresh.model(w, h).log_field(), atol=1e-9)
+
+
+def test_the_profile_pools_every_frame_up_to_the_cap(tmp_path, monkeypatch):
+    """Every frame refines the profile (the store pooled only 40 before), up to
+    MAX_POOLED_FRAMES, chosen by frame id whatever the order of arrival."""
+    from conftest import photo_like
+
+    import vigproc.pooling as pooling
+    import vigproc.profiles as profiles
+
+    seen = []
+    real = pooling.pool_fits
+
+    def spy(fits, *a, **k):
+        seen.append(len(fits))
+        return real(fits, *a, **k)
+
+    monkeypatch.setattr(pooling, "pool_fits", spy)
+    shipped_cap = profiles.MAX_POOLED_FRAMES
+    monkeypatch.setattr(profiles, "MAX_POOLED_FRAMES", 3)
+    _lens, pa = bench_lenses(1)[0]
+    h, w = 120, 180
+    frames = [photo_like(h, w, seed=80 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(4)]
+    key = ProfileKey("vigproc|test|cap", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+    with ProfileStore(tmp_path / "a.sqlite") as store:
+        a = _learn_frames(store, key, frames)
+    assert seen == [1, 2, 3, 3]
+    with ProfileStore(tmp_path / "b.sqlite") as store:  # the first three ids, arriving last
+        b = None
+        for i in (3, 2, 1, 0):
+            b = _learn_frames(store, key, frames[i:i + 1], first=i)
+    np.testing.assert_allclose(a.model(w, h).log_field(), b.model(w, h).log_field(), atol=1e-9)
+    assert shipped_cap >= 100  # far beyond the 40 frames that stopped refining profiles before

@@ -835,13 +835,24 @@ def _migration_3(con: sqlite3.Connection) -> None:
     con.execute("ALTER TABLE pooled_frames ADD COLUMN evidence BLOB")
 
 
+def _migration_4(con: sqlite3.Connection) -> None:
+    """v4: each frame's centred fit (:func:`vigproc.pooling.centred_fit`) is kept with
+    its evidence, so that pooling every frame of a profile costs no refit.  Frames
+    stored by v3 get theirs the first time their profile is pooled."""
+    con.execute("ALTER TABLE pooled_frames ADD COLUMN fit BLOB")
+
+
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
 #: Append a function for the next version; never edit a released one.
-MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3)
-#: A profile is pooled from at most this many frames' evidence (:mod:`vigproc.pooling`):
-#: those with the smallest frame ids (content hashes, so a random sample that does not
-#: depend on the order frames arrive in); it runs inside the learning transaction.
-MAX_POOLED_FRAMES = 40
+MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3,
+                                                                 _migration_4)
+#: A profile is pooled from at most this many frames (:mod:`vigproc.pooling`): those
+#: with the smallest frame ids (content hashes, so a random sample that does not
+#: depend on the order frames arrive in).  Every frame refines the profile up to
+#: there: measured on the profile protocol, 0.074 EV after 40 frames and 0.035 after
+#: 100 (README, "Profile accuracy versus frames"); the pooling runs inside the
+#: learning transaction, from the stored fits.
+MAX_POOLED_FRAMES = 1000
 #: Centred fits of frames kept in memory per store object.
 _FIT_CACHE_SIZE = 4096
 #: Schema version this code writes.
@@ -850,6 +861,22 @@ SCHEMA_VERSION = len(MIGRATIONS)
 
 def _blob(a: np.ndarray | None) -> bytes | None:
     return None if a is None else np.ascontiguousarray(a, dtype="<f8").tobytes()
+
+
+def _fit_blob(fit: Any, grid: tuple[int, ...], size: tuple[int, int]) -> bytes:
+    """A frame's centred fit as stored: bin grid (h, w), frame (w, h), θ, covariance."""
+    return _blob(np.concatenate([np.asarray(grid, float), np.asarray(size, float), fit.theta, fit.cov.ravel()]))
+
+
+def _fit_from_blob(b: Any) -> tuple[Any, tuple[int, ...], tuple[int, int]]:
+    """Inverse of :func:`_fit_blob`. Raises ValueError for a damaged value."""
+    from vigproc.pooling import FrameFit
+
+    a = _unblob(b, (4 + N_PARAMS + N_PARAMS * N_PARAMS,), "fit")
+    if not np.all(np.isfinite(a)) or np.any(a[:4] < 1) or np.any(a[:4] != np.round(a[:4])):
+        raise ValueError("column fit holds non-finite values or an impossible grid")
+    fit = FrameFit(theta=a[4:4 + N_PARAMS].copy(), cov=a[4 + N_PARAMS:].reshape(N_PARAMS, N_PARAMS).copy())
+    return fit, (int(a[0]), int(a[1])), (int(a[2]), int(a[3]))
 
 
 def _unblob(b: Any, shape: tuple[int, ...], name: str) -> np.ndarray | None:
@@ -1157,7 +1184,7 @@ class ProfileStore(SQLiteFile):
                 raise ProfileStoreError(f"evidence must be bytes, got {type(evidence).__name__}")
             try:
                 # fitted before the transaction: the refit below finds it in the cache
-                frame_fit, grid, _ = self._frame_fit(evidence)
+                frame_fit, grid, frame_size = self._frame_fit(evidence)
             except (ValueError, VigprocError) as exc:
                 raise ProfileStoreError(f"unusable frame evidence: {exc}") from None
             if frame_id is None:
@@ -1236,8 +1263,10 @@ class ProfileStore(SQLiteFile):
             )
             row_id = self._upsert(con, profile)
             if frame_id is not None:
-                con.execute("INSERT OR IGNORE INTO pooled_frames (frame, profile_id, pooled, evidence) "
-                            "VALUES (?, ?, ?, ?)", (frame_id, row_id, now, evidence))
+                con.execute("INSERT OR IGNORE INTO pooled_frames (frame, profile_id, pooled, evidence, fit) "
+                            "VALUES (?, ?, ?, ?, ?)", (frame_id, row_id, now, evidence,
+                                                       None if evidence is None else
+                                                       _fit_blob(frame_fit, grid, frame_size)))
             if evidence is not None:
                 refit = self._pooled_refit(con, row_id, key, grid)
                 if refit is not None:
@@ -1292,11 +1321,21 @@ class ProfileStore(SQLiteFile):
         fits, size = [], None
         # chosen in frame-id order: the same frames give the same profile whatever
         # order they came in (a batch job's workers finish in any order)
-        rows = con.execute("SELECT frame, evidence FROM pooled_frames WHERE profile_id = ? AND evidence IS NOT NULL "
+        rows = con.execute("SELECT frame, fit FROM pooled_frames WHERE profile_id = ? AND evidence IS NOT NULL "
                            "ORDER BY frame LIMIT ?", (row_id, MAX_POOLED_FRAMES)).fetchall()
-        for _frame, blob in rows:
+        missing = sum(blob is None for _, blob in rows)
+        if missing > 10:
+            logger.info("profile %s: fitting %d frames stored by an older vigproc (once)", key, missing)
+        for frame, blob in rows:
             try:
-                fit, shape, frame_size = self._frame_fit(bytes(blob))
+                if blob is not None:
+                    fit, shape, frame_size = _fit_from_blob(blob)
+                else:  # stored before v4: fit its evidence now, and keep the fit
+                    (evidence,) = con.execute("SELECT evidence FROM pooled_frames WHERE frame = ? AND profile_id = ?",
+                                              (frame, row_id)).fetchone()
+                    fit, shape, frame_size = self._frame_fit(bytes(evidence))
+                    con.execute("UPDATE pooled_frames SET fit = ? WHERE frame = ? AND profile_id = ?",
+                                (_fit_blob(fit, shape, frame_size), frame, row_id))
             except (ValueError, VigprocError) as exc:  # a damaged blob costs that frame, not the profile
                 logger.warning("profile %s: skipping a frame's evidence: %s", key, exc)
                 continue
