@@ -695,6 +695,15 @@ def _learn_frames(store, key, frames, first=0):
     return p
 
 
+def _lens_frames(name: str, seed: int, n: int = 4, h: int = 120, w: int = 180):
+    """``n`` photo-like frames through one lensfun lens, and a profile key for them."""
+    from conftest import photo_like
+
+    _lens, pa = bench_lenses(1)[0]
+    frames = [photo_like(h, w, seed=seed + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(n)]
+    return frames, ProfileKey(f"vigproc|test|{name}", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+
+
 def _fits_stored(db) -> tuple[int, int]:
     con = sqlite3.connect(db)
     try:
@@ -706,12 +715,8 @@ def _fits_stored(db) -> tuple[int, int]:
 def test_every_frame_keeps_its_fit_and_a_v3_store_gets_them_once(tmp_path):
     """Frames keep their centred fit (schema v4), so pooling costs no refit; a store
     written before v4 gets its frames' fits on the next pooling, with the same profile."""
-    from conftest import photo_like
-
-    _lens, pa = bench_lenses(1)[0]
-    h, w = 120, 180
-    frames = [photo_like(h, w, seed=70 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(4)]
-    key = ProfileKey("vigproc|test|fits", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+    frames, key = _lens_frames("fits", seed=70)
+    h, w = frames[0].shape
     with ProfileStore(tmp_path / "fresh.sqlite") as store:
         fresh = _learn_frames(store, key, frames)
     assert _fits_stored(tmp_path / "fresh.sqlite") == (4, 4)
@@ -736,8 +741,6 @@ def test_every_frame_keeps_its_fit_and_a_v3_store_gets_them_once(tmp_path):
 def test_the_profile_pools_every_frame_up_to_the_cap(tmp_path, monkeypatch):
     """Every frame refines the profile (the store pooled only 40 before), up to
     MAX_POOLED_FRAMES, chosen by frame id whatever the order of arrival."""
-    from conftest import photo_like
-
     import vigproc.pooling as pooling
     import vigproc.profiles as profiles
 
@@ -751,10 +754,8 @@ def test_the_profile_pools_every_frame_up_to_the_cap(tmp_path, monkeypatch):
     monkeypatch.setattr(pooling, "pool_fits", spy)
     shipped_cap = profiles.MAX_POOLED_FRAMES
     monkeypatch.setattr(profiles, "MAX_POOLED_FRAMES", 3)
-    _lens, pa = bench_lenses(1)[0]
-    h, w = 120, 180
-    frames = [photo_like(h, w, seed=80 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(4)]
-    key = ProfileKey("vigproc|test|cap", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+    frames, key = _lens_frames("cap", seed=80)
+    h, w = frames[0].shape
     with ProfileStore(tmp_path / "a.sqlite") as store:
         a = _learn_frames(store, key, frames)
     assert seen == [1, 2, 3, 3]
