@@ -288,7 +288,7 @@ def test_cli_batch_list_json_and_errors(archive, tmp_path, capsys):
         (base + ["--config", str(cfg)], 'scheduler = "tcp://127.0.0.1:9"\nconnect_timeout = 1', 10, "cannot reach"),
         (base + ["--config", str(cfg)], "workres = 2", 10, "unknown key batch.workres"),
         (base + ["--config", str(cfg)], "workers = 'two'", 10, "must be an integer"),
-        (base + ["--workers", "0"], "", 10, "at least 1"),
+        (base + ["--config", str(cfg)], "workers = 0", 10, "at least 1"),  # --workers 0: a usage error (test_cli)
         (["batch", str(archive), "--mode", "correct", "-o", str(out), "--profile", str(listing)], "", 8, "profile"),
     ]:
         cfg.write_text("[batch]\n" + config + "\n")
