@@ -671,6 +671,26 @@ def test_quarantine_reason_follows_a_clash_renamed_file(tmp_path):
         ["text.jpg", "text.jpg.reason.json", renamed.name, renamed.name + ".reason.json"])
 
 
+def test_a_replaced_file_that_fails_names_the_outputs_of_its_earlier_content(tmp_path):
+    """A good photo is corrected, then replaced by a broken file of the same name: the
+    earlier outputs stay (they were right for what the file held), and the quarantine
+    reason and the log say they are not of the content quarantined."""
+    in_dir, out_dir, qdir = (tmp_path / n for n in ("in", "out", "quarantine"))
+    in_dir.mkdir()
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2", "--quarantine", str(qdir)).start()
+    make_good(tmp_path / "stage", "a.png", seed=3).replace(in_dir / "a.png")
+    sidecar = out_dir / (output_stem("a.png") + ".vigproc.json")
+    d.wait_for("the photo corrected", sidecar.is_file)
+    first = json.loads(sidecar.read_text())
+    (in_dir / "a.png").write_bytes(b"no longer a PNG\n")
+    d.wait_for("the broken file quarantined", lambda: (qdir / "a.png").is_file())
+    assert d.stop() == 0
+    assert json.loads(sidecar.read_text()) == first and Path(first["output"]).is_file()  # kept
+    why = json.loads((qdir / "a.png.reason.json").read_text())
+    assert why["earlier_outputs"] == [str(sidecar), first["output"]]
+    assert any(ev.get("event") == "earlier-outputs" for ev in d.events())
+
+
 # ====================================================================== kills, signals, leftovers
 def _exiftool_env(tmp_path: Path, then: str) -> tuple[dict, Path]:
     """An environment whose metadata-copying exiftool (``VIGPROC_EXIFTOOL``) first writes its

@@ -1339,13 +1339,36 @@ class Daemon:
             self.stats["quarantined"] += 1
             log.error("quarantined %s: %s", task.rel, reason,
                       extra=_ev("quarantined", file=task.path, kind=kind, reason=reason))
-            self._after_finished(task.path, task.fp, "quarantined", reason)
+            earlier = self._earlier_outputs(task.rel, task.fp)
+            if earlier:
+                # not deleted (they were right for what the file held then), but said
+                log.warning("%s: the outputs %s are of an earlier content of this file, not of the one "
+                            "quarantined", task.rel, ", ".join(earlier),
+                            extra=_ev("earlier-outputs", file=task.path, outputs=earlier))
+            self._after_finished(task.path, task.fp, "quarantined", reason, earlier)
+
+    def _earlier_outputs(self, rel: str, fp: Fingerprint) -> list[str]:
+        """The sidecar and output in the output folder for ``rel`` when they record
+        another content than ``fp`` (the file was replaced and its new content failed)."""
+        from vigproc.pipeline import SIDECAR_SUFFIX, safe_output
+
+        sidecar = safe_output(self.cfg.out_dir, output_stem(rel), SIDECAR_SUFFIX)
+        try:
+            with open(sidecar, "rb") as fh:
+                d = json.loads(fh.read(1 << 22))
+        except (OSError, ValueError):
+            return []
+        if not isinstance(d, dict) or d.get("input_sha256") in (None, fp.sha256):
+            return []
+        out = d.get("output")
+        return [str(sidecar)] + ([out] if isinstance(out, str) and os.path.isfile(out) else [])
 
     def _release(self, task: _Task) -> None:
         with contextlib.suppress(JournalError):
             self.journal.release(task.path, task.fp)
 
-    def _after_finished(self, path: str, fp: Fingerprint, state: str, reason: str | None) -> None:
+    def _after_finished(self, path: str, fp: Fingerprint, state: str, reason: str | None,
+                        earlier: list[str] | None = None) -> None:
         """Archive a done input / move a quarantined one aside, if asked (again after a
         crash that came between the journal and the move)."""
         cfg = self.cfg
@@ -1362,6 +1385,8 @@ class Daemon:
             else:
                 why = {"file": rel, "reason": reason, "sha256": fp.sha256, "size": fp.size, "job": cfg.job,
                        "time": datetime.now(timezone.utc).isoformat()}
+                if earlier:
+                    why["earlier_outputs"] = earlier
                 # named after the name the file really gets (a clash adds its hash), so that
                 # a second file of the same name never replaces the first one's reason
                 dst = _move(path, cfg.quarantine_dir, output_stem(rel), fp,
