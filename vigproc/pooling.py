@@ -18,7 +18,9 @@ not its mean.  The profile of a lens is therefore pooled in three steps:
 Measured on the profile protocol (``vigproc bench profile``, BSDS val, 20 lensfun
 lenses, script-level run of the same steps with the bias fitted on BSDS train):
 0.284 / 0.173 / 0.069 EV after 1 / 5 / 20 frames, against 0.299 / 0.222 / 0.159
-for one joint robust fit of the scene-divided frames.  Dividing the scene prior out
+for one joint robust fit of the scene-divided frames (session 5; with session 7's
+image order, ``vigproc bench profile`` gives 0.265 / 0.116 / 0.072 against 0.312 /
+0.182 / 0.173, and 0.035 EV after 100 frames).  Dividing the scene prior out
 of each frame before the centred fits instead measured 0.297 / 0.232 / 0.127: the
 clamped fits of scene-divided frames do not average.
 
