@@ -379,3 +379,8 @@ def test_correct_reports_the_fall_off_its_strength_removed(tmp_path, vignetted_t
     assert ev[0] > 0.1 and abs(ev[1] - ev[0] / 2) <= 0.01, ev
     side = json.loads(next((tmp_path / "half").glob("*.json")).read_text())
     assert side["strength"] == 0.5
+
+
+def test_check_store_options_exclude_each_other(tmp_path):
+    r = run("check", "x.jpg", "--profile-db", tmp_path / "p.sqlite", "--no-store")
+    assert r.returncode == 2 and "not allowed with" in r.stderr and not (tmp_path / "p.sqlite").exists()

@@ -38,8 +38,9 @@ def register(subparsers) -> None:
                     "unknown-lens or insufficient-signal, with a calibrated false-alarm probability.",
         epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sp.add_argument("files", nargs="+")
-    add_profile_db(sp)
-    sp.add_argument("--no-store", action="store_true", help="compare with lensfun only, not with stored profiles")
+    store = sp.add_mutually_exclusive_group()  # a store that is then not read is a mistake
+    add_profile_db(store)
+    store.add_argument("--no-store", action="store_true", help="compare with lensfun only, not with stored profiles")
     sp.add_argument("--report", help="write a readable report: PATH.html (self-contained) or PATH.png")
     sp.add_argument("--json", action="store_true", help="print the verdicts as JSON")
     sp.add_argument("--pool", action="store_true",
