@@ -79,3 +79,104 @@ def test_interpolated_gains_stay_within_tolerance():
     assert np.max(np.abs(fast / exact - 1)) <= 2 * GAIN_TOLERANCE + 1e-6
     # a strongly curved field (Table 1 at 480 px) is evaluated exactly
     assert gain_step(table1_model(2), 480, 320) == 1
+
+
+def test_a_model_that_blacks_out_the_frame_is_refused_as_field_refuses_it():
+    from vigproc.errors import ModelError
+    from vigproc.model import VignettingModel
+
+    bad = VignettingModel(64, 48, p=(1e-3, 0, 1e-3), alpha=(1.0,) + (0.0,) * 6)
+    with pytest.raises(ModelError, match="geometric factor"):
+        bad.field()
+    with pytest.raises(ModelError, match="geometric factor"):  # the kernel's floor gave gains of ~1e9
+        vigproc.correct(np.full((48, 64), 0.5, np.float32), bad)
+
+
+@pytest.mark.parametrize("center, p, alpha", [
+    ((0.0, 0.0), (1e-3, 0.0, 1e-3), (0.3, 0.1)),
+    ((-40.0, -30.0), (1e-3, 2e-4, 5e-4), (0.3, -0.05)),    # centre near a corner
+    ((90.0, 10.0), (2e-4, -1e-4, 3e-3), (-0.2, 0.4)),      # centre outside the frame, G not monotone
+])
+def test_smallest_g_over_the_frame_matches_the_grid(center, p, alpha):
+    from vigproc.correct import _min_g
+    from vigproc.model import VignettingModel, frame_coords
+
+    m = VignettingModel(64, 48, center=center, p=p, alpha=alpha + (0.0,) * 5)
+    ex = frame_coords(64)[None, :] - center[0]
+    ey = frame_coords(48)[:, None] - center[1]
+    r = np.sqrt(np.maximum(p[0] * ex * ex + 2 * p[1] * ex * ey + p[2] * ey * ey, 0))
+    g = 1.0 - alpha[0] * r - alpha[1] * r * r
+    assert _min_g(m, 64, 48) <= g.min() + 1e-12  # never more optimistic than the pixels
+    assert _min_g(m, 64, 48) == pytest.approx(g.min(), abs=0.02)
+
+
+@pytest.mark.parametrize("kind", ["shifted", "flipped", "fortran", "strided"])
+def test_out_may_alias_or_be_laid_out_anyhow(frame, kind):
+    """An ``out`` overlapping the input, or not C-ordered, gets the same result (it used to
+    give garbage, or Numba typing errors for the documented in-place call on a view)."""
+    rgb, m = frame
+    ref = vigproc.correct(rgb, m)
+    if kind == "shifted":  # the output one element after the input in the same buffer
+        buf = np.empty(rgb.size + 1, np.float32)
+        src, dst = buf[:-1].reshape(rgb.shape), buf[1:].reshape(rgb.shape)
+        src[...] = rgb
+        vigproc.correct(src, m, out=dst)
+        np.testing.assert_array_equal(dst, ref)
+        return
+    if kind == "flipped":  # in place on a reversed view
+        a = rgb[::-1].copy()[::-1]
+        vigproc.correct(a, m, out=a)
+        np.testing.assert_array_equal(a, ref)
+        return
+    out = np.asfortranarray(np.empty_like(rgb)) if kind == "fortran" else np.empty((400, 1200, 3), np.float32)[:, ::2]
+    vigproc.correct(rgb, m, out=out)
+    np.testing.assert_array_equal(out, ref)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda rgb, m: vigproc.correct(rgb, m, strength=1e6), "strength"),
+    (lambda rgb, m: vigproc.correct(rgb, m, strength=None), "strength"),
+    (lambda rgb, m: vigproc.correct(rgb, m, strength=True), "strength"),
+    (lambda rgb, m: vigproc.correct(rgb, m, clip=0), "clip"),
+    (lambda rgb, m: vigproc.correct(rgb, m, clip=float("nan")), "clip"),
+    (lambda rgb, m: vigproc.correct(rgb, m, clip=-1.0), "clip"),
+    (lambda rgb, m: vigproc.correct(rgb, None), "VignettingModel"),
+    (lambda rgb, m: vigproc.correct(rgb > 0.5, m), "real numbers"),
+    (lambda rgb, m: vigproc.correct(rgb.astype(complex), m), "real numbers"),
+    (lambda rgb, m: vigproc.correct(rgb.astype(str), m), "real numbers"),
+    (lambda rgb, m: vigproc.correct(rgb, m, channel_axis=3), "channel_axis"),
+    (lambda rgb, m: vigproc.correct(rgb, m, channel_axis=1.5), "channel_axis"),
+    (lambda rgb, m: vigproc.estimate(rgb, channel_axis=-4), "channel_axis"),
+    (lambda rgb, m: vigproc.correct(rgb, m, out=_read_only(rgb)), "read-only"),
+    (lambda rgb, m: correct_stripe(rgb, m, 0, (400, 600), step=0), "step"),
+    (lambda rgb, m: correct_stripe(rgb, m, 1.5, (400, 600)), "integers"),
+    (lambda rgb, m: correct_stripe(rgb, m, 0, (400,)), "integers"),
+])
+def test_bad_arguments_are_typed_errors(frame, call, message):
+    rgb, m = frame
+    before = rgb.copy()
+    with pytest.raises(InvalidImageError, match=message):
+        call(rgb, m)
+    np.testing.assert_array_equal(rgb, before)  # never modified
+
+
+def _read_only(a):
+    o = np.empty_like(a)
+    o.setflags(write=False)
+    return o
+
+
+def test_nan_or_overflow_in_the_corrected_frame_is_an_error(frame):
+    rgb, m = frame
+    bad = rgb.copy()
+    bad[17, 3, 1] = np.nan
+    with pytest.raises(InvalidImageError, match="NaN or Inf values in 1 rows"):
+        vigproc.correct(bad, m)
+    bad[17, 3, 1] = np.inf
+    with pytest.raises(InvalidImageError, match="NaN or Inf"):
+        vigproc.correct(bad, m)
+    huge = (rgb / rgb.max() * 3e38).astype(np.float32)  # finite, but not once corrected
+    assert np.isfinite(huge).all()
+    with pytest.raises(InvalidImageError, match="too large for float32"):
+        vigproc.correct(huge, m)
+    assert np.isfinite(vigproc.correct(rgb, m)).all()

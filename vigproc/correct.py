@@ -8,19 +8,77 @@ shares one gain computation, and a frame can be corrected in horizontal stripes
 
 from __future__ import annotations
 
+import operator
+
 import numpy as np
 
 from vigproc._kernels.correct import correct_rows
-from vigproc.errors import InvalidImageError
+from vigproc.errors import InvalidImageError, ModelError
 from vigproc.image import as_channels_last
 from vigproc.model import VignettingModel
 
 
+#: Largest strength: 2 removes the fall-off twice over (the command line's bound too).
+MAX_STRENGTH = 2.0
+
+
+def _number(value: object, name: str) -> float:
+    # bool is an int to Python, never a strength or a white point
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InvalidImageError(f"{name} must be a number, got {value!r}")
+    return float(value)
+
+
 def _check_strength(strength: float) -> float:
-    s = float(strength)
-    if not np.isfinite(s) or s < 0:
-        raise InvalidImageError(f"strength must be a finite number >= 0, got {strength}")
+    s = _number(strength, "strength")
+    if not (np.isfinite(s) and 0.0 <= s <= MAX_STRENGTH):
+        raise InvalidImageError(f"strength must be a number within [0, {MAX_STRENGTH:g}], got {strength!r}")
     return s
+
+
+def _check_clip(clip: float | None) -> float:
+    """The kernel's clip argument: a white point > 0, or −1 for none."""
+    if clip is None:
+        return -1.0
+    c = _number(clip, "clip")
+    if not (np.isfinite(c) and c > 0.0):
+        raise InvalidImageError(f"clip must be None or a white point > 0, got {clip!r}")
+    return c
+
+
+def _min_g(m: VignettingModel, width: int, height: int, n: int = 4097) -> float:
+    """Smallest G = 1 − Σ α_i r^i over a width×height frame.
+
+    r² is a convex quadratic in the pixel position, so over the frame r runs from its
+    minimum (0 when the centre is inside, else on an edge) to its largest corner
+    value, and G is a polynomial in r: sampling that interval finely finds its
+    minimum without evaluating the frame.
+    """
+    if m.is_identity:
+        return 1.0
+    p1, p2, p3 = m.p
+    hx, hy = (width - 1) / 2.0, (height - 1) / 2.0
+    cx, cy = m.center
+
+    def q(ex, ey):
+        return p1 * ex * ex + 2.0 * p2 * ex * ey + p3 * ey * ey
+
+    xs, ys = np.array([-hx, hx]) - cx, np.array([-hy, hy]) - cy
+    q_max = max(q(ex, ey) for ex in xs for ey in ys)
+    if xs[0] <= 0.0 <= xs[1] and ys[0] <= 0.0 <= ys[1]:
+        q_min = 0.0
+    else:  # the minimum of a convex quadratic over the rectangle lies on an edge
+        cands = []
+        for ey in ys:
+            ex = float(np.clip(-p2 * ey / p1, xs[0], xs[1])) if p1 > 0 else xs[0]
+            cands.append(q(ex, ey))
+        for ex in xs:
+            ey = float(np.clip(-p2 * ex / p3, ys[0], ys[1])) if p3 > 0 else ys[0]
+            cands.append(q(ex, ey))
+        q_min = max(min(cands), 0.0)
+    r = np.linspace(np.sqrt(q_min), np.sqrt(max(q_max, 0.0)), n)
+    g = 1.0 - (r[:, None] ** np.arange(1, len(m.alpha) + 1)) @ np.asarray(m.alpha, dtype=np.float64)
+    return float(g.min())
 
 
 #: Relative error allowed from interpolating the gain between evaluated columns:
@@ -106,21 +164,53 @@ def correct_stripe(
     ndarray, float32
     """
     s = _check_strength(strength)
+    c = _check_clip(clip)
+    if not isinstance(model, VignettingModel):
+        raise InvalidImageError(f"model must be a VignettingModel, got {type(model).__name__}")
+    stripe = np.asarray(stripe)
+    if stripe.dtype.kind not in "fiu":  # bool, complex, object and text are not intensities
+        raise InvalidImageError(f"image must be real numbers, got dtype {stripe.dtype}")
+    try:
+        fh, fw = (operator.index(v) for v in frame_shape)
+        row0 = operator.index(row0)
+        step = None if step is None else operator.index(step)
+    except (TypeError, ValueError):
+        raise InvalidImageError(f"frame_shape must be two integers and row0, step integers; got "
+                                f"{frame_shape!r}, {row0!r}, {step!r}") from None
     x = stripe[..., None] if stripe.ndim == 2 else stripe
-    fh, fw = int(frame_shape[0]), int(frame_shape[1])
-    if x.ndim != 3 or x.shape[1] != fw or not 0 <= row0 <= fh - x.shape[0]:
+    if x.ndim != 3 or x.shape[1] != fw or fh < 1 or not 0 <= row0 <= fh - x.shape[0]:
         raise InvalidImageError(f"stripe of shape {stripe.shape} at row {row0} does not fit a {fw}x{fh} frame")
+    if step is not None and step < 1:
+        raise InvalidImageError(f"step must be at least 1 column, got {step}")
     m = model if (model.width, model.height) == (fw, fh) else model.rescale(fw, fh)
-    x = np.ascontiguousarray(x, dtype=np.float32)
+    gmin = _min_g(m, fw, fh)
+    if gmin <= 0.0:  # what field() refuses; the kernel's floor would multiply by ~1e9
+        raise ModelError(f"the geometric factor G falls to {gmin:.3g} inside the frame: the model "
+                         "would black out part of the image")
     if out is None:
         out = np.empty(stripe.shape, dtype=np.float32)
     o = out[..., None] if out.ndim == 2 else out
     if o.shape != x.shape or o.dtype != np.float32:
         raise InvalidImageError(f"out must be float32 of shape {stripe.shape}, got {out.dtype} {out.shape}")
+    if not o.flags.writeable:
+        raise InvalidImageError("out is read-only")
+    x = np.ascontiguousarray(x, dtype=np.float32)
+    # The kernel writes row by row into C-ordered memory. ``out`` that is the input
+    # itself (in place) is fine; any other layout, or memory overlapping the input
+    # some other way, goes through a temporary so nothing is read after it is written.
+    same = (o.__array_interface__["data"][0] == x.__array_interface__["data"][0]
+            and o.strides == x.strides)
+    direct = o.flags.c_contiguous and (same or not np.may_share_memory(o, x))
+    dst = o if direct else np.empty(x.shape, dtype=np.float32)
     cy = (fh - 1) / 2.0 + m.center[1]
-    step = gain_step(m, fw, fh) if step is None else int(step)
-    correct_rows(x, o, int(row0), m.center[0], cy, *m.p, np.asarray(m.alpha, dtype=np.float64),
-                 s, -1.0 if clip is None else float(clip), step, exact_radius(m, step))
+    step = gain_step(m, fw, fh) if step is None else step
+    bad = correct_rows(x, dst, row0, m.center[0], cy, *m.p, np.asarray(m.alpha, dtype=np.float64),
+                       s, c, step, exact_radius(m, step))
+    if not direct:
+        o[...] = dst
+    if bad:
+        raise InvalidImageError(f"the corrected image has NaN or Inf values in {bad} rows: the input holds "
+                                "NaN/Inf, or its values are too large for float32 once corrected")
     return out
 
 

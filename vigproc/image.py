@@ -5,6 +5,8 @@ All functions are pure and take float images in linear light.
 
 from __future__ import annotations
 
+import operator
+
 import numpy as np
 
 from vigproc.errors import InvalidImageError
@@ -28,7 +30,13 @@ def as_channels_last(img: np.ndarray, channel_axis: int | None) -> np.ndarray:
     if a.ndim == 3:
         if channel_axis is None:
             raise InvalidImageError(f"3-D image of shape {a.shape} needs a channel_axis")
-        return np.moveaxis(a, channel_axis, -1)
+        try:
+            axis = operator.index(channel_axis)  # not 1.5, "0" or True
+        except TypeError:
+            axis = None
+        if axis is None or isinstance(channel_axis, (bool, np.bool_)) or not -3 <= axis < 3:
+            raise InvalidImageError(f"channel_axis must be an integer from -3 to 2 (or None), got {channel_axis!r}")
+        return np.moveaxis(a, axis, -1)
     raise InvalidImageError(f"expected an H×W or H×W×C image, got shape {a.shape}")
 
 
@@ -48,12 +56,11 @@ def check_image(img: np.ndarray, channel_axis: int | None = -1, min_size: int = 
         −:data:`NEGATIVE_FRACTION` × the maximum (not linear intensities).
     """
     a = np.asarray(img)
-    if a.ndim == 3 and channel_axis is not None and a.shape[channel_axis] == 1:
-        a = np.squeeze(a, axis=channel_axis)
-        channel_axis = None
     if a.ndim == 2:
         channel_axis = None
     a = as_channels_last(a, channel_axis)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
     if a.dtype.kind not in "fiu" or a.dtype == np.bool_:
         raise InvalidImageError(f"image must be numeric, got dtype {a.dtype}")
     if a.ndim == 3 and not 1 <= a.shape[2] <= 4:

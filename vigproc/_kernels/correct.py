@@ -77,8 +77,12 @@ def correct_rows(img, out, row0, cx, cy, p1, p2, p3, alpha, strength, clip, step
     ``cy`` the centre's absolute row. ``clip`` ≤ 0 means no clipping. With
     ``step`` > 1 the gain is interpolated between columns, except within
     ``exact_radius`` px of the centre, where α1·r makes it a cone (not smooth).
+
+    Returns the number of rows whose output holds NaN or Inf (checked in the same
+    pass, so validating costs no second sweep over the frame).
     """
     h, w, c = img.shape
+    bad = np.zeros(h, dtype=np.int64)
     xs = (np.arange(w) - ((w - 1) / 2.0 + cx)).astype(np.float32)
     nk = (w - 1 + step - 1) // step + 1  # knots at 0, step, 2·step, ..., and w−1
     for j in prange(h):
@@ -90,21 +94,34 @@ def correct_rows(img, out, row0, cx, cy, p1, p2, p3, alpha, strength, clip, step
             i1 = min(w, int(np.ceil((w - 1) / 2.0 + cx + exact_radius)) + 1)
             if i1 > i0:
                 _row_gains(xs[i0:i1], dy, p1, p2, p3, alpha, strength, gains[i0:i1])
-        _apply_row(img[j].reshape(w * c), out[j].reshape(w * c), gains, c, np.float32(clip))
+        if not _apply_row(img[j].reshape(w * c), out[j].reshape(w * c), gains, c, np.float32(clip)):
+            bad[j] = 1
+    return bad.sum()
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+# fast-math without "no NaN/Inf": the finiteness check below must not be folded away
+_FINITE_SAFE = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+
+@njit(cache=True, nogil=True, fastmath=_FINITE_SAFE)
 def _apply_row(src, dst, gains, c, clip):
     # one gain per sample in a small (cache-resident) buffer, then a flat multiply
-    # that vectorises; clipping is a separate pass, only when asked for
+    # that vectorises; clipping is a separate pass, only when asked for.  Returns
+    # whether the row's output is finite: x·0 is 0 for finite x and NaN otherwise,
+    # a reduction that vectorises with the multiply (the row is in cache)
     n = src.shape[0]
     g = np.empty(n, dtype=np.float32)
     for i in range(gains.shape[0]):
         gi = gains[i]
         for k in range(c):
             g[i * c + k] = gi
+    zero = np.float32(0.0)
+    acc = np.float32(0.0)
     for t in range(n):
-        dst[t] = src[t] * g[t]
+        v = src[t] * g[t]
+        dst[t] = v
+        acc += v * zero
     if clip > 0.0:
         for t in range(n):
             dst[t] = min(dst[t], clip)
+    return acc == zero
