@@ -337,3 +337,13 @@ def test_a_partial_correction_reports_what_it_removed():
     assert f"{half.removed_ev:.2f} EV fall-off removed" in half.summary
     assert half.to_dict()["removed_ev"] == half.removed_ev
     assert api.Pipeline("estimate").process(rgb)[1].removed_ev is None
+
+
+def test_lens_data_takes_numpy_scalars_and_drops_absurd_numbers():
+    img = vignetted()
+    base = {"make": "Canon", "model": "Canon EOS 5D", "lens": "EF24-105mm f/4L IS USM"}
+    _, plain = api.Pipeline("estimate").process(img, lens={**base, "focal_mm": 24.0, "fnumber": 4})
+    _, numpy_ = api.Pipeline("estimate").process(img, lens={**base, "focal_mm": np.float32(24), "fnumber": np.int64(4)})
+    assert numpy_.lens == plain.lens and plain.lens["key"]["focal_mm"] == 24.0
+    _, huge = api.Pipeline("estimate").process(img, lens={**base, "focal_mm": 10**400})  # was OverflowError
+    assert huge.lens["key"]["focal_mm"] is None and any("focal_mm" in p for p in huge.lens["key"]["problems"])

@@ -108,7 +108,9 @@ def lens_key(lens: Any):
     for k, v in lens.items():
         if not isinstance(k, str):
             raise RequestError(f"lens field names must be text, got {k!r}")
-        if v is not None and (isinstance(v, bool) or not isinstance(v, (str, int, float))):
+        if isinstance(v, (np.integer, np.floating)):  # pipelines often hold numpy scalars
+            v = v.item()
+        if v is not None and (isinstance(v, (bool, np.bool_)) or not isinstance(v, (str, int, float))):
             raise RequestError(f"lens field {k!r} must be text, a number or null, got {type(v).__name__}")
         if ":" in k:
             meta[k] = v

@@ -579,7 +579,10 @@ def _as_float(value: Any) -> float | None:
     if isinstance(value, bool) or value is None:
         return None
     if isinstance(value, (int, float)):
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:  # an int beyond float range: absurd, dropped like other absurd values
+            return math.inf
     if isinstance(value, str):
         s = value.strip().lower()
         if s in ("inf", "infinity", "+inf"):
