@@ -1,4 +1,5 @@
 import json
+import math
 
 import numpy as np
 import pytest
@@ -87,3 +88,156 @@ def test_log_field_at_points_matches_the_grid_kernel():
     with pytest.raises(ModelError, match="geometric factor"):
         VignettingModel(100, 100, p=(1e-3, 0, 1e-3), alpha=(0.9, 0, 0, 0, 0, 0, 0)).log_field_at(
             np.array([45.0]), np.array([45.0]))
+
+
+# --------------------------------------------------------- input validation
+def _with(**changes):
+    d = table2().to_dict()
+    d.update(changes)
+    return d
+
+
+@pytest.mark.parametrize("key,value,message", [
+    ("center", "12", "center"),                 # was read as (1.0, 2.0)
+    ("alpha", "0000000", "alpha"),              # was read as seven zeros
+    ("p", "000", "p must be"),
+    ("center", [True, 0], "center"),            # bool is not a number
+    ("center", [10**400, 0], "center"),         # was OverflowError
+    ("center", {"x": 0, "y": 0}, "center"),
+])
+def test_from_dict_refuses_parameters_that_are_not_lists_of_numbers(key, value, message):
+    with pytest.raises(ModelError, match=message):
+        VignettingModel.from_dict(_with(**{key: value}))
+
+
+@pytest.mark.parametrize("quality,message", [
+    ({"fallback": "false"}, "fallback"),        # was stored as a truthy string
+    ({"fallback": 0}, "fallback"),
+    ({"confidence": "high"}, "confidence"),
+    ({"snr": True}, "snr"),
+    ({"seconds": 10**400}, "seconds"),
+    ({"iterations": 2.5}, "iterations"),
+    ({"iterations": "3"}, "iterations"),
+    ({"iterations": -1}, "iterations"),
+    ({"conf": 1.0}, "unknown quality field"),  # was TypeError from FitQuality(**q)
+    ([["confidence", 1.0]], "quality"),         # was accepted through dict(q)
+])
+def test_from_dict_type_checks_quality(quality, message):
+    with pytest.raises(ModelError, match=message):
+        VignettingModel.from_dict(_with(quality=quality))
+
+
+def test_quality_round_trip_keeps_types_and_null_figures():
+    from dataclasses import replace
+
+    from vigproc.model import FitQuality
+
+    q = FitQuality(confidence=0.25, snr=math.inf, fallback=True, objective=math.nan, iterations=12, seconds=0.5)
+    m = replace(table2(), quality=q)
+    back = VignettingModel.from_json(m.to_json(allow_nan=False)).quality
+    assert back.fallback is True and back.iterations == 12 and back.snr == math.inf and math.isnan(back.objective)
+    # an integral float (how some JSON writers put counts) is a count
+    d = _with(quality={"iterations": 12.0})
+    assert VignettingModel.from_dict(d).quality.iterations == 12
+
+
+@pytest.mark.parametrize("cov,message", [
+    (-np.eye(12), "positive semi-definite"),
+    (np.diag([1.0] * 11 + [-1e-12]), "negative variance"),   # tiny, but a variance is never negative
+    (np.eye(12) + np.triu(np.ones((12, 12)), 1), "symmetric"),
+    (1.5 * np.eye(12) - 0.5 * np.ones((12, 12)), "positive semi-definite"),  # correlation -0.5 everywhere
+    ([["1"] * 12] * 12, "covariance"),
+    ([[1.0] * 12] * 11 + [[1.0] * 11], "covariance"),        # ragged
+])
+def test_from_dict_refuses_covariance_that_is_not_symmetric_psd(cov, message):
+    cov = cov.tolist() if isinstance(cov, np.ndarray) else cov
+    with pytest.raises(ModelError, match=message):
+        VignettingModel.from_dict(_with(covariance=cov))
+
+
+def test_from_dict_tolerates_rounding_in_a_covariance():
+    rng = np.random.default_rng(1)
+    a = rng.standard_normal((12, 12))
+    c = a @ np.diag([1e4] * 2 + [1e-12] * 3 + [1e-2] * 7) @ a.T  # pixel units: widely spread scales
+    c[0, 1] *= 1 + 1e-12  # asymmetric in the last bits
+    m = VignettingModel.from_dict(_with(covariance=c.tolist()))
+    assert VignettingModel.from_json(m.to_json()) == m
+    # singular (a fixed parameter) is still semi-definite
+    c0 = np.diag([1.0] * 11 + [0.0])
+    assert VignettingModel.from_dict(_with(covariance=c0.tolist())).covariance[11][11] == 0.0
+
+
+def test_candidate_must_match_the_frame_and_not_nest():
+    fit = table2()
+    m = VignettingModel.identity(480, 320, candidate=fit)
+    assert VignettingModel.from_json(m.to_json()).candidate == fit
+    with pytest.raises(ModelError, match="candidate"):
+        VignettingModel.from_dict(_with(candidate=fit.rescale(960, 640).to_dict()))
+    with pytest.raises(ModelError, match="candidate"):
+        VignettingModel.identity(480, 320, candidate=fit.rescale(960, 640))
+    with pytest.raises(ModelError, match="candidate"):
+        VignettingModel.from_dict(_with(candidate=m.to_dict()))
+    deep = None  # a 3000-deep chain was a RecursionError
+    for _ in range(3000):
+        deep = {"width": 4, "height": 4, "center": [0, 0], "p": [0, 0, 0], "alpha": [0] * 7, "candidate": deep}
+    with pytest.raises(ModelError, match="candidate of its own"):
+        VignettingModel.from_dict(deep)
+
+
+@pytest.mark.parametrize("text,message", [
+    ('{"width": 1e999, "height": 320}', "width"),           # was OverflowError
+    ('{"width": 64.5, "height": 320}', "width"),
+    ('{"width": "64", "height": 320}', "width"),
+    ('{"width": true, "height": 320}', "width"),
+    ('{"width": 64, "height": 0}', "height"),
+    ('{"width": 64, "height": NaN}', "height"),
+])
+def test_from_json_refuses_bad_frame_size(text, message):
+    d = json.loads(text)
+    full = _with(**d)
+    with pytest.raises(ModelError, match=message):
+        VignettingModel.from_json(json.dumps(full))
+
+
+def test_from_json_names_the_bad_size_before_missing_fields():
+    with pytest.raises(ModelError, match="width must be a positive integer, got inf"):  # was OverflowError
+        VignettingModel.from_json('{"width": 1e999}')
+
+
+def test_from_json_accepts_integral_float_size():
+    m = VignettingModel.from_dict(_with(width=480.0, height=320.0))
+    assert m == table2() and type(m.width) is int
+
+
+@pytest.mark.parametrize("text", [None, 42, b"\xff\xfe{"])
+def test_from_json_refuses_what_is_not_json_text(text):
+    with pytest.raises(ModelError):  # None was TypeError, undecodable bytes UnicodeDecodeError
+        VignettingModel.from_json(text)
+
+
+@pytest.mark.parametrize("w,h", [(64.7, 48.5), (math.inf, math.inf), (None, None), ("64", "48"), (True, True),
+                                 (0, 0), (-64, -48), (10**400, 10**400)],
+                         ids=["fraction", "inf", "None", "str", "bool", "zero", "negative", "huge"])
+def test_rescale_requires_positive_integer_sizes(w, h):
+    with pytest.raises(ModelError, match="width|height"):
+        VignettingModel.identity(64, 48).rescale(w, h)
+
+
+def test_rescale_accepts_integral_floats():
+    assert table2().rescale(960.0, 640.0) == table2().rescale(960, 640)
+
+
+@pytest.mark.parametrize("shape", [(47 / 2, 63 / 2), (48,), "ab", (48, 64, 3), 48, (0, 64), (math.nan, 64),
+                                   (True, 64)])
+def test_field_shape_must_be_two_positive_integers(shape):
+    m = VignettingModel(64, 48, p=(1e-4, 0, 1e-4))
+    with pytest.raises(ModelError, match="shape"):
+        m.field(shape)
+    with pytest.raises(ModelError, match="shape"):
+        m.log_field(shape)
+
+
+def test_field_accepts_integral_float_and_numpy_shapes():
+    m = table2()
+    np.testing.assert_array_equal(m.field((320.0, 480.0)), m.field())
+    np.testing.assert_array_equal(m.field(np.array([160, 240])), m.field((160, 240)))

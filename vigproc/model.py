@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field, replace
+import numbers
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,66 @@ N_ALPHA = 7
 #: Order of the parameter vector used for covariances: (cx, cy, p1, p2, p3, α1..α7).
 PARAM_NAMES = ("cx", "cy", "p1", "p2", "p3") + tuple(f"alpha{i}" for i in range(1, N_ALPHA + 1))
 SCHEMA = "vigproc.model/1"
+
+
+def _show(v: Any) -> str:
+    """``repr(v)`` cut short, for error messages about arbitrary input."""
+    try:
+        r = repr(v)
+    except ValueError:  # an int of more digits than Python will print
+        return f"a {type(v).__name__} too large to show"
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def _is_real(v: Any) -> bool:
+    # bool is an int to Python, but true/false is never a meaningful number here
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+
+
+def _real(name: str, v: Any) -> float:
+    """``v`` as a float; ModelError unless it is a real number (NaN/Inf allowed)."""
+    if not _is_real(v):
+        raise ModelError(f"{name} must be a number, got {_show(v)}")
+    try:
+        return float(v)
+    except OverflowError:  # an int beyond float range, e.g. 10**400
+        raise ModelError(f"{name} is out of range, got {_show(v)}") from None
+
+
+def _reals(name: str, v: Any, n: int) -> tuple[float, ...]:
+    """``v`` as ``n`` finite floats; ModelError unless a list/tuple of ``n`` real numbers."""
+    # a string is a sequence too: "12" would read as (1.0, 2.0)
+    if not isinstance(v, (list, tuple, np.ndarray)) or np.ndim(v) != 1 or len(v) != n:
+        raise ModelError(f"{name} must be a list of {n} numbers, got {_show(v)}")
+    out = tuple(_real(name, x) for x in v)
+    if not all(math.isfinite(x) for x in out):
+        raise ModelError(f"{name} must be finite, got {list(out)}")
+    return out
+
+
+def _integer(name: str, v: Any, minimum: int = 1) -> int:
+    """``v`` as an int ≥ ``minimum``; an integral float (64.0, as JSON may write it) counts."""
+    what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+    if isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)):
+        n = int(v)
+        try:
+            float(n)  # sizes are scaled in floating point: beyond its range is no size
+        except OverflowError:
+            raise ModelError(f"{name} is out of range, got {_show(v)}") from None
+    elif _is_real(v) and math.isfinite(_real(name, v)) and float(v).is_integer():
+        n = int(v)
+    else:
+        raise ModelError(f"{name} must be {what}, got {_show(v)}")
+    if n < minimum:
+        raise ModelError(f"{name} must be {what}, got {n}")
+    return n
+
+
+def _field_shape(shape: Any) -> tuple[int, int]:
+    """``shape`` as (H, W); ModelError unless two positive integers."""
+    if not isinstance(shape, (list, tuple, np.ndarray)) or np.ndim(shape) != 1 or len(shape) != 2:
+        raise ModelError(f"field shape must be (height, width), got {_show(shape)}")
+    return _integer("field shape height", shape[0]), _integer("field shape width", shape[1])
 
 
 def frame_coords(n: int) -> np.ndarray:
@@ -100,26 +161,32 @@ class VignettingModel:
     candidate: VignettingModel | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        if int(self.width) < 1 or int(self.height) < 1:
-            raise ModelError(f"frame size must be positive, got {self.width}x{self.height}")
-        values = [*self.center, *self.p, *self.alpha]
-        if len(self.center) != 2 or len(self.p) != 3 or len(self.alpha) != N_ALPHA:
-            raise ModelError(
-                f"model needs 2 centre, 3 shape and {N_ALPHA} alpha values, got "
-                f"{len(self.center)}, {len(self.p)}, {len(self.alpha)}"
-            )
-        if not all(math.isfinite(float(v)) for v in values):
-            raise ModelError(f"model parameters must be finite, got {values}")
-        p1, p2, p3 = (float(v) for v in self.p)
+        width, height = _integer("width", self.width), _integer("height", self.height)
+        center = _reals("center", self.center, 2)
+        p1, p2, p3 = _reals("p", self.p, 3)
+        alpha = _reals("alpha", self.alpha, N_ALPHA)
         # P must be positive semi-definite (P = 0 is the identity model).
         tol = 1e-12 * max(abs(p1), abs(p3), 1e-30)
         if p1 < -tol or p3 < -tol or p1 * p3 - p2 * p2 < -tol * max(abs(p1), abs(p3)):
-            raise ModelError(f"shape matrix P must be positive semi-definite, got p={self.p}")
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
-        object.__setattr__(self, "center", (float(self.center[0]), float(self.center[1])))
+            raise ModelError(f"shape matrix P must be positive semi-definite, got p={(p1, p2, p3)}")
+        if self.quality is not None and not isinstance(self.quality, FitQuality):
+            raise ModelError(f"quality must be a FitQuality, got {_show(self.quality)}")
+        cand = self.candidate
+        if cand is not None:
+            if not isinstance(cand, VignettingModel):
+                raise ModelError(f"candidate must be a VignettingModel, got {_show(cand)}")
+            # a candidate is the rejected fit of this very frame, never a chain of them
+            if cand.candidate is not None:
+                raise ModelError("a candidate cannot have a candidate of its own")
+            if cand.size != (width, height):
+                raise ModelError(
+                    f"candidate is for a {cand.width}x{cand.height} frame, the model for {width}x{height}"
+                )
+        object.__setattr__(self, "width", width)
+        object.__setattr__(self, "height", height)
+        object.__setattr__(self, "center", center)
         object.__setattr__(self, "p", (p1, p2, p3))
-        object.__setattr__(self, "alpha", tuple(float(a) for a in self.alpha))
+        object.__setattr__(self, "alpha", alpha)
 
     # ------------------------------------------------------------------ views
     @classmethod
@@ -160,9 +227,7 @@ class VignettingModel:
 
     # ------------------------------------------------------------- evaluation
     def _scale_to(self, shape: tuple[int, int]) -> tuple[float, float]:
-        h, w = int(shape[0]), int(shape[1])
-        if h < 1 or w < 1:
-            raise ModelError(f"field shape must be positive, got {shape}")
+        h, w = _field_shape(shape)
         return w / self.width, h / self.height
 
     def log_field(self, shape: tuple[int, int] | None = None) -> np.ndarray:
@@ -171,17 +236,22 @@ class VignettingModel:
         Parameters
         ----------
         shape : (H, W), optional
-            Output resolution; defaults to the model's own frame size. A different
-            resolution is the same frame resampled (``rescale``), not a crop.
+            Output resolution (two positive integers); defaults to the model's own
+            frame size. A different resolution is the same frame resampled
+            (``rescale``), not a crop.
 
         Returns
         -------
         ndarray, float64, H×W
+
+        Raises
+        ------
+        ModelError
+            If ``shape`` is not two positive integers, or G falls to zero or below.
         """
-        if shape is None:
-            shape = (self.height, self.width)
-        m = self.rescale(shape[1], shape[0]) if tuple(shape) != (self.height, self.width) else self
-        out = np.empty((int(shape[0]), int(shape[1])), dtype=np.float64)
+        shape = (self.height, self.width) if shape is None else _field_shape(shape)
+        m = self.rescale(shape[1], shape[0]) if shape != (self.height, self.width) else self
+        out = np.empty(shape, dtype=np.float64)
         if m.is_identity:
             out.fill(0.0)
             return out
@@ -250,10 +320,17 @@ class VignettingModel:
         Pixel coordinates relative to the frame centre scale exactly by s = new/old
         per axis, so c' = S c and P' = S⁻¹ P S⁻¹ with S = diag(sx, sy); α (a function
         of the dimensionless r) is unchanged.
+
+        Raises
+        ------
+        ModelError
+            If ``width``/``height`` are not positive integers (an integral float such
+            as 64.0 counts), or the aspect ratio changes.
         """
-        sx, sy = float(width) / self.width, float(height) / self.height
-        if not (sx > 0 and sy > 0):
-            raise ModelError(f"cannot rescale to {width}x{height}")
+        # the frame is stored as whole pixels: a fractional size would scale by one
+        # factor and record another
+        width, height = _integer("rescale width", width), _integer("rescale height", height)
+        sx, sy = width / self.width, height / self.height
         if abs(sx / sy - 1.0) > 0.02:
             raise ModelError(
                 f"rescaling {self.width}x{self.height} to {width}x{height} changes the aspect "
@@ -267,8 +344,8 @@ class VignettingModel:
             cov = tuple(tuple(float(v) for v in row) for row in c)
         return replace(
             self,
-            width=int(width),
-            height=int(height),
+            width=width,
+            height=height,
             center=(self.center[0] * sx, self.center[1] * sy),
             p=(p1 / sx**2, p2 / (sx * sy), p3 / sy**2),
             covariance=cov,
@@ -302,49 +379,121 @@ class VignettingModel:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> VignettingModel:
+        """The model of a :meth:`to_dict` mapping (e.g. parsed JSON).
+
+        Raises
+        ------
+        ModelError
+            If a field is missing, of the wrong type or absurd: sizes that are not
+            positive integers, parameters that are not lists of finite numbers, a
+            covariance that is not a symmetric positive semi-definite 12×12 matrix, a
+            malformed quality block, or a candidate for another frame size or with a
+            candidate of its own.
+        """
         if not isinstance(d, dict):
             raise ModelError("a vignetting model must be a JSON object")
         schema = d.get("schema", SCHEMA)
         if schema != SCHEMA:
             raise ModelError(f"unknown model schema {schema!r} (expected {SCHEMA!r})")
+        # a bad size is named before missing fields ({"width": 1e999} is about width)
+        for k in ("width", "height"):
+            if k in d:
+                _integer(k, d[k])
+        missing = [k for k in ("width", "height", "center", "p", "alpha") if k not in d]
+        if missing:
+            raise ModelError(f"vignetting model is missing field {missing[0]!r}")
+        # the parameters themselves are checked by __post_init__; only JSON's
+        # list form is accepted here
+        for k in ("center", "p", "alpha"):
+            if not isinstance(d[k], list):
+                raise ModelError(f"{k} must be a list of numbers, got {_show(d[k])}")
+        cov = d.get("covariance")
+        q = d.get("quality")
+        cand = d.get("candidate")
+        if cand is not None:
+            # refused before recursing, so a deep chain cannot exhaust the stack
+            if not isinstance(cand, dict):
+                raise ModelError("candidate must be a vignetting model object")
+            if cand.get("candidate") is not None:
+                raise ModelError("a candidate cannot have a candidate of its own")
         try:
-            cov = d.get("covariance")
-            if cov is not None:
-                cov_a = np.asarray(cov, dtype=np.float64)
-                if cov_a.shape != (len(PARAM_NAMES),) * 2 or not np.all(np.isfinite(cov_a)):
-                    raise ModelError(f"covariance must be a finite {len(PARAM_NAMES)}x{len(PARAM_NAMES)} matrix")
-                cov = tuple(tuple(float(v) for v in r) for r in cov_a)
-            q = d.get("quality")
-            quality = None
-            if q is not None:
-                q = dict(q)
-                for k in ("confidence", "field_ev_rms", "field_sigma_ev", "snr", "objective", "seconds"):
-                    if k in q and q[k] is None:
-                        q[k] = math.inf if k == "snr" else math.nan
-                if q.get("snr") is None:
-                    q["snr"] = math.inf
-                quality = FitQuality(**q)
-            cand = d.get("candidate")
             return cls(
-                width=int(d["width"]),
-                height=int(d["height"]),
-                center=tuple(float(v) for v in d["center"]),
-                p=tuple(float(v) for v in d["p"]),
-                alpha=tuple(float(v) for v in d["alpha"]),
+                width=d["width"],
+                height=d["height"],
+                center=tuple(d["center"]),
+                p=tuple(d["p"]),
+                alpha=tuple(d["alpha"]),
                 method=str(d.get("method", "unknown")),
-                covariance=cov,
-                quality=quality,
-                candidate=cls.from_dict(cand) if cand is not None else None,
+                covariance=None if cov is None else _covariance_from(cov),
+                quality=None if q is None else _quality_from(q),
+                candidate=None if cand is None else cls.from_dict(cand),
             )
         except ModelError:
             raise
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:  # not expected: checked above
             raise ModelError(f"invalid vignetting model: {exc!r}") from None
 
     @classmethod
-    def from_json(cls, text: str) -> VignettingModel:
+    def from_json(cls, text: str | bytes) -> VignettingModel:
+        """The model of a :meth:`to_json` text (see :meth:`from_dict` for the checks)."""
+        if not isinstance(text, (str, bytes, bytearray)):
+            raise ModelError(f"a vignetting model must be JSON text, got {type(text).__name__}")
         try:
             d = json.loads(text)
-        except (json.JSONDecodeError, RecursionError) as exc:  # RecursionError: absurdly nested
+        # ValueError: also undecodable bytes and over-long integer literals;
+        # RecursionError: absurdly nested
+        except (ValueError, RecursionError) as exc:
             raise ModelError(f"vignetting model is not valid JSON: {exc}") from None
         return cls.from_dict(d)
+
+
+#: Relative tolerance for rounding in a serialised covariance (asymmetry relative to
+#: its largest entry, negative eigenvalues relative to its largest eigenvalue).
+COV_RTOL = 1e-9
+
+
+def _covariance_from(cov: Any) -> tuple[tuple[float, ...], ...]:
+    """A serialised covariance as a tuple of rows; ModelError unless a symmetric
+    positive semi-definite 12×12 matrix of finite numbers (up to :data:`COV_RTOL`)."""
+    n = len(PARAM_NAMES)
+    if not (isinstance(cov, list) and len(cov) == n and all(isinstance(r, list) and len(r) == n for r in cov)):
+        raise ModelError(f"covariance must be a {n}x{n} matrix (a list of {n} lists of {n} numbers)")
+    c = np.array([[_real("covariance entry", v) for v in r] for r in cov])
+    if not np.all(np.isfinite(c)):
+        raise ModelError(f"covariance must be a finite {n}x{n} matrix")
+    if np.max(np.abs(c - c.T)) > COV_RTOL * np.max(np.abs(c)):
+        raise ModelError("covariance must be symmetric")
+    # a variance is never negative, however small: rounding does not flip its sign
+    neg = np.flatnonzero(np.diag(c) < 0)
+    if neg.size:
+        raise ModelError(f"covariance is not positive semi-definite: negative variance of {PARAM_NAMES[neg[0]]}")
+    try:
+        w = np.linalg.eigvalsh(0.5 * c + 0.5 * c.T)  # halves first: no overflow near float max
+    except np.linalg.LinAlgError:
+        raise ModelError("covariance has no eigen-decomposition (absurd entries?)") from None
+    if w[0] < -COV_RTOL * max(w[-1], 0.0):
+        raise ModelError(f"covariance is not positive semi-definite (eigenvalue {w[0]:.3g}, largest {w[-1]:.3g})")
+    return tuple(tuple(float(v) for v in r) for r in c)
+
+
+def _quality_from(q: Any) -> FitQuality:
+    """A serialised FitQuality; ModelError on an unknown field or a wrong type."""
+    if not isinstance(q, dict):
+        raise ModelError(f"quality must be a JSON object, got {_show(q)}")
+    unknown = sorted(repr(k) for k in q if k not in {f.name for f in fields(FitQuality)})
+    if unknown:
+        raise ModelError(f"unknown quality field(s): {', '.join(unknown)}")
+    kw: dict[str, Any] = {}
+    for k, v in q.items():
+        if k == "fallback":
+            if not isinstance(v, bool):
+                raise ModelError(f"quality.fallback must be true or false, got {_show(v)}")
+        elif k == "iterations":
+            v = _integer("quality.iterations", v, minimum=0)
+        elif v is None:
+            # to_dict's null for a non-finite figure: snr infinite, the others unknown
+            v = math.inf if k == "snr" else math.nan
+        else:
+            v = _real(f"quality.{k}", v)
+        kw[k] = v
+    return FitQuality(**kw)
