@@ -722,3 +722,82 @@ def test_two_channels_are_grey_plus_extra_only_when_the_file_says_grey(tmp_path:
     assert out.open(p, spec) and out.write_image(ga) and out.close()
     with pytest.raises(UnsupportedFormatError, match="neither grey nor RGB"):
         read_image(p)
+
+
+# --------------------------------------------------------------------------- #
+# argument and range validation
+# --------------------------------------------------------------------------- #
+
+
+@pytest.mark.parametrize(
+    ("name", "depth", "scale"),
+    [
+        ("h.exr", None, 1e6),  # default half: 65504 at most
+        ("h.exr", "half", -2e5),  # -1e5
+        ("f.exr", "float", 1e39),  # float64 input beyond float32
+        ("f.tif", "float", -1e300),
+    ],
+)
+def test_write_refuses_values_a_float_format_would_store_as_inf(
+    tmp_path: Path, name: str, depth: str | None, scale: float
+) -> None:
+    img = np.full((4, 4, 3), 0.5) * scale  # float64, so 1e39 survives until the cast
+    with pytest.raises(ImageWriteError, match="would be stored as Inf") as ei:
+        write_image(tmp_path / name, img, bit_depth=depth)
+    assert_names_file(ei, tmp_path / name)
+    assert list(tmp_path.iterdir()) == []  # refused before any file was created
+
+
+def test_write_half_takes_values_up_to_its_maximum(tmp_path: Path) -> None:
+    img = np.array([[65504.0, -65504.0], [0.25, 0.0]], np.float32)
+    write_image(tmp_path / "max.exr", img)
+    np.testing.assert_array_equal(read_image(tmp_path / "max.exr")[0], img)
+    big = np.full((2, 2), 1e6, np.float32)  # beyond half, fine as float
+    write_image(tmp_path / "big.exr", big, bit_depth="float")
+    np.testing.assert_array_equal(read_image(tmp_path / "big.exr")[0], big)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("depth", ["half", "float"])
+def test_write_refuses_nan_and_inf_for_float_outputs(tmp_path: Path, bad: float, depth: str) -> None:
+    img = np.zeros((4, 4, 3), np.float32)
+    img[1, 2, 0] = bad
+    with pytest.raises(InvalidImageError, match="NaN/Inf"):
+        write_image(tmp_path / "x.exr", img, bit_depth=depth)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_integer_output_warns_when_it_clips_much_above_white(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    codes = gradient_codes(top=65535).astype(np.uint16)  # integer codes, not [0, 1] floats
+    with caplog.at_level("WARNING", logger="vigproc.io"):
+        write_image(tmp_path / "codes.tif", codes)
+    assert any("above 1.0" in r.getMessage() and "integer codes" in r.getMessage() for r in caplog.records)
+    np.testing.assert_array_equal(read_image(tmp_path / "codes.tif")[0][codes > 0], 1.0)  # still clipped, as documented
+
+    caplog.clear()
+    few = np.full((10, 10), 0.5, np.float32)
+    few[0, 0] = 3.0  # 1 % exactly: a highlight, not a unit mistake
+    with caplog.at_level("WARNING", logger="vigproc.io"):
+        write_image(tmp_path / "few.png", few)
+    assert not caplog.records
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"transfer": "bogus"}, {"transfer": None}, {"max_pixels": None}, {"max_pixels": "many"},
+     {"max_pixels": 0}, {"max_pixels": -5}, {"max_pixels": float("nan")}, {"max_pixels": True}],
+)
+def test_read_bad_arguments_are_typed_errors(good_png: Path, kwargs: dict) -> None:
+    with pytest.raises(InvalidImageError) as ei:
+        read_image(good_png, **kwargs)
+    assert isinstance(ei.value, ValueError)  # still a ValueError for callers catching that
+    assert next(iter(kwargs)) in str(ei.value)
+
+
+@pytest.mark.parametrize("path", [None, 5, 1.5, ["a.png"]])
+def test_non_path_arguments_are_typed_errors(tmp_path: Path, path: object) -> None:
+    with pytest.raises(ImageReadError, match="path must be"):
+        read_image(path)  # type: ignore[arg-type]
+    with pytest.raises(ImageWriteError, match="path must be"):
+        write_image(path, np.zeros((2, 2, 3)))  # type: ignore[arg-type]
+    assert list(tmp_path.iterdir()) == []

@@ -765,3 +765,72 @@ def test_the_profile_pools_every_frame_up_to_the_cap(tmp_path, monkeypatch):
             b = _learn_frames(store, key, frames[i:i + 1], first=i)
     np.testing.assert_allclose(a.model(w, h).log_field(), b.model(w, h).log_field(), atol=1e-9)
     assert shipped_cap >= 100  # far beyond the 40 frames that stopped refining profiles before
+
+
+# ----------------------------------------------------------------------------- argument validation
+
+
+@pytest.mark.parametrize("size", [(float("nan"), 10), ("a", 10), (10, 0), (0.5, 10), (100.5, 10), (True, 1), (10, None)])
+def test_bad_frame_sizes_are_typed_errors(size):
+    lk = LensKey(make="nikon", model="nikon d800", lens="af-s nikkor 24-70mm f/2.8g ed", focal_mm=24.0, fnumber=4.0)
+    with pytest.raises(ProfileStoreError, match="frame size"):
+        ProfileKey.from_lens(lk, *size)
+    p = Profile(key=KEY, theta=THETA_TRUE)
+    with pytest.raises(ProfileStoreError, match="frame size"):
+        p.model(*size)
+    with pytest.raises(ProfileStoreError, match="frame size"):
+        p.model(128, 0)  # was a ZeroDivisionError
+    assert p.model(np.int64(6000), 4000.0).width == 6000  # whole numbers of any type are fine
+
+
+def test_from_lens_needs_a_lens_key():
+    with pytest.raises(ProfileStoreError, match="LensKey"):
+        ProfileKey.from_lens(None, 6000, 4000)
+
+
+@pytest.mark.parametrize("kwargs", [{"timeout": "x"}, {"timeout": float("nan")}, {"timeout": float("inf")},
+                                    {"timeout": -1}, {"timeout": None}])
+def test_store_bad_timeout_is_a_typed_error(tmp_path, kwargs):
+    with pytest.raises(ProfileStoreError, match="timeout"):
+        ProfileStore(tmp_path / "p.sqlite", **kwargs)
+    assert list(tmp_path.iterdir()) == []  # nothing created
+
+
+@pytest.mark.parametrize("path", [5, 1.5, ["p.sqlite"], "", "a\0b.sqlite"])
+def test_store_bad_path_is_a_typed_error(tmp_path, monkeypatch, path):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ProfileStoreError, match="path"):
+        ProfileStore(path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_store_methods_refuse_bad_arguments_before_touching_the_store(tmp_path):
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        first = store.learn(KEY, synthetic_model(0))
+        for bad in (None, "x", ("a", "b", "c", "d")):
+            with pytest.raises(ProfileStoreError, match="ProfileKey"):
+                store.get(bad)
+            with pytest.raises(ProfileStoreError, match="ProfileKey"):
+                store.delete(bad)
+            with pytest.raises(ProfileStoreError, match="ProfileKey"):
+                store.learn(bad, synthetic_model(1))
+        for bad in (None, "model", THETA_TRUE):
+            with pytest.raises(ProfileStoreError, match="VignettingModel"):
+                store.learn(KEY, bad)
+        for bad in (5, b"notes", ["a"]):
+            with pytest.raises(ProfileStoreError, match="notes"):
+                store.learn(KEY, synthetic_model(1), notes=bad)
+        with pytest.raises(ProfileStoreError, match="LensKey"):
+            store.lookup("canon", 6000, 4000)
+        after = store.get(KEY)
+        assert after.n_frames == first.n_frames == 1 and after.notes == first.notes
+        assert store.learn(KEY, synthetic_model(1), notes="ok").notes.endswith("ok")  # valid calls unchanged
+
+
+def test_junk_evidence_is_named_as_such(tmp_path):
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        for junk in (b"junk", b"", b"PK\x03\x04 not an npz"):
+            with pytest.raises(ProfileStoreError, match="not frame evidence") as ei:
+                store.learn(KEY, synthetic_model(0), evidence=junk)
+            assert "pickle" not in str(ei.value)
+        assert store.get(KEY) is None

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import numbers
 import os
 import re
 import stat
@@ -225,9 +226,15 @@ _GAMMA_RE = re.compile(r"^gamma\s*([0-9]*\.?[0-9]+)$")
 
 
 def _parse_transfer(transfer: str, *, allow_auto: bool) -> str:
-    """Normalise a user transfer name; ``'gamma2.2'`` style names are accepted."""
+    """Normalise a user transfer name; ``'gamma2.2'`` style names are accepted.
+
+    Raises
+    ------
+    InvalidImageError
+        Not a string, or not a known curve (a ``ValueError`` too).
+    """
     if not isinstance(transfer, str):
-        raise ValueError(f"transfer must be a string, got {transfer!r}")
+        raise InvalidImageError(f"transfer must be a string, got {transfer!r}")
     t = transfer.strip().lower()
     if t in ("linear", "srgb") or (allow_auto and t == "auto"):
         return t
@@ -235,7 +242,7 @@ def _parse_transfer(transfer: str, *, allow_auto: bool) -> str:
     if m and float(m.group(1)) > 0:
         return _gamma_name(float(m.group(1)))
     allowed = "'auto', 'linear', 'srgb' or 'gamma<g>'" if allow_auto else "'linear' or 'srgb'"
-    raise ValueError(f"unknown transfer {transfer!r}: expected {allowed}")
+    raise InvalidImageError(f"unknown transfer {transfer!r}: expected {allowed}")
 
 
 def _gamma_name(g: float) -> str:
@@ -303,8 +310,14 @@ def _q(path: str) -> str:
     return repr(path)
 
 
-def _fspath(path: PathLike) -> str:
-    p = os.fspath(path)
+def _fspath(path: PathLike, error: type[Exception] = ImageReadError) -> str:
+    """``path`` as a str; anything that is not a path raises ``error`` (a typed error)."""
+    try:
+        p = os.fspath(path)
+    except TypeError:
+        verb = "read image" if issubclass(error, ImageReadError) else "write"
+        raise error(f"cannot {verb}: path must be a str, bytes or os.PathLike, "
+                    f"got {type(path).__name__}") from None
     return os.fsdecode(p) if isinstance(p, bytes) else p
 
 
@@ -383,7 +396,7 @@ def read_image(
         no demosaicing).  Ignored for other formats.
     max_pixels : int
         Refuse images with more than this many pixels (width * height) before any
-        pixel is decoded, to defuse decompression bombs.
+        pixel is decoded, to defuse decompression bombs.  Must be positive.
 
     Returns
     -------
@@ -397,16 +410,20 @@ def read_image(
     Raises
     ------
     ImageReadError
-        Missing, unreadable, empty, truncated or corrupt file.
+        Missing, unreadable, empty, truncated or corrupt file, or ``path`` is not a path.
     UnsupportedFormatError
         Content is not a supported image format (or a RAW LibRaw cannot decode).
     InvalidImageError
-        Zero or absurd dimensions, or no usable channels.
-    ValueError
-        Unknown ``transfer`` name.
+        Zero or absurd dimensions, or no usable channels; also an unknown
+        ``transfer`` name or a ``max_pixels`` that is not a positive number (this
+        error is a ``ValueError`` too).
     """
     fspath = _fspath(path)
     want = _parse_transfer(transfer, allow_auto=True)
+    # bool is an int, but max_pixels=True would refuse every image; NaN fails "> 0".
+    if (not isinstance(max_pixels, numbers.Real) or isinstance(max_pixels, bool)
+            or not max_pixels > 0):
+        raise InvalidImageError(f"max_pixels must be a positive integer, got {max_pixels!r}")
     size = _check_regular_file(fspath)
     head = _read_head(fspath)
     kind = _sniff(head)
@@ -730,8 +747,11 @@ def write_image(
         Destination.  Replaced atomically (temporary file in the same directory,
         fsync, :func:`os.replace`); never left partially written.
     img : numpy.ndarray
-        ``HxW``, ``HxWx1`` or ``HxWx3`` linear values (any real dtype).  Integer
-        outputs clip to ``[0, 1]``; float outputs are written as given.
+        ``HxW``, ``HxWx1`` or ``HxWx3`` linear values (any real dtype), finite.
+        Integer outputs clip to ``[0, 1]`` (with a warning when more than 1 % of the
+        values are above 1, the sign of integer codes passed instead of ``[0, 1]``
+        floats); float outputs are written as given and must fit the format
+        (``|v| <= 65504`` for half, float32's range for float).
     format : {'tiff', 'png', 'openexr'}, optional
         Defaults to the extension (``.tif``/``.tiff``, ``.png``, ``.exr``).
     bit_depth : {'uint8', 'uint16', 'half', 'float'}, optional
@@ -744,11 +764,13 @@ def write_image(
     Raises
     ------
     InvalidImageError
-        ``img`` has an unusable shape or NaN/Inf for an integer output.
+        ``img`` has an unusable shape or dtype, or NaN/Inf.
     ImageWriteError
-        Bad format/depth/transfer combination or any I/O failure.
+        ``path`` is not a path, bad format/depth/transfer combination, values
+        beyond the range of a float output, or any I/O failure.  Nothing is
+        created on disk when the arguments or the values are refused.
     """
-    fspath = _fspath(path)
+    fspath = _fspath(path, ImageWriteError)
     q = _q(fspath)
     if _unencodable(fspath):
         raise ImageWriteError(f"cannot write {q}: file name is not valid UTF-8")
@@ -783,11 +805,31 @@ def write_image(
         raise InvalidImageError(f"cannot write {q}: unsupported array dtype {arr.dtype}")
     h, w = arr.shape[:2]
     nch = 1 if arr.ndim == 2 else 3
-    data = arr.astype(np.float32, copy=False)
+    # NaN/Inf of the caller's own: checked before the float32 cast, whose overflow
+    # (float64 beyond 3.4e38) is reported below as out of range instead.
+    if np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+        raise InvalidImageError(f"cannot write {q}: the image holds NaN/Inf, which cannot be stored as {depth}")
+    with np.errstate(over="ignore"):  # overflow to Inf is detected right below
+        data = arr.astype(np.float32, copy=False)
 
+    if not is_int:
+        # OIIO would store out-of-range values as Inf without a word.
+        peak = max(float(data.max()), -float(data.min()))
+        limit = 65504.0 if depth == "half" else float(np.finfo(np.float32).max)
+        if not peak <= limit:
+            shown = "beyond 3.4e38" if np.isinf(peak) else f"{peak:.4g}"
+            wider = " (bit_depth='float' holds 3.4e38)" if depth == "half" else ""
+            raise ImageWriteError(
+                f"cannot write {q}: values reach {shown}, beyond the {limit:.4g} that {fmt} {depth} "
+                f"holds; they would be stored as Inf: scale the image down{wider}")
     if is_int:
-        if not np.all(np.isfinite(data)):
-            raise InvalidImageError(f"cannot write {q}: NaN/Inf cannot be stored as {depth}")
+        above = int(np.count_nonzero(data > 1.0))
+        if above > 0.01 * data.size:
+            # Integer outputs take [0, 1]; raw integer codes (0..65535) would turn white.
+            logger.warning(
+                "%s: %.1f %% of the values are above 1.0 (up to %.4g) and are clipped to white in %s; "
+                "integer outputs take linear values in [0, 1], not integer codes",
+                q, 100.0 * above / data.size, float(data.max()), depth)
         if tr == "srgb":
             data = linear_to_srgb(data)
         top = 255.0 if depth == "uint8" else 65535.0

@@ -54,6 +54,7 @@ import hashlib
 import json
 import logging
 import math
+import numbers
 import os
 import stat
 import re
@@ -281,6 +282,23 @@ def _aspect_value(label: str) -> float:
     return int(m.group(1)) / int(m.group(2))
 
 
+def _frame_size(width: Any, height: Any) -> tuple[int, int]:
+    """``(width, height)`` as ints, or :class:`ProfileStoreError` unless both are
+    positive whole numbers (``int()`` would truncate 0.5 to a zero-width frame, and
+    reject ``'a'`` or NaN with a bare ``ValueError``)."""
+    for v in (width, height):
+        if (isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v)
+                or v < 1 or v != int(v)):
+            raise ProfileStoreError(f"frame size must be positive integers, got {width!r} x {height!r}")
+    return int(width), int(height)
+
+
+def _check_key(key: Any, op: str) -> ProfileKey:
+    if not isinstance(key, ProfileKey):
+        raise ProfileStoreError(f"{op}() needs a ProfileKey, got {type(key).__name__}")
+    return key
+
+
 def _check_lens_id(lens_id: Any) -> str:
     if not isinstance(lens_id, str):
         raise ProfileStoreError(f"lens id must be a string, got {type(lens_id).__name__}")
@@ -341,19 +359,22 @@ class ProfileKey:
         ------
         ProfileStoreError
             If neither the camera model nor the lens is known (nothing identifies
-            the optics, and pooling such frames would mix lenses).
+            the optics, and pooling such frames would mix lenses), if ``lens_key``
+            is not a :class:`~vigproc.exif.LensKey`, or if the frame size is not
+            two positive integers.
         """
+        if not isinstance(lens_key, LensKey):
+            raise ProfileStoreError(f"a profile key needs a LensKey, got {type(lens_key).__name__}")
         if lens_key.model is None and lens_key.lens is None:
             raise ProfileStoreError(
                 "the metadata names neither the camera model nor the lens: no profile can be keyed"
             )
-        if int(width) < 1 or int(height) < 1:
-            raise ProfileStoreError(f"frame size must be positive, got {width}x{height}")
+        w, h = _frame_size(width, height)
         return cls(
             lens_id=lens_key.lens_id(with_serial=with_serial),
             focal_bin=focal_bin(lens_key.focal_mm),
             aperture_bin=aperture_bin(lens_key.fnumber),
-            aspect=aspect_label(int(width) / int(height)),
+            aspect=aspect_label(w / h),
         )
 
     @property
@@ -719,12 +740,14 @@ class Profile:
         Raises
         ------
         ProfileStoreError
-            If the frame's aspect ratio is not the profile's.
+            If the frame size is not two positive integers, or the frame's aspect
+            ratio is not the profile's.
         """
-        if aspect_label(int(width) / int(height)) != self.key.aspect:
+        width, height = _frame_size(width, height)
+        if aspect_label(width / height) != self.key.aspect:
             raise ProfileStoreError(
                 f"profile {self.key} is for aspect {self.key.aspect}; a {width}x{height} frame is "
-                f"{aspect_label(int(width) / int(height))} (a crop or a rotated frame)"
+                f"{aspect_label(width / height)} (a crop or a rotated frame)"
             )
         ev_rms = float(np.sqrt(np.mean(_field_and_jacobian(self.theta, self.key.aspect_ratio)[0] ** 2)))
         sigma = self.field_sigma_ev
@@ -897,7 +920,7 @@ class ProfileStore(SQLiteFile):
         Database file; default :func:`default_db_path` (``$VIGPROC_PROFILE_DB`` or
         the platform's user data folder).  Missing folders are created.
     timeout : float
-        Seconds to wait for another process's write lock before
+        Seconds (finite, >= 0) to wait for another process's write lock before
         :class:`ProfileStoreError` (SQLite busy timeout).
 
     Notes
@@ -913,8 +936,9 @@ class ProfileStore(SQLiteFile):
     Raises
     ------
     ProfileStoreError
-        When the file is not a (vigproc) database, is corrupt, is from a newer
-        vigproc, or stays locked beyond ``timeout``.
+        When ``path`` is not a path or ``timeout`` not a number of seconds, or the
+        file is not a (vigproc) database, is corrupt, is from a newer vigproc, or
+        stays locked beyond ``timeout``.
     """
 
     error = ProfileStoreError
@@ -923,6 +947,20 @@ class ProfileStore(SQLiteFile):
     def __init__(self, path: str | os.PathLike[str] | None = None, *, timeout: float = DEFAULT_TIMEOUT) -> None:
         # SHA-256 of a frame's evidence -> its centred fit: a long-lived learner fits each frame once
         self._fit_cache: dict[bytes, Any] = {}
+        # Checked here: the base class would fail with TypeError/ValueError (or
+        # OverflowError for an infinite timeout) from Path(), float() or SQLite.
+        if path is not None:
+            try:
+                path = os.fspath(path)
+            except TypeError:
+                raise ProfileStoreError(
+                    f"profile store path must be a str or os.PathLike, got {type(path).__name__}") from None
+            path = os.fsdecode(path) if isinstance(path, bytes) else path
+            if not path or "\0" in path:
+                raise ProfileStoreError(f"profile store path {path!r} is empty or contains a NUL character")
+        if (isinstance(timeout, bool) or not isinstance(timeout, numbers.Real)
+                or not (math.isfinite(timeout) and timeout >= 0)):
+            raise ProfileStoreError(f"timeout must be a finite number of seconds >= 0, got {timeout!r}")
         super().__init__(path if path is not None else default_db_path(), timeout=timeout)
 
     def _setup_schema(self) -> None:
@@ -1070,7 +1108,14 @@ class ProfileStore(SQLiteFile):
 
     # ------------------------------------------------------------ API
     def get(self, key: ProfileKey) -> Profile | None:
-        """The profile stored under exactly ``key``, or None."""
+        """The profile stored under exactly ``key``, or None.
+
+        Raises
+        ------
+        ProfileStoreError
+            ``key`` is not a :class:`ProfileKey`, or the store cannot be read.
+        """
+        _check_key(key, "get")
         with self._errors(f"reading {key}"):
             return self._get(key)
 
@@ -1176,23 +1221,35 @@ class ProfileStore(SQLiteFile):
         Raises
         ------
         ProfileStoreError
-            No covariance in ``model``, aspect ratio not the key's, invalid values,
+            Arguments of the wrong type, no covariance in ``model``, aspect ratio
+            not the key's, evidence that is not frame evidence, invalid values,
             database locked or corrupt.
         """
+        # Checked up front: a bad argument must not surface as a raw error from
+        # inside the transaction (``notes`` is only joined there).
+        _check_key(key, "learn")
+        if not isinstance(model, VignettingModel):
+            raise ProfileStoreError(f"learn() needs a VignettingModel, got {type(model).__name__}")
+        if notes is not None and not isinstance(notes, str):
+            raise ProfileStoreError(f"notes must be a string, got {type(notes).__name__}")
         if evidence is not None:
             if not isinstance(evidence, bytes):
                 raise ProfileStoreError(f"evidence must be bytes, got {type(evidence).__name__}")
             try:
                 # fitted before the transaction: the refit below finds it in the cache
                 frame_fit, grid, frame_size = self._frame_fit(evidence)
-            except (ValueError, VigprocError) as exc:
+            except ValueError as exc:
+                # the decoder's own wording (numpy's allow_pickle...) would only confuse
+                logger.debug("evidence rejected: %s", exc)
+                raise ProfileStoreError(
+                    "evidence is not frame evidence (the bytes vigproc.estimate.frame_evidence returns)"
+                ) from None
+            except VigprocError as exc:
                 raise ProfileStoreError(f"unusable frame evidence: {exc}") from None
             if frame_id is None:
                 frame_id = "evidence:" + hashlib.sha256(evidence).hexdigest()
         if frame_id is not None and (not isinstance(frame_id, str) or not frame_id or len(frame_id) > 256):
             raise ProfileStoreError(f"frame_id must be a non-empty string of at most 256 characters, got {frame_id!r}")
-        if not isinstance(key, ProfileKey):
-            raise ProfileStoreError(f"learn() needs a ProfileKey, got {type(key).__name__}")
         if aspect_label(model.width / model.height) != key.aspect:
             raise ProfileStoreError(
                 f"a {model.width}x{model.height} estimate ({aspect_label(model.width / model.height)}) "
@@ -1365,7 +1422,14 @@ class ProfileStore(SQLiteFile):
             return self._select(f"WHERE lens_id = ? {order}", (lens_id,))
 
     def delete(self, key: ProfileKey) -> bool:
-        """Delete the profile under ``key``; True if there was one."""
+        """Delete the profile under ``key``; True if there was one.
+
+        Raises
+        ------
+        ProfileStoreError
+            ``key`` is not a :class:`ProfileKey`, or the store cannot be written.
+        """
+        _check_key(key, "delete")
 
         def body(con: sqlite3.Connection) -> bool:
             cur = con.execute(
