@@ -731,6 +731,10 @@ _FORMAT_DEPTHS = {
 }
 
 
+#: Largest finite value of each float bit depth (IEEE half and single precision).
+FLOAT_MAX = {"half": 65504.0, "float": float(np.finfo(np.float32).max)}
+
+
 def write_image(
     path: PathLike,
     img: np.ndarray,
@@ -806,8 +810,9 @@ def write_image(
     h, w = arr.shape[:2]
     nch = 1 if arr.ndim == 2 else 3
     # NaN/Inf of the caller's own: checked before the float32 cast, whose overflow
-    # (float64 beyond 3.4e38) is reported below as out of range instead.
-    if np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+    # (float64 beyond 3.4e38) is reported below as out of range instead.  No mask:
+    # NaN propagates to both extremes and ±Inf shows in one of them.
+    if np.issubdtype(arr.dtype, np.floating) and not (np.isfinite(arr.max()) and np.isfinite(arr.min())):
         raise InvalidImageError(f"cannot write {q}: the image holds NaN/Inf, which cannot be stored as {depth}")
     with np.errstate(over="ignore"):  # overflow to Inf is detected right below
         data = arr.astype(np.float32, copy=False)
@@ -815,7 +820,7 @@ def write_image(
     if not is_int:
         # OIIO would store out-of-range values as Inf without a word.
         peak = max(float(data.max()), -float(data.min()))
-        limit = 65504.0 if depth == "half" else float(np.finfo(np.float32).max)
+        limit = FLOAT_MAX[depth]
         if not peak <= limit:
             shown = "beyond 3.4e38" if np.isinf(peak) else f"{peak:.4g}"
             wider = " (bit_depth='float' holds 3.4e38)" if depth == "half" else ""

@@ -248,15 +248,13 @@ class InputFiles:
         return (st.st_dev, st.st_ino) in self._ids
 
 
-#: Largest finite value of each float output (IEEE half and single precision).
-_FLOAT_MAX = {"half": 65504.0, "float": float(np.finfo(np.float32).max)}
-
-
 def _check_range(out: np.ndarray, output_format: str) -> None:
     """A corrected frame must be representable in its output format: values beyond a
     float format's range would be written as Inf (HDR frames in absolute units in
     half-float EXR, say)."""
-    limit = _FLOAT_MAX.get(OUTPUT_FORMATS[output_format][1])
+    from vigproc.io import FLOAT_MAX
+
+    limit = FLOAT_MAX.get(OUTPUT_FORMATS[output_format][1])
     if limit is None:  # integer formats are clipped to the white point by design
         return
     hi, lo = float(out.max()), float(out.min())
