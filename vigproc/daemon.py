@@ -424,15 +424,21 @@ def _no_op(_signum: int, _frame: Any) -> None:
     pass
 
 
-def _sidecar_result(sidecar: Path, fp: Fingerprint, settings: dict[str, Any]) -> dict[str, Any] | None:
-    """The result recorded by an earlier run's sidecar for this very content and these
-    settings (its outputs still present), or None."""
+def _read_sidecar(sidecar: Path) -> dict[str, Any] | None:
+    """An earlier run's sidecar as a dict, or None when it is missing or unreadable."""
     try:
         with open(sidecar, "rb") as fh:
             d = json.loads(fh.read(1 << 22))
     except (OSError, ValueError):
         return None
-    if not isinstance(d, dict) or d.get("input_sha256") != fp.sha256 or d.get("settings") != settings:
+    return d if isinstance(d, dict) else None
+
+
+def _sidecar_result(sidecar: Path, fp: Fingerprint, settings: dict[str, Any]) -> dict[str, Any] | None:
+    """The result recorded by an earlier run's sidecar for this very content and these
+    settings (its outputs still present), or None."""
+    d = _read_sidecar(sidecar)
+    if d is None or d.get("input_sha256") != fp.sha256 or d.get("settings") != settings:
         return None
     if d.get("output") and not os.path.isfile(d["output"]):
         return None
@@ -1353,12 +1359,8 @@ class Daemon:
         from vigproc.pipeline import SIDECAR_SUFFIX, safe_output
 
         sidecar = safe_output(self.cfg.out_dir, output_stem(rel), SIDECAR_SUFFIX)
-        try:
-            with open(sidecar, "rb") as fh:
-                d = json.loads(fh.read(1 << 22))
-        except (OSError, ValueError):
-            return []
-        if not isinstance(d, dict) or d.get("input_sha256") in (None, fp.sha256):
+        d = _read_sidecar(sidecar)
+        if d is None or d.get("input_sha256") in (None, fp.sha256):
             return []
         out = d.get("output")
         return [str(sidecar)] + ([out] if isinstance(out, str) and os.path.isfile(out) else [])
