@@ -13,9 +13,9 @@ import operator
 import numpy as np
 
 from vigproc._kernels.correct import correct_rows
-from vigproc.errors import InvalidImageError, ModelError
+from vigproc.errors import InvalidImageError
 from vigproc.image import as_channels_last
-from vigproc.model import VignettingModel
+from vigproc.model import VignettingModel, blackout_error
 
 
 #: Largest strength: 2 removes the fall-off twice over (the command line's bound too).
@@ -185,8 +185,7 @@ def correct_stripe(
     m = model if (model.width, model.height) == (fw, fh) else model.rescale(fw, fh)
     gmin = _min_g(m, fw, fh)
     if gmin <= 0.0:  # what field() refuses; the kernel's floor would multiply by ~1e9
-        raise ModelError(f"the geometric factor G falls to {gmin:.3g} inside the frame: the model "
-                         "would black out part of the image")
+        raise blackout_error(gmin)
     if out is None:
         out = np.empty(stripe.shape, dtype=np.float32)
     o = out[..., None] if out.ndim == 2 else out

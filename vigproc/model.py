@@ -88,6 +88,12 @@ def _field_shape(shape: Any) -> tuple[int, int]:
     return _integer("field shape height", shape[0]), _integer("field shape width", shape[1])
 
 
+def blackout_error(gmin: float) -> ModelError:
+    """The error for a model whose geometric factor G reaches ``gmin`` ≤ 0 in the frame."""
+    return ModelError(f"the geometric factor G falls to {gmin:.3g} inside the frame: the model "
+                      "would black out part of the image")
+
+
 def frame_coords(n: int) -> np.ndarray:
     """Pixel-centre coordinates of ``n`` samples relative to the frame centre ((n−1)/2)."""
     return np.arange(n, dtype=np.float64) - (n - 1) / 2.0
@@ -267,10 +273,7 @@ class VignettingModel:
             out,
         )
         if gmin <= 0.0:
-            raise ModelError(
-                f"the geometric factor G falls to {gmin:.3g} inside the frame: the model "
-                "would black out part of the image"
-            )
+            raise blackout_error(gmin)
         return out
 
     def log_field_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -294,10 +297,7 @@ class VignettingModel:
         r = np.sqrt(q)
         g = 1.0 - (r[..., None] ** np.arange(1, N_ALPHA + 1)) @ np.asarray(self.alpha)
         if np.any(g <= 0.0):
-            raise ModelError(
-                f"the geometric factor G falls to {g.min():.3g} inside the frame: the model "
-                "would black out part of the image"
-            )
+            raise blackout_error(float(g.min()))
         return -2.0 * np.log1p(0.25 * q) + np.log(g)
 
     def field(self, shape: tuple[int, int] | None = None) -> np.ndarray:
