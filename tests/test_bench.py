@@ -113,7 +113,7 @@ def test_bench_profile_reports_when_profiles_become_trusted():
     from vigproc.estimate import estimate
 
     ims = [textured(160, 240, seed=20 + i, contrast=0.05) for i in range(4)]
-    rows, trust = P.run(ims, lambda v: estimate(v, channel_axis=None), n_lenses=2, counts=(1, 4), store=True)
+    rows, trust = P.run(ims, lambda v: estimate(v, "robust", channel_axis=None), n_lenses=2, counts=(1, 4), store=True)
     assert {r.pooling for r in rows} >= {"information", "store"}
     assert trust.n_lenses == 2 and trust.max_frames == 4 and 0 <= trust.n_trusted <= 2
     assert trust.single_frame_median_ev > 0

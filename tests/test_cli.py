@@ -11,7 +11,7 @@ import pytest
 from vigproc.bench.synthetic import table1_model
 from vigproc.io import read_image, write_image
 
-from conftest import photo_like
+from conftest import photo_like, textured
 
 VIGPROC = [sys.executable, "-m", "vigproc.cli"]
 
@@ -201,7 +201,7 @@ def test_estimate_raw_uses_half_size_and_reports_full_frame(tmp_path):
     truth = VignettingModel(w, h, center=(12.0, -8.0), p=(1 / 210.0**2, 0, 1 / 210.0**2),
                             alpha=(0.02, 0.01, 0, 0, 0, 0, 0))
     dng = tmp_path / "shot one.dng"
-    make_dng(dng, width=w, height=h, field=truth.field(), scene=photo_like(h, w, seed=3),
+    make_dng(dng, width=w, height=h, field=truth.field(), scene=textured(h, w, seed=3, contrast=0.05),
              exif={"Make": "Canon", "Model": "Canon EOS 5D", "LensModel": "EF24-105mm f/4L IS USM",
                    "FocalLength": 24, "FNumber": 4})
     r = run("estimate", dng, "--json")

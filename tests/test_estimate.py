@@ -35,7 +35,7 @@ def test_scene_prior_is_divided_out_before_the_fit():
     scene = default_scene_falloff()
     assert scene.field_ev_rms > 0.1
     with_scene = base * scene.model(480, 320).field()
-    m1 = vigproc.estimate(with_scene, channel_axis=None)
+    m1 = vigproc.estimate(with_scene, "robust", channel_axis=None)
     m0 = vigproc.estimate(base, channel_axis=None, settings=RobustSettings(scene_prior=False))
     err = np.log2(m1.field() / m0.field())
     assert np.sqrt(np.mean(err**2)) < 0.02
@@ -44,11 +44,18 @@ def test_scene_prior_is_divided_out_before_the_fit():
     assert np.sqrt(np.mean(np.log2(m2.field() / truth.field()) ** 2)) > 0.2
 
 
-def test_default_falls_back_on_vignetting_free_texture():
-    m = vigproc.estimate(textured(320, 480, seed=11, contrast=0.3), channel_axis=None)
+def test_robust_falls_back_on_vignetting_free_texture():
+    m = vigproc.estimate(textured(320, 480, seed=11, contrast=0.3), "robust", channel_axis=None)
     assert m.quality.fallback
     assert m.is_identity
     assert m.candidate is not None
+
+
+def test_default_does_no_harm_on_vignetting_free_textures():
+    models = [vigproc.estimate(textured(320, 480, seed=s, contrast=0.05), channel_axis=None) for s in range(6)]
+    assert sum(m.quality.fallback for m in models) >= 5
+    assert all(m.is_identity and m.candidate is not None for m in models if m.quality.fallback)
+    assert max(float(np.std(m.log_field())) / np.log(2) for m in models) < 0.05
 
 
 def test_ga_is_exact_for_a_gaussian_field():
@@ -142,7 +149,7 @@ def test_centred_refit_only_without_evidence_of_an_off_centre_fall_off(monkeypat
     monkeypatch.setattr(R, "fit_robust", spy)
     _, pa = bench_lenses(1)[0]
     centred = photo_like(320, 480, seed=1) * pa_field((320, 480), pa.k1, pa.k2, pa.k3)
-    m = vigproc.estimate(centred, channel_axis=None)
+    m = vigproc.estimate(centred, "robust", channel_axis=None)
     assert calls == [RobustSettings().sigma_center, RobustSettings().centred_sigma_center]
     assert np.hypot(*(m.candidate or m).center) < 0.02 * np.hypot(480, 320) / 2
     calls.clear()
@@ -190,7 +197,7 @@ def test_centred_refit_holds_the_fall_off_circular(monkeypatch):
     _, pa = bench_lenses(1)[0]
     img = photo_like(320, 480, seed=2) * pa_field((320, 480), pa.k1, pa.k2, pa.k3)
     d = RobustSettings()
-    m = vigproc.estimate(img, channel_axis=None)
+    m = vigproc.estimate(img, "robust", channel_axis=None)
     assert seen == [(d.sigma_center, d.sigma_ellipticity), (d.centred_sigma_center, d.centred_sigma_ellipticity)]
     fit = m.candidate or m
     p1, p2, p3 = fit.p
@@ -281,14 +288,14 @@ def test_real_lens_method_refuses_broad_fall_off_only():
 
     base = textured(320, 480, seed=1, contrast=0.05)
     broad = base * table1_model(2).field()
-    assert not vigproc.estimate(broad, "default", channel_axis=None).quality.fallback
+    assert not vigproc.estimate(broad, "robust", channel_axis=None).quality.fallback
     refused = vigproc.estimate(broad, "real-lens", channel_axis=None)
     assert refused.quality.fallback and refused.is_identity and refused.candidate is not None
     _, pa = bench_lenses(20)[8]
     lens = base * pa_field((320, 480), pa.k1, pa.k2, pa.k3)
     m = vigproc.estimate(lens, "real-lens", channel_axis=None)
     assert not m.quality.fallback
-    np.testing.assert_allclose(m.log_field(), vigproc.estimate(lens, channel_axis=None).log_field())
+    np.testing.assert_allclose(m.log_field(), vigproc.estimate(lens, "robust", channel_axis=None).log_field())
 
 
 def test_evidence_only_from_the_robust_methods():
@@ -306,7 +313,7 @@ def test_real_lens_estimates_name_their_method():
     img = textured(160, 240, seed=3, contrast=0.05) * table1_model(1).rescale(240, 160).field()
     m = vigproc.estimate(img, "real-lens", channel_axis=None)
     assert m.method == "real-lens"
-    assert vigproc.estimate(img, channel_axis=None).method == "robust"
+    assert vigproc.estimate(img, "robust", channel_axis=None).method == "robust"
 
 
 def test_fit_stays_valid_beyond_its_corner_pixels():
@@ -337,5 +344,5 @@ def test_flat_field_method_reads_a_frame_without_scene_exactly():
     ff = vigproc.estimate(white, "flat-field", channel_axis=None)
     assert ff.method == "flat-field" and not ff.quality.fallback
     err_ff = float(np.std(np.log2(ff.field((h, w)) / truth)))
-    err_default = float(np.std(np.log2(vigproc.estimate(white, channel_axis=None).field((h, w)) / truth)))
+    err_default = float(np.std(np.log2(vigproc.estimate(white, "robust", channel_axis=None).field((h, w)) / truth)))
     assert err_ff < 0.03 and err_ff < 0.5 * err_default, (err_ff, err_default)

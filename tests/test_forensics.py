@@ -17,6 +17,7 @@ from vigproc.errors import ImageWriteError
 from vigproc.estimate import estimate
 from vigproc.exif import LensKey
 from vigproc.forensics import (
+    FORENSICS_METHOD,
     FEATURE_NAMES,
     RING_RADII,
     Calibration,
@@ -37,7 +38,8 @@ W, H = 240, 160
 
 
 def _est(img):
-    return estimate(img, "default", channel_axis=None)
+    # forensics checks with the estimator its calibration was made with
+    return estimate(img, FORENSICS_METHOD, channel_axis=None)
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +56,7 @@ def calibration(classes):
     # the widest apertures only: on these textures a mild lens's centre is undefined, and
     # its wild centres would make the null's tail too heavy for a test-sized calibration
     res, groups, weak = calibration_residuals(ims, _est, classes[::2], per_image=3)
-    return fit_calibration(res, groups, weak=weak, source="test")
+    return fit_calibration(res, groups, weak=weak, method=FORENSICS_METHOD, source="test")
 
 
 def key_of(c) -> LensKey:
@@ -190,7 +192,7 @@ def test_unknown_lens(classes, calibration):
 
 def test_weak_estimate_gives_insufficient_signal_with_numbers(classes, calibration):
     c = classes[4]
-    fit = estimate(frame(c, seed=4), "default", channel_axis=None)
+    fit = estimate(frame(c, seed=4), FORENSICS_METHOD, channel_axis=None)
     fit = fit.candidate or fit
     q = FitQuality(confidence=0.2, snr=0.8, fallback=True)
     weak = VignettingModel.identity(W, H, method="robust", quality=q, candidate=fit)
@@ -251,7 +253,7 @@ def test_stored_profiles_come_before_lensfun(tmp_path, classes, calibration):
     with ProfileStore(tmp_path / "learned.sqlite") as store:
         pk = ProfileKey.from_lens(key, W, H)
         for i in range(4):  # learn the lens from a few frames, then check another one
-            m = estimate(frame(strong, seed=30 + i), "default", channel_axis=None)
+            m = estimate(frame(strong, seed=30 + i), FORENSICS_METHOD, channel_axis=None)
             store.learn(pk, m.candidate or m)
         v = check_image(frame(strong, seed=40), key, store=store, calibration=calibration)
         assert v.expected_source == "stored-profile"
@@ -267,7 +269,7 @@ def test_pipeline_check_mode_uses_the_shipped_calibration(classes, tmp_path):
     from vigproc.pipeline import Processor, Settings
 
     cal = default_calibration()
-    assert cal.method == "default" and cal.n_images >= 100 and "forensics calibrate" in cal.source
+    assert cal.method == FORENSICS_METHOD and cal.n_images >= 100 and "forensics calibrate" in cal.source
     img = np.repeat(frame(classes[4], seed=12)[..., None], 3, axis=2)
     with Processor(Settings(mode="check")) as proc:  # no EXIF read: no exiftool started
         _, res = proc.process_image(img, key_of(classes[4]))

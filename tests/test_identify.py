@@ -11,7 +11,7 @@ import pytest
 
 from vigproc.bench.forensics import bench_classes, crop_frame, field_separation, roc_auc, split_images
 from vigproc.estimate import estimate
-from vigproc.forensics import ForensicsError, ring_falloff
+from vigproc.forensics import FORENSICS_METHOD, ForensicsError, ring_falloff
 from vigproc.identify import (
     FEATURE_SETS,
     LensClassifier,
@@ -201,7 +201,7 @@ def test_bench_run_small():
     from vigproc.bench.forensics import run
 
     ims = [textured(96, 144, seed=300 + i, contrast=0.1) for i in range(20)]
-    r = run(ims, lambda v: estimate(v, "default", channel_axis=None), n_lenses=2, frames=2, seed=0)
+    r = run(ims, lambda v: estimate(v, FORENSICS_METHOD, channel_axis=None), n_lenses=2, frames=2, seed=0)
     assert len(r.classes) == 4 and r.n_train_images == 10 and r.n_test_images == 10
     single = [row for row in r.identification if row.n_frames == 1]
     assert len(single) == 2

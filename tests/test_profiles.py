@@ -611,7 +611,7 @@ def test_pooled_fits_are_cached_by_evidence_not_by_frame_id(tmp_path):
             frames = [photo_like(h, w, seed=40 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(2)]
             key = ProfileKey(f"vigproc|test|lens{li}", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
             for i, f in enumerate(frames):
-                m = estimate(f, "default", channel_axis=None)
+                m = estimate(f, "robust", channel_axis=None)
                 p = store.learn(key, m.candidate or m, frame_id=f"frame{i}", evidence=frame_evidence(f, channel_axis=None))
             own = pool_fits([centred_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
             np.testing.assert_allclose(p.model(w, h).log_field(), own.log_field(), atol=1e-6)
@@ -633,7 +633,7 @@ def test_with_evidence_the_scatter_is_that_of_the_pooled_fits(tmp_path):
     key = ProfileKey("vigproc|test|scatter", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
     with ProfileStore(tmp_path / "p.sqlite") as store:
         for i, f in enumerate(frames):
-            m = estimate(f, "default", channel_axis=None)
+            m = estimate(f, "robust", channel_axis=None)
             p = store.learn(key, m.candidate or m, frame_id=f"f{i}", evidence=frame_evidence(f, channel_axis=None))
     fields = [_field_and_jacobian(centred_fit(evidence_copy(frame_evidence(f, channel_axis=None))).theta, w / h)[0]
               for f in frames]
@@ -660,7 +660,7 @@ def test_learning_with_evidence_pools_centred_fits(tmp_path):
     for order in ((0, 1, 2), (2, 0, 1)):
         with ProfileStore(tmp_path / f"p{order[0]}.sqlite") as store:
             for i in order:
-                m = estimate(frames[i], "default", channel_axis=None)
+                m = estimate(frames[i], "robust", channel_axis=None)
                 p = store.learn(key, m.candidate or m, frame_id=f"f{i}",
                                 evidence=frame_evidence(frames[i], channel_axis=None))
             assert p.n_frames == 3
@@ -690,7 +690,7 @@ def _learn_frames(store, key, frames, first=0):
 
     p = None
     for i, f in enumerate(frames, start=first):
-        m = estimate(f, "default", channel_axis=None)
+        m = estimate(f, "robust", channel_axis=None)
         p = store.learn(key, m.candidate or m, frame_id=f"f{i:03d}", evidence=frame_evidence(f, channel_axis=None))
     return p
 

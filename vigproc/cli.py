@@ -49,14 +49,15 @@ def _estimate_file(args: argparse.Namespace) -> int:
     from vigproc.estimate import estimate
     from vigproc.exif import ExifReader
     from vigproc.io import read_image
-    from vigproc.pipeline import read_lens
+    from vigproc.pipeline import lens_hint, read_lens
 
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
     # model for the full frame; other formats are read as they are
     img, info = read_image(args.file, transfer=args.input_transfer, raw_half_size=True)
     with ExifReader() as reader:
-        _, lens = read_lens(reader, Path(args.file))
-    m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed)
+        key, lens = read_lens(reader, Path(args.file))
+    m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
+                 hint=lens_hint(key, args.method))
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
     if args.json:
@@ -72,7 +73,7 @@ def _estimate_file(args: argparse.Namespace) -> int:
         print(f"  P (px^-2)   p1={m.p[0]:.4g} p2={m.p[1]:.4g} p3={m.p[2]:.4g}")
         print(f"  alpha       {', '.join(f'{a:.4g}' for a in m.alpha)}")
         print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame")
-        if q is not None and m.method in ("robust", "real-lens", "flat-field"):
+        if q is not None and m.method in ("robust", "real-lens", "flat-field", "lens-family"):
             why = "weak evidence or not a real lens's shape" if m.method == "real-lens" else "weak evidence"
             state = f"NOT applied ({why})" if q.fallback else "applied"
             print(f"  confidence  {q.confidence:.2f} (SNR {q.snr:.1f}, ±{q.field_sigma_ev:.3f} EV): {state}")
@@ -185,7 +186,7 @@ def cmd_prior_fit_scene(args: argparse.Namespace) -> int:
     source = (f"vigproc prior fit-scene {args.folder} --iterations {args.iterations} "
               f"--input-transfer {args.input_transfer}")
     return _fit_falloff(args, "scene fall-off", source,
-                        lambda im, sc: estimate(im, channel_axis=None, settings=RobustSettings(scene=sc)),
+                        lambda im, sc: estimate(im, "robust", channel_axis=None, settings=RobustSettings(scene=sc)),
                         args.iterations)
 
 
@@ -196,7 +197,7 @@ def cmd_prior_fit_profile_bias(args: argparse.Namespace) -> int:
     source = f"vigproc prior fit-profile-bias {args.folder} --input-transfer {args.input_transfer}"
     # one round: the plain mean of the centred fits (vigproc.pooling subtracts it)
     return _fit_falloff(args, "profile bias", source,
-                        lambda im, _prior: estimate(im, channel_axis=None, settings=CENTRED), 1)
+                        lambda im, _prior: estimate(im, "robust", channel_axis=None, settings=CENTRED), 1)
 
 
 def _scene_settings(spec: str):
@@ -223,15 +224,25 @@ def _scene_settings(spec: str):
         raise PriorError(f"{spec!r}: {exc}") from exc
 
 
-def _estimator(method: str, seed: int = 0, settings=None):
-    """A bench's estimator: ``vigproc.estimate`` on a gray frame (``settings`` tune
-    the default one), or the "rgs" peer."""
-    from vigproc.estimate import estimate
+def _estimator(method: str, seed: int = 0, settings=None, family=None):
+    """A bench's estimator: ``vigproc.estimate`` on a gray frame, or the "rgs" peer.
+
+    ``settings`` (``--scene-prior``) tune the robust Kang-Weiss estimators; the
+    default and lens-family estimators have no scene prior. ``family``: the lens
+    family they fit in (a bench whose fields are lensfun lenses leaves them out).
+    """
+    from vigproc.estimate import estimate, estimate_default
 
     if method == "rgs":
         from vigproc.bench.peers import estimate_rgs
 
         return estimate_rgs
+    if method == "default":
+        return lambda v: estimate_default(v, family=family)
+    if method == "lens-family":
+        from vigproc.family_fit import estimate_family
+
+        return lambda v: estimate_family(v, family=family)
     return lambda v: estimate(v, method, channel_axis=None, seed=seed, settings=settings)
 
 
@@ -243,7 +254,7 @@ def cmd_bench_synthetic(args: argparse.Namespace) -> int:
     output_file(args.json)
     files = _images_in(Path(args.images), args.limit)
     ims = [S.protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
-    order = ("ga", "lyu2010-rand", "lyu2010", "default", "rgs")
+    order = ("ga", "lyu2010-rand", "lyu2010", "robust", "lens-family", "default", "rgs")
     chosen = {k: _estimator(k, settings=settings) for k in order if k in args.methods}
     for fn in chosen.values():  # JIT warm-up outside the timings
         fn(ims[0])
@@ -274,8 +285,13 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
           "RMS of log2(estimated/true field)")
     print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'p90 EV':>9}{'uncorr EV':>11}{'gain-free':>11}"
           f"{'uncorr gf':>11}{'differ. EV':>12}{'fallbk':>8}{'s/img':>8}")
+    from vigproc.lensfamily import lensfun_family
+    from vigproc.lensfun import bench_lenses
+
+    # the lens-family fits never hold the lens they are scored on
+    family = lensfun_family(exclude={(lens.maker, lens.model) for lens, _ in bench_lenses(args.lenses)})
     for name in args.methods:
-        fn = _estimator(name, settings=settings)
+        fn = _estimator(name, settings=settings, family=family)
         fn(ims[0])
         r = B.run_lensfun(ims, name, fn, args.lenses, args.frames_per_lens)
         results.append(asdict(r))
@@ -285,13 +301,79 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     print("do no harm (same images, no vignetting): RMS log2 of the applied field")
     print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'cand. med':>11}{'fallbk':>8}")
     for name in args.methods:
-        r = B.run_flat(ims, name, _estimator(name, settings=settings))
+        r = B.run_flat(ims, name, _estimator(name, settings=settings, family=family))
         results.append(asdict(r))
         print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.candidate_median_ev:>11.3f}{r.fallbacks:>8}")
     if args.json:
         from vigproc.atomic import atomic_write_text
 
         atomic_write_text(Path(args.json), json.dumps(results, indent=1) + "\n")
+    return 0
+
+
+def cmd_bench_clean(args: argparse.Namespace) -> int:
+    """Vignetting-free bases × lensfun and Table 1 fields, every method side by side."""
+    import os
+
+    from vigproc.bench import clean as C
+    from vigproc.bench.peers import PEER_ENV, published_rgs
+    from vigproc.lensfamily import lensfun_family
+
+    output_file(args.json)
+    files = C.base_files([Path(f) for f in args.images], args.min_long_side)
+    bases, names = C.load_bases(files[: args.limit] if args.limit else files)
+    if len(bases) < 2:
+        print(f"vigproc: bench clean: {len(bases)} usable frames under {' '.join(args.images)}; need 2",
+              file=sys.stderr)
+        return 2
+    lens, excluded = C.lens_fields(args.lenses)
+    family = lensfun_family(exclude=excluded)  # never the lens an estimate is scored on
+    if args.calibrate:
+        cal = C.calibrate_sigma(bases, lens, family)
+        print(f"lens-family sigma = hypot({cal.scale:g} x jackknife sigma, {cal.floor:g} EV), fitted on "
+              f"{cal.n_frames // 2} frames (even bases x {len(lens)} lenses + none): within 1 sigma "
+              f"{cal.train_within_1sigma:.2f}, 2 sigma {cal.train_within_2sigma:.2f}; on the other half: "
+              f"{cal.test_within_1sigma:.2f}, {cal.test_within_2sigma:.2f}")
+        return 0
+    peer = args.peer or os.environ.get(PEER_ENV)
+    methods = {}
+    for name in args.methods:
+        if name in ("rgs-c++", "rgs-c++-srgb"):
+            if not peer:
+                print(f"vigproc: bench clean: skipping {name}: no peer built (scripts/build_rgs_peer.sh; "
+                      f"--peer or ${PEER_ENV})", file=sys.stderr)
+                continue
+            methods[name] = published_rgs(peer, "srgb" if name.endswith("srgb") else "linear")
+        else:
+            methods[name] = C.model_estimator(_estimator(name, family=family))
+    print(f"clean protocol: {len(bases)} central {C.CROP:.0%} crops (480x320, linear) of frames >= "
+          f"{args.min_long_side} px from {' '.join(args.images)}; error = RMS of log2(estimated/true) "
+          "about its mean (EV); median per field, then median / p90 over fields")
+    print(f"lens family for lens-family: {family.lenses} lensfun lenses, the {len(lens)} test lenses left out")
+    head = (f"{'method':<14}{'fields':<9}{'median EV':>10}{'p90 EV':>8}{'frames med':>11}{'uncorr':>8}"
+            f"{'<=1sd':>7}{'<=2sd':>7}{'fallbk':>8}{'ms/frame':>10}")
+    results = []
+    groups = [("lensfun", lens)] + ([] if args.no_table1 else
+                                    [(f"table1-{i + 1}", [f]) for i, f in enumerate(C.table1_fields())])
+    print(head)
+    for name, fn in methods.items():
+        fn(bases[0])  # JIT warm-up outside the timings
+        for label, fields in groups:
+            r = C.run_fields(bases, name, fn, fields, label)
+            results.append(asdict(r))
+            print(f"{r.method:<14}{r.fields:<9}{r.median_ev:>10.3f}{r.p90_ev:>8.3f}{r.frame_median_ev:>11.3f}"
+                  f"{r.uncorrected_ev:>8.3f}{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}{r.fallbacks:>8}"
+                  f"{r.ms_per_frame:>10.1f}", flush=True)
+    print("no harm (the same crops, no vignetting): RMS of log2 of the applied field about its mean")
+    print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'fallbk':>8}")
+    for name, fn in methods.items():
+        r = C.run_harm(bases, name, fn)
+        results.append(asdict(r))
+        print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.fallbacks:>8}")
+    if args.json:
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(args.json), json.dumps({"bases": names, "results": results}, indent=1) + "\n")
     return 0
 
 
@@ -443,7 +525,7 @@ def cmd_bench_profile(args: argparse.Namespace) -> int:
               f"{args.images!r} has {len(files)}", file=sys.stderr)
         return EXIT_CODES["usage"]
     ims = [protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
-    fn = _estimator("default")
+    fn = _estimator("robust")  # the estimator whose fits the profile store pools (frame evidence)
     fn(ims[0])
     from vigproc.robust import estimate_robust_joint
 
@@ -698,7 +780,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--input-transfer", choices=("auto", "linear", "srgb"), default="linear",
                     help="the paper's protocol takes stored values as linear (default)")
     bp.add_argument("--methods", nargs="+", default=["ga", "lyu2010-rand", "lyu2010", "default"],
-                    choices=["ga", "lyu2010-rand", "lyu2010", "default", "rgs"],
+                    choices=["ga", "lyu2010-rand", "lyu2010", "robust", "lens-family", "default", "rgs"],
                     help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
     _add_scene_prior(bp)
     bp.add_argument("--json")
@@ -710,6 +792,25 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--frames-per-lens", type=int, default=5)
     _add_estimator_bench(bp)
     bp.set_defaults(fn=cmd_bench_lensfun)
+    bp = bsub.add_parser("clean", help="vignetting-free bases (central crops of camera frames) x real lens "
+                         "fields, with the published peer when built")
+    bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
+                    help="folders of full-size camera frames (BSDS/Kodak are skipped: film scans)")
+    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000)
+    bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+    bp.add_argument("--lenses", type=number(1, 100, integer=True), default=20)
+    bp.add_argument("--methods", nargs="+", default=["default", "flat-field", "lens-family", "rgs", "rgs-c++"],
+                    choices=["default", "robust", "real-lens", "flat-field", "lens-family", "lyu2010", "ga",
+                             "rgs", "rgs-c++", "rgs-c++-srgb"],
+                    help="rgs: vigproc's reimplementation of Zheng et al.; rgs-c++: their published code "
+                         "(built by scripts/build_rgs_peer.sh), given linear or sRGB-encoded 8-bit frames")
+    bp.add_argument("--peer", help="the built rgs_peer executable (default: $VIGPROC_RGS_PEER)")
+    bp.add_argument("--no-table1", action="store_true", help="only the lensfun fields")
+    bp.add_argument("--calibrate", action="store_true",
+                    help="only fit the lens-family estimator's sigma scale and floor (even frames) and check "
+                         "them (odd frames)")
+    bp.add_argument("--json", help="write the figures to this file")
+    bp.set_defaults(fn=cmd_bench_clean)
     bp = bsub.add_parser("real", help="photographs vignetted by others: known-field pairs and real lenses")
     bp.add_argument("--images", required=True, help="folder tree, e.g. ../shared/data/vignetted")
     _add_estimator_bench(bp)

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from vigproc.errors import InvalidImageError
+from vigproc.family_fit import LensHint
 from vigproc.image import bin_mean, check_image, log_image, luminance
 from vigproc.model import VignettingModel
 from vigproc.prior import NaturalPrior, default_prior
@@ -16,7 +17,7 @@ from vigproc.robust import RobustSettings, estimate_robust
 log = logging.getLogger(__name__)
 
 #: Methods :func:`estimate` accepts; "default" is vigproc's robust estimator.
-METHODS = ("default", "robust", "real-lens", "flat-field", "lyu2010", "lyu2010-rand", "ga")
+METHODS = ("default", "robust", "real-lens", "flat-field", "lens-family", "lyu2010", "lyu2010-rand", "ga")
 #: The methods that are vigproc's robust estimator.
 ROBUST_METHODS = ("default", "robust", "real-lens", "flat-field")
 #: The robust methods whose frames give evidence for profile pooling (which assumes
@@ -81,7 +82,7 @@ def _robust_settings(method: str, settings: RobustSettings | None) -> RobustSett
 def estimate(
     img: np.ndarray, method: str = "default", *, channel_axis: int | None = -1,
     prior: NaturalPrior | None = None, settings: RobustSettings | None = None,
-    seed: int | None = None,
+    seed: int | None = None, hint: LensHint | None = None,
 ) -> VignettingModel:
     """Estimate the vignetting function of one linear image.
 
@@ -99,6 +100,9 @@ def estimate(
         the scene prior, for frames of no scene (a white wall, a diffuser over the
         lens, an evenly lit sky), whose fall-off is all the lens's; on a photograph
         of a scene it reads the scene's own darker edges as vignetting.
+        "lens-family": a centred fall-off in the two-parameter family that
+        lensfun's calibrations of real lenses span (:mod:`vigproc.family_fit`), with
+        a calibrated uncertainty; for uncropped frames of real lenses.
         "lyu2010": the paper's Gaussian
         approximation followed by the ML fit of Eq. (6). "lyu2010-rand": the ML fit
         from a random start. "ga": Gaussian approximation only (Eqs. 17–20).
@@ -111,6 +115,10 @@ def estimate(
         Tuning of the default estimator.
     seed : int, optional
         Seed for "lyu2010-rand".
+    hint : LensHint, optional
+        EXIF focal length (35-mm equivalent) and f-number for "lens-family": its
+        prior becomes the spread of lensfun calibrations like them. Never the
+        lens's own calibration: only focal length and aperture are used.
 
     Returns
     -------
@@ -142,8 +150,14 @@ def estimate(
     h, w = a.shape[:2]
     keep = clipped_mask(a)
     lum = luminance(a)
+    if method == "default" and settings is None:
+        return estimate_default(lum, keep, hint)
     if method in ROBUST_METHODS:
         return _named(estimate_robust(lum, _robust_settings(method, settings), keep), method)
+    if method == "lens-family":
+        from vigproc.family_fit import estimate_family
+
+        return estimate_family(lum, mask=keep, hint=hint)
 
     from vigproc.lyu2010 import estimate_lyu2010
 
@@ -158,6 +172,37 @@ def estimate(
         random_start=method == "lyu2010-rand", seed=seed,
     )
     return _from_working(m, k, w, h)
+
+
+def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
+                     hint: LensHint | None = None, family=None) -> VignettingModel:
+    """vigproc's default estimate of a linear luminance frame.
+
+    An uncropped frame of a real lens: the lens-family fit
+    (:func:`vigproc.family_fit.estimate_family`). When the fall-off's centre may be
+    off the frame's (:func:`vigproc.family_fit.fit_centre`: a crop, a shifted lens, a
+    stitched image), the free off-centre, elliptical Kang-Weiss fit
+    (:func:`vigproc.robust.estimate_robust`) is tried too, and kept when it explains
+    the frame's log differences clearly better (:func:`vigproc.family_fit.pair_loss`).
+    """
+    from vigproc.family_fit import FamilySettings, fit_centre, fit_family, pair_loss
+
+    s = FamilySettings()
+    model, coef = fit_family(lum, s, mask, family, hint)
+    if coef is None:
+        return model
+    centre = fit_centre(lum, coef, s, mask, family, hint)
+    if not centre.off_centre(s.off_centre_shift):
+        return model
+    free = estimate_robust(lum, RobustSettings(), mask)
+    loss_family = pair_loss(lum, model.candidate or model, s, mask)
+    loss_free = pair_loss(lum, free.candidate or free, s, mask)
+    if loss_free < loss_family - s.select_margin:
+        log.info("vignetting centre off the frame's by (%.0f, %.0f) px and the free Kang-Weiss fit explains "
+                 "the frame better (loss %.3f < %.3f): using it", centre.offset[0], centre.offset[1],
+                 loss_free, loss_family)
+        return free
+    return model
 
 
 def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,

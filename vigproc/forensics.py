@@ -76,6 +76,17 @@ __all__ = [
     "score",
 ]
 
+#: The estimator a check uses when asked for "default": the shipped calibration was
+#: measured with it (vigproc's default before the lens-family fit). The lens-family
+#: default needs its own calibration on vignetting-free frames first.
+FORENSICS_METHOD = "robust"
+
+
+def forensic_method(method: str) -> str:
+    """The estimator forensics runs for ``method`` ("default" → :data:`FORENSICS_METHOD`)."""
+    return FORENSICS_METHOD if method == "default" else method
+
+
 #: The verdicts :func:`check_image` gives.
 VERDICTS = ("consistent", "inconsistent", "unknown-lens", "insufficient-signal")
 #: Ring radii, in half-diagonals from the frame centre, of the fall-off features.
@@ -467,7 +478,7 @@ def estimator_fingerprint(method: str = "default") -> tuple[float, ...]:
     (settings, scene prior) changes it, and then the calibration is stale."""
     from vigproc.estimate import estimate
 
-    m = estimate(_fingerprint_image(), method, channel_axis=None)
+    m = estimate(_fingerprint_image(), forensic_method(method), channel_axis=None)
     return tuple(round(float(v), 4) for v in frame_features(_fit_of(m)))
 
 
@@ -864,6 +875,7 @@ def check_image(
     from vigproc.estimate import estimate
 
     cal = calibration if calibration is not None else default_calibration()
+    method = forensic_method(method)
     if cal.method != method:
         raise ForensicsError(f"the forensics calibration is for the {cal.method!r} estimator, not {method!r} "
                              f"(make one: vigproc forensics calibrate --method {method})")

@@ -140,3 +140,29 @@ def binned_coords(n: int, k: int) -> np.ndarray:
     """Centre coordinates (relative to the full frame's centre) of ``n // k`` bins of size k."""
     nb = n // k
     return np.arange(nb) * k + (k - 1) / 2.0 - (n - 1) / 2.0
+
+
+def binned_log_copy(lum: np.ndarray, work_size: int, dark_fraction: float,
+                    mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """The estimators' working copy of an H×W linear luminance frame.
+
+    Bins it k×k (long side ≈ ``work_size``; a bin is valid when all its pixels are
+    positive, finite and in ``mask``), masks bins darker than ``dark_fraction`` of
+    the 99th percentile (noise and quantisation swamp their logs), and takes logs.
+
+    Returns
+    -------
+    L : ndarray, (H//k)×(W//k), log luminance
+    valid : ndarray of bool, same shape
+    k : int
+        The bin size (:func:`binned_coords` gives the bins' centres).
+    """
+    h, w = lum.shape
+    k = max(1, int(round(max(h, w) / work_size)))
+    ok = np.isfinite(lum) & (lum > 0)
+    if mask is not None:
+        ok &= mask
+    b, valid = bin_mean(np.where(ok, lum, 0.0), k, ok)
+    if valid.any():
+        valid &= b > dark_fraction * np.percentile(b[valid], 99)
+    return log_image(b), valid, k

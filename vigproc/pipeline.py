@@ -415,7 +415,18 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
                 continue
             if m is not None:
                 return m, f"source:{name}"
-    return estimate(img, settings.method, channel_axis=ca), "estimate"
+    return estimate(img, settings.method, channel_axis=ca, hint=lens_hint(lens_key, settings.method)), "estimate"
+
+
+def lens_hint(lens_key, method: str):
+    """What the frame's EXIF says of its lens for the lens-family prior (35-mm focal
+    length and f-number, never the lens's identity), for the estimators that use it."""
+    if method not in ("default", "lens-family") or lens_key is None:
+        return None
+    from vigproc.family_fit import LensHint
+
+    f35, fno = getattr(lens_key, "focal_35mm", None), getattr(lens_key, "fnumber", None)
+    return LensHint(f35, fno) if f35 and fno else None
 
 
 # ------------------------------------------------------------------ processor

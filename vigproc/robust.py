@@ -50,7 +50,7 @@ from vigproc._kernels.robust import (
     robust_loss,
 )
 from vigproc._kernels.field import log_field_grid
-from vigproc.image import bin_mean, binned_coords, log_image
+from vigproc.image import binned_coords, binned_log_copy
 from vigproc.model import N_ALPHA, FitQuality, VignettingModel
 from vigproc.scene import SceneFalloff, default_scene_falloff
 
@@ -191,17 +191,10 @@ def working_copy(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | N
         Pixels to use (e.g. not clipped); all positive finite pixels by default.
     """
     h, w = lum.shape
-    k = max(1, int(round(max(h, w) / settings.work_size)))
-    ok = np.isfinite(lum) & (lum > 0)
-    if mask is not None:
-        ok &= mask
-    b, valid = bin_mean(np.where(ok, lum, 0.0), k, ok)
-    if valid.any():
-        ref = np.percentile(b[valid], 99)
-        valid &= b > settings.dark_fraction * ref
+    L, valid, k = binned_log_copy(lum, settings.work_size, settings.dark_fraction, mask)
     radius = 0.5 * math.hypot(w, h)
     return WorkingCopy(
-        L=log_image(b), valid=valid, xs=binned_coords(w, k) / radius, ys=binned_coords(h, k) / radius,
+        L=L, valid=valid, xs=binned_coords(w, k) / radius, ys=binned_coords(h, k) / radius,
         radius=radius, width=w, height=h,
     )
 

@@ -115,3 +115,74 @@ def estimate_rgs(lum: np.ndarray) -> VignettingModel:
         return VignettingModel(w, h, method="rgs")
     model, _ = fit_model_to_field(F, w, h)
     return replace(model, method="rgs")
+
+
+# --------------------------------------------------------------------------- #
+# the published peer (Zheng et al.'s method in GUOYI1/Vignetting_corrector's C++)
+# --------------------------------------------------------------------------- #
+
+#: Environment variable naming the built peer (scripts/build_rgs_peer.sh).
+PEER_ENV = "VIGPROC_RGS_PEER"
+
+
+def _write_pgm(path, g8: np.ndarray) -> None:
+    h, w = g8.shape
+    with open(path, "wb") as fh:
+        fh.write(f"P5\n{w} {h}\n255\n".encode("ascii"))
+        fh.write(np.ascontiguousarray(g8, dtype=np.uint8).tobytes())
+
+
+def _read_pfm(path) -> np.ndarray:
+    with open(path, "rb") as fh:
+        if fh.readline().strip() != b"Pf":
+            raise ValueError("not a grey PFM")
+        w, h = (int(v) for v in fh.readline().split())
+        scale = float(fh.readline())
+        data = np.frombuffer(fh.read(4 * w * h), dtype="<f4" if scale < 0 else ">f4")
+    return data.reshape(h, w)[::-1].astype(np.float64)  # PFM rows are bottom-to-top
+
+
+def published_rgs(exe: str, encoding: str = "linear", timeout: float = 60.0):
+    """The published C++ of Zheng et al.'s radial-gradient symmetry as a bench
+    estimator (``vigproc.bench.clean.Estimator``), run as a separate process.
+
+    Parameters
+    ----------
+    exe : str
+        The ``rgs_peer`` built by ``scripts/build_rgs_peer.sh`` from a snapshot of
+        GUOYI1/Vignetting_corrector (never part of vigproc).
+    encoding : {"linear", "srgb"}
+        What the peer is given, as 8 bits: the linear frame scaled to its 99.9th
+        percentile, or that frame sRGB-encoded (what a JPEG holds); for "srgb" its
+        field is taken back to linear light with the sRGB curve's mean exponent 2.2.
+
+    Returns
+    -------
+    callable
+        lum (H×W linear) -> ``vigproc.bench.clean.Estimate``.
+    """
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from vigproc.bench.clean import Estimate
+    from vigproc.io import linear_to_srgb
+
+    def run(lum: np.ndarray) -> Estimate:
+        a = np.asarray(lum, dtype=np.float64)
+        a = np.clip(a / max(float(np.percentile(a, 99.9)), 1e-12), 0.0, 1.0)
+        if encoding == "srgb":
+            a = linear_to_srgb(a)
+        g8 = np.round(a * 255.0).astype(np.uint8)
+        with tempfile.TemporaryDirectory(prefix="vigproc-rgs-") as tmp:
+            src, dst = Path(tmp) / "in.pgm", Path(tmp) / "out.pfm"
+            _write_pgm(src, g8)
+            subprocess.run([exe, str(src), str(dst)], check=True, timeout=timeout,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            f = _read_pfm(dst)
+        lf = np.log(np.maximum(f, 1e-6))
+        if encoding == "srgb":
+            lf = 2.2 * lf
+        return Estimate(lf)
+
+    return run

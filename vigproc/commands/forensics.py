@@ -24,6 +24,7 @@ import numpy as np
 
 from vigproc.commands._options import add_method, add_transfer, number
 from vigproc.errors import VigprocError
+from vigproc.forensics import forensic_method
 
 
 #: --classifier choices: name -> (kind, features).
@@ -101,7 +102,7 @@ def _estimates(files: list[Path], method: str, transfer: str, what: str):
     for f in files:
         try:
             img, _ = read_image(f, transfer=transfer)
-            out.append((f, estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)))
+            out.append((f, estimate(img, forensic_method(method), channel_axis=-1 if img.ndim == 3 else None)))
         except VigprocError as exc:
             print(f"vigproc: {exc} (skipped)", file=sys.stderr)
     if not out:
@@ -137,7 +138,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     source = ("vigproc forensics train " + " ".join(shlex.quote(str(d)) for d in args.dirs)
               + f" --classifier {args.classifier} --shrinkage {args.shrinkage:g} --method {args.method}")
     clf = train_classifier(np.array(X), labels, kind=kind, features=feats, shrinkage=args.shrinkage,
-                           method=args.method, source=source)
+                           method=forensic_method(args.method), source=source)
     clf.save(args.output)
     print(f"{args.classifier} classifier, {len(clf.labels)} classes, {len(labels)} frames -> {args.output}")
     return 0
@@ -194,13 +195,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     ims = _protocol_images(args.images, args.limit, args.input_transfer)
     classes = bench_classes(args.lenses)
     print(f"calibrating on {len(ims)} photographs x {args.per_image} of {len(classes)} lens fields")
-    res, groups, weak = calibration_residuals(ims, lambda v: estimate(v, args.method, channel_axis=None), classes,
+    res, groups, weak = calibration_residuals(ims, lambda v: estimate(v, forensic_method(args.method), channel_axis=None), classes,
                                               per_image=args.per_image, progress=print)
     source = ("vigproc forensics calibrate --images " + " ".join(shlex.quote(str(d)) for d in args.images)
               + f" --lenses {args.lenses} --per-image {args.per_image} --alpha {args.alpha:g} --method {args.method}"
               + (f" --limit {args.limit}" if args.limit else ""))
-    cal = fit_calibration(res, groups, weak=weak, method=args.method, alpha=args.alpha, source=source,
-                          fingerprint=estimator_fingerprint(args.method))
+    cal = fit_calibration(res, groups, weak=weak, method=forensic_method(args.method), alpha=args.alpha,
+                          source=source, fingerprint=estimator_fingerprint(args.method))
     cal.save(args.output)
     null = cal.null_d2(1, decided=True)
     print(f"{cal.n_frames} frames of {cal.n_images} photographs; image bias μ (EV at ρ=0.3..0.85): "
@@ -221,7 +222,7 @@ def cmd_bench_forensics(args: argparse.Namespace) -> int:
 
     output_file(args.json)
     ims = _protocol_images(args.images, args.limit, args.input_transfer)
-    fn = lambda v: estimate(v, "default", channel_axis=None)  # noqa: E731
+    fn = lambda v: estimate(v, forensic_method("default"), channel_axis=None)  # noqa: E731
     fn(ims[0])  # JIT warm-up
     t0 = time.perf_counter()
     from vigproc.robust import estimate_robust_joint

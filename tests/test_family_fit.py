@@ -1,0 +1,191 @@
+"""The lens family (lensfun's calibrations as a low-dimensional space) and the
+lens-family estimator built on it."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import vigproc
+from vigproc._kernels.family import cauchy_normal_equations, family_pairs
+from vigproc.errors import ModelError
+from vigproc.estimate import estimate_default
+from vigproc.family_fit import (
+    FamilySettings,
+    LensHint,
+    estimate_family,
+    fit_centre,
+    fit_family,
+    profile_to_model,
+)
+from vigproc.lensfamily import N_RADII, LensFamily, build_family, default_family
+from vigproc.lensfun import pa_field
+
+from conftest import textured
+
+H, W = 320, 480
+RADII = np.linspace(0.0, 1.0, N_RADII)
+
+
+def _pa_log(k1, k2=0.0, k3=0.0):
+    r2 = RADII**2
+    return np.log(1 + k1 * r2 + k2 * r2**2 + k3 * r2**3)
+
+
+def _toy_family(n=60, seed=0):
+    rng = np.random.default_rng(seed)
+    rows = [_pa_log(-rng.uniform(0.05, 0.6), rng.uniform(-0.1, 0.1)) for _ in range(n)]
+    f35 = rng.uniform(14, 200, n)
+    fno = rng.uniform(1.4, 16, n)
+    return build_family(np.array(rows), f35, fno, lenses=n)
+
+
+def test_family_components_reconstruct_their_profiles():
+    fam = _toy_family()
+    assert fam.n_components == 2
+    np.testing.assert_allclose(fam.components @ fam.components.T, np.eye(2), atol=1e-12)
+    # two pa terms span a two-dimensional family: rebuilt almost exactly
+    assert fam.reconstruction_ev < 1e-3
+    # the convention: a component's corner value is negative (more fall-off)
+    assert np.all(fam.components[:, -1] <= 0)
+
+
+def test_family_prior_narrows_to_calibrations_like_the_exif():
+    fam = _toy_family(200)
+    mean_all, cov_all = fam.prior()
+    mean_near, cov_near = fam.prior(focal35=24.0, fnumber=2.8, neighbours=20)
+    near = np.argsort(np.hypot(np.log(fam.focal35 / 24.0), np.log(fam.fnumber / 2.8)))[:20]
+    np.testing.assert_allclose(mean_near, fam.coefficients[near].mean(axis=0))
+    assert not np.allclose(mean_near, mean_all)
+    # without both numbers (or with nonsense) the prior is the whole family's
+    for f, n in ((None, 2.8), (24.0, None), (float("nan"), 2.8), (-5.0, 2.8)):
+        np.testing.assert_allclose(fam.prior(f, n)[0], mean_all)
+
+
+def test_family_round_trips_and_refuses_junk(tmp_path):
+    fam = _toy_family()
+    back = LensFamily.from_dict(json.loads(json.dumps(fam.to_dict())))
+    np.testing.assert_allclose(back.mean, fam.mean, atol=1e-7)
+    np.testing.assert_allclose(back.coefficients, fam.coefficients, atol=1e-4)
+    d = fam.to_dict()
+    for bad in ({**d, "format": 99}, {**d, "mean": d["mean"][:-1]}, {**d, "components": "x"},
+                {k: v for k, v in d.items() if k != "radii"}, {**d, "mean": [math.nan] * N_RADII}):
+        with pytest.raises(ModelError):
+            LensFamily.from_dict(bad)
+    with pytest.raises(ModelError):
+        build_family(np.zeros((2, N_RADII)), np.ones(2), np.ones(2), 2)
+
+
+def test_shipped_family_is_lensfuns():
+    fam = default_family()
+    assert fam.n_components == 2
+    assert fam.lenses > 400 and fam.coefficients.shape[0] > 20_000
+    assert fam.reconstruction_ev < 0.01
+
+
+def test_profile_written_as_kang_weiss_model_matches_it():
+    fam = default_family()
+    for c in ([0.0, 0.0], [-1.5, 0.2], [1.0, -0.3]):
+        prof = fam.mean + np.asarray(c) @ fam.components
+        model, err = profile_to_model(prof, fam.radii, W, H)
+        assert err < 2e-3
+        # the model's field over the frame is the profile at each pixel's radius
+        ys, xs = np.mgrid[0:H, 0:W]
+        rho = np.hypot(xs - (W - 1) / 2, ys - (H - 1) / 2) / math.hypot((W - 1) / 2, (H - 1) / 2)
+        want = np.interp(rho, fam.radii, prof)
+        assert np.max(np.abs(model.log_field((H, W)) - want)) / math.log(2) < 0.01
+
+
+def test_kernels_match_numpy():
+    rng = np.random.default_rng(1)
+    L = rng.normal(size=(12, 15))
+    valid = rng.random((12, 15)) > 0.1
+    M = rng.normal(size=(12, 15))
+    B = rng.normal(size=(12, 15, 2))
+    blocks = np.zeros((12, 15), dtype=np.int64)
+    blocks[6:] = 1
+    d, a, labels = family_pairs(L, valid, M, B, np.array([1, 2], dtype=np.int64), blocks)
+    want_d, want_a = [], []
+    for s in (1, 2):
+        for dy, dx in ((s, 0), (0, s)):
+            for y in range(12 - dy):
+                for x in range(15 - dx):
+                    if valid[y, x] and valid[y + dy, x + dx]:
+                        want_d.append((L[y + dy, x + dx] - L[y, x] - M[y + dy, x + dx] + M[y, x]) / s)
+                        want_a.append((B[y + dy, x + dx] - B[y, x]) / s)
+    np.testing.assert_allclose(d, want_d)
+    np.testing.assert_allclose(a, want_a)
+    c = np.array([0.3, -0.2])
+    Hm, g = cauchy_normal_equations(d, a, labels, c, 0.5, 1)
+    keep = labels != 1
+    e = d[keep] - a[keep] @ c
+    wt = 1 / (1 + (e / 0.5) ** 2)
+    np.testing.assert_allclose(Hm, (a[keep] * wt[:, None]).T @ a[keep])
+    np.testing.assert_allclose(g, (a[keep] * wt[:, None]).T @ d[keep])
+
+
+def _lens_field(k1=-0.55, k2=0.05, center=None):
+    return pa_field((H, W), k1, k2, 0.0, center=center)
+
+
+def test_lens_family_recovers_a_real_lens_field():
+    truth = np.log(_lens_field())
+    errs = []
+    for seed in range(3):
+        img = textured(H, W, seed=seed, contrast=0.1) * np.exp(truth)
+        m = estimate_family(img)
+        assert m.method == "lens-family" and not m.quality.fallback
+        assert m.center == (0.0, 0.0)
+        errs.append(np.std(m.log_field((H, W)) - truth) / math.log(2))
+    assert np.median(errs) < 0.05 < np.std(truth) / math.log(2)
+
+
+def test_lens_family_sigma_is_stated_and_falls_back_on_no_evidence():
+    img = textured(H, W, seed=4, contrast=0.3)
+    m = estimate_family(img)
+    q = m.quality
+    assert q.field_sigma_ev > 0
+    if q.fallback:
+        assert m.is_identity and m.candidate is not None
+    # an image of too few usable pixels: no estimate
+    dark = np.zeros((H, W))
+    dark[:5, :5] = 1.0
+    m = estimate_family(dark)
+    assert m.is_identity and m.quality.fallback
+
+
+def test_hint_narrows_the_prior():
+    img = textured(H, W, seed=2, contrast=0.3) * _lens_field()
+    _, c0 = fit_family(img)
+    _, c1 = fit_family(img, hint=LensHint(focal35=24.0, fnumber=2.8))
+    assert c0 is not None and c1 is not None and not np.allclose(c0, c1)
+
+
+def test_centre_fit_finds_an_off_centre_fall_off():
+    img = textured(H, W, seed=3, contrast=0.3)
+    _, c = fit_family(img * _lens_field())
+    centred = fit_centre(img * _lens_field(), c)
+    shifted_img = img * _lens_field(center=(-90.0, -60.0))
+    _, c2 = fit_family(shifted_img)
+    shifted = fit_centre(shifted_img, c2)
+    s = FamilySettings()
+    assert not centred.off_centre(s.off_centre_shift)
+    assert shifted.off_centre(s.off_centre_shift)
+    # towards the true centre (the fit is pulled towards the frame's: a prior)
+    assert shifted.offset[0] < -40 and shifted.offset[1] < -30
+
+
+def test_default_sends_off_centre_frames_to_the_free_fit():
+    from vigproc.bench.synthetic import table1_model
+
+    img = textured(H, W, seed=3, contrast=0.05)
+    m = vigproc.estimate(img * _lens_field(), channel_axis=None)
+    assert m.method == "lens-family"
+    # Lyu's Table 1 setting 2: off-centre and elliptical, beyond the lens family
+    truth = table1_model(2)
+    m = estimate_default(img * truth.field())
+    assert m.method == "robust"
+    family_only = estimate_family(img * truth.field())
+    err = np.std(m.log_field() - truth.log_field())
+    assert err < 0.5 * np.std((family_only.candidate or family_only).log_field() - truth.log_field())
