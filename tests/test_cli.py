@@ -381,6 +381,14 @@ def test_correct_reports_the_fall_off_its_strength_removed(tmp_path, vignetted_t
     assert side["strength"] == 0.5
 
 
+def test_correct_on_a_symlink_loop_is_a_read_error(tmp_path):
+    (tmp_path / "loop_a.jpg").symlink_to("loop_b.jpg")
+    (tmp_path / "loop_b.jpg").symlink_to("loop_a.jpg")
+    r = run("correct", "-o", tmp_path / "out", "--", tmp_path / "loop_a.jpg")
+    assert r.returncode == 1, r.stderr  # a failed frame, not an internal error (70)
+    assert "Symlink loop" in r.stderr and "internal error" not in r.stderr
+
+
 def test_check_store_options_exclude_each_other(tmp_path):
     r = run("check", "x.jpg", "--profile-db", tmp_path / "p.sqlite", "--no-store")
     assert r.returncode == 2 and "not allowed with" in r.stderr and not (tmp_path / "p.sqlite").exists()

@@ -352,6 +352,16 @@ def test_check_cli_exit_codes_json_and_report(tmp_path, classes, capsys):
     assert report.is_file() and "plain.tif" in report.read_text()
 
 
+def test_check_cli_line_escapes_a_newline_in_a_file_name(tmp_path, classes, capsys):
+    from vigproc.cli import main
+
+    odd = _tiff(tmp_path / "a\nvigproc: all consistent.tif", frame(classes[4], seed=9))
+    main(["check", str(odd), "--profile-db", str(tmp_path / "p.sqlite")])
+    out = capsys.readouterr().out.splitlines()
+    # one line for the frame and the summary line: the name's newline is escaped
+    assert len(out) == 2 and "a\\nvigproc: all consistent.tif: unknown-lens" in out[0], out
+
+
 @pytest.mark.skipif(os.environ.get("VIGPROC_SKIP_EXIFTOOL") == "1", reason="exiftool tests disabled")
 def test_check_cli_on_dngs_with_lens_exif(tmp_path, classes, calibration, capsys):
     from dngfixture import EXIFTOOL, make_dng

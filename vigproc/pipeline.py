@@ -593,7 +593,10 @@ class Processor:
         dst = safe_output(outdir, stem, ".corrected" + suffix)
         sidecar = safe_output(outdir, stem, SIDECAR_SUFFIX)
         # checked before anything is written: a refused frame leaves no partial outputs
-        own = path.resolve()
+        try:
+            own = path.resolve()
+        except RuntimeError as exc:  # a symlink loop (Python < 3.13 raises RuntimeError)
+            raise ImageReadError(f"cannot read {os.fspath(path)!r}: {exc}") from None
         for target in (dst if s.mode == "correct" else None, sidecar,
                        safe_output(outdir, stem, ".vignetting.png") if s.picture else None):
             refuse_input(target, (own,), protect)

@@ -55,9 +55,11 @@ def register(subparsers) -> None:
 
 
 def _line(name: str, v: dict) -> str:
+    """One output line: file names and EXIF strings are escaped (a newline in a name
+    must not start a line of its own)."""
     p = v.get("p_false_alarm")
     tail = "" if p is None else f"  p={p:.3g}  D²={v['score']:.2f}"
-    return f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}"
+    return one_line(f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}")
 
 
 def cmd_check(args: argparse.Namespace) -> int:
