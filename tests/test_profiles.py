@@ -247,6 +247,8 @@ def test_corrupt_file_is_a_clear_error(tmp_path):
     with pytest.raises(ProfileStoreError, match="corrupt or not an SQLite database") as ei:
         ProfileStore(db)
     assert str(db) in str(ei.value)
+    # it says how to recover, and how to work without the store meanwhile
+    assert "move it aside" in str(ei.value) and "--profile estimate" in str(ei.value)
 
 
 def test_damaged_store_is_detected(tmp_path):

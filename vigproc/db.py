@@ -70,6 +70,8 @@ class SQLiteFile:
 
     error: type[VigprocError] = VigprocError
     what: str = "database"
+    #: What a user can do about a corrupt file (appended to that error's message).
+    recovery: str = ""
 
     def __init__(self, path: str | os.PathLike[str], *, timeout: float) -> None:
         self.path = Path(path).expanduser()
@@ -137,6 +139,8 @@ class SQLiteFile:
             yield
         except sqlite3.Error as exc:
             why = explain_sqlite_error(exc, self.timeout)
+            if self.recovery and why.startswith("the file is corrupt"):
+                why += f"; {self.recovery}"
             raise self.error(f"{self.what} {self.path}: {op} failed: {why}") from None
 
     @property

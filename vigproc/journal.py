@@ -296,6 +296,7 @@ class Journal(SQLiteFile):
 
     error = JournalError
     what = "journal"
+    recovery = "move it aside and rerun (a new journal is started)"
 
     def __init__(self, db_path: str | os.PathLike[str], *, job: str = "default", timeout: float = DEFAULT_TIMEOUT,
                  retry_base: float = DEFAULT_RETRY_BASE, retry_cap: float = DEFAULT_RETRY_CAP) -> None:

@@ -943,6 +943,9 @@ class ProfileStore(SQLiteFile):
 
     error = ProfileStoreError
     what = "profile store"
+    recovery = ("move it aside (vigproc then starts an empty store there), restore a backup or re-import "
+                "exported profiles with 'vigproc profile import FILE'; meanwhile '--profile estimate' or "
+                "'--profile lensfun' correct without a store")
 
     def __init__(self, path: str | os.PathLike[str] | None = None, *, timeout: float = DEFAULT_TIMEOUT) -> None:
         # SHA-256 of a frame's evidence -> its centred fit: a long-lived learner fits each frame once
