@@ -39,6 +39,21 @@ def test_estimate_json(vignetted_tiff):
     assert np.linalg.norm(c - np.array(truth.center)) < 0.15 * np.linalg.norm(truth.center)
 
 
+def test_estimate_takes_many_files(vignetted_tiff, tmp_path):
+    path, _ = vignetted_tiff
+    other = tmp_path / "copy.tif"
+    other.write_bytes(path.read_bytes())
+    r = run("estimate", path, tmp_path / "missing.tif", other, "--json")
+    docs = [json.loads(line) for line in r.stdout.splitlines()]  # one object per line
+    assert [d["file"] for d in docs] == [str(path), str(other)]
+    for d in docs:
+        del d["model"]["quality"]["seconds"]
+    assert docs[0]["model"] == docs[1]["model"]
+    assert r.returncode == 4 and "missing.tif" in r.stderr  # the failure's exit code, after the others
+    r = run("estimate", path, other)
+    assert r.returncode == 0 and r.stdout.count("fall-off") == 2
+
+
 def test_correct_writes_outputs_atomically_and_keeps_input(vignetted_tiff, tmp_path):
     path, truth = vignetted_tiff
     before = path.read_bytes()

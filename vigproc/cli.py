@@ -38,14 +38,18 @@ def _progress(items: Sequence, what: str):
 
 # ----------------------------------------------------------------- commands
 def cmd_estimate(args: argparse.Namespace) -> int:
-    try:
-        return _estimate_file(args)
-    except VigprocError as exc:  # one line naming the file, as the multi-file commands do
-        print(one_line(f"vigproc: {str(args.file)!r}: {exc}"), file=sys.stderr)
-        return exc.exit_code
+    """Each file in turn; the exit code is the first failure's (0 when all succeed)."""
+    code = 0
+    for f in args.files:
+        try:
+            _estimate_file(args, f, many=len(args.files) > 1)
+        except VigprocError as exc:  # one line naming the file, as the multi-file commands do
+            print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
+            code = code or exc.exit_code
+    return code
 
 
-def _estimate_file(args: argparse.Namespace) -> int:
+def _estimate_file(args: argparse.Namespace, file: str, many: bool) -> None:
     from vigproc.estimate import estimate
     from vigproc.exif import ExifReader
     from vigproc.io import read_image
@@ -53,20 +57,21 @@ def _estimate_file(args: argparse.Namespace) -> int:
 
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
     # model for the full frame; other formats are read as they are
-    img, info = read_image(args.file, transfer=args.input_transfer, raw_half_size=True)
+    img, info = read_image(file, transfer=args.input_transfer, raw_half_size=True)
     with ExifReader() as reader:
-        key, lens = read_lens(reader, Path(args.file))
+        key, lens = read_lens(reader, Path(file))
     m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
                  hint=lens_hint(key, args.method))
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
-    if args.json:
-        print(json.dumps({"file": str(args.file), "lens": lens, "model": m.to_dict()}, indent=1))
+    if args.json:  # several files: one JSON object per line
+        doc = {"file": str(file), "lens": lens, "model": m.to_dict()}
+        print(json.dumps(doc) if many else json.dumps(doc, indent=1), flush=True)
     else:
         q = m.quality
         # the frame the model is for: a RAW's full frame, though estimated at half size
         half = f", estimated on its {info.width}x{info.height} half-size development" if info.format == "raw" else ""
-        print(f"{args.file}: {m.width}x{m.height} {info.format} ({info.transfer}{half})")
+        print(one_line(f"{file}: {m.width}x{m.height} {info.format} ({info.transfer}{half})"))
         print(f"  lens        {lens['lens_id'] or 'unknown (' + lens['error'] + ')'}")
         print(f"  method      {m.method}")
         print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
@@ -77,7 +82,6 @@ def _estimate_file(args: argparse.Namespace) -> int:
             why = "weak evidence or not a real lens's shape" if m.method == "real-lens" else "weak evidence"
             state = f"NOT applied ({why})" if q.fallback else "applied"
             print(f"  confidence  {q.confidence:.2f} (SNR {q.snr:.1f}, ±{q.field_sigma_ev:.3f} EV): {state}")
-    return 0
 
 
 def _applied_ev(rec: dict) -> float:
@@ -673,11 +677,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     from vigproc.commands._options import add_method, add_processing, add_transfer, number
 
-    sp = sub.add_parser("estimate", help="estimate the vignetting of one image")
-    sp.add_argument("file")
+    sp = sub.add_parser("estimate", help="estimate the vignetting of images (nothing is written)")
+    sp.add_argument("files", nargs="+", metavar="FILE", help="images to estimate")
     add_method(sp)
-    sp.add_argument("--json", action="store_true")
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--json", action="store_true",
+                    help="print the model as JSON (one object per line for several files)")
+    sp.add_argument("--seed", type=int, default=0, help="random start of --method lyu2010-rand")
     add_transfer(sp)
     sp.set_defaults(fn=cmd_estimate)
 
