@@ -407,3 +407,31 @@ def test_correct_on_a_symlink_loop_is_a_read_error(tmp_path):
 def test_check_store_options_exclude_each_other(tmp_path):
     r = run("check", "x.jpg", "--profile-db", tmp_path / "p.sqlite", "--no-store")
     assert r.returncode == 2 and "not allowed with" in r.stderr and not (tmp_path / "p.sqlite").exists()
+
+
+def test_help_and_usage_errors_import_no_numeric_stack():
+    # `vigproc --help` and a usage error must stay fast (a host pays start-up per call):
+    # they must not import numpy, scipy or numba (0.55 s of start-up before)
+    code = (
+        "import sys\n"
+        "from vigproc.cli import main\n"
+        "for argv in (['--help'], ['correct', 'x.jpg', '--strength', 'x'], ['bench', 'clean', '--help']):\n"
+        "    try:\n"
+        "        main(argv)\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "heavy = sorted(m for m in ('numpy', 'scipy', 'numba') if m in sys.modules)\n"
+        "print('HEAVY', heavy, file=sys.stderr)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert "HEAVY []" in r.stderr, r.stderr[-2000:]
+
+
+def test_public_names_are_imported_on_first_use():
+    code = ("import sys, vigproc\n"
+            "assert 'numba' not in sys.modules\n"
+            "from vigproc import estimate, VignettingModel, Pipeline, METHODS\n"
+            "assert callable(estimate) and 'default' in METHODS and 'numba' in sys.modules\n"
+            "print(sorted(vigproc.__all__) == sorted(n for n in vigproc.__all__ if hasattr(vigproc, n)))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "True", r.stderr[-2000:]

@@ -37,20 +37,31 @@ def _numba_cache_fallback(environ=_os.environ, access=_os.access) -> str | None:
 if (_cache := _numba_cache_fallback()) is not None:
     _os.environ["NUMBA_CACHE_DIR"] = _cache
 
-from vigproc.api import Pipeline, Result  # noqa: E402  (after the Numba cache decision)
-from vigproc.correct import correct  # noqa: E402
-from vigproc.errors import (  # noqa: E402
-    ImageReadError,
-    ImageWriteError,
-    InvalidImageError,
-    ModelError,
-    PriorError,
-    UnsupportedFormatError,
-    VigprocError,
-)
-from vigproc.estimate import METHODS, estimate  # noqa: E402
-from vigproc.model import FitQuality, VignettingModel  # noqa: E402
-from vigproc.robust import RobustSettings  # noqa: E402
+# The public names are imported when first used (PEP 562): ``vigproc --help`` and a
+# host's hook call must not pay for scipy and the Numba kernels they do not need.
+_PUBLIC = {
+    "Pipeline": "vigproc.api", "Result": "vigproc.api", "correct": "vigproc.correct",
+    "ImageReadError": "vigproc.errors", "ImageWriteError": "vigproc.errors",
+    "InvalidImageError": "vigproc.errors", "ModelError": "vigproc.errors", "PriorError": "vigproc.errors",
+    "UnsupportedFormatError": "vigproc.errors", "VigprocError": "vigproc.errors",
+    "METHODS": "vigproc.methods", "estimate": "vigproc.estimate",
+    "FitQuality": "vigproc.model", "VignettingModel": "vigproc.model", "RobustSettings": "vigproc.robust",
+}
+
+
+def __getattr__(name: str):
+    if name in _PUBLIC:
+        import importlib
+
+        value = getattr(importlib.import_module(_PUBLIC[name]), name)
+        globals()[name] = value  # later look-ups skip this function
+        return value
+    raise AttributeError(f"module 'vigproc' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_PUBLIC])
+
 
 __version__ = "0.1.0"
 

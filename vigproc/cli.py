@@ -17,8 +17,6 @@ from importlib import resources
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
-
 from vigproc.errors import EXIT_CODES, PriorError, VigprocError, one_line
 
 log = logging.getLogger("vigproc")
@@ -383,6 +381,8 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
 
 def cmd_bench_real(args: argparse.Namespace) -> int:
     """Photographs vignetted by others: pairs with a known field, and real lenses."""
+    import numpy as np
+
     from vigproc.bench import real as R
     from vigproc.image import luminance
     from vigproc.io import read_image
@@ -450,6 +450,8 @@ def cmd_bench_real(args: argparse.Namespace) -> int:
 
 def cmd_bench_speed(args: argparse.Namespace) -> int:
     """Per-image estimation time on 480×320 protocol frames (Table 1 setting 2)."""
+    import numpy as np
+
     from vigproc.bench.synthetic import protocol_image, table1_model
     from vigproc.estimate import estimate
     from vigproc.io import read_image
@@ -473,6 +475,8 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
 
 def cmd_bench_correct(args: argparse.Namespace) -> int:
     """Full-resolution correction against a plain copy and a numpy divide, in one run."""
+    import numpy as np
+
     import numba
 
     from vigproc.bench.synthetic import table1_model
@@ -669,7 +673,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------ parser
 def build_parser() -> argparse.ArgumentParser:
-    from vigproc.estimate import METHODS
+    from vigproc.methods import METHODS
 
     p = argparse.ArgumentParser(prog="vigproc", description="Lens vignetting: estimate, correct, learn, check.")
     p.add_argument("-v", "--verbose", action="count", default=0)
@@ -858,7 +862,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_estimator_bench(bp: argparse.ArgumentParser) -> None:
     """Options of a benchmark that runs estimators on photographs (lensfun, real)."""
     from vigproc.commands._options import add_transfer
-    from vigproc.estimate import METHODS
+    from vigproc.methods import METHODS
 
     add_transfer(bp)
     bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],

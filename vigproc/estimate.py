@@ -9,6 +9,7 @@ import numpy as np
 
 from vigproc.errors import InvalidImageError
 from vigproc.family_fit import LensHint
+from vigproc.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
 from vigproc.image import bin_mean, check_image, log_image, luminance
 from vigproc.model import VignettingModel
 from vigproc.prior import NaturalPrior, default_prior
@@ -16,13 +17,6 @@ from vigproc.robust import RobustSettings, estimate_robust
 
 log = logging.getLogger(__name__)
 
-#: Methods :func:`estimate` accepts; "default" is vigproc's robust estimator.
-METHODS = ("default", "robust", "real-lens", "flat-field", "lens-family", "lyu2010", "lyu2010-rand", "ga")
-#: The methods that are vigproc's robust estimator.
-ROBUST_METHODS = ("default", "robust", "real-lens", "flat-field")
-#: The robust methods whose frames give evidence for profile pooling (which assumes
-#: photographs of scenes: :mod:`vigproc.pooling` subtracts a scene's mean fall-off).
-EVIDENCE_METHODS = ("default", "robust", "real-lens")
 #: Long side of the working copy used by the paper's methods (its protocol size).
 LYU_WORK_SIZE = 480
 #: A pixel at or above this fraction of the frame's maximum counts as clipped

@@ -146,7 +146,7 @@ def discover(group: str) -> list[Extension]:
     """
     if group not in GROUPS:
         raise ValueError(f"unknown extension group {group!r}")
-    from vigproc.estimate import METHODS
+    from vigproc.methods import METHODS
 
     found: dict[str, list[Extension]] = {}
     for ep in entry_points(group=group):
@@ -183,7 +183,7 @@ def estimator_names() -> tuple[str, ...]:
 
 def method_names() -> tuple[str, ...]:
     """Built-in methods followed by the installed estimator extensions."""
-    from vigproc.estimate import METHODS
+    from vigproc.methods import METHODS
 
     return (*METHODS, *estimator_names())
 

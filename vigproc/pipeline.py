@@ -14,13 +14,12 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Container, Iterable, Sequence
-
-import numpy as np
 
 from vigproc.errors import ImageReadError, ImageWriteError, ModelError, VigprocError
 
@@ -82,7 +81,7 @@ class Settings:
     picture: bool = False
 
     def __post_init__(self) -> None:
-        from vigproc.estimate import METHODS
+        from vigproc.methods import METHODS
 
         if self.mode not in MODES:
             raise VigprocError(f"unknown mode {self.mode!r} (choose from {', '.join(MODES)})")
@@ -95,7 +94,7 @@ class Settings:
             raise VigprocError(f"unknown output format {self.output_format!r}")
         if self.transfer not in ("auto", "linear", "srgb"):
             raise VigprocError(f"unknown input transfer {self.transfer!r}")
-        if not (np.isfinite(self.strength) and 0.0 <= self.strength <= 2.0):
+        if not (math.isfinite(self.strength) and 0.0 <= self.strength <= 2.0):
             raise VigprocError(f"strength must be within [0, 2], got {self.strength}")
 
     def to_dict(self) -> dict[str, Any]:
@@ -269,6 +268,8 @@ def _note_clipping(img: np.ndarray, out: np.ndarray, where: str, output_format: 
     """Say when samples end up above the white point of an integer output (clipped there
     by design): pushed there by the correction, or above it in a float source.  A source's
     own clipped highlights (exactly 1.0) are not counted."""
+    import numpy as np
+
     lost = int(np.count_nonzero(out >= 1.0)) - int(np.count_nonzero(np.asarray(img) == 1.0))
     if lost > 1e-3 * out.size:
         log.warning("%s: %.1f %% of the samples are above the white point and %s clips them "
@@ -501,7 +502,7 @@ class Processor:
         t0 = time.perf_counter()
         # every mode, also a correction by a profile (which estimates nothing): NaN/Inf,
         # a constant frame or large negative values are bad input, not something to write
-        valid_image(img, -1 if np.ndim(img) == 3 else None, min_size=1)
+        valid_image(img, -1 if getattr(img, "ndim", 0) == 3 else None, min_size=1)
         lens = ({"lens_id": lens_key.lens_id(), "key": lens_key.to_dict()} if lens_key is not None
                 else {"lens_id": None, "error": "no lens data given"})
         res = FrameResult(file=where, mode=s.mode, lens=lens)

@@ -40,7 +40,7 @@ def add_transfer(sp: argparse.ArgumentParser, default: str = "auto") -> None:
 
 
 def add_method(sp: argparse.ArgumentParser) -> None:
-    from vigproc.estimate import METHODS
+    from vigproc.methods import METHODS
 
     # not argparse choices: installed estimator plugins are valid too (checked by Settings)
     sp.add_argument("--method", default="default", metavar="NAME",

@@ -20,11 +20,8 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from vigproc.commands._options import add_method, add_transfer, number
 from vigproc.errors import VigprocError
-from vigproc.forensics import forensic_method
 
 
 #: --classifier choices: name -> (kind, features).
@@ -93,6 +90,12 @@ def _class_dirs(root: Path) -> list[Path]:
     return subs
 
 
+def _forensic_method(method: str) -> str:
+    from vigproc.forensics import forensic_method  # imported when used: --help stays fast
+
+    return forensic_method(method)
+
+
 def _estimates(files: list[Path], method: str, transfer: str, what: str):
     """Estimate each file; unreadable ones are reported and skipped."""
     from vigproc.estimate import estimate
@@ -102,7 +105,7 @@ def _estimates(files: list[Path], method: str, transfer: str, what: str):
     for f in files:
         try:
             img, _ = read_image(f, transfer=transfer)
-            out.append((f, estimate(img, forensic_method(method), channel_axis=-1 if img.ndim == 3 else None)))
+            out.append((f, estimate(img, _forensic_method(method), channel_axis=-1 if img.ndim == 3 else None)))
         except VigprocError as exc:
             print(f"vigproc: {exc} (skipped)", file=sys.stderr)
     if not out:
@@ -122,6 +125,8 @@ def _protocol_images(folders, limit, transfer):
 
 # ------------------------------------------------------------------ commands
 def cmd_train(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from vigproc.identify import feature_vector, train_classifier
     from vigproc.pipeline import InputFiles, images_in, output_file, refuse_input
 
@@ -138,7 +143,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     source = ("vigproc forensics train " + " ".join(shlex.quote(str(d)) for d in args.dirs)
               + f" --classifier {args.classifier} --shrinkage {args.shrinkage:g} --method {args.method}")
     clf = train_classifier(np.array(X), labels, kind=kind, features=feats, shrinkage=args.shrinkage,
-                           method=forensic_method(args.method), source=source)
+                           method=_forensic_method(args.method), source=source)
     clf.save(args.output)
     print(f"{args.classifier} classifier, {len(clf.labels)} classes, {len(labels)} frames -> {args.output}")
     return 0
@@ -146,6 +151,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from vigproc.identify import LensClassifier, accuracy, confusion_matrix, feature_vector, format_confusion
+    import numpy as np
+
     from vigproc.pipeline import images_in
 
     clf = LensClassifier.load(args.model)
@@ -186,6 +193,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from vigproc.bench.forensics import bench_classes, calibration_residuals
     from vigproc.estimate import estimate
+    import numpy as np
+
     from vigproc.forensics import estimator_fingerprint, fit_calibration
 
     from vigproc.pipeline import InputFiles, images_in, output_file, refuse_input
@@ -195,12 +204,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     ims = _protocol_images(args.images, args.limit, args.input_transfer)
     classes = bench_classes(args.lenses)
     print(f"calibrating on {len(ims)} photographs x {args.per_image} of {len(classes)} lens fields")
-    res, groups, weak = calibration_residuals(ims, lambda v: estimate(v, forensic_method(args.method), channel_axis=None), classes,
+    res, groups, weak = calibration_residuals(ims, lambda v: estimate(v, _forensic_method(args.method), channel_axis=None), classes,
                                               per_image=args.per_image, progress=print)
     source = ("vigproc forensics calibrate --images " + " ".join(shlex.quote(str(d)) for d in args.images)
               + f" --lenses {args.lenses} --per-image {args.per_image} --alpha {args.alpha:g} --method {args.method}"
               + (f" --limit {args.limit}" if args.limit else ""))
-    cal = fit_calibration(res, groups, weak=weak, method=forensic_method(args.method), alpha=args.alpha,
+    cal = fit_calibration(res, groups, weak=weak, method=_forensic_method(args.method), alpha=args.alpha,
                           source=source, fingerprint=estimator_fingerprint(args.method))
     cal.save(args.output)
     null = cal.null_d2(1, decided=True)
@@ -216,13 +225,15 @@ def cmd_bench_forensics(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
     from vigproc.bench import forensics as B
+    import numpy as np
+
     from vigproc.estimate import estimate
     from vigproc.identify import format_confusion
     from vigproc.pipeline import output_file
 
     output_file(args.json)
     ims = _protocol_images(args.images, args.limit, args.input_transfer)
-    fn = lambda v: estimate(v, forensic_method("default"), channel_axis=None)  # noqa: E731
+    fn = lambda v: estimate(v, _forensic_method("default"), channel_axis=None)  # noqa: E731
     fn(ims[0])  # JIT warm-up
     t0 = time.perf_counter()
     from vigproc.robust import estimate_robust_joint

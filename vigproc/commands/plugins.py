@@ -21,7 +21,7 @@ def _status(ext) -> tuple[bool, str | None]:
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
-    from vigproc.estimate import METHODS
+    from vigproc.methods import METHODS
     from vigproc.extensions import GROUPS, discover
 
     rows = []
