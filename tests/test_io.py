@@ -680,6 +680,38 @@ def test_raw_stubs_and_truncated_raw_raise_typed_errors(tmp_path: Path) -> None:
         assert_names_file(ei, p)
 
 
+def _tiff_with_subifd(path: Path, w: int = 24, h: int = 16) -> Path:
+    """A little-endian TIFF laid out like a NEF cut short: IFD0 an 8-bit RGB preview whose
+    SubIFDs tag (330) points past the end of the file, where the sensor data was."""
+    import struct
+
+    pixels = (bytes(range(256)) * (w * h * 3 // 256 + 1))[: w * h * 3]
+    tags = [(256, 3, 1, w), (257, 3, 1, h), (258, 3, 3, None), (259, 3, 1, 1), (262, 3, 1, 2),
+            (273, 4, 1, None), (277, 3, 1, 3), (278, 3, 1, h), (279, 4, 1, len(pixels)), (330, 4, 1, 1 << 20)]
+    bps = 8 + 2 + 12 * len(tags) + 4
+    values = {258: bps, 273: bps + 6}
+    ifd = struct.pack("<H", len(tags))
+    for tag, typ, count, value in tags:
+        value = values[tag] if value is None else value
+        ifd += struct.pack("<HHI", tag, typ, count)
+        ifd += struct.pack("<HH", value, 0) if typ == 3 and count == 1 else struct.pack("<I", value)
+    path.write_bytes(b"II*\x00" + struct.pack("<I", 8) + ifd + struct.pack("<I", 0)
+                     + struct.pack("<HHH", 8, 8, 8) + pixels)
+    return path
+
+
+def test_undecodable_raw_is_not_read_from_its_embedded_preview(tmp_path: Path) -> None:
+    # laid out like a NEF, sensor data cut off: LibRaw cannot decode it, and OpenImageIO
+    # would read its first image (the embedded preview), which is not the photograph
+    p = _tiff_with_subifd(tmp_path / "DSC_0001.nef")
+    as_tif = tmp_path / "same.tif"
+    as_tif.write_bytes(p.read_bytes())
+    assert read_image(as_tif)[1].width == 24  # the fixture is a readable TIFF
+    with pytest.raises(UnsupportedFormatError, match="embedded preview is not used") as ei:
+        read_image(p)
+    assert_names_file(ei, p)
+
+
 def test_non_utf8_file_name_is_a_typed_error(tmp_path: Path, good_png: Path) -> None:
     raw_name = os.fsencode(tmp_path) + b"/bad\xffname.png"
     with open(raw_name, "wb") as fh:

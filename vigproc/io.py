@@ -471,6 +471,15 @@ def read_image(
 
     try:
         spec = inp.spec()
+        if raw_first and kind == "tiff" and _tiff_has_subifds(fspath):
+            # named as a camera RAW, laid out like one (the sensor data in a SubIFD), and
+            # LibRaw cannot decode it: OpenImageIO would read its embedded preview, not the
+            # photograph (a plain TIFF merely named .nef has no SubIFDs and is read)
+            raise UnsupportedFormatError(
+                f"cannot read image {_q(fspath)}: camera RAW that LibRaw cannot decode"
+                + (f" ({raw_note})" if raw_note else "")
+                + "; its embedded preview is not used (rename the file if it is a plain TIFF)"
+            )
         if kind == "tiff" and _tiff_looks_raw(head, spec):
             # OIIO would read IFD0 (usually a thumbnail, or the undemosaiced CFA).
             inp.close()
@@ -509,6 +518,28 @@ def _oiio_open(path: str) -> tuple[oiio.ImageInput | None, str]:
     if inp is None:
         return None, oiio.geterror()
     return inp, ""
+
+
+def _tiff_has_subifds(path: str, limit: int = 1 << 16) -> bool:
+    """Whether a TIFF's first IFD has a SubIFDs tag (330): the layout of NEF, ARW, PEF,
+    DNG... whose IFD0 is a preview and whose sensor data lives in a SubIFD."""
+    import struct
+
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(limit)
+        order = {b"II": "<", b"MM": ">"}.get(data[:2])
+        if order is None:
+            return False
+        (ifd,) = struct.unpack_from(order + "I", data, 4)
+        (n,) = struct.unpack_from(order + "H", data, ifd)
+        for i in range(min(n, 4096)):
+            (tag,) = struct.unpack_from(order + "H", data, ifd + 2 + 12 * i)
+            if tag == 330:
+                return True
+    except (OSError, struct.error):
+        return False
+    return False
 
 
 def _tiff_looks_raw(head: bytes, spec: oiio.ImageSpec) -> bool:
