@@ -435,3 +435,12 @@ def test_public_names_are_imported_on_first_use():
             "print(sorted(vigproc.__all__) == sorted(n for n in vigproc.__all__ if hasattr(vigproc, n)))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == "True", r.stderr[-2000:]
+
+
+def test_estimate_and_correct_stay_functions_when_their_modules_load_first():
+    code = ("import vigproc.estimate, vigproc.correct, vigproc.pipeline\n"
+            "import vigproc\n"
+            "print(callable(vigproc.estimate) and callable(vigproc.correct)"
+            " and vigproc.estimate.__module__ == 'vigproc.estimate')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "True", r.stderr[-2000:]

@@ -9,6 +9,8 @@ Photo pipelines: :class:`vigproc.Pipeline` (:mod:`vigproc.api`, the stable inter
 """
 
 import os as _os
+import sys as _sys
+import types as _types
 
 
 def _numba_cache_fallback(environ=_os.environ, access=_os.access) -> str | None:
@@ -47,6 +49,22 @@ _PUBLIC = {
     "METHODS": "vigproc.methods", "estimate": "vigproc.estimate",
     "FitQuality": "vigproc.model", "VignettingModel": "vigproc.model", "RobustSettings": "vigproc.robust",
 }
+
+
+# Two public functions share their module's name. Importing the submodule (which any
+# code may do first) sets the package attribute to the module; the package keeps the
+# function there instead, as the eager ``from vigproc.estimate import estimate`` did.
+_FUNCTION_MODULES = ("estimate", "correct")
+
+
+class _Package(_types.ModuleType):
+    def __setattr__(self, name: str, value) -> None:
+        if name in _FUNCTION_MODULES and isinstance(value, _types.ModuleType):
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+_sys.modules[__name__].__class__ = _Package
 
 
 def __getattr__(name: str):
