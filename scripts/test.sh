@@ -4,4 +4,5 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/bootstrap.sh" --tests
 cd "$root"
-exec .venv/bin/python -m pytest "$@"
+# in parallel on every core (pytest-xdist); VIGPROC_TEST_WORKERS=0 runs in one process
+exec .venv/bin/python -m pytest -n "${VIGPROC_TEST_WORKERS:-auto}" "$@"
