@@ -189,3 +189,29 @@ def test_real_bench_pairs_and_photographs(tmp_path):
     assert r.returncode == 0, r.stderr
     rows = json.loads((tmp_path / "r.json").read_text())
     assert len(rows) == 3 and "2 pairs and 1 photographs" in r.stdout
+
+
+def test_bench_clean_scores_methods_on_crops_of_large_frames(tmp_path):
+    from vigproc.bench.clean import HEIGHT, WIDTH, crop_base
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(3):  # large vignetting-free frames (a linear TIFF each), and one too small to use
+        write_image(folder / f"f{i}_linear.tif", textured(900, 1350, seed=40 + i, contrast=0.1).astype(np.float32),
+                    bit_depth="float")
+    write_image(folder / "small_linear.tif", textured(300, 450, seed=1).astype(np.float32), bit_depth="float")
+    crop = crop_base(textured(1350, 900, seed=1))  # portrait turned landscape, 40 % of each side
+    assert crop.shape == (HEIGHT, WIDTH)
+    out = tmp_path / "clean.json"
+    r = _bench("clean", "--images", folder, "--lenses", "2", "--methods", "lens-family", "lens-family+exif",
+               "rgs", "--no-table1", "--json", out)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(out.read_text())
+    assert len(doc["bases"]) == 3 and "small_linear.tif" not in doc["bases"]
+    fields = {row["method"]: row for row in doc["results"] if "fields" in row}
+    assert set(fields) == {"lens-family", "lens-family+exif", "rgs"}
+    for row in fields.values():
+        assert row["n_fields"] == 2 and row["n_frames"] == 6
+        assert row["median_ev"] < row["uncorrected_ev"]
+    assert 0.0 <= fields["lens-family"]["within_1sigma"] <= fields["lens-family"]["within_2sigma"] <= 1.0
+    assert "no harm" in r.stdout and "rgs-c++" not in r.stdout

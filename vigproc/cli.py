@@ -226,7 +226,7 @@ def _scene_settings(spec: str):
         raise PriorError(f"{spec!r}: {exc}") from exc
 
 
-def _estimator(method: str, seed: int = 0, settings=None, family=None):
+def _estimator(method: str, seed: int = 0, settings=None, family=None, with_hint: bool = False):
     """A bench's estimator: ``vigproc.estimate`` on a gray frame, or the "rgs" peer.
 
     ``settings`` (``--scene-prior``) tune the robust Kang-Weiss estimators; the
@@ -240,10 +240,14 @@ def _estimator(method: str, seed: int = 0, settings=None, family=None):
 
         return estimate_rgs
     if method == "default":
+        if with_hint:
+            return lambda v, hint=None: estimate_default(v, family=family, hint=hint)
         return lambda v: estimate_default(v, family=family)
     if method == "lens-family":
         from vigproc.family_fit import estimate_family
 
+        if with_hint:
+            return lambda v, hint=None: estimate_family(v, family=family, hint=hint)
         return lambda v: estimate_family(v, family=family)
     return lambda v: estimate(v, method, channel_axis=None, seed=seed, settings=settings)
 
@@ -346,6 +350,9 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
                       f"--peer or ${PEER_ENV})", file=sys.stderr)
                 continue
             methods[name] = published_rgs(peer, "srgb" if name.endswith("srgb") else "linear")
+        elif name.endswith("+exif"):  # told the field's focal length and f-number, as EXIF would
+            base = name[: -len("+exif")]
+            methods[name] = C.model_estimator(_estimator(base, family=family, with_hint=True), exif=True)
         else:
             methods[name] = C.model_estimator(_estimator(name, family=family))
     print(f"clean protocol: {len(bases)} central {C.CROP:.0%} crops (480x320, linear) of frames >= "
@@ -359,7 +366,7 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
                                     [(f"table1-{i + 1}", [f]) for i, f in enumerate(C.table1_fields())])
     print(head)
     for name, fn in methods.items():
-        fn(bases[0])  # JIT warm-up outside the timings
+        fn(bases[0], None)  # JIT warm-up outside the timings
         for label, fields in groups:
             r = C.run_fields(bases, name, fn, fields, label)
             results.append(asdict(r))
@@ -809,9 +816,10 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
     bp.add_argument("--lenses", type=number(1, 100, integer=True), default=20)
     bp.add_argument("--methods", nargs="+", default=["default", "flat-field", "lens-family", "rgs", "rgs-c++"],
-                    choices=["default", "robust", "real-lens", "flat-field", "lens-family", "lyu2010", "ga",
-                             "rgs", "rgs-c++", "rgs-c++-srgb"],
-                    help="rgs: vigproc's reimplementation of Zheng et al.; rgs-c++: their published code "
+                    choices=["default", "default+exif", "robust", "real-lens", "flat-field", "lens-family",
+                             "lens-family+exif", "lyu2010", "ga", "rgs", "rgs-c++", "rgs-c++-srgb"],
+                    help="+exif: told each lens's 35-mm focal length and f-number (never the lens); rgs: "
+                         "vigproc's reimplementation of Zheng et al.; rgs-c++: their published code "
                          "(built by scripts/build_rgs_peer.sh), given linear or sRGB-encoded 8-bit frames")
     bp.add_argument("--peer", help="the built rgs_peer executable (default: $VIGPROC_RGS_PEER)")
     bp.add_argument("--no-table1", action="store_true", help="only the lensfun fields")

@@ -58,7 +58,20 @@ class Estimate:
     sigma_ev: float = math.nan
 
 
-Estimator = Callable[[np.ndarray], Estimate]
+@dataclass(frozen=True)
+class Field:
+    """A known vignetting field on the 480×320 frame (natural log), with what EXIF
+    would say of its lens (35-mm focal length and f-number; None for Table 1's)."""
+
+    name: str
+    log_field: np.ndarray
+    focal35: float | None = None
+    fnumber: float | None = None
+
+
+#: ``fn(lum, field)``: an estimate of a frame vignetted by ``field`` (None: no field).
+#: Only estimators that take EXIF look at the field, and only at its focal35/fnumber.
+Estimator = Callable[[np.ndarray, "Field | None"], Estimate]
 
 
 def crop_base(lum: np.ndarray, frac: float = CROP) -> np.ndarray:
@@ -169,14 +182,15 @@ class HarmResult:
 
 
 def run_fields(bases: Sequence[np.ndarray], method: str, fn: Estimator,
-               fields: Sequence[tuple[str, np.ndarray]], label: str) -> FieldResult:
+               fields: Sequence[Field], label: str) -> FieldResult:
     """Every base × every field: per-field median error, then median/p90 over fields."""
     per_field, frames, unc, z, secs, fb = [], [], [], [], [], 0
-    for _name, true_log in fields:
+    for f in fields:
+        true_log = f.log_field
         errs = []
         for im in bases:
             t0 = time.perf_counter()
-            est = fn(im * np.exp(true_log))
+            est = fn(im * np.exp(true_log), f)
             secs.append(time.perf_counter() - t0)
             e = gain_free_ev(est.log_field - true_log)
             errs.append(e)
@@ -198,31 +212,40 @@ def run_fields(bases: Sequence[np.ndarray], method: str, fn: Estimator,
 def run_harm(bases: Sequence[np.ndarray], method: str, fn: Estimator) -> HarmResult:
     out, fb = [], 0
     for im in bases:
-        est = fn(im)
+        est = fn(im, None)
         out.append(gain_free_ev(est.log_field))
         fb += est.fallback
     return HarmResult(method, len(bases), float(np.median(out)), float(np.max(out)), fb)
 
 
-def lens_fields(n: int = 20) -> tuple[list[tuple[str, np.ndarray]], set[tuple[str, str]]]:
-    """The 20 lensfun fields on the 480×320 frame, and the lenses' (maker, model)."""
+def lens_fields(n: int = 20) -> tuple[list[Field], set[tuple[str, str]]]:
+    """The 20 lensfun fields on the 480×320 frame (with their calibration's 35-mm focal
+    length and f-number), and the lenses' (maker, model)."""
     lenses = bench_lenses(n)
-    fields = [(f"{lens.maker} {lens.model}", np.log(pa_field((HEIGHT, WIDTH), pa.k1, pa.k2, pa.k3)))
+    fields = [Field(f"{lens.maker} {lens.model}", np.log(pa_field((HEIGHT, WIDTH), pa.k1, pa.k2, pa.k3)),
+                    pa.focal * lens.crop_factor, pa.aperture)
               for lens, pa in lenses]
     return fields, {(lens.maker, lens.model) for lens, _ in lenses}
 
 
-def table1_fields() -> list[tuple[str, np.ndarray]]:
+def table1_fields() -> list[Field]:
     from vigproc.bench.synthetic import table1_model
 
-    return [(f"Table 1 setting {s}", table1_model(s).log_field((HEIGHT, WIDTH))) for s in (1, 2, 3)]
+    return [Field(f"Table 1 setting {s}", table1_model(s).log_field((HEIGHT, WIDTH))) for s in (1, 2, 3)]
 
 
-def model_estimator(fn: Callable[[np.ndarray], object]) -> Estimator:
-    """An :data:`Estimator` from a function returning a VignettingModel."""
+def model_estimator(fn: Callable[..., object], exif: bool = False) -> Estimator:
+    """An :data:`Estimator` from a function returning a VignettingModel; with ``exif``,
+    ``fn(lum, hint=LensHint(...))`` is told the field's 35-mm focal length and f-number
+    (never which lens it is)."""
+    from vigproc.family_fit import LensHint
 
-    def run(im: np.ndarray) -> Estimate:
-        m = fn(im)
+    def run(im: np.ndarray, field: Field | None = None) -> Estimate:
+        if exif:
+            hint = LensHint(field.focal35, field.fnumber) if field is not None else None
+            m = fn(im, hint=hint)
+        else:
+            m = fn(im)
         q = m.quality
         return Estimate(m.log_field(im.shape), bool(q and q.fallback),
                         float(q.field_sigma_ev) if q and q.field_sigma_ev > 0 else math.nan)
@@ -244,7 +267,7 @@ class SigmaCalibration:
     n_frames: int
 
 
-def calibrate_sigma(bases: Sequence[np.ndarray], fields: Sequence[tuple[str, np.ndarray]], family,
+def calibrate_sigma(bases: Sequence[np.ndarray], fields: Sequence[Field], family,
                     target_1sigma: float = 0.68, min_2sigma: float = 0.92) -> SigmaCalibration:
     """Fit σ = hypot(scale·σ_jackknife, floor) of :mod:`vigproc.family_fit` so that on
     the even-numbered bases (× every field, and no field) the error is within 1σ on
@@ -254,7 +277,8 @@ def calibrate_sigma(bases: Sequence[np.ndarray], fields: Sequence[tuple[str, np.
 
     raw = FamilySettings(sigma_scale=1.0, sigma_floor=0.0, min_snr=0.0)
     rows = []
-    for _name, true_log in list(fields) + [("none", np.zeros((HEIGHT, WIDTH)))]:
+    for f in list(fields) + [Field("none", np.zeros((HEIGHT, WIDTH)))]:
+        true_log = f.log_field
         for i, im in enumerate(bases):
             m = estimate_family(im * np.exp(true_log), raw, family=family)
             rows.append((i % 2, gain_free_ev(m.log_field((HEIGHT, WIDTH)) - true_log), m.quality.field_sigma_ev))

@@ -168,7 +168,7 @@ def published_rgs(exe: str, encoding: str = "linear", timeout: float = 60.0):
     from vigproc.bench.clean import Estimate
     from vigproc.io import linear_to_srgb
 
-    def run(lum: np.ndarray) -> Estimate:
+    def run(lum: np.ndarray, _field=None) -> Estimate:
         a = np.asarray(lum, dtype=np.float64)
         a = np.clip(a / max(float(np.percentile(a, 99.9)), 1e-12), 0.0, 1.0)
         if encoding == "srgb":
