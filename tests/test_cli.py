@@ -444,3 +444,22 @@ def test_estimate_and_correct_stay_functions_when_their_modules_load_first():
             " and vigproc.estimate.__module__ == 'vigproc.estimate')\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == "True", r.stderr[-2000:]
+
+
+def test_every_option_and_argument_has_help_text():
+    import argparse
+
+    from vigproc.cli import build_parser
+
+    missing = []
+
+    def walk(parser, path):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    walk(sub, [*path, name])
+            elif not isinstance(action, argparse._HelpAction) and not action.help:
+                missing.append((" ".join(path), action.option_strings or action.dest))
+
+    walk(build_parser(), ["vigproc"])
+    assert missing == []

@@ -683,7 +683,8 @@ def build_parser() -> argparse.ArgumentParser:
     from vigproc.methods import METHODS
 
     p = argparse.ArgumentParser(prog="vigproc", description="Lens vignetting: estimate, correct, learn, check.")
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-v", "--verbose", action="count", default=0,
+                   help="more log output (-v: info, -vv: debug and tracebacks)")
     sub = p.add_subparsers(dest="command", required=True)
 
     from vigproc.commands._options import add_method, add_processing, add_transfer, number
@@ -699,14 +700,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("correct", help="remove vignetting: a stored profile of the lens, else an estimate "
                                         "(linear TIFF or EXR outputs)")
-    sp.add_argument("files", nargs="+")
-    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("files", nargs="+", metavar="FILE", help="images to correct (RAW, TIFF, EXR, JPEG, PNG)")
+    sp.add_argument("-o", "--output", required=True, metavar="OUT_DIR",
+                    help="folder for the corrected images and their JSON records")
     add_processing(sp)
-    sp.add_argument("--json", action="store_true")
+    sp.add_argument("--json", action="store_true", help="print each frame's record as JSON")
     sp.set_defaults(fn=cmd_correct)
 
     sp = sub.add_parser("demo", help="correct the bundled sample images (the README's first command)")
-    sp.add_argument("-o", "--output", default="vigproc-demo")
+    sp.add_argument("-o", "--output", default="vigproc-demo", metavar="OUT_DIR",
+                    help="output folder (default %(default)s)")
     add_transfer(sp)
     sp.set_defaults(fn=cmd_demo)
 
@@ -729,49 +732,54 @@ def build_parser() -> argparse.ArgumentParser:
     psub.add_parser("list", help="stored profiles").set_defaults(fn=cmd_profile)
     q = psub.add_parser("show", help="one profile as a model for a frame size, optionally as a picture")
     q.add_argument("id", help="index from 'profile list' or the key text")
-    q.add_argument("--width", type=number(2, 1_000_000, integer=True), default=6000)
-    q.add_argument("--height", type=number(2, 1_000_000, integer=True), default=4000)
+    q.add_argument("--width", type=number(2, 1_000_000, integer=True), default=6000,
+                   help="frame width in px the model is shown for (default %(default)s)")
+    q.add_argument("--height", type=number(2, 1_000_000, integer=True), default=4000,
+                   help="frame height in px (default %(default)s)")
     q.add_argument("--plot", help="write a PNG picture of the fall-off")
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("learn", help="estimate frames and pool them into their lenses' profiles")
-    q.add_argument("files", nargs="+")
+    q.add_argument("files", nargs="+", metavar="FILE", help="frames of one or more lenses (their EXIF names the lens)")
     add_transfer(q)
     add_method(q)
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("import", help="import a profile file (profiles/README.md)")
-    q.add_argument("file")
+    q.add_argument("file", help="profile file (JSON) to import")
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("export", help="export a stored profile to a file")
-    q.add_argument("id")
-    q.add_argument("file")
+    q.add_argument("id", help="profile id (see 'vigproc profile list')")
+    q.add_argument("file", help="file to write (JSON)")
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("import-lensfun", help="store lensfun's calibration of a lens as a profile")
-    q.add_argument("maker")
-    q.add_argument("model")
+    q.add_argument("maker", help="lens maker as lensfun names it")
+    q.add_argument("model", help="lens model as lensfun names it")
     q.add_argument("--focal", type=number(0.0, 10_000.0, open_lo=True), required=True, help="mm")
     q.add_argument("--aperture", type=number(0.0, 1_000.0, open_lo=True), required=True, help="f-number")
     q.add_argument("--distance", type=number(0.0, 1e6, open_lo=True), default=1000.0, help="m (1000: infinity)")
-    q.add_argument("--width", type=number(2, 1_000_000, integer=True), default=6000)
-    q.add_argument("--height", type=number(2, 1_000_000, integer=True), default=4000)
+    q.add_argument("--width", type=number(2, 1_000_000, integer=True), default=6000,
+                   help="frame width in px the model is made for (default %(default)s)")
+    q.add_argument("--height", type=number(2, 1_000_000, integer=True), default=4000,
+                   help="frame height in px (default %(default)s)")
     q.add_argument("--lens-id", help="store under this lens id: the 'lens' line that 'vigproc estimate' "
                    "prints for your camera (default: 'maker|model')")
     q.add_argument("--crop-factor", type=number(0.0, 100.0, open_lo=True),
                    help="the camera's crop factor (lenses calibrated on several sensors)")
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("export-lensfun", help="write learned profiles as a lensfun XML database")
-    q.add_argument("file")
-    q.add_argument("--mount", default="Generic")
-    q.add_argument("--crop-factor", type=number(0.0, 100.0, open_lo=True), default=1.0)
+    q.add_argument("file", help="lensfun XML file to write")
+    q.add_argument("--mount", default="Generic", help="lensfun mount name written for the lenses (default %(default)s)")
+    q.add_argument("--crop-factor", type=number(0.0, 100.0, open_lo=True), default=1.0,
+                   help="crop factor written for the lenses (default %(default)s)")
     q.set_defaults(fn=cmd_profile)
 
     sp = sub.add_parser("prior", help="natural-image prior of the paper's method")
     psub = sp.add_subparsers(dest="prior_command", required=True)
     fp = psub.add_parser("fit", help="fit the prior on a folder of vignetting-free images")
-    fp.add_argument("folder")
-    fp.add_argument("-o", "--output", required=True)
-    fp.add_argument("--blocks-per-image", type=int, default=4)
-    fp.add_argument("--seed", type=int, default=0)
-    fp.add_argument("--limit", type=int)
+    fp.add_argument("folder", help="vignetting-free photographs")
+    fp.add_argument("-o", "--output", required=True, help="prior file to write (JSON)")
+    fp.add_argument("--blocks-per-image", type=int, default=4, help="random blocks drawn per image (default 4)")
+    fp.add_argument("--seed", type=int, default=0, help="seed of the block draw")
+    fp.add_argument("--limit", type=int, help="use at most this many images")
     fp.add_argument("--source", help="provenance text stored in the prior")
     add_transfer(fp)
     fp.set_defaults(fn=cmd_prior_fit)
@@ -779,42 +787,44 @@ def build_parser() -> argparse.ArgumentParser:
                            ("fit-profile-bias", "the profile bias that pooling subtracts (vigproc.pooling)",
                             cmd_prior_fit_profile_bias)):
         fp = psub.add_parser(name, help=f"fit {what} on a folder of vignetting-free photos")
-        fp.add_argument("folder")
-        fp.add_argument("-o", "--output", required=True)
+        fp.add_argument("folder", help="vignetting-free photographs")
+        fp.add_argument("-o", "--output", required=True, help="file to write (JSON)")
         if name == "fit-scene":
-            fp.add_argument("--iterations", type=int, default=1)
-        fp.add_argument("--limit", type=int)
+            fp.add_argument("--iterations", type=int, default=1, help="refits with the prior so far (default 1)")
+        fp.add_argument("--limit", type=int, help="use at most this many images")
         add_transfer(fp)
         fp.set_defaults(fn=fn)
 
     sp = sub.add_parser("bench", help="benchmarks (print measured figures)")
     bsub = sp.add_subparsers(dest="bench_command", required=True)
     bp = bsub.add_parser("synthetic", help="Lyu 2010 Tables 2-3 protocol")
-    bp.add_argument("--images", required=True)
-    bp.add_argument("--limit", type=int)
-    bp.add_argument("--quantize", action="store_true")
+    bp.add_argument("--images", required=True, help="folder of images (BSDS val, say)")
+    bp.add_argument("--limit", type=int, help="use at most this many images")
+    bp.add_argument("--quantize", action="store_true", help="quantise the vignetted frames to 8 bits, as a JPEG would")
     bp.add_argument("--input-transfer", choices=("auto", "linear", "srgb"), default="linear",
                     help="the paper's protocol takes stored values as linear (default)")
     bp.add_argument("--methods", nargs="+", default=["ga", "lyu2010-rand", "lyu2010", "default"],
                     choices=["ga", "lyu2010-rand", "lyu2010", "robust", "lens-family", "default", "rgs"],
                     help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
     _add_scene_prior(bp)
-    bp.add_argument("--json")
+    bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_synthetic)
     bp = bsub.add_parser("lensfun", help="real lens profiles from lensfun applied to natural images")
-    bp.add_argument("--images", required=True)
-    bp.add_argument("--limit", type=int)
-    bp.add_argument("--lenses", type=int, default=20)
-    bp.add_argument("--frames-per-lens", type=int, default=5)
+    bp.add_argument("--images", required=True, help="folder of images")
+    bp.add_argument("--limit", type=int, help="use at most this many images")
+    bp.add_argument("--lenses", type=int, default=20, help="lensfun lenses (default %(default)s)")
+    bp.add_argument("--frames-per-lens", type=int, default=5, help="frames per lens (default %(default)s)")
     _add_estimator_bench(bp)
     bp.set_defaults(fn=cmd_bench_lensfun)
     bp = bsub.add_parser("clean", help="vignetting-free bases (central crops of camera frames) x real lens "
                          "fields, with the published peer when built")
     bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
                     help="folders of full-size camera frames (BSDS/Kodak are skipped: film scans)")
-    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000)
+    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
+                    help="frames whose long side is shorter are not used (default %(default)s)")
     bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
-    bp.add_argument("--lenses", type=number(1, 100, integer=True), default=20)
+    bp.add_argument("--lenses", type=number(1, 100, integer=True), default=20,
+                    help="lensfun lenses (default %(default)s)")
     bp.add_argument("--methods", nargs="+", default=["default", "flat-field", "lens-family", "rgs", "rgs-c++"],
                     choices=["default", "default+exif", "robust", "real-lens", "flat-field", "lens-family",
                              "lens-family+exif", "lyu2010", "ga", "rgs", "rgs-c++", "rgs-c++-srgb"],
@@ -834,22 +844,23 @@ def build_parser() -> argparse.ArgumentParser:
     bp.set_defaults(fn=cmd_bench_real)
     bp = bsub.add_parser("speed", help="estimator timings on 480x320 frames")
     bp.add_argument("--images", help="folder of images (default: the bundled samples)")
-    bp.add_argument("--limit", type=int, default=10)
-    bp.add_argument("--repeat", type=int, default=5)
-    bp.add_argument("--methods", nargs="+", default=["ga", "default"], choices=list(METHODS))
+    bp.add_argument("--limit", type=int, default=10, help="use at most this many images (default %(default)s)")
+    bp.add_argument("--repeat", type=int, default=5, help="timing rounds (default %(default)s)")
+    bp.add_argument("--methods", nargs="+", default=["ga", "default"], choices=list(METHODS),
+                    help="estimators to time (default: ga default)")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_speed)
     bp = bsub.add_parser("io", help="frame read times per format and EXIF per file in batch")
-    bp.add_argument("--width", type=int, default=6000)
-    bp.add_argument("--height", type=int, default=4000)
-    bp.add_argument("--repeat", type=int, default=3)
+    bp.add_argument("--width", type=int, default=6000, help="frame width in px (default %(default)s)")
+    bp.add_argument("--height", type=int, default=4000, help="frame height in px (default %(default)s)")
+    bp.add_argument("--repeat", type=int, default=3, help="timing rounds (default %(default)s)")
     bp.add_argument("--raw", help="folder of RAW files to time (full and half size)")
     bp.add_argument("--exif", help="folder of images to time EXIF reading on")
     bp.set_defaults(fn=cmd_bench_io)
     bp = bsub.add_parser("profile", help="profile accuracy versus number of frames (lensfun lenses)")
-    bp.add_argument("--images", required=True)
-    bp.add_argument("--limit", type=int)
-    bp.add_argument("--lenses", type=int, default=20)
+    bp.add_argument("--images", required=True, help="folder of images")
+    bp.add_argument("--limit", type=int, help="use at most this many images")
+    bp.add_argument("--lenses", type=int, default=20, help="lensfun lenses (default %(default)s)")
     bp.add_argument("--counts", type=number(1, 100_000, integer=True), nargs="+", default=[1, 5, 20],
                     help="numbers of frames per lens to report (default 1 5 20)")
     bp.add_argument("--no-joint", action="store_true",
@@ -857,9 +868,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_profile)
     bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")
-    bp.add_argument("--width", type=int, default=6000)
-    bp.add_argument("--height", type=int, default=4000)
-    bp.add_argument("--repeat", type=int, default=15)
+    bp.add_argument("--width", type=int, default=6000, help="frame width in px (default %(default)s)")
+    bp.add_argument("--height", type=int, default=4000, help="frame height in px (default %(default)s)")
+    bp.add_argument("--repeat", type=int, default=15, help="timing rounds (default %(default)s)")
     bp.set_defaults(fn=cmd_bench_correct)
     for mod in command_modules:  # benchmarks of the command modules (register_bench is optional)
         if hasattr(mod, "register_bench"):
@@ -876,7 +887,7 @@ def _add_estimator_bench(bp: argparse.ArgumentParser) -> None:
     bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],
                     help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
     _add_scene_prior(bp)
-    bp.add_argument("--json")
+    bp.add_argument("--json", help="write the figures to this file")
 
 
 def _add_scene_prior(bp: argparse.ArgumentParser) -> None:

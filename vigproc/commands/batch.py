@@ -202,8 +202,8 @@ def register(subparsers) -> None:
                     "per line, relative to the list's folder). Outputs mirror the input tree under OUT (not DIR "
                     "itself; nothing inside OUT is ever taken as input). Interrupt "
                     "at any time and rerun the same command to resume: done files are not redone.")
-    sp.add_argument("source", metavar="DIR|LIST")
-    sp.add_argument("--mode", choices=MODES, required=True)
+    sp.add_argument("source", metavar="DIR|LIST", help="folder of images, or a text file listing them (one per line)")
+    sp.add_argument("--mode", choices=MODES, required=True, help="correct, estimate, check or learn")
     sp.add_argument("-o", "--output", required=True, help="output folder (sidecars, corrected images)")
     sp.add_argument("--workers", type=number(1, 1024, integer=True), help="local worker processes (default: all cores)")
     sp.add_argument("--scheduler", help="run on a dask.distributed cluster: tcp://HOST:PORT of its scheduler")
@@ -374,12 +374,14 @@ def _bench_run(B, items, settings, name: str, out: Path, prof: Path | None) -> d
 
 def register_bench(bench_subparsers) -> None:
     bp = bench_subparsers.add_parser("batch", help="batch files/s: 1 and 2 local workers, 2-process LocalCluster")
-    bp.add_argument("--files", type=int, default=40)
-    bp.add_argument("--width", type=int, default=1500)
-    bp.add_argument("--height", type=int, default=1000)
-    bp.add_argument("--modes", nargs="+", choices=["correct", "estimate"], default=["correct", "estimate"])
+    bp.add_argument("--files", type=int, default=40, help="generated frames (default %(default)s)")
+    bp.add_argument("--width", type=int, default=1500, help="frame width in px (default %(default)s)")
+    bp.add_argument("--height", type=int, default=1000, help="frame height in px (default %(default)s)")
+    bp.add_argument("--modes", nargs="+", choices=["correct", "estimate"], default=["correct", "estimate"],
+                    help="modes to time (default: correct estimate)")
     bp.add_argument("--backends", nargs="+", choices=["local1", "local2", "localcluster2"],
-                    default=["local1", "local2", "localcluster2"])
+                    default=["local1", "local2", "localcluster2"],
+                    help="one process, a pool of two, a Dask LocalCluster of two (default: all three)")
     bp.add_argument("--output-format", default="tiff16", help="output format of the correct rows (default tiff16)")
     bp.add_argument("--repeat", type=int, default=2, help="runs per row, interleaved; the best is shown (default 2)")
     bp.add_argument("--tmp", help="folder for the temporary files (default: the system's)")

@@ -37,7 +37,8 @@ def register(subparsers) -> None:
                     "metadata claims (a stored profile, else lensfun): consistent, inconsistent, "
                     "unknown-lens or insufficient-signal, with a calibrated false-alarm probability.",
         epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sp.add_argument("files", nargs="+")
+    sp.add_argument("files", nargs="+", metavar="FILE",
+                    help="images to check against the lens their EXIF names")
     store = sp.add_mutually_exclusive_group()  # a store that is then not read is a mistake
     add_profile_db(store)
     store.add_argument("--no-store", action="store_true", help="compare with lensfun only, not with stored profiles")
@@ -47,7 +48,8 @@ def register(subparsers) -> None:
                     help="also pool the evidence of all frames that claim the same lens profile")
     sp.add_argument("--calibration", help="a calibration of the check made with 'vigproc forensics calibrate' "
                                           "on photographs like yours (default: the shipped one)")
-    sp.add_argument("--alpha", type=number(0.0, 0.5, open_lo=True), help="false-alarm probability below which a frame is inconsistent "
+    sp.add_argument("--alpha", type=number(0.0, 0.5, open_lo=True),
+                    help="false-alarm probability below which a frame is inconsistent "
                                                 "(default: the calibration's, 0.05)")
     add_method(sp)
     add_transfer(sp)

@@ -34,7 +34,7 @@ def register(subparsers) -> None:
                                                  "and the calibration of 'vigproc check'")
     fsub = sp.add_subparsers(dest="forensics_command", required=True)
     q = fsub.add_parser("train", help="train a lens classifier: each subfolder of DIR is a class")
-    q.add_argument("dirs", nargs="+", metavar="DIR")
+    q.add_argument("dirs", nargs="+", metavar="DIR", help="one folder of frames per lens (its name is the class)")
     q.add_argument("-o", "--output", required=True, help="classifier file (JSON)")
     q.add_argument("--classifier", choices=list(CLASSIFIERS), default="vigproc",
                    help="vigproc: Gaussian on the ring fall-off, pooled spread (default); "
@@ -45,22 +45,22 @@ def register(subparsers) -> None:
     add_transfer(q)
     q.set_defaults(fn=cmd_train)
     q = fsub.add_parser("evaluate", help="classify labelled folders and print the confusion matrix")
-    q.add_argument("model")
-    q.add_argument("dir")
+    q.add_argument("model", help="classifier file written by 'vigproc forensics train'")
+    q.add_argument("dir", help="folder with one sub-folder of frames per lens")
     q.add_argument("--frames", type=number(1, 10_000, integer=True), default=1,
                    help="decide on groups of N frames of a class at once (multi-frame evidence)")
-    q.add_argument("--json", action="store_true")
+    q.add_argument("--json", action="store_true", help="print the results as JSON")
     add_transfer(q)
     q.set_defaults(fn=cmd_evaluate)
     q = fsub.add_parser("calibrate", help="calibrate 'vigproc check' on vignetting-free photographs "
                                           "x real lensfun lens fields")
     q.add_argument("--images", nargs="+", required=True, help="folders of vignetting-free photographs")
-    q.add_argument("-o", "--output", required=True)
+    q.add_argument("-o", "--output", required=True, help="calibration file to write (JSON)")
     q.add_argument("--lenses", type=int, default=16, help="lensfun lenses (two apertures each)")
     q.add_argument("--per-image", type=int, default=4, help="lens fields per photograph")
     q.add_argument("--alpha", type=number(0.0, 0.5, open_lo=True), default=0.05,
                    help="false-alarm probability of the verdict")
-    q.add_argument("--limit", type=int)
+    q.add_argument("--limit", type=int, help="use at most this many images")
     add_method(q)
     add_transfer(q)
     q.set_defaults(fn=cmd_calibrate)
@@ -70,12 +70,13 @@ def register_bench(bench_subparsers) -> None:
     bp = bench_subparsers.add_parser("forensics", help="lens identification (Fig. 6) and the consistency "
                                                        "check on real lensfun fields: accuracy, ROC AUC")
     bp.add_argument("--images", nargs="+", required=True, help="folders of photographs (not the prior's)")
-    bp.add_argument("--lenses", type=int, default=8)
+    bp.add_argument("--lenses", type=int, default=8, help="lensfun lenses (classes; default %(default)s)")
     bp.add_argument("--frames", type=int, default=5, help="frames per multi-frame decision")
-    bp.add_argument("--alpha", type=float, default=0.05)
-    bp.add_argument("--seed", type=int, default=0)
+    bp.add_argument("--alpha", type=float, default=0.05,
+                    help="false-alarm probability of the check (default %(default)s)")
+    bp.add_argument("--seed", type=int, default=0, help="seed of the train/test split")
     bp.add_argument("--limit", type=int, help="photographs per folder")
-    bp.add_argument("--json")
+    bp.add_argument("--json", help="write the figures to this file")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_forensics)
 

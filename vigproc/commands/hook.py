@@ -362,7 +362,8 @@ def register(subparsers) -> None:
                     "stdout. Exit codes: 0 ok, 1 some files failed, 2 usage, 3-12 every file failed with "
                     "that error, 70 internal.")
     sp.add_argument("files", nargs="*", help="input images (put them after --)")
-    sp.add_argument("--mode", choices=HOOK_MODES, default="correct")
+    sp.add_argument("--mode", choices=HOOK_MODES, default="correct",
+                    help="correct (write corrected images), estimate or check (default %(default)s)")
     sp.add_argument("-o", "--output", help="output folder (corrected images and JSON sidecars)")
     sp.add_argument("--output-file", metavar="PATH",
                     help="correct mode, one input: write the corrected image to exactly PATH (.tif/.tiff "
@@ -431,7 +432,7 @@ def cmd_bench_hook(args: argparse.Namespace) -> int:
 
 def register_bench(bench_subparsers) -> None:
     bp = bench_subparsers.add_parser("hook", help="cost of one vigproc hook call vs the in-process API")
-    bp.add_argument("--width", type=int, default=1200)
-    bp.add_argument("--height", type=int, default=800)
-    bp.add_argument("--repeat", type=int, default=5)
+    bp.add_argument("--width", type=int, default=1200, help="frame width in px (default %(default)s)")
+    bp.add_argument("--height", type=int, default=800, help="frame height in px (default %(default)s)")
+    bp.add_argument("--repeat", type=int, default=5, help="timing rounds (default %(default)s)")
     bp.set_defaults(fn=cmd_bench_hook)

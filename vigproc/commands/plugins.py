@@ -49,6 +49,6 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     sp = subparsers.add_parser("plugins", help="list installed extensions (estimators, profile sources)")
-    sp.add_argument("--json", action="store_true")
+    sp.add_argument("--json", action="store_true", help="print the list as JSON")
     sp.add_argument("--strict", action="store_true", help="exit 1 when an installed plugin is broken")
     sp.set_defaults(fn=cmd_plugins)

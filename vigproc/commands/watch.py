@@ -117,9 +117,10 @@ def register(subparsers) -> None:
         description="Watch IN_DIR and process every complete image that appears in it (correct, check or learn), "
                     "exactly once across restarts and crashes. Stop with SIGTERM or Ctrl-C (work in progress is "
                     "finished first).")
-    sp.add_argument("in_dir", metavar="IN_DIR")
+    sp.add_argument("in_dir", metavar="IN_DIR", help="folder to watch")
     sp.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="outputs and JSON sidecars")
-    sp.add_argument("--mode", choices=("correct", "check", "learn"), default="correct")
+    sp.add_argument("--mode", choices=("correct", "check", "learn"), default="correct",
+                    help="correct (default), check or learn")
     sp.add_argument("--workers", type=number(1, 1024, integer=True), default=_default_workers(),
                     help=f"worker processes (default: half the cores, here {_default_workers()})")
     sp.add_argument("--poll", type=float, metavar="SECONDS",
@@ -389,13 +390,16 @@ def register_bench(bench_subparsers) -> None:
     from vigproc.pipeline import OUTPUT_FORMATS
 
     bp = bench_subparsers.add_parser("watch", help="watch-folder throughput with a trusted profile vs bare read+write")
-    bp.add_argument("--files", type=int, default=40)
-    bp.add_argument("--width", type=int, default=3000)
-    bp.add_argument("--height", type=int, default=2000)
-    bp.add_argument("--workers", type=int, default=_default_workers())
-    bp.add_argument("--input-format", choices=("jpeg", "tiff16"), default="jpeg")
-    bp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="tiff16")
-    bp.add_argument("--settle", type=float, default=0.2)
+    bp.add_argument("--files", type=int, default=40, help="generated frames (default %(default)s)")
+    bp.add_argument("--width", type=int, default=3000, help="frame width in px (default %(default)s)")
+    bp.add_argument("--height", type=int, default=2000, help="frame height in px (default %(default)s)")
+    bp.add_argument("--workers", type=int, default=_default_workers(), help="daemon workers (default %(default)s)")
+    bp.add_argument("--input-format", choices=("jpeg", "tiff16"), default="jpeg",
+                    help="format of the generated frames (default %(default)s)")
+    bp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="tiff16",
+                    help="the daemon's output format (default %(default)s)")
+    bp.add_argument("--settle", type=float, default=0.2,
+                    help="seconds a file must stay unchanged before it is processed (default %(default)s)")
     bp.add_argument("--tmp", help="folder for the temporary files (default: the system's)")
     bp.add_argument("--keep", action="store_true", help="keep the temporary folder")
     bp.set_defaults(fn=cmd_bench_watch)
