@@ -359,7 +359,7 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
           f"{args.min_long_side} px from {' '.join(args.images)}; error = RMS of log2(estimated/true) "
           "about its mean (EV); median per field, then median / p90 over fields")
     print(f"lens family for lens-family: {family.lenses} lensfun lenses, the {len(lens)} test lenses left out")
-    head = (f"{'method':<14}{'fields':<9}{'median EV':>10}{'p90 EV':>8}{'frames med':>11}{'uncorr':>8}"
+    head = (f"{'method':<18}{'fields':<9}{'median EV':>10}{'p90 EV':>8}{'frames med':>11}{'uncorr':>8}"
             f"{'<=1sd':>7}{'<=2sd':>7}{'fallbk':>8}{'ms/frame':>10}")
     results = []
     groups = [("lensfun", lens)] + ([] if args.no_table1 else
@@ -370,15 +370,15 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
         for label, fields in groups:
             r = C.run_fields(bases, name, fn, fields, label)
             results.append(asdict(r))
-            print(f"{r.method:<14}{r.fields:<9}{r.median_ev:>10.3f}{r.p90_ev:>8.3f}{r.frame_median_ev:>11.3f}"
+            print(f"{r.method:<18}{r.fields:<9}{r.median_ev:>10.3f}{r.p90_ev:>8.3f}{r.frame_median_ev:>11.3f}"
                   f"{r.uncorrected_ev:>8.3f}{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}{r.fallbacks:>8}"
                   f"{r.ms_per_frame:>10.1f}", flush=True)
     print("no harm (the same crops, no vignetting): RMS of log2 of the applied field about its mean")
-    print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'fallbk':>8}")
+    print(f"{'method':<18}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'fallbk':>8}")
     for name, fn in methods.items():
         r = C.run_harm(bases, name, fn)
         results.append(asdict(r))
-        print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.fallbacks:>8}")
+        print(f"{r.method:<18}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.fallbacks:>8}")
     if args.json:
         from vigproc.atomic import atomic_write_text
 
