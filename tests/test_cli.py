@@ -427,23 +427,27 @@ def test_help_and_usage_errors_import_no_numeric_stack():
     assert "HEAVY []" in r.stderr, r.stderr[-2000:]
 
 
-def test_public_names_are_imported_on_first_use():
-    code = ("import sys, vigproc\n"
-            "assert 'numba' not in sys.modules\n"
-            "from vigproc import estimate, VignettingModel, Pipeline, METHODS\n"
-            "assert callable(estimate) and 'default' in METHODS and 'numba' in sys.modules\n"
-            "print(sorted(vigproc.__all__) == sorted(n for n in vigproc.__all__ if hasattr(vigproc, n)))\n")
+def _fresh_python_says_true(code: str) -> None:
+    """Run ``code`` in a new interpreter (a clean import state); it must print True."""
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == "True", r.stderr[-2000:]
+
+
+def test_public_names_are_imported_on_first_use():
+    _fresh_python_says_true(
+        "import sys, vigproc\n"
+        "assert 'numba' not in sys.modules\n"
+        "from vigproc import estimate, VignettingModel, Pipeline, METHODS\n"
+        "assert callable(estimate) and 'default' in METHODS and 'numba' in sys.modules\n"
+        "print(sorted(vigproc.__all__) == sorted(n for n in vigproc.__all__ if hasattr(vigproc, n)))\n")
 
 
 def test_estimate_and_correct_stay_functions_when_their_modules_load_first():
-    code = ("import vigproc.estimate, vigproc.correct, vigproc.pipeline\n"
-            "import vigproc\n"
-            "print(callable(vigproc.estimate) and callable(vigproc.correct)"
-            " and vigproc.estimate.__module__ == 'vigproc.estimate')\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0 and r.stdout.strip() == "True", r.stderr[-2000:]
+    _fresh_python_says_true(
+        "import vigproc.estimate, vigproc.correct, vigproc.pipeline\n"
+        "import vigproc\n"
+        "print(callable(vigproc.estimate) and callable(vigproc.correct)"
+        " and vigproc.estimate.__module__ == 'vigproc.estimate')\n")
 
 
 def test_every_option_and_argument_has_help_text():
