@@ -177,9 +177,9 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     off the frame's (:func:`vigproc.family_fit.fit_centre`: a crop, a shifted lens, a
     stitched image), the free off-centre, elliptical Kang-Weiss fit
     (:func:`vigproc.robust.estimate_robust`) is tried too, and kept when it explains
-    the frame's log differences clearly better (:func:`vigproc.family_fit.pair_loss`).
+    the frame's log differences clearly better (:func:`vigproc.family_fit.pair_losses`).
     """
-    from vigproc.family_fit import FamilySettings, fit_centre, fit_family, pair_loss
+    from vigproc.family_fit import FamilySettings, fit_centre, fit_family, pair_losses
 
     s = FamilySettings()
     model, coef = fit_family(lum, s, mask, family, hint)
@@ -189,8 +189,7 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     if not centre.off_centre(s.off_centre_shift):
         return model
     free = estimate_robust(lum, RobustSettings(), mask)
-    loss_family = pair_loss(lum, model.candidate or model, s, mask)
-    loss_free = pair_loss(lum, free.candidate or free, s, mask)
+    loss_family, loss_free = pair_losses(lum, [model.candidate or model, free.candidate or free], s, mask)
     if loss_free < loss_family - s.select_margin:
         log.info("vignetting centre off the frame's by (%.0f, %.0f) px and the free Kang-Weiss fit explains "
                  "the frame better (loss %.3f < %.3f): using it", centre.offset[0], centre.offset[1],

@@ -38,7 +38,8 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Sequence
 
 import numpy as np
 
@@ -107,7 +108,7 @@ class FamilySettings:
         A centre at least this far from the frame's (half-diagonals,
         :func:`fit_centre`) makes the default estimator try the free Kang-Weiss fit.
     select_margin : float
-        ... which it keeps when its mean Cauchy loss per pair (:func:`pair_loss`) is
+        ... which it keeps when its mean Cauchy loss per pair (:func:`pair_losses`) is
         lower than the lens-family fit's by more than this.
     """
 
@@ -254,7 +255,7 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     """
     fam = family or default_family()
     h, w = lum.shape
-    small = FamilySettings(**{**settings.__dict__, "work_size": work_size})
+    small = replace(settings, work_size=work_size)
     L, valid, xs, ys = _working_copy(lum, small, mask)
     radius = half_diagonal(w, h)
     X, Y = xs[None, :] / radius, ys[:, None] / radius
@@ -302,20 +303,22 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     return CentreFit((float(off[0]), float(off[1])), cov_px, z, float(np.hypot(*u)))
 
 
-def pair_loss(lum: np.ndarray, model: VignettingModel, settings: FamilySettings = FamilySettings(),
-              mask: np.ndarray | None = None) -> float:
-    """Mean Cauchy loss log(1 + (e/σ)²) per pair of the frame's log differences once
-    ``model``'s field is divided out: how well a field explains the frame, the same
-    measure for any model (the default estimator's choice between fits)."""
+def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: FamilySettings = FamilySettings(),
+                mask: np.ndarray | None = None) -> list[float]:
+    """Mean Cauchy loss log(1 + (e/σ)²) per pair of the frame's log differences once each
+    model's field is divided out: how well a field explains the frame, the same measure
+    for any model (the default estimator's choice between fits). One working copy."""
     L, valid, xs, ys = _working_copy(lum, settings, mask)
-    X = np.broadcast_to(xs[None, :], L.shape)
-    Y = np.broadcast_to(ys[:, None], L.shape)
-    F = np.ascontiguousarray(model.log_field_at(np.ascontiguousarray(X), np.ascontiguousarray(Y)))
+    X = np.ascontiguousarray(np.broadcast_to(xs[None, :], L.shape))
+    Y = np.ascontiguousarray(np.broadcast_to(ys[:, None], L.shape))
     steps = np.asarray([s for s in settings.steps if s < min(L.shape)], dtype=np.int64)
-    d, _, _ = family_pairs(L, valid, F, np.zeros(L.shape + (1,)), steps, np.zeros(L.shape, dtype=np.int64))
-    if d.size == 0:
-        return math.inf
-    return float(np.mean(np.log1p((d / settings.sigma) ** 2)))
+    none, one_block = np.zeros(L.shape + (1,)), np.zeros(L.shape, dtype=np.int64)
+    out = []
+    for model in models:
+        F = np.ascontiguousarray(model.log_field_at(X, Y))
+        d, _, _ = family_pairs(L, valid, F, none, steps, one_block)
+        out.append(float(np.mean(np.log1p((d / settings.sigma) ** 2))) if d.size else math.inf)
+    return out
 
 
 def estimate_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
