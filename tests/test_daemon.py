@@ -84,6 +84,10 @@ def test_errors_are_classified():
     kind, reason = classify_error(ZeroDivisionError("division by zero"))
     assert kind == PERMANENT and reason.startswith("internal error (ZeroDivisionError")
     assert "\n" not in classify_error(ImageReadError("two\nlines"))[1]
+    # LibRaw's IO error is about a truncated RAW's data, not the device: no retries
+    truncated = ImageReadError("cannot read image 'a.dng': RAW decoding failed (LibRawIOError: Input/output error)")
+    assert classify_error(truncated)[0] == PERMANENT
+    assert classify_error(OSError(5, "Input/output error"))[0] == TRANSIENT  # the device's: retried
 
 
 def test_text_log_lines_cannot_be_forged_by_file_names():

@@ -199,6 +199,10 @@ def classify_error(exc: BaseException) -> tuple[str, str]:
     err_no = getattr(exc, "errno", None)
     if err_no in _DISK_FULL_ERRNOS or any(t in low for t in _DISK_FULL_TEXT):
         return DISK_FULL, msg
+    if "libraw" in low and not getattr(exc, "transient", False):
+        # LibRaw's own words about the file's data ("LibRawIOError: Input/output error" for
+        # a truncated RAW): the photo's fault, not the device's; retrying cannot help
+        return PERMANENT, msg
     if getattr(exc, "transient", False) or err_no in _TRANSIENT_ERRNOS or any(t in low for t in _TRANSIENT_TEXT):
         return TRANSIENT, msg
     if isinstance(exc, VigprocError):
