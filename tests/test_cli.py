@@ -467,3 +467,11 @@ def test_every_option_and_argument_has_help_text():
 
     walk(build_parser(), ["vigproc"])
     assert missing == []
+
+
+def test_estimate_reports_an_unknown_method_once_and_check_counts_only_failures(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    r = run("estimate", path, path, "--method", "no-such-method")
+    assert r.returncode == 2 and r.stderr.count("unknown method") == 1 and str(path) not in r.stderr
+    r = run("check", tmp_path / "missing.jpg", "--profile-db", tmp_path / "p.sqlite")
+    assert r.returncode == 1 and r.stdout.strip().splitlines()[-1] == "1 failed", r.stdout

@@ -37,6 +37,9 @@ def _progress(items: Sequence, what: str):
 # ----------------------------------------------------------------- commands
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Each file in turn; the exit code is the first failure's (0 when all succeed)."""
+    from vigproc.pipeline import Settings
+
+    Settings(mode="estimate", method=args.method, transfer=args.input_transfer)  # a bad --method: one usage error
     code = 0
     for f in args.files:
         try:

@@ -148,5 +148,6 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(json.dumps({"results": results, "pooled": pooled, "counts": counts, "failed": failed,
                           "exit_code": code}, indent=1))
     else:
-        print(", ".join(f"{n} {k}" for k, n in sorted(counts.items())) + f"; {failed} failed")
+        summary = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
+        print(f"{summary}; {failed} failed" if summary else f"{failed} failed")
     return code
