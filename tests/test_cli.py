@@ -475,3 +475,16 @@ def test_estimate_reports_an_unknown_method_once_and_check_counts_only_failures(
     assert r.returncode == 2 and r.stderr.count("unknown method") == 1 and str(path) not in r.stderr
     r = run("check", tmp_path / "missing.jpg", "--profile-db", tmp_path / "p.sqlite")
     assert r.returncode == 1 and r.stdout.strip().splitlines()[-1] == "1 failed", r.stdout
+
+
+def test_profile_show_uses_the_profiles_own_frame_and_prints_a_summary(tmp_path):
+    db = tmp_path / "p.sqlite"
+    r = run("profile", "--profile-db", db, "import-lensfun", "Sigma", "105mm F1.4 DG HSM | Art 018",
+            "--focal", "105", "--aperture", "1.4", "--width", "4000", "--height", "3000")
+    assert r.returncode == 0, r.stderr
+    r = run("profile", "--profile-db", db, "show", "0")  # a 4:3 profile: no --width/--height needed
+    assert r.returncode == 0, r.stderr
+    assert "frame       6000x4500" in r.stdout and "EV RMS" in r.stdout and "{" not in r.stdout
+    r = run("profile", "--profile-db", db, "show", "0", "--json", "--height", "300")
+    doc = json.loads(r.stdout)  # JSON only on stdout
+    assert (doc["width"], doc["height"]) == (400, 300)

@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import sys
 import time
 from dataclasses import asdict
@@ -601,6 +602,21 @@ def _pick_profile(store, ident: str):
     raise ProfileStoreError(f"no stored profile {ident!r} (see 'vigproc profile list')")
 
 
+def _profile_frame(aspect: float, width: int | None, height: int | None) -> tuple[int, int]:
+    """The frame a profile is shown for: what is given, the rest from its aspect ratio
+    (6000 px on the long side when neither is given)."""
+    if width is None and height is None:
+        if aspect >= 1:
+            width = 6000
+        else:
+            height = 6000
+    if width is None:
+        width = max(2, round(height * aspect))
+    if height is None:
+        height = max(2, round(width / aspect))
+    return int(width), int(height)
+
+
 def cmd_profile(args: argparse.Namespace) -> int:
     from vigproc.profiles import ProfileKey, export_profile
 
@@ -610,15 +626,24 @@ def cmd_profile(args: argparse.Namespace) -> int:
                 print(_profile_line(i, p))
         elif args.profile_command == "show":
             p = _pick_profile(store, args.id)
-            print(_profile_line(0, p).split("] ", 1)[1])
-            m = p.model(args.width, args.height)
-            print(json.dumps(m.to_dict(), indent=1))
+            width, height = _profile_frame(p.key.aspect_ratio, args.width, args.height)
+            m = p.model(width, height)
+            if args.json:
+                print(json.dumps(m.to_dict(), indent=1))
+            else:
+                q = m.quality
+                print(_profile_line(0, p).split("] ", 1)[1])
+                print(f"  frame       {width}x{height}")
+                print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
+                print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame"
+                      + (f", ±{q.field_sigma_ev:.3f} EV" if q and math.isfinite(q.field_sigma_ev) else ""))
+                print("  (--json prints the whole model)")
             if args.plot:
                 from vigproc.io import write_image
                 from vigproc.picture import falloff_figure
 
                 write_image(args.plot, falloff_figure(m, title=str(p.key)), bit_depth="uint8", transfer="srgb")
-                print(f"picture -> {args.plot}")
+                print(f"picture -> {args.plot}", file=sys.stderr if args.json else sys.stdout)
         elif args.profile_command == "learn":
             from vigproc.io import read_image
             from vigproc.pipeline import Processor, Settings, file_sha256, read_lens
@@ -735,11 +760,13 @@ def build_parser() -> argparse.ArgumentParser:
     psub.add_parser("list", help="stored profiles").set_defaults(fn=cmd_profile)
     q = psub.add_parser("show", help="one profile as a model for a frame size, optionally as a picture")
     q.add_argument("id", help="index from 'profile list' or the key text")
-    q.add_argument("--width", type=number(2, 1_000_000, integer=True), default=6000,
-                   help="frame width in px the model is shown for (default %(default)s)")
-    q.add_argument("--height", type=number(2, 1_000_000, integer=True), default=4000,
-                   help="frame height in px (default %(default)s)")
+    q.add_argument("--width", type=number(2, 1_000_000, integer=True),
+                   help="frame width in px the model is shown for (default: 6000 px on the long side, "
+                        "the profile's aspect ratio)")
+    q.add_argument("--height", type=number(2, 1_000_000, integer=True),
+                   help="frame height in px (default: from the width and the profile's aspect ratio)")
     q.add_argument("--plot", help="write a PNG picture of the fall-off")
+    q.add_argument("--json", action="store_true", help="print the profile's model as JSON instead of a summary")
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("learn", help="estimate frames and pool them into their lenses' profiles")
     q.add_argument("files", nargs="+", metavar="FILE", help="frames of one or more lenses (their EXIF names the lens)")
