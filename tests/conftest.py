@@ -10,6 +10,24 @@ import pytest
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
+def pytest_configure(config):
+    """Compile the Numba kernels once, in the main process, before pytest-xdist's
+    workers start: two workers compiling the same cached kernel at once can race on
+    Numba's cache files (a fresh clone has none)."""
+    if hasattr(config, "workerinput"):  # a worker: the main process has done it
+        return
+    import vigproc
+
+    img = textured(96, 144, seed=0, contrast=0.1)
+    for method in ("default", "robust", "lens-family", "flat-field", "lyu2010", "ga"):
+        try:
+            vigproc.estimate(img if method not in ("lyu2010", "ga") else textured(64, 96), method, channel_axis=None)
+        except vigproc.VigprocError:  # warm-up only: the tests judge the estimators
+            pass
+    vigproc.correct(np.repeat(img[..., None], 3, axis=2).astype(np.float32),
+                    vigproc.VignettingModel(144, 96, p=(1e-4, 0.0, 1e-4)))
+
+
 def textured(h: int, w: int, seed: int = 0, contrast: float = 0.3) -> np.ndarray:
     """A positive 'natural-like' texture: log-normal with 1/f-ish smoothing."""
     rng = np.random.default_rng(seed)

@@ -352,6 +352,43 @@ def test_check_cli_exit_codes_json_and_report(tmp_path, classes, capsys):
     assert report.is_file() and "plain.tif" in report.read_text()
 
 
+def test_a_check_never_uses_a_profile_that_holds_the_frame_itself(tmp_path, classes, calibration):
+    from vigproc.profiles import ProfileKey, ProfileStore
+
+    strong = classes[4]
+    key = key_of(strong)
+    img = frame(strong, seed=50)
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        m = estimate(img, FORENSICS_METHOD, channel_axis=None)
+        store.learn(ProfileKey.from_lens(key, W, H), m.candidate or m, frame_id="sha-of-this-frame")
+        # a profile learned from this very frame would vouch for it
+        v = check_image(img, key, store=store, calibration=calibration, frame_id="sha-of-this-frame")
+        assert v.expected_source != "stored-profile"
+        assert store.holds_frame(ProfileKey.from_lens(key, W, H), "sha-of-this-frame")
+        # another frame of the lens may use it
+        v = check_image(frame(strong, seed=51), key, store=store, calibration=calibration, frame_id="other")
+        assert v.expected_source == "stored-profile"
+
+
+def test_check_cli_does_not_check_a_frame_against_its_own_profile(tmp_path, classes, capsys):
+    from vigproc.cli import main
+
+    # learn the lens from one frame, then check that frame: its own profile is no reference
+    from dngfixture import make_dng
+
+    c = classes[4]
+    path = tmp_path / "a.dng"
+    make_dng(path, width=W, height=H, field=c.field(H, W), scene=0.8 * textured(H, W, seed=52, contrast=0.15),
+             exif={"Make": "Canon", "Model": "Canon EOS 5D", "LensModel": "EF24-105mm f/4L IS USM",
+                   "FocalLength": 24, "FNumber": 4})
+    db = tmp_path / "p.sqlite"
+    assert main(["profile", "--profile-db", str(db), "learn", str(path)]) == 0
+    capsys.readouterr()
+    main(["check", str(path), "--profile-db", str(db), "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["results"][0].get("expected_source") != "stored-profile", doc["results"][0]
+
+
 def test_check_cli_line_escapes_a_newline_in_a_file_name(tmp_path, classes, capsys):
     from vigproc.cli import main
 

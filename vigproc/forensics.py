@@ -546,9 +546,13 @@ def expected_from_field(model: VignettingModel, calibration: Calibration, *, sou
                     calibration.covariance_matrix)
 
 
-def expected_for(lens_key, width: int, height: int, *, store=None, calibration: Calibration) -> Expected | None:
+def expected_for(lens_key, width: int, height: int, *, store=None, calibration: Calibration,
+                 frame_id: str | None = None) -> Expected | None:
     """The expected model of the lens ``lens_key`` names, for a ``width``×``height``
     frame: a stored profile (trusted or not), else lensfun's calibration, else None.
+
+    A stored profile that pooled the frame under check (content id ``frame_id``, or
+    a copy of it) is not used: the frame would vouch for itself.
 
     Raises
     ------
@@ -565,6 +569,9 @@ def expected_for(lens_key, width: int, height: int, *, store=None, calibration: 
             p = store.lookup(lens_key, width, height)
         except VigprocError as exc:  # an odd key or a busy store: try lensfun
             log.warning("profile lookup failed: %s", exc)
+            p = None
+        if p is not None and frame_id is not None and store.holds_frame(p.key, frame_id):
+            log.info("the stored profile %s holds this very frame; not used as its reference", p.key)
             p = None
         if p is not None:
             try:
@@ -841,7 +848,7 @@ def check_model(
 
 def check_image(
     img: np.ndarray, lens_key, *, store=None, method: str = "default", calibration: Calibration | None = None,
-    alpha: float | None = None,
+    alpha: float | None = None, frame_id: str | None = None,
 ) -> Verdict:
     """Does the vignetting of ``img`` match the lens its metadata names?
 
@@ -859,6 +866,9 @@ def check_image(
         Default: the shipped one (:func:`default_calibration`).
     alpha : float, optional
         False-alarm probability threshold (default: the calibration's).
+    frame_id : str, optional
+        The frame's content id (SHA-256 of its file): a stored profile that pooled this
+        frame is not its reference (:func:`expected_for`).
 
     Returns
     -------
@@ -882,7 +892,7 @@ def check_image(
     _warn_if_stale(cal, method)
     m = estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)
     h, w = img.shape[:2]
-    exp = expected_for(lens_key, w, h, store=store, calibration=cal)
+    exp = expected_for(lens_key, w, h, store=store, calibration=cal, frame_id=frame_id)
     return check_model(m, exp, calibration=cal, lens_id=lens_key.lens_id() if lens_key is not None else None,
                        alpha=alpha)
 

@@ -487,8 +487,9 @@ class Processor:
     def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image", frame_id: str | None = None):
         """Process an in-memory linear image (H×W or H×W×C, channels last).
 
-        ``frame_id`` (learn mode): the frame's content id; a frame already pooled
-        into its lens's profile is not pooled again (:meth:`ProfileStore.learn`).
+        ``frame_id``: the frame's content id. Learn mode: a frame already pooled into
+        its lens's profile is not pooled again (:meth:`ProfileStore.learn`). Check mode:
+        a stored profile that pooled the frame is not its reference.
 
         Returns
         -------
@@ -510,7 +511,7 @@ class Processor:
         if s.mode == "check":
             from vigproc.forensics import check_image  # noqa: PLC0415 - only check mode needs it
 
-            verdict = check_image(img, lens_key, store=self.store, method=s.method)
+            verdict = check_image(img, lens_key, store=self.store, method=s.method, frame_id=frame_id)
             res.verdict = verdict.to_dict()
             res.source = "estimate"
             res.model = getattr(verdict, "estimate", None)
@@ -603,8 +604,8 @@ class Processor:
             refuse_input(target, (own,), protect)
         img, _info = read_image(path, transfer=s.transfer)
         lens_key, lens = read_lens(self.reader, path)
-        if s.mode == "learn" and frame_id is None:
-            frame_id = file_sha256(path)
+        if s.mode in ("learn", "check") and frame_id is None and self.store is not None:
+            frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
         out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id)
         res.lens = lens
         if out is not None:

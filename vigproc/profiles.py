@@ -1122,6 +1122,23 @@ class ProfileStore(SQLiteFile):
         with self._errors(f"reading {key}"):
             return self._get(key)
 
+    def holds_frame(self, key: ProfileKey, frame_id: str) -> bool:
+        """Whether the frame with content id ``frame_id`` was pooled into the profile
+        stored under ``key`` (a forensic check must not use a frame's own evidence).
+
+        Raises
+        ------
+        ProfileStoreError
+            ``key`` is not a :class:`ProfileKey`, or the store cannot be read.
+        """
+        _check_key(key, "holds_frame")
+        with self._errors(f"reading {key}"):
+            row_id = self._row_id(self.con, key)
+            if row_id is None:
+                return False
+            return self.con.execute("SELECT 1 FROM pooled_frames WHERE frame = ? AND profile_id = ?",
+                                    (str(frame_id), row_id)).fetchone() is not None
+
     def lookup(self, lens_key: LensKey, width: int, height: int, *, trusted_only: bool = False) -> Profile | None:
         """The profile to use for a photograph.
 

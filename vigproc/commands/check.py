@@ -67,7 +67,7 @@ def _line(name: str, v: dict) -> str:
 def cmd_check(args: argparse.Namespace) -> int:
     from vigproc.forensics import Calibration, check_image, default_calibration, pool_verdicts
     from vigproc.io import read_image
-    from vigproc.pipeline import InputFiles, Processor, Settings, output_file, read_lens, refuse_input
+    from vigproc.pipeline import InputFiles, Processor, Settings, file_sha256, output_file, read_lens, refuse_input
 
     files = [Path(f) for f in args.files]
     refuse_input(args.report, InputFiles(files))
@@ -88,8 +88,10 @@ def cmd_check(args: argparse.Namespace) -> int:
                     img, _ = read_image(f, transfer=args.input_transfer)
                     lens_key, lens = read_lens(proc.reader, f)
                     # the pipeline's check step, with this run's calibration and threshold
+                    # the frame's content id: a stored profile that pooled it is no reference
+                    fid = file_sha256(f) if proc.store is not None else None
                     v = check_image(img, lens_key, store=proc.store, method=settings.method,
-                                    calibration=calibration, alpha=args.alpha)
+                                    calibration=calibration, alpha=args.alpha, frame_id=fid)
                 except VigprocError as exc:
                     failed += 1
                     results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
