@@ -41,27 +41,28 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from vigproc.pipeline import Settings
 
     Settings(mode="estimate", method=args.method, transfer=args.input_transfer)  # a bad --method: one usage error
+    from vigproc.exif import ExifReader
+
     code = 0
-    for f in args.files:
-        try:
-            _estimate_file(args, f, many=len(args.files) > 1)
-        except VigprocError as exc:  # one line naming the file, as the multi-file commands do
-            print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
-            code = code or exc.exit_code
+    with ExifReader() as reader:  # one exiftool process for all the files
+        for f in args.files:
+            try:
+                _estimate_file(args, f, reader, many=len(args.files) > 1)
+            except VigprocError as exc:  # one line naming the file, as the multi-file commands do
+                print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
+                code = code or exc.exit_code
     return code
 
 
-def _estimate_file(args: argparse.Namespace, file: str, many: bool) -> None:
+def _estimate_file(args: argparse.Namespace, file: str, reader, many: bool) -> None:
     from vigproc.estimate import estimate
-    from vigproc.exif import ExifReader
     from vigproc.io import read_image
     from vigproc.pipeline import lens_hint, read_lens
 
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
     # model for the full frame; other formats are read as they are
     img, info = read_image(file, transfer=args.input_transfer, raw_half_size=True)
-    with ExifReader() as reader:
-        key, lens = read_lens(reader, Path(file))
+    key, lens = read_lens(reader, Path(file))
     m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
                  hint=lens_hint(key, args.method))
     if info.format == "raw":
@@ -230,12 +231,13 @@ def _scene_settings(spec: str):
         raise PriorError(f"{spec!r}: {exc}") from exc
 
 
-def _estimator(method: str, seed: int = 0, settings=None, family=None, with_hint: bool = False):
+def _estimator(method: str, seed: int = 0, settings=None, family=None):
     """A bench's estimator: ``vigproc.estimate`` on a gray frame, or the "rgs" peer.
 
     ``settings`` (``--scene-prior``) tune the robust Kang-Weiss estimators; the
     default and lens-family estimators have no scene prior. ``family``: the lens
-    family they fit in (a bench whose fields are lensfun lenses leaves them out).
+    family they fit in (a bench whose fields are lensfun lenses leaves them out); they
+    also take ``hint=`` (EXIF's focal length and f-number).
     """
     from vigproc.estimate import estimate, estimate_default
 
@@ -244,15 +246,11 @@ def _estimator(method: str, seed: int = 0, settings=None, family=None, with_hint
 
         return estimate_rgs
     if method == "default":
-        if with_hint:
-            return lambda v, hint=None: estimate_default(v, family=family, hint=hint)
-        return lambda v: estimate_default(v, family=family)
+        return lambda v, hint=None: estimate_default(v, family=family, hint=hint)
     if method == "lens-family":
         from vigproc.family_fit import estimate_family
 
-        if with_hint:
-            return lambda v, hint=None: estimate_family(v, family=family, hint=hint)
-        return lambda v: estimate_family(v, family=family)
+        return lambda v, hint=None: estimate_family(v, family=family, hint=hint)
     return lambda v: estimate(v, method, channel_axis=None, seed=seed, settings=settings)
 
 
@@ -356,7 +354,7 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
             methods[name] = published_rgs(peer, "srgb" if name.endswith("srgb") else "linear")
         elif name.endswith("+exif"):  # told the field's focal length and f-number, as EXIF would
             base = name[: -len("+exif")]
-            methods[name] = C.model_estimator(_estimator(base, family=family, with_hint=True), exif=True)
+            methods[name] = C.model_estimator(_estimator(base, family=family), exif=True)
         else:
             methods[name] = C.model_estimator(_estimator(name, family=family))
     print(f"clean protocol: {len(bases)} central {C.CROP:.0%} crops (480x320, linear) of frames >= "

@@ -106,7 +106,8 @@ def estimate(
     prior : NaturalPrior, optional
         Natural-image prior for the paper's methods (default: the shipped one).
     settings : RobustSettings, optional
-        Tuning of the default estimator.
+        Tuning of the robust Kang-Weiss estimators ("robust", "real-lens",
+        "flat-field"); given with "default", the robust estimator runs with them.
     seed : int, optional
         Seed for "lyu2010-rand".
     hint : LensHint, optional

@@ -134,6 +134,17 @@ def _working_copy(lum: np.ndarray, settings: FamilySettings, mask: np.ndarray | 
     return L, valid, binned_coords(w, k), binned_coords(h, k)
 
 
+def _pair_steps(settings: FamilySettings, shape: tuple[int, int]) -> np.ndarray:
+    """The pair steps that fit in a working copy of ``shape``."""
+    return np.asarray([s for s in settings.steps if s < min(shape)], dtype=np.int64)
+
+
+def _block_labels(shape: tuple[int, int], nb: int) -> np.ndarray:
+    """Each bin's block in an nb × nb cut of the working copy (row-major labels)."""
+    hb, wb = shape
+    return (nb * (np.arange(hb) * nb // hb)[:, None] + (np.arange(wb) * nb // wb)[None, :]).astype(np.int64)
+
+
 def half_diagonal(width: int, height: int) -> float:
     """Distance (px) from the frame centre to its corner pixel's centre: ρ = 1 there."""
     return math.hypot((width - 1) / 2.0, (height - 1) / 2.0)
@@ -267,10 +278,9 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     P[:K, :K] = pcov
     P[K, K] = P[K + 1, K + 1] = 0.5**2  # the centre within about half a half-diagonal
     pinv = np.linalg.inv(P)
-    steps = np.asarray([s for s in settings.steps if s < min(L.shape)], dtype=np.int64)
-    hb, wb = L.shape
+    steps = _pair_steps(settings, L.shape)
     nb = settings.jackknife_blocks
-    blocks = (nb * (np.arange(hb) * nb // hb)[:, None] + (np.arange(wb) * nb // wb)[None, :]).astype(np.int64)
+    blocks = _block_labels(L.shape, nb)
     u = np.zeros(2)
     coef = np.asarray(c, dtype=np.float64).copy()
     cov = np.zeros((2, 2))
@@ -311,7 +321,7 @@ def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: Fa
     L, valid, xs, ys = _working_copy(lum, settings, mask)
     X = np.ascontiguousarray(np.broadcast_to(xs[None, :], L.shape))
     Y = np.ascontiguousarray(np.broadcast_to(ys[:, None], L.shape))
-    steps = np.asarray([s for s in settings.steps if s < min(L.shape)], dtype=np.int64)
+    steps = _pair_steps(settings, L.shape)
     none, one_block = np.zeros(L.shape + (1,)), np.zeros(L.shape, dtype=np.int64)
     out = []
     for model in models:
@@ -373,10 +383,8 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     hint = hint or LensHint()
     pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
     pinv = np.linalg.inv(pcov)
-    steps = np.asarray([s for s in settings.steps if s < min(L.shape)], dtype=np.int64)
-    hb, wb = L.shape
-    nb = settings.jackknife_blocks
-    quad = (nb * (np.arange(hb) * nb // hb)[:, None] + (np.arange(wb) * nb // wb)[None, :]).astype(np.int64)
+    steps = _pair_steps(settings, L.shape)
+    quad = _block_labels(L.shape, settings.jackknife_blocks)
     d, a, labels = family_pairs(L, valid, M, B, steps, quad)
     n = d.size
     c = _solve(d, a, labels, pmean, pmean, pinv, settings, settings.iterations)

@@ -120,9 +120,21 @@ class LensFamily:
         mean : ndarray (K,)
         cov : ndarray (K, K)
         """
+        # memoised per family: every frame of a batch (and the default's two fits of one
+        # frame) asks for the same prior
+        usable = bool(focal35 and fnumber and math.isfinite(focal35) and math.isfinite(fnumber)
+                      and focal35 > 0 and fnumber > 0)
+        key = (float(focal35), float(fnumber), neighbours) if usable else (None, None, neighbours)
+        cache = self.__dict__.setdefault("_priors", {})
+        if key not in cache:
+            cache[key] = self._prior(*key)
+        mean, cov = cache[key]
+        return mean.copy(), cov.copy()
+
+    def _prior(self, focal35: float | None, fnumber: float | None,
+               neighbours: int) -> tuple[np.ndarray, np.ndarray]:
         c = self.coefficients
-        if focal35 and fnumber and math.isfinite(focal35) and math.isfinite(fnumber) \
-                and focal35 > 0 and fnumber > 0:
+        if focal35 is not None and fnumber is not None:
             dist = np.hypot(np.log(self.focal35 / focal35), np.log(self.fnumber / fnumber))
             c = c[np.argsort(dist, kind="stable")[:max(neighbours, self.n_components + 2)]]
         # einsum, not BLAS: the same bits whatever the thread count (a batch's workers

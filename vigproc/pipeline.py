@@ -497,13 +497,15 @@ class Processor:
             The corrected float32 image in ``correct`` mode (None otherwise) and the
             record of what was done.  ``FrameResult.file`` is ``where``.
         """
+        import numpy as np
+
         from vigproc.image import check_image as valid_image
 
         s = self.settings
         t0 = time.perf_counter()
         # every mode, also a correction by a profile (which estimates nothing): NaN/Inf,
         # a constant frame or large negative values are bad input, not something to write
-        valid_image(img, -1 if getattr(img, "ndim", 0) == 3 else None, min_size=1)
+        valid_image(img, -1 if np.ndim(img) == 3 else None, min_size=1)
         lens = ({"lens_id": lens_key.lens_id(), "key": lens_key.to_dict()} if lens_key is not None
                 else {"lens_id": None, "error": "no lens data given"})
         res = FrameResult(file=where, mode=s.mode, lens=lens)
