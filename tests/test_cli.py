@@ -111,7 +111,7 @@ def test_constant_image_is_a_clear_error(tmp_path):
 def test_demo_runs_on_bundled_samples(tmp_path):
     r = run("demo", "-o", tmp_path / "demo")
     assert r.returncode == 0, r.stderr
-    assert len(list((tmp_path / "demo").glob("*.corrected.tif"))) == 3
+    assert len(list((tmp_path / "demo").glob("*.corrected.jpg"))) == 3  # JPEG samples come back as JPEG
     assert len(list((tmp_path / "demo").glob("*.vignetting.png"))) == 3
 
 

@@ -107,8 +107,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
     files = [Path(f) for f in args.files]
     inputs = InputFiles(files)  # no output may replace an input of this run
     settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
-                        output_format=args.output_format, picture=args.picture, strength=args.strength)
-    failed = 0
+                        output_format=args.output_format, picture=args.picture, strength=args.strength,
+                        unapplied=args.unapplied)
+    failed = unapplied = 0
     results = []
     store = _open_store(args) if args.profile == "auto" else None
     try:
@@ -117,11 +118,15 @@ def cmd_correct(args: argparse.Namespace) -> int:
                 try:
                     rec = proc.process_file(f, outdir, stem, protect=inputs).to_dict()
                     results.append(rec)
-                    q = rec["model"].get("quality") or {}
+                    unapplied += not rec.get("applied")
                     if not args.json:
-                        tag = ("no correction (weak evidence)" if q.get("fallback")
-                               else f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed")
-                        print(one_line(f"{f} -> {rec['output']}  [{tag}; lens {rec['lens']['lens_id'] or 'unknown'}]"))
+                        lens = rec["lens"]["lens_id"] or "unknown"
+                        if rec.get("applied"):
+                            tag = f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed"
+                        else:
+                            tag = f"not corrected: {rec.get('not_applied', 'nothing applied')}"
+                        where = rec.get("output") or "no image written (see its .vigproc.json)"
+                        print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))
                 except VigprocError as exc:
                     failed += 1
                     results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
@@ -132,7 +137,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"results": results, "done": len(files) - failed, "failed": failed}, indent=1))
     else:
-        print(f"{len(files) - failed} corrected, {failed} failed; outputs in {outdir}")
+        print(f"{len(files) - failed - unapplied} corrected, {unapplied} not corrected, {failed} failed; "
+              f"outputs in {outdir}")
     return 0 if failed == 0 else 1
 
 
@@ -144,8 +150,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise VigprocError("the bundled samples are missing from this installation")
     ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
                             input_transfer=args.input_transfer, picture=True, json=False,
-                            output_format="tiff-float", profile="estimate", profile_db=None,
-                            strength=1.0)
+                            output_format="auto", profile="estimate", profile_db=None,
+                            strength=1.0, unapplied="skip")
     return cmd_correct(ns)
 
 
@@ -329,7 +335,7 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
 
     output_file(args.json)
     files = C.base_files([Path(f) for f in args.images], args.min_long_side)
-    bases, names = C.load_bases(files[: args.limit] if args.limit else files)
+    bases, names = C.load_bases(files[: args.limit] if args.limit else files, args.crop)
     if len(bases) < 2:
         print(f"vigproc: bench clean: {len(bases)} usable frames under {' '.join(args.images)}; need 2",
               file=sys.stderr)
@@ -357,7 +363,7 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
             methods[name] = C.model_estimator(_estimator(base, family=family), exif=True)
         else:
             methods[name] = C.model_estimator(_estimator(name, family=family))
-    print(f"clean protocol: {len(bases)} central {C.CROP:.0%} crops (480x320, linear) of frames >= "
+    print(f"clean protocol: {len(bases)} central {args.crop:.0%} crops (480x320, linear) of frames >= "
           f"{args.min_long_side} px from {' '.join(args.images)}; error = RMS of log2(estimated/true) "
           "about its mean (EV); median per field, then median / p90 over fields")
     print(f"lens family for lens-family: {family.lenses} lensfun lenses, the {len(lens)} test lenses left out")
@@ -851,6 +857,9 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
                     help="frames whose long side is shorter are not used (default %(default)s)")
     bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+    bp.add_argument("--crop", type=number(0.05, 1.0), default=0.4,
+                    help="side fraction of each frame kept about its centre (default %(default)s; the "
+                         "camera lens's own fall-off inside the crop grows with it)")
     bp.add_argument("--lenses", type=number(1, 100, integer=True), default=20,
                     help="lensfun lenses (default %(default)s)")
     bp.add_argument("--methods", nargs="+", default=["default", "flat-field", "lens-family", "rgs", "rgs-c++"],

@@ -50,6 +50,7 @@ written, fsync'ed and renamed over the destination with :func:`os.replace`.
 from __future__ import annotations
 
 import functools
+import math
 import logging
 import numbers
 import os
@@ -752,14 +753,90 @@ def _libraw_msg(exc: BaseException) -> str:
 # Writing
 # --------------------------------------------------------------------------- #
 
-_EXT_FORMAT = {".tif": "tiff", ".tiff": "tiff", ".png": "png", ".exr": "openexr"}
-_FORMAT_ALIASES = {"tif": "tiff", "tiff": "tiff", "png": "png", "exr": "openexr", "openexr": "openexr"}
-_FORMAT_EXT = {"tiff": ".tif", "png": ".png", "openexr": ".exr"}
+#: The writers' formats, by file extension and by name (one table for io and metadata).
+WRITE_EXT_FORMAT = {".tif": "tiff", ".tiff": "tiff", ".png": "png", ".exr": "openexr", ".jpg": "jpeg",
+                    ".jpeg": "jpeg"}
+WRITE_FORMAT_ALIASES = {"tif": "tiff", "tiff": "tiff", "png": "png", "exr": "openexr", "openexr": "openexr",
+                        "jpg": "jpeg", "jpeg": "jpeg"}
+WRITE_FORMAT_EXT = {"tiff": ".tif", "png": ".png", "openexr": ".exr", "jpeg": ".jpg"}
+_EXT_FORMAT, _FORMAT_ALIASES, _FORMAT_EXT = WRITE_EXT_FORMAT, WRITE_FORMAT_ALIASES, WRITE_FORMAT_EXT
 _FORMAT_DEPTHS = {
     "tiff": ("uint16", "uint8", "float"),
     "png": ("uint16", "uint8"),
     "openexr": ("half", "float"),
+    "jpeg": ("uint8",),
 }
+#: JPEG quality when the source's cannot be read (:func:`jpeg_quality`).
+DEFAULT_JPEG_QUALITY = 95
+
+# IJG's (libjpeg's) luminance quantisation table at quality 50 (ITU-T T.81, Annex K.1),
+# in zig-zag order as a DQT segment stores it.
+_IJG_LUMA_ZIGZAG = (
+    16, 11, 12, 14, 12, 10, 16, 14, 13, 14, 18, 17, 16, 19, 24, 40, 26, 24, 22, 22, 24, 49, 35, 37,
+    29, 40, 58, 51, 61, 60, 57, 51, 56, 55, 64, 72, 92, 78, 64, 68, 87, 69, 55, 56, 80, 109, 81, 87,
+    95, 98, 103, 104, 103, 62, 77, 113, 121, 112, 100, 120, 92, 101, 103, 99,
+)
+
+
+def jpeg_quality(path: PathLike, max_bytes: int = 1 << 20) -> int | None:
+    """The IJG quality (1–100) whose luminance table is closest to the JPEG's own.
+
+    Reads the first DQT segment's table 0 (the first ``max_bytes`` bytes at most) and
+    compares it with IJG's standard table scaled to every quality (libjpeg's
+    ``jpeg_quality_scaling``). Encoders with their own tables (cameras) get the
+    closest IJG quality.
+
+    Returns
+    -------
+    int or None
+        None when the file is not a JPEG or its table cannot be found.
+    """
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(max_bytes)
+    except (OSError, TypeError, ValueError):
+        return None
+    if not data.startswith(b"\xff\xd8"):
+        return None
+    i = 2
+    table = None
+    while i + 4 <= len(data) and data[i] == 0xFF:
+        marker = data[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        size = int.from_bytes(data[i + 2:i + 4], "big")
+        if marker == 0xDB:  # DQT: [Pq/Tq][64 or 128 bytes]...
+            seg = data[i + 4:i + 2 + size]
+            j = 0
+            while j < len(seg):
+                pq, tq = seg[j] >> 4, seg[j] & 15
+                n = 128 if pq else 64
+                vals = seg[j + 1:j + 1 + n]
+                if len(vals) < n:
+                    break
+                if tq == 0:
+                    table = ([int.from_bytes(vals[k:k + 2], "big") for k in range(0, n, 2)] if pq
+                             else list(vals))
+                    break
+                j += 1 + n
+            if table is not None:
+                break
+        if marker == 0xDA:  # start of scan: no table before it
+            break
+        i += 2 + size
+    if table is None or len(table) != 64:
+        return None
+    q_table = np.asarray(table, dtype=np.float64)
+    base = np.asarray(_IJG_LUMA_ZIGZAG, dtype=np.float64)
+    best, best_err = None, math.inf
+    for q in range(1, 101):
+        scale = 5000.0 / q if q < 50 else 200.0 - 2.0 * q
+        ref = np.clip(np.floor((base * scale + 50.0) / 100.0), 1, 255)
+        err = float(np.sum(np.abs(np.log(ref) - np.log(np.maximum(q_table, 1)))))
+        if err < best_err:
+            best, best_err = q, err
+    return best
 
 
 #: Largest finite value of each float bit depth (IEEE half and single precision).
@@ -773,6 +850,7 @@ def write_image(
     format: str | None = None,
     bit_depth: str | None = None,
     transfer: str = "linear",
+    quality: int | None = None,
 ) -> None:
     """Write a linear image atomically.
 
@@ -787,14 +865,20 @@ def write_image(
         values are above 1, the sign of integer codes passed instead of ``[0, 1]``
         floats); float outputs are written as given and must fit the format
         (``|v| <= 65504`` for half, float32's range for float).
-    format : {'tiff', 'png', 'openexr'}, optional
-        Defaults to the extension (``.tif``/``.tiff``, ``.png``, ``.exr``).
+    format : {'tiff', 'png', 'openexr', 'jpeg'}, optional
+        Defaults to the extension (``.tif``/``.tiff``, ``.png``, ``.exr``,
+        ``.jpg``/``.jpeg``).
     bit_depth : {'uint8', 'uint16', 'half', 'float'}, optional
-        Defaults to ``'uint16'`` for TIFF/PNG and ``'half'`` for EXR.  TIFF takes
-        uint8/uint16/float, PNG uint8/uint16, EXR half/float.
+        Defaults to ``'uint16'`` for TIFF/PNG, ``'half'`` for EXR and ``'uint8'`` for
+        JPEG.  TIFF takes uint8/uint16/float, PNG uint8/uint16, EXR half/float, JPEG
+        uint8.
     transfer : {'linear', 'srgb'}
-        Encoding of the stored values; ``'srgb'`` is for integer depths only.  The
-        file is tagged so that :func:`read_image` decodes it back to ``img``.
+        Encoding of the stored values; ``'srgb'`` is for integer depths only, and
+        JPEG takes only ``'srgb'`` (8 bits cannot hold linear shadows).  The file is
+        tagged so that :func:`read_image` decodes it back to ``img``.
+    quality : int, optional
+        JPEG quality 1–100 (default :data:`DEFAULT_JPEG_QUALITY`); other formats
+        refuse it.
 
     Raises
     ------
@@ -813,11 +897,12 @@ def write_image(
     if format is None:
         fmt = _EXT_FORMAT.get(ext)
         if fmt is None:
-            raise ImageWriteError(f"cannot write {q}: unknown extension {ext!r} (use .tif, .png or .exr, or pass format=)")
+            raise ImageWriteError(f"cannot write {q}: unknown extension {ext!r} (use .tif, .png, .exr or .jpg, "
+                                  "or pass format=)")
     else:
         fmt = _FORMAT_ALIASES.get(str(format).lower())
         if fmt is None:
-            raise ImageWriteError(f"cannot write {q}: unsupported format {format!r} (tiff, png, openexr)")
+            raise ImageWriteError(f"cannot write {q}: unsupported format {format!r} (tiff, png, openexr, jpeg)")
     depth = bit_depth or _FORMAT_DEPTHS[fmt][0]
     if depth not in _FORMAT_DEPTHS[fmt]:
         raise ImageWriteError(f"cannot write {q}: {fmt} does not take bit_depth={depth!r} (allowed: {_FORMAT_DEPTHS[fmt]})")
@@ -830,6 +915,12 @@ def write_image(
     is_int = depth in ("uint8", "uint16")
     if tr == "srgb" and not is_int:
         raise ImageWriteError(f"cannot write {q}: transfer='srgb' needs an integer bit_depth (float data is linear)")
+    if fmt == "jpeg" and tr != "srgb":
+        raise ImageWriteError(f"cannot write {q}: JPEG stores sRGB-encoded values (pass transfer='srgb')")
+    if quality is not None and (fmt != "jpeg" or isinstance(quality, bool) or not isinstance(quality, (int, np.integer))
+                                or not 1 <= int(quality) <= 100):
+        raise ImageWriteError(f"cannot write {q}: quality must be an integer 1-100 and is for JPEG only, "
+                              f"got {quality!r}")
 
     arr = np.asarray(img)
     if arr.ndim == 3 and arr.shape[2] == 1:
@@ -888,6 +979,8 @@ def write_image(
             spec.attribute("Exif:ColorSpace", 65535)
     else:
         spec.attribute("oiio:ColorSpace", "srgb_rec709_scene" if tr == "srgb" else "lin_rec709_scene")
+    if fmt == "jpeg":
+        spec.attribute("Compression", f"jpeg:{int(quality or DEFAULT_JPEG_QUALITY)}")
 
     directory = os.path.dirname(os.path.abspath(fspath))
     name = os.path.basename(fspath)

@@ -110,6 +110,9 @@ import OpenImageIO as oiio
 
 from vigproc.atomic import publish
 from vigproc.errors import ImageReadError, ImageWriteError, InvalidImageError, ModelError
+from vigproc.io import WRITE_EXT_FORMAT as _EXT_FORMAT
+from vigproc.io import WRITE_FORMAT_ALIASES as _FORMAT_ALIASES
+from vigproc.io import WRITE_FORMAT_EXT as _FORMAT_EXT
 from vigproc.io import write_image
 from vigproc.model import VignettingModel
 from vigproc.processes import AVAILABLE as DIES_WITH_PARENT, die_with_parent
@@ -209,9 +212,6 @@ EXR_TAGS: tuple[tuple[str, str, str], ...] = (
 )
 
 _EXR_MAGIC = b"v/1\x01"
-_EXT_FORMAT = {".tif": "tiff", ".tiff": "tiff", ".png": "png", ".exr": "openexr"}
-_FORMAT_ALIASES = {"tif": "tiff", "tiff": "tiff", "png": "png", "exr": "openexr", "openexr": "openexr"}
-_FORMAT_EXT = {"tiff": ".tif", "png": ".png", "openexr": ".exr"}
 # exiftool's FilenameSPrintf tokens: a -tagsFromFile name containing one is a pattern
 _EXIFTOOL_FMT = re.compile(r"%[-+]?\d*[.:]?\d*[lu]?[dDfFeEtgso]")
 _TIMEOUT = 300.0
@@ -677,12 +677,12 @@ def _resolve_format(path: str, format: str | None) -> str:
         fmt = _EXT_FORMAT.get(os.path.splitext(path)[1].lower())
         if fmt is None:
             raise ImageWriteError(
-                f"cannot write {_q(path)}: unknown extension (use .tif, .png or .exr, or pass format=)"
+                f"cannot write {_q(path)}: unknown extension (use .tif, .png, .exr or .jpg, or pass format=)"
             )
         return fmt
     fmt = _FORMAT_ALIASES.get(str(format).lower())
     if fmt is None:
-        raise ImageWriteError(f"cannot write {_q(path)}: unsupported format {format!r} (tiff, png, openexr)")
+        raise ImageWriteError(f"cannot write {_q(path)}: unsupported format {format!r} (tiff, png, openexr, jpeg)")
     return fmt
 
 
@@ -695,6 +695,7 @@ def write_corrected(
     bit_depth: str | None = None,
     format: str | None = None,
     transfer: str = "linear",
+    quality: int | None = None,
 ) -> None:
     """Write a corrected image with the source's metadata and the record, atomically.
 
@@ -713,7 +714,7 @@ def write_corrected(
         The source image whose metadata is copied; never modified.
     record : dict or None
         Correction record (:func:`make_record`); ``None`` for metadata only.
-    bit_depth, format, transfer
+    bit_depth, format, transfer, quality
         As for :func:`vigproc.io.write_image`.
 
     Raises
@@ -738,7 +739,7 @@ def write_corrected(
     done = False
     try:
         try:
-            write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer)
+            write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer, quality=quality)
             copy_metadata(src, tmp, record)
         except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
             err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))

@@ -28,13 +28,103 @@ log = logging.getLogger(__name__)
 #: What a frame can be processed for.
 MODES = ("correct", "check", "learn", "estimate")
 
-#: --output-format choices: (file suffix, write bit depth).
-OUTPUT_FORMATS = {
-    "tiff-float": (".tif", "float"),
-    "tiff16": (".tif", "uint16"),
-    "exr-half": (".exr", "half"),
-    "exr-float": (".exr", "float"),
+
+
+@dataclass(frozen=True)
+class OutputFormat:
+    """How a corrected frame is written (:func:`vigproc.metadata.write_corrected`).
+
+    Attributes
+    ----------
+    suffix : str
+        File name suffix of the output.
+    format : str
+        Writer format: ``jpeg``, ``png``, ``tiff`` or ``openexr``.
+    depth : str
+        Sample type: ``uint8``, ``uint16``, ``half`` or ``float``.
+    transfer : str
+        ``srgb`` (display-ready, what JPEG/PNG viewers expect) or ``linear``.
+    quality : int or None
+        JPEG quality.
+    """
+
+    suffix: str
+    format: str
+    depth: str
+    transfer: str = "linear"
+    quality: int | None = None
+
+    @property
+    def integer(self) -> bool:
+        return self.depth in ("uint8", "uint16")
+
+
+#: --output-format choices. ``auto`` (the default): the input's own kind back
+#: (:func:`output_format_for`); the others for linear work or a fixed format.
+OUTPUT_FORMATS: dict[str, OutputFormat | None] = {
+    "auto": None,
+    "jpeg": OutputFormat(".jpg", "jpeg", "uint8", "srgb"),
+    "png": OutputFormat(".png", "png", "uint16", "srgb"),
+    "tiff16": OutputFormat(".tif", "tiff", "uint16"),
+    "tiff-float": OutputFormat(".tif", "tiff", "float"),
+    "exr-half": OutputFormat(".exr", "openexr", "half"),
+    "exr-float": OutputFormat(".exr", "openexr", "float"),
 }
+#: An ``auto`` JPEG output is saved at the source's own quality (IJG scale), but never
+#: below this: a second lossy pass at a low quality would show.
+MIN_AUTO_JPEG_QUALITY = 90
+#: What ``auto`` writes for an input, by its suffix (RAW and anything else: tiff16).
+_AUTO_KIND = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png", ".tif": "tiff", ".tiff": "tiff", ".exr": "openexr"}
+#: When nothing is applied (weak evidence, strength 0), what a correct run writes:
+#: ``skip`` only the sidecar (saying why), ``copy`` the original's bytes as
+#: ``STEM.uncorrected.EXT``, ``link`` a hard link of the original under that name
+#: (a copy across file systems), ``write`` the frame as read, in the output format,
+#: under the output's name (an explicit output file a host asked for).
+UNAPPLIED_POLICIES = ("skip", "copy", "link", "write")
+
+
+def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
+                      like: str | os.PathLike[str] | None = None) -> OutputFormat:
+    """The output format ``name`` (:data:`OUTPUT_FORMATS`) resolved for one input.
+
+    ``auto`` gives the input's own kind back: a JPEG as a JPEG (sRGB, at the source's
+    quality, at least :data:`MIN_AUTO_JPEG_QUALITY`; the suffix as the input spells
+    it), a PNG as a PNG (8-bit sRGB from 8-bit sRGB, else 16-bit), a TIFF as a linear
+    16-bit or float TIFF, an EXR as a half or float EXR (as stored), a RAW as a
+    linear 16-bit TIFF. ``info`` (:class:`vigproc.io.ImageInfo`, once the input is
+    read) refines the sample type; without it the suffix is already final. ``like``:
+    resolve ``auto`` by this file name's suffix instead (an output file a host named).
+    """
+    from vigproc.io import DEFAULT_JPEG_QUALITY, jpeg_quality
+
+    path = Path(path)
+    fixed = OUTPUT_FORMATS.get(name, "missing")
+    if fixed == "missing":
+        raise VigprocError(f"unknown output format {name!r}")
+    src_suffix = Path(like).suffix.lower() if like is not None else path.suffix.lower()
+    source_jpeg = info is not None and getattr(info, "format", None) == "jpeg"
+    if fixed is not None:
+        if fixed.format == "jpeg":
+            q = jpeg_quality(path) if source_jpeg else None
+            return OutputFormat(fixed.suffix, "jpeg", "uint8", "srgb", max(q or DEFAULT_JPEG_QUALITY,
+                                                                         MIN_AUTO_JPEG_QUALITY))
+        return fixed
+    kind = _AUTO_KIND.get(src_suffix)
+    depth = getattr(info, "bit_depth", None)
+    transfer = getattr(info, "transfer", None)
+    if kind == "jpeg":
+        q = jpeg_quality(path) if source_jpeg else None
+        return OutputFormat(src_suffix, "jpeg", "uint8", "srgb",
+                            max(q or DEFAULT_JPEG_QUALITY, MIN_AUTO_JPEG_QUALITY))
+    if kind == "png":
+        eight = depth in (None, "uint8") and transfer != "linear"
+        return OutputFormat(src_suffix, "png", "uint8" if eight else "uint16",
+                            "linear" if transfer == "linear" else "srgb")
+    if kind == "tiff":
+        return OutputFormat(src_suffix, "tiff", "float" if depth in ("half", "float", "double") else "uint16")
+    if kind == "openexr":
+        return OutputFormat(".exr", "openexr", "half" if depth == "half" else "float")
+    return OUTPUT_FORMATS["tiff16"]  # a RAW: linear 16 bits, what raw editors take
 
 #: File name suffixes vigproc reads (RAW through rawpy, the rest through OpenImageIO).
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".dng", ".cr2", ".cr3", ".nef",
@@ -65,7 +155,9 @@ class Settings:
     transfer : str
         How stored values decode to linear light: ``auto``, ``linear`` or ``srgb``.
     output_format : str
-        One of :data:`OUTPUT_FORMATS`.
+        One of :data:`OUTPUT_FORMATS` (``auto``: each input's own kind back).
+    unapplied : str
+        Correct mode, when nothing is applied: one of :data:`UNAPPLIED_POLICIES`.
     strength : float
         Fraction of the fall-off removed (1 = all of it).
     picture : bool
@@ -76,9 +168,10 @@ class Settings:
     profile: str = "auto"
     method: str = "default"
     transfer: str = "auto"
-    output_format: str = "tiff-float"
+    output_format: str = "auto"
     strength: float = 1.0
     picture: bool = False
+    unapplied: str = "skip"
 
     def __post_init__(self) -> None:
         from vigproc.methods import METHODS
@@ -92,6 +185,9 @@ class Settings:
                 raise UnknownMethodError(f"unknown method {self.method!r} (choose from {', '.join(method_names())})")
         if self.output_format not in OUTPUT_FORMATS:
             raise VigprocError(f"unknown output format {self.output_format!r}")
+        if self.unapplied not in UNAPPLIED_POLICIES:
+            raise VigprocError(f"unknown policy for frames not corrected {self.unapplied!r} "
+                               f"(choose from {', '.join(UNAPPLIED_POLICIES)})")
         if self.transfer not in ("auto", "linear", "srgb"):
             raise VigprocError(f"unknown input transfer {self.transfer!r}")
         if not (math.isfinite(self.strength) and 0.0 <= self.strength <= 2.0):
@@ -247,24 +343,68 @@ class InputFiles:
         return (st.st_dev, st.st_ino) in self._ids
 
 
-def _check_range(out: np.ndarray, output_format: str) -> None:
+def keep_original(src: Path, dst: Path, *, link: bool = False) -> None:
+    """Put the original ``src`` at ``dst`` unchanged (a frame nothing was applied to):
+    a hard link when ``link`` and the file systems allow it, else a copy of its bytes;
+    atomically (temporary name, then rename), so ``dst`` is whole or absent."""
+    import shutil
+    import tempfile
+
+    from vigproc.atomic import fsync_dir
+
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{dst.name[:100]}.tmp-", dir=dst.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise ImageWriteError(f"cannot write {os.fspath(dst)!r}: {exc.strerror or exc}") from None
+    try:
+        linked = False
+        if link:
+            os.unlink(tmp)
+            try:
+                os.link(src, tmp)
+                linked = True
+            except OSError as exc:  # another file system, or links not allowed: copy instead
+                log.debug("cannot link %s (%s); copying it", src, exc.strerror or exc)
+        if not linked:
+            shutil.copyfile(src, tmp)
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+        os.replace(tmp, dst)
+        fsync_dir(dst.parent)
+    except OSError as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise ImageWriteError(f"cannot write {os.fspath(dst)!r}: {exc.strerror or exc}") from None
+
+
+def _format_label(fmt: OutputFormat) -> str:
+    """The --output-format name of ``fmt``, or what it is ("8-bit JPEG")."""
+    bits = {"uint8": "8-bit", "uint16": "16-bit", "half": "half-float", "float": "float"}[fmt.depth]
+    kind = {"jpeg": "JPEG", "png": "PNG", "tiff": "TIFF", "openexr": "EXR"}[fmt.format]
+    return next((k for k, v in OUTPUT_FORMATS.items() if v == fmt), f"{bits} {kind}")
+
+
+def _check_range(out: np.ndarray, fmt: OutputFormat) -> None:
     """A corrected frame must be representable in its output format: values beyond a
     float format's range would be written as Inf (HDR frames in absolute units in
     half-float EXR, say)."""
     from vigproc.io import FLOAT_MAX
 
-    limit = FLOAT_MAX.get(OUTPUT_FORMATS[output_format][1])
+    limit = FLOAT_MAX.get(fmt.depth)
     if limit is None:  # integer formats are clipped to the white point by design
         return
     hi, lo = float(out.max()), float(out.min())
     if not (hi <= limit and lo >= -limit):  # also NaN
-        wider = " (tiff-float and exr-float hold 3.4e38)" if output_format == "exr-half" else ""
+        wider = " (tiff-float and exr-float hold 3.4e38)" if fmt.depth == "half" else ""
         raise ImageWriteError(
-            f"corrected values reach {max(abs(hi), abs(lo)):.4g}, beyond the {limit:.4g} that {output_format} "
-            f"holds: scale the input down or choose a wider output format{wider}")
+            f"corrected values reach {max(abs(hi), abs(lo)):.4g}, beyond the {limit:.4g} that "
+            f"{_format_label(fmt)} holds: scale the input down or choose a wider output format{wider}")
 
 
-def _note_clipping(img: np.ndarray, out: np.ndarray, where: str, output_format: str) -> None:
+def _note_clipping(img: np.ndarray, out: np.ndarray, where: str, fmt: OutputFormat) -> None:
     """Say when samples end up above the white point of an integer output (clipped there
     by design): pushed there by the correction, or above it in a float source.  A source's
     own clipped highlights (exactly 1.0) are not counted."""
@@ -273,7 +413,7 @@ def _note_clipping(img: np.ndarray, out: np.ndarray, where: str, output_format: 
     lost = int(np.count_nonzero(out >= 1.0)) - int(np.count_nonzero(np.asarray(img) == 1.0))
     if lost > 1e-3 * out.size:
         log.warning("%s: %.1f %% of the samples are above the white point and %s clips them "
-                    "(a float output format keeps them)", where, 100.0 * lost / out.size, output_format)
+                    "(a float output format keeps them)", where, 100.0 * lost / out.size, _format_label(fmt))
 
 
 def output_folder(path: str | os.PathLike[str]) -> Path:
@@ -484,8 +624,12 @@ class Processor:
         self.close()
 
     # -- in memory --------------------------------------------------------
-    def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image", frame_id: str | None = None):
+    def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image", frame_id: str | None = None,
+                      output: OutputFormat | None = None):
         """Process an in-memory linear image (H×W or H×W×C, channels last).
+
+        ``output``: the format the corrected frame will be written in (integer formats
+        clip at the white point); default the settings' fixed format, or float.
 
         ``frame_id``: the frame's content id. Learn mode: a frame already pooled into
         its lens's profile is not pooled again (:meth:`ProfileStore.learn`). Check mode:
@@ -526,13 +670,13 @@ class Processor:
             if s.mode == "correct":
                 from vigproc.correct import correct
 
-                depth = OUTPUT_FORMATS[s.output_format][1]
+                fmt = output or OUTPUT_FORMATS[s.output_format] or OUTPUT_FORMATS["tiff-float"]
                 # integer outputs cannot hold values above the white point: clip those
                 out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
-                              clip=1.0 if depth == "uint16" else None)
-                _check_range(out, s.output_format)
-                if depth == "uint16":
-                    _note_clipping(img, out, where, s.output_format)
+                              clip=1.0 if fmt.integer else None)
+                _check_range(out, fmt)
+                if fmt.integer:
+                    _note_clipping(img, out, where, fmt)
                 res.applied = m.candidate is None and s.strength > 0
                 res.strength = s.strength
         res.seconds = round(time.perf_counter() - t0, 4)
@@ -565,12 +709,17 @@ class Processor:
     # -- files ------------------------------------------------------------
     def process_file(self, path: str | os.PathLike[str], outdir: str | os.PathLike[str], stem: str | None = None,
                      *, extra: dict[str, Any] | None = None, frame_id: str | None = None,
-                     protect: Container[Any] = ()) -> FrameResult:
+                     protect: Container[Any] = (), unapplied: str | None = None,
+                     like: str | os.PathLike[str] | None = None) -> FrameResult:
         """Read ``path``, process it, write its outputs into ``outdir``.
 
-        Outputs (all atomic; the input is never modified): ``STEM.corrected.tif|exr``
-        in correct mode, ``STEM.vignetting.png`` with ``picture``, and always the
-        sidecar ``STEM.vigproc.json``, written last.  No output may be ``path``
+        Outputs (all atomic; the input is never modified): in correct mode
+        ``STEM.corrected.EXT`` (:func:`output_format_for`), or when nothing is applied
+        what ``unapplied`` (default the settings') says: nothing, or the original as
+        ``STEM.uncorrected.EXT`` (:data:`UNAPPLIED_POLICIES`); ``STEM.vignetting.png``
+        with ``picture``; and always the sidecar ``STEM.vigproc.json``, written last
+        (``not_applied`` says why when nothing was). ``like``: an ``auto`` output
+        format is resolved by this name's suffix (:func:`output_format_for`).  No output may be ``path``
         itself or in ``protect`` (the other inputs of the run, :class:`InputFiles`):
         then nothing is written.
 
@@ -593,29 +742,42 @@ class Processor:
         path = Path(path)
         outdir = Path(outdir)
         stem = path.stem if stem is None else stem
-        suffix, depth = OUTPUT_FORMATS[s.output_format]
-        dst = safe_output(outdir, stem, ".corrected" + suffix)
+        policy = unapplied or s.unapplied
+        if policy not in UNAPPLIED_POLICIES:
+            raise VigprocError(f"unknown policy for frames not corrected {policy!r}")
+        fmt = output_format_for(s.output_format, path, like=like)  # the suffix is final before reading
+        dst = safe_output(outdir, stem, ".corrected" + fmt.suffix)
+        kept = (safe_output(outdir, stem, ".uncorrected" + path.suffix.lower())
+                if s.mode == "correct" and policy in ("copy", "link") else None)
         sidecar = safe_output(outdir, stem, SIDECAR_SUFFIX)
         # checked before anything is written: a refused frame leaves no partial outputs
         try:
             own = path.resolve()
         except RuntimeError as exc:  # a symlink loop (Python < 3.13 raises RuntimeError)
             raise ImageReadError(f"cannot read {os.fspath(path)!r}: {exc}") from None
-        for target in (dst if s.mode == "correct" else None, sidecar,
+        for target in (dst if s.mode == "correct" else None, kept, sidecar,
                        safe_output(outdir, stem, ".vignetting.png") if s.picture else None):
             refuse_input(target, (own,), protect)
-        img, _info = read_image(path, transfer=s.transfer)
+        img, info = read_image(path, transfer=s.transfer)
+        fmt = output_format_for(s.output_format, path, info, like=like)
         lens_key, lens = read_lens(self.reader, path)
         if s.mode in ("learn", "check") and frame_id is None and self.store is not None:
             frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
-        out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id)
+        out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt)
         res.lens = lens
-        if out is not None:
+        if out is not None and (res.applied or policy == "write"):
             from vigproc.metadata import make_record, write_corrected
 
             # the source's EXIF/XMP plus an XMP record of the correction
-            write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=depth)
+            write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=fmt.depth,
+                            format=fmt.format, transfer=fmt.transfer, quality=fmt.quality)
             res.output = str(dst)
+        elif out is not None:
+            res.extra["not_applied"] = ("strength 0" if s.strength == 0 else
+                                        "weak evidence: the estimate is not clearly above its uncertainty")
+            if kept is not None:
+                keep_original(path, kept, link=policy == "link")
+                res.output = str(kept)
         if s.picture and res.model is not None:
             self._picture(path, outdir, stem, res)
         if extra:

@@ -6,8 +6,9 @@ to `vigproc hook`, which either
 
   * check:   compares the image's vignetting with the lens its EXIF names
              (forensic consistency check); nothing is written, or
-  * correct: writes STEM.corrected.tif and STEM.vigproc.json beside the export
-             (or into the configured folder); the export itself is never changed.
+  * correct: writes STEM.corrected.EXT (the export's own format) and
+             STEM.vigproc.json beside the export (or into the configured folder);
+             the export itself is never changed.
 
 The result is shown in darktable (a toast), attached to the image as a tag
 (vigproc|corrected, vigproc|not corrected, vigproc|check|<verdict>, vigproc|error)

@@ -126,8 +126,9 @@ def base_files(folders: Iterable[Path], min_long_side: int = MIN_LONG_SIDE) -> l
     return out
 
 
-def load_bases(files: Sequence[Path]) -> tuple[list[np.ndarray], list[str]]:
-    """Linear luminance crops of ``files``; unreadable or blank ones are skipped."""
+def load_bases(files: Sequence[Path], frac: float = CROP) -> tuple[list[np.ndarray], list[str]]:
+    """Linear luminance crops (central ``frac`` of each side) of ``files``; unreadable or
+    blank ones are skipped."""
     from vigproc.errors import VigprocError
     from vigproc.image import luminance
     from vigproc.io import read_image
@@ -139,7 +140,7 @@ def load_bases(files: Sequence[Path]) -> tuple[list[np.ndarray], list[str]]:
         except VigprocError as exc:
             log.warning("skipping %s", exc)
             continue
-        c = crop_base(luminance(a))
+        c = crop_base(luminance(a), frac)
         if not np.all(np.isfinite(c)) or c.max() <= 0 or np.ptp(c) <= 1e-6 * c.max():
             log.warning("skipping %s: its central crop is blank", f.name)
             continue

@@ -58,10 +58,16 @@ def add_profile_db(sp: argparse.ArgumentParser) -> None:
 
 def add_output(sp: argparse.ArgumentParser, *, picture: bool = True) -> None:
     """Options of the corrected output: format, strength and (optionally) the picture."""
-    from vigproc.pipeline import OUTPUT_FORMATS
+    from vigproc.pipeline import OUTPUT_FORMATS, UNAPPLIED_POLICIES
 
-    sp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="tiff-float",
-                    help="linear output: float or 16-bit TIFF, half or float OpenEXR (default tiff-float)")
+    sp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="auto",
+                    help="auto (default): each input's own kind back (a JPEG as a JPEG at its quality, a PNG as "
+                         "a PNG, a TIFF/EXR as stored, a RAW as a linear 16-bit TIFF); jpeg, png (16-bit): "
+                         "sRGB; tiff16, tiff-float, exr-half, exr-float: linear, for further editing")
+    sp.add_argument("--unapplied", choices=list(UNAPPLIED_POLICIES), default="skip",
+                    help="when nothing is applied (weak evidence, strength 0): skip (default: only the JSON "
+                         "sidecar, saying why), copy or link the original as NAME.uncorrected.EXT, or write "
+                         "the frame as read under the corrected name")
     sp.add_argument("--strength", type=number(0.0, 2.0), default=1.0,
                     help="fraction of the fall-off removed, 0 to 2 (default 1)")
     if picture:

@@ -13,22 +13,26 @@ Request (optional, ``--request FILE``, ``-`` = stdin; UTF-8; values override the
 options)::
 
     {"mode": "check", "output_dir": "/out", "profile": "auto", "profile_db": "/p.sqlite",
-     "method": "default", "strength": 1.0, "output_format": "tiff16", "input_transfer": "auto",
+     "method": "default", "strength": 1.0, "output_format": "auto", "input_transfer": "auto",
+     "unapplied": "skip",
      "files": ["/in/a.jpg",
                {"path": "/in/b.tif", "output": "/out/b-fixed.tif",
                 "lens": {"make": "Canon", "model": "Canon EOS 5D", "lens": "EF50mm f/1.8",
                          "focal_mm": 50, "fnumber": 2.8}}]}
 
 ``output`` (or ``--output-file PATH`` for a single input) writes that file
-exactly (correct mode; no sidecar; its suffix must match ``output_format``, e.g.
-``.tif`` for ``tiff16``); ``lens`` replaces
+exactly, also when nothing is applied (correct mode; no sidecar; its suffix must
+match ``output_format``, e.g. ``.tif`` for ``tiff16``; with ``auto`` the suffix picks
+the format: ``.jpg``, ``.png``, ``.tif``, ``.exr``); ``lens`` replaces
 the lens metadata read from the file (see :func:`vigproc.api.lens_key`).
 With an output folder (``-o`` or ``output_dir``), a relative ``output`` is taken
 inside it and no ``output`` may lead out of it (``..``, an absolute path
 elsewhere, a symbolic link): that file fails with exit code 2.  ``--output-file``
 and an output folder exclude each other.
 
-With ``-o``, outputs are named ``STEM.corrected.tif`` and ``STEM.vigproc.json``
+With ``-o``, outputs are named ``STEM.corrected.EXT`` (``EXT`` as ``output_format``
+says; ``auto``: the input's own kind) and ``STEM.vigproc.json`` (when nothing is
+applied, ``unapplied`` says what is written: by default only the sidecar)
 (control characters and a leading ``-`` or ``.`` of STEM percent-encoded; a later
 input with an earlier one's STEM gets ``STEM-N``).  No output ever replaces an
 input of the same call: that file fails with exit code 5.
@@ -74,11 +78,12 @@ HOOK_MODES = ("correct", "check", "estimate")
 #: Largest request accepted (bytes).
 MAX_REQUEST_BYTES = 16 * 1024 * 1024
 _REQUEST_KEYS = frozenset({"mode", "output_dir", "profile", "profile_db", "method", "strength", "output_format",
-                           "input_transfer", "files"})
+                           "input_transfer", "unapplied", "files"})
 _FILE_KEYS = frozenset({"path", "output", "lens"})
-# output_format -> suffixes an explicit output file may have
-_SUFFIXES = {"tiff-float": (".tif", ".tiff"), "tiff16": (".tif", ".tiff"), "exr-half": (".exr",),
-             "exr-float": (".exr",)}
+# output_format -> suffixes an explicit output file may have (auto: the file's suffix says the format)
+_SUFFIXES = {"auto": (".tif", ".tiff", ".jpg", ".jpeg", ".png", ".exr"), "tiff-float": (".tif", ".tiff"),
+             "tiff16": (".tif", ".tiff"), "exr-half": (".exr",), "exr-float": (".exr",), "jpeg": (".jpg", ".jpeg"),
+             "png": (".png",)}
 
 
 class UsageError(VigprocError):
@@ -113,7 +118,8 @@ def _read_request(source: str) -> dict[str, Any]:
         raise UsageError(f"unknown request fields {sorted(unknown)} (known: {', '.join(sorted(_REQUEST_KEYS))})")
     if not isinstance(req.get("files", []), list):
         raise UsageError("request 'files' must be a list")
-    for k in ("mode", "output_dir", "profile", "profile_db", "method", "output_format", "input_transfer"):
+    for k in ("mode", "output_dir", "profile", "profile_db", "method", "output_format", "input_transfer",
+              "unapplied"):
         if k in req and req[k] is not None and not isinstance(req[k], str):
             raise UsageError(f"request '{k}' must be a string")
     if "strength" in req and (isinstance(req["strength"], bool) or not isinstance(req["strength"], (int, float))):
@@ -201,7 +207,8 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) 
         except OSError as exc:
             raise ImageWriteError(f"cannot write beside {job['output']!r}: {exc.strerror or exc}") from None
         try:
-            res = proc.process_file(path, work, "out")
+            # the host asked for this file: it is written even when nothing is applied
+            res = proc.process_file(path, work, "out", unapplied="write", like=target)
             os.replace(res.output, target)
             fsync_dir(target.parent)
         finally:
@@ -253,7 +260,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     req = _read_request(args.request) if args.request else {}
     opt = {k: getattr(args, k) for k in ("mode", "profile", "profile_db", "method", "strength", "output_format",
-                                         "input_transfer")}
+                                         "input_transfer", "unapplied")}
     opt["output_dir"] = args.output
     opt.update({k: v for k, v in req.items() if k != "files" and v is not None})
     if opt["mode"] not in HOOK_MODES:
@@ -261,7 +268,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
         settings = Settings(mode=opt["mode"], profile=opt["profile"], method=opt["method"],
                             transfer=opt["input_transfer"], output_format=opt["output_format"],
-                            strength=float(opt["strength"]))
+                            strength=float(opt["strength"]), unapplied=opt["unapplied"])
     except VigprocError as exc:
         raise UsageError(str(exc)) from None
     entries = [*req.get("files", []), *args.files]

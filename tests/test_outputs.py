@@ -1,0 +1,149 @@
+"""What a correct run writes: each input's own kind back, and nothing that bloats a hot
+folder when nothing was applied (issue 20)."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from vigproc.bench.synthetic import table1_model
+from vigproc.io import jpeg_quality, read_image, write_image
+from vigproc.pipeline import OUTPUT_FORMATS, Processor, Settings, output_format_for
+
+from conftest import photo_like
+
+pytestmark = pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
+
+VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+
+
+def run(*args):
+    return subprocess.run([*VIGPROC, *map(str, args)], capture_output=True, text=True, timeout=300)
+
+
+def _vignetted(h=240, w=360, seed=3):
+    truth = table1_model(1).rescale(w, h)
+    return np.repeat((photo_like(h, w, seed=seed) * truth.field())[..., None], 3, axis=2).astype(np.float32)
+
+
+@pytest.fixture
+def camera_jpeg(tmp_path):
+    """A vignetted JPEG at quality 80 with camera EXIF written by exiftool."""
+    p = tmp_path / "IMG_0001.jpg"
+    write_image(p, _vignetted(), transfer="srgb", quality=80)
+    subprocess.run(["exiftool", "-q", "-overwrite_original", "-Make=Canon", "-Model=Canon EOS 600D",
+                    "-LensModel=EF-S18-55mm f/3.5-5.6 IS II", "-FocalLength=18", "-FNumber=3.5", str(p)], check=True)
+    return p
+
+
+def _exif(path):
+    out = subprocess.run(["exiftool", "-j", "-Make", "-Model", "-LensModel", "-ColorSpace", str(path)],
+                         capture_output=True, text=True, check=True).stdout
+    return json.loads(out)[0]
+
+
+@pytest.mark.parametrize("q", [40, 75, 92])
+def test_jpeg_quality_reads_the_ijg_quality_back(tmp_path, q):
+    p = tmp_path / "q.jpg"
+    write_image(p, _vignetted(64, 96), transfer="srgb", quality=q)
+    assert jpeg_quality(p) == q
+    assert jpeg_quality(tmp_path) is None
+    (tmp_path / "x.jpg").write_bytes(b"\xff\xd8\xff\xd9")  # no table
+    assert jpeg_quality(tmp_path / "x.jpg") is None
+
+
+def test_jpeg_in_jpeg_out_with_its_exif_and_no_bloat(camera_jpeg, tmp_path):
+    out = tmp_path / "out"
+    r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate")
+    assert r.returncode == 0, r.stderr
+    dst = out / "IMG_0001.corrected.jpg"
+    assert dst.is_file() and not list(out.glob("*.tif")), sorted(p.name for p in out.iterdir())
+    img, info = read_image(dst)
+    assert info.format == "jpeg" and info.bit_depth == "uint8" and info.transfer == "srgb"
+    assert jpeg_quality(dst) == 90  # the source's 80, raised to the floor of a second lossy pass
+    assert dst.stat().st_size < 3 * camera_jpeg.stat().st_size
+    tags = _exif(dst)
+    assert tags["Model"] == "Canon EOS 600D" and tags["LensModel"] == "EF-S18-55mm f/3.5-5.6 IS II"
+    # the correction lifted the corners
+    src, _ = read_image(camera_jpeg)
+    assert img[:20, :20].mean() > 1.2 * src[:20, :20].mean()
+
+
+def test_fixed_formats_and_raw_default(tmp_path, camera_jpeg):
+    fmt = output_format_for("auto", camera_jpeg)
+    assert fmt.suffix == ".jpg" and fmt.format == "jpeg"
+    assert output_format_for("auto", tmp_path / "a.JPEG").suffix == ".jpeg"
+    assert output_format_for("auto", tmp_path / "a.nef") == OUTPUT_FORMATS["tiff16"]
+    assert output_format_for("auto", tmp_path / "a.png").format == "png"
+    assert output_format_for("tiff-float", camera_jpeg) == OUTPUT_FORMATS["tiff-float"]
+    assert output_format_for("auto", camera_jpeg, like=tmp_path / "x.png").format == "png"
+    out = tmp_path / "o"
+    r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate", "--output-format", "tiff16")
+    assert r.returncode == 0, r.stderr
+    _, info = read_image(out / "IMG_0001.corrected.tif")
+    assert info.bit_depth == "uint16" and info.transfer == "linear"
+
+
+def test_png_in_png_out(tmp_path):
+    src = tmp_path / "scan.png"
+    write_image(src, _vignetted(), bit_depth="uint8", transfer="srgb")
+    (tmp_path / "o").mkdir()
+    with Processor(Settings(profile="estimate")) as proc:
+        res = proc.process_file(src, tmp_path / "o")
+    assert res.applied and res.output.endswith("scan.corrected.png")
+    _, info = read_image(res.output)
+    assert info.format == "png" and info.bit_depth == "uint8" and info.transfer == "srgb"
+
+
+def test_nothing_applied_writes_no_image_by_default(camera_jpeg, tmp_path):
+    out = tmp_path / "out"
+    r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate", "--strength", "0")
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["IMG_0001.vigproc.json"]
+    side = json.loads((out / "IMG_0001.vigproc.json").read_text())
+    assert side["applied"] is False and side["not_applied"] == "strength 0" and "output" not in side
+    assert "0 corrected, 1 not corrected, 0 failed" in r.stdout
+    assert "no image written" in r.stdout
+
+
+@pytest.mark.parametrize("policy", ["copy", "link"])
+def test_nothing_applied_keeps_the_original_when_asked(camera_jpeg, tmp_path, policy):
+    out = tmp_path / policy
+    before = camera_jpeg.read_bytes()
+    r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate", "--strength", "0", "--unapplied", policy)
+    assert r.returncode == 0, r.stderr
+    kept = out / "IMG_0001.uncorrected.jpg"
+    assert kept.read_bytes() == before and camera_jpeg.read_bytes() == before
+    assert not list(out.glob("*.corrected.*"))
+    side = json.loads((out / "IMG_0001.vigproc.json").read_text())
+    assert side["output"] == str(kept) and side["applied"] is False
+    if policy == "link":
+        assert os.stat(kept).st_ino == os.stat(camera_jpeg).st_ino  # same file system here: a hard link
+    else:
+        assert os.stat(kept).st_ino != os.stat(camera_jpeg).st_ino
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary left
+
+
+def test_a_host_named_output_is_written_even_when_nothing_is_applied(camera_jpeg, tmp_path):
+    target = tmp_path / "export" / "fixed.png"
+    target.parent.mkdir()
+    r = run("hook", "--mode", "correct", "--profile", "estimate", "--strength", "0", f"--output-file={target}",
+            "--", camera_jpeg)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["results"][0]["applied"] is False and doc["results"][0]["output"] == str(target)
+    _, info = read_image(target)
+    assert info.format == "png"  # auto: the suffix the host named picks the format
+
+
+def test_settings_refuse_an_unknown_policy():
+    from vigproc.errors import VigprocError
+
+    with pytest.raises(VigprocError, match="not corrected"):
+        Settings(unapplied="delete")
+    r = run("correct", "x.jpg", "-o", "o", "--unapplied", "delete")
+    assert r.returncode == 2 and "invalid choice" in r.stderr
