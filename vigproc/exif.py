@@ -57,8 +57,9 @@ Numbers come from ExifTool's numeric (``TAG#``, i.e. per-tag ``-n``) values.  A
 value outside its physical range (focal length <= 0 or > 10000 mm, f-number < 0.5
 or > 1000, negative distance) or two sources disagreeing by more than 20 % make
 the field *missing* and log a warning: a contradiction never yields a value.  A
-bad primary value is not replaced by a fallback (a Magic Lantern DNG writes
-FNumber 0 and ApertureValue 1: both wrong).
+focal length or f-number of 0 is how cameras write "unknown" (manual lenses, many
+DNGs): missing, without a warning.  A bad or unknown primary value is not replaced
+by a fallback (a Magic Lantern DNG writes FNumber 0 and ApertureValue 1: both wrong).
 
 Every field that is missing is listed in :attr:`LensKey.missing`; the reasons are
 in :attr:`LensKey.problems`.
@@ -811,14 +812,19 @@ def lens_key_from_metadata(meta: Mapping[str, Any], source: str | None = None) -
             b.problem(f"lens_serial: {group}:LensSerialNumber rejected: {prob}")
         if serial is not None:
             break
-    focal = b.number_field(meta, ("FocalLength",), "focal_mm", _valid_focal, f"0 < mm <= {_MAX_FOCAL:g}")
+    # 0 is how cameras and converters write "unknown" (manual and adapted lenses, many
+    # DNGs): a missing value, not a problem to warn about on every command
+    focal = b.number_field(meta, ("FocalLength",), "focal_mm", _valid_focal, f"0 < mm <= {_MAX_FOCAL:g}",
+                           zero_is_unknown=True)
     fnum_range = f"{_MIN_FNUMBER:g}..{_MAX_FNUMBER:g}"
-    fnum = b.number_field(meta, ("FNumber",), "fnumber", _valid_fnumber, fnum_range)
-    if fnum is None and not any(p.startswith("fnumber:") for p in b.problems):
+    fnum = b.number_field(meta, ("FNumber",), "fnumber", _valid_fnumber, fnum_range, zero_is_unknown=True)
+    # FNumber 0 says "unknown": its fallbacks are no better (Magic Lantern writes ApertureValue 1)
+    fnum_unknown = any(_as_float(raw) == 0 for _, raw in _sources(meta, "FNumber"))
+    if fnum is None and not fnum_unknown and not any(p.startswith("fnumber:") for p in b.problems):
         # ApertureValue only as a fallback, never as a cross-check: some cameras
         # write a wrong one next to a right FNumber (Ricoh RR330: f/2.88 vs APEX 4).
         fnum = b.number_field(meta, ("ApertureValue",), "fnumber", _valid_fnumber, fnum_range)
-    if fnum is None and not any(p.startswith("fnumber:") for p in b.problems):
+    if fnum is None and not fnum_unknown and not any(p.startswith("fnumber:") for p in b.problems):
         # Composite:Aperture only when nothing else exists (it is derived from them).
         ap = _as_float(meta.get("Composite:Aperture"))
         if ap is not None:
