@@ -271,6 +271,7 @@ class _Exiftool:
         self.exe = exiftool_path()
         self.dir = tempfile.mkdtemp(prefix="vigproc-exiftool-")
         self.config = os.path.join(self.dir, "vigproc.config")
+        self._said: set[tuple[str, str]] = set()
         with open(self.config, "w", encoding="utf-8") as fh:
             fh.write(_CONFIG)
         return self
@@ -297,12 +298,24 @@ class _Exiftool:
             raise ImageWriteError(f"{what}: cannot run exiftool {self.exe!r}: {exc.strerror or exc}") from None
         err = res.stderr.decode("utf-8", "replace")
         errors = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("Warning:")]
+        paths = [a for a in args if os.path.sep in a or os.path.exists(a)]
         for ln in err.splitlines():
-            if ln.startswith("Warning:"):
-                if "No writable tags set from" in ln:  # the source just has no metadata
-                    logger.info("%s: exiftool: %s", name, ln)
-                else:
-                    logger.warning("%s: exiftool: %s", name, ln)
+            if not ln.startswith("Warning:"):
+                continue
+            # exiftool names the file it warns about ("... - /tmp/.x.tmp-1234.tif"): our
+            # temporary names mean nothing to a user, who already sees ``name``
+            text = ln
+            for a in paths:
+                text = text.replace(f" - {a}", "").replace(f" in {a}", "")
+            if (name, text) in self._said:  # once per file, not once per exiftool call
+                continue
+            self._said.add((name, text))
+            if "[minor]" in ln:  # harmless, said once when the source's EXIF was read
+                logger.debug("%s: exiftool: %s", name, text)
+            elif "No writable tags set from" in ln:  # the source just has no metadata
+                logger.info("%s: exiftool: %s", name, text)
+            else:
+                logger.warning("%s: exiftool: %s", name, text)
         if res.returncode < 0:  # killed (e.g. a stop signal to every process): not the file's fault
             exc = ImageWriteError(f"{what}: exiftool was killed by {_signal_name(-res.returncode)}")
             exc.transient = True
@@ -357,8 +370,11 @@ def _read_tags(et: _Exiftool, src: str, what: str) -> dict[str, Any]:
         raise ImageWriteError(f"{what}: exiftool cannot read the source {_q(src)}: {msg}") from None
     if info.get("ExifTool:Error"):
         raise ImageWriteError(f"{what}: source {_q(src)}: {info['ExifTool:Error']}")
-    if info.get("ExifTool:Warning"):  # e.g. "JPEG format error": metadata may still copy
-        logger.warning("%s: exiftool: %s", src, info["ExifTool:Warning"])
+    warning = info.get("ExifTool:Warning")
+    if warning:  # e.g. "JPEG format error": metadata may still copy
+        # "[minor]" ones (a maker-note offset exiftool fixes) were already said, once, when
+        # the file's EXIF was read (vigproc.exif)
+        (logger.debug if "[minor]" in str(warning) else logger.warning)("%s: exiftool: %s", src, warning)
     mime = str(info.get("File:MIMEType", ""))
     if not mime.startswith("image/"):
         kind = info.get("File:FileType", "unknown")
