@@ -24,3 +24,18 @@ def test_identity_model_gives_flat_curves():
     assert np.isfinite(fig).all()
     pic = vignetting_picture(VignettingModel.identity(600, 400))
     assert np.allclose(pic[100:110, 100:110], 1.0)  # no fall-off: white
+
+
+def test_a_rejected_fit_is_shown_as_such_and_axes_need_a_centre_in_the_frame():
+    m = table1_model(1).rescale(600, 400)
+    applied, rejected = falloff_figure(m), falloff_figure(m, rejected=True)
+    cross = (0.85, 0.2, 0.2)  # the red cross over a fit that was not applied
+    assert _has_colour(rejected, cross) and not _has_colour(applied, cross)
+    # the map is dimmed: its centre is no longer white
+    assert applied[40 + 120, 10 + 180].min() > 0.9 > rejected[40 + 120, 10 + 180].max()
+    # a centre outside the frame: no axis lines across the map (they came from nowhere)
+    off = VignettingModel(600, 400, center=(-900.0, -900.0), p=m.p, alpha=m.alpha)
+    fig = falloff_figure(off)
+    left = fig[40:40 + 280, 10:10 + 420]
+    for col in _AXIS_COLOURS:
+        assert not _has_colour(left, col)

@@ -10,6 +10,8 @@ from vigproc.model import VignettingModel
 
 #: Iso-attenuation contours drawn, in EV below the centre.
 CONTOUR_EV = (0.25, 0.5, 1.0, 2.0, 3.0, 4.0)
+_CONTOUR_COLOURS = ((0.2, 0.8, 1.0), (0.2, 1.0, 0.4), (1.0, 0.9, 0.2), (1.0, 0.5, 0.1), (1.0, 0.2, 0.6),
+                    (0.7, 0.3, 1.0))
 
 
 def vignetting_picture(model: VignettingModel, long_side: int = 480) -> np.ndarray:
@@ -23,8 +25,7 @@ def vignetting_picture(model: VignettingModel, long_side: int = 480) -> np.ndarr
     h, w = max(2, round(model.height * s)), max(2, round(model.width * s))
     lf = model.log_field((h, w)) / math.log(2.0)
     rgb = np.repeat(np.exp2(lf)[..., None], 3, axis=2)
-    colours = np.array([[0.2, 0.8, 1.0], [0.2, 1.0, 0.4], [1.0, 0.9, 0.2], [1.0, 0.5, 0.1], [1.0, 0.2, 0.6], [0.7, 0.3, 1.0]])
-    for ev, col in zip(CONTOUR_EV, colours):
+    for ev, col in zip(CONTOUR_EV, _CONTOUR_COLOURS):
         below = lf < -ev
         edge = np.zeros_like(below)
         edge[:, 1:] |= below[:, 1:] != below[:, :-1]
@@ -77,9 +78,13 @@ def _falloff_along(model: VignettingModel, u: np.ndarray, n: int = 400) -> tuple
     return t, model.log_field_at(pts[:, 0], pts[:, 1]) / math.log(2.0)
 
 
-def falloff_figure(model: VignettingModel, title: str = "") -> np.ndarray:
-    """A figure of a vignetting model: gain map with contours, centre and ellipse axes
-    (left), and the fall-off in EV along both ellipse axes across the frame (right).
+def falloff_figure(model: VignettingModel, title: str = "", *, rejected: bool = False) -> np.ndarray:
+    """A figure of a vignetting model: gain map with contours (and their legend), centre
+    and ellipse axes (left), and the fall-off in EV along both ellipse axes across the
+    frame (right).
+
+    ``rejected``: the model is a fit that was *not* applied (weak evidence): the map is
+    dimmed and crossed out, the curves dashed, and a banner says so.
 
     Returns
     -------
@@ -87,23 +92,47 @@ def falloff_figure(model: VignettingModel, title: str = "") -> np.ndarray:
     """
     left = vignetting_picture(model, long_side=420)
     lh, lw = left.shape[:2]
-    H = max(lh, 360) + 60
+    H = max(lh + 40, 360) + 80
     W = lw + 560
     fig = np.full((H, W, 3), 0.12, dtype=np.float32)
     y0 = 40
+    if rejected:  # dimmed toward the background and crossed: not what was applied
+        left = 0.35 * left + 0.65 * 0.12
+        n = max(lh, lw)
+        for k in np.linspace(0, 1, 4 * n):
+            for yy in (int(k * (lh - 1)), int((1 - k) * (lh - 1))):
+                left[yy, min(lw - 1, int(k * (lw - 1)))] = (0.85, 0.2, 0.2)
     fig[y0 : y0 + lh, 10 : 10 + lw] = left
     s = lw / model.width
-    if not model.is_identity:
+    cx = (model.width - 1) / 2 + model.center[0]
+    cy = (model.height - 1) / 2 + model.center[1]
+    # the ellipse axes only through a centre inside the frame (else they are lines from nowhere)
+    if not model.is_identity and 0 <= cx < model.width and 0 <= cy < model.height:
         major, minor = _axes(model)
-        cx = (model.width - 1) / 2 + model.center[0]
-        cy = (model.height - 1) / 2 + model.center[1]
         for u, col in zip((major, minor), _AXIS_COLOURS):
             for t in np.linspace(-max(model.width, model.height), max(model.width, model.height), 4000):
                 x, y = (cx + t * u[0]) * s, (cy + t * u[1]) * s
                 if 0 <= x < lw and 0 <= y < lh:
                     fig[y0 + int(y), 10 + int(x)] = col
+    # contour legend under the map: the levels the field reaches
+    lf_min = float(model.log_field((max(2, round(lh)), max(2, round(lw)))).min()) / math.log(2.0)
+    shown = [(ev, col) for ev, col in zip(CONTOUR_EV, _CONTOUR_COLOURS) if lf_min < -ev]
+    x = 10
+    if shown:
+        _text(fig, x, y0 + lh + 24, "contours:", 13)
+        x += 72
+    for ev, col in shown:
+        fig[y0 + lh + 14 : y0 + lh + 26, x : x + 14] = col
+        _text(fig, x + 18, y0 + lh + 24, f"-{ev:g} EV", 13)
+        x += 80
+    if not shown:
+        _text(fig, 10, y0 + lh + 24, "no contour: the fall-off stays under 0.25 EV", 13)
+    if rejected:
+        _text(fig, 20, y0 + 24, "NOT APPLIED: the evidence was too weak", 15, (1.0, 0.35, 0.35))
+    if model.is_identity:
+        _text(fig, 20, y0 + 24, "no correction", 15, (1.0, 0.35, 0.35))
     # right panel: EV against position along each axis
-    px0, py0, pw, ph = lw + 80, y0, 440, H - y0 - 50
+    px0, py0, pw, ph = lw + 80, y0, 440, H - y0 - 70
     fig[py0 : py0 + ph, px0] = 0.7
     fig[py0 + ph, px0 : px0 + pw] = 0.7
     curves = [_falloff_along(model, u) for u in (_axes(model) if not model.is_identity else
@@ -118,13 +147,18 @@ def falloff_figure(model: VignettingModel, title: str = "") -> np.ndarray:
     for (t, ev), col in zip(curves, _AXIS_COLOURS):
         xs = px0 + ((t / t_max + 1) / 2 * (pw - 1)).astype(int)
         ys = py0 + np.clip(np.round(ev / ev_lo * (ph - 1)), 0, ph - 1).astype(int)
+        keep = (np.arange(xs.size) // 12) % 2 == 0 if rejected else slice(None)  # dashed: not applied
         for dx in (0, 1):
-            fig[ys, np.clip(xs + dx, 0, W - 1)] = col
+            fig[ys[keep], np.clip(xs[keep] + dx, 0, W - 1)] = col
     _text(fig, px0 + pw // 2 - 8, py0 + ph + 18, "0", 13)
     _text(fig, px0, py0 + ph + 18, f"-{t_max:.0f} px", 13)
     _text(fig, px0 + pw - 60, py0 + ph + 18, f"+{t_max:.0f} px", 13)
-    _text(fig, px0 + 10, py0 + 18, "major axis", 13, _AXIS_COLOURS[0])
-    _text(fig, px0 + 110, py0 + 18, "minor axis", 13, _AXIS_COLOURS[1])
+    # the curve legend below the axis, never on the curves
+    names = ("major axis", "minor axis") if not model.is_identity else ("horizontal", "vertical")
+    for k, (label, col) in enumerate(zip(names, _AXIS_COLOURS)):
+        lx = px0 + 10 + 215 * k
+        fig[py0 + ph + 32 : py0 + ph + 35, lx : lx + 20] = col
+        _text(fig, lx + 26, py0 + ph + 40, f"fall-off along the {label}", 13, col)
     _text(fig, 10, 26, title or f"fall-off {model.field_ev_rms():.2f} EV RMS, centre "
           f"({model.center[0]:.0f}, {model.center[1]:.0f}) px", 15)
     return np.clip(fig, 0, 1)

@@ -796,5 +796,6 @@ class Processor:
         title = f"{path.name}: " + ("not applied (weak evidence), " if m.candidate is not None else "") + \
             f"{shown.field_ev_rms():.2f} EV RMS"
         pic = safe_output(outdir, stem, ".vignetting.png")
-        write_image(pic, falloff_figure(shown, title=title), bit_depth="uint8", transfer="srgb")
+        write_image(pic, falloff_figure(shown, title=title, rejected=m.candidate is not None), bit_depth="uint8",
+                    transfer="srgb")
         res.picture = str(pic)
