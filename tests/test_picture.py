@@ -34,7 +34,8 @@ def test_a_rejected_fit_is_shown_as_such_and_axes_need_a_centre_in_the_frame():
     # the map is dimmed: its centre is no longer white
     assert applied[40 + 120, 10 + 180].min() > 0.9 > rejected[40 + 120, 10 + 180].max()
     # a centre outside the frame: no axis lines across the map (they came from nowhere)
-    off = VignettingModel(600, 400, center=(-900.0, -900.0), p=m.p, alpha=m.alpha)
+    p = m.p[0]  # an ellipse at 45 degrees: its axes, drawn, would cross the map
+    off = VignettingModel(600, 400, center=(-330.0, -230.0), p=(p, 0.5 * p, p), alpha=m.alpha)
     fig = falloff_figure(off)
     left = fig[40:40 + 280, 10:10 + 420]
     for col in _AXIS_COLOURS:
