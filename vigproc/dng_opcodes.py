@@ -436,12 +436,21 @@ class FixVignetteRadial:
         return np.hypot(np.asarray(x, dtype=np.float64) - ox, np.asarray(y, dtype=np.float64) - oy) / \
             self.max_radius(width, height)
 
+    def gain_grid(self, rel_v: np.ndarray, rel_h: np.ndarray, width: int, height: int,
+                  plane: int = 0) -> np.ndarray:
+        """The gain at the grid of relative positions ``rel_v`` × ``rel_h`` (0..1 down and
+        across) of a ``width``×``height`` image (the radius is measured in its pixels).
+        ``plane`` is accepted for symmetry with :meth:`GainMap.gain_grid` (all planes
+        get the same gain)."""
+        width, height = _size(width, height)
+        dx = (np.asarray(rel_h, dtype=np.float64) - self.cx) * width
+        dy = (np.asarray(rel_v, dtype=np.float64) - self.cy) * height
+        return self.gain(np.hypot(dx[None, :], dy[:, None]) / self.max_radius(width, height))
+
     def gain_field(self, width: int, height: int) -> np.ndarray:
         """The gain at every pixel of a ``width``×``height`` image (H×W float64)."""
         width, height = _size(width, height)
-        xs = np.arange(width, dtype=np.float64) - (width - 1) / 2.0
-        ys = np.arange(height, dtype=np.float64) - (height - 1) / 2.0
-        return self.gain(self.radius_at(xs[None, :], ys[:, None], width, height))
+        return self.gain_grid(_centres(height), _centres(width), width, height)
 
 
 # --------------------------------------------------------------------------- #
@@ -633,74 +642,87 @@ class GainMap:
                   + np.ascontiguousarray(self.gains, dtype=">f4").tobytes())
         return Opcode(GAIN_MAP, self.dng_version, self.flags, params)
 
-    def _axis(self, n: int, points: int, spacing: float, origin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For each of n pixels along an axis: the two map indices and the weight of the second."""
-        pos = ((np.arange(n, dtype=np.float64) + 0.5) / n - origin) / spacing
-        pos = np.clip(pos, 0.0, points - 1.0)
+    def _axis(self, rel: np.ndarray, points: int, spacing: float, origin: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For points at relative positions ``rel`` along an axis: the two map indices
+        around each and the weight of the second (held at the outermost points)."""
+        pos = np.clip((rel - origin) / spacing, 0.0, points - 1.0)
         i0 = np.minimum(np.floor(pos).astype(np.int64), points - 1)
         i1 = np.minimum(i0 + 1, points - 1)
         return i0, i1, pos - i0
 
-    def gain_field(self, width: int, height: int, plane: int = 0, *, ignore_pitch: bool = True,
-                   area_frame: tuple[int, int] | None = None) -> np.ndarray:
-        """The gain at every pixel of a ``width``×``height`` image for image plane ``plane``.
+    def gain_grid(self, rel_v: np.ndarray, rel_h: np.ndarray, width: int, height: int,
+                  plane: int = 0) -> np.ndarray:
+        """The gain at the grid of relative positions ``rel_v`` × ``rel_h`` (0..1 down and
+        across) of a ``width``×``height`` image, for image plane ``plane``.
 
-        Parameters
-        ----------
-        width, height : int
-            The image the opcode applies to (the frame its relative coordinates span).
-        plane : int
-            Image plane; it uses map plane ``min(plane, map_planes − 1)``.  A plane the
-            area does not cover gets gain 1.
-        ignore_pitch : bool
-            True (default): the smooth field at every pixel of the area (what a pitch-2
-            CFA map means for the colour its phase samples).  False: only the rows and
-            columns the pitch selects get the gain, the others 1 (the opcode exactly).
-        area_frame : (int, int), optional
-            (width, height) of the image the area's pixel coordinates refer to, when the
-            field is wanted at another resolution of it (a half-size development);
-            default ``(width, height)``.
+        A point inside the area (the pixel it falls in is one of the area's) gets the
+        map's bilinear interpolation, any other point 1; the pitch is ignored (the
+        smooth field, which is what a pitch-2 CFA map means for the colour its phase
+        samples).  Image plane p uses map plane ``min(p, map_planes − 1)``; a plane the
+        area does not cover gets 1.
 
         Returns
         -------
-        ndarray, float64, H×W
-            1 outside the area.
+        ndarray, float64, len(rel_v) × len(rel_h)
         """
         width, height = _size(width, height)
+        rel_v = np.asarray(rel_v, dtype=np.float64)
+        rel_h = np.asarray(rel_h, dtype=np.float64)
         a = self.area
-        out = np.ones((height, width), dtype=np.float64)
+        out = np.ones((rel_v.size, rel_h.size), dtype=np.float64)
         if not (a.plane <= plane < a.plane + a.planes) or a.empty:
             return out
-        fw, fh = (width, height) if area_frame is None else _size(*area_frame)
-        sy, sx = height / fh, width / fw  # the area, in this resolution's pixels
-        t, b = max(round(a.top * sy), 0), min(round(a.bottom * sy), height)
-        lft, r = max(round(a.left * sx), 0), min(round(a.right * sx), width)
-        if t >= b or lft >= r:
+        row = np.floor(rel_v * height)
+        col = np.floor(rel_h * width)
+        iv = np.flatnonzero((row >= a.top) & (row < a.bottom))
+        ih = np.flatnonzero((col >= a.left) & (col < a.right))
+        if iv.size == 0 or ih.size == 0:
             return out
         g = self.gains[:, :, min(plane, self.map_planes - 1)].astype(np.float64)
         pv, ph = self.points
+        i0, i1, f = self._axis(rel_v[iv], pv, self.spacing_v, self.origin_v)
+        j0, j1, e = self._axis(rel_h[ih], ph, self.spacing_h, self.origin_h)
         # interpolation is separable; interpolate first along the axis that leaves the
         # smaller intermediate array (a hostile map can have millions of points on one axis)
-        rv = self._axis(height, pv, self.spacing_v, self.origin_v)
-        rh = self._axis(width, ph, self.spacing_h, self.origin_h)
-        rows = slice(t, b)
-        cols = slice(lft, r)
-        i0, i1, f = (v[rows] for v in rv)
-        j0, j1, e = (v[cols] for v in rh)
-        if (b - t) * ph <= pv * (r - lft):
+        if iv.size * ph <= pv * ih.size:
             tmp = g[i0] * (1 - f)[:, None] + g[i1] * f[:, None]
             vals = tmp[:, j0] * (1 - e)[None, :] + tmp[:, j1] * e[None, :]
         else:
             tmp = g[:, j0] * (1 - e)[None, :] + g[:, j1] * e[None, :]
             vals = tmp[i0] * (1 - f)[:, None] + tmp[i1] * f[:, None]
-        if ignore_pitch:
-            out[rows, cols] = vals
-        else:  # only the rows and columns the pitch selects, counted from the area's corner
-            keep_r = (np.arange(t, b) - a.top) % a.row_pitch == 0
-            keep_c = (np.arange(lft, r) - a.left) % a.col_pitch == 0
-            mask = keep_r[:, None] & keep_c[None, :]
-            out[rows, cols][mask] = vals[mask]
+        out[np.ix_(iv, ih)] = vals
         return out
+
+    def gain_field(self, width: int, height: int, plane: int = 0, *, ignore_pitch: bool = True) -> np.ndarray:
+        """The gain at every pixel of a ``width``×``height`` image for image plane ``plane``
+        (H×W float64; see :meth:`gain_grid`).
+
+        Parameters
+        ----------
+        width, height : int
+            The image the opcode applies to (its relative coordinates span it, its area
+            is in its pixels).
+        plane : int
+            Image plane.
+        ignore_pitch : bool
+            True (default): the smooth field at every pixel of the area.  False: only
+            the rows and columns the pitch selects (counted from the area's corner) get
+            the gain, the others 1 (the opcode exactly).
+        """
+        width, height = _size(width, height)
+        out = self.gain_grid(_centres(height), _centres(width), width, height, plane)
+        a = self.area
+        if not ignore_pitch and (a.row_pitch > 1 or a.col_pitch > 1):
+            keep_r = (np.arange(height) - a.top) % a.row_pitch == 0
+            keep_c = (np.arange(width) - a.left) % a.col_pitch == 0
+            out[~(keep_r[:, None] & keep_c[None, :])] = 1.0
+        return out
+
+
+def _centres(n: int) -> np.ndarray:
+    """Relative positions of the centres of n pixels: (j + ½)/n."""
+    return (np.arange(n, dtype=np.float64) + 0.5) / n
 
 
 def _size(width: int, height: int) -> tuple[int, int]:
