@@ -63,3 +63,11 @@ def _private_profile_store(tmp_path_factory, monkeypatch):
     never reads or writes the store of the person running it.  Tests that want a
     particular store set VIGPROC_PROFILE_DB themselves."""
     monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path_factory.mktemp("store") / "profiles.sqlite"))
+
+
+@pytest.fixture(autouse=True)
+def _no_hook_server(monkeypatch):
+    """`vigproc hook` starts a warm background server for the calls that follow
+    (vigproc.hookserver); the suite runs every call in-process unless a test asks for
+    the server itself (tests/test_hookserver.py), so no test leaves a process behind."""
+    monkeypatch.setenv("VIGPROC_HOOK_SERVER", "off")

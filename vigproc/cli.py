@@ -970,13 +970,40 @@ def _terminate_like_ctrl_c():
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
-    handler = logging.StreamHandler()
+    handler = logging.StreamHandler()  # the current sys.stderr (the hook server swaps it per call)
     handler.setFormatter(_OneLineFormatter("%(levelname)s %(name)s: %(message)s"))
-    logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), handlers=[handler])
+    logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), handlers=[handler], force=True)
     logging.captureWarnings(True)  # libraries' warnings as one log line each, not raw stderr text
+    if getattr(args, "hook_call", False):
+        from vigproc import hookserver
+
+        if hookserver.enabled() and not hookserver.serving():
+            return _hook_via_server(args, argv, hookserver)
     with _terminate_like_ctrl_c() as terminated:
         return _run(args, terminated)
+
+
+def _hook_via_server(args: argparse.Namespace, argv: list[str], hookserver) -> int:
+    """A host's call: on the warm server when one runs (vigproc.hookserver), else here,
+    starting one for the calls that follow."""
+    import io
+
+    stdin = None
+    if args.request == "-":  # the server cannot read our stdin: pass its bytes (the hook's own limit)
+        from vigproc.commands.hook import MAX_REQUEST_BYTES
+
+        stdin = sys.stdin.buffer.read(MAX_REQUEST_BYTES + 1)
+    code = hookserver.call(argv, stdin)
+    if code is not None:
+        return code
+    if stdin is not None:
+        sys.stdin = io.TextIOWrapper(io.BytesIO(stdin), encoding="utf-8")
+    with _terminate_like_ctrl_c() as terminated:
+        code = _run(args, terminated)
+    hookserver.start_in_background()
+    return code
 
 
 def _run(args: argparse.Namespace, terminated) -> int:

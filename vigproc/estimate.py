@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -12,8 +13,10 @@ from vigproc.family_fit import LensHint
 from vigproc.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
 from vigproc.image import bin_mean, check_image, log_image, luminance
 from vigproc.model import VignettingModel
-from vigproc.prior import NaturalPrior, default_prior
 from vigproc.robust import RobustSettings, estimate_robust
+
+if TYPE_CHECKING:
+    from vigproc.prior import NaturalPrior
 
 log = logging.getLogger(__name__)
 
@@ -155,6 +158,8 @@ def estimate(
         return estimate_family(lum, mask=keep, hint=hint)
 
     from vigproc.lyu2010 import estimate_lyu2010
+
+    from vigproc.prior import default_prior  # the paper's methods only
 
     k = max(1, -(-max(h, w) // LYU_WORK_SIZE))
     work, _ = bin_mean(lum, k)

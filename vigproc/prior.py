@@ -25,8 +25,6 @@ from pathlib import Path
 from typing import Iterable
 
 import numpy as np
-from scipy.optimize import brentq
-from scipy.special import gammaln
 
 from vigproc.errors import PriorError
 from vigproc.image import log_image, luminance
@@ -143,7 +141,9 @@ def ggd_moment_match(samples: np.ndarray) -> tuple[float, float]:
 
     def ratio(b: float) -> float:
         # Γ(1/β)Γ(3/β)/Γ(2/β)², decreasing in β; log-gamma for stability
-        return math.exp(gammaln(1 / b) + gammaln(3 / b) - 2 * gammaln(2 / b)) - target
+        return math.exp(math.lgamma(1 / b) + math.lgamma(3 / b) - 2 * math.lgamma(2 / b)) - target
+
+    from scipy.optimize import brentq  # only when fitting: scipy.optimize takes 0.3 s to import
 
     lo, hi = BETA_RANGE
     if ratio(lo) < 0:
@@ -152,7 +152,7 @@ def ggd_moment_match(samples: np.ndarray) -> tuple[float, float]:
         beta = hi
     else:
         beta = brentq(ratio, lo, hi, xtol=1e-10)
-    gamma = math.sqrt(m2 * math.exp(gammaln(1 / beta) - gammaln(3 / beta)))
+    gamma = math.sqrt(m2 * math.exp(math.lgamma(1 / beta) - math.lgamma(3 / beta)))
     return gamma, beta
 
 

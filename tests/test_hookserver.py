@@ -1,0 +1,102 @@
+"""The warm hook server (vigproc.hookserver): same answers as an in-process call, only
+faster; private to its user; never a second copy of the code."""
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from vigproc import hookserver
+from vigproc.io import write_image
+
+from conftest import photo_like
+
+VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+
+
+@pytest.fixture
+def server_env(tmp_path, monkeypatch):
+    rt = tmp_path / "run"
+    monkeypatch.setenv(hookserver.ENV_SWITCH, "on")
+    monkeypatch.setenv(hookserver.ENV_DIR, str(rt))
+    monkeypatch.setenv("VIGPROC_HOOK_SERVER_IDLE", "20")
+    yield rt
+    subprocess.run(["pkill", "-f", f"--socket {rt}"], check=False)  # leave no process behind
+
+
+def _hook(*args, cwd=None, stdin=None):
+    return subprocess.run([*VIGPROC, "hook", *map(str, args)], capture_output=True, text=True, cwd=cwd,
+                          input=stdin, timeout=120, env=os.environ.copy())
+
+
+def _strip(doc):
+    for r in doc.get("results", []):
+        r.pop("seconds", None)
+        for k in ("model",):
+            if isinstance(r.get(k), dict):
+                (r[k].get("quality") or {}).pop("seconds", None)
+    return doc
+
+
+def _wait_for_socket(rt, seconds=60):
+    t0 = time.time()
+    while time.time() - t0 < seconds:
+        if rt.exists() and any(rt.glob("*.sock")):
+            return True
+        time.sleep(0.2)
+    return False
+
+
+def test_a_warm_server_gives_the_same_answers(tmp_path, server_env):
+    img = np.repeat(photo_like(120, 180, seed=2)[..., None], 3, axis=2).astype(np.float32)
+    write_image(tmp_path / "a.tif", img, bit_depth="float")
+    first = _hook("--mode", "estimate", "--profile", "estimate", "--", "a.tif", cwd=tmp_path)  # in-process
+    assert first.returncode == 0, first.stderr
+    assert _wait_for_socket(server_env), "the first call did not start a server"
+    assert os.stat(server_env).st_mode & 0o777 == 0o700
+    # relative names resolve in the caller's folder, on the server too
+    again = _hook("--mode", "estimate", "--profile", "estimate", "--", "a.tif", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert _strip(json.loads(again.stdout)) == _strip(json.loads(first.stdout))
+    # a failure: same exit code and message as in-process
+    bad = _hook("--mode", "estimate", "--", "missing.tif", cwd=tmp_path)
+    assert bad.returncode == 4 and "missing.tif" in bad.stderr
+    assert json.loads(bad.stdout)["results"][0]["status"] == "error"
+    # a request on standard input
+    req = json.dumps({"mode": "estimate", "profile": "estimate", "files": [str(tmp_path / "a.tif")]})
+    piped = _hook("--request", "-", stdin=req, cwd=tmp_path)
+    assert piped.returncode == 0 and json.loads(piped.stdout)["ok"] == 1, piped.stderr
+    # usage errors stay usage errors
+    usage = _hook("--mode", "nonsense", cwd=tmp_path)
+    assert usage.returncode == 2 and "invalid choice" in usage.stderr
+
+
+def test_once_started_the_server_answers_calls(tmp_path, server_env):
+    img = np.repeat(photo_like(96, 128, seed=3)[..., None], 3, axis=2).astype(np.float32)
+    write_image(tmp_path / "b.tif", img, bit_depth="float")
+    _hook("--mode", "estimate", "--profile", "estimate", "--", tmp_path / "b.tif")
+    assert _wait_for_socket(server_env)
+    # call() returns None when no server answers (the caller then works itself)
+    code = hookserver.call(["hook", "--mode", "estimate", "--profile", "estimate", "--", str(tmp_path / "b.tif")])
+    assert code == 0
+
+
+def test_no_server_for_a_folder_others_can_enter(tmp_path, monkeypatch):
+    rt = tmp_path / "open"
+    rt.mkdir(mode=0o755)
+    rt.chmod(0o755)
+    monkeypatch.setenv(hookserver.ENV_DIR, str(rt))
+    with pytest.raises(PermissionError):
+        hookserver.runtime_dir()
+    assert hookserver.call(["hook", "--help"]) is None  # the caller does the work itself
+
+
+def test_off_switch(monkeypatch):
+    monkeypatch.setenv(hookserver.ENV_SWITCH, "off")
+    assert not hookserver.enabled()
+    monkeypatch.setenv(hookserver.ENV_SWITCH, "on")
+    assert hookserver.enabled()
