@@ -61,6 +61,12 @@ class ImageWriteError(VigprocError, OSError):
     exit_code = 5
 
 
+class MemoryBudgetError(InvalidImageError):
+    """Decoding the image would exceed the memory budget (``VIGPROC_MEMORY_BUDGET``,
+    see :func:`vigproc.io.memory_budget`); decided from the file's header, before any
+    pixel is decoded."""
+
+
 class ModelError(VigprocError, ValueError):
     """Vignetting model parameters are missing, absurd or inconsistent."""
 

@@ -68,6 +68,7 @@ from vigproc.errors import (
     ImageReadError,
     ImageWriteError,
     InvalidImageError,
+    MemoryBudgetError,
     UnsupportedFormatError,
 )
 
@@ -81,7 +82,10 @@ __all__ = [
     "LINEAR_TIFF_MARKER",
     "RAW_EXTENSIONS",
     "SUPPORTED_OIIO_FORMATS",
+    "DEFAULT_MEMORY_BUDGET",
+    "MEMORY_BUDGET_ENV",
     "linear_to_srgb",
+    "memory_budget",
     "read_image",
     "srgb_to_linear",
     "write_image",
@@ -106,6 +110,17 @@ RAW_EXTENSIONS = frozenset(
 
 #: Written into the ImageDescription of linear integer/float TIFFs by :func:`write_image`.
 LINEAR_TIFF_MARKER = "vigproc:transfer=linear"
+
+#: Default memory budget of one decoded image, in bytes: the float32 pixels
+#: :func:`read_image` returns (width x height x channels x 4).  2 GiB takes a
+#: 178-megapixel colour frame (a 150-MP medium-format RAW fits) and refuses a
+#: 196-MP colour PNG bomb of 572 KB.  Decoding an 8-bit file peaks at about 1.25x
+#: the decoded size (its integer buffer too; more for 16-bit files and RAW); a whole
+#: correction about 4-5x (0.77 GB for a 12-MP frame, 144 MB of float32).
+DEFAULT_MEMORY_BUDGET = 2 * 2**30
+#: Environment variable that sets the budget (bytes, or with a K/M/G/T suffix: powers of 1024).
+MEMORY_BUDGET_ENV = "VIGPROC_MEMORY_BUDGET"
+_SIZE_UNITS = {"": 1, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}
 
 # Below this many bits per sensor pixel a RAW cannot hold its image (even lossy
 # DNG needs ~2 bits/px; the 1996 Kodak DC50 KDC has ~1.9); such files are
@@ -373,12 +388,42 @@ class _RawUnsupported(Exception):
     """LibRaw does not recognise the file (internal: lets the caller try OpenImageIO)."""
 
 
+def memory_budget() -> int:
+    """The memory budget of one decoded image in bytes: ``$VIGPROC_MEMORY_BUDGET``
+    (``2G``, ``1500M``, ``800MiB``, ``3000000000``) or :data:`DEFAULT_MEMORY_BUDGET`.
+
+    Raises
+    ------
+    InvalidImageError
+        The variable is set but is not a positive size.
+    """
+    text = os.environ.get(MEMORY_BUDGET_ENV, "").strip()
+    if not text:
+        return DEFAULT_MEMORY_BUDGET
+    m = re.fullmatch(r"(\d+(?:\.\d*)?)\s*([kmgt]?)(?:i?b)?", text.lower())
+    value = float(m.group(1)) * _SIZE_UNITS[m.group(2)] if m else 0.0
+    if not value >= 1:
+        raise InvalidImageError(f"{MEMORY_BUDGET_ENV}={text!r} is not a memory size (e.g. 2G, 1500M or bytes)")
+    return int(value)
+
+
+def _check_budget(path: str, width: int, height: int, channels: int, budget: int) -> None:
+    """Refuse, from the header alone, an image whose decoded float32 pixels exceed ``budget``."""
+    need = width * height * channels * 4
+    if need > budget:
+        raise MemoryBudgetError(
+            f"cannot read image {_q(path)}: its {width}x{height}x{channels} pixels need {need / 2**30:.2f} GiB "
+            f"as float32, over the memory budget of {budget / 2**30:.2f} GiB ({MEMORY_BUDGET_ENV}); "
+            "refused before decoding (possible decompression bomb)")
+
+
 def read_image(
     path: PathLike,
     *,
     transfer: str = "auto",
     raw_half_size: bool = False,
     max_pixels: int = 200_000_000,
+    max_bytes: int | None = None,
 ) -> tuple[np.ndarray, ImageInfo]:
     """Read an image as float32 linear light.
 
@@ -398,6 +443,11 @@ def read_image(
     max_pixels : int
         Refuse images with more than this many pixels (width * height) before any
         pixel is decoded, to defuse decompression bombs.  Must be positive.
+    max_bytes : int, optional
+        Memory budget: refuse, from the header and before any pixel is decoded,
+        an image whose float32 result (width * height * channels * 4 bytes) would
+        be larger.  Default :func:`memory_budget` (``$VIGPROC_MEMORY_BUDGET``, else
+        :data:`DEFAULT_MEMORY_BUDGET`, 2 GiB).
 
     Returns
     -------
@@ -418,13 +468,17 @@ def read_image(
         Zero or absurd dimensions, or no usable channels; also an unknown
         ``transfer`` name or a ``max_pixels`` that is not a positive number (this
         error is a ``ValueError`` too).
+    MemoryBudgetError
+        The decoded image would exceed the memory budget (an ``InvalidImageError``).
     """
     fspath = _fspath(path)
     want = _parse_transfer(transfer, allow_auto=True)
     # bool is an int, but max_pixels=True would refuse every image; NaN fails "> 0".
-    if (not isinstance(max_pixels, numbers.Real) or isinstance(max_pixels, bool)
-            or not max_pixels > 0):
-        raise InvalidImageError(f"max_pixels must be a positive integer, got {max_pixels!r}")
+    budget = memory_budget() if max_bytes is None else max_bytes
+    for name, v in (("max_pixels", max_pixels), ("max_bytes", budget)):
+        if not isinstance(v, numbers.Real) or isinstance(v, bool) or not v > 0:
+            raise InvalidImageError(f"{name} must be a positive integer, got {v!r}")
+    budget = int(budget)
     size = _check_regular_file(fspath)
     head = _read_head(fspath)
     kind = _sniff(head)
@@ -434,7 +488,7 @@ def read_image(
     raw_note = ""
     if raw_first:
         try:
-            return _read_raw(fspath, size, want, raw_half_size, max_pixels)
+            return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget)
         except _RawUnsupported as exc:
             raw_note = str(exc)
             logger.debug("%s: LibRaw does not recognise it (%s); trying OpenImageIO", fspath, exc)
@@ -455,7 +509,7 @@ def read_image(
             try:
                 # Content unknown and the name does not claim RAW: any LibRaw
                 # failure to open means "not a RAW", not "broken RAW".
-                return _read_raw(fspath, size, want, raw_half_size, max_pixels, probing=True)
+                return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget, probing=True)
             except _RawUnsupported as exc:
                 raw_note = str(exc)
         if kind is not None:
@@ -491,13 +545,13 @@ def read_image(
                     + (f" ({raw_note})" if raw_note else "")
                 )
             try:
-                return _read_raw(fspath, size, want, raw_half_size, max_pixels)
+                return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget)
             except _RawUnsupported as exc:
                 raise UnsupportedFormatError(
                     f"cannot read image {_q(fspath)}: looks like a TIFF-based camera RAW "
                     f"but LibRaw cannot decode it ({exc})"
                 ) from None
-        return _read_oiio(inp, fspath, want, max_pixels)
+        return _read_oiio(inp, fspath, want, max_pixels, budget)
     finally:
         if inp is not None:
             inp.close()
@@ -587,7 +641,8 @@ def _select_channels(spec: oiio.ImageSpec, path: str) -> list[int]:
     return usable[:1]
 
 
-def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int) -> tuple[np.ndarray, ImageInfo]:
+def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
+               budget: int = DEFAULT_MEMORY_BUDGET) -> tuple[np.ndarray, ImageInfo]:
     fmt = inp.format_name()
     spec = inp.spec()
     if fmt not in SUPPORTED_OIIO_FORMATS:
@@ -611,6 +666,7 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int) -> t
     chans = _select_channels(spec, path)
     if not chans:
         raise InvalidImageError(f"cannot read image {_q(path)}: no colour channel (channels {list(spec.channelnames)})")
+    _check_budget(path, w, h, len(chans), budget)
 
     stored = str(spec.format)
     is_float = stored in _FLOAT_FORMATS
@@ -666,7 +722,8 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int) -> t
 
 
 def _read_raw(
-    path: str, size: int, want: str, half_size: bool, max_pixels: int, *, probing: bool = False
+    path: str, size: int, want: str, half_size: bool, max_pixels: int, budget: int = DEFAULT_MEMORY_BUDGET, *,
+    probing: bool = False
 ) -> tuple[np.ndarray, ImageInfo]:
     """Develop a RAW linearly with LibRaw.
 
@@ -704,6 +761,10 @@ def _read_raw(
                 f"cannot read image {_q(path)}: RAW file is truncated or its image data was stripped "
                 f"({size} bytes for a {rw}x{rh} sensor)"
             )
+        ow, oh = int(sizes.width), int(sizes.height)  # the developed frame (user_flip=0: not rotated)
+        if half_size:
+            ow, oh = (ow + 1) // 2, (oh + 1) // 2
+        _check_budget(path, ow, oh, 3, budget)
         rgb = raw.postprocess(
             gamma=(1.0, 1.0),  # linear output
             no_auto_bright=True,  # no data-dependent exposure scaling
