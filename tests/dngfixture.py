@@ -44,8 +44,10 @@ DEFAULT_EXIF: dict[str, Any] = {
 }
 
 # TIFF field types
-_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL = 1, 2, 3, 4, 5, 10
-_TYPE_SIZE = {_BYTE: 1, _ASCII: 1, _SHORT: 2, _LONG: 4, _RATIONAL: 8, _SRATIONAL: 8}
+_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _UNDEFINED, _SRATIONAL = 1, 2, 3, 4, 5, 7, 10
+_TYPE_SIZE = {_BYTE: 1, _ASCII: 1, _SHORT: 2, _LONG: 4, _RATIONAL: 8, _UNDEFINED: 1, _SRATIONAL: 8}
+#: DNG opcode list tags (DNG 1.3): OpcodeList1, OpcodeList2, OpcodeList3.
+OPCODE_LIST_TAGS = {1: 51008, 2: 51009, 3: 51022}
 
 # XYZ(D65) -> linear sRGB: a camera whose native space is linear sRGB.
 _XYZ_TO_SRGB = (
@@ -89,6 +91,8 @@ def _entry(tag: int, typ: int, values: Any) -> tuple[int, int, int, bytes]:
     if typ == _ASCII:
         raw = values.encode("ascii", "replace") + b"\0"
         return tag, typ, len(raw), raw
+    if typ == _UNDEFINED:  # bytes as they are (an opcode list)
+        return tag, typ, len(values), bytes(values)
     vals = list(values) if isinstance(values, (list, tuple)) else [values]
     if typ == _BYTE:
         raw = bytes(vals)
@@ -158,6 +162,7 @@ def make_dng(
     white: int = 16383,
     noise: float = 0.0,
     seed: int = 0,
+    opcode_lists: Mapping[int, bytes] | None = None,
 ) -> np.ndarray:
     """Write a small RGGB Bayer DNG of ``scene * field`` that LibRaw decodes.
 
@@ -185,6 +190,9 @@ def make_dng(
         ``white - black`` range.
     seed : int
         Seed of the default scene and of the noise.
+    opcode_lists : mapping, optional
+        ``{1|2|3: bytes}``: DNG opcode lists written as OpcodeList1/2/3 of the raw IFD
+        (IFD0), as a camera writes them (see :mod:`vigproc.dng_opcodes`).
 
     Returns
     -------
@@ -243,6 +251,8 @@ def make_dng(
         (50728, _RATIONAL, neutral),  # AsShotNeutral
         (50778, _SHORT, 21),  # CalibrationIlluminant1: D65
     ]
+    for n, blob in (opcode_lists or {}).items():
+        entries.append((OPCODE_LIST_TAGS[n], _UNDEFINED, blob))
     fspath = os.fspath(path)
     _write_tiff(fspath, entries, raw.tobytes())
 

@@ -757,3 +757,26 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
 def is_dng(path: str | os.PathLike[str]) -> bool:
     """Whether ``path`` is named as a DNG (the suffix; the content is checked when read)."""
     return Path(path).suffix.lower() == ".dng"
+
+
+def embedded_for(path: str | os.PathLike[str], profile: str) -> EmbeddedCalibration | None:
+    """The DNG's own calibration when the profile choice can use it (``auto`` or
+    ``embedded``) and ``path`` is a DNG; else None.
+
+    With ``auto`` a DNG whose opcodes cannot be read is only logged (the frame is
+    estimated instead); with ``embedded`` the error is raised.
+
+    Raises
+    ------
+    ImageReadError, DngOpcodeError
+        ``profile == "embedded"`` and the opcodes cannot be read.
+    """
+    if profile not in ("auto", "embedded") or not is_dng(path):
+        return None
+    try:
+        return read_embedded(path)
+    except ImageReadError as exc:  # DngOpcodeError too
+        if profile == "embedded":
+            raise
+        logger.warning("%s: its embedded vignetting calibration is not used: %s", os.fspath(path), exc)
+        return None

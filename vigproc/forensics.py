@@ -64,6 +64,7 @@ __all__ = [
     "ForensicsError",
     "Verdict",
     "VERDICTS",
+    "check_embedded",
     "check_image",
     "check_model",
     "default_calibration",
@@ -668,7 +669,8 @@ class Verdict:
     lens_id : str or None
         The lens the metadata claims.
     expected_source : str or None
-        ``stored-profile`` or ``lensfun``; None for an unknown lens.
+        ``stored-profile``, ``lensfun`` or ``embedded`` (the DNG's own calibration,
+        :func:`check_embedded`); None for an unknown lens.
     profile : str or None
         The stored profile's key or the lensfun lens compared with.
     score : float or None
@@ -844,6 +846,30 @@ def check_model(
         return Verdict("inconsistent", f"false-alarm probability {p:.3g} < {alpha:g}: " + _describe(ev), **common)
     return Verdict("consistent", f"within the spread of frames taken with this lens (false-alarm "
                    f"probability {p:.3g} ≥ {alpha:g})", **common)
+
+
+def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *, calibration: Calibration,
+                   lens_id: str | None = None, alpha: float | None = None, profile: str = "embedded") -> Verdict:
+    """Verdict for a frame's estimate against the calibration its own file carries (a
+    DNG's vignetting opcodes, :mod:`vigproc.dng_vignette`): a true field, so matching
+    frames scatter around it plus the image bias, as for lensfun (:func:`expected_from_field`).
+    A frame whose vignetting disagrees with its own embedded calibration was cropped,
+    edited or given another file's metadata.
+
+    Parameters
+    ----------
+    estimate : VignettingModel
+        The frame's estimate (``Verdict.estimate`` of :func:`check_image`).
+    embedded : VignettingModel
+        The embedded calibration as a model of the same frame
+        (:meth:`vigproc.dng_vignette.EmbeddedCalibration.model`).
+    calibration, lens_id, alpha
+        As for :func:`check_model`.
+    profile : str
+        What the verdict names as the reference.
+    """
+    exp = expected_from_field(embedded, calibration, source="embedded", profile=profile)
+    return check_model(estimate, exp, calibration=calibration, lens_id=lens_id, alpha=alpha)
 
 
 def check_image(

@@ -39,7 +39,8 @@ class OutputFormat:
     suffix : str
         File name suffix of the output.
     format : str
-        Writer format: ``jpeg``, ``png``, ``tiff`` or ``openexr``.
+        Writer format: ``jpeg``, ``png``, ``tiff``, ``openexr`` or ``dng`` (a copy of a DNG
+        input, the correction as an opcode: :func:`vigproc.dng_vignette.write_dng_correction`).
     depth : str
         Sample type: ``uint8``, ``uint16``, ``half`` or ``float``.
     transfer : str
@@ -69,6 +70,7 @@ OUTPUT_FORMATS: dict[str, OutputFormat | None] = {
     "tiff-float": OutputFormat(".tif", "tiff", "float"),
     "exr-half": OutputFormat(".exr", "openexr", "half"),
     "exr-float": OutputFormat(".exr", "openexr", "float"),
+    "dng": OutputFormat(".dng", "dng", "float"),  # DNG inputs only: raw pixels kept, correction as an opcode
 }
 #: An ``auto`` JPEG output is saved at the source's own quality (IJG scale), but never
 #: below this: a second lossy pass at a low quality would show.
@@ -104,6 +106,8 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
     src_suffix = Path(like).suffix.lower() if like is not None else path.suffix.lower()
     source_jpeg = info is not None and getattr(info, "format", None) == "jpeg"
     if fixed is not None:
+        if fixed.format == "dng" and src_suffix != ".dng":
+            raise VigprocError(f"--output-format dng needs a DNG input, not {path.name!r}")
         if fixed.format == "jpeg":
             q = jpeg_quality(path) if source_jpeg else None
             return OutputFormat(fixed.suffix, "jpeg", "uint8", "srgb", max(q or DEFAULT_JPEG_QUALITY,
@@ -145,10 +149,11 @@ class Settings:
         lens's stored profile), ``estimate`` (model only) or ``check`` (forensic
         verdict: does the vignetting match the lens the EXIF names?).
     profile : str
-        ``auto`` (a trusted stored profile of the frame's lens, else the first
-        installed profile-source plugin that has one, else estimate), ``estimate``,
-        ``lensfun``, ``source:NAME`` (that profile-source plugin only) or the path
-        of a profile file.
+        ``auto`` (a trusted stored profile of the frame's lens, else a DNG's own
+        calibration (its vignetting opcodes), else the first installed profile-source
+        plugin that has one, else estimate), ``estimate``, ``lensfun``, ``embedded``
+        (the DNG's own opcodes only), ``source:NAME`` (that profile-source plugin only)
+        or the path of a profile file.
     method : str
         Estimator for frames without a profile (see :data:`vigproc.estimate.METHODS`,
         or an installed estimator plugin, :mod:`vigproc.extensions`).
@@ -383,7 +388,7 @@ def keep_original(src: Path, dst: Path, *, link: bool = False) -> None:
 def _format_label(fmt: OutputFormat) -> str:
     """The --output-format name of ``fmt``, or what it is ("8-bit JPEG")."""
     bits = {"uint8": "8-bit", "uint16": "16-bit", "half": "half-float", "float": "float"}[fmt.depth]
-    kind = {"jpeg": "JPEG", "png": "PNG", "tiff": "TIFF", "openexr": "EXR"}[fmt.format]
+    kind = {"jpeg": "JPEG", "png": "PNG", "tiff": "TIFF", "openexr": "EXR", "dng": "DNG"}[fmt.format]
     return next((k for k, v in OUTPUT_FORMATS.items() if v == fmt), f"{bits} {kind}")
 
 
@@ -513,13 +518,16 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
 
 
 def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where: str = "frame",
-                 sources=None):
+                 sources=None, embedded=None):
     """Model to apply and where it came from: ``profile-file``, ``lensfun``,
-    ``stored-profile`` (a trusted profile of the lens: no estimation), ``source:NAME``
-    (a profile-source plugin) or ``estimate``.
+    ``stored-profile`` (a trusted profile of the lens: no estimation), ``embedded``
+    (the DNG's own vignetting opcodes), ``source:NAME`` (a profile-source plugin) or
+    ``estimate``.
 
     ``sources`` are the loaded profile-source plugins ``{name: ProfileSource}``
-    consulted by ``profile="auto"`` (default: none)."""
+    consulted by ``profile="auto"`` (default: none); ``embedded`` the frame's DNG
+    calibration (:func:`vigproc.dng_vignette.embedded_for`), used by ``embedded`` and,
+    after a trusted stored profile, by ``auto``."""
     from vigproc.estimate import estimate
 
     h, w = img.shape[:2]
@@ -533,6 +541,11 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
         if m is None:
             raise ModelError(f"profile source {src.name!r} has no profile for the lens of {where}")
         return m, profile
+    if profile == "embedded":
+        if embedded is None:
+            raise ModelError(f"{where} carries no vignetting calibration of its own (no FixVignetteRadial or "
+                             "GainMap opcode in its DNG opcode lists)")
+        return embedded.model(w, h), "embedded"
     if profile not in ("auto", "estimate", "lensfun"):
         from vigproc.profiles import import_profile
 
@@ -547,6 +560,11 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
             hit = None
         if hit is not None:
             return hit.model(w, h), "stored-profile"
+    if profile == "auto" and embedded is not None:
+        try:
+            return embedded.model(w, h), "embedded"
+        except VigprocError as exc:  # an absurd calibration: the frame is estimated instead
+            log.warning("%s: its embedded vignetting calibration is not used: %s", where, exc)
     if profile == "auto" and lens_key is not None:
         for name, src in sorted((sources or {}).items()):
             try:
@@ -625,11 +643,13 @@ class Processor:
 
     # -- in memory --------------------------------------------------------
     def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image", frame_id: str | None = None,
-                      output: OutputFormat | None = None):
+                      output: OutputFormat | None = None, embedded=None):
         """Process an in-memory linear image (H×W or H×W×C, channels last).
 
         ``output``: the format the corrected frame will be written in (integer formats
         clip at the white point); default the settings' fixed format, or float.
+
+        ``embedded``: the frame's own DNG calibration (:func:`choose_model`).
 
         ``frame_id``: the frame's content id. Learn mode: a frame already pooled into
         its lens's profile is not pooled again (:meth:`ProfileStore.learn`). Check mode:
@@ -665,15 +685,18 @@ class Processor:
             res.model, res.source, res.profile = self._learn(img, lens_key, frame_id)
         else:
             m, res.source = choose_model(img, lens_key, s, self.store if s.profile == "auto" else None,
-                                         where=where, sources=self.sources if s.profile == "auto" else None)
+                                         where=where, sources=self.sources if s.profile == "auto" else None,
+                                         embedded=embedded)
             res.model = m
             if s.mode == "correct":
                 from vigproc.correct import correct
 
                 fmt = output or OUTPUT_FORMATS[s.output_format] or OUTPUT_FORMATS["tiff-float"]
                 # integer outputs cannot hold values above the white point: clip those
-                out = correct(img, m, channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
-                              clip=1.0 if fmt.integer else None)
+                how = dict(channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
+                           clip=1.0 if fmt.integer else None)
+                # a DNG GainMap is divided out as its own field, not as its Kang-Weiss fit
+                out = m.correct_image(img, **how) if hasattr(m, "correct_image") else correct(img, m, **how)
                 _check_range(out, fmt)
                 if fmt.integer:
                     _note_clipping(img, out, where, fmt)
@@ -761,16 +784,29 @@ class Processor:
         img, info = read_image(path, transfer=s.transfer)
         fmt = output_format_for(s.output_format, path, info, like=like)
         lens_key, lens = read_lens(self.reader, path)
+        embedded = None
+        if s.mode in ("correct", "estimate"):
+            from vigproc.dng_vignette import embedded_for
+
+            embedded = embedded_for(path, s.profile)
         if s.mode in ("learn", "check") and frame_id is None and self.store is not None:
             frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
-        out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt)
+        out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
+                                      embedded=embedded)
         res.lens = lens
+        if embedded is not None:
+            res.extra["embedded"] = embedded.to_dict(*img.shape[1::-1]) if res.source == "embedded" else \
+                embedded.to_dict()
         if out is not None and (res.applied or policy == "write"):
             from vigproc.metadata import make_record, write_corrected
 
-            # the source's EXIF/XMP plus an XMP record of the correction
-            write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=fmt.depth,
-                            format=fmt.format, transfer=fmt.transfer, quality=fmt.quality)
+            if fmt.format == "dng":  # the raw pixels untouched, the correction as an opcode
+                from vigproc.dng_vignette import write_dng_correction
+
+                res.extra["dng_opcode"] = write_dng_correction(path, dst, res.model, strength=s.strength)
+            else:  # the source's EXIF/XMP plus an XMP record of the correction
+                write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=fmt.depth,
+                                format=fmt.format, transfer=fmt.transfer, quality=fmt.quality)
             res.output = str(dst)
         elif out is not None:
             res.extra["not_applied"] = ("strength 0" if s.strength == 0 else

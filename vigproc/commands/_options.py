@@ -8,8 +8,9 @@ import argparse
 import math
 from typing import Callable
 
-PROFILE_HELP = ("auto (a trusted stored profile of the frame's lens, else an installed profile-source plugin, "
-                "else estimate), estimate, lensfun (lensfun's calibration of the frame's lens), source:NAME "
+PROFILE_HELP = ("auto (a trusted stored profile of the frame's lens, else a DNG's own vignetting opcodes, else "
+                "an installed profile-source plugin, else estimate), estimate, lensfun (lensfun's calibration of "
+                "the frame's lens), embedded (the DNG's own FixVignetteRadial/GainMap opcodes), source:NAME "
                 "(that profile-source plugin) or PATH of a profile file")
 
 
@@ -63,7 +64,9 @@ def add_output(sp: argparse.ArgumentParser, *, picture: bool = True) -> None:
     sp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="auto",
                     help="auto (default): each input's own kind back (a JPEG as a JPEG at its quality, a PNG as "
                          "a PNG, a TIFF/EXR as stored, a RAW as a linear 16-bit TIFF); jpeg, png (16-bit): "
-                         "sRGB; tiff16, tiff-float, exr-half, exr-float: linear, for further editing")
+                         "sRGB; tiff16, tiff-float, exr-half, exr-float: linear, for further editing; dng (DNG "
+                         "inputs): a copy with its pixels untouched and the correction as a FixVignetteRadial "
+                         "opcode in OpcodeList3, for raw editors")
     sp.add_argument("--unapplied", choices=list(UNAPPLIED_POLICIES), default="skip",
                     help="when nothing is applied (weak evidence, strength 0): skip (default: only the JSON "
                          "sidecar, saying why), copy or link the original as NAME.uncorrected.EXT, or write "

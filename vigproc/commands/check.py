@@ -1,5 +1,9 @@
 """``vigproc check FILES...``: does each frame's vignetting match the lens its EXIF names?
 
+A DNG that carries its own vignetting calibration (FixVignetteRadial or GainMap opcodes,
+:mod:`vigproc.dng_vignette`) is also compared with it (``embedded`` in the JSON, a second
+line in the text output); its verdict counts like the others in the exit code.
+
 Exit codes (documented in ``vigproc check --help``):
 
 * 0 -- every frame is consistent with its lens;
@@ -13,10 +17,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 from pathlib import Path
 
 from vigproc.errors import EXIT_CODES, VigprocError, one_line
+
+log = logging.getLogger(__name__)
 
 #: Exit code when a frame is inconsistent with its claimed lens.
 EXIT_INCONSISTENT = EXIT_CODES["inconsistent"]
@@ -34,7 +41,8 @@ def register(subparsers) -> None:
     sp = subparsers.add_parser(
         "check", help="forensics: does each frame's vignetting match the lens its EXIF names?",
         description="Estimate each frame's vignetting and compare it with the profile of the lens its "
-                    "metadata claims (a stored profile, else lensfun): consistent, inconsistent, "
+                    "metadata claims (a stored profile, else lensfun) and, for a DNG that carries one, with its "
+                    "own embedded calibration (FixVignetteRadial/GainMap opcodes): consistent, inconsistent, "
                     "unknown-lens or insufficient-signal, with a calibrated false-alarm probability.",
         epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sp.add_argument("files", nargs="+", metavar="FILE",
@@ -62,6 +70,24 @@ def _line(name: str, v: dict) -> str:
     p = v.get("p_false_alarm")
     tail = "" if p is None else f"  p={p:.3g}  D²={v['score']:.2f}"
     return one_line(f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}")
+
+
+def _embedded_verdict(path: Path, v, calibration, alpha):
+    """The frame against its DNG's own calibration, or None when it carries none (or it
+    cannot be read: said as a warning, the lens check stands)."""
+    from vigproc.dng_vignette import embedded_for
+    from vigproc.forensics import check_embedded
+
+    cal = embedded_for(path, "auto")
+    if cal is None or v.estimate is None:
+        return None
+    try:
+        model = cal.model(v.estimate.width, v.estimate.height)
+    except VigprocError as exc:
+        log.warning("%s: its embedded calibration is not compared: %s", path, exc)
+        return None
+    return check_embedded(v.estimate, model, calibration=calibration, lens_id=v.lens_id, alpha=alpha,
+                          profile=f"the DNG's own {cal.kind}")
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -98,6 +124,9 @@ def cmd_check(args: argparse.Namespace) -> int:
                     print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
                     continue
                 rec = {"file": str(f), "lens": lens, **v.to_dict()}
+                ve = _embedded_verdict(f, v, calibration, args.alpha)
+                if ve is not None:  # disagreeing with its own calibration is evidence too
+                    rec["embedded"] = {k: x for k, x in ve.to_dict().items() if k != "estimate"}
                 results.append(rec)
                 verdicts.append((f, v))
                 if args.report:
@@ -107,6 +136,8 @@ def cmd_check(args: argparse.Namespace) -> int:
                 del img
                 if not args.json:
                     print(_line(str(f), rec))
+                    if "embedded" in rec:
+                        print(_line(f"{f} (against its embedded calibration)", rec["embedded"]))
     finally:
         if store is not None:
             store.close()
@@ -129,7 +160,7 @@ def cmd_check(args: argparse.Namespace) -> int:
             if not args.json:
                 print(_line(f"pooled, {len(vs)} frames of {profile}", d))
     counts: dict[str, int] = {}
-    for r in results + pooled:
+    for r in results + pooled + [r["embedded"] for r in results if "embedded" in r]:
         if "verdict" in r:
             counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
     if counts.get("inconsistent"):
