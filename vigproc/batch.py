@@ -58,7 +58,8 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, Callable, Iterable, Iterator
 
-from vigproc.errors import EXIT_CODES, ImageReadError, ImageWriteError, VigprocError
+from vigproc.errors import EXIT_CODES, ImageWriteError, VigprocError
+from vigproc.faults import DISK_FULL, OUTPUT, PERMANENT, classify_error
 from vigproc.atomic import TEMP_KEY, temporary_keys
 from vigproc.pipeline import IMAGE_SUFFIXES, SIDECAR_SUFFIX, Processor, Settings, safe_output
 
@@ -328,7 +329,8 @@ class Outcome:
     """What a worker did with one :class:`Task`.
 
     ``status`` is ``done``, ``unchanged`` (content equal to ``known_sha``: nothing
-    done) or ``failed`` (``transient`` failures are worth retrying).
+    done) or ``failed`` (``transient`` failures are worth retrying; ``fault`` is the
+    kind of :func:`vigproc.faults.classify_error`).
     """
 
     path: str
@@ -339,6 +341,7 @@ class Outcome:
     error: str | None = None
     error_type: str | None = None
     transient: bool = False
+    fault: str = PERMANENT
     worker: str = ""
     seconds: float = 0.0
 
@@ -519,19 +522,18 @@ def run_task(task: Task, spec: JobSpec) -> Outcome:
         out.record["sidecar"] = str(safe_output(folder, stem, SIDECAR_SUFFIX))
         out.evidence = list(st.evidence.items) if st.evidence is not None else []
         out.status = "done"
-    except (ImageWriteError, MemoryError) as exc:  # the output side or the machine: worth a retry
-        out.error, out.error_type, out.transient = str(exc), type(exc).__name__, True
-    except ImageReadError as exc:
-        # a file still being written, or locked on a share, is retried; a corrupt one is not
-        out.error, out.error_type = str(exc), type(exc).__name__
-        out.transient = bool(getattr(exc, "transient", False))
-    except VigprocError as exc:  # the file: unreadable, unsupported, no usable fit ...
-        out.error, out.error_type = str(exc), type(exc).__name__
-    except OSError as exc:
-        out.error, out.error_type, out.transient = f"{task.path}: {exc}", type(exc).__name__, True
-    except Exception as exc:  # a bug: report it against the file, keep the worker going
-        log.debug("internal error on %s", task.path, exc_info=True)
-        out.error, out.error_type = f"{task.path}: internal error ({type(exc).__name__}: {exc})", "internal"
+    except Exception as exc:  # the file's fault or not: the policy the daemon and correct use too
+        fault = classify_error(exc, spec.outdir)
+        out.fault, out.transient, out.error_type = fault.kind, not fault.photo_fault, type(exc).__name__
+        if fault.output_side:  # says so: "output disk full (... free on OUT): cannot write ..."
+            out.error = fault.reason
+        elif isinstance(exc, VigprocError):  # the file: unreadable, unsupported, no usable fit ...
+            out.error = str(exc)
+        elif not isinstance(exc, (OSError, MemoryError)):  # a bug: report it against the file, keep going
+            log.debug("internal error on %s", task.path, exc_info=True)
+            out.error, out.error_type = f"{task.path}: internal error ({type(exc).__name__}: {exc})", "internal"
+        else:
+            out.error = f"{task.path}: {fault.reason}"
     finally:
         out.seconds = round(time.perf_counter() - t0, 4)
     return out
@@ -565,9 +567,14 @@ class BatchSummary:
     quarantined : int
         Files that failed for good (now or earlier, same content); rerunning skips them.
     retry_later : int
-        Files that failed transiently beyond the retries; a rerun tries them again.
+        Files that failed transiently beyond the retries, or for the output side's
+        fault; a rerun tries them again.
     missing : int
         Listed files that do not exist.
+    disk_full : str or None
+        Set when the output disk filled: the run stopped handing out files (every
+        one would fail), journaled none of them against the photos, and left
+        ``not_started`` files for a rerun.
     """
 
     job: str
@@ -584,6 +591,8 @@ class BatchSummary:
     redone: int = 0
     swept: int = 0
     interrupted: bool = False
+    disk_full: str | None = None  # why the run stopped handing out files: the output disk is full
+    not_started: int = 0  # files left untouched after that (a rerun does them)
     seconds: float = 0.0
     errors: list[dict[str, str]] = field(default_factory=list)
     profiles: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -754,6 +763,8 @@ class _Run:
                     on_result(s, task, res)
                 self.feed()
             self.flush_held()  # fewer files than the breaker needs, or all different
+            if s.disk_full is not None:
+                s.not_started = sum(1 for _ in self.todo)
         except BatchError:
             backend.abort()
             raise
@@ -778,6 +789,8 @@ class _Run:
             self.bar.set_postfix(done=s.processed, skipped=s.skipped, failed=s.failed, refresh=False)
 
     def feed(self) -> None:
+        if self.summary.disk_full is not None:  # every file would fail the same way: hand out no more
+            return
         limit = self.window or 2 * max(1, self.backend.capacity)
         while self.backend.in_flight < limit:
             t = self.next_task()
@@ -820,15 +833,23 @@ class _Run:
         if self.stopping and (lost or res.status == "failed"):
             return  # not journaled: the rerun tries it again
         if lost or (res.status == "failed" and res.transient):
+            disk = not lost and res.fault == DISK_FULL
             self.attempts[task.path] += 1
-            if self.attempts[task.path] <= self.retries:
+            if self.attempts[task.path] <= self.retries and not disk and s.disk_full is None:
                 s.resubmitted += 1
                 self.backend.submit(task)
                 return
             if lost:
                 self.journal_failure(task, None, f"worker lost ({type(res).__name__}: {res})", "worker-lost", True)
             else:
-                self.journal_failure(task, res.fingerprint, res.error or "failed", res.error_type or "error", True)
+                # the output side's fault is never the photo's: retried by later runs without limit
+                limit = None if res.fault in (DISK_FULL, OUTPUT) else 5
+                self.journal_failure(task, res.fingerprint, res.error or "failed", res.error_type or "error", True,
+                                     max_attempts=limit)
+            if disk and s.disk_full is None:
+                s.disk_full = res.error or "output disk full"
+                log.error("output disk full: no more files are handed out; free space and rerun to resume (%s)",
+                          s.disk_full)
         elif res.status == "failed":
             if not self.seen_done and not self.stopping:  # held back until a file succeeds: see breaker()
                 self.held.append((task, res))
@@ -870,7 +891,8 @@ class _Run:
         self.seen_done = True
         self.flush_held()
 
-    def journal_failure(self, task: Task, fp, reason: str, kind: str, transient: bool) -> None:
+    def journal_failure(self, task: Task, fp, reason: str, kind: str, transient: bool,
+                        max_attempts: int | None = 5) -> None:
         from vigproc.journal import fingerprint
 
         if fp is None:  # the worker could not even read it: try here, to key the journal entry
@@ -878,7 +900,7 @@ class _Run:
                 fp = fingerprint(task.path)
         state = "retry" if transient else "quarantined"
         if fp is not None and _claim(self.journal, task.path, fp, self.me):
-            state = self.journal.failed(task.path, fp, reason, transient=transient)
+            state = self.journal.failed(task.path, fp, reason, transient=transient, max_attempts=max_attempts)
         if state == "quarantined":
             self.summary.quarantined += 1
         else:

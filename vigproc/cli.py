@@ -18,7 +18,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Sequence
 
-from vigproc.errors import EXIT_CODES, PriorError, VigprocError, one_line
+from vigproc.errors import EXIT_CODES, DiskFullError, PriorError, VigprocError, one_line
 
 log = logging.getLogger("vigproc")
 
@@ -101,6 +101,7 @@ def _open_store(args: argparse.Namespace):
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
+    from vigproc.faults import DISK_FULL, classify_error
     from vigproc.pipeline import InputFiles, Processor, Settings, output_folder, output_stems
 
     outdir = output_folder(args.output)
@@ -111,6 +112,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
                         unapplied=args.unapplied)
     failed = unapplied = 0
     results = []
+    full = None  # the fault of the last failure (vigproc.faults)
     store = _open_store(args) if args.profile == "auto" else None
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
@@ -131,14 +133,22 @@ def cmd_correct(args: argparse.Namespace) -> int:
                     failed += 1
                     results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
                     print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
+                    full = classify_error(exc, outdir)
+                    if full.kind == DISK_FULL:  # the machine's fault: every further file would fail the same way
+                        break
     finally:
         if store is not None:
             store.close()
+    not_started = len(files) - len(results)
+    failed += not_started
     if args.json:
         print(json.dumps({"results": results, "done": len(files) - failed, "failed": failed}, indent=1))
     else:
         print(f"{len(files) - failed - unapplied} corrected, {unapplied} not corrected, {failed} failed; "
               f"outputs in {outdir}")
+    if full is not None and full.kind == DISK_FULL:
+        raise DiskFullError(f"{full.reason}; stopped with {not_started} file(s) not started: free space on "
+                            f"{outdir} and run again")
     return 0 if failed == 0 else 1
 
 

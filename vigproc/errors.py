@@ -61,6 +61,12 @@ class ImageWriteError(VigprocError, OSError):
     exit_code = 5
 
 
+class DiskFullError(ImageWriteError):
+    """The output disk is full (or over quota): the machine's fault, not the photo's.
+    Free space and run again; nothing was charged to the files (exit code 5, as
+    for any output that could not be written)."""
+
+
 class MemoryBudgetError(InvalidImageError):
     """Decoding the image would exceed the memory budget (``VIGPROC_MEMORY_BUDGET``,
     see :func:`vigproc.io.memory_budget`); decided from the file's header, before any

@@ -148,6 +148,11 @@ def cmd_batch(args: argparse.Namespace) -> int:
     print_summary(summary, outdir, as_json=args.json)
     if summary.interrupted:
         return 130
+    if summary.disk_full is not None:
+        from vigproc.errors import DiskFullError
+
+        raise DiskFullError(f"batch stopped: {summary.disk_full}; {summary.not_started} file(s) not started, none "
+                            f"quarantined for it: free space on {outdir} and rerun the same command to resume")
     return 0 if summary.failed == 0 else 1
 
 
@@ -179,6 +184,8 @@ def print_summary(summary, outdir: Path, *, as_json: bool = False) -> None:
         print(f"  {s.redone} done files had lost their outputs: written again")
     if s.resubmitted:
         print(f"  {s.resubmitted} tasks resubmitted after a worker died or a transient failure")
+    if s.disk_full is not None:
+        print(f"  stopped handing out files: the output disk is full ({s.not_started} not started)")
     if s.sources:
         print("  model source: " + ", ".join(f"{k} {v}" for k, v in sorted(s.sources.items())))
     for key, p in sorted(s.profiles.items()):
