@@ -188,25 +188,60 @@ def test_recover_release_quarantine_forget(db):
     with Journal(db, job="j") as j:
         for name in "abc":
             assert j.claim(f"/in/{name}", fp_of(name), worker="w")
-        j.start("/in/a", fp_of("a"))  # a is being processed, b only queued
+        j.start("/in/a", fp_of("a"), runner={"pid": 4242, "boot": "b1", "worker_pid": 4243})  # a in progress
         j.release("/in/c", fp_of("c"))
         assert j.lookup("/in/c").state == "pending" and j.lookup("/in/c").attempts == 0
+        assert j.lookup("/in/a").runner == {"pid": 4242, "boot": "b1", "worker_pid": 4243}
     # the process "died" with a and b running
     with Journal(db, job="j") as j:
-        assert j.recover(max_crashes=2) == 2
+        assert j.recover() == 2
         assert {e.path for e in j.entries("pending")} == {"/in/a", "/in/b", "/in/c"}
-        assert j.lookup("/in/a").crashes == 1 and j.lookup("/in/b").crashes == 0
+        assert j.lookup("/in/a").crashes == 0 and j.lookup("/in/b").crashes == 0
         assert j.claim("/in/a", fp_of("a"), worker="w")
-        assert j.lookup("/in/a").claims == 2 and not j.lookup("/in/a").started
-        j.start("/in/a", fp_of("a"))
-    with Journal(db, job="j") as j:  # died again on a: a file that crashes vigproc is not retried forever
-        assert j.recover(max_crashes=2) == 1
-        e = j.lookup("/in/a")
-        assert e.state == "quarantined" and "interrupted 2 times" in e.reason
+        assert j.lookup("/in/a").claims == 2 and not j.lookup("/in/a").started and j.lookup("/in/a").runner is None
         j.quarantine("/in/unreadable", Fingerprint(5, 1, "-"), "permission denied")
         assert j.lookup("/in/unreadable").state == "quarantined"
         assert j.needs_work("/in/unreadable", fp_of("readable now", 5))
         assert j.forget("/in/c") and j.lookup("/in/c") is None and not j.forget("/in/c")
+        j.release("/in/a", fp_of("a"), not_before=time.time() + 60, reason="output disk full")
+        e = j.lookup("/in/a")  # given back for the disk: no attempt, a reason, not due yet
+        assert (e.state, e.attempts, e.reason) == ("pending", 0, "output disk full")
+        assert "/in/a" not in [p for p, _ in j.due()]
+        assert not j.claim("/in/a", fp_of("a"), worker="w") and j.claim("/in/a", fp_of("a"), worker="w", now=1e12)
+
+
+def test_a_kill_of_the_process_never_charges_the_file_in_progress(db):
+    """Issue 22: every kill -9 of the daemon charged the healthy file in progress a
+    crash (three kills quarantined it).  The process's own death is not the file's:
+    however often it happens, the file goes back uncharged."""
+    with Journal(db, job="j") as j:
+        for _ in range(5):
+            assert j.claim("/in/a", fp_of("a"), worker="w")
+            j.start("/in/a", fp_of("a"))  # started by a worker: the old code charged this one
+            assert j.lookup("/in/a").runner["pid"] == os.getpid()
+            assert j.recover() == 1
+        e = j.lookup("/in/a")
+        assert e.state == "pending" and e.crashes == 0 and e.attempts == 0 and e.claims == 5
+
+
+def test_a_worker_crash_under_a_live_process_is_charged_and_quarantines(db):
+    """What a file does cause -- its worker dying or hanging on it while the daemon
+    lives -- is charged at once, and max_crashes of them quarantine it."""
+    with Journal(db, job="j") as j:
+        for n in (1, 2):
+            assert j.claim("/in/a", fp_of("a"), worker="w", now=1e12)
+            j.start("/in/a", fp_of("a"))
+            outcome = j.crashed("/in/a", fp_of("a"), "died (worker exit code -11)", max_crashes=3)
+            e = j.lookup("/in/a")
+            assert outcome == "retry" and (e.state, e.crashes, e.attempts) == ("pending", n, 0)
+            assert e.not_before > time.time()  # backed off
+        assert j.claim("/in/a", fp_of("a"), worker="w", now=1e12)
+        j.start("/in/a", fp_of("a"))
+        assert j.crashed("/in/a", fp_of("a"), "died (worker exit code -11)", max_crashes=3) == "quarantined"
+        e = j.lookup("/in/a")
+        assert e.state == "quarantined" and e.crashes == 3 and "3 times" in e.reason and "exit code -11" in e.reason
+        with pytest.raises(JournalError):  # only a running entry can be charged
+            j.crashed("/in/a", fp_of("a"), "died", max_crashes=3)
 
 
 def test_recover_never_charges_a_file_that_was_only_claimed(db):
@@ -217,7 +252,7 @@ def test_recover_never_charges_a_file_that_was_only_claimed(db):
             assert j.claim("/in/queued", fp_of("q"), worker="w")
             with pytest.raises(JournalError):
                 j.start("/in/other", fp_of("o"))  # only a running entry can be started
-            assert j.recover(max_crashes=2) == 1
+            assert j.recover() == 1
         e = j.lookup("/in/queued")
         assert e.state == "pending" and e.crashes == 0 and e.claims == 5
 
@@ -227,11 +262,12 @@ def test_journal_of_an_older_vigproc_gains_the_started_column(tmp_path):
     with Journal(old, job="j") as j:
         assert j.claim("/in/a", fp_of("a"), worker="w")
         j.con.execute("ALTER TABLE entries DROP COLUMN started")  # as an older vigproc wrote it
+        j.con.execute("ALTER TABLE entries DROP COLUMN runner")
     with Journal(old, job="j") as j:
         e = j.lookup("/in/a")
-        assert e.state == "running" and not e.started
+        assert e.state == "running" and not e.started and e.runner is None
         j.start("/in/a", fp_of("a"))
-        assert j.lookup("/in/a").started
+        assert j.lookup("/in/a").started and j.lookup("/in/a").runner["pid"] == os.getpid()
 
 
 def test_jobs_share_a_database_without_seeing_each_other(db):

@@ -17,22 +17,35 @@ How a file goes through
    :class:`~vigproc.pipeline.Processor` each) with deterministic output names
    (:func:`output_stem`); outputs and the JSON sidecar are published atomically.
 5. *Recorded*: ``done`` (then optionally moved to the archive folder), ``retry``
-   after a transient error (locked file, full disk: exponential backoff), or
-   ``quarantined`` with the reason (optionally moved to the quarantine folder; a
-   file that fails to decode while it is still young gets one more look first: a
-   writer that paused longer than ``settle`` leaves an incomplete, not a corrupt,
-   file).  If the file changed while it was processed, it is simply seen again.
+   after a transient error (locked file: exponential backoff), or ``quarantined``
+   with the reason (optionally moved to the quarantine folder; a file that fails to
+   decode while it is still young gets one more look first: a writer that paused
+   longer than ``settle`` leaves an incomplete, not a corrupt, file).  If the file
+   changed while it was processed, it is simply seen again.
+
+Whose fault (:mod:`vigproc.faults`, shared with batch runs and ``vigproc correct``):
+only what is wrong with the photo quarantines it.  A failure to write an output is
+the output side's: retried without limit, never quarantined or moved.  A full output
+disk (ENOSPC/EDQUOT, or a write failure -- OpenImageIO's ``TIFFWriteScanline failed``,
+exiftool's ``Error writing image data`` -- while the output file system is under
+``min_free``) *pauses* the daemon: the file goes back without an attempt counted,
+nothing more is handed out, the status says ``paused`` (output disk full) and the log
+``disk-full``; it resumes as soon as the free space has grown, or when a probe (one
+file, after a backoff that doubles up to ``retry_cap``) is written.
 
 Crash safety
 ------------
-The journal is updated in one fsynced transaction per step.  After a kill -9 the
-next start calls :meth:`~vigproc.journal.Journal.recover` (files left running become
-pending; a file that a worker had started -- not one merely queued for it -- is
-charged a crash, and quarantined at ``max_crashes``, since nothing tells a kill of
-the daemon from a file that takes it down), removes the temporary files of the
-unfinished files and rescans the folder, so files dropped while the daemon was down
-are found.  A worker that crashes or hangs costs only its file an attempt; its
-process group (exiftool included) is killed and its temporaries removed.  A sidecar
+The journal is updated in one fsynced transaction per step (one that fails, e.g. on
+a full disk, is retried until it succeeds).  After a kill -9 the next start calls
+:meth:`~vigproc.journal.Journal.recover`: files left running become pending *without*
+a crash charge -- the daemon's own death is not the files' fault, and decoding
+happens in workers, never in the daemon -- then it removes the temporary files of
+the unfinished files and rescans the folder, so files dropped while the daemon was
+down are found.  A worker that crashes or hangs while the daemon lives charges its
+file a crash (:meth:`~vigproc.journal.Journal.crashed`; quarantined at
+``max_crashes``); its process group (exiftool included) is killed and its
+temporaries removed.  Workers raise their OOM score, so that a file exhausting
+memory takes its worker, not the daemon.  A sidecar
 that already records the same input content and settings (a crash after the sidecar
 but before the journal) is taken as the result instead of processing the file again.
 In ``learn`` mode each frame content is pooled at most once: the input's SHA-256 is
@@ -75,7 +88,9 @@ from typing import Any, Callable, Iterable
 
 from vigproc.atomic import TEMP_KEY, temporary_keys
 from vigproc.errors import VigprocError, one_line
-from vigproc.journal import FileChangedError, Fingerprint, FingerprintError, Journal, JournalError, fingerprint
+from vigproc.faults import DEFAULT_MIN_FREE, DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, classify_error, disk_space
+from vigproc.journal import (FileChangedError, Fingerprint, FingerprintError, Journal, JournalError, boot_id,
+                             fingerprint, runner_identity)
 from vigproc.pipeline import percent_encode, shorten_stem
 from vigproc.processes import die_with_parent
 
@@ -168,50 +183,8 @@ def output_stem(rel: str) -> str:
 
 
 # ------------------------------------------------------------------ errors
-#: Kinds of failure: a later attempt cannot help / may help / the disk is full
-#: (retried without limit: every file would fail until space is freed).
-PERMANENT, TRANSIENT, DISK_FULL = "permanent", "transient", "disk-full"
-
-_TRANSIENT_TEXT = ("resource temporarily unavailable", "device or resource busy", "stale file handle",
-                   "locked by another process", "database is locked", "text file busy", "interrupted system call",
-                   "connection timed out", "input/output error")
-_DISK_FULL_TEXT = ("no space left on device", "disk quota exceeded", "disk is full", "file too large")
-_TRANSIENT_ERRNOS = frozenset(getattr(errno, n) for n in ("EAGAIN", "EBUSY", "ESTALE", "ETXTBSY", "EINTR", "ETIMEDOUT",
-                                                         "EIO", "ENOLCK") if hasattr(errno, n))
-_DISK_FULL_ERRNOS = frozenset(getattr(errno, n) for n in ("ENOSPC", "EDQUOT", "EFBIG") if hasattr(errno, n))
-
-
-def classify_error(exc: BaseException) -> tuple[str, str]:
-    """Kind (:data:`PERMANENT`, :data:`TRANSIENT` or :data:`DISK_FULL`) and one-line
-    reason of an exception raised while processing one file.
-
-    Bad input (corrupt, unsupported, absurd) is permanent; a busy or locked file, a
-    locked profile store, a stale network handle are transient; a full disk or quota
-    is retried until space is freed.  An unexpected exception is a bug: permanent, so
-    that the file is quarantined rather than retried forever.
-    """
-    msg = " ".join(str(exc).split()) or type(exc).__name__
-    low = msg.lower()
-    if isinstance(exc, ImportError):
-        return PERMANENT, f"this vigproc installation cannot do it: {msg}"
-    if isinstance(exc, MemoryError):
-        return TRANSIENT, "out of memory"
-    err_no = getattr(exc, "errno", None)
-    if err_no in _DISK_FULL_ERRNOS or any(t in low for t in _DISK_FULL_TEXT):
-        return DISK_FULL, msg
-    if "libraw" in low and not getattr(exc, "transient", False):
-        # LibRaw's own words about the file's data ("LibRawIOError: Input/output error" for
-        # a truncated RAW): the photo's fault, not the device's; retrying cannot help
-        return PERMANENT, msg
-    if getattr(exc, "transient", False) or err_no in _TRANSIENT_ERRNOS or any(t in low for t in _TRANSIENT_TEXT):
-        return TRANSIENT, msg
-    if isinstance(exc, VigprocError):
-        return PERMANENT, msg
-    if isinstance(exc, OSError):
-        return PERMANENT, msg
-    return PERMANENT, f"internal error ({type(exc).__name__}: {msg})"
-
-
+# The kinds of failure and who is to blame are one policy shared with batch runs and
+# `vigproc correct` (vigproc.faults); re-exported here, where they were first defined.
 #: Errors that a truncated (still being written) file also gives.
 _READ_ERRORS = frozenset({"ImageReadError", "UnsupportedFormatError", "InvalidImageError"})
 
@@ -310,6 +283,7 @@ class WatchConfig:
     retry_base: float = 5.0
     retry_cap: float = 600.0
     retry_quarantined: bool = False
+    min_free: int = DEFAULT_MIN_FREE  # bytes: a write failure with less free is a full disk
     log_json: bool = False
     log_level: int = logging.INFO
 
@@ -356,6 +330,8 @@ class WatchConfig:
             raise WatchError("--timeout and --rescan must be positive")
         if self.max_attempts < 1 or self.max_crashes < 1:
             raise WatchError("--max-attempts and --max-crashes must be at least 1")
+        if not (0 <= self.min_free < 2**63):
+            raise WatchError(f"--min-free must be a non-negative number of bytes, got {self.min_free}")
         if self.archive_dir is not None and self.archive_dir == self.quarantine_dir:
             raise WatchError(f"the archive and quarantine folders must differ ({str(self.archive_dir)!r})")
         for name, d in (("output", self.out_dir), ("quarantine", self.quarantine_dir), ("archive", self.archive_dir)):
@@ -460,10 +436,14 @@ def _summary(d: dict[str, Any], sidecar: Path) -> dict[str, Any]:
 
 
 def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str | None, needs_store: bool,
-                 log_json: bool, log_level: int) -> None:
+                 log_json: bool, log_level: int, min_free: int = DEFAULT_MIN_FREE) -> None:
     """A worker process: one Processor, tasks in, results out, until told to stop or
     the daemon goes away."""
     die_with_parent()  # even when the daemon is killed with SIGKILL
+    # a file whose decoding exhausts memory must cost its worker, not the daemon: the
+    # daemon then lives to charge the file the crash (the OOM killer picks the top score)
+    with contextlib.suppress(OSError), open("/proc/self/oom_score_adj", "w") as fh:
+        fh.write("500")
     # The daemon drains us.  A process group of our own keeps a terminal's Ctrl-C (sent to
     # the whole foreground group) from us and from the exiftool we start, which would die of it.
     with contextlib.suppress(OSError):
@@ -511,10 +491,13 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
                                         frame_id=fp.sha256 if s.mode == "learn" else None)
                 conn.send(("ok", task_id, _summary(res.to_dict(), sidecar)))
             except Exception as exc:  # noqa: BLE001 - every failure becomes a per-file record
-                kind, reason = classify_error(exc)
-                if kind == PERMANENT and reason.startswith("internal error"):
+                # judged here, at once: a failed writer's temporary is gone, so the output
+                # disk's free space is what the next file would find
+                fault = classify_error(exc, outdir, min_free=min_free)
+                if fault.kind == PERMANENT and fault.reason.startswith("internal error"):
                     wlog.debug("internal error on %s", path, exc_info=True)
-                conn.send(("error", task_id, {"kind": kind, "reason": reason, "type": type(exc).__name__}))
+                conn.send(("error", task_id, {"kind": fault.kind, "reason": fault.reason, "type": type(exc).__name__,
+                                              "free_bytes": fault.space.free_bytes if fault.space else None}))
     except (BrokenPipeError, EOFError, OSError):
         pass  # the daemon is gone
     finally:
@@ -543,6 +526,23 @@ class _Task:
     stem: str
     fp: Fingerprint
     started: float | None = None  # monotonic, when the worker said it began
+    probe: bool = False  # sent while paused for a full disk, to see whether there is room again
+
+
+@dataclass
+class _DiskPause:
+    """The daemon stopped handing out files: the output disk is full (every file would
+    fail there).  It resumes when the free space has grown, or when a probe (one file
+    sent after a backoff delay) is written."""
+
+    reason: str
+    since: float  # epoch seconds
+    free_bytes: int | None  # the output file system's free bytes when it was found full
+    delay: float  # seconds until the next probe; doubles after each failed probe
+    probe_at: float  # monotonic
+    next_look: float = 0.0  # monotonic: next look at the free space
+    probing: bool = False  # a probe is in flight
+    held: set[str] = field(default_factory=set)  # files given back for the disk, not charged
 
 
 @dataclass
@@ -551,6 +551,7 @@ class _Worker:
     process: Any
     conn: mpc.Connection
     ready: bool = False
+    pid: int | None = None  # as the worker said when ready
     tasks: list[_Task] = field(default_factory=list)  # sent, in order; the first may be running
     stopping: bool = False
 
@@ -656,6 +657,25 @@ def read_status(cfg: WatchConfig) -> dict[str, Any]:
     return out
 
 
+def _overwrite_in_place(path: Path, data: dict[str, Any]) -> bool:
+    """Rewrite an existing JSON file in the blocks it already has (padded with spaces, so
+    no new block is needed): the status file on a full disk, where no temporary file can
+    be made.  Not atomic: a reader may catch it half written, and reads it again.
+    Returns whether it fitted."""
+    text = json.dumps(data, indent=1).encode()
+    try:
+        with open(path, "r+b") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if len(text) + 1 > size:
+                text = json.dumps(data, separators=(",", ":")).encode()
+                if len(text) + 1 > size:
+                    return False
+            fh.write(text + b"\n" + b" " * (size - len(text) - 1))
+        return True
+    except OSError:
+        return False
+
+
 def _write_json_quick(path: Path, data: dict[str, Any]) -> None:
     """Atomic (rename) but not fsynced: a status file is rewritten every second and is
     worthless after a power cut anyway."""
@@ -700,7 +720,8 @@ class Daemon:
         self.workers: list[_Worker] = []
         self.known: dict[str, tuple[int, int]] = {}  # path -> (size, mtime_ns) done/quarantined this run
         self.unreadable: dict[str, tuple[int, float]] = {}  # path -> (attempts, retry at, monotonic)
-        self.stats = {"done": 0, "failed": 0, "quarantined": 0, "retried": 0, "recovered": 0, "released": 0}
+        self.stats = {"done": 0, "failed": 0, "quarantined": 0, "retried": 0, "recovered": 0, "released": 0,
+                      "disk_full": 0}
         self._stop: str | None = None
         self._abort = False
         self._rescan_asked = False
@@ -716,6 +737,11 @@ class Daemon:
         self._rates: deque[float] = deque(maxlen=100_000)  # monotonic times of recent completions
         self._pause_until = 0.0
         self._next_rescan = 0.0
+        self._disk: _DiskPause | None = None  # paused: the output disk is full
+        self._disk_ready: set[str] = set()  # given back for the disk, due again now that there is room
+        # journal writes that failed (its disk full too?), retried in order until they succeed
+        self._backlog: deque[Callable[[], None]] = deque()
+        self._backlog_ids: set[int] = set()  # tasks whose journal write failed once (logged once)
 
     # ---------------------------------------------------------- life cycle
     def run(self) -> int:
@@ -766,24 +792,26 @@ class Daemon:
         return 0
 
     def _recover(self) -> None:
-        """Hand back the files that a killed run left running (see Journal.recover: only
-        those a worker had started are charged a crash, and quarantined after max_crashes)."""
+        """Hand back the files that a stopped run left running, uncharged (Journal.recover):
+        the daemon's own death (kill -9, a power cut) is not the files' fault.  A file that
+        kills its worker is charged while the daemon lives (:meth:`_record_crash`)."""
         interrupted = self.journal.entries("running")
         if not interrupted:
             return
-        self.journal.recover(max_crashes=self.cfg.max_crashes)
-        retried = 0
-        for old in interrupted:
-            e = self.journal.lookup(old.path)
-            if e is None or e.state != "quarantined":
-                retried += 1
-                continue
-            self.stats["quarantined"] += 1
-            log.error("quarantined %s: %s", os.path.relpath(e.path, self.cfg.in_dir), e.reason,
-                      extra=_ev("quarantined", file=e.path, kind="crash", reason=e.reason))
-        if retried:
-            log.warning("%d file(s) were being processed when the daemon last stopped; they are retried", retried,
-                        extra=_ev("recover", count=retried))
+        self.journal.recover()
+        boot = boot_id()
+        for e in interrupted:
+            who = e.runner or {}
+            if not e.started:
+                how = "was queued for a worker when the daemon stopped"
+            elif who.get("boot") and boot and who.get("boot") != boot:
+                how = "was in progress when the machine stopped (another boot)"
+            else:
+                how = f"was in progress when daemon pid {who.get('pid', '?')} stopped"
+            log.info("%s %s; tried again, not charged a crash", os.path.relpath(e.path, self.cfg.in_dir), how,
+                     extra=_ev("recovered", file=e.path, started=e.started, runner=who or None))
+        log.warning("%d file(s) were being processed when the daemon last stopped; they are tried again",
+                    len(interrupted), extra=_ev("recover", count=len(interrupted)))
 
     def _remove_stale_temps(self, unfinished: list[str]) -> None:
         """Temporary files that the outputs of ``unfinished`` inputs (running or pending when
@@ -895,7 +923,8 @@ class Daemon:
             os.environ["NUMBA_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // cfg.workers))
         try:
             p = ctx.Process(target=_worker_main, name=f"worker-{index}",
-                            args=(child, cfg.settings, cfg.profile_db, cfg.needs_store, cfg.log_json, cfg.log_level))
+                            args=(child, cfg.settings, cfg.profile_db, cfg.needs_store, cfg.log_json, cfg.log_level,
+                                  cfg.min_free))
             p.start()
         finally:
             if env_threads is None:
@@ -925,8 +954,12 @@ class Daemon:
             self._early_deaths = 0
         for t in w.tasks:
             self.inflight.pop(t.path, None)
+            if t.probe and self._disk is not None:
+                self._disk.probing = False
             if t.started is not None:
-                self._record_failure(t, TRANSIENT, f"{why} (worker exit code {code})", self.cfg.max_crashes)
+                # the worker died (or hung) on this file while the daemon lives: a crash the
+                # file caused, the only kind charged (a kill of the daemon is not: Journal.recover)
+                self._record_crash(t, f"{why} (worker exit code {code})")
             else:
                 self._release(t)
         self._remove_temps([t.path for t in w.tasks], keep=self.inflight)
@@ -1118,11 +1151,21 @@ class Daemon:
     def _dispatch(self) -> None:
         if time.monotonic() < self._pause_until:
             return
+        probe = False
+        if self._disk is not None:
+            go = self._disk_go()
+            if go is None:
+                return
+            probe = go == "probe"
         while self.ready and not self._stop:
             w = self._idle_worker()
             if w is None:
                 return
-            path = next(iter(self.ready))
+            if probe and self._disk is not None:
+                # the probe: one file, preferably not the one that failed last
+                path = next((p for p in self.ready if p not in self._disk.held), next(iter(self.ready)))
+            else:
+                path = next(iter(self.ready))
             del self.ready[path]
             try:
                 task = self._prepare(path)
@@ -1143,6 +1186,11 @@ class Daemon:
                 continue
             w.tasks.append(task)
             self.inflight[path] = task
+            if probe and self._disk is not None:
+                task.probe = self._disk.probing = True
+                log.info("output disk full: trying %s to see whether there is room again", task.rel,
+                         extra=_ev("disk-probe", file=task.path))
+                return
 
     def _prepare(self, path: str) -> _Task | None:
         """Fingerprint and claim a ripe file; None if there is nothing to do (yet)."""
@@ -1171,8 +1219,11 @@ class Daemon:
             self.known[path] = (fp.size, fp.mtime_ns)
             self._after_finished(path, fp, entry.state, entry.reason)
             return None
-        if not self.journal.claim(path, fp, worker=f"{os.uname().nodename}:{os.getpid()}"):
+        # a file given back for a full disk is due as soon as there is room, whatever its retry time
+        now = float("inf") if path in self._disk_ready else None
+        if not self.journal.claim(path, fp, worker=f"{os.uname().nodename}:{os.getpid()}", now=now):
             return None  # waiting for its retry time (due() brings it back) or running elsewhere
+        self._disk_ready.discard(path)
         self._task_ids += 1
         rel = os.path.relpath(path, self.cfg.in_dir)
         return _Task(self._task_ids, path, rel, output_stem(rel), fp)
@@ -1244,6 +1295,7 @@ class Daemon:
         kind, task_id, payload = msg
         if kind == "ready":
             w.ready = True
+            w.pid = payload
             log.info("%s ready (pid %s)", w.name, payload, extra=_ev("worker-ready", worker=w.name, worker_pid=payload))
             return
         if kind == "fatal":
@@ -1253,19 +1305,24 @@ class Daemon:
             return
         if kind == "start":
             task.started = time.monotonic()
-            try:  # from now on a kill of the daemon charges this file a crash (Journal.recover)
-                self.journal.start(task.path, task.fp)
+            try:  # from now on a death of its worker charges this file a crash (_worker_gone)
+                self.journal.start(task.path, task.fp, runner=runner_identity(w.pid))
             except JournalError as exc:
                 log.error("%s: cannot record its start: %s", task.path, exc, extra=_ev("journal-error", file=task.path))
             return
         w.tasks.remove(task)
         self.inflight.pop(task.path, None)
+        if task.probe and self._disk is not None:
+            self._disk.probing = False
         if self._changed(task):
             return
         if kind == "ok":
             self._done(task, payload, w.name)
         else:
             kind_, reason = payload["kind"], payload["reason"]
+            if kind_ == DISK_FULL:  # the machine's fault, not the photo's: no attempt counted
+                self._disk_full(task, reason, payload.get("free_bytes"))
+                return
             if self._stop and "exiftool" in reason:
                 # the stop signal may have reached exiftool too (systemd can signal every
                 # process): not the file's fault, so it goes back without an attempt
@@ -1280,8 +1337,81 @@ class Daemon:
                     # in fact incomplete: one more look before quarantining (and moving) it
                     kind_ = TRANSIENT
                     reason += " (recently written: tried again in case it was incomplete)"
-            max_attempts = None if kind_ == DISK_FULL else self.cfg.max_attempts
+            # any other failure to write an output is the output side's too: retried, never quarantined
+            max_attempts = None if kind_ == OUTPUT else self.cfg.max_attempts
             self._record_failure(task, kind_, reason, max_attempts)
+
+    # ---------------------------------------------------------- full output disk
+    def _disk_full(self, task: _Task, reason: str, free_bytes: int | None) -> None:
+        """``task`` failed for want of space on the output disk: give it back uncharged,
+        and pause (or stay paused, backing off if it was the probe)."""
+        cfg = self.cfg
+        now = time.monotonic()
+        if free_bytes is None:
+            sp = disk_space(cfg.out_dir)
+            free_bytes = sp.free_bytes if sp is not None else None
+        d = self._disk
+        if d is None:
+            d = self._disk = _DiskPause(reason=reason, since=time.time(), free_bytes=free_bytes,
+                                        delay=max(cfg.retry_base, 0.1), probe_at=now + max(cfg.retry_base, 0.1))
+            self.stats["disk_full"] += 1
+            log.warning("output disk full, paused: %s (%s); nothing is quarantined for it, the files are tried "
+                        "again when there is room", reason, task.rel,
+                        extra=_ev("disk-full", file=task.path, reason=reason, free_bytes=free_bytes))
+        else:
+            d.reason, d.free_bytes = reason, free_bytes  # the latest look: the growth that resumes is from here
+            if task.probe:
+                d.delay = min(d.delay * 2, max(cfg.retry_cap, cfg.retry_base))
+                d.probe_at = now + d.delay
+                log.warning("output disk still full (%s); next try in %.0f s", reason, d.delay,
+                            extra=_ev("disk-still-full", file=task.path, reason=reason, retry_in=round(d.delay, 1)))
+        d.held.add(task.path)
+        self._disk_ready.discard(task.path)
+        # back to pending with no attempt counted; the pause holds it here, the short delay is
+        # for a restart (which finds out about the disk afresh)
+        self._release(task, not_before=time.time() + cfg.retry_base, reason=reason)
+        self._write_status()
+
+    def _disk_go(self) -> str | None:
+        """While paused for a full disk: None (hand out nothing yet), ``"probe"`` (one
+        file, to see whether it fits) or ``"resume"`` (the free space grew: carry on)."""
+        cfg, d = self.cfg, self._disk
+        assert d is not None
+        now = time.monotonic()
+        if now >= d.next_look:
+            d.next_look = now + self.DUE_EVERY
+            sp = disk_space(cfg.out_dir)
+            # grown, not merely "not low": a quota (EDQUOT) or a full disk that reported
+            # plenty would otherwise resume and fail again every second
+            grown = d.free_bytes is None or sp is None or sp.free_bytes >= d.free_bytes + max(cfg.min_free // 4, 1 << 20)
+            if sp is not None and not sp.low(cfg.min_free) and grown:
+                self._disk_resume(sp.describe())
+                return "resume"
+        if d.probing or now < d.probe_at:
+            return None
+        if not self.ready:  # nothing new to try: one of the files given back
+            for p in sorted(d.held):
+                if p not in self.inflight and os.path.lexists(p):
+                    self.ready[p] = None
+                    self._disk_ready.add(p)
+                    break
+        if not self.ready:
+            return None
+        d.probe_at = now + d.delay  # also if the probe fails for another reason
+        return "probe"
+
+    def _disk_resume(self, why: str) -> None:
+        d, self._disk = self._disk, None
+        if d is None:
+            return
+        back = [p for p in sorted(d.held) if p not in self.inflight and os.path.lexists(p)]
+        for p in back:
+            self.ready[p] = None
+            self._disk_ready.add(p)
+        log.info("output disk has room again (%s): resumed after %.0f s; %d file(s) given back are tried again",
+                 why, time.time() - d.since, len(back),
+                 extra=_ev("disk-resumed", why=why, paused_s=round(time.time() - d.since, 1), files=len(back)))
+        self._write_status()
 
     def _young(self, task: _Task) -> bool:
         return time.time() - task.fp.mtime_ns / 1e9 < max(30.0, 10 * self.cfg.settle)
@@ -1310,11 +1440,13 @@ class Daemon:
         return True
 
     def _done(self, task: _Task, summary: dict[str, Any], worker: str) -> None:
+        if task.probe and self._disk is not None:
+            self._disk_resume(f"{task.rel} was written")
         summary = {**summary, "worker": worker}
         try:
             self.journal.done(task.path, task.fp, summary)
         except JournalError as exc:
-            log.error("%s: cannot record it as done: %s", task.path, exc, extra=_ev("journal-error", file=task.path))
+            self._journal_later(task, "as done", exc, lambda: self._done(task, summary, worker))
             return
         self.known[task.path] = (task.fp.size, task.fp.mtime_ns)
         self.stats["done"] += 1
@@ -1334,8 +1466,8 @@ class Daemon:
             outcome = self.journal.failed(task.path, task.fp, reason, transient=kind != PERMANENT,
                                           max_attempts=max_attempts)
         except JournalError as exc:
-            log.error("%s: cannot record its failure (%s): %s", task.path, reason, exc,
-                      extra=_ev("journal-error", file=task.path))
+            self._journal_later(task, f"as failed ({reason})", exc,
+                                lambda: self._record_failure(task, kind, reason, max_attempts))
             return
         self.stats["failed"] += 1
         if outcome == "retry":
@@ -1357,6 +1489,29 @@ class Daemon:
                             extra=_ev("earlier-outputs", file=task.path, outputs=earlier))
             self._after_finished(task.path, task.fp, "quarantined", reason, earlier)
 
+    def _record_crash(self, task: _Task, reason: str) -> None:
+        try:
+            outcome = self.journal.crashed(task.path, task.fp, reason, max_crashes=self.cfg.max_crashes)
+        except JournalError as exc:
+            self._journal_later(task, f"as crashed ({reason})", exc, lambda: self._record_crash(task, reason))
+            return
+        self.stats["failed"] += 1
+        if outcome == "retry":
+            self.stats["retried"] += 1
+            e = self.journal.lookup(task.path)
+            wait = max((e.not_before if e else 0) - time.time(), 0.0)
+            log.warning("%s: %s; crash %d of %d allowed, retry in %.0f s", task.rel, reason, e.crashes if e else 0,
+                        self.cfg.max_crashes, wait,
+                        extra=_ev("retry", file=task.path, kind="crash", reason=reason, retry_in=round(wait, 1)))
+            return
+        self.known[task.path] = (task.fp.size, task.fp.mtime_ns)
+        self.stats["quarantined"] += 1
+        e = self.journal.lookup(task.path)
+        reason = e.reason if e is not None and e.reason else reason
+        log.error("quarantined %s: %s", task.rel, reason, extra=_ev("quarantined", file=task.path, kind="crash",
+                                                                     reason=reason))
+        self._after_finished(task.path, task.fp, "quarantined", reason, self._earlier_outputs(task.rel, task.fp))
+
     def _earlier_outputs(self, rel: str, fp: Fingerprint) -> list[str]:
         """The sidecar and output in the output folder for ``rel`` when they record
         another content than ``fp`` (the file was replaced and its new content failed)."""
@@ -1369,9 +1524,26 @@ class Daemon:
         out = d.get("output")
         return [str(sidecar)] + ([out] if isinstance(out, str) and os.path.isfile(out) else [])
 
-    def _release(self, task: _Task) -> None:
-        with contextlib.suppress(JournalError):
-            self.journal.release(task.path, task.fp)
+    def _release(self, task: _Task, not_before: float = 0.0, reason: str | None = None) -> None:
+        try:
+            self.journal.release(task.path, task.fp, not_before=not_before, reason=reason)
+        except JournalError as exc:
+            self._journal_later(task, "as given back", exc, lambda: self._release(task, not_before, reason))
+
+    def _journal_later(self, task: _Task, what: str, exc: JournalError, again: Callable[[], None]) -> None:
+        """A journal write failed (its disk may be full too): try it again later rather than
+        lose the result.  Meanwhile the entry stays ``running``, so nothing else takes the
+        file; a restart would hand it back (and find its sidecar, if it was done)."""
+        first = task.id not in self._backlog_ids
+        self._backlog_ids.add(task.id)
+        (log.error if first else log.debug)("%s: cannot record it %s in the journal: %s; trying again shortly",
+                                            task.rel, what, exc, extra=_ev("journal-error", file=task.path))
+        self._backlog.append(again)
+
+    def _flush_backlog(self) -> None:
+        """Retry the journal writes that failed (each puts itself back if it fails again)."""
+        for _ in range(len(self._backlog)):
+            self._backlog.popleft()()
 
     def _after_finished(self, path: str, fp: Fingerprint, state: str, reason: str | None,
                         earlier: list[str] | None = None) -> None:
@@ -1424,8 +1596,11 @@ class Daemon:
         now = time.monotonic()
         recent = [t for t in self._rates if now - t <= 60]
         running = [t.rel for w in self.workers for t in w.tasks if t.started is not None]
+        d = self._disk
+        if state == "running" and d is not None:
+            state = "paused"
         st = {
-            "state": state if not self._stop or state != "running" else "draining",
+            "state": state if not self._stop or state not in ("running", "paused") else "draining",
             "pid": os.getpid(), "in_dir": str(cfg.in_dir), "out_dir": str(cfg.out_dir), "job": cfg.job,
             "mode": cfg.settings.get("mode"), "workers": cfg.workers,
             "started": datetime.fromtimestamp(self._started, timezone.utc).isoformat(timespec="seconds"),
@@ -1436,12 +1611,24 @@ class Daemon:
             "running": running, "journal": self._counts, "this_run": dict(self.stats),
             "files_per_min": len(recent),
         }
+        if d is not None:
+            st["paused"] = {
+                "why": "output disk full", "reason": d.reason,
+                "since": datetime.fromtimestamp(d.since, timezone.utc).isoformat(timespec="seconds"),
+                "free_bytes": d.free_bytes, "files_waiting": len(d.held),
+                "next_try_s": round(max(d.probe_at - now, 0.0), 1) if not d.probing else 0.0,
+            }
+        if self._backlog:
+            st["journal_writes_waiting"] = len(self._backlog)
         try:
             _write_json_quick(cfg.status_file, st)
         except OSError as exc:
-            log.debug("cannot write the status file: %s", exc)
+            if exc.errno not in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)) or \
+                    not _overwrite_in_place(cfg.status_file, st):
+                log.debug("cannot write the status file: %s", exc)
         q = st["queue"]
-        _sd_notify(f"STATUS={state}: {q['settling'] + q['ready'] + q['dispatched']} queued, {len(running)} running, "
+        _sd_notify(f"STATUS={'paused (output disk full)' if state == 'paused' else state}: "
+                   f"{q['settling'] + q['ready'] + q['dispatched']} queued, {len(running)} running, "
                    f"{self._counts.get('done', 0)} done, {self._counts.get('quarantined', 0)} quarantined")
 
     # ---------------------------------------------------------- loop
@@ -1464,6 +1651,7 @@ class Daemon:
                     self._stop_observer()
                     draining_logged = True
                 if not self.inflight:
+                    self._flush_backlog()  # once more: what a full journal disk held back
                     return
             else:
                 self._handle_events()
@@ -1479,6 +1667,7 @@ class Daemon:
                 for path in self.tracker.ripe():
                     self.ready[path] = None
                 if now >= next_due:
+                    self._flush_backlog()
                     self._due_retries()
                     next_due = now + self.DUE_EVERY
                 self._dispatch()

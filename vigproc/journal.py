@@ -8,11 +8,16 @@ and SHA-256 of the content) it had when it was last handled, and its state::
     (new) --claim--> running --done--> done
                         |  \\--failed(transient, attempts left)--> pending --claim--> running ...
                         |   \\--failed(permanent, or no attempts left)--> quarantined
-                        \\--(process killed) recover()--> pending (or quarantined after max_crashes)
+                        |    \\--crashed(its worker died on it)--> pending (quarantined at max_crashes)
+                        \\--(process killed) recover()--> pending (never charged)
 
-:meth:`Journal.start` marks a claimed entry as actually being worked on.  Only such
-an entry is charged a crash by :meth:`Journal.recover`: a file that was merely
-claimed (queued for a worker) when the process died cannot have caused the death.
+:meth:`Journal.start` marks a claimed entry as actually being worked on, with who
+works on it (:func:`runner_identity`: host, boot, process and worker).  A crash is
+charged only by :meth:`Journal.crashed`, which the process that survived it calls
+(a worker died or hung on the file while the daemon lived).  :meth:`Journal.recover`
+charges nothing: an entry left running means the process that owned it stopped
+(``kill -9``, a power cut), and nothing ties that to the file -- decoding happens
+in workers, whose deaths the surviving daemon charges at once.
 
 A path whose content changes (a new SHA-256 or size) is new work whatever its
 entry's state; a path whose content is unchanged and is ``done`` or ``quarantined``
@@ -74,7 +79,9 @@ __all__ = [
     "Journal",
     "JournalError",
     "STATES",
+    "boot_id",
     "fingerprint",
+    "runner_identity",
 ]
 
 log = logging.getLogger(__name__)
@@ -225,6 +232,7 @@ class Entry:
     first_seen: str
     updated: str
     started: bool = False  # begun by a worker since it was last claimed (see Journal.start)
+    runner: dict[str, Any] | None = None  # who began it (runner_identity), while running
 
     @property
     def retrying(self) -> bool:
@@ -248,6 +256,7 @@ CREATE TABLE IF NOT EXISTS entries (
     attempts   INTEGER NOT NULL DEFAULT 0,
     crashes    INTEGER NOT NULL DEFAULT 0,
     started    INTEGER NOT NULL DEFAULT 0,  -- begun since the last claim, not just claimed: see start()
+    runner     TEXT,                        -- JSON: who began it (host, boot, pid, worker): see start()
     claims     INTEGER NOT NULL DEFAULT 0,
     not_before REAL    NOT NULL DEFAULT 0,
     worker     TEXT,
@@ -261,7 +270,22 @@ CREATE INDEX IF NOT EXISTS entries_by_state ON entries (job, state, not_before);
 """
 
 _COLUMNS = ("path, size, mtime_ns, sha256, state, attempts, crashes, claims, not_before, worker, reason, result, "
-            "first_seen, updated, started")
+            "first_seen, updated, started, runner")
+
+
+def boot_id() -> str | None:
+    """This boot of the machine (Linux), or None: a process of another boot is long gone."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id", encoding="ascii") as fh:
+            return fh.read().strip() or None
+    except OSError:
+        return None
+
+
+def runner_identity(worker_pid: int | None = None) -> dict[str, Any]:
+    """Who is working on a file, as :meth:`Journal.start` records it: host, boot, the
+    calling process (the daemon) and the worker process."""
+    return {"host": os.uname().nodename, "boot": boot_id(), "pid": os.getpid(), "worker_pid": worker_pid}
 
 
 class Journal(SQLiteFile):
@@ -320,8 +344,11 @@ class Journal(SQLiteFile):
                 if statement.strip():
                     con.execute(statement)
             # a journal of an older vigproc lacks "started"; older code ignores the column
-            if "started" not in {r[1] for r in con.execute("PRAGMA table_info(entries)")}:
+            columns = {r[1] for r in con.execute("PRAGMA table_info(entries)")}
+            if "started" not in columns:
                 con.execute("ALTER TABLE entries ADD COLUMN started INTEGER NOT NULL DEFAULT 0")
+            if "runner" not in columns:  # likewise
+                con.execute("ALTER TABLE entries ADD COLUMN runner TEXT")
             row = con.execute("SELECT value FROM vigproc_journal_meta WHERE key = 'schema'").fetchone()
             if row is None:
                 con.execute("INSERT INTO vigproc_journal_meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
@@ -339,14 +366,18 @@ class Journal(SQLiteFile):
 
     def _entry(self, row: tuple) -> Entry:
         (path, size, mtime, sha, state, attempts, crashes, claims, not_before, worker, reason, result,
-         first_seen, updated, started) = row
+         first_seen, updated, started, runner) = row
         try:
             res = json.loads(result) if result is not None else None
         except ValueError:
             res = {"unparsed": result}
+        try:
+            who = json.loads(runner) if runner is not None else None
+        except ValueError:
+            who = {"unparsed": runner}
         return Entry(os.fsdecode(bytes(path)), Fingerprint(int(size), int(mtime), str(sha)), str(state), int(attempts),
                      int(crashes), int(claims), float(not_before), worker, reason, res, str(first_seen), str(updated),
-                     bool(started))
+                     bool(started), who)
 
     def _backoff(self, attempts: int) -> float:
         return min(self.retry_cap, self.retry_base * 2.0 ** max(attempts - 1, 0)) * random.uniform(0.8, 1.0)
@@ -436,12 +467,14 @@ class Journal(SQLiteFile):
             if (int(size), str(sha)) != (fp.size, fp.sha256):
                 con.execute(
                     "UPDATE entries SET size = ?, mtime_ns = ?, sha256 = ?, state = 'running', attempts = 0, crashes = 0,"
-                    " started = 0, claims = 1, not_before = 0, worker = ?, reason = NULL, result = NULL, updated = ?"
+                    " started = 0, runner = NULL, claims = 1, not_before = 0, worker = ?, reason = NULL, result = NULL,"
+                    " updated = ?"
                     " WHERE job = ? AND path = ?",
                     (fp.size, fp.mtime_ns, fp.sha256, worker, stamp, self.job, key))
                 return True
             if state == "pending" and float(not_before) <= t:
-                con.execute("UPDATE entries SET state = 'running', started = 0, claims = claims + 1, mtime_ns = ?,"
+                con.execute("UPDATE entries SET state = 'running', started = 0, runner = NULL, claims = claims + 1,"
+                            " mtime_ns = ?,"
                             " worker = ?, updated = ? WHERE job = ? AND path = ?",
                             (fp.mtime_ns, worker, stamp, self.job, key))
                 return True
@@ -466,9 +499,9 @@ class Journal(SQLiteFile):
 
         return self._transact(op, body)
 
-    def start(self, path: str | os.PathLike[str], fp: Fingerprint) -> None:
+    def start(self, path: str | os.PathLike[str], fp: Fingerprint, *, runner: dict[str, Any] | None = None) -> None:
         """Record that work on a claimed file has begun (a worker took it from its queue),
-        so that :meth:`recover` charges it a crash if the process dies now.
+        and who works on it (``runner``, by default :func:`runner_identity` of the caller).
 
         Raises
         ------
@@ -476,10 +509,11 @@ class Journal(SQLiteFile):
             The file is not running with this content.
         """
         stamp = _now_iso()
+        who = json.dumps(runner if runner is not None else runner_identity(), sort_keys=True, default=str)
 
         def change(con: sqlite3.Connection, key: bytes, row: tuple) -> None:
-            con.execute("UPDATE entries SET started = 1, updated = ? WHERE job = ? AND path = ?",
-                        (stamp, self.job, key))
+            con.execute("UPDATE entries SET started = 1, runner = ?, updated = ? WHERE job = ? AND path = ?",
+                        (who, stamp, self.job, key))
 
         self._update_running("start", path, fp, change)
 
@@ -541,15 +575,18 @@ class Journal(SQLiteFile):
 
         return str(self._update_running("failed", path, fp, change))
 
-    def release(self, path: str | os.PathLike[str], fp: Fingerprint) -> None:
-        """Give a claimed file back without counting an attempt (pending, due now):
-        the caller stopped before finishing, e.g. the file changed under it or the
-        process is shutting down."""
+    def release(self, path: str | os.PathLike[str], fp: Fingerprint, *, not_before: float = 0.0,
+                reason: str | None = None) -> None:
+        """Give a claimed file back without counting an attempt: the caller stopped before
+        finishing, e.g. the file changed under it or the process is shutting down, or the
+        failure was not the file's (the output disk is full: then ``not_before``, epoch
+        seconds, delays it and ``reason`` says why)."""
         stamp = _now_iso()
+        why = None if reason is None else str(reason)[:MAX_REASON]
 
         def change(con: sqlite3.Connection, key: bytes, row: tuple) -> None:
-            con.execute("UPDATE entries SET state = 'pending', not_before = 0, updated = ? WHERE job = ? AND path = ?",
-                        (stamp, self.job, key))
+            con.execute("UPDATE entries SET state = 'pending', not_before = ?, reason = coalesce(?, reason),"
+                        " updated = ? WHERE job = ? AND path = ?", (float(not_before), why, stamp, self.job, key))
 
         self._update_running("release", path, fp, change)
 
@@ -570,49 +607,64 @@ class Journal(SQLiteFile):
 
         self._transact("quarantine", body)
 
-    def recover(self, *, max_crashes: int | None = None) -> int:
-        """Entries left ``running`` by a process that died become ``pending`` again.
+    def crashed(self, path: str | os.PathLike[str], fp: Fingerprint, reason: str, *, max_crashes: int | None,
+                now: float | None = None) -> str:
+        """Charge a started file a crash: the worker processing it died or hung while the
+        caller lived, so the file is the likely cause.
 
-        Only an entry that had been started (:meth:`start`) is charged a crash: one
-        that was merely claimed, e.g. queued behind the running file, goes back as if
-        never handed out.  Nothing tells a kill of the whole process from a file that
-        takes the process down with it, so a started entry is charged either way.
+        Returns
+        -------
+        str
+            ``"retry"`` (pending again after a backoff) or ``"quarantined"`` (it has now
+            crashed ``max_crashes`` times: a file that kills its worker every time must
+            not crash-loop the job).
+        """
+        t = time.time() if now is None else float(now)
+        stamp = _now_iso()
+
+        def change(con: sqlite3.Connection, key: bytes, row: tuple) -> str:
+            n = int(row[4]) + 1
+            if max_crashes is not None and n >= max_crashes:
+                why = f"{reason}; it crashed or hung its worker {n} times; not retried"[:MAX_REASON]
+                con.execute("UPDATE entries SET state = 'quarantined', crashes = ?, started = 0, not_before = 0,"
+                            " reason = ?, updated = ? WHERE job = ? AND path = ?", (n, why, stamp, self.job, key))
+                return "quarantined"
+            con.execute("UPDATE entries SET state = 'pending', crashes = ?, started = 0, not_before = ?, reason = ?,"
+                        " updated = ? WHERE job = ? AND path = ?",
+                        (n, t + self._backoff(n), str(reason)[:MAX_REASON], stamp, self.job, key))
+            return "retry"
+
+        return str(self._update_running("crashed", path, fp, change))
+
+    def recover(self) -> int:
+        """Entries left ``running`` by a process that stopped become ``pending`` again, due
+        now, *without* a crash charge.
+
+        The process that owned them is gone (killed, crashed, or the machine restarted:
+        see each entry's ``runner``), and its death is not evidence against the file: the
+        files in progress when a daemon is killed are as healthy as any.  What a file
+        does cause, a worker dying or hanging on it under a live daemon, is charged at
+        once by :meth:`crashed`.
 
         Call it when no other process works on this job (the daemon holds a per-job
         lock while it runs).
 
-        Parameters
-        ----------
-        max_crashes : int, optional
-            Quarantine instead an entry that has now been interrupted this many times
-            while started (a file that kills vigproc every time must not crash-loop
-            the job).
-
         Returns
         -------
         int
-            Number of entries recovered (pending or quarantined).
+            Number of entries recovered (read them first with ``entries("running")``
+            to see who ran them).
         """
         stamp = _now_iso()
 
         def body(con: sqlite3.Connection) -> int:
-            rows = con.execute("SELECT path, crashes, started FROM entries WHERE job = ? AND state = 'running'",
-                               (self.job,)).fetchall()
-            for key, crashes, started in rows:
-                n = int(crashes) + (1 if started else 0)
-                if started and max_crashes is not None and n >= max_crashes:
-                    con.execute("UPDATE entries SET state = 'quarantined', crashes = ?, started = 0, reason = ?,"
-                                " updated = ? WHERE job = ? AND path = ?",
-                                (n, f"interrupted {n} times while being processed (vigproc was killed or crashed "
-                                 "each time: the file may be the cause); not retried", stamp, self.job, key))
-                else:
-                    con.execute("UPDATE entries SET state = 'pending', crashes = ?, started = 0, not_before = 0,"
-                                " updated = ? WHERE job = ? AND path = ?", (n, stamp, self.job, key))
-            return len(rows)
+            return con.execute("UPDATE entries SET state = 'pending', started = 0, not_before = 0, updated = ?"
+                               " WHERE job = ? AND state = 'running'", (stamp, self.job)).rowcount
 
         n = int(self._transact("recover", body))
         if n:
-            log.info("journal %s: %d entries of job %r were left running by a stopped process", self.path, n, self.job)
+            log.info("journal %s: %d entries of job %r were left running by a stopped process; pending again "
+                     "(not charged a crash)", self.path, n, self.job)
         return n
 
     def touch(self, path: str | os.PathLike[str], fp: Fingerprint) -> bool:

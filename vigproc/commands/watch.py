@@ -42,7 +42,7 @@ def _config(args: argparse.Namespace):
         archive_dir=args.archive, profile_db=args.profile_db, status_file=args.status_file, rescan=args.rescan,
         timeout=args.timeout, max_attempts=args.max_attempts, max_crashes=args.max_crashes,
         retry_base=args.retry_base, retry_cap=args.retry_cap, retry_quarantined=args.retry_quarantined,
-        log_json=args.log_json, log_level=level)
+        min_free=int(args.min_free * 1e6), log_json=args.log_json, log_level=level)
 
 
 def _check_settings(cfg) -> None:
@@ -75,6 +75,13 @@ def _print_status(st: dict[str, Any]) -> None:
     if d:
         q = d.get("queue") or {}
         print(f"  status file updated {st.get('age_s', '?')} s ago (daemon state: {d.get('state')})")
+        p = d.get("paused")
+        if st["running"] and p:
+            free = p.get("free_bytes")
+            print(f"  PAUSED: {p.get('why')} since {p.get('since')}"
+                  + (f" ({free / 1e6:.1f} MB free)" if isinstance(free, (int, float)) else "")
+                  + f"; {p.get('files_waiting', 0)} file(s) waiting, next try in {p.get('next_try_s', 0):.0f} s "
+                  "or as soon as space is freed; nothing is quarantined for it")
         if st["running"]:
             print(f"  queue {q.get('settling', 0) + q.get('ready', 0) + q.get('dispatched', 0)} "
                   f"(settling {q.get('settling', 0)}, ready {q.get('ready', 0)}, dispatched {q.get('dispatched', 0)}), "
@@ -111,6 +118,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     from vigproc.commands._options import add_processing, number
+    from vigproc.faults import DEFAULT_MIN_FREE
 
     sp = subparsers.add_parser(
         "watch", help="watch a folder: process every complete image dropped into it, exactly once",
@@ -145,9 +153,14 @@ def register(subparsers) -> None:
                     help="stop a worker stuck on one file this long (default 900)")
     sp.add_argument("--max-attempts", type=int, default=5, help="quarantine after this many transient failures")
     sp.add_argument("--max-crashes", type=int, default=3,
-                    help="quarantine a file that crashed or hung its worker (or the daemon) this many times")
+                    help="quarantine a file that crashed or hung its worker this many times (a kill of the daemon "
+                         "itself is not charged to the files in progress)")
     sp.add_argument("--retry-base", type=float, default=5.0, metavar="SECONDS", help="first retry delay (doubles)")
     sp.add_argument("--retry-cap", type=float, default=600.0, metavar="SECONDS", help="longest retry delay")
+    sp.add_argument("--min-free", type=number(0, 1e9), default=DEFAULT_MIN_FREE / 1e6, metavar="MB",
+                    help="a failure to write an output with less free space than this on the output disk is a full "
+                         "disk: the daemon pauses (nothing quarantined) and resumes once the free space has grown "
+                         "(default %(default).0f)")
     sp.set_defaults(fn=cmd_watch)
 
 

@@ -1,0 +1,199 @@
+"""The watch-folder daemon under the faults of issue 22: a full output disk, and a
+``--retry-quarantined`` restart with a quarantine folder (kill -9 of the daemon with
+healthy files in progress, charged nothing: tests/test_daemon.py).
+
+The full disk is simulated (nothing is mounted): a ``sitecustomize`` loaded by every
+process of the daemon makes the corrected image's writer fail as OpenImageIO does on
+a full tmpfs (``TIFFWriteScanline failed ... Write error``: no errno, no "no space")
+and ``shutil.disk_usage`` report an almost full file system, while marker files say so.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from test_daemon import VIGPROC, Daemon, journal_entries, make_good, output_stem, sha, sidecars
+
+_FAULTS = r'''
+"""Test-only faults, injected into every vigproc process through sitecustomize."""
+import importlib.abc, importlib.machinery, os, shutil, sys
+from collections import namedtuple
+
+MARK = os.environ["VIGPROC_TEST_FAULT_DIR"]
+Usage = namedtuple("usage", "total used free")
+
+
+def _on(name):
+    return os.path.exists(os.path.join(MARK, name))
+
+
+def disk_usage(path):
+    if _on("low-space"):  # the audit's 20 MB tmpfs, nearly full
+        return Usage(20_000_000, 19_000_000, 1_000_000)
+    return Usage(10**12, 10**11, 9 * 10**11)
+
+
+shutil.disk_usage = disk_usage
+
+
+def _patch(module):
+    orig = module.write_corrected
+
+    def write_corrected(dst, *a, **kw):
+        if _on("write-fails"):
+            from vigproc.errors import ImageWriteError
+            raise ImageWriteError(f"cannot write {str(dst)!r}: TIFFWriteScanline failed: Write error at scanline 7")
+        if _on("photo-refused"):
+            from vigproc.errors import ModelError
+            raise ModelError("simulated: this installation cannot correct it (yet)")
+        return orig(dst, *a, **kw)
+
+    module.write_corrected = write_corrected
+
+
+class _Finder(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name != "vigproc.metadata":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        run = spec.loader.exec_module
+
+        def exec_module(module):
+            run(module)
+            _patch(module)
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+sys.meta_path.insert(0, _Finder())
+'''
+
+
+@pytest.fixture(autouse=True)
+def _no_daemon_outlives_its_test(monkeypatch):
+    """A failed wait leaves no daemon running (killed at teardown)."""
+    started = []
+    start = Daemon.start
+
+    def tracked(self, *a, **kw):
+        started.append(self)
+        return start(self, *a, **kw)
+
+    monkeypatch.setattr(Daemon, "start", tracked)
+    yield
+    for d in started:
+        if d.proc is not None and d.proc.poll() is None:
+            d.proc.kill()
+            d.proc.wait(timeout=30)
+
+
+@pytest.fixture
+def faults(tmp_path):
+    """(environment with the faults, marker folder)."""
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(_FAULTS)
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")]),
+           "VIGPROC_TEST_FAULT_DIR": str(marks)}
+    return env, marks
+
+
+def _status(out_dir: Path) -> dict:
+    for p in out_dir.glob(".vigproc-watch-*.status.json"):
+        try:
+            return json.loads(p.read_text())
+        except (OSError, ValueError):
+            pass
+    return {}
+
+
+def _inputs(in_dir: Path) -> list[str]:
+    return sorted(str(p.relative_to(in_dir)) for p in in_dir.rglob("*") if p.is_file())
+
+
+def test_a_full_output_disk_pauses_the_daemon_and_quarantines_nothing(tmp_path, faults):
+    """Issue 22: with the output disk full, 5 of 6 healthy JPEGs were quarantined for
+    good (and moved out of the input folder with --quarantine).  Now the daemon pauses,
+    says so in its status and log, gives the files back without an attempt, and once
+    a probe is written (space was freed) does every file exactly once."""
+    env, marks = faults
+    in_dir, out_dir, qdir = tmp_path / "in", tmp_path / "out", tmp_path / "quarantine"
+    names = ["a.png", "b.tif", "sub/c.png", "d.jpg"]
+    digests = {n: sha(make_good(in_dir, n, i)) for i, n in enumerate(names)}
+    (marks / "write-fails").touch()
+    (marks / "low-space").touch()
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2", "--quarantine", str(qdir),
+               env=env).start()
+    d.wait_for("the daemon paused for the full disk",
+               lambda: _status(out_dir).get("state") == "paused"
+               and any("output disk full" in (e.reason or "") for e in journal_entries(out_dir).values()), timeout=90)
+    st = subprocess.run([*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--status"], capture_output=True,
+                        text=True, timeout=60)
+    assert "PAUSED: output disk full" in st.stdout and "nothing is quarantined" in st.stdout, st.stdout
+    paused = _status(out_dir)["paused"]
+    assert paused["why"] == "output disk full" and paused["free_bytes"] == 1_000_000 and paused["files_waiting"] >= 1
+    assert "TIFFWriteScanline failed" in paused["reason"]
+    time.sleep(2)  # a few failed probes: still nothing quarantined, nothing moved, no attempt counted
+    entries = journal_entries(out_dir).values()
+    assert not [e for e in entries if e.state == "quarantined" or e.attempts or e.crashes]
+    assert _inputs(in_dir) == sorted(names) and list(qdir.iterdir()) == []
+
+    (marks / "write-fails").unlink()  # space freed, though the disk still counts as nearly full: a probe tells
+    d.wait_for("every file done", lambda: sum(e.state == "done" for e in journal_entries(out_dir).values())
+               == len(names), timeout=120)
+    assert _status(out_dir).get("state") == "running"
+    assert d.stop() == 0
+    entries = journal_entries(out_dir)
+    assert all(e.state == "done" and e.attempts == 0 and e.crashes == 0 for e in entries.values())
+    assert _inputs(in_dir) == sorted(names) and list(qdir.iterdir()) == []  # nothing moved out of the input folder
+    for n, digest in digests.items():  # exactly one output and sidecar each, for the right content
+        assert sha(in_dir / n) == digest
+        sc = json.loads((out_dir / (output_stem(n) + ".vigproc.json")).read_text())
+        assert sc["input_sha256"] == digest and Path(sc["output"]).is_file()
+    assert len(sidecars(out_dir)) == len(names)
+    outputs = [p for p in out_dir.iterdir() if not p.name.startswith(".") and not p.name.endswith(".vigproc.json")]
+    assert len(outputs) == len(names)
+    events = [ev.get("event") for ev in d.events()]
+    assert events.count("disk-full") == 1 and events.count("disk-resumed") == 1 and "quarantined" not in events
+    resumed = next(ev for ev in d.events() if ev.get("event") == "disk-resumed")
+    assert "was written" in resumed["why"]  # by the probe, not by the free space (still "low")
+
+
+def test_a_pause_resumes_as_soon_as_the_free_space_grows(tmp_path, monkeypatch):
+    """The other way out of a pause: the free space grew (the disk was grown or cleaned),
+    seen within a second; a quota (free space unchanged) waits for the probe instead."""
+    import vigproc.daemon as D
+    from vigproc.faults import DiskSpace
+
+    in_dir = tmp_path / "in"
+    in_dir.mkdir()
+    cfg = D.WatchConfig(in_dir=in_dir, out_dir=tmp_path / "out", settings={"mode": "correct", "profile": "estimate"})
+    cfg.validate()
+    d = D.Daemon(cfg)
+    d.journal = D.Journal(cfg.journal, job=cfg.job)  # for the status the resume writes
+    free = [5_000_000]
+    monkeypatch.setattr(D, "disk_space", lambda p: DiskSpace(free[0], 20_000_000, 1000))
+    now = time.monotonic()
+    d._disk = D._DiskPause(reason="output disk full", since=time.time(), free_bytes=5_000_000, delay=60,
+                           probe_at=now + 60, held={str(in_dir / "a.png")})
+    (in_dir / "a.png").write_bytes(b"x")
+    assert d._disk_go() is None  # still full, and no probe due
+    cfg.min_free = 1_000_000  # "not low" now, but not grown either: a quota, say
+    d._disk.next_look = 0
+    assert d._disk_go() is None
+    free[0] = 500_000_000  # grown
+    d._disk.next_look = 0
+    assert d._disk_go() == "resume" and d._disk is None
+    assert list(d.ready) == [str(in_dir / "a.png")] and str(in_dir / "a.png") in d._disk_ready
+    assert json.loads(cfg.status_file.read_text())["state"] == "running"
+    d.journal.close()
