@@ -488,3 +488,30 @@ def test_profile_show_uses_the_profiles_own_frame_and_prints_a_summary(tmp_path)
     r = run("profile", "--profile-db", db, "show", "0", "--json", "--height", "300")
     doc = json.loads(r.stdout)  # JSON only on stdout
     assert (doc["width"], doc["height"]) == (400, 300)
+
+
+def test_lines_printed_during_a_progress_bar_stay_whole(monkeypatch):
+    """In a terminal, results and log lines go above the progress bar, not onto its line."""
+    import io
+    import logging
+
+    from vigproc.cli import _progress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    err, out = Tty(), Tty()
+    monkeypatch.setattr(sys, "stderr", err)
+    monkeypatch.setattr(sys, "stdout", out)
+    log = logging.getLogger("vigproc.test_progress")
+    for i in _progress([1, 2, 3], "testing"):
+        print(f"result {i}")
+        log.warning("warned %d", i)
+    assert [ln for ln in out.getvalue().splitlines() if ln.startswith("result")] == ["result 1", "result 2",
+                                                                                       "result 3"]
+    # every warning has a line of its own: never on the bar's line (the bar redraws after '\r')
+    segments = [seg for ln in err.getvalue().splitlines() for seg in ln.split("\r")]
+    for i in (1, 2, 3):
+        assert any(seg.strip() == f"warned {i}" for seg in segments), segments
+    assert not any("warned" in seg and "testing" in seg for seg in segments), segments
