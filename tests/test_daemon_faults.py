@@ -169,6 +169,34 @@ def test_a_full_output_disk_pauses_the_daemon_and_quarantines_nothing(tmp_path, 
     assert "was written" in resumed["why"]  # by the probe, not by the free space (still "low")
 
 
+def test_retry_quarantined_brings_files_back_from_the_quarantine_folder(tmp_path, faults):
+    """Issue 22: a restart with --retry-quarantined deleted the journal records of files
+    moved into --quarantine DIR and processed nothing, leaving them stranded there.  They
+    are now moved back to where they were found and processed."""
+    env, marks = faults
+    in_dir, out_dir, qdir = tmp_path / "in", tmp_path / "out", tmp_path / "quarantine"
+    names = ["a.png", "sub dir/b.png"]
+    digests = {n: sha(make_good(in_dir, n, i)) for i, n in enumerate(names)}
+    (marks / "photo-refused").touch()
+    common = ("--settle", "0.2", "--quarantine", str(qdir))
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *common, env=env).start()
+    d.wait_for("both moved to the quarantine folder", lambda: _inputs(in_dir) == [], timeout=90)
+    assert d.stop() == 0
+    assert sorted(p.name for p in qdir.iterdir()) == sorted(
+        [output_stem(n) for n in names] + [output_stem(n) + ".reason.json" for n in names])
+
+    (marks / "photo-refused").unlink()  # the cause was fixed
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *common, "--retry-quarantined", env=env).start()
+    d.wait_for("both done", lambda: sum(e.state == "done" for e in journal_entries(out_dir).values()) == 2,
+               timeout=90)
+    assert d.stop() == 0
+    assert _inputs(in_dir) == sorted(names) and list(qdir.iterdir()) == []
+    for n, digest in digests.items():
+        assert sha(in_dir / n) == digest
+        assert json.loads((out_dir / (output_stem(n) + ".vigproc.json")).read_text())["input_sha256"] == digest
+    assert sum(ev.get("event") == "unquarantined" for ev in d.events()) == 2
+
+
 def test_a_pause_resumes_as_soon_as_the_free_space_grows(tmp_path, monkeypatch):
     """The other way out of a pause: the free space grew (the disk was grown or cleaned),
     seen within a second; a quota (free space unchanged) waits for the probe instead."""

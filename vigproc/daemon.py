@@ -763,8 +763,12 @@ class Daemon:
         self._recover()
         self._remove_stale_temps(unfinished)
         if cfg.retry_quarantined:
+            # first back into the watch folder, then pending: in this order a crash between the
+            # two leaves files the next start simply quarantines (moves) again, never stranded
+            back = self._return_quarantined()
             k = self.journal.requeue("quarantined")
-            log.info("%d quarantined file(s) will be tried again", k, extra=_ev("requeue", count=k))
+            log.info("%d quarantined file(s) will be tried again (%d moved back from the quarantine folder)", k, back,
+                     extra=_ev("requeue", count=k, moved_back=back))
         old_handlers = self._install_signals()
         try:
             for i in range(cfg.workers):
@@ -812,6 +816,43 @@ class Daemon:
                      extra=_ev("recovered", file=e.path, started=e.started, runner=who or None))
         log.warning("%d file(s) were being processed when the daemon last stopped; they are tried again",
                     len(interrupted), extra=_ev("recover", count=len(interrupted)))
+
+    def _return_quarantined(self) -> int:
+        """Move this job's files in the ``--quarantine`` folder back to where they were
+        found (the ``file`` of their reason file), so that ``--retry-quarantined`` finds
+        them: the journal knows files by their path in the watch folder.  A file whose
+        place is taken by other content is put beside it (:func:`_move`), never over it.
+        Returns the number of files moved back."""
+        cfg = self.cfg
+        qdir = cfg.quarantine_dir
+        if qdir is None or not qdir.is_dir():
+            return 0
+        n = 0
+        for why_file in sorted(qdir.glob("*" + REASON_SUFFIX)):
+            why = _read_sidecar(why_file)
+            if why is None or why.get("job") != cfg.job or not isinstance(why.get("file"), str):
+                continue  # another job's, or not ours at all
+            held = why_file.with_name(why_file.name[: -len(REASON_SUFFIX)])
+            dst = Path(os.path.normpath(cfg.in_dir / why["file"]))
+            if not _inside(str(dst), str(cfg.in_dir)) or dst == cfg.in_dir or not self._wanted(str(dst)):
+                log.warning("%s names %r, not a place in the watch folder; left in quarantine", why_file, why["file"],
+                            extra=_ev("unquarantine-skipped", file=str(held)))
+                continue
+            if _signature(str(held)) is None:
+                continue  # moved back by a run that stopped before removing the reason file
+            try:
+                fp = fingerprint(held)
+                back = _move(str(held), dst.parent, dst.name, fp)
+            except (OSError, FingerprintError) as exc:
+                log.error("cannot move %s back to the watch folder: %s", held, getattr(exc, "strerror", None) or exc,
+                          extra=_ev("move-error", file=str(held)))
+                continue
+            with contextlib.suppress(OSError):
+                why_file.unlink()
+            n += 1
+            log.info("moved %s back from the quarantine folder to %s", held.name, back,
+                     extra=_ev("unquarantined", file=str(back), source=str(held)))
+        return n
 
     def _remove_stale_temps(self, unfinished: list[str]) -> None:
         """Temporary files that the outputs of ``unfinished`` inputs (running or pending when
