@@ -833,3 +833,27 @@ def test_non_path_arguments_are_typed_errors(tmp_path: Path, path: object) -> No
     with pytest.raises(ImageWriteError, match="path must be"):
         write_image(path, np.zeros((2, 2, 3)))  # type: ignore[arg-type]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_libraw_complaints_go_into_the_error_not_raw_stderr(tmp_path: Path) -> None:
+    """LibRaw prints 'Unexpected end of file' straight to the C stderr; a command's stderr
+    must hold one line per failed file (and --log-json one object per line)."""
+    import subprocess
+    import sys
+
+    kdc = RAW_DIR / "rawpy" / "RAW_KODAK_DC50.KDC"
+    if not kdc.exists():
+        pytest.skip(f"{kdc} not available")
+    data = kdc.read_bytes()
+    cut = tmp_path / "cut.kdc"
+    cut.write_bytes(data[: len(data) // 2])  # LibRaw decodes until the data ends, and says so
+    r = subprocess.run([sys.executable, "-m", "vigproc.cli", "correct", str(cut), "-o", str(tmp_path / "o")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1
+    lines = r.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vigproc: ") and "cut.kdc" in lines[0], lines
+    assert "LibRaw said: Unexpected end of file" in lines[0]
+    # in-process too: the error carries LibRaw's words, and fd 2 is ours again afterwards
+    with pytest.raises(ImageReadError, match="Unexpected end of file"):
+        read_image(cut)
+    os.write(2, b"")  # still a valid descriptor

@@ -49,6 +49,7 @@ written, fsync'ed and renamed over the destination with :func:`os.replace`.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import logging
@@ -57,6 +58,7 @@ import os
 import re
 import stat
 import tempfile
+import threading
 from dataclasses import dataclass
 from typing import Callable, Union
 
@@ -721,7 +723,61 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
     return pixels, info
 
 
-def _read_raw(
+#: One capture of the C-level stderr at a time (it is the process's, not a thread's).
+_STDERR_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _c_stderr_into(lines: list[str]):
+    """Capture what C code writes to file descriptor 2 meanwhile into ``lines``.
+
+    LibRaw prints some complaints (``FILE: Unexpected end of file``) straight to the C
+    stderr, which would break a one-JSON-object-per-line log and say things twice; the
+    caller routes them through logging or into its error instead.
+    """
+    with _STDERR_LOCK:
+        try:
+            saved = os.dup(2)
+        except OSError:  # no stderr at all: nothing to capture
+            yield
+            return
+        try:
+            with tempfile.TemporaryFile() as tmp:
+                os.dup2(tmp.fileno(), 2)
+                try:
+                    yield
+                finally:
+                    os.dup2(saved, 2)
+                    tmp.seek(0)
+                    text = tmp.read(1 << 16).decode("utf-8", "replace")
+                    for line in text.splitlines():
+                        line = " ".join(line.split())
+                        if line and line not in lines:
+                            lines.append(line)
+        finally:
+            os.close(saved)
+
+
+def _read_raw(path: str, *args, **kwargs) -> tuple[np.ndarray, ImageInfo]:
+    """Develop a RAW linearly with LibRaw (:func:`_read_raw_libraw`); LibRaw's own
+    messages go into the error when it fails and to the log (info) when it does not."""
+    said: list[str] = []
+    try:
+        with _c_stderr_into(said):
+            return _read_raw_libraw(path, *args, **kwargs)
+    except (ImageReadError, InvalidImageError) as exc:
+        if not said:
+            raise
+        shown = "; ".join(s.replace(path, "").strip(": ") or s for s in said)[:300]
+        err = type(exc)(f"{exc} (LibRaw said: {shown})")
+        err.__dict__.update(exc.__dict__)
+        raise err from None
+    finally:
+        if said:
+            logger.info("%s: LibRaw said: %s", path, "; ".join(said)[:500])
+
+
+def _read_raw_libraw(
     path: str, size: int, want: str, half_size: bool, max_pixels: int, budget: int = DEFAULT_MEMORY_BUDGET, *,
     probing: bool = False
 ) -> tuple[np.ndarray, ImageInfo]:
