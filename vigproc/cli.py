@@ -662,6 +662,34 @@ def _profile_frame(aspect: float, width: int | None, height: int | None) -> tupl
     return int(width), int(height)
 
 
+def _import_lcp(args: argparse.Namespace, store) -> int:
+    """``profile import-lcp``: Adobe lens profiles' vignetting into the store (vigproc.lcp)."""
+    from vigproc.lcp import import_lcp, lcp_files
+
+    aspect = None
+    if args.aspect:
+        from vigproc.profiles import _canonical_aspect, _aspect_value
+
+        aspect = _aspect_value(_canonical_aspect(args.aspect, "--aspect"))
+    imports, skipped = import_lcp(lcp_files(args.files), camera_model=args.camera_model, lens_id=args.lens_id,
+                                  aspect=aspect, include_jpeg=args.include_jpeg)
+    if not args.dry_run:
+        for imp in imports:
+            store.put(imp.profile)
+    if args.json:
+        print(json.dumps({"imported": [i.to_dict() for i in imports], "skipped": skipped,
+                          "stored": not args.dry_run}, indent=1))
+    else:
+        for imp in imports:
+            print(one_line(f"{imp.profile.key}  fit {imp.rms_ev:.1e} EV RMS ({imp.max_ev:.1e} at most), "
+                           f"fall-off {imp.falloff_ev:.2f} EV  <- {imp.entry.describe()}"))
+        for why in skipped:
+            print(one_line(f"skipped: {why}"))
+        print(f"{len(imports)} profiles {'found (dry run: nothing stored)' if args.dry_run else 'imported'}, "
+              f"{len(skipped)} entries skipped")
+    return 0
+
+
 def cmd_profile(args: argparse.Namespace) -> int:
     from vigproc.profiles import ProfileKey, export_profile
 
@@ -734,6 +762,8 @@ def cmd_profile(args: argparse.Namespace) -> int:
             store.put(Profile(key=key, theta=theta, covariance=None, provenance="lensfun", trusted=True,
                                   notes=f"lensfun {args.maker} {args.model} at {args.focal} mm f/{args.aperture}"))
             print(f"imported from lensfun: {key}")
+        elif args.profile_command == "import-lcp":
+            return _import_lcp(args, store)
         elif args.profile_command == "export-lensfun":
             from vigproc.lensfun_io import export_lensfun_xml, pa_from_model
 
@@ -839,6 +869,20 @@ def build_parser() -> argparse.ArgumentParser:
                    "prints for your camera (default: 'maker|model')")
     q.add_argument("--crop-factor", type=number(0.0, 100.0, open_lo=True),
                    help="the camera's crop factor (lenses calibrated on several sensors)")
+    q.set_defaults(fn=cmd_profile)
+    q = psub.add_parser("import-lcp", help="store the vignetting of Adobe lens profiles (.lcp) as profiles, keyed "
+                                           "like the EXIF of the camera and lens they name")
+    q.add_argument("files", nargs="+", metavar="FILE", help="LCP files, or folders of them")
+    q.add_argument("--camera-model", help="key the profiles for this camera model (files made for a whole make "
+                                          "name none)")
+    q.add_argument("--lens-id", help="store under this lens id (the 'lens' line 'vigproc estimate' prints) "
+                                     "instead of the camera and lens the file names")
+    q.add_argument("--aspect", help="aspect ratio of your frames, e.g. 3:2 (default: the calibration images', "
+                                    "else 3:2)")
+    q.add_argument("--include-jpeg", action="store_true",
+                   help="also consider profiles made on the camera's JPEGs where a raw one exists")
+    q.add_argument("--dry-run", action="store_true", help="convert and report, store nothing")
+    q.add_argument("--json", action="store_true", help="print the conversions as JSON")
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("export-lensfun", help="write learned profiles as a lensfun XML database")
     q.add_argument("file", help="lensfun XML file to write")
