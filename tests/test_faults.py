@@ -154,3 +154,15 @@ def test_batch_stops_handing_out_files_on_a_full_disk_and_charges_none(tmp_path,
         for _ in range(10):  # later runs on a disk still full never quarantine it
             assert j.claim(e.path, e.fingerprint, worker="w", now=1e12)
             assert j.failed(e.path, e.fingerprint, e.reason, transient=True, max_attempts=None) == "retry"
+
+
+# ------------------------------------------------------------------ the fault benchmark
+def test_bench_faults_says_why_it_cannot_run(monkeypatch, capsys):
+    """`vigproc bench faults` needs root to mount its tmpfs: without, one line saying so."""
+    from vigproc.cli import main
+
+    monkeypatch.setattr(os, "geteuid", lambda: 1000)
+    assert main(["bench", "faults"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["vigproc: bench faults cannot run here: it needs root, to mount the small tmpfs that fills "
+                   "(mount -t tmpfs)"]

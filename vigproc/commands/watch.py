@@ -1,4 +1,5 @@
-"""``vigproc watch``: the watch-folder daemon, and ``vigproc bench watch``, its throughput.
+"""``vigproc watch``: the watch-folder daemon; ``vigproc bench watch``, its throughput, and
+``vigproc bench faults``, its behaviour on a filling disk (:mod:`vigproc.bench.faults`).
 
 The daemon itself is :mod:`vigproc.daemon`; the journal :mod:`vigproc.journal`.
 """
@@ -416,3 +417,7 @@ def register_bench(bench_subparsers) -> None:
     bp.add_argument("--tmp", help="folder for the temporary files (default: the system's)")
     bp.add_argument("--keep", action="store_true", help="keep the temporary folder")
     bp.set_defaults(fn=cmd_bench_watch)
+
+    from vigproc.bench.faults import register as register_faults
+
+    register_faults(bench_subparsers)  # the daemon under a filling disk and kill -9
