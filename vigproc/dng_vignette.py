@@ -153,14 +153,25 @@ def fit_log_field(log_phi_at, width: int, height: int, method: str) -> tuple[Vig
     from vigproc.normalised import fit_model_to_field
 
     t0 = time.perf_counter()
-    h, w = _grid_shape(width, height, FIT_GRID)
-    lf = log_phi_at(*_fit_positions(width, height, w, h))
-    if not np.any(np.abs(lf) > 1e-12):
-        return VignettingModel.identity(width, height, method=method, quality=FitQuality()), 0.0, 0.0
-    m, _ = fit_model_to_field(lf, width, height)
     rows, cols = _check_positions(width, height)
     X, Y = np.meshgrid(cols - (width - 1) / 2.0, rows - (height - 1) / 2.0)
-    d = (m.log_field_at(X, Y) - log_phi_at((rows + 0.5) / height, (cols + 0.5) / width)) / _LN2
+    target = log_phi_at((rows + 0.5) / height, (cols + 0.5) / width)
+    for n in (FIT_GRID, 2 * FIT_GRID):
+        h, w = _grid_shape(width, height, n)
+        lf = log_phi_at(*_fit_positions(width, height, w, h))
+        if not np.any(np.abs(lf) > 1e-12):
+            return VignettingModel.identity(width, height, method=method, quality=FitQuality()), 0.0, 0.0
+        m, _ = fit_model_to_field(lf, width, height)
+        try:
+            d = (m.log_field_at(X, Y) - target) / _LN2
+            break
+        except ModelError:
+            # G > 0 on the fit's samples, not out to the frame's corner pixels: a steep
+            # fall-off extrapolated; a finer grid samples closer to the corners
+            continue
+    else:
+        raise ModelError(f"no Kang-Weiss model with G > 0 over the whole {width}x{height} frame fits this "
+                         "fall-off (steeper in the corners than the model can follow)")
     rms, mx = float(np.sqrt(np.mean(d * d))), float(np.max(np.abs(d)))
     ev = m.field_ev_rms()
     q = FitQuality(confidence=1.0, field_ev_rms=ev, field_sigma_ev=rms, snr=ev / rms if rms > 0 else math.inf,
