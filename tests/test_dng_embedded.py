@@ -243,3 +243,30 @@ def test_check_compares_a_frame_with_its_own_calibration(dngs: dict[str, Path], 
     assert code == 20
     code, rec = check(dngs["plain"], capsys)
     assert "embedded" not in rec
+
+
+def test_output_dng_of_a_real_camera_dng(shared_data: Path, tmp_path: Path) -> None:
+    """A DNG 1.1 written by a camera (Magic Lantern on a Canon 550D): the correction goes
+    into its raw IFD, the version is raised to 1.3, LibRaw decodes the same raw data."""
+    from vigproc.dng_vignette import write_dng_correction
+
+    src = shared_data / "raw" / "tinydng" / "colorchart.dng"
+    if not src.is_file():
+        pytest.skip(f"shared data not present at {src}")
+    before = sha256(src)
+    with rawpy.imread(str(src)) as raw0:
+        w, h = raw0.sizes.width, raw0.sizes.height
+        raw_before = raw0.raw_image.copy()
+    q = 6.0 / (w * w + h * h)  # about 0.5 EV in the corners
+    model = VignettingModel(w, h, center=(20.0, -10.0), p=(q, 0.0, q), alpha=(0.02,) + (0.0,) * 6)
+    dst = tmp_path / "colorchart.corrected.dng"
+    info = write_dng_correction(src, dst, model)
+    assert sha256(src) == before
+    assert info["ifd"] == "IFD0" and info["dng_backward_version"] == "1.3.0.0" and info["opcodes_in_list"] == 1
+    (_, fvr), = dict(read_opcode_lists(dst))["OpcodeList3"].decoded()
+    assert info["opcode"]["fit_rms_ev"] < 0.01 and list(fvr.k) == info["opcode"]["k"]
+    with rawpy.imread(str(dst)) as raw:
+        assert np.array_equal(raw.raw_image, raw_before)
+    t = json.loads(subprocess.run(["exiftool", "-j", "-OpcodeList3", "-Model", "--", str(dst)],
+                                  capture_output=True, check=True).stdout)[0]
+    assert t["OpcodeList3"] == "FixVignetteRadial" and t["Model"] == "Canon EOS Kiss X4"
