@@ -35,7 +35,8 @@ def _config(args: argparse.Namespace):
     if profile not in ("auto", "estimate", "lensfun"):
         profile = str(Path(profile).expanduser().resolve())  # workers must find it whatever their cwd
     settings = {"mode": args.mode, "profile": profile, "method": args.method, "transfer": args.input_transfer,
-                "output_format": args.output_format, "picture": bool(args.picture), "strength": args.strength}
+                "output_format": args.output_format, "picture": bool(args.picture), "strength": args.strength,
+                "unapplied": args.unapplied}
     level = logging.DEBUG if args.verbose else logging.INFO
     return WatchConfig(
         in_dir=Path(args.in_dir), out_dir=Path(args.output), settings=settings, workers=args.workers, poll=args.poll,
