@@ -17,8 +17,6 @@ from vigproc.dng_vignette import (
 from vigproc.errors import ModelError
 from vigproc.model import VignettingModel
 
-from conftest import SHARED
-
 W, H = 600, 400
 LN2 = math.log(2.0)
 

@@ -66,7 +66,7 @@ import logging
 import math
 import struct
 from dataclasses import dataclass, field
-from typing import Iterable, Union
+from typing import Iterable
 
 import numpy as np
 
@@ -324,9 +324,6 @@ def parse_opcode_list(data: bytes | bytearray | memoryview, source: str = "opcod
 # --------------------------------------------------------------------------- #
 # FixVignetteRadial
 # --------------------------------------------------------------------------- #
-
-Number = Union[float, int]
-
 
 @dataclass(frozen=True)
 class FixVignetteRadial:

@@ -62,7 +62,6 @@ from typing import Any, Sequence
 import numpy as np
 
 from vigproc.dng_opcodes import (
-    DNG_VERSION_1_3,
     DngOpcodeError,
     FixVignetteRadial,
     GainMap,
