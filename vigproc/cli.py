@@ -435,6 +435,53 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_crops(args: argparse.Namespace) -> int:
+    """The crop test's AUC by fall-off and offset, its false alarms and power, on clean bases."""
+    import numpy as np
+
+    from vigproc.bench import clean as C
+    from vigproc.bench import crops as K
+    from vigproc.lensfamily import lensfun_family
+    from vigproc.lensfun import bench_lenses
+
+    output_file(args.json)
+    if args.calibrate:
+        output_file(args.calibrate)
+    files = C.base_files([Path(f) for f in args.images], args.min_long_side)
+    bases, _ = C.load_bases(files[: args.limit] if args.limit else files)
+    if len(bases) < 4:
+        print(f"vigproc: bench crops: {len(bases)} usable frames; need 4", file=sys.stderr)
+        return 2
+    chosen = bench_lenses(args.lenses)
+    family = lensfun_family(exclude={(lens.maker, lens.model) for lens, _ in chosen})
+    r = K.run(bases, [(pa.k1, pa.k2, pa.k3) for _, pa in chosen], family, alpha=args.alpha,
+              statistic=args.statistic)
+    print(f"crop test on {r.n_bases} clean bases x {r.n_lenses} lensfun lens shapes (480x320, linear); "
+          f"statistic: {args.statistic} of the free-centre fit's centre; {r.ms_per_frame:.1f} ms/frame")
+    print("AUC (cropped vs uncropped frames of the same fall-off):")
+    print(f"{'corner fall-off':<18}" + "".join(f"{f'offset {o:.0%}':>14}" for o in K.OFFSETS))
+    for ev in K.FALLOFFS_EV:
+        print(f"{f'{ev:g} EV':<18}" + "".join(f"{r.auc[f'{ev:g}EV/{o:.0%}']:>14.3f}" for o in K.OFFSETS))
+    print(f"calibrated on the even bases, checked on the odd ones, at alpha {r.alpha:g}:")
+    print(f"{'corner fall-off':<18}{'false alarms':>14}" + "".join(f"{f'found {o:.0%}':>12}" for o in K.OFFSETS))
+    for ev in K.FALLOFFS_EV:
+        print(f"{f'{ev:g} EV':<18}{r.false_alarm[f'{ev:g}EV']:>14.3f}"
+              + "".join(f"{r.power[f'{ev:g}EV/{o:.0%}']:>12.2f}" for o in K.OFFSETS))
+    if args.calibrate:
+        from vigproc.crops import CropCalibration
+
+        CropCalibration(np.asarray(r.null_z), f"vigproc bench crops: {r.n_bases} clean bases x {r.n_lenses} "
+                        f"lenses x {len(K.FALLOFFS_EV)} fall-offs, uncropped").save(args.calibrate)
+        print(f"calibration ({len(r.null_z)} uncropped frames) written to {args.calibrate}")
+    if args.json:
+        from dataclasses import asdict
+
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(args.json), json.dumps(asdict(r), indent=1) + "\n")
+    return 0
+
+
 def cmd_bench_real(args: argparse.Namespace) -> int:
     """Photographs vignetted by others: pairs with a known field, and real lenses."""
     import numpy as np
@@ -960,6 +1007,24 @@ def build_parser() -> argparse.ArgumentParser:
                          "them (odd frames)")
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_clean)
+    bp = bsub.add_parser("crops", help="the crop/shift test's AUC by fall-off and offset on clean bases, "
+                         "its false alarms and power; --calibrate writes its calibration")
+    bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
+                    help="folders of full-size camera frames (as bench clean)")
+    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
+                    help="frames whose long side is shorter are not used (default %(default)s)")
+    bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+    bp.add_argument("--lenses", type=number(1, 100, integer=True), default=10,
+                    help="lensfun lens shapes (default %(default)s)")
+    bp.add_argument("--alpha", type=number(0.0, 1.0, open_lo=True), default=0.01,
+                    help="false-alarm probability of the test (default %(default)s)")
+    bp.add_argument("--statistic", choices=["shift", "z"], default="shift", help="shift: the free-centre fit's "
+                    "centre's distance from the frame's in half-diagonals (the test's); z: its Mahalanobis distance "
+                    "by the jackknife covariance (default %(default)s)")
+    bp.add_argument("--calibrate", metavar="FILE", help="write the null distribution (every uncropped frame's "
+                    "statistic) as a crop calibration")
+    bp.add_argument("--json", help="write the figures to this file")
+    bp.set_defaults(fn=cmd_bench_crops)
     bp = bsub.add_parser("real", help="photographs vignetted by others: known-field pairs and real lenses")
     bp.add_argument("--images", required=True, help="folder tree, e.g. ../shared/data/vignetted")
     _add_estimator_bench(bp)

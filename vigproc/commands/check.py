@@ -4,6 +4,12 @@ A DNG that carries its own vignetting calibration (FixVignetteRadial or GainMap 
 :mod:`vigproc.dng_vignette`) is also compared with it (``embedded`` in the JSON, a second
 line in the text output); its verdict counts like the others in the exit code.
 
+Every frame also gets the crop test (:mod:`vigproc.crops`: is the vignetting centred on
+the frame?), as ``crop`` in the JSON and a line ``FILE (crop test): centred |
+off-centre | insufficient-signal`` with the centre, its distance and its calibrated
+false-alarm probability. It is reported, not counted in the exit code: its power on
+single natural frames is low (``vigproc bench crops``, docs/benchmarks/forensics.md).
+
 Exit codes (documented in ``vigproc check --help``):
 
 * 0 -- every frame is consistent with its lens;
@@ -91,6 +97,7 @@ def _embedded_verdict(path: Path, v, calibration, alpha):
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    from vigproc.crops import check_crop
     from vigproc.forensics import Calibration, check_image, default_calibration, pool_verdicts
     from vigproc.io import read_image
     from vigproc.pipeline import InputFiles, Processor, Settings, file_sha256, output_file, read_lens, refuse_input
@@ -124,6 +131,9 @@ def cmd_check(args: argparse.Namespace) -> int:
                     print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
                     continue
                 rec = {"file": str(f), "lens": lens, **v.to_dict()}
+                # is the vignetting centred on the frame? (a crop, a shift, a stitch; Lyu 2010 §5)
+                crop = check_crop(img, channel_axis=-1 if img.ndim == 3 else None)
+                rec["crop"] = crop.to_dict()
                 ve = _embedded_verdict(f, v, calibration, args.alpha)
                 if ve is not None:  # disagreeing with its own calibration is evidence too
                     rec["embedded"] = {k: x for k, x in ve.to_dict().items() if k != "estimate"}
@@ -136,6 +146,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                 del img
                 if not args.json:
                     print(_line(str(f), rec))
+                    print(one_line(f"{f} (crop test): {crop.verdict}  {crop.reason()}"))
                     if "embedded" in rec:
                         print(_line(f"{f} (against its embedded calibration)", rec["embedded"]))
     finally:
