@@ -20,13 +20,21 @@ from vigproc import batch as B
 from vigproc.cli import main
 from vigproc.io import read_image, write_image
 from vigproc.journal import Journal
-from vigproc.pipeline import SIDECAR_SUFFIX, Settings
+from vigproc.pipeline import SIDECAR_SUFFIX, Settings, corrected_name, output_location, output_name
 
 EXIFTOOL = shutil.which("exiftool")
 H, W = 120, 180
 
 #: Images of the test archive (relative paths); "broken.tif" is not an image.
 GOOD = ["a/x.tif", "a/x.png", "b/x.tif", "c d/-dash ü.tif"] + [f"f{i}.tif" for i in range(6)]
+
+
+def _out_rel(rel: str, what: str = "sidecar", suffix: str = ".tif") -> str:
+    """Where the output of the input at ``rel`` goes, relative to the output folder (the
+    one policy of every front end: sub-folders mirrored, the input's name kept)."""
+    folder, stem = output_location(Path("."), rel, create=False)
+    name = stem + SIDECAR_SUFFIX if what == "sidecar" else corrected_name(stem, Path(rel), suffix)
+    return str(folder / name)
 
 
 def _frame(seed: int) -> np.ndarray:
@@ -158,7 +166,7 @@ def test_hostile_file_names(archive, tmp_path):
     s = _run(items, Settings(mode="estimate", profile="estimate"), tmp_path / "out", BK.local_backend(1))
     assert s.processed == len(names) and s.quarantined == 1  # the non-UTF-8 name: a clear error, not a crash
     assert sorted(p.name for p in (tmp_path / "out").glob("*" + SIDECAR_SUFFIX)) == sorted(
-        n + SIDECAR_SUFFIX for n in names)
+        output_name(n) + SIDECAR_SUFFIX for n in names)
     assert not (tmp_path / "pwned").exists() and not Path("pwned").exists()
 
 
@@ -182,7 +190,7 @@ def test_interrupted_run_resumes_without_redoing(archive, tmp_path):
     assert not s2.interrupted
     assert (s2.skipped, s2.processed, s2.quarantined) == (4, len(GOOD) - 4, 1)
     assert all(p.stat().st_mtime_ns == t for p, t in first.items())  # done files were not redone
-    assert sorted(_sidecars(out)) == sorted(f"{r}{SIDECAR_SUFFIX}" for r in GOOD)
+    assert sorted(_sidecars(out)) == sorted(_out_rel(r) for r in GOOD)
     assert s2.errors[0]["file"].endswith("broken.tif")
 
     with Journal(out / B.JOURNAL_NAME, job="test") as j:
@@ -360,8 +368,8 @@ def test_localcluster_equals_single_process(archive, tmp_path, cluster):
     a, b = _sidecars(tmp_path / "one"), _sidecars(tmp_path / "dask")
     assert a == b and len(a) == len(good)
     for rel in good:
-        x = read_image(tmp_path / "one" / (rel + ".corrected.tif"))[0]
-        y = read_image(tmp_path / "dask" / (rel + ".corrected.tif"))[0]
+        x = read_image(tmp_path / "one" / _out_rel(rel, "image"))[0]
+        y = read_image(tmp_path / "dask" / _out_rel(rel, "image"))[0]
         assert np.array_equal(x, y), rel
 
 
@@ -428,7 +436,7 @@ def test_localcluster_worker_killed_loses_and_repeats_nothing(archive, tmp_path,
     assert killed and killed[0][0] >= 1, "the killed worker had no task"
     assert s.processed == len(GOOD) and s.quarantined == 1 and s.retry_later == 0
     outputs = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file() and B.JOURNAL_NAME not in p.name)
-    assert outputs == sorted([r + ".corrected.tif" for r in GOOD] + [r + SIDECAR_SUFFIX for r in GOOD])
+    assert outputs == sorted([_out_rel(r, "image") for r in GOOD] + [_out_rel(r) for r in GOOD])
     with Journal(out / B.JOURNAL_NAME, job="test") as j:
         done = j.entries("done")
         assert len(done) == len(GOOD) and all(e.claims == 1 for e in done)

@@ -62,7 +62,8 @@ def test_correct_writes_outputs_atomically_and_keeps_input(vignetted_tiff, tmp_p
     assert r.returncode == 0, r.stderr
     assert path.read_bytes() == before
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["frame.corrected.tif", "frame.vignetting.png", "frame.vigproc.json"]
+    # the one naming policy: the input's name; the image drops its extension when the format is its own
+    assert names == ["frame.corrected.tif", "frame.tif.vignetting.png", "frame.tif.vigproc.json"]
     from vigproc.metadata import read_record
 
     rec = read_record(out / "frame.corrected.tif")
@@ -148,8 +149,8 @@ def test_output_stems_are_unique_deterministic_and_safe():
              "%2Drf.tif", "a b é 100%.tif", "tab\there.tif", "b.tif", "b.png", "b-2.png"]
     files = [Path(n) for n in names]
     stems = output_stems(files)
-    assert stems == ["a", "a-4", "a-2", "A-5", "a-3", "new%0Aline", "%2Drf", "%2E", "%2Eh", "%2Drf-2",
-                     "a b é 100%", "tab%09here", "b", "b-3", "b-2"]
+    assert stems == ["a.tif", "a.png", "a-2.tif", "A-3.tif", "a-3.jpg", "new%0Aline.tif", "%2Drf.tif", "%2E.tif",
+                     "%2Eh.tif", "%252Drf.tif", "a b é 100%25.tif", "tab%09here.tif", "b.tif", "b.png", "b-2.png"]
     assert stems == output_stems(files)  # the same inputs in the same order: the same names
     assert len({s.casefold() for s in stems}) == len(stems)  # distinct, also on case-insensitive filesystems
     for s in stems:  # each stem is its file name: nothing left for safe_output to fold together
@@ -164,7 +165,7 @@ def test_long_names_are_shortened_distinctly(tmp_path, vignetted_tiff):
 
     long_a, long_b = "é" * 150 + "a", "é" * 150 + "b"  # 301 bytes each, same 180-byte prefix
     stems = output_stems([Path(long_a + ".tif"), Path(long_b + ".tif"), Path("short.tif")])
-    assert stems[2] == "short"
+    assert stems[2] == "short.tif"
     assert all(len(s.encode()) <= MAX_STEM_BYTES for s in stems) and stems[0] != stems[1]
     # a 250-byte name still gets its outputs (NAME_MAX is 255 bytes with the suffixes)
     src = tmp_path / ("x" * 246 + ".tif")
@@ -187,10 +188,10 @@ def test_correct_never_overwrites_an_input_and_names_never_collide(tmp_path, vig
     assert (o / "a.corrected.tif").read_bytes() == victim  # a.tif's output would have replaced it
     err = r.stderr.splitlines()
     assert len(err) == 2 and "a.tif" in err[0] and "input of this run" in err[0], r.stderr
-    assert not (o / "a.vigproc.json").exists()  # a refused frame writes nothing
+    assert not (o / "a.tif.vigproc.json").exists()  # a refused frame writes nothing
     made = {json.loads(p.read_text())["file"]: p.name for p in o.glob("*.vigproc.json")}
-    assert made == {str(o / "a.corrected.tif"): "a.corrected.vigproc.json", str(o / "b.tif"): "b.vigproc.json",
-                    str(o / "b-2.tif"): "b-2.vigproc.json"}
+    assert made == {str(o / "a.corrected.tif"): "a.corrected.tif.vigproc.json",
+                    str(o / "b.tif"): "b.tif.vigproc.json", str(o / "b-2.tif"): "b-2.tif.vigproc.json"}
 
 
 def test_file_names_cannot_forge_message_lines(tmp_path, vignetted_tiff):
@@ -239,7 +240,7 @@ def test_output_formats_carry_the_record(tmp_path, vignetted_tiff, fmt, suffix):
     out = tmp_path / "out"
     r = run("correct", path, "-o", out, "--output-format", fmt)
     assert r.returncode == 0, r.stderr
-    dst = out / f"frame.corrected{suffix}"
+    dst = out / ("frame.corrected.tif" if suffix == ".tif" else f"frame.tif.corrected{suffix}")
     img, info = read_image(dst)
     assert img.shape[:2] == (160, 240) and info.transfer == "linear"
     assert read_record(dst)["model"].width == 240
@@ -340,7 +341,7 @@ def test_values_beyond_the_output_format_fail_the_frame(tmp_path, vignetted_tiff
     assert not any(p.suffix == ".exr" for p in out.iterdir())
     r = run("correct", hdr, "-o", out, "--output-format", "exr-float", "--profile", "estimate")
     assert r.returncode == 0, r.stderr
-    corrected, _ = read_image(out / "hdr.corrected.exr")
+    corrected, _ = read_image(out / "hdr.tif.corrected.exr")  # the format changed: the input's extension stays
     assert np.all(np.isfinite(corrected))
 
 

@@ -37,6 +37,7 @@ from vigproc.daemon import (
 )
 from vigproc.errors import ImageReadError, ImageWriteError
 from vigproc.journal import Journal, fingerprint
+from vigproc.pipeline import corrected_name, output_location
 from vigproc.profiles import ProfileStoreError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -287,7 +288,26 @@ def journal_entries(out_dir: Path) -> dict:
 
 
 def sidecars(out_dir: Path) -> list[Path]:
-    return sorted(out_dir.glob("*.vigproc.json"))
+    return sorted(out_dir.rglob("*.vigproc.json"))
+
+
+def out_sidecar(out_dir: Path, rel: str) -> Path:
+    """Where the sidecar of the input at ``rel`` goes (the policy of every front end:
+    sub-folders mirrored, the input's name kept)."""
+    folder, stem = output_location(out_dir, rel, create=False)
+    return folder / (stem + ".vigproc.json")
+
+
+def out_image(out_dir: Path, rel: str, suffix: str = ".tif") -> Path:
+    """Where the corrected image of the input at ``rel`` goes, written as ``suffix``."""
+    folder, stem = output_location(out_dir, rel, create=False)
+    return folder / corrected_name(stem, Path(rel), suffix)
+
+
+def output_files(out_dir: Path) -> list[str]:
+    """Every output file under ``out_dir`` (relative, hidden files and folders left out)."""
+    return sorted(str(p.relative_to(out_dir)) for p in out_dir.rglob("*")
+                  if p.is_file() and not any(part.startswith(".") for part in p.relative_to(out_dir).parts))
 
 
 def slow_write(src: Path, dst: Path, chunks: int = 6, pause: float = 0.15) -> threading.Thread:
@@ -423,18 +443,18 @@ def test_daemon_end_to_end_kill9_restart_and_drain(tmp_path):
     entries = journal_entries(out_dir)
     in_root = in_dir.resolve()
     # every good file: done, exactly one output + sidecar for its final content, input untouched
-    outputs = sorted(p.name for p in out_dir.iterdir() if not p.name.startswith("."))
-    expected = sorted([output_stem(rel) + ".corrected.tif" for rel in good]
-                      + [output_stem(rel) + ".vigproc.json" for rel in good])
+    outputs = output_files(out_dir)
+    expected = sorted([str(out_image(out_dir, rel).relative_to(out_dir)) for rel in good]
+                      + [str(out_sidecar(out_dir, rel).relative_to(out_dir)) for rel in good])
     assert outputs == expected
     for rel, digest in good.items():
         path = str(in_root / rel)
         e = entries[path]
         assert e.state == "done", (rel, e.state, e.reason)
         assert sha(in_dir / rel) == digest  # inputs never modified, nor moved
-        sc = json.loads((out_dir / (output_stem(rel) + ".vigproc.json")).read_text())
+        sc = json.loads(out_sidecar(out_dir, rel).read_text())
         assert sc["input_sha256"] == digest and sc["input"] == rel and sc["source"] == "profile-file"
-        assert Path(sc["output"]).name == output_stem(rel) + ".corrected.tif"
+        assert Path(sc["output"]) == out_image(out_dir, rel)
         assert e.claims <= 2
     # a good file is handed out twice only if it was in flight when killed (2 workers x 2 queued)
     assert sum(entries[str(in_root / rel)].claims > 1 for rel in good) <= 4
@@ -649,7 +669,7 @@ def test_archive_moves_done_inputs_only(tmp_path):
     assert d.stop() == 0
     for rel, digest in digests.items():  # archived under the same relative path, content intact
         assert sha(arch / rel) == digest
-        assert (out_dir / (output_stem(rel) + ".corrected.tif")).is_file()
+        assert out_image(out_dir, rel).is_file()
     assert (qdir / "bad.png").read_bytes() == b"not a png" and not (arch / "bad.png").exists()
     # a restart neither re-processes nor re-moves anything
     d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2", "--archive", str(arch)).start()
@@ -688,7 +708,7 @@ def test_a_replaced_file_that_fails_names_the_outputs_of_its_earlier_content(tmp
     in_dir.mkdir()
     d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2", "--quarantine", str(qdir)).start()
     make_good(tmp_path / "stage", "a.png", seed=3).replace(in_dir / "a.png")
-    sidecar = out_dir / (output_stem("a.png") + ".vigproc.json")
+    sidecar = out_sidecar(out_dir, "a.png")
     d.wait_for("the photo corrected", sidecar.is_file)
     first = json.loads(sidecar.read_text())
     (in_dir / "a.png").write_bytes(b"no longer a PNG\n")

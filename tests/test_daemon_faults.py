@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from test_daemon import VIGPROC, Daemon, journal_entries, make_good, output_stem, sha, sidecars
+from test_daemon import VIGPROC, Daemon, journal_entries, make_good, out_sidecar, output_files, output_stem, sha, sidecars
 
 _FAULTS = r'''
 """Test-only faults, injected into every vigproc process through sitecustomize."""
@@ -158,10 +158,10 @@ def test_a_full_output_disk_pauses_the_daemon_and_quarantines_nothing(tmp_path, 
     assert _inputs(in_dir) == sorted(names) and list(qdir.iterdir()) == []  # nothing moved out of the input folder
     for n, digest in digests.items():  # exactly one output and sidecar each, for the right content
         assert sha(in_dir / n) == digest
-        sc = json.loads((out_dir / (output_stem(n) + ".vigproc.json")).read_text())
+        sc = json.loads(out_sidecar(out_dir, n).read_text())
         assert sc["input_sha256"] == digest and Path(sc["output"]).is_file()
     assert len(sidecars(out_dir)) == len(names)
-    outputs = [p for p in out_dir.iterdir() if not p.name.startswith(".") and not p.name.endswith(".vigproc.json")]
+    outputs = [p for p in output_files(out_dir) if not p.endswith(".vigproc.json")]
     assert len(outputs) == len(names)
     events = [ev.get("event") for ev in d.events()]
     assert events.count("disk-full") == 1 and events.count("disk-resumed") == 1 and "quarantined" not in events
@@ -193,7 +193,7 @@ def test_retry_quarantined_brings_files_back_from_the_quarantine_folder(tmp_path
     assert _inputs(in_dir) == sorted(names) and list(qdir.iterdir()) == []
     for n, digest in digests.items():
         assert sha(in_dir / n) == digest
-        assert json.loads((out_dir / (output_stem(n) + ".vigproc.json")).read_text())["input_sha256"] == digest
+        assert json.loads(out_sidecar(out_dir, n).read_text())["input_sha256"] == digest
     assert sum(ev.get("event") == "unquarantined" for ev in d.events()) == 2
 
 

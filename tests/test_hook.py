@@ -77,8 +77,8 @@ def test_correct_answers_json_and_writes_outputs(frame, tmp_path):
     assert r["status"] == "ok" and r["applied"] and r["source"] == "estimate"
     assert r["lens"]["lens_id"] == "canon|canon eos 5d|ef50mm f/1.8 ii"
     assert r["falloff_ev"] > 1 and "EV fall-off removed" in r["summary"]
-    assert sorted(p.name for p in out.iterdir()) == ["frame.corrected.tif", "frame.vigproc.json"]
-    assert r["output"] == str(out / "frame.corrected.tif") and r["sidecar"] == str(out / "frame.vigproc.json")
+    assert sorted(p.name for p in out.iterdir()) == ["frame.corrected.tif", "frame.tif.vigproc.json"]
+    assert r["output"] == str(out / "frame.corrected.tif") and r["sidecar"] == str(out / "frame.tif.vigproc.json")
     assert sha(frame) == before
     corrected, _ = read_image(out / "frame.corrected.tif")
     src, _ = read_image(frame)
@@ -122,7 +122,7 @@ def test_hostile_file_names(frame, tmp_path, capsys, monkeypatch):
     assert [r["file"] for r in answer["results"]] == [*map(str, paths), os.fsdecode(raw)]
     for r in answer["results"][:3]:
         assert Path(r["output"]).parent == out and Path(r["sidecar"]).parent == out
-    # control characters and a leading '-' or '.' percent-encoded, as the watch daemon names outputs
+    # control characters and a leading '-' or '.' percent-encoded, as every front end names outputs
     assert [Path(r["output"]).name for r in answer["results"][:3]] == [
         "a b 'q' \"dq\" ; $(touch PWNED) `touch PWNED`%0A\\ é.corrected.tif", "%2Drf.corrected.tif",
         "%2E.corrected.tif"]
@@ -143,7 +143,7 @@ def test_output_names_never_collide(frame, tmp_path, capsys, monkeypatch):
         code, answer = hook(capsys, monkeypatch, "--mode", "estimate", "-o", out, "--", *[src / n for n in names])
         assert code == 0
         assert [Path(r["sidecar"]).name for r in answer["results"]] == [
-            "a.vigproc.json", "a-3.vigproc.json", "a-2.vigproc.json"]
+            "a.tif.vigproc.json", "a.png.vigproc.json", "a-2.tif.vigproc.json"]
         for r in answer["results"]:  # each sidecar is its own input's, none overwritten by another
             assert json.loads(Path(r["sidecar"]).read_text())["file"] == r["file"]
 
@@ -161,7 +161,7 @@ def test_outputs_never_replace_an_input_of_the_call(frame, tmp_path, capsys, mon
     r = answer["results"][1]
     assert r["exit_code"] == 5 and r["type"] == "ImageWriteError" and "input of this run" in r["error"]
     assert sha(first) == before and os.stat(first).st_mtime == 1
-    assert not (o / "a.vigproc.json").exists()  # nothing written for the refused file
+    assert not (o / "a.tif.vigproc.json").exists()  # nothing written for the refused file
     # an exact output file onto another input of the call (relative: inside -o): refused as well
     req = {"files": [{"path": str(first), "output": "a.tif"}, {"path": str(second), "output": "b.tif"}]}
     before = sha(second)

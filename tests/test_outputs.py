@@ -84,7 +84,7 @@ def test_fixed_formats_and_raw_default(tmp_path, camera_jpeg):
     out = tmp_path / "o"
     r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate", "--output-format", "tiff16")
     assert r.returncode == 0, r.stderr
-    _, info = read_image(out / "IMG_0001.corrected.tif")
+    _, info = read_image(out / "IMG_0001.jpg.corrected.tif")  # the format changed: the extension stays
     assert info.bit_depth == "uint16" and info.transfer == "linear"
 
 
@@ -103,8 +103,8 @@ def test_nothing_applied_writes_no_image_by_default(camera_jpeg, tmp_path):
     out = tmp_path / "out"
     r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate", "--strength", "0")
     assert r.returncode == 0, r.stderr
-    assert sorted(p.name for p in out.iterdir()) == ["IMG_0001.vigproc.json"]
-    side = json.loads((out / "IMG_0001.vigproc.json").read_text())
+    assert sorted(p.name for p in out.iterdir()) == ["IMG_0001.jpg.vigproc.json"]
+    side = json.loads((out / "IMG_0001.jpg.vigproc.json").read_text())
     assert side["applied"] is False and side["not_applied"] == "strength 0" and "output" not in side
     assert "0 corrected, 1 not corrected, 0 failed" in r.stdout
     assert "no image written" in r.stdout
@@ -119,7 +119,7 @@ def test_nothing_applied_keeps_the_original_when_asked(camera_jpeg, tmp_path, po
     kept = out / "IMG_0001.uncorrected.jpg"
     assert kept.read_bytes() == before and camera_jpeg.read_bytes() == before
     assert not list(out.glob("*.corrected.*"))
-    side = json.loads((out / "IMG_0001.vigproc.json").read_text())
+    side = json.loads((out / "IMG_0001.jpg.vigproc.json").read_text())
     assert side["output"] == str(kept) and side["applied"] is False
     if policy == "link":
         assert os.stat(kept).st_ino == os.stat(camera_jpeg).st_ino  # same file system here: a hard link

@@ -17,6 +17,7 @@ import pytest
 
 from vigproc.bench.synthetic import table1_model
 from vigproc.io import read_image, write_image
+from vigproc.pipeline import corrected_name, output_name
 
 from conftest import photo_like, textured
 
@@ -109,9 +110,10 @@ def test_darktable_export_runs_vigproc_on_hostile_names(work, tmp_path):
     assert res["file"] == str(exported) and res["applied"]
     assert res["lens"]["lens_id"] == "canon|canon eos 5d|ef50mm f/1.8 $(touch pwned) 'q'"  # EXIF survived export
     assert f"vigproc: {src.name}: " in r.stdout and "EV fall-off removed" in r.stdout
-    stem = src.stem
-    assert sorted(p.name for p in outdir.iterdir()) == [f"{stem}.corrected.tif", f"{stem}.vigproc.json"]
-    corrected, _ = read_image(outdir / f"{stem}.corrected.tif")
+    image = corrected_name(output_name(src.name), Path(src.name), ".tif")  # the export's own format back
+    names = [image, f"{output_name(src.name)}.vigproc.json"]
+    assert sorted(p.name for p in outdir.iterdir()) == sorted(names)
+    corrected, _ = read_image(outdir / image)
     assert falloff_ratio(corrected) > 2 * falloff_ratio(read_image(exported)[0])
     assert not pwned(tmp_path)
 
@@ -121,7 +123,7 @@ def test_darktable_export_runs_vigproc_on_hostile_names(work, tmp_path):
         assert r.returncode == 0, r.stderr
         res = json.loads(report.read_text().splitlines()[-1])["results"][0]
         assert res["mode"] == "check" if res["status"] == "ok" else res["type"] == "ForensicsError"
-        assert sorted(p.name for p in outdir.iterdir()) == [f"{stem}.corrected.tif", f"{stem}.vigproc.json"]
+        assert sorted(p.name for p in outdir.iterdir()) == sorted(names)
     assert not pwned(tmp_path)
 
 

@@ -60,8 +60,9 @@ from typing import Any, Callable, Iterable, Iterator
 
 from vigproc.errors import EXIT_CODES, ImageWriteError, VigprocError
 from vigproc.faults import DISK_FULL, OUTPUT, PERMANENT, classify_error
-from vigproc.atomic import TEMP_KEY, temporary_keys
-from vigproc.pipeline import IMAGE_SUFFIXES, SIDECAR_SUFFIX, Processor, Settings, safe_output
+from vigproc.atomic import temporary_keys
+from vigproc.pipeline import (IMAGE_SUFFIXES, SIDECAR_SUFFIX, Processor, Settings, output_location, safe_output,
+                              temp_key)
 
 log = logging.getLogger(__name__)
 
@@ -468,26 +469,10 @@ def worker_name() -> str:
 
 
 def _out_folder(spec: JobSpec, rel: str) -> tuple[Path, str]:
-    """Output folder and stem of a task; the folder must stay inside ``spec.outdir``."""
-    relp = PurePosixPath(rel)
-    if relp.is_absolute() or ".." in relp.parts or not relp.parts:
-        raise ImageWriteError(f"refusing output location {rel!r}")
-    root = Path(spec.outdir)
-    folder = root.joinpath(*relp.parts[:-1])
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ImageWriteError(f"cannot create output folder {folder}: {exc.strerror or exc}") from None
-    if not folder.resolve().is_relative_to(root.resolve()):  # a planted symlink
-        raise ImageWriteError(f"refusing to write outside {root}: {folder} resolves to {folder.resolve()}")
-    return folder, output_stem(relp.parts[-1])
-
-
-def output_stem(name: str) -> str:
-    """Output stem of an input named ``name``: the full name (``x.jpg`` and ``x.png``
-    differ); a listed hidden file's leading dot is kept visible (``.x.jpg`` →
-    ``_.x.jpg``), as output names never start with a dot."""
-    return "_" + name if name.startswith(".") else name
+    """Output folder and stem of a task: the policy every front end shares
+    (:func:`vigproc.pipeline.output_location`: sub-folders mirrored, never outside
+    ``spec.outdir``)."""
+    return output_location(spec.outdir, PurePosixPath(rel))
 
 
 def run_task(task: Task, spec: JobSpec) -> Outcome:
@@ -945,7 +930,8 @@ def sweep_temporaries(outdir: str | os.PathLike[str], items: Iterable[BatchItem]
     by_folder: dict[str, set[str]] = collections.defaultdict(set)
     for it in items:
         rel = PurePosixPath(it.rel)
-        by_folder[os.path.join(os.fspath(outdir), *rel.parts[:-1])].add(output_stem(rel.name)[:TEMP_KEY])
+        folder, stem = output_location(outdir, rel, create=False)
+        by_folder[os.fspath(folder)].add(temp_key(stem, rel.name))
     n = 0
     for folder, stems in by_folder.items():
         try:

@@ -15,7 +15,9 @@ How a file goes through
    harmless.
 4. *Processed* by a worker process (:func:`_worker_main`, one
    :class:`~vigproc.pipeline.Processor` each) with deterministic output names
-   (:func:`output_stem`); outputs and the JSON sidecar are published atomically.
+   (:func:`vigproc.pipeline.output_location`: the input's sub-folders mirrored under
+   the output folder, its name kept); outputs and the JSON sidecar are published
+   atomically.
 5. *Recorded*: ``done`` (then optionally moved to the archive folder), ``retry``
    after a transient error (locked file: exponential backoff), or ``quarantined``
    with the reason (optionally moved to the quarantine folder; a file that fails to
@@ -86,12 +88,12 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from vigproc.atomic import TEMP_KEY, temporary_keys
+from vigproc.atomic import temporary_keys
 from vigproc.errors import VigprocError, one_line
 from vigproc.faults import DEFAULT_MIN_FREE, DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, classify_error, disk_space
 from vigproc.journal import (FileChangedError, Fingerprint, FingerprintError, Journal, JournalError, boot_id,
                              fingerprint, runner_identity)
-from vigproc.pipeline import percent_encode, shorten_stem
+from vigproc.pipeline import output_location, percent_encode, shorten_stem, temp_key
 from vigproc.processes import die_with_parent
 
 __all__ = [
@@ -164,7 +166,10 @@ def is_candidate_name(name: str) -> bool:
 
 
 def output_stem(rel: str) -> str:
-    """A deterministic, distinct output stem for an input's path relative to the watch folder.
+    """A deterministic, distinct flat name for an input's path relative to the watch
+    folder: the name a quarantined file gets in the (flat) quarantine folder. Outputs
+    follow :func:`vigproc.pipeline.output_location` (sub-folders mirrored), as in every
+    front end.
 
     The relative path is flattened into one name, extension kept (``a/x.jpg`` →
     ``a%2Fx.jpg``, so ``a/x.jpg``, ``b/x.jpg`` and ``a/x.png`` differ), with ``%``,
@@ -477,11 +482,13 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
                 break
             if msg[0] == "stop":
                 break
-            _, task_id, path, outdir, stem, fpd, extra = msg
+            _, task_id, path, out_root, rel, fpd, extra = msg
             conn.send(("start", task_id, None))
             fp = Fingerprint.from_dict(fpd)
             try:
-                sidecar = safe_output(Path(outdir), stem, SIDECAR_SUFFIX)
+                # the one output policy of every front end: sub-folders mirrored, the input's name
+                outdir, stem = output_location(out_root, rel)
+                sidecar = safe_output(outdir, stem, SIDECAR_SUFFIX)
                 old = _sidecar_result(sidecar, fp, settings)
                 if old is not None:  # done before a crash, not yet in the journal: do not repeat
                     wlog.info("%s: already done by an earlier run (sidecar %s)", path, sidecar)
@@ -877,16 +884,25 @@ class Daemon:
         none that could be the temporary of a file of ``keep`` (still being written)."""
         cfg = self.cfg
 
-        def keys(ps: Iterable[str]) -> set[str]:
-            return {output_stem(os.path.relpath(p, cfg.in_dir))[:TEMP_KEY] for p in ps if _inside(p, str(cfg.in_dir))}
+        def keys(ps: Iterable[str]) -> dict[Path, set[str]]:
+            by_folder: dict[Path, set[str]] = {}
+            for p in ps:
+                if not _inside(p, str(cfg.in_dir)):
+                    continue
+                try:
+                    folder, stem = output_location(cfg.out_dir, os.path.relpath(p, cfg.in_dir), create=False)
+                except VigprocError:
+                    continue
+                by_folder.setdefault(folder, set()).add(temp_key(stem, p))
+            return by_folder
 
         mine, busy = keys(paths), keys(keep)
         removed = 0
-        if mine:
-            with contextlib.suppress(OSError), os.scandir(cfg.out_dir) as it:
+        for folder, stems in mine.items():
+            with contextlib.suppress(OSError), os.scandir(folder) as it:
                 for e in it:
                     k = temporary_keys(e.name)
-                    if k & mine and not k & busy and e.is_file(follow_symlinks=False):
+                    if k & stems and not k & busy.get(folder, set()) and e.is_file(follow_symlinks=False):
                         with contextlib.suppress(OSError):
                             os.unlink(e.path)
                             removed += 1
@@ -1267,7 +1283,7 @@ class Daemon:
         self._disk_ready.discard(path)
         self._task_ids += 1
         rel = os.path.relpath(path, self.cfg.in_dir)
-        return _Task(self._task_ids, path, rel, output_stem(rel), fp)
+        return _Task(self._task_ids, path, rel, rel, fp)
 
     def _unreadable(self, path: str, sig: tuple[int, int, int], exc: FingerprintError) -> None:
         attempts = self.unreadable.get(path, (0, 0.0))[0] + 1
@@ -1558,7 +1574,11 @@ class Daemon:
         another content than ``fp`` (the file was replaced and its new content failed)."""
         from vigproc.pipeline import SIDECAR_SUFFIX, safe_output
 
-        sidecar = safe_output(self.cfg.out_dir, output_stem(rel), SIDECAR_SUFFIX)
+        try:
+            folder, stem = output_location(self.cfg.out_dir, rel, create=False)
+        except VigprocError:
+            return []
+        sidecar = safe_output(folder, stem, SIDECAR_SUFFIX)
         d = _read_sidecar(sidecar)
         if d is None or d.get("input_sha256") in (None, fp.sha256):
             return []

@@ -287,30 +287,95 @@ def safe_stem(stem: str) -> str:
     return percent_encode(stem, leading="-.") or "image"
 
 
-def output_stems(files: Sequence[Path]) -> list[str]:
-    """One distinct output stem per input: ``a.jpg`` and ``a.png`` (or two ``a.jpg``
-    from different folders) must not overwrite each other's outputs.
+def output_name(name: str) -> str:
+    """The name every output of an input named ``name`` carries, for every front end
+    (``correct``, ``hook``, ``watch``, ``batch``): the file name with its extension
+    (``x.jpg`` and ``x.png`` differ), ``%``, control characters, bytes that are not
+    UTF-8 and separators percent-encoded, and a leading ``-`` or ``.`` too, so the map
+    is one-to-one and no output is hidden or read as an option; over
+    :data:`MAX_STEM_BYTES` it is cut and given a hash of the full name.
 
-    The first input of a name keeps it (made safe by :func:`safe_stem`); a later one
-    gets the first ``-2``, ``-3``... not taken by *any* input's own name, so
-    ``a.tif a.png a-2.tif`` give ``a``, ``a-3``, ``a-2``.  Stems longer than
-    :data:`MAX_STEM_BYTES` are shortened (:func:`shorten_stem`).  Names are compared
+    Examples
+    --------
+    >>> output_name("IMG_1.jpg"), output_name("100%.jpg"), output_name(".x.png")
+    ('IMG_1.jpg', '100%25.jpg', '%2Ex.png')
+    """
+    return shorten_stem(percent_encode(name, also="%", leading="-.") or "image", os.fsencode(name))
+
+
+def output_location(root: str | os.PathLike[str], rel: str | os.PathLike[str], *,
+                    create: bool = True) -> tuple[Path, str]:
+    """Where the outputs of an input at ``rel`` (relative to the folder a run was given)
+    go: the same sub-folders under ``root`` (each named by :func:`output_name`) and the
+    input's :func:`output_name`. ``create`` makes the folders. Raises ImageWriteError for
+    a path that would leave ``root`` (``..``, absolute) or a folder that resolves outside
+    it (a planted symbolic link)."""
+    from pathlib import PurePath
+
+    parts = PurePath(rel).parts
+    if not parts or PurePath(rel).is_absolute() or ".." in parts:
+        raise ImageWriteError(f"refusing output location {os.fspath(rel)!r}")
+    root = Path(root)
+    folder = root.joinpath(*(output_name(p) for p in parts[:-1]))
+    if create:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ImageWriteError(f"cannot create output folder {folder}: {exc.strerror or exc}") from None
+        if not folder.resolve().is_relative_to(root.resolve()):
+            raise ImageWriteError(f"refusing to write outside {root}: {folder} resolves to {folder.resolve()}")
+    return folder, output_name(parts[-1])
+
+
+def _image_base(stem: str, source: Path) -> str:
+    """``stem`` without the input's extension (``IMG_1.jpg`` → ``IMG_1``)."""
+    ext = source.suffix
+    return stem[: -len(ext)] if ext and stem.lower().endswith(ext.lower()) and len(stem) > len(ext) else stem
+
+
+def temp_key(stem: str, source: str | os.PathLike[str]) -> str:
+    """The prefix every output of an input (``stem``, from the file ``source``) starts
+    with, cut to :data:`vigproc.atomic.TEMP_KEY`: ``IMG_1.`` covers ``IMG_1.jpg.vigproc.json``
+    and ``IMG_1.corrected.jpg`` alike (sweeps of dead writers' temporaries match on it)."""
+    from vigproc.atomic import TEMP_KEY
+
+    return (_image_base(stem, Path(source)) + ".")[:TEMP_KEY]
+
+
+def corrected_name(stem: str, source: Path, suffix: str) -> str:
+    """The corrected image's file name: ``IMG_1.corrected.jpg`` when the format is the
+    input's own (``IMG_1.jpg``), ``IMG_1.nef.corrected.tif`` when it changes, so two
+    inputs of one folder never share an output."""
+    if source.suffix.lower() == suffix.lower():
+        return f"{_image_base(stem, source)}.corrected{suffix}"
+    return f"{stem}.corrected{suffix}"
+
+
+def output_stems(files: Sequence[Path]) -> list[str]:
+    """One distinct :func:`output_name` per input of a flat run (``correct``, ``hook
+    -o``): two ``a.jpg`` from different folders must not overwrite each other's outputs.
+
+    The first input of a name keeps it; a later one gets the first ``-2``, ``-3``...
+    before its extension not taken by *any* input's own name, so ``x/a.tif y/a.tif
+    a-2.tif`` give ``a.tif``, ``a-3.tif``, ``a-2.tif``.  Names are compared
     case-insensitively (such filesystems merge them); the same inputs in the same
-    order always get the same stems."""
-    bases = [shorten_stem(safe_stem(f.stem), os.fsencode(f.stem)) for f in files]
+    order always get the same names."""
+    bases = [output_name(f.name) for f in files]
     taken = {b.casefold() for b in bases}
     first: set[str] = set()
     stems = []
-    for base in bases:
+    for f, base in zip(files, bases):
         key = base.casefold()
         if key not in first:
             first.add(key)
             stems.append(base)
             continue
+        head = _image_base(base, f)
+        tail = base[len(head):]
         n = 2
-        while f"{base}-{n}".casefold() in taken:
+        while f"{head}-{n}{tail}".casefold() in taken:
             n += 1
-        stem = f"{base}-{n}"
+        stem = f"{head}-{n}{tail}"
         taken.add(stem.casefold())
         stems.append(stem)
     return stems
@@ -736,15 +801,17 @@ class Processor:
                      like: str | os.PathLike[str] | None = None) -> FrameResult:
         """Read ``path``, process it, write its outputs into ``outdir``.
 
-        Outputs (all atomic; the input is never modified): in correct mode
-        ``STEM.corrected.EXT`` (:func:`output_format_for`), or when nothing is applied
+        Outputs, named from ``stem`` (default :func:`output_name` of the input: ``IMG_1.jpg``;
+        all atomic; the input is never modified): in correct mode the corrected image
+        (:func:`corrected_name`: ``IMG_1.corrected.jpg``, or ``IMG_1.nef.corrected.tif``
+        when the format changes; :func:`output_format_for`), or when nothing is applied
         what ``unapplied`` (default the settings') says: nothing, or the original as
-        ``STEM.uncorrected.EXT`` (:data:`UNAPPLIED_POLICIES`); ``STEM.vignetting.png``
+        ``IMG_1.uncorrected.jpg`` (:data:`UNAPPLIED_POLICIES`); ``STEM.vignetting.png``
         with ``picture``; and always the sidecar ``STEM.vigproc.json``, written last
         (``not_applied`` says why when nothing was). ``like``: an ``auto`` output
-        format is resolved by this name's suffix (:func:`output_format_for`).  No output may be ``path``
-        itself or in ``protect`` (the other inputs of the run, :class:`InputFiles`):
-        then nothing is written.
+        format is resolved by this name's suffix.  No output may be ``path`` itself or
+        in ``protect`` (the other inputs of the run, :class:`InputFiles`): then nothing
+        is written.
 
         In learn mode the frame is pooled under ``frame_id``, by default the file's
         SHA-256, so learning the same file twice (a rerun, a copy under another
@@ -764,13 +831,13 @@ class Processor:
         t0 = time.perf_counter()
         path = Path(path)
         outdir = Path(outdir)
-        stem = path.stem if stem is None else stem
+        stem = output_name(path.name) if stem is None else stem
         policy = unapplied or s.unapplied
         if policy not in UNAPPLIED_POLICIES:
             raise VigprocError(f"unknown policy for frames not corrected {policy!r}")
         fmt = output_format_for(s.output_format, path, like=like)  # the suffix is final before reading
-        dst = safe_output(outdir, stem, ".corrected" + fmt.suffix)
-        kept = (safe_output(outdir, stem, ".uncorrected" + path.suffix.lower())
+        dst = safe_output(outdir, corrected_name(stem, path, fmt.suffix), "")
+        kept = (safe_output(outdir, _image_base(stem, path), ".uncorrected" + path.suffix.lower())
                 if s.mode == "correct" and policy in ("copy", "link") else None)
         sidecar = safe_output(outdir, stem, SIDECAR_SUFFIX)
         # checked before anything is written: a refused frame leaves no partial outputs

@@ -30,11 +30,13 @@ inside it and no ``output`` may lead out of it (``..``, an absolute path
 elsewhere, a symbolic link): that file fails with exit code 2.  ``--output-file``
 and an output folder exclude each other.
 
-With ``-o``, outputs are named ``STEM.corrected.EXT`` (``EXT`` as ``output_format``
-says; ``auto``: the input's own kind) and ``STEM.vigproc.json`` (when nothing is
-applied, ``unapplied`` says what is written: by default only the sidecar)
-(control characters and a leading ``-`` or ``.`` of STEM percent-encoded; a later
-input with an earlier one's STEM gets ``STEM-N``).  No output ever replaces an
+With ``-o``, outputs are named as in every front end
+(:func:`vigproc.pipeline.output_name`): ``a.tif`` gives ``a.corrected.tif`` (``a.tif.
+corrected.exr`` when ``output_format`` changes the format; ``auto``: the input's own
+kind) and ``a.tif.vigproc.json`` (when nothing is applied, ``unapplied`` says what is
+written: by default only the sidecar); control characters, ``%`` and a leading ``-``
+or ``.`` are percent-encoded, and a later input of an earlier one's name gets
+``a-2.tif``.  No output ever replaces an
 input of the same call: that file fails with exit code 5.
 
 Answer::
@@ -42,7 +44,7 @@ Answer::
     {"protocol": 1, "vigproc": "0.1.0", "mode": "correct", "ok": 1, "failed": 1, "exit_code": 1,
      "results": [{"file": "/in/a.jpg", "status": "ok", "summary": "0.42 EV fall-off removed (...)",
                   "applied": true, "falloff_ev": 0.42, "removed_ev": 0.42, "confidence": 0.97, "verdict": null,
-                  "output": "/out/a.corrected.tif", "sidecar": "/out/a.vigproc.json", ...},
+                  "output": "/out/a.corrected.tif", "sidecar": "/out/a.tif.vigproc.json", ...},
                  {"file": "/in/b.tif", "status": "error", "type": "ImageReadError",
                   "exit_code": 4, "error": "..."}]}
 

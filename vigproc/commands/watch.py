@@ -240,10 +240,11 @@ def _bare_io(task: tuple[str, str, str, str, Any]) -> float:
     """
     from vigproc.io import read_image, write_image
     from vigproc.metadata import make_record, write_corrected
-    from vigproc.pipeline import OUTPUT_FORMATS
+    from vigproc.pipeline import output_format_for
 
     src, dst, fmt, what, model = task
-    suffix, depth = OUTPUT_FORMATS[fmt]
+    of = output_format_for(fmt, src)
+    suffix, depth = of.suffix, of.depth
     t0 = time.perf_counter()
     img, _ = read_image(src)
     t_read = time.perf_counter() - t0
@@ -251,13 +252,14 @@ def _bare_io(task: tuple[str, str, str, str, Any]) -> float:
     if what == "output":
         from vigproc.correct import correct
 
-        img = correct(img, model, channel_axis=-1, clip=1.0 if depth == "uint16" else None)
+        img = correct(img, model, channel_axis=-1, clip=1.0 if of.integer else None)
         record = make_record(model, strength=1.0)
     t1 = time.perf_counter()
     if what == "pixels":
-        write_image(dst + suffix, img, bit_depth=depth)
+        write_image(dst + suffix, img, format=of.format, bit_depth=depth, transfer=of.transfer, quality=of.quality)
     else:
-        write_corrected(dst + suffix, img, src, record, bit_depth=depth)
+        write_corrected(dst + suffix, img, src, record, bit_depth=depth, format=of.format, transfer=of.transfer,
+                        quality=of.quality)
     return t_read + time.perf_counter() - t1
 
 
