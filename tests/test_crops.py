@@ -90,4 +90,4 @@ def test_check_reports_the_crop_test(tmp_path):
     assert len(crop["offset_px"]) == 2 and len(crop["covariance_px"]) == 2
     r = subprocess.run([sys.executable, "-m", "vigproc.cli", "check", "--no-store", str(p)],
                        capture_output=True, text=True, timeout=300)
-    assert "(crop test): " in r.stdout
+    assert "; crop test: " in r.stdout.splitlines()[0]  # on the frame's own line

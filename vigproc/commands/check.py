@@ -5,9 +5,9 @@ A DNG that carries its own vignetting calibration (FixVignetteRadial or GainMap 
 line in the text output); its verdict counts like the others in the exit code.
 
 Every frame also gets the crop test (:mod:`vigproc.crops`: is the vignetting centred on
-the frame?), as ``crop`` in the JSON and a line ``FILE (crop test): centred |
-off-centre | insufficient-signal`` with the centre, its distance and its calibrated
-false-alarm probability. It is reported, not counted in the exit code: its power on
+the frame?), as ``crop`` in the JSON and at the end of the frame's line (``crop test:
+centred | off-centre | insufficient-signal``, with the centre, its distance and its
+calibrated false-alarm probability). It is reported, not counted in the exit code: its power on
 single natural frames is low (``vigproc bench crops``, docs/benchmarks/forensics.md).
 
 Exit codes (documented in ``vigproc check --help``):
@@ -70,12 +70,13 @@ def register(subparsers) -> None:
     sp.set_defaults(fn=cmd_check)
 
 
-def _line(name: str, v: dict) -> str:
-    """One output line: file names and EXIF strings are escaped (a newline in a name
-    must not start a line of its own)."""
+def _line(name: str, v: dict, crop=None) -> str:
+    """One output line per frame: file names and EXIF strings are escaped (a newline in
+    a name must not start a line of its own); the crop test's answer at its end."""
     p = v.get("p_false_alarm")
     tail = "" if p is None else f"  p={p:.3g}  D²={v['score']:.2f}"
-    return one_line(f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}")
+    crop_tail = f"; crop test: {crop.verdict}, {crop.reason()}" if crop is not None else ""
+    return one_line(f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}{crop_tail}")
 
 
 def _embedded_verdict(path: Path, v, calibration, alpha):
@@ -145,8 +146,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                     items.append(ReportItem(f.name, v, thumbnail(img)))
                 del img
                 if not args.json:
-                    print(_line(str(f), rec))
-                    print(one_line(f"{f} (crop test): {crop.verdict}  {crop.reason()}"))
+                    print(_line(str(f), rec, crop))
                     if "embedded" in rec:
                         print(_line(f"{f} (against its embedded calibration)", rec["embedded"]))
     finally:
