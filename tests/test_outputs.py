@@ -125,6 +125,9 @@ def test_nothing_applied_keeps_the_original_when_asked(camera_jpeg, tmp_path, po
         assert os.stat(kept).st_ino == os.stat(camera_jpeg).st_ino  # same file system here: a hard link
     else:
         assert os.stat(kept).st_ino != os.stat(camera_jpeg).st_ino
+        from vigproc.atomic import new_file_mode_mask
+
+        assert kept.stat().st_mode & 0o777 == 0o666 & ~new_file_mode_mask()  # like every output, not 0600
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary left
 
 
@@ -147,3 +150,12 @@ def test_settings_refuse_an_unknown_policy():
         Settings(unapplied="delete")
     r = run("correct", "x.jpg", "-o", "o", "--unapplied", "delete")
     assert r.returncode == 2 and "invalid choice" in r.stderr
+
+
+def test_write_policy_still_says_why_nothing_was_applied(camera_jpeg, tmp_path):
+    out = tmp_path / "w"
+    r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate", "--strength", "0", "--unapplied", "write")
+    assert r.returncode == 0, r.stderr
+    side = json.loads((out / "IMG_0001.jpg.vigproc.json").read_text())
+    assert side["applied"] is False and side["not_applied"] == "strength 0"
+    assert (out / "IMG_0001.corrected.jpg").is_file() and "not corrected: strength 0" in r.stdout

@@ -849,7 +849,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(fn=cmd_estimate)
 
     sp = sub.add_parser("correct", help="remove vignetting: a stored profile of the lens, else an estimate "
-                                        "(linear TIFF or EXR outputs)")
+                                        "(each input's own format back by default)")
     sp.add_argument("files", nargs="+", metavar="FILE", help="images to correct (RAW, TIFF, EXR, JPEG, PNG)")
     sp.add_argument("-o", "--output", required=True, metavar="OUT_DIR",
                     help="folder for the corrected images and their JSON records")

@@ -420,7 +420,7 @@ def keep_original(src: Path, dst: Path, *, link: bool = False) -> None:
     import shutil
     import tempfile
 
-    from vigproc.atomic import fsync_dir
+    from vigproc.atomic import fsync_dir, new_file_mode_mask
 
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{dst.name[:100]}.tmp-", dir=dst.parent)
@@ -438,6 +438,8 @@ def keep_original(src: Path, dst: Path, *, link: bool = False) -> None:
                 log.debug("cannot link %s (%s); copying it", src, exc.strerror or exc)
         if not linked:
             shutil.copyfile(src, tmp)
+            # a copy is an output like the others: the umask's mode, not mkstemp's 0600
+            os.chmod(tmp, 0o666 & ~new_file_mode_mask())
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
         os.replace(tmp, dst)
@@ -482,8 +484,11 @@ def _note_clipping(img: np.ndarray, out: np.ndarray, where: str, fmt: OutputForm
 
     lost = int(np.count_nonzero(out >= 1.0)) - int(np.count_nonzero(np.asarray(img) == 1.0))
     if lost > 1e-3 * out.size:
-        log.warning("%s: %.1f %% of the samples are above the white point and %s clips them "
-                    "(a float output format keeps them)", where, 100.0 * lost / out.size, _format_label(fmt))
+        # lifted corners of a bright frame clip a little in any display format: worth a
+        # warning from 1 % of the samples on, below that only a note
+        (log.warning if lost > 1e-2 * out.size else log.info)(
+            "%s: %.1f %% of the samples are above the white point and %s clips them "
+            "(a float output format keeps them)", where, 100.0 * lost / out.size, _format_label(fmt))
 
 
 def output_folder(path: str | os.PathLike[str]) -> Path:
@@ -837,7 +842,7 @@ class Processor:
             raise VigprocError(f"unknown policy for frames not corrected {policy!r}")
         fmt = output_format_for(s.output_format, path, like=like)  # the suffix is final before reading
         dst = safe_output(outdir, corrected_name(stem, path, fmt.suffix), "")
-        kept = (safe_output(outdir, _image_base(stem, path), ".uncorrected" + path.suffix.lower())
+        kept = (safe_output(outdir, _image_base(stem, path), ".uncorrected" + path.suffix)
                 if s.mode == "correct" and policy in ("copy", "link") else None)
         sidecar = safe_output(outdir, stem, SIDECAR_SUFFIX)
         # checked before anything is written: a refused frame leaves no partial outputs
@@ -875,10 +880,10 @@ class Processor:
                 write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=fmt.depth,
                                 format=fmt.format, transfer=fmt.transfer, quality=fmt.quality)
             res.output = str(dst)
-        elif out is not None:
+        if out is not None and not res.applied:  # said whatever was written
             res.extra["not_applied"] = ("strength 0" if s.strength == 0 else
                                         "weak evidence: the estimate is not clearly above its uncertainty")
-            if kept is not None:
+            if kept is not None and policy in ("copy", "link"):
                 keep_original(path, kept, link=policy == "link")
                 res.output = str(kept)
         if s.picture and res.model is not None:
