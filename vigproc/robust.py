@@ -749,6 +749,10 @@ def _fit_copy(wc: WorkingCopy, settings: RobustSettings, t0: float) -> Vignettin
     )
     covt = tuple(tuple(float(v) for v in row) for row in cov_px)
     fit = VignettingModel.from_vector(th_px, w, h, method="robust", covariance=covt, quality=q)
+    # one figure, one name: quality.field_ev_rms is the model's own RMS of log2 phi over the
+    # frame (what every command prints); the SNR above is on the fit's grid, about its mean
+    q = replace(q, field_ev_rms=fit.field_ev_rms())
+    fit = replace(fit, quality=q)
     if accept:
         return fit
     return VignettingModel.identity(w, h, method="robust", quality=q, candidate=fit)
