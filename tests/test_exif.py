@@ -717,3 +717,13 @@ def test_a_typed_lens_id_keeps_its_escapes() -> None:
     assert vexif.casefold_lens_id(lens_id) == lens_id
     assert vexif.casefold_lens_id(lens_id.upper()) == lens_id
     assert vexif.casefold_lens_id("A%7cB|C%25") == "a%7Cb|c%25"
+
+
+def test_35mm_focal_length_only_when_a_scale_factor_is_known() -> None:
+    """exiftool's Composite:FocalLength35efl falls back to scale 1 when it cannot tell the
+    sensor: an iPhone 4's 3.85 mm must not become a 3.85-mm-equivalent ultra-wide (it
+    would narrow the lens-family prior to the wrong lenses)."""
+    phone = {**BODY, "EXIF:FocalLength": 3.85, "Composite:FocalLength35efl": 3.85}
+    assert lens_key_from_metadata(phone).focal_35mm is None
+    assert lens_key_from_metadata({**phone, "Composite:FocalLength35efl": 28.0}).focal_35mm == 28.0
+    assert lens_key_from_metadata({**phone, "EXIF:FocalLengthIn35mmFormat": 29}).focal_35mm == 29.0

@@ -834,11 +834,16 @@ def lens_key_from_metadata(meta: Mapping[str, Any], source: str | None = None) -
                 b.problem(f"fnumber: Composite:Aperture={ap:g} is not a valid value")
     dist = _focus_distance(meta, b)
     f35 = None
-    for k in ("Composite:FocalLength35efl", "EXIF:FocalLengthIn35mmFormat"):
+    for k in ("EXIF:FocalLengthIn35mmFormat", "Composite:FocalLength35efl"):
         x = _as_float(meta.get(k))
-        if x is not None and 0 < x <= _MAX_FOCAL * 10:
-            f35 = round(x, 6)
-            break
+        if x is None or not 0 < x <= _MAX_FOCAL * 10:
+            continue
+        if k.startswith("Composite") and focal is not None and abs(x - focal) <= 0.01 * focal:
+            # exiftool's composite falls back to a scale factor of 1 when it cannot tell the
+            # sensor size: a phone's 3.85 mm is not a 3.85-mm-equivalent ultra-wide
+            continue
+        f35 = round(x, 6)
+        break
     w, h = _image_size(meta)
     return LensKey(
         make=make, model=model, lens=lens, lens_serial=serial, focal_mm=focal,
