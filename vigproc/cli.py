@@ -142,6 +142,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
                         output_format=args.output_format, picture=args.picture, strength=args.strength,
                         unapplied=args.unapplied)
     failed = unapplied = 0
+    codes: set[int] = set()  # exit codes of the failures
     results = []
     full = None  # the fault of the last failure (vigproc.faults)
     store = _open_store(args) if args.profile == "auto" else None
@@ -162,6 +163,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
                         print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))
                 except VigprocError as exc:
                     failed += 1
+                    codes.add(exc.exit_code)
                     results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
                     print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
                     full = classify_error(exc, outdir)
@@ -180,6 +182,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     if full is not None and full.kind == DISK_FULL:
         raise DiskFullError(f"{full.reason}; stopped with {not_started} file(s) not started: free space on "
                             f"{outdir} and run again")
+    if failed and failed == len(files) and len(codes) == 1:
+        return codes.pop()  # every file failed alike: that error's code, as estimate and hook say it
     return 0 if failed == 0 else 1
 
 
