@@ -159,3 +159,14 @@ def test_write_policy_still_says_why_nothing_was_applied(camera_jpeg, tmp_path):
     side = json.loads((out / "IMG_0001.jpg.vigproc.json").read_text())
     assert side["applied"] is False and side["not_applied"] == "strength 0"
     assert (out / "IMG_0001.corrected.jpg").is_file() and "not corrected: strength 0" in r.stdout
+
+
+def test_profile_list_and_learn_say_what_happened(camera_jpeg, tmp_path):
+    db = tmp_path / "p.sqlite"
+    r = run("profile", "--profile-db", db, "list")
+    assert r.returncode == 0 and "no profiles in" in r.stdout  # not an empty output
+    r = run("profile", "--profile-db", db, "learn", camera_jpeg)
+    assert r.returncode == 0 and r.stdout.splitlines()[-1] == "1 frame learned, 0 failed", r.stdout
+    r = run("profile", "--profile-db", db, "learn", camera_jpeg)  # the same content again: pooled once
+    assert r.returncode == 0 and "already learned" in r.stdout
+    assert r.stdout.splitlines()[-1] == "0 frames learned, 1 already learned before, 0 failed", r.stdout

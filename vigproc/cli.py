@@ -746,8 +746,11 @@ def cmd_profile(args: argparse.Namespace) -> int:
 
     with _open_store(args) as store:
         if args.profile_command == "list":
-            for i, p in enumerate(store.list()):
+            profiles = store.list()
+            for i, p in enumerate(profiles):
                 print(_profile_line(i, p))
+            if not profiles:  # say so: an empty output reads like a failure
+                print(f"no profiles in {store.path} (vigproc profile learn FILES..., or import one)")
         elif args.profile_command == "show":
             p = _pick_profile(store, args.id)
             width, height = _profile_frame(p.key.aspect_ratio, args.width, args.height)
@@ -773,7 +776,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
             from vigproc.pipeline import Processor, Settings, file_sha256, read_lens
 
             files = [Path(f) for f in args.files]
-            done = failed = 0
+            done = failed = again = 0
             settings = Settings(mode="learn", transfer=args.input_transfer, method=args.method)
             with Processor(settings, store=store) as proc:
                 for f in _progress(files, "learning"):
@@ -783,14 +786,20 @@ def cmd_profile(args: argparse.Namespace) -> int:
                         if lens_key is None:
                             raise VigprocError(f"cannot learn, lens unknown ({lens['error']})")
                         # keyed by content: learning a file again does not pool it twice
-                        proc.process_image(img, lens_key, where=str(f), frame_id=file_sha256(f))
-                        p = store.get(ProfileKey.from_lens(lens_key, img.shape[1], img.shape[0]))
-                        done += 1
-                        print(one_line(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}"))
+                        fid = file_sha256(f)
+                        key = ProfileKey.from_lens(lens_key, img.shape[1], img.shape[0])
+                        known = store.holds_frame(key, fid)
+                        proc.process_image(img, lens_key, where=str(f), frame_id=fid)
+                        p = store.get(key)
+                        done += not known
+                        again += known
+                        note = "  (this content was already learned: counted once)" if known else ""
+                        print(one_line(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}{note}"))
                     except VigprocError as exc:
                         failed += 1
                         print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
-            print(f"{done} frames learned, {failed} failed")
+            print(f"{done} frame{'' if done == 1 else 's'} learned"
+                  + (f", {again} already learned before" if again else "") + f", {failed} failed")
             return 0 if failed == 0 else 1
         elif args.profile_command == "import":
             p = store.import_file(args.file)
