@@ -14,7 +14,8 @@ Exit codes (documented in ``vigproc check --help``):
 
 * 0 -- every frame is consistent with its lens;
 * :data:`EXIT_INCONSISTENT` (20) -- at least one frame (or pooled group) is inconsistent;
-* 1 -- some files could not be checked (and none was inconsistent);
+* 1 -- some files could not be checked (and none was inconsistent); when *every* file
+  failed with the same error, that error's code (3-12), as ``estimate`` says it;
 * :data:`EXIT_UNDECIDED` (21) -- no inconsistency and no error, but some frames got
   "unknown-lens" or "insufficient-signal".
 """
@@ -37,7 +38,8 @@ EXIT_INCONSISTENT = EXIT_CODES["inconsistent"]
 EXIT_UNDECIDED = EXIT_CODES["undecided"]
 
 _EPILOG = f"""exit codes: 0 every frame consistent; {EXIT_INCONSISTENT} at least one frame (or pooled
-group) inconsistent; 1 some files failed (none inconsistent); {EXIT_UNDECIDED} some frames undecided
+group) inconsistent; 1 some files failed (none inconsistent; when every file failed alike, that
+error's code, 3-12); {EXIT_UNDECIDED} some frames undecided
 (unknown lens or insufficient signal), none inconsistent, no failures."""
 
 
@@ -128,7 +130,8 @@ def cmd_check(args: argparse.Namespace) -> int:
                                     calibration=calibration, alpha=args.alpha, frame_id=fid)
                 except VigprocError as exc:
                     failed += 1
-                    results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
+                    results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__,
+                                    "exit_code": exc.exit_code})
                     print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
                     continue
                 rec = {"file": str(f), "lens": lens, **v.to_dict()}
@@ -174,8 +177,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     for r in results + pooled + [r["embedded"] for r in results if "embedded" in r]:
         if "verdict" in r:
             counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
+    codes = {r.get("exit_code") for r in results if "error" in r}
     if counts.get("inconsistent"):
         code = EXIT_INCONSISTENT
+    elif failed and failed == len(files) and len(codes) == 1:
+        code = codes.pop()  # every file failed alike: that error's code, as estimate says it
     elif failed:
         code = 1
     elif counts.get("unknown-lens") or counts.get("insufficient-signal"):
