@@ -59,7 +59,10 @@ def test_a_decompression_bomb_is_refused_by_the_memory_budget_before_decoding(tm
     said, peak_kb = r.stdout.strip().splitlines()
     assert said.startswith("MemoryBudgetError") and "14000x14000x3" in said and "memory budget of 2.00 GiB" in said
     assert "VIGPROC_MEMORY_BUDGET" in said
-    assert int(peak_kb) < 600_000, f"peak {int(peak_kb) / 1e6:.2f} GB: decoded before being refused"
+    # decoding it to float32 takes 2.35 GB (the old peak was 3.08 GB); refused from the header
+    # the process peaks at ~65 MB, though once at 0.61 GB on a fresh clone under the parallel
+    # suite (not reproduced since): the bound is what tells a decode from a refusal
+    assert int(peak_kb) < 1_200_000, f"peak {int(peak_kb) / 1e6:.2f} GB: decoded before being refused"
 
 
 def test_the_memory_budget_is_a_setting(tmp_path, monkeypatch):
