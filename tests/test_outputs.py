@@ -170,3 +170,25 @@ def test_profile_list_and_learn_say_what_happened(camera_jpeg, tmp_path):
     r = run("profile", "--profile-db", db, "learn", camera_jpeg)  # the same content again: pooled once
     assert r.returncode == 0 and "already learned" in r.stdout
     assert r.stdout.splitlines()[-1] == "0 frames learned, 1 already learned before, 0 failed", r.stdout
+
+
+def test_an_adobe_rgb_jpeg_stays_tagged_adobe_rgb(camera_jpeg, tmp_path):
+    """vigproc divides a gain out and never converts primaries: a display-encoded output
+    of an Adobe RGB JPEG is still Adobe RGB (it came back tagged sRGB)."""
+    subprocess.run(["exiftool", "-q", "-overwrite_original", "-ExifIFD:ColorSpace=Uncalibrated",
+                    "-InteropIFD:InteropIndex=R03", str(camera_jpeg)], check=True)
+
+    def colour(path):
+        out = subprocess.run(["exiftool", "-j", "-n", "-ColorSpace", "-InteropIndex", str(path)],
+                             capture_output=True, text=True, check=True).stdout
+        d = json.loads(out)[0]
+        return d.get("ColorSpace"), d.get("InteropIndex")
+
+    out = tmp_path / "o"
+    r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate")
+    assert r.returncode == 0, r.stderr
+    assert colour(out / "IMG_0001.corrected.jpg") == (65535, "R03")
+    # a linear output describes its own encoding, whatever the source's was
+    r = run("correct", camera_jpeg, "-o", tmp_path / "lin", "--profile", "estimate", "--output-format", "tiff16")
+    assert r.returncode == 0, r.stderr
+    assert colour(tmp_path / "lin" / "IMG_0001.jpg.corrected.tif")[1] is None

@@ -34,10 +34,12 @@ Tags that are *not* copied because they would be wrong for the output:
   interoperability IFD (``R98`` = sRGB...), PNG gamma/chromaticity/sRGB chunks,
   and the IFD0 ``ImageDescription`` (it holds the linear-TIFF marker
   :data:`vigproc.io.LINEAR_TIFF_MARKER`; an XMP ``dc:description`` is kept);
-* the ICC profile.  The output is linear light (or re-encoded sRGB) while a
-  source profile describes the source's own tone curve, so keeping it would
-  make colour-managed viewers decode the output wrongly.  exiftool does not
-  copy it with ``-all:all`` anyway; it is excluded explicitly as well;
+* the ICC profile.  A linear output's source profile describes the source's own
+  tone curve, so keeping it would make colour-managed viewers decode the output
+  wrongly.  exiftool does not copy it with ``-all:all`` anyway; it is excluded
+  explicitly as well.  (A display-encoded output of a display-encoded source --
+  a JPEG back as a JPEG -- keeps the source's colour description, ICC profile and
+  interoperability index included: ``keep_colour`` of :func:`copy_metadata`.);
 * image-structure tags (size, bits, compression, YCbCr layout, EXIF pixel
   dimensions, their XMP ``tiff:``/``exif:`` copies) -- exiftool protects the
   TIFF ones; the others are excluded here;
@@ -519,7 +521,12 @@ def _is_exr(path: str) -> bool:
         return False
 
 
-def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None) -> None:
+#: The source's description of its colours, kept by ``keep_colour`` (see copy_metadata).
+_COLOUR_TAGS = ("ColorSpace", "InteropIFD:all", "ICC_Profile:all")
+
+
+def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *,
+                  keep_colour: bool = False) -> None:
     """Copy ``src``'s metadata into the image ``dst`` and add the vigproc record.
 
     ``dst`` is modified in place (exiftool rewrites it to a temporary file and
@@ -536,6 +543,12 @@ def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None) -
         Correction record (see :func:`make_record`): keys ``model``
         (VignettingModel, dict or JSON text), ``method``, ``version``,
         ``applied``, ``strength``; ``None`` copies metadata only.
+    keep_colour : bool
+        Keep the source's colour description (EXIF ``ColorSpace``, the interoperability
+        index, the ICC profile) instead of the one :func:`vigproc.io.write_image` wrote.
+        For a display-encoded output of a display-encoded source: vigproc divides a
+        gain out and never converts primaries, so an Adobe RGB or Display P3 JPEG is still
+        one (tagged sRGB, its colours would be shown wrong).
 
     Raises
     ------
@@ -560,7 +573,9 @@ def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None) -
             _exr_write_metadata(d, src_tags, tags, what)
             return
         args = ["-tagsFromFile", et.source_name(s), "-all:all"]
-        args += [f"--{t}" for t in _EXCLUDE]
+        args += [f"--{t}" for t in _EXCLUDE if not (keep_colour and t in _COLOUR_TAGS)]
+        if keep_colour:  # -all:all copies neither the ICC profile nor the interop index: name them
+            args += ["-ICC_Profile", "-InteropIndex", "-InteropVersion"]
         if _is_exr(s):
             # an EXR holds no EXIF exiftool can copy: assign the key fields read above
             args += [f"-{k}={v}" for k, v in src_tags.items()]
@@ -712,6 +727,7 @@ def write_corrected(
     format: str | None = None,
     transfer: str = "linear",
     quality: int | None = None,
+    keep_colour: bool = False,
 ) -> None:
     """Write a corrected image with the source's metadata and the record, atomically.
 
@@ -732,6 +748,8 @@ def write_corrected(
         Correction record (:func:`make_record`); ``None`` for metadata only.
     bit_depth, format, transfer, quality
         As for :func:`vigproc.io.write_image`.
+    keep_colour : bool
+        As for :func:`copy_metadata`.
 
     Raises
     ------
@@ -756,7 +774,7 @@ def write_corrected(
     try:
         try:
             write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer, quality=quality)
-            copy_metadata(src, tmp, record)
+            copy_metadata(src, tmp, record, keep_colour=keep_colour)
         except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
             err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))
             err.__dict__.update(exc.__dict__)  # e.g. ``transient``

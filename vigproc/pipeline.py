@@ -877,8 +877,11 @@ class Processor:
 
                 res.extra["dng_opcode"] = write_dng_correction(path, dst, res.model, strength=s.strength)
             else:  # the source's EXIF/XMP plus an XMP record of the correction
+                # display-encoded in, display-encoded out: the source's colour space stays true
+                keep_colour = fmt.transfer == "srgb" and getattr(info, "transfer", None) == "srgb"
                 write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=fmt.depth,
-                                format=fmt.format, transfer=fmt.transfer, quality=fmt.quality)
+                                format=fmt.format, transfer=fmt.transfer, quality=fmt.quality,
+                                keep_colour=keep_colour)
             res.output = str(dst)
         if out is not None and not res.applied:  # said whatever was written
             res.extra["not_applied"] = ("strength 0" if s.strength == 0 else
