@@ -147,6 +147,14 @@ check("command", M.command({command = "/x y/vig'proc"}, "/tmp/r.json") ==
   "'/x y/vig'\\''proc' hook --request '/tmp/r.json'")
 local req = M.request({mode = "correct", output_dir = ""}, "/e/x.tif")
 check("request", req.output_dir == "/e" and req.files[1] == "/e/x.tif" and req.mode == "correct")
+local img = {exif_maker = "Canon", exif_model = "Canon EOS 5D", exif_lens = "EF50mm f/1.8 $(x)",
+             exif_focal_length = 50, exif_aperture = 1.8}
+local lreq = M.request({mode = "check"}, "/e/x.tif", img)
+local f1 = lreq.files[1]
+check("request-lens", f1.path == "/e/x.tif" and f1.lens.lens == "EF50mm f/1.8 $(x)" and f1.lens.make == "Canon"
+  and f1.lens.focal_mm == 50 and f1.lens.fnumber == 1.8)
+check("request-no-lens", M.request({mode = "check"}, "/e/x.tif", {exif_lens = "", exif_aperture = 0}).files[1]
+  == "/e/x.tif")
 out:close()
 """
 
@@ -159,7 +167,7 @@ def test_darktable_script_helpers_under_darktables_lua(tmp_path, work):
                   cwd=work, luacmd=LUA_SELF_TEST)
     assert r.returncode == 0, r.stderr
     lines = result.read_text().splitlines()
-    assert len(lines) == 8 and all(line.endswith("=ok") for line in lines), lines
+    assert len(lines) == 10 and all(line.endswith("=ok") for line in lines), lines
     assert not pwned(tmp_path)
 
 

@@ -205,9 +205,29 @@ end
 
 -- ----------------------------------------------------------------- running vigproc
 
+-- The lens darktable's own image record names, as a hook request's "lens" (nil when
+-- darktable knows no lens). An export drops maker notes (Canon's name the lens there),
+-- so the export's EXIF alone may say "unknown lens" where darktable knows it.
+function M.lens_of(image)
+  if image == nil then return nil end
+  local ok, lens = pcall(function() return image.exif_lens end)
+  if not ok or type(lens) ~= "string" or lens == "" then return nil end
+  local t = { lens = lens }
+  local fields = { make = "exif_maker", model = "exif_model", focal_mm = "exif_focal_length",
+                   fnumber = "exif_aperture" }
+  for key, field in pairs(fields) do
+    local got, v = pcall(function() return image[field] end)
+    if got and ((type(v) == "string" and v ~= "") or (type(v) == "number" and v > 0)) then t[key] = v end
+  end
+  return t
+end
+
 -- Build the request for one exported file (pure: tested without darktable).
-function M.request(settings, filename)
-  local req = { mode = settings.mode, files = { filename } }
+function M.request(settings, filename, image)
+  local lens = M.lens_of(image)
+  local entry = filename
+  if lens ~= nil then entry = { path = filename, lens = lens } end
+  local req = { mode = settings.mode, files = { entry } }
   if settings.mode == "correct" then
     req.output_dir = settings.output_dir ~= "" and settings.output_dir or dirname(filename)
   end
@@ -220,10 +240,10 @@ function M.command(settings, request_file)
 end
 
 -- Run vigproc on one file; returns the decoded answer (or nil) and a message.
-function M.run(settings, filename)
+function M.run(settings, filename, image)
   local tmp = os.tmpname()
   local f = assert(io.open(tmp, "wb"))
-  f:write(M.json_encode(M.request(settings, filename)))
+  f:write(M.json_encode(M.request(settings, filename, image)))
   f:close()
   local pipe = io.popen(M.command(settings, tmp), "r")
   local out = pipe and pipe:read("a") or ""
@@ -270,7 +290,7 @@ end
 function M.on_export(_, image, filename, _, _)
   local settings = M.settings()
   if settings.mode == "off" then return end
-  local ok, answer, message = pcall(M.run, settings, filename)
+  local ok, answer, message = pcall(M.run, settings, filename, image)
   if not ok then answer, message = nil, "vigproc failed: " .. tostring(answer) end
   report(image, answer, message)
 end
