@@ -526,3 +526,13 @@ def test_lines_printed_during_a_progress_bar_stay_whole(monkeypatch):
     for i in (1, 2, 3):
         assert any(seg.strip() == f"warned {i}" for seg in segments), segments
     assert not any("warned" in seg and "testing" in seg for seg in segments), segments
+
+
+def test_correct_leaves_no_empty_folder_when_every_file_fails(tmp_path):
+    out = tmp_path / "new-out"
+    r = run("correct", tmp_path / "missing.jpg", "-o", out)
+    assert r.returncode == 4 and "nothing written" in r.stdout
+    assert not out.exists()  # it made the folder to check it is writable; nothing went in
+    (tmp_path / "kept").mkdir()
+    r = run("correct", tmp_path / "missing.jpg", "-o", tmp_path / "kept")
+    assert (tmp_path / "kept").is_dir()  # a folder that was there stays

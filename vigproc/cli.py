@@ -135,6 +135,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from vigproc.faults import DISK_FULL, classify_error
     from vigproc.pipeline import InputFiles, Processor, Settings, output_folder, output_stems
 
+    made = not Path(args.output).exists()
     outdir = output_folder(args.output)
     files = [Path(f) for f in args.files]
     inputs = InputFiles(files)  # no output may replace an input of this run
@@ -174,11 +175,14 @@ def cmd_correct(args: argparse.Namespace) -> int:
             store.close()
     not_started = len(files) - len(results)
     failed += not_started
+    if made and failed == len(files):  # nothing written: leave no empty folder behind
+        with contextlib.suppress(OSError):
+            outdir.rmdir()
     if args.json:
         print(json.dumps({"results": results, "done": len(files) - failed, "failed": failed}, indent=1))
     else:
         print(f"{len(files) - failed - unapplied} corrected, {unapplied} not corrected, {failed} failed; "
-              f"outputs in {outdir}")
+              + (f"outputs in {outdir}" if failed < len(files) else "nothing written"))
     if full is not None and full.kind == DISK_FULL:
         raise DiskFullError(f"{full.reason}; stopped with {not_started} file(s) not started: free space on "
                             f"{outdir} and run again")
