@@ -196,7 +196,9 @@ class Result:
             v = self.verdict or {}
             return f"check: {v.get('verdict', 'no verdict')}"
         if self.fallback:
-            return f"no correction: evidence too weak{conf}"
+            from vigproc.pipeline import WEAK_EVIDENCE
+
+            return f"not corrected: {WEAK_EVIDENCE}{conf}"
         ev = self.falloff_ev or 0.0
         if self.mode == "correct":
             return f"{self.removed_ev or 0.0:.2f} EV fall-off removed ({self.source}{conf})" if self.applied else \

@@ -134,6 +134,9 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".dng", ".cr2", ".cr3", ".nef",
                             ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw", ".kdc"})
 
+#: Why nothing was applied to a frame whose estimate is weak: one wording for every front end.
+WEAK_EVIDENCE = "weak evidence: the estimate is not clearly above its uncertainty"
+
 #: Sidecar suffix: the sidecar is written last, so its presence means the frame is done.
 SIDECAR_SUFFIX = ".vigproc.json"
 
@@ -884,8 +887,7 @@ class Processor:
                                 keep_colour=keep_colour)
             res.output = str(dst)
         if out is not None and not res.applied:  # said whatever was written
-            res.extra["not_applied"] = ("strength 0" if s.strength == 0 else
-                                        "weak evidence: the estimate is not clearly above its uncertainty")
+            res.extra["not_applied"] = "strength 0" if s.strength == 0 else WEAK_EVIDENCE
             if kept is not None and policy in ("copy", "link"):
                 keep_original(path, kept, link=policy == "link")
                 res.output = str(kept)
