@@ -857,3 +857,35 @@ def test_libraw_complaints_go_into_the_error_not_raw_stderr(tmp_path: Path) -> N
     with pytest.raises(ImageReadError, match="Unexpected end of file"):
         read_image(cut)
     os.write(2, b"")  # still a valid descriptor
+
+
+def test_linear_tiffs_carry_a_linear_srgb_icc_profile(tmp_path: Path) -> None:
+    """Editors take a TIFF without a profile for sRGB-encoded and show a linear one far
+    too dark: a linear RGB TIFF says what it holds (sRGB primaries, gamma 1.0)."""
+    import shutil
+    import struct
+    import subprocess
+
+    from vigproc.icc import DESCRIPTION, linear_srgb_profile
+
+    icc = linear_srgb_profile()
+    assert struct.unpack(">I", icc[:4])[0] == len(icc) and icc[36:40] == b"acsp" and icc[12:20] == b"mntrRGB "
+    n = struct.unpack(">I", icc[128:132])[0]
+    tags = {icc[132 + 12 * i:136 + 12 * i]: struct.unpack(">II", icc[136 + 12 * i:144 + 12 * i]) for i in range(n)}
+    assert {b"desc", b"wtpt", b"rXYZ", b"gXYZ", b"bXYZ", b"rTRC", b"gTRC", b"bTRC", b"cprt"} <= set(tags)
+    for sig in (b"rTRC", b"gTRC", b"bTRC"):  # identity curves: gamma 1.0
+        off, size = tags[sig]
+        assert icc[off:off + 4] == b"curv" and icc[off + 8:off + 14] == struct.pack(">IH", 1, 0x0100)
+        assert off % 4 == 0 and off + size <= len(icc)
+    rgb = np.random.default_rng(0).uniform(0, 1, (16, 24, 3)).astype(np.float32)
+    write_image(tmp_path / "lin.tif", rgb, bit_depth="uint16")
+    write_image(tmp_path / "grey.tif", rgb[..., 0], bit_depth="uint16")
+    write_image(tmp_path / "srgb.tif", rgb, bit_depth="uint16", transfer="srgb")
+    back, info = read_image(tmp_path / "lin.tif")
+    assert info.transfer == "linear" and np.allclose(back, rgb, atol=1e-4)  # the profile changes no reading
+    if shutil.which("exiftool"):
+        def desc(p):
+            return subprocess.run(["exiftool", "-s3", "-ProfileDescription", str(p)], capture_output=True,
+                                  text=True).stdout.strip()
+        assert desc(tmp_path / "lin.tif") == DESCRIPTION
+        assert desc(tmp_path / "grey.tif") == "" and desc(tmp_path / "srgb.tif") == ""

@@ -376,7 +376,8 @@ def test_real_camera_jpeg_icc_and_previews(shared_data: Path, outdir: Path) -> N
     write_corrected(out, image(), iphone, None)
     t = _g0(out)
     assert t["EXIF:Model"] == "iPhone 4" and "EXIF:GPSLatitude" in t
-    assert not any(k.startswith("ICC_Profile:") for k in t)  # linear output: no sRGB profile
+    # linear output: not the source's sRGB profile, but the linear one that says what it holds
+    assert t.get("ICC_Profile:ProfileDescription") == "vigproc linear sRGB (gamma 1.0)"
     assert t["EXIF:ColorSpace"] == 65535
     out = outdir / "nikon.tif"
     write_corrected(out, image(), nikon, None)

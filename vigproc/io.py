@@ -1094,6 +1094,13 @@ def write_image(
             # ColorSpace "uncalibrated" (also avoids a spurious libtiff EXIF error).
             spec.attribute("ImageDescription", LINEAR_TIFF_MARKER)
             spec.attribute("Exif:ColorSpace", 65535)
+            if nch == 3:
+                # what editors and viewers go by: without it they take the values for
+                # sRGB-encoded and show a linear frame far too dark
+                from vigproc.icc import linear_srgb_profile
+
+                icc = linear_srgb_profile()
+                spec.attribute("ICCProfile", oiio.TypeDesc(f"uint8[{len(icc)}]"), np.frombuffer(icc, dtype=np.uint8))
     else:
         spec.attribute("oiio:ColorSpace", "srgb_rec709_scene" if tr == "srgb" else "lin_rec709_scene")
     if fmt == "jpeg":

@@ -36,7 +36,8 @@ Tags that are *not* copied because they would be wrong for the output:
   :data:`vigproc.io.LINEAR_TIFF_MARKER`; an XMP ``dc:description`` is kept);
 * the ICC profile.  A linear output's source profile describes the source's own
   tone curve, so keeping it would make colour-managed viewers decode the output
-  wrongly.  exiftool does not copy it with ``-all:all`` anyway; it is excluded
+  wrongly (a linear RGB TIFF carries vigproc's own linear-sRGB profile instead,
+  :mod:`vigproc.icc`).  exiftool does not copy it with ``-all:all`` anyway; it is excluded
   explicitly as well.  (A display-encoded output of a display-encoded source --
   a JPEG back as a JPEG -- keeps the source's colour description, ICC profile and
   interoperability index included: ``keep_colour`` of :func:`copy_metadata`.);
