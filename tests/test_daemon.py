@@ -863,3 +863,4 @@ def test_temporaries_of_killed_writers_are_removed(tmp_path):
     assert d.wait() == 1
     assert _temps(out_dir) <= foreign
     assert _none_alive(str(tmp_path)) == []
+

@@ -181,6 +181,11 @@ def test_retry_quarantined_brings_files_back_from_the_quarantine_folder(tmp_path
     common = ("--settle", "0.2", "--quarantine", str(qdir))
     d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *common, env=env).start()
     d.wait_for("both moved to the quarantine folder", lambda: _inputs(in_dir) == [], timeout=90)
+    d.wait_for("the status to count them", lambda: _status(out_dir).get("this_run", {}).get("quarantined", 0)
+               >= len(names), timeout=30)
+    run = _status(out_dir)["this_run"]
+    # failed attempts under their own name: the journal's "failed" means files waiting to retry
+    assert "failed" not in run and run.get("failed_attempts", 0) >= len(names), run
     assert d.stop() == 0
     assert sorted(p.name for p in qdir.iterdir()) == sorted(
         [output_stem(n) for n in names] + [output_stem(n) + ".reason.json" for n in names])

@@ -727,7 +727,9 @@ class Daemon:
         self.workers: list[_Worker] = []
         self.known: dict[str, tuple[int, int]] = {}  # path -> (size, mtime_ns) done/quarantined this run
         self.unreadable: dict[str, tuple[int, float]] = {}  # path -> (attempts, retry at, monotonic)
-        self.stats = {"done": 0, "failed": 0, "quarantined": 0, "retried": 0, "recovered": 0, "released": 0,
+        # "failed_attempts": attempts that failed this run (a file retried once, then
+        # quarantined, counts 2); the journal's "failed" is files waiting to retry now
+        self.stats = {"done": 0, "failed_attempts": 0, "quarantined": 0, "retried": 0, "recovered": 0, "released": 0,
                       "disk_full": 0}
         self._stop: str | None = None
         self._abort = False
@@ -1526,7 +1528,7 @@ class Daemon:
             self._journal_later(task, f"as failed ({reason})", exc,
                                 lambda: self._record_failure(task, kind, reason, max_attempts))
             return
-        self.stats["failed"] += 1
+        self.stats["failed_attempts"] += 1
         if outcome == "retry":
             self.stats["retried"] += 1
             e = self.journal.lookup(task.path)
@@ -1552,7 +1554,7 @@ class Daemon:
         except JournalError as exc:
             self._journal_later(task, f"as crashed ({reason})", exc, lambda: self._record_crash(task, reason))
             return
-        self.stats["failed"] += 1
+        self.stats["failed_attempts"] += 1
         if outcome == "retry":
             self.stats["retried"] += 1
             e = self.journal.lookup(task.path)

@@ -91,7 +91,7 @@ def _print_status(st: dict[str, Any]) -> None:
                   f"{d.get('files_per_min', 0)} files in the last minute")
         t = d.get("this_run") or {}
         print(f"  this run: {t.get('done', 0)} done, {t.get('quarantined', 0)} quarantined, "
-              f"{t.get('retried', 0)} retries")
+              f"{t.get('failed_attempts', 0)} failed attempts, {t.get('retried', 0)} retries")
     if c:
         print(f"  journal: {c.get('done', 0)} done, {c.get('failed', 0)} failed (will retry), "
               f"{c.get('quarantined', 0)} quarantined, {c.get('pending', 0)} pending, {c.get('running', 0)} running")
