@@ -494,9 +494,39 @@ def test_daemon_end_to_end_kill9_restart_and_drain(tmp_path):
 
 
 # ====================================================================== faults
-_FAULTS = r'''
+_PATCH_ON_IMPORT = r'''
+import importlib.abc, importlib.machinery, sys
+
+
+class _Finder(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name != MODULE:
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        run = spec.loader.exec_module
+
+        def exec_module(module):
+            run(module)
+            _patch(module)
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+sys.meta_path.insert(0, _Finder())
+'''
+
+
+def sitecustomize(module: str, faults: str) -> str:
+    """A ``sitecustomize`` for every process of a daemon: ``faults`` (which defines
+    ``_patch(module)``) applied to ``module`` as soon as it is imported."""
+    return faults + _PATCH_ON_IMPORT.replace("MODULE", repr(module))
+
+
+_FAULTS = sitecustomize("vigproc.pipeline", r'''
 """Test-only faults, injected into every vigproc process through sitecustomize."""
-import importlib.abc, importlib.machinery, os, sys, time
+import os, time
 
 MARK = os.environ["VIGPROC_TEST_FAULT_DIR"]
 
@@ -520,26 +550,7 @@ def _patch(module):
         return orig(self, path, *a, **kw)
 
     module.Processor.process_file = process_file
-
-
-class _Finder(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path, target=None):
-        if name != "vigproc.pipeline":
-            return None
-        sys.meta_path.remove(self)
-        spec = importlib.machinery.PathFinder.find_spec(name, path)
-        run = spec.loader.exec_module
-
-        def exec_module(module):
-            run(module)
-            _patch(module)
-
-        spec.loader.exec_module = exec_module
-        return spec
-
-
-sys.meta_path.insert(0, _Finder())
-'''
+''')
 
 
 def test_worker_crash_hang_and_full_disk(tmp_path):

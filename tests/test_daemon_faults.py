@@ -18,11 +18,12 @@ from pathlib import Path
 
 import pytest
 
-from test_daemon import VIGPROC, Daemon, journal_entries, make_good, out_sidecar, output_files, output_stem, sha, sidecars
+from test_daemon import (VIGPROC, Daemon, journal_entries, make_good, out_sidecar, output_files, output_stem, sha,
+                         sidecars, sitecustomize)
 
-_FAULTS = r'''
+_FAULTS = sitecustomize("vigproc.metadata", r'''
 """Test-only faults, injected into every vigproc process through sitecustomize."""
-import importlib.abc, importlib.machinery, os, shutil, sys
+import os, shutil
 from collections import namedtuple
 
 MARK = os.environ["VIGPROC_TEST_FAULT_DIR"]
@@ -55,26 +56,7 @@ def _patch(module):
         return orig(dst, *a, **kw)
 
     module.write_corrected = write_corrected
-
-
-class _Finder(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path, target=None):
-        if name != "vigproc.metadata":
-            return None
-        sys.meta_path.remove(self)
-        spec = importlib.machinery.PathFinder.find_spec(name, path)
-        run = spec.loader.exec_module
-
-        def exec_module(module):
-            run(module)
-            _patch(module)
-
-        spec.loader.exec_module = exec_module
-        return spec
-
-
-sys.meta_path.insert(0, _Finder())
-'''
+''')
 
 
 @pytest.fixture(autouse=True)

@@ -846,6 +846,17 @@ def cmd_profile(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------ parser
+def _add_clean_bases(bp: argparse.ArgumentParser) -> None:
+    """The clean protocol's bases (vigproc.bench.clean), as bench clean and bench crops take them."""
+    from vigproc.commands._options import number
+
+    bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
+                    help="folders of full-size camera frames (BSDS/Kodak are skipped: film scans)")
+    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
+                    help="frames whose long side is shorter are not used (default %(default)s)")
+    bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from vigproc.methods import METHODS
 
@@ -1001,11 +1012,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.set_defaults(fn=cmd_bench_lensfun)
     bp = bsub.add_parser("clean", help="vignetting-free bases (central crops of camera frames) x real lens "
                          "fields, with the published peer when built")
-    bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
-                    help="folders of full-size camera frames (BSDS/Kodak are skipped: film scans)")
-    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
-                    help="frames whose long side is shorter are not used (default %(default)s)")
-    bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+    _add_clean_bases(bp)
     bp.add_argument("--crop", type=number(0.05, 1.0), default=0.4,
                     help="side fraction of each frame kept about its centre (default %(default)s; the "
                          "camera lens's own fall-off inside the crop grows with it)")
@@ -1026,11 +1033,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.set_defaults(fn=cmd_bench_clean)
     bp = bsub.add_parser("crops", help="the crop/shift test's AUC by fall-off and offset on clean bases, "
                          "its false alarms and power; --calibrate writes its calibration")
-    bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
-                    help="folders of full-size camera frames (as bench clean)")
-    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
-                    help="frames whose long side is shorter are not used (default %(default)s)")
-    bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+    _add_clean_bases(bp)
     bp.add_argument("--lenses", type=number(1, 100, integer=True), default=10,
                     help="lensfun lens shapes (default %(default)s)")
     bp.add_argument("--alpha", type=number(0.0, 1.0, open_lo=True), default=0.01,

@@ -219,17 +219,8 @@ def auc(positives: np.ndarray, negatives: np.ndarray) -> float:
     neg = np.asarray(negatives, dtype=np.float64)
     if pos.size == 0 or neg.size == 0:
         return math.nan
-    allv = np.concatenate([pos, neg])
-    order = allv.argsort(kind="mergesort")
-    ranks = np.empty(allv.size)
-    sorted_v = allv[order]
-    # average ranks for ties
-    i = 0
-    while i < allv.size:
-        j = i
-        while j + 1 < allv.size and sorted_v[j + 1] == sorted_v[i]:
-            j += 1
-        ranks[order[i:j + 1]] = (i + j) / 2.0 + 1.0
-        i = j + 1
+    from scipy.stats import rankdata
+
+    ranks = rankdata(np.concatenate([pos, neg]))  # ties get their average rank
     u = ranks[:pos.size].sum() - pos.size * (pos.size + 1) / 2.0
     return float(u / (pos.size * neg.size))

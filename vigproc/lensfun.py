@@ -502,7 +502,8 @@ def pa_corner(k1: float, k2: float, k3: float) -> float:
     return 1.0 + k1 + k2 + k3
 
 
-def _pa_poly(r2: np.ndarray, k1: float, k2: float, k3: float) -> np.ndarray:
+def pa_poly(r2: np.ndarray, k1: float, k2: float, k3: float) -> np.ndarray:
+    """The pa attenuation ``1 + k1 r² + k2 r⁴ + k3 r⁶`` at squared radii ``r2``."""
     return 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
 
 
@@ -566,7 +567,7 @@ def pa_field(
     dx = np.arange(width, dtype=np.float64) - (half_w + off_x)
     dy = np.arange(height, dtype=np.float64) - (half_h + off_y)
     r2 = (dy[:, None] ** 2 + dx[None, :] ** 2) / (half_w**2 + half_h**2)
-    return _pa_poly(r2, float(k1), float(k2), float(k3))
+    return pa_poly(r2, float(k1), float(k2), float(k3))
 
 
 # --------------------------------------------------------------------------
@@ -584,7 +585,7 @@ def _bench_entry(lens: LensfunLens) -> PaVignetting:
 def _plausible_falloff(entry: PaVignetting, samples: int = 101) -> bool:
     """Attenuation stays within (0, 1] (1e-3 slack) for r in [0, 1]."""
     r2 = np.linspace(0.0, 1.0, samples) ** 2
-    values = _pa_poly(r2, entry.k1, entry.k2, entry.k3)
+    values = pa_poly(r2, entry.k1, entry.k2, entry.k3)
     return bool(values.min() > 0.0 and values.max() <= 1.0 + 1e-3)
 
 

@@ -104,21 +104,16 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
     if fixed == "missing":
         raise VigprocError(f"unknown output format {name!r}")
     src_suffix = Path(like).suffix.lower() if like is not None else path.suffix.lower()
-    source_jpeg = info is not None and getattr(info, "format", None) == "jpeg"
-    if fixed is not None:
-        if fixed.format == "dng" and src_suffix != ".dng":
-            raise VigprocError(f"--output-format dng needs a DNG input, not {path.name!r}")
-        if fixed.format == "jpeg":
-            q = jpeg_quality(path) if source_jpeg else None
-            return OutputFormat(fixed.suffix, "jpeg", "uint8", "srgb", max(q or DEFAULT_JPEG_QUALITY,
-                                                                         MIN_AUTO_JPEG_QUALITY))
+    if fixed is not None and fixed.format == "dng" and src_suffix != ".dng":
+        raise VigprocError(f"--output-format dng needs a DNG input, not {path.name!r}")
+    if fixed is not None and fixed.format != "jpeg":
         return fixed
-    kind = _AUTO_KIND.get(src_suffix)
+    kind = "jpeg" if fixed is not None else _AUTO_KIND.get(src_suffix)
     depth = getattr(info, "bit_depth", None)
     transfer = getattr(info, "transfer", None)
-    if kind == "jpeg":
-        q = jpeg_quality(path) if source_jpeg else None
-        return OutputFormat(src_suffix, "jpeg", "uint8", "srgb",
+    if kind == "jpeg":  # at the source's own quality when it is a JPEG
+        q = jpeg_quality(path) if getattr(info, "format", None) == "jpeg" else None
+        return OutputFormat(fixed.suffix if fixed is not None else src_suffix, "jpeg", "uint8", "srgb",
                             max(q or DEFAULT_JPEG_QUALITY, MIN_AUTO_JPEG_QUALITY))
     if kind == "png":
         eight = depth in (None, "uint8") and transfer != "linear"
@@ -129,6 +124,7 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
     if kind == "openexr":
         return OutputFormat(".exr", "openexr", "half" if depth == "half" else "float")
     return OUTPUT_FORMATS["tiff16"]  # a RAW: linear 16 bits, what raw editors take
+
 
 #: File name suffixes vigproc reads (RAW through rawpy, the rest through OpenImageIO).
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".dng", ".cr2", ".cr3", ".nef",
@@ -281,15 +277,6 @@ def percent_encode(name: str, *, also: str = "", leading: str = "") -> str:
     return "".join(out)
 
 
-def safe_stem(stem: str) -> str:
-    """``stem`` as an output name can carry it: control characters, bytes that are not
-    UTF-8, separators, a leading ``-`` (read as an option by the next tool) and a
-    leading ``.`` (hidden) percent-encoded, as the watch daemon names its outputs
-    (:func:`vigproc.daemon.output_stem`); other names, spaces and letters of any
-    script included, are kept."""
-    return percent_encode(stem, leading="-.") or "image"
-
-
 def output_name(name: str) -> str:
     """The name every output of an input named ``name`` carries, for every front end
     (``correct``, ``hook``, ``watch``, ``batch``): the file name with its extension
@@ -423,35 +410,29 @@ def keep_original(src: Path, dst: Path, *, link: bool = False) -> None:
     import shutil
     import tempfile
 
-    from vigproc.atomic import fsync_dir, new_file_mode_mask
+    from vigproc.atomic import atomic_path, fsync_dir
 
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{dst.name[:100]}.tmp-", dir=dst.parent)
-        os.close(fd)
-    except OSError as exc:
-        raise ImageWriteError(f"cannot write {os.fspath(dst)!r}: {exc.strerror or exc}") from None
-    try:
-        linked = False
         if link:
-            os.unlink(tmp)
+            # not through atomic_path: its publish() sets the temporary's mode, which for
+            # a hard link is the input's own
+            # a name only: os.link refuses one that exists meanwhile, it never overwrites
+            tmp = tempfile.mktemp(prefix=f".{dst.name[:100]}.tmp-", dir=dst.parent)
             try:
                 os.link(src, tmp)
-                linked = True
             except OSError as exc:  # another file system, or links not allowed: copy instead
                 log.debug("cannot link %s (%s); copying it", src, exc.strerror or exc)
-        if not linked:
-            shutil.copyfile(src, tmp)
-            # a copy is an output like the others: the umask's mode, not mkstemp's 0600
-            os.chmod(tmp, 0o666 & ~new_file_mode_mask())
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-        os.replace(tmp, dst)
-        fsync_dir(dst.parent)
+            else:
+                try:
+                    os.replace(tmp, dst)
+                except OSError:
+                    os.unlink(tmp)
+                    raise
+                fsync_dir(dst.parent)
+                return
+        with atomic_path(dst) as tmp_path:  # a copy is an output like the others (mode, fsync)
+            shutil.copyfile(src, tmp_path)
     except OSError as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
         raise ImageWriteError(f"cannot write {os.fspath(dst)!r}: {exc.strerror or exc}") from None
 
 

@@ -20,6 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from vigproc.bench.clean import HEIGHT, WIDTH
+from vigproc.lensfun import pa_poly
 
 FALLOFFS_EV = (0.25, 0.5, 1.0)
 OFFSETS = (0.10, 0.25, 0.40)
@@ -29,14 +30,13 @@ def lens_log_profile(k: tuple[float, float, float], corner_ev: float, rho: np.nd
     """ln attenuation of a lensfun ``pa`` lens, scaled to ``corner_ev`` at ρ = 1 and
     continued linearly (in ln) past it."""
     def pa(r):
-        r2 = r * r
-        return np.log(np.maximum(1.0 + k[0] * r2 + k[1] * r2 * r2 + k[2] * r2 ** 3, 1e-6))
+        return np.log(np.maximum(pa_poly(r * r, *k), 1e-6))
 
     edge = float(pa(np.asarray(1.0)))
     if not edge < 0:
         raise ValueError("the lens has no fall-off at its corner")
     scale = -corner_ev * math.log(2.0) / edge
-    slope = float(pa(np.asarray(1.0)) - pa(np.asarray(0.999))) / 0.001
+    slope = (edge - float(pa(np.asarray(0.999)))) / 0.001
     inside = np.minimum(rho, 1.0)
     return scale * (pa(inside) + np.maximum(rho - 1.0, 0.0) * slope)
 
