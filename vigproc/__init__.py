@@ -81,7 +81,7 @@ def __dir__() -> list[str]:
     return sorted([*globals(), *_PUBLIC])
 
 
-__version__ = "0.1.0"
+from vigproc._version import __version__  # noqa: E402  (re-exported)
 
 __all__ = [
     "METHODS", "FitQuality", "ImageReadError", "ImageWriteError", "InvalidImageError",

@@ -24,6 +24,7 @@ import shutil
 import time
 from typing import Any, Iterator
 
+from vigproc._version import __version__
 from vigproc.batch import BatchError, JobSpec, Outcome, Task, release_worker_state, run_task, warm_up
 from vigproc.processes import die_with_parent
 
@@ -294,9 +295,7 @@ def cores() -> int:
 
 
 def _worker_check(outdir: str) -> dict[str, Any]:
-    import vigproc
-
-    return {"vigproc": vigproc.__version__, "outdir": os.path.isdir(outdir) and os.access(outdir, os.W_OK | os.X_OK),
+    return {"vigproc": __version__, "outdir": os.path.isdir(outdir) and os.access(outdir, os.W_OK | os.X_OK),
             "exiftool": shutil.which("exiftool") is not None}
 
 
@@ -307,8 +306,6 @@ def check_workers(client, spec: JobSpec) -> None:
     ------
     BatchError
     """
-    import vigproc
-
     try:
         info = client.run(_worker_check, spec.outdir)
     except Exception as exc:
@@ -317,8 +314,8 @@ def check_workers(client, spec: JobSpec) -> None:
     if not info:
         raise BatchError("the dask cluster has no workers")
     for w, i in sorted(info.items()):
-        if i["vigproc"] != vigproc.__version__:
-            raise BatchError(f"worker {w} runs vigproc {i['vigproc']}, this client {vigproc.__version__}")
+        if i["vigproc"] != __version__:
+            raise BatchError(f"worker {w} runs vigproc {i['vigproc']}, this client {__version__}")
         if not i["outdir"]:
             raise BatchError(f"worker {w} cannot write the output folder {spec.outdir} "
                              "(inputs and outputs must be on storage every worker mounts at the same path)")

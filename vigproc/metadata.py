@@ -111,6 +111,7 @@ from typing import Any, Mapping
 import numpy as np
 import OpenImageIO as oiio
 
+from vigproc._version import __version__
 from vigproc.atomic import publish
 from vigproc.errors import ImageReadError, ImageWriteError, InvalidImageError, ModelError
 from vigproc.io import WRITE_EXT_FORMAT as _EXT_FORMAT
@@ -433,14 +434,12 @@ def make_record(
     dict
         Keys ``model``, ``method``, ``version``, ``applied``, ``strength``.
     """
-    import vigproc  # late: the package imports this module's neighbours
-
     if applied is None:
         applied = (not model.is_identity) and strength > 0
     return {
         "model": model,
         "method": method or model.method,
-        "version": vigproc.__version__,
+        "version": __version__,
         "applied": bool(applied),
         "strength": float(strength),
     }

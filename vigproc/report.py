@@ -337,7 +337,7 @@ def _html_section(item: ReportItem) -> str:
 
 def report_html(items: Sequence[ReportItem], *, title: str = "vigproc forensic check", notes: str = "") -> str:
     """The whole report as one self-contained HTML document."""
-    from vigproc import __version__
+    from vigproc._version import __version__
 
     counts: dict[str, int] = {}
     for it in items:

@@ -256,7 +256,7 @@ def overall_exit_code(results: list[dict[str, Any]]) -> int:
 # ------------------------------------------------------------------ command
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run a hook call; returns the answer document (see the module docstring)."""
-    from vigproc import __version__
+    from vigproc._version import __version__
     from vigproc.api import RequestError, lens_key
     from vigproc.pipeline import InputFiles, Processor, Settings, output_folder, output_stems
 
@@ -336,7 +336,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_hook(args: argparse.Namespace) -> int:
-    from vigproc import __version__
+    from vigproc._version import __version__
 
     try:
         answer = run(args)
