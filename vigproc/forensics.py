@@ -560,7 +560,7 @@ def expected_for(lens_key, width: int, height: int, *, store=None, calibration: 
     ForensicsError
         Never for an unknown lens (None is returned); only for a bad calibration.
     """
-    from vigproc.pipeline import lensfun_model
+    from vigproc.lensfun_io import lensfun_model  # scipy.optimize: only when a reference is needed
 
     if lens_key is None:
         return None

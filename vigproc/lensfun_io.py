@@ -54,7 +54,7 @@ import unicodedata
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -64,6 +64,9 @@ from vigproc.errors import ModelError
 from vigproc.lensfun import LensfunLens, interpolate_pa, load_lenses
 from vigproc.model import N_ALPHA, FitQuality, VignettingModel
 
+if TYPE_CHECKING:
+    from vigproc.exif import LensKey
+
 __all__ = [
     "LENSFUN_DB_VERSION",
     "LensfunEntry",
@@ -72,6 +75,7 @@ __all__ = [
     "find_lens",
     "import_lensfun",
     "kw_from_pa",
+    "lensfun_model",
     "pa_from_model",
     "pa_misfit_ev",
 ]
@@ -594,6 +598,23 @@ def import_lensfun(
     logger.debug("%s at %g mm f/%g %g m: pa k=(%g, %g, %g)", _describe(lens), focal, aperture, distance,
                  pa.k1, pa.k2, pa.k3)
     return kw_from_pa(pa.k1, pa.k2, pa.k3, width, height, corner_rho=corner_rho, method="lensfun")
+
+
+def lensfun_model(lens_key: LensKey | None, width: int, height: int) -> VignettingModel:
+    """The lensfun calibration of a frame's lens at its focal length, aperture and focus
+    distance (infinity when the EXIF gives none), for a ``width`` x ``height`` frame.
+
+    Raises
+    ------
+    ModelError
+        The EXIF lacks the lens, focal length or f-number, or lensfun has no usable
+        calibration (:func:`import_lensfun`).
+    """
+    if lens_key is None or lens_key.lens is None or lens_key.focal_mm is None or lens_key.fnumber is None:
+        raise ModelError("lensfun needs the lens, focal length and f-number from EXIF")
+    distance = lens_key.focus_distance_m if lens_key.focus_distance_m not in (None, float("inf")) else 1000.0
+    return import_lensfun(None, lens_key.lens, lens_key.focal_mm, lens_key.fnumber, distance,
+                          width=width, height=height)
 
 
 # --------------------------------------------------------------------------

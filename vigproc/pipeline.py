@@ -542,17 +542,6 @@ def read_lens(reader, path: Path):
     return key, {"lens_id": key.lens_id(), "key": key.to_dict()}
 
 
-def lensfun_model(lens_key, width: int, height: int):
-    """The lensfun calibration of the frame's lens at its focal length and aperture."""
-    from vigproc.lensfun_io import import_lensfun
-
-    if lens_key is None or lens_key.lens is None or lens_key.focal_mm is None or lens_key.fnumber is None:
-        raise ModelError("lensfun needs the lens, focal length and f-number from EXIF")
-    distance = lens_key.focus_distance_m if lens_key.focus_distance_m not in (None, float("inf")) else 1000.0
-    return import_lensfun(None, lens_key.lens, lens_key.focal_mm, lens_key.fnumber, distance,
-                          width=width, height=height)
-
-
 def file_sha256(path: str | os.PathLike[str]) -> str:
     """Hex SHA-256 of a file's content, streamed (a frame's content id).
 
@@ -605,6 +594,8 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
 
         return import_profile(profile).model(w, h), "profile-file"
     if profile == "lensfun":
+        from vigproc.lensfun_io import lensfun_model
+
         return lensfun_model(lens_key, w, h), "lensfun"
     if profile == "auto" and lens_key is not None and store is not None:
         try:
