@@ -41,7 +41,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +56,10 @@ MAX_MESSAGE = 32 * 2**20
 _LEN = struct.Struct("!I")
 #: True inside the server: its calls run here, never handed on again.
 _SERVING = False
+
+#: What runs one call: ``vigproc.cli.main`` (given by the ``python -m`` entry below, so
+#: that this module, which the CLI imports, does not import the CLI back).
+Runner = Callable[[Sequence[str]], int]
 
 
 def serving() -> bool:
@@ -193,9 +197,7 @@ def _as_client(doc: dict[str, Any]):
         os.chdir(old_cwd)
 
 
-def _handle(conn: socket.socket) -> None:
-    from vigproc.cli import main
-
+def _handle(conn: socket.socket, run: Runner) -> None:
     creds = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
     _pid, uid, _gid = struct.unpack("3i", creds)
     if uid != os.getuid():  # the folder is private; this is the second lock
@@ -206,7 +208,7 @@ def _handle(conn: socket.socket) -> None:
         return
     try:
         with _as_client(doc) as (out, err):
-            code = main(argv)
+            code = run(argv)
     except SystemExit as exc:  # argparse's usage errors
         code = exc.code if isinstance(exc.code, int) else 2
     except Exception as exc:  # noqa: BLE001 - one bad call must not end the server
@@ -215,8 +217,9 @@ def _handle(conn: socket.socket) -> None:
     _send(conn, {"stdout": out.getvalue(), "stderr": err.getvalue(), "code": int(code)})
 
 
-def serve(path: Path, idle: float = IDLE_SECONDS) -> int:
-    """Answer hook calls on the Unix socket ``path`` until ``idle`` seconds pass without one."""
+def serve(path: Path, run: Runner, idle: float = IDLE_SECONDS) -> int:
+    """Answer hook calls on the Unix socket ``path`` with ``run`` (the CLI's ``main``)
+    until ``idle`` seconds pass without one."""
     global _SERVING
     _SERVING = True
     import numpy as np  # noqa: F401 - warm now, not in the first call
@@ -261,7 +264,7 @@ def serve(path: Path, idle: float = IDLE_SECONDS) -> int:
             with conn:
                 conn.settimeout(None)
                 try:
-                    _handle(conn)
+                    _handle(conn, run)
                 except (OSError, ConnectionError, ValueError) as exc:
                     log.debug("hook call dropped: %s", exc)
             if not path.exists():  # removed by someone: stop serving a name nobody finds
@@ -274,7 +277,7 @@ def serve(path: Path, idle: float = IDLE_SECONDS) -> int:
     return 0
 
 
-def _main(argv: Sequence[str] | None = None) -> int:
+def _main(run: Runner, argv: Sequence[str] | None = None) -> int:
     import argparse
 
     p = argparse.ArgumentParser(prog="python -m vigproc.hookserver", description=__doc__.splitlines()[0])
@@ -283,13 +286,14 @@ def _main(argv: Sequence[str] | None = None) -> int:
                    help="seconds without a call before leaving")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    return serve(Path(a.socket), a.idle)
+    return serve(Path(a.socket), run, a.idle)
 
 
 if __name__ == "__main__":
     # run as the importable module, not as __main__: the CLI asks vigproc.hookserver
     # whether it runs inside the server (a second copy of the module would say no,
     # and the server would hand its calls to itself)
+    from vigproc.cli import main as _cli_main
     from vigproc.hookserver import _main as _module_main
 
-    sys.exit(_module_main())
+    sys.exit(_module_main(_cli_main))
