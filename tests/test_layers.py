@@ -1,0 +1,200 @@
+"""Imports point one way, down (issue 23).
+
+The module import graph is read from vigproc's sources with :mod:`ast`: every
+``import`` counts, at a module's top level and inside functions alike (a lazy
+import keeps ``vigproc --help`` fast, but it is still an edge of the graph). Only the
+body of ``if __name__ == "__main__":`` is left out: it runs as the script
+``__main__``, which no module imports.
+
+The graph must have no cycle; no module may import the package ``vigproc`` itself
+(its ``__init__`` is the top: it re-exports, lazily); and the benchmarks
+(``vigproc.bench``) are imported only by the code of the ``vigproc bench`` commands.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "vigproc"
+BENCH = "vigproc.bench"
+
+#: Functions outside vigproc.bench that may import it: the ``vigproc bench`` commands
+#: and their helpers, by (module, top-level function).
+BENCH_COMMANDS = {
+    ("vigproc.cli", "_estimator"),  # the benches' estimator table (rgs, the peer)
+    ("vigproc.commands.watch", "_make_inputs"),  # bench watch's frames
+}
+#: Real commands that still import benchmark code. Moving the shared pieces down needs
+#: edits under vigproc/bench/, outside the change that added this test; not to grow.
+BENCH_DEBT = {
+    # prior fit-scene / fit-profile-bias read frames with bench.synthetic.read_protocol_images
+    ("vigproc.cli", "_fit_falloff"),
+    # forensics calibrate reads frames the same way and takes its lens classes and
+    # residuals from bench.forensics (bench_classes, calibration_residuals)
+    ("vigproc.commands.forensics", "_protocol_images"),
+    ("vigproc.commands.forensics", "cmd_calibrate"),
+}
+
+
+@dataclass(frozen=True)
+class Edge:
+    """One import: ``source`` imports ``target`` at ``line``, inside top-level ``function``
+    (None at module level)."""
+
+    source: str
+    target: str
+    line: int
+    function: str | None
+
+
+def modules(root: Path) -> dict[str, Path]:
+    """Dotted module name -> source file, for every ``.py`` under the package ``root``."""
+    out = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = list(path.relative_to(root.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts.pop()
+        out[".".join(parts)] = path
+    return out
+
+
+def _is_main_guard(node: ast.AST) -> bool:
+    return (isinstance(node, ast.If) and isinstance(node.test, ast.Compare)
+            and isinstance(node.test.left, ast.Name) and node.test.left.id == "__name__"
+            and any(isinstance(c, ast.Constant) and c.value == "__main__" for c in node.test.comparators))
+
+
+def _imports(tree: ast.Module):
+    """Every import node of a module with its enclosing top-level function's name,
+    skipping the ``__main__`` guard's body."""
+    for top in tree.body:
+        if _is_main_guard(top):
+            continue
+        function = top.name if isinstance(top, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) else None
+        for node in ast.walk(top):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                yield node, function
+
+
+def import_graph(root: Path) -> list[Edge]:
+    """The imports between the package's own modules (an import of a name inside a
+    module is an edge to that module; of a submodule, to the submodule)."""
+    mods = modules(root)
+    top = root.name
+
+    def known(name: str) -> str | None:
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    edges = []
+    for name, path in mods.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node, function in _imports(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            else:
+                base = node.module or ""
+                if node.level:  # relative: from the package, one level up per extra dot
+                    anchor = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                    base = ".".join(anchor + ([base] if base else []))
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in mods else base for a in node.names]
+            for t in targets:
+                if t == top or t.startswith(top + "."):
+                    target = known(t)
+                    if target is not None and target != name:
+                        edges.append(Edge(name, target, node.lineno, function))
+    return edges
+
+
+def cycles(edges: list[Edge]) -> list[list[str]]:
+    """The graph's strongly connected components of more than one module (Tarjan)."""
+    adj: dict[str, set[str]] = defaultdict(set)
+    for e in edges:
+        adj[e.source].add(e.target)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(adj[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted({e.source for e in edges} | {e.target for e in edges}):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def _describe(component: list[str], edges: list[Edge]) -> str:
+    inside = set(component)
+    return "; ".join(f"{e.source}:{e.line} -> {e.target}" for e in edges
+                     if e.source in inside and e.target in inside)
+
+
+@pytest.fixture(scope="module")
+def graph() -> list[Edge]:
+    return import_graph(PACKAGE)
+
+
+def test_the_graph_sees_imports_inside_functions(graph):
+    lazy = [e for e in graph if e.function is not None]
+    assert len(lazy) > 100  # vigproc imports lazily for start-up time; those are edges too
+    assert any(e.source == "vigproc.pipeline" and e.target == "vigproc.forensics" for e in lazy)  # check mode's
+
+
+def test_no_import_cycle(graph):
+    found = cycles(graph)
+    assert not found, "import cycles: " + " | ".join(_describe(c, graph) for c in found)
+
+
+def test_no_module_imports_the_package_itself(graph):
+    up = [f"{e.source}:{e.line}" for e in graph if e.target == "vigproc"]
+    assert not up, f"import the leaf module instead (vigproc._version for __version__): {up}"
+
+
+def test_only_bench_commands_import_the_benchmarks(graph):
+    users = {(e.source, e.function) for e in graph
+             if (e.target == BENCH or e.target.startswith(BENCH + ".")) and not e.source.startswith(BENCH)}
+    unexpected = sorted(
+        f"{m}.{f or '<module>'}" for m, f in users
+        if not (f and "bench" in f) and (m, f) not in BENCH_COMMANDS | BENCH_DEBT)
+    assert not unexpected, f"real commands importing vigproc.bench: {unexpected}"
+    assert BENCH_DEBT <= users, f"fixed, remove from BENCH_DEBT: {sorted(BENCH_DEBT - users)}"
+
+
+def test_the_checker_finds_a_cycle_through_a_function_level_import(tmp_path):
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from pkg.b import g\n")
+    (pkg / "b.py").write_text("def g():\n    from . import a\n    return a\n")
+    (pkg / "c.py").write_text("import pkg.a\nif __name__ == '__main__':\n    import pkg.d\n")
+    (pkg / "d.py").write_text("import pkg.c\n")
+    edges = import_graph(pkg)
+    assert cycles(edges) == [["pkg.a", "pkg.b"]]  # c -> d is only the script's: no cycle c, d
+    assert Edge("pkg.b", "pkg.a", 2, "g") in edges
