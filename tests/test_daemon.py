@@ -612,6 +612,25 @@ def test_second_daemon_on_the_same_folders_is_refused_and_bad_arguments(tmp_path
         assert len(r.stderr.strip().splitlines()) == 1
 
 
+def test_a_profile_source_is_not_a_profile_file(tmp_path):
+    """``--profile source:NAME`` names a profile-source plugin: watch took it for the file
+    OUT/../source:foo and refused to start (exit 8, issue 23). It now does what batch
+    does with the same argument: the frame fails for good, the plugin being unknown."""
+    in_dir, out_dir = tmp_path / "in", tmp_path / "out"
+    in_dir.mkdir()
+    make_good(in_dir, "a.png", 0)
+    db = ("--profile-db", str(tmp_path / "p.sqlite"))
+    b = subprocess.run([*VIGPROC, "batch", str(in_dir), "--mode", "correct", "-o", str(tmp_path / "batch"),
+                        "--profile", "source:foo", *db], capture_output=True, text=True, timeout=120)
+    assert b.returncode == 1 and "a.png: unknown profile source 'foo'" in b.stdout + b.stderr, b.stderr
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--profile", "source:foo", "--settle", "0.2", *db).start()
+    d.wait_for("the file quarantined", lambda: [e.state for e in journal_entries(out_dir).values()] == ["quarantined"],
+               timeout=120)
+    assert d.stop() == 0
+    [entry] = journal_entries(out_dir).values()
+    assert entry.reason.startswith("unknown profile source 'foo'"), entry.reason
+
+
 @pytest.mark.skipif(shutil.which("exiftool") is None, reason="the DNG fixture needs exiftool for its EXIF")
 def test_learn_mode_pools_each_frame_once_across_a_kill(tmp_path):
     from dngfixture import make_dng

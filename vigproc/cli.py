@@ -146,7 +146,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     codes: set[int] = set()  # exit codes of the failures
     results = []
     full = None  # the fault of the last failure (vigproc.faults)
-    store = _open_store(args) if args.profile == "auto" else None
+    store = _open_store(args) if settings.needs_store else None
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
             for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):

@@ -309,11 +309,6 @@ class WatchConfig:
         self.status_file = Path(self.status_file).expanduser().resolve()
         self.lock_file = self.journal.with_name(f"{self.journal.name}.{tag}.lock")
 
-    @property
-    def needs_store(self) -> bool:
-        s = self.settings
-        return s.get("mode") in ("learn", "check") or (s.get("mode", "correct") == "correct" and s.get("profile") == "auto")
-
     def validate(self) -> None:
         """Check the folders and numbers; create the output folders.
 
@@ -440,7 +435,7 @@ def _summary(d: dict[str, Any], sidecar: Path) -> dict[str, Any]:
     }.items() if v is not None}
 
 
-def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str | None, needs_store: bool,
+def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str | None,
                  log_json: bool, log_level: int, min_free: int = DEFAULT_MIN_FREE) -> None:
     """A worker process: one Processor, tasks in, results out, until told to stop or
     the daemon goes away."""
@@ -465,7 +460,7 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
         from vigproc.pipeline import SIDECAR_SUFFIX, Processor, Settings, safe_output
 
         s = Settings(**settings)
-        if needs_store:
+        if s.needs_store:
             from vigproc.profiles import ProfileStore
 
             store = ProfileStore(profile_db)
@@ -982,7 +977,7 @@ class Daemon:
             os.environ["NUMBA_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // cfg.workers))
         try:
             p = ctx.Process(target=_worker_main, name=f"worker-{index}",
-                            args=(child, cfg.settings, cfg.profile_db, cfg.needs_store, cfg.log_json, cfg.log_level,
+                            args=(child, cfg.settings, cfg.profile_db, cfg.log_json, cfg.log_level,
                                   cfg.min_free))
             p.start()
         finally:

@@ -27,6 +27,17 @@ log = logging.getLogger(__name__)
 
 #: What a frame can be processed for.
 MODES = ("correct", "check", "learn", "estimate")
+#: ``profile`` values that say where a frame's model comes from; any other value is
+#: ``source:NAME`` (a profile-source plugin) or the path of a profile file.
+PROFILE_CHOICES = ("auto", "estimate", "lensfun", "embedded")
+#: ``profile="source:NAME"``: the profile-source plugin NAME only.
+SOURCE_PREFIX = "source:"
+
+
+def names_profile_file(profile: str) -> bool:
+    """Whether a ``profile`` setting is the path of a profile file (not one of
+    :data:`PROFILE_CHOICES` nor ``source:NAME``): the one place that tells them apart."""
+    return profile not in PROFILE_CHOICES and not profile.startswith(SOURCE_PREFIX)
 
 
 
@@ -196,6 +207,17 @@ class Settings:
             raise VigprocError(f"unknown input transfer {self.transfer!r}")
         if not (math.isfinite(self.strength) and 0.0 <= self.strength <= 2.0):
             raise VigprocError(f"strength must be within [0, 2], got {self.strength}")
+
+    @property
+    def profile_is_file(self) -> bool:
+        """Whether ``profile`` is the path of a profile file (:func:`names_profile_file`)."""
+        return names_profile_file(self.profile)
+
+    @property
+    def needs_store(self) -> bool:
+        """Whether processing uses the profile store: learn mode pools into it, check mode
+        takes its reference from it and ``profile="auto"`` looks there first."""
+        return self.mode in ("learn", "check") or self.profile == "auto"
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -576,10 +598,10 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
     h, w = img.shape[:2]
     ca = -1 if img.ndim == 3 else None
     profile = settings.profile
-    if profile.startswith("source:"):
+    if profile.startswith(SOURCE_PREFIX):
         from vigproc.extensions import profile_source
 
-        src = profile_source(profile[len("source:"):])
+        src = profile_source(profile[len(SOURCE_PREFIX):])
         m = src.lookup(lens_key, w, h) if lens_key is not None else None
         if m is None:
             raise ModelError(f"profile source {src.name!r} has no profile for the lens of {where}")
@@ -589,7 +611,7 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
             raise ModelError(f"{where} carries no vignetting calibration of its own (no FixVignetteRadial or "
                              "GainMap opcode in its DNG opcode lists)")
         return embedded.model(w, h), "embedded"
-    if profile not in ("auto", "estimate", "lensfun"):
+    if settings.profile_is_file:
         from vigproc.profiles import import_profile
 
         return import_profile(profile).model(w, h), "profile-file"

@@ -27,10 +27,6 @@ CONFIG_KEYS: dict[str, type] = {"scheduler": str, "workers": int, "journal": str
                                 "numba_threads": int, "connect_timeout": float, "profile_db": str}
 
 
-def _is_profile_file(profile: str) -> bool:
-    return profile not in ("auto", "estimate", "lensfun") and not profile.startswith("source:")
-
-
 def read_config(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The ``[batch]`` table of a TOML config file, type-checked.
 
@@ -85,7 +81,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     items, missing = B.collect(args.source, outdir)
 
     profile_file = None
-    if _is_profile_file(settings.profile):
+    if settings.profile_is_file:
         from vigproc.profiles import import_profile
 
         import_profile(settings.profile)  # validate here: one clear error, not one per file
@@ -119,7 +115,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     store = snapshot = None
     profile_db = _option(args, config, "profile_db")
     try:
-        if settings.mode == "learn" or settings.mode == "check" or settings.profile == "auto":
+        if settings.needs_store:
             from vigproc.profiles import ProfileStore
 
             store = ProfileStore(profile_db)

@@ -305,7 +305,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     inputs = InputFiles(j["path"] for j in jobs if "failed" not in j)  # no output may replace one
 
     store = None
-    if settings.profile == "auto" or settings.mode == "check":
+    if settings.needs_store:
         from vigproc.profiles import ProfileStore
 
         store = ProfileStore(opt["profile_db"])

@@ -30,9 +30,10 @@ def _default_workers() -> int:
 
 def _config(args: argparse.Namespace):
     from vigproc.daemon import WatchConfig
+    from vigproc.pipeline import names_profile_file
 
     profile = args.profile
-    if profile not in ("auto", "estimate", "lensfun"):
+    if names_profile_file(profile):
         profile = str(Path(profile).expanduser().resolve())  # workers must find it whatever their cwd
     settings = {"mode": args.mode, "profile": profile, "method": args.method, "transfer": args.input_transfer,
                 "output_format": args.output_format, "picture": bool(args.picture), "strength": args.strength,
@@ -53,13 +54,12 @@ def _check_settings(cfg) -> None:
 
     from vigproc.pipeline import Settings
 
-    Settings(**cfg.settings)
-    prof = cfg.settings["profile"]
-    if cfg.settings["mode"] == "correct" and prof not in ("auto", "estimate", "lensfun"):
+    settings = Settings(**cfg.settings)
+    if settings.mode == "correct" and settings.profile_is_file:
         from vigproc.profiles import import_profile
 
-        import_profile(prof)
-    if cfg.needs_store:
+        import_profile(settings.profile)
+    if settings.needs_store:
         from vigproc.profiles import ProfileStore
 
         ProfileStore(cfg.profile_db).close()
