@@ -59,10 +59,9 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Callable, Iterable, Iterator
 
 from vigproc.errors import EXIT_CODES, ImageWriteError, VigprocError
-from vigproc.faults import DISK_FULL, OUTPUT, PERMANENT, classify_error
-from vigproc.atomic import temporary_keys
+from vigproc.faults import DISK_FULL, PERMANENT, attempt_limit, classify_error
 from vigproc.pipeline import (IMAGE_SUFFIXES, SIDECAR_SUFFIX, Processor, Settings, output_location, safe_output,
-                              temp_key)
+                              sweep_temporaries)
 
 log = logging.getLogger(__name__)
 
@@ -703,7 +702,7 @@ def run_batch(
     # once every task has finished, temporaries left are orphans of killed tasks (cancelled
     # dask tasks may still be running on their workers after an interrupt)
     if not summary.interrupted or not getattr(backend, "remote", False):
-        summary.swept = sweep_temporaries(spec.outdir, items)
+        summary.swept = sweep_temporaries(spec.outdir, [it.rel for it in items])
         if summary.swept:
             log.info("removed %d temporary files left by killed tasks", summary.swept)
     return summary
@@ -828,9 +827,8 @@ class _Run:
                 self.journal_failure(task, None, f"worker lost ({type(res).__name__}: {res})", "worker-lost", True)
             else:
                 # the output side's fault is never the photo's: retried by later runs without limit
-                limit = None if res.fault in (DISK_FULL, OUTPUT) else 5
                 self.journal_failure(task, res.fingerprint, res.error or "failed", res.error_type or "error", True,
-                                     max_attempts=limit)
+                                     max_attempts=attempt_limit(res.fault, 5))
             if disk and s.disk_full is None:
                 s.disk_full = res.error or "output disk full"
                 log.error("output disk full: no more files are handed out; free space and rerun to resume (%s)",
@@ -911,40 +909,6 @@ class _Run:
             raise BatchError(f"the first {BREAKER_FILES} files all failed with: {first}; stopped without "
                              "quarantining them (fix the cause and rerun)")
         self.flush_held()
-
-
-def sweep_temporaries(outdir: str | os.PathLike[str], items: Iterable[BatchItem]) -> int:
-    """Remove temporary files orphaned by tasks that were killed while writing.
-
-    A killed worker cannot clean up, so its half-written temporary (a hidden file
-    next to the output, never the output itself) stays behind.  Call this only when
-    no task of the job is running: in each output folder of ``items``, hidden files
-    named after one of the folder's inputs and carrying a temporary marker are
-    removed (each folder is listed once).
-
-    Returns
-    -------
-    int
-        Files removed.
-    """
-    by_folder: dict[str, set[str]] = collections.defaultdict(set)
-    for it in items:
-        rel = PurePosixPath(it.rel)
-        folder, stem = output_location(outdir, rel, create=False)
-        by_folder[os.fspath(folder)].add(temp_key(stem, rel.name))
-    n = 0
-    for folder, stems in by_folder.items():
-        try:
-            entries = os.scandir(folder)
-        except OSError:
-            continue
-        with entries:
-            for e in entries:
-                if temporary_keys(e.name) & stems and e.is_file(follow_symlinks=False):
-                    with contextlib.suppress(OSError):
-                        os.unlink(e.path)
-                        n += 1
-    return n
 
 
 def _claim(journal, path: str, fp, worker: str) -> bool:

@@ -88,12 +88,20 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from vigproc.atomic import temporary_keys
 from vigproc.errors import VigprocError, one_line
-from vigproc.faults import DEFAULT_MIN_FREE, DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, classify_error, disk_space
+from vigproc.faults import (
+    CRASH,
+    DEFAULT_MIN_FREE,
+    DISK_FULL,
+    PERMANENT,
+    TRANSIENT,
+    attempt_limit,
+    classify_error,
+    disk_space,
+)
 from vigproc.journal import (FileChangedError, Fingerprint, FingerprintError, Journal, JournalError, boot_id,
                              fingerprint, runner_identity)
-from vigproc.pipeline import output_location, percent_encode, shorten_stem, temp_key
+from vigproc.pipeline import output_location, percent_encode, shorten_stem, sweep_temporaries
 from vigproc.processes import die_with_parent
 
 __all__ = [
@@ -802,7 +810,7 @@ class Daemon:
     def _recover(self) -> None:
         """Hand back the files that a stopped run left running, uncharged (Journal.recover):
         the daemon's own death (kill -9, a power cut) is not the files' fault.  A file that
-        kills its worker is charged while the daemon lives (:meth:`_record_crash`)."""
+        kills its worker is charged while the daemon lives (:meth:`_record_failure`)."""
         interrupted = self.journal.entries("running")
         if not interrupted:
             return
@@ -875,35 +883,15 @@ class Daemon:
                      extra=_ev("cleanup", count=removed))
 
     def _remove_temps(self, paths: Iterable[str], keep: Iterable[str] = ()) -> int:
-        """Remove the temporary files that the outputs of ``paths`` were being written to by
-        a writer that is dead now.  Only hidden names made from those inputs' output stems
-        and carrying a temporary marker are touched (the output folder may be shared), and
-        none that could be the temporary of a file of ``keep`` (still being written)."""
-        cfg = self.cfg
+        """Remove the temporary files that the outputs of the inputs ``paths`` were being
+        written to by a writer that is dead now, none of ``keep`` (still being written):
+        :func:`vigproc.pipeline.sweep_temporaries`."""
+        in_dir = str(self.cfg.in_dir)
 
-        def keys(ps: Iterable[str]) -> dict[Path, set[str]]:
-            by_folder: dict[Path, set[str]] = {}
-            for p in ps:
-                if not _inside(p, str(cfg.in_dir)):
-                    continue
-                try:
-                    folder, stem = output_location(cfg.out_dir, os.path.relpath(p, cfg.in_dir), create=False)
-                except VigprocError:
-                    continue
-                by_folder.setdefault(folder, set()).add(temp_key(stem, p))
-            return by_folder
+        def rels(ps: Iterable[str]) -> list[str]:
+            return [os.path.relpath(p, in_dir) for p in ps if _inside(p, in_dir)]
 
-        mine, busy = keys(paths), keys(keep)
-        removed = 0
-        for folder, stems in mine.items():
-            with contextlib.suppress(OSError), os.scandir(folder) as it:
-                for e in it:
-                    k = temporary_keys(e.name)
-                    if k & stems and not k & busy.get(folder, set()) and e.is_file(follow_symlinks=False):
-                        with contextlib.suppress(OSError):
-                            os.unlink(e.path)
-                            removed += 1
-        return removed
+        return sweep_temporaries(self.cfg.out_dir, rels(paths), keep=rels(keep))
 
     def _take_lock(self) -> None:
         import fcntl
@@ -1013,7 +1001,7 @@ class Daemon:
             if t.started is not None:
                 # the worker died (or hung) on this file while the daemon lives: a crash the
                 # file caused, the only kind charged (a kill of the daemon is not: Journal.recover)
-                self._record_crash(t, f"{why} (worker exit code {code})")
+                self._record_failure(t, CRASH, f"{why} (worker exit code {code})")
             else:
                 self._release(t)
         self._remove_temps([t.path for t in w.tasks], keep=self.inflight)
@@ -1391,9 +1379,7 @@ class Daemon:
                     # in fact incomplete: one more look before quarantining (and moving) it
                     kind_ = TRANSIENT
                     reason += " (recently written: tried again in case it was incomplete)"
-            # any other failure to write an output is the output side's too: retried, never quarantined
-            max_attempts = None if kind_ == OUTPUT else self.cfg.max_attempts
-            self._record_failure(task, kind_, reason, max_attempts)
+            self._record_failure(task, kind_, reason)
 
     # ---------------------------------------------------------- full output disk
     def _disk_full(self, task: _Task, reason: str, free_bytes: int | None) -> None:
@@ -1515,56 +1501,45 @@ class Daemon:
                            verdict=summary.get("verdict"), recovered=summary.get("recovered")))
         self._after_finished(task.path, task.fp, "done", None)
 
-    def _record_failure(self, task: _Task, kind: str, reason: str, max_attempts: int | None) -> None:
+    def _record_failure(self, task: _Task, kind: str, reason: str) -> None:
+        """Charge a failed attempt to ``task``'s file: a ``kind`` of :mod:`vigproc.faults`,
+        :data:`~vigproc.faults.CRASH` when it killed or hung its worker.  The journal
+        decides: retried after a backoff, or quarantined once the file has used up its
+        ``--max-attempts`` (never for an output-side failure), its ``--max-crashes``, or
+        at once when the photo is to blame."""
+        crash = kind == CRASH
         try:
-            outcome = self.journal.failed(task.path, task.fp, reason, transient=kind != PERMANENT,
-                                          max_attempts=max_attempts)
+            if crash:
+                outcome = self.journal.crashed(task.path, task.fp, reason, max_crashes=self.cfg.max_crashes)
+            else:
+                outcome = self.journal.failed(task.path, task.fp, reason, transient=kind != PERMANENT,
+                                              max_attempts=attempt_limit(kind, self.cfg.max_attempts))
         except JournalError as exc:
-            self._journal_later(task, f"as failed ({reason})", exc,
-                                lambda: self._record_failure(task, kind, reason, max_attempts))
+            self._journal_later(task, f"as {'crashed' if crash else 'failed'} ({reason})", exc,
+                                lambda: self._record_failure(task, kind, reason))
             return
         self.stats["failed_attempts"] += 1
+        e = self.journal.lookup(task.path)
         if outcome == "retry":
             self.stats["retried"] += 1
-            e = self.journal.lookup(task.path)
             wait = max((e.not_before if e else 0) - time.time(), 0.0)
-            log.warning("%s failed (%s: %s); retry %d in %.0f s", task.rel, kind, reason, e.attempts if e else 0, wait,
+            count = (f"crash {e.crashes if e else 0} of {self.cfg.max_crashes} allowed" if crash
+                     else f"attempt {e.attempts if e else 0}")
+            log.warning("%s failed (%s: %s); %s, retry in %.0f s", task.rel, kind, reason, count, wait,
                         extra=_ev("retry", file=task.path, kind=kind, reason=reason, retry_in=round(wait, 1)))
-        else:
-            self.known[task.path] = (task.fp.size, task.fp.mtime_ns)
-            self.stats["quarantined"] += 1
-            log.error("quarantined %s: %s", task.rel, reason,
-                      extra=_ev("quarantined", file=task.path, kind=kind, reason=reason))
-            earlier = self._earlier_outputs(task.rel, task.fp)
-            if earlier:
-                # not deleted (they were right for what the file held then), but said
-                log.warning("%s: the outputs %s are of an earlier content of this file, not of the one "
-                            "quarantined", task.rel, ", ".join(earlier),
-                            extra=_ev("earlier-outputs", file=task.path, outputs=earlier))
-            self._after_finished(task.path, task.fp, "quarantined", reason, earlier)
-
-    def _record_crash(self, task: _Task, reason: str) -> None:
-        try:
-            outcome = self.journal.crashed(task.path, task.fp, reason, max_crashes=self.cfg.max_crashes)
-        except JournalError as exc:
-            self._journal_later(task, f"as crashed ({reason})", exc, lambda: self._record_crash(task, reason))
-            return
-        self.stats["failed_attempts"] += 1
-        if outcome == "retry":
-            self.stats["retried"] += 1
-            e = self.journal.lookup(task.path)
-            wait = max((e.not_before if e else 0) - time.time(), 0.0)
-            log.warning("%s: %s; crash %d of %d allowed, retry in %.0f s", task.rel, reason, e.crashes if e else 0,
-                        self.cfg.max_crashes, wait,
-                        extra=_ev("retry", file=task.path, kind="crash", reason=reason, retry_in=round(wait, 1)))
             return
         self.known[task.path] = (task.fp.size, task.fp.mtime_ns)
         self.stats["quarantined"] += 1
-        e = self.journal.lookup(task.path)
-        reason = e.reason if e is not None and e.reason else reason
-        log.error("quarantined %s: %s", task.rel, reason, extra=_ev("quarantined", file=task.path, kind="crash",
+        reason = e.reason if e is not None and e.reason else reason  # as journaled (a crash's says how often)
+        log.error("quarantined %s: %s", task.rel, reason, extra=_ev("quarantined", file=task.path, kind=kind,
                                                                      reason=reason))
-        self._after_finished(task.path, task.fp, "quarantined", reason, self._earlier_outputs(task.rel, task.fp))
+        earlier = self._earlier_outputs(task.rel, task.fp)
+        if earlier:
+            # not deleted (they were right for what the file held then), but said
+            log.warning("%s: the outputs %s are of an earlier content of this file, not of the one "
+                        "quarantined", task.rel, ", ".join(earlier),
+                        extra=_ev("earlier-outputs", file=task.path, outputs=earlier))
+        self._after_finished(task.path, task.fp, "quarantined", reason, earlier)
 
     def _earlier_outputs(self, rel: str, fp: Fingerprint) -> list[str]:
         """The sidecar and output in the output folder for ``rel`` when they record

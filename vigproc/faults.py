@@ -25,6 +25,10 @@ Kinds
     error``, exiftool's ``Error writing image data``).  *A failure to write an
     output is the output side's fault until proven otherwise*: retried with
     backoff and never charged to the photo.
+:data:`CRASH`
+    Not a verdict of :func:`classify_error` (there is no exception to look at): the
+    file killed or hung the worker process handling it.  Retried up to the daemon's
+    ``--max-crashes``.
 
 "Proven otherwise" means a write error that names what is wrong with the frame or
 the settings rather than with the disk (values beyond the output format's range,
@@ -48,6 +52,7 @@ from typing import Callable
 from vigproc.errors import ImageWriteError, VigprocError
 
 __all__ = [
+    "CRASH",
     "DEFAULT_MIN_FREE",
     "DISK_FULL",
     "Fault",
@@ -55,12 +60,15 @@ __all__ = [
     "PERMANENT",
     "TRANSIENT",
     "DiskSpace",
+    "attempt_limit",
     "classify_error",
     "disk_space",
 ]
 
 #: Kinds of failure (see the module docstring).
 PERMANENT, TRANSIENT, DISK_FULL, OUTPUT = "permanent", "transient", "disk-full", "output"
+CRASH = "crash"
+_OUTPUT_SIDE = frozenset({DISK_FULL, OUTPUT})
 
 #: Free bytes below which the output file system counts as full when a write fails
 #: (and above which a paused daemon resumes): room for a few 24-MP 16-bit TIFFs.
@@ -148,12 +156,17 @@ class Fault:
     @property
     def output_side(self) -> bool:
         """A failure to write an output: retried without limit, never charged to the photo."""
-        return self.kind in (DISK_FULL, OUTPUT)
+        return self.kind in _OUTPUT_SIDE
 
     def max_attempts(self, limit: int | None) -> int | None:
-        """Failed attempts after which the file is given up: ``limit``, or None (never)
-        for an output-side failure."""
-        return None if self.output_side else limit
+        """Failed attempts after which the file is given up (:func:`attempt_limit`)."""
+        return attempt_limit(self.kind, limit)
+
+
+def attempt_limit(kind: str, limit: int | None) -> int | None:
+    """Failed attempts of ``kind`` after which a file is given up: ``limit``, or None
+    (never) for an output-side failure, which is not the photo's."""
+    return None if kind in _OUTPUT_SIDE else limit
 
 
 def _output_write(exc: BaseException, low: str, out_dir: str | None) -> bool:

@@ -354,6 +354,55 @@ def temp_key(stem: str, source: str | os.PathLike[str]) -> str:
     return (_image_base(stem, Path(source)) + ".")[:TEMP_KEY]
 
 
+def sweep_temporaries(root: str | os.PathLike[str], rels: Iterable[str | os.PathLike[str]], *,
+                      keep: Iterable[str | os.PathLike[str]] = ()) -> int:
+    """Remove the temporary files that killed writers left beside the outputs (under
+    ``root``) of the inputs at ``rels`` (relative to the run's input folder).
+
+    A killed writer cannot clean up: its half-written temporary (a hidden file next
+    to the output, never the output itself) stays.  Only hidden names made from those
+    inputs' :func:`temp_key` and carrying a temporary marker are removed (the output
+    folder may be shared), none that could be a temporary of an input of ``keep``
+    (still being written), and each folder is listed once.  Call it only when nothing
+    writes the outputs of ``rels``; an input without a valid output location is
+    skipped.
+
+    Returns
+    -------
+    int
+        Files removed.
+    """
+    from vigproc.atomic import temporary_keys
+
+    def keys(inputs: Iterable[str | os.PathLike[str]]) -> dict[Path, set[str]]:
+        by_folder: dict[Path, set[str]] = {}
+        for rel in inputs:
+            try:
+                folder, stem = output_location(root, rel, create=False)
+            except VigprocError:
+                continue
+            by_folder.setdefault(folder, set()).add(temp_key(stem, rel))
+        return by_folder
+
+    busy = keys(keep)
+    removed = 0
+    for folder, stems in keys(rels).items():
+        try:
+            entries = os.scandir(folder)
+        except OSError:
+            continue
+        with entries:
+            for e in entries:
+                k = temporary_keys(e.name)
+                if k & stems and not k & busy.get(folder, set()) and e.is_file(follow_symlinks=False):
+                    try:
+                        os.unlink(e.path)
+                    except OSError:
+                        continue
+                    removed += 1
+    return removed
+
+
 def corrected_name(stem: str, source: Path, suffix: str) -> str:
     """The corrected image's file name: ``IMG_1.corrected.jpg`` when the format is the
     input's own (``IMG_1.jpg``), ``IMG_1.nef.corrected.tif`` when it changes, so two
