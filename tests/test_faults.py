@@ -20,7 +20,8 @@ import pytest
 
 from conftest import textured
 from vigproc.errors import DiskFullError, ImageReadError, ImageWriteError, InvalidImageError
-from vigproc.faults import DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, DiskSpace, classify_error, disk_space
+from vigproc.faults import (CRASH, DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, DiskSpace, attempt_limit, classify_error,
+                            disk_space)
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "profiles" / "examples" / "sony-rx100-10.4mm-f1.8.json"  # 3:2 frames
@@ -51,6 +52,12 @@ def test_a_write_failure_on_a_nearly_full_output_disk_is_the_disks_fault(tmp_pat
     for code in (errno.ENOSPC, errno.EDQUOT):
         assert classify_error(OSError(code, os.strerror(code)), out).kind == DISK_FULL
     assert classify_error(ImageWriteError("cannot write 'x.tif': No space left on device")).kind == DISK_FULL
+
+
+def test_only_output_side_failures_are_retried_without_limit():
+    """One rule for the daemon, batch and Fault: a photo is given up after ``limit``
+    failed attempts, but never for a failure to write an output."""
+    assert [attempt_limit(k, 5) for k in (PERMANENT, TRANSIENT, CRASH, DISK_FULL, OUTPUT)] == [5, 5, 5, None, None]
 
 
 def test_a_write_failure_with_room_left_is_still_not_the_photos(tmp_path, monkeypatch):
