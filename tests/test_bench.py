@@ -126,10 +126,46 @@ def clean_folder(tmp_path):
     return _texture_folder(tmp_path / "clean", 10, seed=30)
 
 
-@pytest.mark.parametrize("command", ["fit-scene", "fit-profile-bias"])
-def test_prior_fit_commands_write_a_loadable_falloff(clean_folder, tmp_path, command):
+def test_bench_profile_clean_learns_through_a_store(tmp_path):
+    """``vigproc bench profile-clean`` on a folder of clean textures: a profile per lens
+    through a real store, the single-frame estimate beside it, trust reported."""
+    d = tmp_path / "bases"
+    d.mkdir()
+    for i in range(3):
+        g = textured(320, 480, seed=40 + i, contrast=0.05)
+        write_image(d / f"t{i}.png", np.repeat(g[..., None], 3, axis=2).astype(np.float32), bit_depth="uint16")
+    out = tmp_path / "pc.json"
+    r = _bench("profile-clean", "--images", d, "--min-long-side", "64", "--lenses", "2", "--counts", "1", "3",
+               "--json", out)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(out.read_text())
+    rows = {(row["method"], row["n_frames"]): row for row in got["rows"]}
+    assert set(rows) == {("single frame (default)", 1), ("store", 1), ("store", 3)}
+    assert all(row["n_lenses"] == 2 and 0 <= row["median_ev"] < 0.5 for row in rows.values())
+    assert got["trust"]["n_lenses"] == 2 and "trusted (sigma <" in r.stdout
+    r = _bench("profile-clean", "--images", d, "--min-long-side", "64", "--counts", "5")
+    assert r.returncode == 2 and "need as many bases" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_prior_fit_lens_family_writes_the_shipped_kind(tmp_path):
+    from vigproc.lensfamily import LensFamily, profile_family
+
+    out = tmp_path / "family.json"
+    r = subprocess.run([*VIGPROC, "prior", "fit-lens-family", "-o", out, "--components", "3"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    fam = LensFamily.from_dict(json.loads(out.read_text()))
+    shipped = profile_family()
+    assert fam.n_components == 3 and "reconstruction error by components" in r.stdout
+    # the shipped family is this command's output on the bundled lensfun database
+    np.testing.assert_allclose(fam.components, shipped.components, atol=1e-7)
+    np.testing.assert_allclose(fam.reconstruction_by_k, shipped.reconstruction_by_k, atol=1e-6)
+
+
+def test_prior_fit_scene_writes_a_loadable_falloff(clean_folder, tmp_path):
     from vigproc.scene import SceneFalloff
 
+    command = "fit-scene"
     out = tmp_path / "out" / "falloff.json"
     out.parent.mkdir()
     r = subprocess.run([*VIGPROC, "prior", command, clean_folder, "-o", out, "--input-transfer", "linear"],
@@ -144,7 +180,7 @@ def test_prior_fit_commands_write_a_loadable_falloff(clean_folder, tmp_path, com
 def test_prior_fit_needs_ten_photos(clean_folder, tmp_path):
     for p in sorted(clean_folder.iterdir())[:2]:
         p.unlink()
-    r = subprocess.run([*VIGPROC, "prior", "fit-profile-bias", clean_folder, "-o", tmp_path / "b.json"],
+    r = subprocess.run([*VIGPROC, "prior", "fit-scene", clean_folder, "-o", tmp_path / "b.json"],
                        capture_output=True, text=True, timeout=600)
     assert r.returncode != 0 and "at least 10 photos" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "b.json").exists()

@@ -2,69 +2,114 @@
 
 import io
 import json
+import math
 
 import numpy as np
 import pytest
 
 from vigproc.errors import ModelError
 from vigproc.estimate import frame_evidence
+from vigproc.family_fit import FrameCoefficients, frame_coefficients
+from vigproc.lensfamily import N_COMPONENTS, PROFILE_COMPONENTS, default_family, profile_family
 from vigproc.lensfun import bench_lenses, pa_field
-from vigproc.pooling import centred_fit, default_profile_bias, pool_fits
+from vigproc.pooling import SIGMA_SCALE, frame_fit, pool_family, pooled_coefficients
 from vigproc.robust import RobustSettings, evidence_copy, working_copy
-from vigproc.scene import NONE, SceneFalloff, default_scene_falloff
+from vigproc.scene import default_scene_falloff
 
 from conftest import textured
 
 H, W = 160, 240
 
 
-def _rms_ev(x: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(x * x)) / np.log(2))
+def _gain_free_ev(x: np.ndarray) -> float:
+    return float(np.std(x) / np.log(2))
 
 
 def _fits(frames):
-    return [centred_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames]
+    return [frame_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames]
 
 
-def test_pooling_subtracts_the_bias_and_recovers_the_lens():
-    """Frames carry a common 'scene' fall-off and a real lens: with that fall-off as
-    the bias, the pooled profile is the lens; without it, the lens and the scene."""
-    _, pa = bench_lenses(1)[0]
-    lens = np.log(pa_field((H, W), pa.k1, pa.k2, pa.k3))
-    scene_model = default_scene_falloff().model(W, H)
-    scene = scene_model.log_field((H, W))
-    frames = [textured(H, W, seed=70 + i, contrast=0.05) * np.exp(scene + lens) for i in range(4)]
-    fits = _fits(frames)
-    bias = SceneFalloff(theta=tuple(default_scene_falloff().theta))
-    pooled = pool_fits(fits, W, H, bias=bias)
-    raw = pool_fits(fits, W, H, bias=NONE)
+def _lens(i: int = 0) -> np.ndarray:
+    _, pa = bench_lenses(i + 1)[i]
+    return np.log(pa_field((H, W), pa.k1, pa.k2, pa.k3))
+
+
+def test_pooled_profile_recovers_the_lens():
+    lens = _lens()
+    frames = [textured(H, W, seed=70 + i, contrast=0.05) * np.exp(lens) for i in range(5)]
+    pooled = pool_family(_fits(frames), W, H)
     assert pooled.method == "profile-pooled" and pooled.covariance is not None
-    err = _rms_ev(pooled.log_field((H, W)) - lens)
-    assert err < 0.25 * _rms_ev(lens), err
-    assert _rms_ev(raw.log_field((H, W)) - lens - scene) < 0.25 * _rms_ev(lens + scene)
-    assert np.hypot(*pooled.center) < 0.02 * np.hypot(W, H) / 2  # centred (up to the bias fit)
+    assert pooled.center == (0.0, 0.0)
+    err = _gain_free_ev(pooled.log_field((H, W)) - lens)
+    assert err < 0.03 and err < 0.2 * _gain_free_ev(lens), err
+    assert 0 < pooled.quality.field_sigma_ev < 0.2
 
 
-def test_pooled_profile_never_brightens():
-    """A bias larger than the frames' fall-off leaves no correction, not a brightening."""
-    frames = [textured(H, W, seed=80 + i, contrast=0.05) for i in range(2)]
+def test_a_fooled_frame_does_not_pull_the_profile():
+    """One frame of five whose scene has a strong fall-off of its own (a lit centre):
+    the median leaves it out, where a mean would move by a fifth of it."""
+    lens = _lens()
+    frames = [textured(H, W, seed=170 + i, contrast=0.05) * np.exp(lens) for i in range(5)]
+    clean = pool_family(_fits(frames), W, H).log_field((H, W))
     from vigproc.bench.synthetic import table1_model
-    from vigproc.normalised import normalise
 
-    strong = SceneFalloff(theta=tuple(normalise(table1_model(1))[0]))  # far more fall-off than the frames
-    pooled = pool_fits(_fits(frames), W, H, bias=strong)
-    assert pooled.is_identity
+    frames[2] = frames[2] * np.exp(table1_model(1).log_field((H, W)))  # 0.84 EV of "scene"
+    fooled = pool_family(_fits(frames), W, H).log_field((H, W))
+    assert _gain_free_ev(fooled - clean) < 0.02
+    assert _gain_free_ev(fooled - lens) < 0.04
 
 
-def test_pooling_needs_frames():
+def test_the_frame_fit_is_equivariant():
+    """A field of the family added to a frame moves its coefficients by exactly the
+    field's (no prior pulls them): what lets frames' errors average away."""
+    fam = profile_family()
+    base = textured(H, W, seed=11, contrast=0.05)
+    c = np.array([3.0, -0.5, 0.2])
+    rho = np.hypot(*np.meshgrid(np.arange(W) - (W - 1) / 2, np.arange(H) - (H - 1) / 2)) \
+        / math.hypot((W - 1) / 2, (H - 1) / 2)
+    field = np.exp(fam.log_profile(c, rho) - fam.log_profile(np.zeros(3), rho))
+    a, b = (frame_fit(working_copy(x, RobustSettings())) for x in (base, base * field))
+    np.testing.assert_allclose(b.coefficients - a.coefficients, c, atol=0.05)
+
+
+def test_pooled_uncertainty_is_the_medians():
+    fit = _fits([textured(H, W, seed=95, contrast=0.05) * np.exp(_lens())])[0]
+    c1, s1 = pooled_coefficients([fit])
+    np.testing.assert_allclose(c1, fit.coefficients)
+    np.testing.assert_allclose(s1, SIGMA_SCALE**2 * math.pi / 2 * fit.covariance)
+    # n identical frames: no scatter, the frames' own covariance shrinks as 1/n (and
+    # its weight as the scatter's grows)
+    _, s4 = pooled_coefficients([fit] * 4)
+    np.testing.assert_allclose(s4, s1 * (1 - 3 / 8) / 4)
+
+
+def test_pooling_needs_frames_of_one_family():
     with pytest.raises(ModelError, match="no frames"):
-        pool_fits([], W, H)
+        pool_family([], W, H)
+    two = FrameCoefficients(np.zeros(2), np.eye(2), 100)
+    three = FrameCoefficients(np.zeros(3), np.eye(3), 100)
+    with pytest.raises(ModelError, match="different lens families"):
+        pooled_coefficients([two, three])
+    with pytest.raises(ModelError, match="2 coefficients"):
+        pool_family([two], W, H)
 
 
-def test_shipped_profile_bias_is_the_documented_one():
-    bias = default_profile_bias()
-    assert bias.n_images == 200 and "fit-profile-bias" in bias.source
-    assert 0.2 < bias.field_ev_rms < 0.8
+def test_a_blank_frame_has_no_fit():
+    flat = np.zeros((H, W))
+    assert frame_coefficients(flat, np.zeros((H, W), bool), np.arange(W) - W / 2, np.arange(H) - H / 2,
+                              W, H) is None
+
+
+def test_the_shipped_family_nests():
+    """Profiles pool in all the shipped components; a single frame uses the first two,
+    which are exactly the two-component family."""
+    full, single = profile_family(), default_family()
+    assert full.n_components == PROFILE_COMPONENTS and single.n_components == N_COMPONENTS
+    np.testing.assert_array_equal(single.components, full.components[:N_COMPONENTS])
+    np.testing.assert_array_equal(single.coefficients, full.coefficients[:, :N_COMPONENTS])
+    errs = full.reconstruction_by_k
+    assert len(errs) == PROFILE_COMPONENTS and list(errs) == sorted(errs, reverse=True)
+    assert single.reconstruction_ev == errs[N_COMPONENTS - 1] < 0.01
 
 
 def test_evidence_is_the_copy_before_the_scene_prior():
@@ -85,20 +130,3 @@ def test_format_1_evidence_gets_the_scene_prior_back():
                         meta=np.frombuffer(meta.encode(), dtype=np.uint8))
     wc = evidence_copy(buf.getvalue())
     np.testing.assert_allclose(wc.L[wc.valid], raw.L[raw.valid], atol=1e-5)
-
-
-def test_pooled_covariance_is_the_frames_field_uncertainty_over_n():
-    """The same frame's fit pooled four times: the pooled field's σ is the frame's / 2,
-    in the pooled model's own parametrisation (not the frames')."""
-    from vigproc.normalised import _field_sigma_ev, normalise
-
-    _, pa = bench_lenses(1)[0]
-    img = textured(H, W, seed=95, contrast=0.05) * pa_field((H, W), pa.k1, pa.k2, pa.k3)
-    fit = _fits([img])[0]
-    one = normalise(pool_fits([fit], W, H, bias=NONE))
-    four = normalise(pool_fits([fit] * 4, W, H, bias=NONE))
-    s_frame = _field_sigma_ev(fit.theta, fit.cov, W / H)
-    s_one = _field_sigma_ev(one[0], one[1], W / H)
-    s_four = _field_sigma_ev(four[0], four[1], W / H)
-    assert s_one == pytest.approx(s_frame, rel=0.25)
-    assert s_four == pytest.approx(s_one / 2, rel=0.05)

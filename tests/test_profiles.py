@@ -604,7 +604,7 @@ def test_pooled_fits_are_cached_by_evidence_not_by_frame_id(tmp_path):
     from conftest import photo_like
 
     from vigproc.estimate import estimate, frame_evidence
-    from vigproc.pooling import centred_fit, pool_fits
+    from vigproc.pooling import frame_fit, pool_family
     from vigproc.robust import evidence_copy
 
     h, w = 160, 240
@@ -615,18 +615,19 @@ def test_pooled_fits_are_cached_by_evidence_not_by_frame_id(tmp_path):
             for i, f in enumerate(frames):
                 m = estimate(f, "robust", channel_axis=None)
                 p = store.learn(key, m.candidate or m, frame_id=f"frame{i}", evidence=frame_evidence(f, channel_axis=None))
-            own = pool_fits([centred_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
+            own = pool_family([frame_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
             np.testing.assert_allclose(p.model(w, h).log_field(), own.log_field(), atol=1e-6)
 
 
-def test_with_evidence_the_scatter_is_that_of_the_pooled_fits(tmp_path):
-    """The trust decision uses the scatter of what the profile pools (the frames'
-    centred fits), not of the frames' single-frame estimates."""
+def test_with_evidence_sigma_is_the_pooled_medians(tmp_path):
+    """With evidence, the profile's σ is the median's (vigproc.pooling), robust to a
+    frame the scene fooled; the scatter reported is that of what the profile pools
+    (the frames' lens-family fits), not of the frames' single-frame estimates."""
     from conftest import photo_like
 
     from vigproc.estimate import estimate, frame_evidence
-    from vigproc.normalised import _field_and_jacobian
-    from vigproc.pooling import centred_fit
+    from vigproc.normalised import _field_and_jacobian, normalise
+    from vigproc.pooling import coefficients_model, frame_fit, pool_family, pooled_coefficients
     from vigproc.robust import evidence_copy
 
     _lens, pa = bench_lenses(1)[0]
@@ -637,20 +638,21 @@ def test_with_evidence_the_scatter_is_that_of_the_pooled_fits(tmp_path):
         for i, f in enumerate(frames):
             m = estimate(f, "robust", channel_axis=None)
             p = store.learn(key, m.candidate or m, frame_id=f"f{i}", evidence=frame_evidence(f, channel_axis=None))
-    fields = [_field_and_jacobian(centred_fit(evidence_copy(frame_evidence(f, channel_axis=None))).theta, w / h)[0]
-              for f in frames]
+    fits = [frame_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames]
+    fields = [_field_and_jacobian(normalise(coefficients_model(fit.coefficients, w, h))[0], w / h)[0] for fit in fits]
     expected = float(np.sqrt(np.mean(np.var(fields, axis=0, ddof=1))))
-    assert p.scatter_sigma_ev == pytest.approx(expected, rel=1e-9)
-    assert p.field_sigma_ev >= p.scatter_sigma_ev / np.sqrt(3) - 1e-12
+    assert p.scatter_sigma_ev == pytest.approx(expected, rel=1e-6)
+    assert p.field_sigma_ev == pytest.approx(pool_family(fits, w, h).quality.field_sigma_ev, rel=1e-9)
+    assert p.field_sigma_ev > 0 and pooled_coefficients(fits)[0].size == 3
 
 
-def test_learning_with_evidence_pools_centred_fits(tmp_path):
-    """With each frame's evidence the profile is the debiased mean of the frames'
-    centred fits (vigproc.pooling), whatever order the frames arrive in."""
+def test_learning_with_evidence_pools_the_frames_family_fits(tmp_path):
+    """With each frame's evidence the profile is the median of the frames' lens-family
+    fits (vigproc.pooling), whatever order the frames arrive in."""
     from conftest import photo_like
 
     from vigproc.estimate import estimate, frame_evidence
-    from vigproc.pooling import centred_fit, pool_fits
+    from vigproc.pooling import frame_fit, pool_family
     from vigproc.robust import evidence_copy
 
     lens, pa = bench_lenses(1)[0]
@@ -658,7 +660,7 @@ def test_learning_with_evidence_pools_centred_fits(tmp_path):
     truth = pa_field((h, w), pa.k1, pa.k2, pa.k3)
     frames = [photo_like(h, w, seed=60 + i) * truth for i in range(3)]
     key = ProfileKey("vigproc|test|joint", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
-    expected = pool_fits([centred_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
+    expected = pool_family([frame_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
     for order in ((0, 1, 2), (2, 0, 1)):
         with ProfileStore(tmp_path / f"p{order[0]}.sqlite") as store:
             for i in order:
@@ -709,14 +711,14 @@ def _lens_frames(name: str, seed: int, n: int = 4, h: int = 120, w: int = 180):
 def _fits_stored(db) -> tuple[int, int]:
     con = sqlite3.connect(db)
     try:
-        return con.execute("SELECT COUNT(fit), COUNT(*) FROM pooled_frames").fetchone()
+        return con.execute("SELECT COUNT(family), COUNT(*) FROM pooled_frames").fetchone()
     finally:
         con.close()
 
 
-def test_every_frame_keeps_its_fit_and_a_v3_store_gets_them_once(tmp_path):
-    """Frames keep their centred fit (schema v4), so pooling costs no refit; a store
-    written before v4 gets its frames' fits on the next pooling, with the same profile."""
+def test_every_frame_keeps_its_fit_and_an_older_store_gets_them_once(tmp_path):
+    """Frames keep their lens-family fit (schema v5), so pooling costs no refit; a store
+    written before v5 gets its frames' fits on the next pooling, with the same profile."""
     frames, key = _lens_frames("fits", seed=70)
     h, w = frames[0].shape
     with ProfileStore(tmp_path / "fresh.sqlite") as store:
@@ -726,7 +728,8 @@ def test_every_frame_keeps_its_fit_and_a_v3_store_gets_them_once(tmp_path):
     db = tmp_path / "old.sqlite"
     with ProfileStore(db) as store:
         _learn_frames(store, key, frames[:3])
-    con = sqlite3.connect(db)  # back to a v3 store, as the previous release wrote it
+    con = sqlite3.connect(db)  # back to a v3 store, as an older release wrote it
+    con.execute("ALTER TABLE pooled_frames DROP COLUMN family")
     con.execute("ALTER TABLE pooled_frames DROP COLUMN fit")
     con.execute("DELETE FROM schema_version WHERE version > 3")
     con.commit()
@@ -747,13 +750,13 @@ def test_the_profile_pools_every_frame_up_to_the_cap(tmp_path, monkeypatch):
     import vigproc.profiles as profiles
 
     seen = []
-    real = pooling.pool_fits
+    real = pooling.pool_family
 
     def spy(fits, *a, **k):
         seen.append(len(fits))
         return real(fits, *a, **k)
 
-    monkeypatch.setattr(pooling, "pool_fits", spy)
+    monkeypatch.setattr(pooling, "pool_family", spy)
     shipped_cap = profiles.MAX_POOLED_FRAMES
     monkeypatch.setattr(profiles, "MAX_POOLED_FRAMES", 3)
     frames, key = _lens_frames("cap", seed=80)

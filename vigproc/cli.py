@@ -252,14 +252,16 @@ def cmd_prior_fit_scene(args: argparse.Namespace) -> int:
                         args.iterations)
 
 
-def cmd_prior_fit_profile_bias(args: argparse.Namespace) -> int:
-    from vigproc.estimate import estimate
-    from vigproc.pooling import CENTRED
+def cmd_prior_fit_lens_family(args: argparse.Namespace) -> int:
+    """The lens family (vigproc.lensfamily) from a lensfun database's calibrations."""
+    from vigproc.lensfamily import lensfun_family
 
-    source = f"vigproc prior fit-profile-bias {args.folder} --input-transfer {args.input_transfer}"
-    # one round: the plain mean of the centred fits (vigproc.pooling subtracts it)
-    return _fit_falloff(args, "profile bias", source,
-                        lambda im, _prior: estimate(im, "robust", channel_axis=None, settings=CENTRED), 1)
+    fam = lensfun_family(n_components=args.components, db_paths=args.db or None)
+    fam.save(Path(args.output))
+    errs = ", ".join(f"{k + 1}: {e:.4f}" for k, e in enumerate(fam.reconstruction_by_k))
+    print(f"wrote {args.output}: {fam.coefficients.shape[0]} calibrations of {fam.lenses} lenses; "
+          f"median reconstruction error by components (EV) {errs}")
+    return 0
 
 
 def _scene_settings(spec: str):
@@ -661,6 +663,49 @@ def cmd_bench_profile(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
+    """Profiles learned through a real store on vignetting-free bases x lensfun fields."""
+    import os
+
+    from vigproc.bench import clean as C
+    from vigproc.bench import profile as B
+    from vigproc.bench.peers import PEER_ENV, published_rgs
+    from vigproc.lensfamily import PROFILE_COMPONENTS, lensfun_family
+
+    output_file(args.json)
+    files = C.base_files([Path(f) for f in args.images], args.min_long_side)
+    bases, _ = C.load_bases(files[: args.limit] if args.limit else files)
+    if len(bases) < max(args.counts):
+        print(f"vigproc: bench profile-clean: {max(args.counts)} frames per lens need as many bases; "
+              f"{len(bases)} usable under {' '.join(args.images)}", file=sys.stderr)
+        return EXIT_CODES["usage"]
+    lens, excluded = C.lens_fields(args.lenses)
+    # the store pools in a family without the test lenses: no profile holds the lens it is scored on
+    family = lensfun_family(exclude=excluded, n_components=PROFILE_COMPONENTS)
+    exe = args.peer or os.environ.get(PEER_ENV)
+    peer = published_rgs(exe) if exe else None
+    if peer is None:
+        print(f"vigproc: bench profile-clean: no published peer (scripts/build_rgs_peer.sh; --peer or ${PEER_ENV}); "
+              "its rows are left out", file=sys.stderr)
+    rows, trust = B.run_clean(bases, lens, family, args.counts, peer=peer, seed=args.seed)
+    print(f"profiles on the clean protocol: {len(lens)} lensfun lenses, each learning up to {max(args.counts)} of "
+          f"{len(bases)} clean bases (480x320, linear) in an order of its own; error = RMS of "
+          "log2(profile/true field) about its mean (EV), median / p90 over the lenses")
+    print(f"{'method':<24}{'frames':>7}{'lenses':>8}{'median EV':>11}{'p90 EV':>9}{'<=1sd':>7}{'<=2sd':>7}")
+    for r in rows:
+        print(f"{r.method:<24}{r.n_frames:>7}{r.n_lenses:>8}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}"
+              f"{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}")
+    print(f"trusted (sigma < {trust.bound_ev:g} EV): {trust.n_trusted}/{trust.n_lenses} lenses, after a median "
+          f"{trust.median_frames:.0f} frames; error then below the bound on {trust.share_within_bound:.0%} of them, "
+          f"and on {trust.share_within_bound_later:.0%} of trusted profiles at the counts above")
+    if args.json:
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(args.json), json.dumps({"rows": [asdict(r) for r in rows], "trust": asdict(trust)},
+                                                      indent=1) + "\n")
+    return 0
+
+
 def cmd_bench_io(args: argparse.Namespace) -> int:
     """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
     from vigproc.bench.io import bench_formats, bench_raw
@@ -977,17 +1022,21 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--source", help="provenance text stored in the prior")
     add_transfer(fp)
     fp.set_defaults(fn=cmd_prior_fit)
-    for name, what, fn in (("fit-scene", "the scene fall-off prior of the default estimator", cmd_prior_fit_scene),
-                           ("fit-profile-bias", "the profile bias that pooling subtracts (vigproc.pooling)",
-                            cmd_prior_fit_profile_bias)):
-        fp = psub.add_parser(name, help=f"fit {what} on a folder of vignetting-free photos")
-        fp.add_argument("folder", help="vignetting-free photographs")
-        fp.add_argument("-o", "--output", required=True, help="file to write (JSON)")
-        if name == "fit-scene":
-            fp.add_argument("--iterations", type=int, default=1, help="refits with the prior so far (default 1)")
-        fp.add_argument("--limit", type=int, help="use at most this many images")
-        add_transfer(fp)
-        fp.set_defaults(fn=fn)
+    fp = psub.add_parser("fit-scene", help="fit the scene fall-off prior of the robust estimator on a folder "
+                         "of vignetting-free photos")
+    fp.add_argument("folder", help="vignetting-free photographs")
+    fp.add_argument("-o", "--output", required=True, help="file to write (JSON)")
+    fp.add_argument("--iterations", type=int, default=1, help="refits with the prior so far (default 1)")
+    fp.add_argument("--limit", type=int, help="use at most this many images")
+    add_transfer(fp)
+    fp.set_defaults(fn=cmd_prior_fit_scene)
+    fp = psub.add_parser("fit-lens-family", help="the family of real lens fall-offs (vigproc/data/lens_family.json) "
+                         "from lensfun's calibrations")
+    fp.add_argument("-o", "--output", required=True, help="file to write (JSON)")
+    fp.add_argument("--components", type=number(1, 8, integer=True), default=3,
+                    help="principal components kept (default %(default)s; single frames use the first 2)")
+    fp.add_argument("--db", nargs="*", help="lensfun XML files or folders (default: lensfunpy's bundled database)")
+    fp.set_defaults(fn=cmd_prior_fit_lens_family)
 
     sp = sub.add_parser("bench", help="benchmarks (print measured figures)")
     bsub = sp.add_subparsers(dest="bench_command", required=True)
@@ -1074,6 +1123,17 @@ def build_parser() -> argparse.ArgumentParser:
                     help="skip the joint multi-frame fit (its cost grows with the frames)")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_profile)
+    bp = bsub.add_parser("profile-clean", help="profiles learned through a real store on vignetting-free bases x "
+                         "lensfun fields, beside the published peer pooled the same way")
+    _add_clean_bases(bp)
+    bp.add_argument("--lenses", type=number(1, 100, integer=True), default=20,
+                    help="lensfun lenses (default %(default)s)")
+    bp.add_argument("--counts", type=number(1, 100_000, integer=True), nargs="+", default=[1, 5, 20, 50],
+                    help="numbers of frames per lens to report (default 1 5 20 50)")
+    bp.add_argument("--seed", type=int, default=0, help="seed of each lens's frame order (default 0)")
+    bp.add_argument("--peer", help="the built rgs_peer executable (default: $VIGPROC_RGS_PEER)")
+    bp.add_argument("--json", help="write the figures to this file")
+    bp.set_defaults(fn=cmd_bench_profile_clean)
     bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")
     bp.add_argument("--width", type=int, default=6000, help="frame width in px (default %(default)s)")
     bp.add_argument("--height", type=int, default=4000, help="frame height in px (default %(default)s)")

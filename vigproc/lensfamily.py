@@ -11,9 +11,12 @@ and every calibration's coefficients with its 35-mm-equivalent focal length and
 f-number, so that an estimate can use the family's spread as its prior, or the
 spread of calibrations like the frame's EXIF (:meth:`LensFamily.prior`).
 
-The shipped family (``vigproc/data/lens_family.json``) is built from every lens of
-the bundled lensfun database by :func:`build_family` (``vigproc prior
-fit-lens-family``); the benchmarks build one that leaves their test lenses out.
+The shipped family (``vigproc/data/lens_family.json``, :data:`PROFILE_COMPONENTS`
+components) is built from every lens of the bundled lensfun database by
+:func:`lensfun_family` (``vigproc prior fit-lens-family``); a single frame's fit uses
+its first :data:`N_COMPONENTS` (:func:`default_family`), a lens profile all of them
+(:func:`profile_family`). The benchmarks build families that leave their test lenses
+out.
 
 References
 ----------
@@ -40,8 +43,14 @@ log = logging.getLogger(__name__)
 
 #: Samples of the radial profile over ρ ∈ [0, 1].
 N_RADII = 65
-#: Components kept by default (2 reconstruct lensfun's calibrations to 0.005 EV).
+#: Components a single frame's fit uses (2 reconstruct lensfun's calibrations to
+#: 0.005 EV): one photograph's scene cannot pin down more.
 N_COMPONENTS = 2
+#: Components the shipped family keeps, and a lens profile pools in (3 reconstruct
+#: the calibrations to 0.002 EV): many frames average the scenes away, and then the
+#: family's own reconstruction error is what remains (clean protocol, 50 frames:
+#: 0.021 EV with 2 components, 0.009 with 3; docs/benchmarks/profiles.md).
+PROFILE_COMPONENTS = 3
 #: Calibrations whose attenuation leaves (0.02, 1.05] on ρ ∈ [0, 1] are not lenses'
 #: fall-offs (fits that extrapolate badly); they are left out of the family.
 PLAUSIBLE = (0.02, 1.05)
@@ -73,6 +82,8 @@ class LensFamily:
         Median RMS error (EV) of the calibrations' profiles rebuilt from K components.
     lenses : int
         Number of lenses the calibrations come from.
+    reconstruction_by_k : tuple of float
+        The same error with 1, 2, …, K components.
     """
 
     radii: np.ndarray
@@ -83,10 +94,22 @@ class LensFamily:
     fnumber: np.ndarray
     reconstruction_ev: float
     lenses: int
+    reconstruction_by_k: tuple[float, ...] = ()
 
     @property
     def n_components(self) -> int:
         return int(self.components.shape[0])
+
+    def truncated(self, k: int) -> LensFamily:
+        """The family of the first ``k`` components (principal components nest: the
+        first k of a K-component family are the k-component family)."""
+        if not 1 <= k <= self.n_components:
+            raise ModelError(f"a {self.n_components}-component family has no {k}-component truncation")
+        if k == self.n_components:
+            return self
+        by_k = self.reconstruction_by_k[:k]
+        return LensFamily(self.radii, self.mean, self.components[:k], self.coefficients[:, :k], self.focal35,
+                          self.fnumber, by_k[-1] if len(by_k) == k else math.nan, self.lenses, by_k)
 
     def profiles(self, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean profile and components at radii ``rho`` (any shape; clipped to [0, 1]).
@@ -150,6 +173,7 @@ class LensFamily:
             "format": FORMAT,
             "lenses": self.lenses,
             "reconstruction_ev": self.reconstruction_ev,
+            "reconstruction_by_k": [round(e, 6) for e in self.reconstruction_by_k],
             "radii": self.radii.round(6).tolist(),
             "mean": self.mean.round(8).tolist(),
             "components": self.components.round(8).tolist(),
@@ -172,6 +196,7 @@ class LensFamily:
                 fnumber=np.asarray(d["fnumber"], dtype=np.float64),
                 reconstruction_ev=float(d["reconstruction_ev"]),
                 lenses=int(d["lenses"]),
+                reconstruction_by_k=tuple(float(e) for e in d.get("reconstruction_by_k", ())),
             )
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise ModelError(f"not a lens family: {exc}") from None
@@ -216,12 +241,14 @@ def build_family(profiles: np.ndarray, focal35: np.ndarray, fnumber: np.ndarray,
     # sign convention: a component's corner value is negative (more fall-off)
     comps = comps * np.where(comps[:, -1] > 0, -1.0, 1.0)[:, None]
     coef = (p - mean) @ comps.T
-    rebuilt = mean + coef @ comps
-    err = np.sqrt(np.mean((rebuilt - p) ** 2, axis=1)) / math.log(2.0)
+    by_k = []
+    for k in range(1, n_components + 1):
+        rebuilt = mean + coef[:, :k] @ comps[:k]
+        by_k.append(float(np.median(np.sqrt(np.mean((rebuilt - p) ** 2, axis=1)) / math.log(2.0))))
     return LensFamily(
         radii=np.linspace(0.0, 1.0, N_RADII), mean=mean, components=comps, coefficients=coef,
         focal35=np.asarray(focal35, dtype=np.float64), fnumber=np.asarray(fnumber, dtype=np.float64),
-        reconstruction_ev=float(np.median(err)), lenses=int(lenses),
+        reconstruction_ev=by_k[-1], lenses=int(lenses), reconstruction_by_k=tuple(by_k),
     )
 
 
@@ -272,6 +299,14 @@ def _load(path: str) -> LensFamily:
         raise ModelError(f"cannot read lens family {path}: {exc}") from None
 
 
-def default_family() -> LensFamily:
-    """The shipped lens family (every lens of the bundled lensfun database)."""
+def profile_family() -> LensFamily:
+    """The shipped lens family with all its components (:data:`PROFILE_COMPONENTS`):
+    what lens profiles pool in."""
     return _load(str(family_path()))
+
+
+@lru_cache(maxsize=1)
+def default_family() -> LensFamily:
+    """The shipped lens family truncated to :data:`N_COMPONENTS`: what a single
+    frame's fit uses (every lens of the bundled lensfun database)."""
+    return profile_family().truncated(N_COMPONENTS)

@@ -156,3 +156,112 @@ def run(
             p90_ev=float(np.percentile([t[1] for t in reached], 90)) if reached else math.nan,
             single_frame_median_ev=float(np.median(single)))
     return out
+
+
+# --------------------------------------------------------------------------- #
+# the clean protocol (issue 18): vignetting-free bases × lensfun fields
+# --------------------------------------------------------------------------- #
+
+
+@dataclass
+class CleanProfileRow:
+    """One way of pooling, after ``n_frames`` frames of each lens (clean protocol)."""
+
+    method: str
+    n_frames: int
+    n_lenses: int
+    median_ev: float
+    p90_ev: float
+    within_1sigma: float = math.nan  # lenses whose error is within the stated 1σ
+    within_2sigma: float = math.nan
+
+
+@dataclass
+class CleanTrust:
+    """When the store's profiles became trusted, and whether trust held its bound."""
+
+    bound_ev: float
+    n_lenses: int
+    n_trusted: int  # lenses trusted within the frames shown
+    median_frames: float  # frames learned until trusted
+    share_within_bound: float  # trusted lenses whose error was then below the bound
+    share_within_bound_later: float  # trusted profiles (every later count) below it
+
+
+def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Sequence[int] = (1, 5, 20, 50),
+              peer: Callable | None = None, seed: int = 0) -> tuple[list[CleanProfileRow], CleanTrust]:
+    """Profiles learned through a real store on the clean protocol.
+
+    Each lens (``fields``: :func:`vigproc.bench.clean.lens_fields`) sees the bases in
+    an order of its own (seeded by ``seed`` and the lens), up to ``max(counts)``
+    frames; every frame is estimated and learned as ``vigproc profile learn`` does
+    (:func:`vigproc.estimate.estimate_with_evidence`, then
+    :meth:`~vigproc.profiles.ProfileStore.learn` with its evidence), in a store
+    pooling in ``family`` (built without the test lenses). Error: the RMS of
+    log2(profile/true field) about its mean (a gain is free), EV; median and p90 over
+    the lenses. Beside it: each frame estimated alone by the default estimator, and
+    the published peer's per-frame fields pooled by their point-wise median.
+    """
+    import tempfile
+    from pathlib import Path
+
+    from vigproc.bench.clean import gain_free_ev
+    from vigproc.estimate import estimate, estimate_with_evidence
+    from vigproc.profiles import TRUSTED_BOUND_EV, ProfileKey, ProfileStore, aspect_label
+
+    h, w = bases[0].shape
+    nmax = min(max(counts), len(bases))
+    counts = [n for n in counts if n <= nmax]
+    store_err: dict[int, list[float]] = {n: [] for n in counts}
+    store_z: dict[int, list[float]] = {n: [] for n in counts}
+    peer_err: dict[int, list[float]] = {n: [] for n in counts}
+    single: list[float] = []
+    trusted_at: list[tuple[int, float] | None] = []
+    later: list[bool] = []
+    for li, fld in enumerate(fields):
+        true_log = fld.log_field
+        order = np.random.default_rng(seed + li).permutation(len(bases))[:nmax]
+        key = ProfileKey(f"bench|lens|{li}", "any", "any", aspect_label(w / h))
+        peer_fields, lens_single, first = [], [], None
+        with tempfile.TemporaryDirectory(prefix="vigproc-bench-") as tmp, \
+                ProfileStore(Path(tmp) / "profiles.sqlite", family=family) as st:
+            for n, j in enumerate(order, 1):
+                frame = bases[j] * np.exp(true_log)
+                lens_single.append(gain_free_ev(estimate(frame, channel_axis=None).log_field((h, w)) - true_log))
+                m, evidence = estimate_with_evidence(frame, channel_axis=None)
+                fit = m.candidate if m.candidate is not None else m
+                p = st.learn(key, fit, frame_id=f"frame{j:04d}", evidence=evidence)
+                err = gain_free_ev(p.model(w, h).log_field((h, w)) - true_log)
+                if p.trusted:
+                    if first is None:
+                        first = (n, err)
+                    if n in counts:
+                        later.append(err <= TRUSTED_BOUND_EV)
+                if peer is not None:
+                    peer_fields.append(peer(frame).log_field)
+                if n in counts:
+                    store_err[n].append(err)
+                    store_z[n].append(err / p.field_sigma_ev if p.field_sigma_ev else math.inf)
+                    if peer is not None:
+                        peer_err[n].append(gain_free_ev(np.median(peer_fields, axis=0) - true_log))
+        single.append(float(np.median(lens_single)))
+        trusted_at.append(first)
+
+    def row(name, errs, n, zs=None):
+        e = np.asarray(errs)
+        z = np.asarray(zs) if zs is not None else None
+        return CleanProfileRow(name, n, e.size, float(np.median(e)), float(np.percentile(e, 90)),
+                               float(np.mean(z <= 1)) if z is not None else math.nan,
+                               float(np.mean(z <= 2)) if z is not None else math.nan)
+
+    rows = [row("single frame (default)", single, 1)]
+    rows += [row("store", store_err[n], n, store_z[n]) for n in counts]
+    if peer is not None:
+        rows += [row("rgs-c++ median", peer_err[n], n) for n in counts]
+    reached = [t for t in trusted_at if t is not None]
+    trust = CleanTrust(
+        TRUSTED_BOUND_EV, len(trusted_at), len(reached),
+        float(np.median([t[0] for t in reached])) if reached else math.nan,
+        float(np.mean([t[1] <= TRUSTED_BOUND_EV for t in reached])) if reached else math.nan,
+        float(np.mean(later)) if later else math.nan)
+    return rows, trust
