@@ -695,7 +695,7 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
     for r in rows:
         print(f"{r.method:<24}{r.n_frames:>7}{r.n_lenses:>8}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}"
               f"{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}")
-    print(f"trusted (sigma < {trust.bound_ev:g} EV): {trust.n_trusted}/{trust.n_lenses} lenses, after a median "
+    print(f"trusted (2 sigma < {trust.bound_ev:g} EV): {trust.n_trusted}/{trust.n_lenses} lenses, after a median "
           f"{trust.median_frames:.0f} frames; error then below the bound on {trust.share_within_bound:.0%} of them, "
           f"and on {trust.share_within_bound_later:.0%} of trusted profiles at the counts above")
     if args.json:
@@ -893,13 +893,9 @@ def cmd_profile(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------ parser
 def _add_clean_bases(bp: argparse.ArgumentParser) -> None:
     """The clean protocol's bases (vigproc.bench.clean), as bench clean and bench crops take them."""
-    from vigproc.commands._options import number
+    from vigproc.commands._options import add_clean_bases
 
-    bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
-                    help="folders of full-size camera frames (BSDS/Kodak are skipped: film scans)")
-    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
-                    help="frames whose long side is shorter are not used (default %(default)s)")
-    bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+    add_clean_bases(bp)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -54,6 +54,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from vigproc.errors import EXIT_CODES, ModelError, VigprocError
+from vigproc.lensmatch import MatchCalibration
 from vigproc.model import VignettingModel
 
 log = logging.getLogger(__name__)
@@ -65,11 +66,14 @@ __all__ = [
     "Verdict",
     "VERDICTS",
     "check_embedded",
+    "check_family",
     "check_image",
     "check_model",
     "default_calibration",
     "expected_for",
     "expected_from_field",
+    "find_reference",
+    "load_calibration",
     "fit_calibration",
     "frame_features",
     "is_weak",
@@ -83,6 +87,10 @@ __all__ = [
 FORENSICS_METHOD = "robust"
 
 
+#: Method name of the lens-family test's frame fit (the data term alone, no prior).
+FAMILY_TEST_METHOD = "lens-family-data"
+
+
 def forensic_method(method: str) -> str:
     """The estimator forensics runs for ``method`` ("default" → :data:`FORENSICS_METHOD`)."""
     return FORENSICS_METHOD if method == "default" else method
@@ -90,6 +98,8 @@ def forensic_method(method: str) -> str:
 
 #: The verdicts :func:`check_image` gives.
 VERDICTS = ("consistent", "inconsistent", "unknown-lens", "insufficient-signal")
+#: The statistics a verdict can come from (:attr:`Verdict.test`).
+TESTS = ("lens-family", "rings")
 #: Ring radii, in half-diagonals from the frame centre, of the fall-off features.
 RING_RADII = (0.3, 0.5, 0.7, 0.85)
 #: Names of the entries of :func:`frame_features`.
@@ -334,6 +344,22 @@ class Calibration:
         return cls.from_dict(read_json(path, "calibration"))
 
 
+def load_calibration(path: str | Path) -> Calibration | MatchCalibration:
+    """A calibration file of either test: the lens-family test's
+    (:class:`~vigproc.lensmatch.MatchCalibration`) or the ring test's (:class:`Calibration`).
+
+    Raises
+    ------
+    ForensicsError, MatchCalibrationError
+        Unreadable or not a calibration.
+    """
+    d = read_json(path, "calibration")
+    if isinstance(d, dict) and d.get("schema") != CALIBRATION_SCHEMA:
+        if str(d.get("schema", "")).startswith("vigproc.lensmatch"):
+            return MatchCalibration.from_dict(d)
+    return Calibration.from_dict(d)
+
+
 def read_json(path: str | Path, what: str) -> Any:
     """The JSON document in ``path`` (a calibration, a classifier).
 
@@ -547,24 +573,58 @@ def expected_from_field(model: VignettingModel, calibration: Calibration, *, sou
                     calibration.covariance_matrix)
 
 
-def expected_for(lens_key, width: int, height: int, *, store=None, calibration: Calibration,
-                 frame_id: str | None = None) -> Expected | None:
-    """The expected model of the lens ``lens_key`` names, for a ``width``×``height``
-    frame: a stored profile (trusted or not), else lensfun's calibration, else None.
+@dataclass(frozen=True, eq=False)
+class Reference:
+    """What the claimed lens is compared with, before any calibration.
 
-    A stored profile that pooled the frame under check (content id ``frame_id``, or
-    a copy of it) is not used: the frame would vouch for itself.
+    Attributes
+    ----------
+    model : VignettingModel
+        The lens's vignetting on this frame.
+    source : str
+        ``stored-profile``, ``lensfun`` or ``embedded``.
+    profile : str
+        The profile's key or the lensfun lens.
+    learned : bool
+        A profile learned from frames (it already holds the scenes' average bias);
+        False for a true field (lensfun, an imported profile, a DNG's calibration).
+    n_frames : int
+        Frames a learned profile pooled (0 for a true field).
+    trusted : bool or None
+        Whether a stored profile is trusted (None for lensfun and embedded).
+    profile_obj : object or None
+        The stored :class:`~vigproc.profiles.Profile`.
+    """
 
-    Raises
-    ------
-    ForensicsError
-        Never for an unknown lens (None is returned); only for a bad calibration.
+    model: VignettingModel
+    source: str
+    profile: str
+    learned: bool = False
+    n_frames: int = 0
+    trusted: bool | None = None
+    profile_obj: Any = None
+
+    def describe(self) -> str:
+        """The reference in words, for a verdict's reason."""
+        if self.source == "lensfun":
+            return f"lensfun's calibration of {self.profile}"
+        if self.source == "embedded":
+            return self.profile
+        what = f"{self.n_frames} frame(s)" if self.learned else "imported"
+        return f"the stored profile {self.profile} ({what}, {'trusted' if self.trusted else 'untrusted'})"
+
+
+def find_reference(lens_key, width: int, height: int, *, store=None, frame_id: str | None = None) -> Reference | None:
+    """The vignetting of the lens ``lens_key`` names, for a ``width``×``height`` frame: a
+    stored profile (trusted or not), else lensfun's calibration, else None.
+
+    A stored profile that pooled the frame under check (content id ``frame_id``, or a
+    copy of it) is not used: the frame would vouch for itself.
     """
     from vigproc.lensfun_io import lensfun_model  # scipy.optimize: only when a reference is needed
 
     if lens_key is None:
         return None
-    cov_cal = calibration.covariance_matrix
     if store is not None:
         try:
             p = store.lookup(lens_key, width, height)
@@ -577,30 +637,53 @@ def expected_for(lens_key, width: int, height: int, *, store=None, calibration: 
         if p is not None:
             try:
                 m = p.model(width, height)
-                f = frame_features(m)
             except VigprocError as exc:
                 log.warning("stored profile %s is unusable here: %s", p.key, exc)
             else:
-                if p.provenance != "learned":  # an imported true field: add the image bias
-                    return expected_from_field(m, calibration, source="stored-profile", profile=str(p.key))
-                n = max(int(p.n_frames), 1)
-                cov = cov_cal
-                scatter = p.theta_scatter
-                if scatter is not None and n >= 2:
-                    try:
-                        own = _feature_covariance_from_theta(np.asarray(p.theta, dtype=np.float64), scatter, width, height)
-                        cov = (PRIOR_FRAMES * cov_cal + (n - 1) * own) / (PRIOR_FRAMES + n - 1)
-                    except VigprocError as exc:
-                        log.debug("profile scatter not propagated: %s", exc)
-                # the profile's mean is itself uncertain by Σ/n
-                return Expected(m, "stored-profile", str(p.key), f, cov * (1.0 + 1.0 / n), n)
+                learned = p.provenance == "learned"
+                return Reference(m, "stored-profile", str(p.key), learned, max(int(p.n_frames), 1) if learned else 0,
+                                 bool(p.trusted), p)
     try:
         m = lensfun_model(lens_key, width, height)
     except VigprocError as exc:  # unknown, ambiguous or uncalibrated lens: no expectation
         log.debug("no lensfun calibration: %s", exc)
         return None
-    name = f"{lens_key.lens} @ {lens_key.focal_mm:g} mm f/{lens_key.fnumber:g}"
-    return expected_from_field(m, calibration, source="lensfun", profile=name)
+    return Reference(m, "lensfun", f"{lens_key.lens} @ {lens_key.focal_mm:g} mm f/{lens_key.fnumber:g}")
+
+
+def expected_for(lens_key, width: int, height: int, *, store=None, calibration: Calibration,
+                 frame_id: str | None = None) -> Expected | None:
+    """The expected ring features of the lens ``lens_key`` names (:func:`find_reference`)
+    for a ``width``×``height`` frame, with the spread of matching frames; None for an
+    unknown lens.
+
+    Raises
+    ------
+    ForensicsError
+        Never for an unknown lens (None is returned); only for a bad calibration.
+    """
+    ref = find_reference(lens_key, width, height, store=store, frame_id=frame_id)
+    if ref is None:
+        return None
+    if not ref.learned:  # a true field: add the image bias
+        return expected_from_field(ref.model, calibration, source=ref.source, profile=ref.profile)
+    cov_cal = calibration.covariance_matrix
+    p, m, n = ref.profile_obj, ref.model, ref.n_frames
+    try:
+        f = frame_features(m)
+    except VigprocError as exc:  # as an unknown profile: lensfun's calibration, if any
+        log.warning("stored profile %s is unusable here: %s", ref.profile, exc)
+        return expected_for(lens_key, width, height, calibration=calibration)
+    cov = cov_cal
+    scatter = p.theta_scatter
+    if scatter is not None and n >= 2:
+        try:
+            own = _feature_covariance_from_theta(np.asarray(p.theta, dtype=np.float64), scatter, width, height)
+            cov = (PRIOR_FRAMES * cov_cal + (n - 1) * own) / (PRIOR_FRAMES + n - 1)
+        except VigprocError as exc:
+            log.debug("profile scatter not propagated: %s", exc)
+    # the profile's mean is itself uncertain by Σ/n
+    return Expected(m, "stored-profile", ref.profile, f, cov * (1.0 + 1.0 / n), n)
 
 
 # ------------------------------------------------------------------ verdicts
@@ -691,6 +774,11 @@ class Verdict:
         The claimed lens's model for this frame.
     whitened : tuple of float or None
         The whitened residual z (D² = |z|²), for pooling frames.
+    test : str
+        ``lens-family`` (the default check, :mod:`vigproc.lensmatch`: the frame's
+        data-only family coefficients against the lens's, 2 degrees of freedom) or
+        ``rings`` (fall-off on four rings and the centre, 6 degrees of freedom, with a
+        calibration of :func:`fit_calibration`).
     """
 
     verdict: str
@@ -707,10 +795,13 @@ class Verdict:
     estimate: VignettingModel | None = field(default=None, repr=False)
     expected: VignettingModel | None = field(default=None, repr=False)
     whitened: tuple[float, ...] | None = field(default=None, repr=False)
+    test: str = "rings"
 
     def __post_init__(self) -> None:
         if self.verdict not in VERDICTS:
             raise ForensicsError(f"unknown verdict {self.verdict!r}")
+        if self.test not in TESTS:
+            raise ForensicsError(f"unknown test {self.test!r}")
 
     @property
     def decided(self) -> bool:
@@ -727,6 +818,7 @@ class Verdict:
             "estimate": self.estimate.to_dict() if self.estimate is not None else None,
             "expected": self.expected.to_dict() if self.expected is not None else None,
             "whitened": list(self.whitened) if self.whitened is not None else None,
+            "test": self.test,
         }
         return d
 
@@ -744,6 +836,7 @@ class Verdict:
                 estimate=VignettingModel.from_dict(d["estimate"]) if d.get("estimate") else None,
                 expected=VignettingModel.from_dict(d["expected"]) if d.get("expected") else None,
                 whitened=tuple(float(v) for v in d["whitened"]) if d.get("whitened") else None,
+                test=str(d.get("test", "rings")),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ForensicsError(f"invalid verdict record: {exc!r}") from None
@@ -848,7 +941,8 @@ def check_model(
                    f"probability {p:.3g} ≥ {alpha:g})", **common)
 
 
-def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *, calibration: Calibration,
+def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *,
+                   calibration: Calibration | MatchCalibration,
                    lens_id: str | None = None, alpha: float | None = None, profile: str = "embedded") -> Verdict:
     """Verdict for a frame's estimate against the calibration its own file carries (a
     DNG's vignetting opcodes, :mod:`vigproc.dng_vignette`): a true field, so matching
@@ -868,8 +962,150 @@ def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *, cali
     profile : str
         What the verdict names as the reference.
     """
+    if isinstance(calibration, MatchCalibration):  # the lens-family test: the estimate is its data-only fit
+        from vigproc.lensfamily import default_family
+        from vigproc.lensmatch import reference_coefficients
+
+        fam = default_family()
+        calibration.check_family(fam)
+        fit = _fit_of(estimate)
+        c = None if fit.is_identity and estimate.quality is not None and estimate.quality.fallback else \
+            reference_coefficients(fit, fit.width, fit.height, fam)
+        return _family_verdict(estimate, c, Reference(embedded, "embedded", profile), calibration=calibration,
+                               family=fam, lens_id=lens_id, alpha=alpha)
     exp = expected_from_field(embedded, calibration, source="embedded", profile=profile)
     return check_model(estimate, exp, calibration=calibration, lens_id=lens_id, alpha=alpha)
+
+
+def _family_model(c: np.ndarray, width: int, height: int, family, calibration) -> VignettingModel:
+    """The frame's data-only family fit as a (centred) Kang-Weiss model, its stated σ
+    the scenes' scatter (the calibration's Σ) propagated to the field."""
+    from vigproc.family_fit import field_spread_ev, profile_to_model
+    from vigproc.model import FitQuality
+
+    m, _ = profile_to_model(family.mean + np.asarray(c) @ family.components, family.radii, width, height)
+    gx = np.linspace(0.0, 1.0, 33)
+    _, basis = family.profiles(gx)
+    sigma = field_spread_ev(basis, calibration.covariance_matrix)
+    ev = m.field_ev_rms()
+    q = FitQuality(confidence=1.0, field_ev_rms=ev, field_sigma_ev=sigma, snr=ev / sigma if sigma > 0 else math.inf)
+    return VignettingModel(width, height, center=m.center, p=m.p, alpha=m.alpha, method=FAMILY_TEST_METHOD, quality=q)
+
+
+def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Reference | None, *, calibration,
+                    family, lens_id: str | None, alpha: float | None) -> Verdict:
+    """The lens-family test's verdict (:mod:`vigproc.lensmatch`) for a frame's data-only
+    coefficients ``c`` (None: too few usable pixels) against a reference."""
+    from vigproc.lensmatch import reference_coefficients, whiten
+
+    alpha = calibration.alpha if alpha is None else float(alpha)
+    fit = _fit_of(estimate)
+    rings = ring_falloff(fit)
+    big_r = _half_diagonal(fit.width, fit.height)
+    ev = Evidence(ring_radii=RING_RADII, falloff_ev=tuple(float(v) for v in rings),
+                  centre_px=(float(fit.center[0]), float(fit.center[1])), shape_ratio=_shape_ratio(fit))
+    conf = estimate.quality.confidence if estimate.quality is not None else None
+    common: dict[str, Any] = dict(lens_id=lens_id, alpha=alpha, confidence=conf, estimate=estimate, test="lens-family")
+    if ref is None:
+        why = "the metadata names no lens" if lens_id is None else \
+            "no stored profile and no lensfun calibration for this lens"
+        return Verdict("unknown-lens", why, evidence=ev, **common)
+    if c is None:
+        return Verdict("insufficient-signal", "too few usable pixels for a fit of the frame's vignetting",
+                       evidence=ev, expected_source=ref.source, profile=ref.profile, expected=ref.model, **common)
+    c_ref = reference_coefficients(ref.model, fit.width, fit.height, family)
+    # a learned profile holds the scenes' median bias already, and is uncertain by about
+    # the median of its n frames' scatter (pi/2 sigma^2/n)
+    inflate = 1.0 + math.pi / (2.0 * ref.n_frames) if ref.learned else 1.0
+    z = whiten(np.asarray(c) - c_ref, calibration, add_bias=not ref.learned, inflate=inflate)
+    d2 = float(z @ z)
+    p = calibration.p_value(d2)
+    # the same numbers on the four rings, for people: what frames of the lens give there
+    _, b_ring = family.profiles(np.asarray(RING_RADII))
+    cov = calibration.covariance_matrix * inflate
+    bias = np.zeros(len(RING_RADII)) if ref.learned else b_ring @ calibration.mean_vector / _LN2
+    expected_rings = ring_falloff(ref.model) + bias
+    diff = rings - expected_rings
+    sd = np.sqrt(np.einsum("ij,jk,ik->i", b_ring, cov, b_ring)) / _LN2
+    m = ref.model
+    grid = (64, max(2, round(64 * fit.width / fit.height)))
+    try:
+        field_diff = float(np.std(fit.log_field(grid) - m.log_field(grid))) / _LN2
+    except ModelError:
+        field_diff = None
+    ev = Evidence(
+        ring_radii=RING_RADII, falloff_ev=ev.falloff_ev, centre_px=ev.centre_px, shape_ratio=ev.shape_ratio,
+        expected_falloff_ev=tuple(float(v) for v in expected_rings), falloff_diff_ev=tuple(float(v) for v in diff),
+        falloff_sigma_ev=tuple(float(v) for v in sd), expected_centre_px=(float(m.center[0]), float(m.center[1])),
+        centre_offset=float(math.hypot(fit.center[0] - m.center[0], fit.center[1] - m.center[1]) / big_r),
+        expected_shape_ratio=_shape_ratio(m), field_diff_ev=field_diff)
+    common.update(expected_source=ref.source, profile=ref.profile, score=d2, p_false_alarm=p, expected=m,
+                  whitened=tuple(float(v) for v in z), evidence=ev)
+    against = f"against {ref.describe()}"
+    if p < alpha:
+        d = float(diff[-1])
+        return Verdict("inconsistent", f"false-alarm probability {p:.3g} < {alpha:g} {against}: {abs(d):.2f} EV "
+                       f"{'less' if d > 0 else 'more'} fall-off at ρ={RING_RADII[-1]:g} than frames of this lens "
+                       f"give (± {sd[-1]:.2f})", **common)
+    return Verdict("consistent", f"within the spread of frames taken with this lens (false-alarm probability "
+                   f"{p:.3g} ≥ {alpha:g} {against})", **common)
+
+
+def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alpha: float | None = None,
+                 frame_id: str | None = None, family=None) -> Verdict:
+    """The lens-family test (:mod:`vigproc.lensmatch`) of a frame against the lens its
+    metadata names: the default check of :func:`check_image`.
+
+    Parameters
+    ----------
+    img : ndarray
+        H×W or H×W×C (channels last) linear image.
+    lens_key : LensKey or None
+    store : ProfileStore, optional
+    calibration : MatchCalibration, optional
+        Default: the shipped one (:func:`vigproc.lensmatch.default_match_calibration`).
+    alpha : float, optional
+        Default: the calibration's (0.01).
+    frame_id : str, optional
+        The frame's content id: a stored profile that pooled it is not its reference.
+    family : LensFamily, optional
+        Default: the shipped family; the calibration must have been made in it.
+
+    Returns
+    -------
+    Verdict
+        ``test="lens-family"``; ``estimate`` is the frame's data-only fit.
+
+    Raises
+    ------
+    InvalidImageError
+        Unusable pixels.
+    MatchCalibrationError
+        The calibration was made in another family.
+    """
+    from vigproc.image import check_image as valid_image
+    from vigproc.image import luminance
+    from vigproc.lensfamily import default_family
+    from vigproc.lensmatch import default_match_calibration, frame_fit
+
+    cal = calibration if calibration is not None else default_match_calibration()
+    fam = family if family is not None else default_family()
+    cal.check_family(fam)
+    a = valid_image(img, -1 if np.asarray(img).ndim == 3 else None)
+    lum = luminance(a)
+    h, w = lum.shape
+    fc = frame_fit(lum, fam)
+    c = None if fc is None else np.asarray(fc.coefficients)
+    if c is None:
+        from vigproc.model import FitQuality
+
+        est = VignettingModel.identity(w, h, method=FAMILY_TEST_METHOD,
+                                       quality=FitQuality(confidence=0.0, fallback=True))
+    else:
+        est = _family_model(c, w, h, fam, cal)
+    ref = find_reference(lens_key, w, h, store=store, frame_id=frame_id)
+    return _family_verdict(est, c, ref, calibration=cal, family=fam,
+                           lens_id=lens_key.lens_id() if lens_key is not None else None, alpha=alpha)
 
 
 def check_image(
@@ -887,14 +1123,17 @@ def check_image(
     store : ProfileStore, optional
         Learned profiles, consulted before lensfun (trusted or not).
     method : str
-        Estimator; the calibration must have been made with it.
-    calibration : Calibration, optional
-        Default: the shipped one (:func:`default_calibration`).
+        ``default``: the lens-family test (:func:`check_family`); another estimator:
+        the ring test, with a calibration made with it.
+    calibration : Calibration or MatchCalibration, optional
+        A :class:`~vigproc.lensmatch.MatchCalibration` runs the lens-family test, a
+        :class:`Calibration` the ring test. Default: the shipped one of the test
+        ``method`` selects.
     alpha : float, optional
         False-alarm probability threshold (default: the calibration's).
     frame_id : str, optional
         The frame's content id (SHA-256 of its file): a stored profile that pooled this
-        frame is not its reference (:func:`expected_for`).
+        frame is not its reference (:func:`find_reference`).
 
     Returns
     -------
@@ -910,6 +1149,12 @@ def check_image(
     """
     from vigproc.estimate import estimate
 
+    if isinstance(calibration, MatchCalibration) or (calibration is None and method == "default"):
+        if method != "default":
+            raise ForensicsError(f"the lens-family test runs its own fit, not the {method!r} estimator (give "
+                                 f"--calibration a ring calibration made with 'vigproc forensics calibrate "
+                                 f"--method {method}')")
+        return check_family(img, lens_key, store=store, calibration=calibration, alpha=alpha, frame_id=frame_id)
     cal = calibration if calibration is not None else default_calibration()
     method = forensic_method(method)
     if cal.method != method:
@@ -923,11 +1168,14 @@ def check_image(
                        alpha=alpha)
 
 
-def pool_verdicts(verdicts: Sequence[Verdict], *, calibration: Calibration | None = None) -> Verdict:
+def pool_verdicts(verdicts: Sequence[Verdict], *,
+                  calibration: Calibration | MatchCalibration | None = None) -> Verdict:
     """One verdict from several frames that claim the same lens profile.
 
-    The whitened residuals are averaged: D² = n·|z̄|² is compared with means of n
-    calibration frames from different photographs.  Weak frames count (the
+    The whitened residuals are pooled -- the lens-family test's by their coordinate-wise
+    median (:func:`vigproc.lensmatch.pooled_d2`), the ring test's by their mean -- and
+    D² = n·|z̄|² is compared with the same pooling of n calibration frames from
+    different photographs.  Weak frames count (the
     calibration includes them); the pooled verdict is "insufficient-signal" only when
     every frame is weak.
 
@@ -936,22 +1184,35 @@ def pool_verdicts(verdicts: Sequence[Verdict], *, calibration: Calibration | Non
     ForensicsError
         No frame with an expected model, or frames compared with different profiles.
     """
-    cal = calibration if calibration is not None else default_calibration()
+    from vigproc.lensmatch import default_match_calibration, pooled_d2
+
     usable = [v for v in verdicts if v.whitened is not None]
     if not usable:
         raise ForensicsError("no frame with a known lens to pool")
     profiles = {(v.expected_source, v.profile) for v in usable}
     if len(profiles) > 1:
         raise ForensicsError(f"cannot pool frames compared with different profiles: {sorted(map(str, profiles))}")
+    tests = {v.test for v in usable}
+    if len(tests) > 1:
+        raise ForensicsError(f"cannot pool verdicts of different tests: {sorted(tests)}")
     n = len(usable)
-    z = np.mean([np.asarray(v.whitened) for v in usable], axis=0)
-    d2 = float(n * z @ z)
+    rows = np.array([v.whitened for v in usable], dtype=np.float64)
+    if tests == {"lens-family"}:  # the coordinate-wise median (vigproc.lensmatch)
+        cal = calibration if isinstance(calibration, MatchCalibration) else default_match_calibration()
+        z = np.median(rows, axis=0)
+        d2 = pooled_d2(rows)
+    else:  # the mean of the whitened ring residuals
+        cal = calibration if isinstance(calibration, Calibration) else default_calibration()
+        z = rows.mean(axis=0)
+        d2 = float(n * z @ z)
+    if z.size != len(cal.mean):
+        raise ForensicsError("the verdicts were not made with this calibration")
     p = cal.p_value(d2, n)
     alpha = usable[0].alpha
     first = usable[0]
     common = dict(lens_id=first.lens_id, expected_source=first.expected_source, profile=first.profile,
                   score=d2, p_false_alarm=p, alpha=alpha, n_frames=n, whitened=tuple(float(v) for v in z),
-                  expected=first.expected)
+                  expected=first.expected, test=first.test)
     if all(v.verdict == "insufficient-signal" for v in usable):
         return Verdict("insufficient-signal", f"all {n} frames have weak vignetting estimates", **common)
     if p < alpha:

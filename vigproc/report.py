@@ -309,7 +309,7 @@ def _html_section(item: ReportItem) -> str:
     fig = base64.b64encode(png_bytes(report_figure(item))).decode("ascii")
     rows = [_row("verdict", v.verdict), _row("why", v.reason), _row("lens (EXIF)", v.lens_id or "unknown"),
             _row("compared with", f"{v.expected_source or '–'} {v.profile or ''}"),
-            _row("D² (6 d.o.f.)", _fmt(v.score)), _row("false-alarm probability", _fmt(v.p_false_alarm)),
+            _row(f"D² ({len(v.whitened) if v.whitened else '-'} d.o.f., {v.test} test)", _fmt(v.score)), _row("false-alarm probability", _fmt(v.p_false_alarm)),
             _row("threshold", f"inconsistent when below {v.alpha:g}"), _row("frames", v.n_frames),
             _row("estimator confidence", _fmt(v.confidence, ".2f"))]
     e = v.evidence

@@ -84,3 +84,12 @@ def add_processing(sp: argparse.ArgumentParser, *, profile_default: str = "auto"
     add_method(sp)
     add_output(sp, picture=picture)
     add_transfer(sp)
+
+
+def add_clean_bases(bp: argparse.ArgumentParser) -> None:
+    """The clean protocol's bases (vigproc.bench.clean), as the clean benchmarks take them."""
+    bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
+                    help="folders of full-size camera frames (BSDS/Kodak are skipped: film scans)")
+    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
+                    help="frames whose long side is shorter are not used (default %(default)s)")
+    bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")

@@ -62,11 +62,12 @@ def register(subparsers) -> None:
     sp.add_argument("--json", action="store_true", help="print the verdicts as JSON")
     sp.add_argument("--pool", action="store_true",
                     help="also pool the evidence of all frames that claim the same lens profile")
-    sp.add_argument("--calibration", help="a calibration of the check made with 'vigproc forensics calibrate' "
-                                          "on photographs like yours (default: the shipped one)")
+    sp.add_argument("--calibration", help="a calibration of the check: the lens-family test's ('vigproc bench "
+                                          "forensics-clean --calibrate') or the ring test's ('vigproc forensics "
+                                          "calibrate'), on photographs like yours (default: the shipped one)")
     sp.add_argument("--alpha", type=number(0.0, 0.5, open_lo=True),
                     help="false-alarm probability below which a frame is inconsistent "
-                                                "(default: the calibration's, 0.05)")
+                                                "(default: the calibration's, 0.01 for the shipped one)")
     add_method(sp)
     add_transfer(sp)
     sp.set_defaults(fn=cmd_check)
@@ -101,7 +102,8 @@ def _embedded_verdict(path: Path, v, calibration, alpha):
 
 def cmd_check(args: argparse.Namespace) -> int:
     from vigproc.crops import check_crop
-    from vigproc.forensics import Calibration, check_image, default_calibration, pool_verdicts
+    from vigproc.forensics import check_image, default_calibration, load_calibration, pool_verdicts
+    from vigproc.lensmatch import default_match_calibration
     from vigproc.io import read_image
     from vigproc.pipeline import InputFiles, Processor, Settings, file_sha256, output_file, read_lens, refuse_input
 
@@ -109,7 +111,9 @@ def cmd_check(args: argparse.Namespace) -> int:
     refuse_input(args.report, InputFiles(files))
     output_file(args.report)
     settings = Settings(mode="check", method=args.method, transfer=args.input_transfer)
-    calibration = Calibration.load(args.calibration) if args.calibration else default_calibration()
+    # the lens-family test by default (vigproc.lensmatch); --method X: the ring test made with X
+    calibration = load_calibration(args.calibration) if args.calibration else \
+        default_match_calibration() if args.method == "default" else default_calibration()
     store = None
     if not args.no_store:
         from vigproc.profiles import ProfileStore

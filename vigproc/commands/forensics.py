@@ -79,6 +79,21 @@ def register_bench(bench_subparsers) -> None:
     bp.add_argument("--json", help="write the figures to this file")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_forensics)
+    from vigproc.commands._options import add_clean_bases
+
+    bp = bench_subparsers.add_parser(
+        "forensics-clean", help="lens mismatch and lens identification on vignetting-free bases x lensfun "
+                                "fields (the check's lens-family test): AUC, false alarms, accuracy")
+    add_clean_bases(bp)
+    bp.add_argument("--alpha", type=number(0.0, 0.5, open_lo=True), default=0.01,
+                    help="false-alarm probability of the check (default %(default)s)")
+    bp.add_argument("--frames", type=number(2, 20, integer=True), default=5,
+                    help="frames per multi-frame decision (default %(default)s)")
+    bp.add_argument("--seed", type=int, default=0, help="seed of the multi-frame groups")
+    bp.add_argument("--calibrate", metavar="FILE",
+                    help="also write the calibration 'vigproc check' ships (every base, the shipped family)")
+    bp.add_argument("--json", help="write the figures to this file")
+    bp.set_defaults(fn=cmd_bench_forensics_clean)
 
 
 # ------------------------------------------------------------------ helpers
@@ -266,6 +281,54 @@ def cmd_bench_forensics(args: argparse.Namespace) -> int:
         print(f"{row.case:<52}{row.n_frames:>7}{row.n_null:>6}{row.n_alt:>7}{row.auc:>7.3f}{row.auc_decided:>9.3f}"
               f"{100 * row.false_alarm:>7.1f}{100 * row.detection:>7.1f}"
               f"{100 * row.null_undecided:>5.0f}/{100 * row.alt_undecided:<4.0f}")
+    if args.json:
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(args.json), json.dumps(asdict(r), indent=1) + "\n")
+        print(f"-> {args.json}")
+    return 0
+
+
+def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
+    """Lens mismatch and identification on the clean protocol (vigproc.bench.forensics_clean)."""
+    from dataclasses import asdict
+
+    from vigproc.bench import clean as C
+    from vigproc.bench import forensics_clean as F
+    from vigproc.pipeline import output_file
+
+    output_file(args.json)
+    if args.calibrate:
+        output_file(args.calibrate)
+    files = C.base_files([Path(f) for f in args.images], args.min_long_side)
+    bases, _ = C.load_bases(files[: args.limit] if args.limit else files)
+    if len(bases) < 20:
+        print(f"vigproc: bench forensics-clean: {len(bases)} usable frames; need 20", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    r = F.run(bases, alpha=args.alpha, frames=args.frames, seed=args.seed, progress=print)
+    print(f"\nlens mismatch on {r.n_bases} clean bases (480x320, linear) x {len(r.test_lenses)} lensfun lenses; "
+          f"calibrated on the even bases x {len(r.calibration_lenses)} other lenses and no field, tested on the "
+          f"odd ones, and the other way round; {r.ms_per_frame:.1f} ms per fit; {time.perf_counter() - t0:.0f} s")
+    print(f"{'frames':>6}  {'true vs claimed field':<24}{'genuine':>9}{'forged':>8}{'AUC':>8}"
+          f"{f'found at {r.alpha:g}':>15}")
+    for row in r.mismatch:
+        print(f"{row.frames:>6}  {row.bucket:<24}{row.n_genuine:>9}{row.n_forged:>8}{row.auc:>8.3f}"
+              f"{row.detection:>15.3f}")
+    for n, fa in r.false_alarm.items():
+        print(f"false alarms at {r.alpha:g}, {n} frame(s): {fa:.4f} of {r.n_genuine[n]} genuine")
+    print(f"\nlens identification among {len(r.id_lenses)} lensfun lenses (fields >= "
+          f"{r.id_min_separation_ev:.3f} EV apart; chance {100 / len(r.id_lenses):.1f} %): "
+          + ", ".join(r.id_lenses))
+    for n, acc in r.identification.items():
+        print(f"  {n} frame(s): {100 * acc:.1f} % of {r.n_identification[n]}")
+    if args.calibrate:
+        cal = F.shipped_calibration(
+            bases, alpha=args.alpha, progress=print,
+            source=f"vigproc bench forensics-clean --alpha {args.alpha:g} --calibrate FILE "
+                   f"({len(bases)} clean bases x no field and {len(r.calibration_lenses)} lensfun lenses)")
+        cal.save(args.calibrate)
+        print(f"calibration ({cal.n_frames} frames of {cal.n_images} bases) -> {args.calibrate}")
     if args.json:
         from vigproc.atomic import atomic_write_text
 

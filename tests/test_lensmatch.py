@@ -1,0 +1,171 @@
+"""Tests of the lens-family mismatch test (vigproc.lensmatch) and of ``vigproc check``'s
+default verdicts, which come from it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from vigproc.bench.forensics import bench_classes
+from vigproc.exif import LensKey
+from vigproc.family_fit import profile_to_model
+from vigproc.forensics import check_image, load_calibration, pool_verdicts
+from vigproc.lensfamily import default_family
+from vigproc.lensmatch import (
+    MatchCalibration,
+    MatchCalibrationError,
+    default_match_calibration,
+    family_fingerprint,
+    fit_match_calibration,
+    frame_fit,
+    pooled_d2,
+    reference_coefficients,
+)
+
+from conftest import textured
+
+W, H = 240, 160
+
+
+@pytest.fixture(scope="module")
+def classes():
+    # [4] Sigma 105 mm at f/1.4 vignettes strongly (0.7 EV RMS), [5] the same at f/2.8 mildly
+    return bench_classes(3)
+
+
+def key_of(c) -> LensKey:
+    return LensKey(make=c.maker, model="test camera", lens=c.model, focal_mm=c.focal, fnumber=c.aperture)
+
+
+@pytest.fixture(scope="module")
+def calibration(classes):
+    """The scenes' scatter of the data-only fit on synthetic textures × no field and two
+    lenses other than the tested ones (enough rows for p < 0.01)."""
+    fam = default_family()
+    rows, groups = [], []
+    for i in range(40):
+        base = textured(H, W, seed=300 + i, contrast=0.15)
+        for model, field in ((_identity(), 1.0), *((c.true_model(W, H), c.field(H, W)) for c in classes[:2])):
+            fc = frame_fit(base * field, fam)
+            rows.append(fc.coefficients - reference_coefficients(model, W, H, fam))
+            groups.append(i)
+    return fit_match_calibration(np.array(rows), groups, fam, source="test")
+
+
+def _identity():
+    from vigproc.model import VignettingModel
+
+    return VignettingModel.identity(W, H)
+
+
+def test_reference_coefficients_recover_a_family_member():
+    fam = default_family()
+    c = np.array([-3.0, 1.5])
+    model, _ = profile_to_model(fam.mean + c @ fam.components, fam.radii, W, H)
+    assert np.allclose(reference_coefficients(model, W, H, fam), c, atol=0.05)
+
+
+def test_frame_fit_is_equivariant():
+    # a family field multiplied onto a frame moves the data-only fit by its coefficients
+    fam = default_family()
+    img = textured(H, W, seed=3, contrast=0.15)
+    c = np.array([-4.0, 1.0])
+    model, _ = profile_to_model(fam.mean + c @ fam.components, fam.radii, W, H)
+    c0 = frame_fit(img, fam).coefficients
+    c1 = frame_fit(img * np.exp(model.log_field((H, W))), fam).coefficients
+    c_id = reference_coefficients(_identity(), W, H, fam)
+    assert np.allclose(c1 - c0, c - c_id, atol=0.3)
+
+
+def test_calibration_p_values_and_files(tmp_path):
+    rng = np.random.default_rng(0)
+    fam = default_family()
+    r = rng.normal(size=(240, 2)) * [2.0, 0.7] + [0.1, -0.1]
+    cal = fit_match_calibration(r, np.repeat(np.arange(60), 4), fam, source="gaussian")
+    null = cal.null_d2(1)
+    assert 1.5 < null.mean() < 2.6  # held-out whitened 2-d Gaussian: chi2(2)
+    assert 1.3 < cal.null_d2(5).mean() < 4.5  # n |median|^2: about pi/2 chi2(2)
+    ps = [cal.p_value(d) for d in (0.0, 2.0, 6.0, 1e9)]
+    assert ps[0] == pytest.approx(1.0) and all(a >= b for a, b in zip(ps, ps[1:]))
+    assert ps[-1] == pytest.approx(1.0 / (null.size + 1))
+    cal.save(tmp_path / "c.json")
+    back = load_calibration(tmp_path / "c.json")
+    assert isinstance(back, MatchCalibration) and back.family == family_fingerprint(fam)
+    assert np.allclose(back.null_d2(1), null, atol=1e-3)
+    with pytest.raises(MatchCalibrationError):
+        fit_match_calibration(r[:8], np.arange(8), fam)  # too few photographs
+    bad = cal.to_dict() | {"family": [2.0, 0.0, 0.0, 0.0, 0.0]}
+    with pytest.raises(MatchCalibrationError):
+        MatchCalibration.from_dict(bad).check_family(fam)
+
+
+def test_pooled_statistic_is_a_median():
+    z = np.array([[0.1, 0.0], [0.2, -0.1], [0.0, 0.1], [0.1, 0.0], [40.0, 40.0]])
+    assert pooled_d2(z) < 0.2  # one fooled frame moves the median by one rank, not by its error
+    assert pooled_d2(z[:1]) == pytest.approx(0.01)
+
+
+def test_shipped_calibration_is_for_the_shipped_family():
+    cal = default_match_calibration()
+    cal.check_family(default_family())
+    assert cal.alpha == 0.01 and cal.n_images >= 40 and "forensics-clean" in cal.source
+
+
+def test_mismatched_lens_is_caught_and_the_true_one_is_not(classes, calibration):
+    strong, mild = classes[4], classes[5]
+    img = textured(H, W, seed=11, contrast=0.15) * strong.field(H, W)
+    right = check_image(img, key_of(strong), calibration=calibration)
+    wrong = check_image(img, key_of(mild), calibration=calibration)
+    assert right.test == wrong.test == "lens-family"
+    assert right.verdict == "consistent" and wrong.verdict == "inconsistent"
+    assert wrong.score > 10 * right.score
+    # the verdict names its reference and its false-alarm probability
+    assert "lensfun's calibration of" in wrong.reason and f"{wrong.p_false_alarm:.3g}" in wrong.reason
+    assert wrong.to_dict()["test"] == "lens-family" and len(wrong.to_dict()["whitened"]) == 2
+    # the report's evidence: ring fall-offs of the fit against what frames of the lens give
+    e = wrong.evidence
+    assert e.falloff_diff_ev[-1] < 0  # more fall-off than the mild lens gives
+
+
+def test_pooled_family_verdicts(classes, calibration):
+    strong, mild = classes[4], classes[5]
+    frames = [textured(H, W, seed=20 + i, contrast=0.15) * strong.field(H, W) for i in range(5)]
+    vs = [check_image(f, key_of(mild), calibration=calibration) for f in frames]
+    pv = pool_verdicts(vs, calibration=calibration)
+    assert pv.test == "lens-family" and pv.n_frames == 5 and pv.verdict == "inconsistent"
+    z = np.array([v.whitened for v in vs])
+    assert pv.score == pytest.approx(5 * float(np.median(z, axis=0) @ np.median(z, axis=0)))
+    ok = pool_verdicts([check_image(f, key_of(strong), calibration=calibration) for f in frames],
+                       calibration=calibration)
+    assert ok.verdict == "consistent"
+
+
+def test_unknown_lens_and_explicit_method(classes, calibration):
+    from vigproc.forensics import ForensicsError
+
+    img = textured(H, W, seed=5, contrast=0.15)
+    assert check_image(img, None, calibration=calibration).verdict == "unknown-lens"
+    with pytest.raises(ForensicsError):
+        check_image(img, key_of(classes[4]), method="robust", calibration=calibration)
+
+
+def test_cli_check_json_says_which_test(tmp_path, classes):
+    from vigproc.cli import main
+    from vigproc.io import write_image
+
+    img = textured(H, W, seed=7, contrast=0.15) * classes[4].field(H, W)
+    f = tmp_path / "frame.tif"
+    write_image(f, np.repeat(img[..., None], 3, axis=2), bit_depth="uint16")
+    import contextlib
+    import io
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["check", str(f), "--no-store", "--json"])
+    d = json.loads(out.getvalue())
+    assert d["results"][0]["test"] == "lens-family" and d["results"][0]["verdict"] == "unknown-lens"
+    assert code == 21
+    assert math.isfinite(d["results"][0]["evidence"]["falloff_ev"][-1])
