@@ -839,3 +839,56 @@ def test_junk_evidence_is_named_as_such(tmp_path):
                 store.learn(KEY, synthetic_model(0), evidence=junk)
             assert "pickle" not in str(ei.value)
         assert store.get(KEY) is None
+
+
+# ----------------------------------------------------------------------------- between bins
+
+
+def _pa_profile(lens_key, focal, fnumber, k1, w=180, h=120, sigma=0.01):
+    from vigproc.lensfun import pa_field
+    from vigproc.normalised import fit_model_to_field, normalise
+
+    m, _ = fit_model_to_field(np.log(pa_field((64, 96), k1, 0.0, 0.0)), w, h)
+    from dataclasses import replace
+
+    key = ProfileKey.from_lens(replace(lens_key, focal_mm=focal, fnumber=fnumber), w, h)
+    return Profile(key=key, theta=normalise(m)[0], n_frames=5, trusted=True, field_sigma_ev=sigma)
+
+
+def test_lookup_interpolates_between_a_lenss_bins(tmp_path):
+    """Profiles at 24 mm and 70 mm f/4 answer for 40 mm f/4 (linear in log focal
+    length), and with a third at 70 mm f/8 for 50 mm f/5.6 (bilinear); never beyond."""
+    from dataclasses import replace as dc_replace
+
+    from vigproc.lensfun import pa_field
+
+    lk = LensKey(make="nikon", model="nikon d800", lens="af-s nikkor 24-70mm f/2.8g ed", focal_mm=40.0, fnumber=4.0)
+    w, h = 180, 120
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        store.put(_pa_profile(lk, 24.0, 4.0, -0.5))
+        store.put(_pa_profile(lk, 70.0, 4.0, -0.42))
+        got = store.lookup(lk, w, h)
+        assert got is not None and got.notes.startswith("interpolated from") and got.trusted
+        assert got.key == ProfileKey.from_lens(lk, w, h)
+        t = math.log(40 / 23.6) / math.log(66.8 / 23.6)  # the bins' centres
+        k1 = (1 - t) * -0.5 + t * -0.42
+        want = np.log(pa_field((h, w), k1, 0.0, 0.0))
+        err = np.std(got.model(w, h).log_field((h, w)) - want) / np.log(2)
+        assert err < 0.02, err
+        assert 0.01 < got.field_sigma_ev < 0.04  # the bins' σ and how far apart they are
+        # beyond the bins: no interpolation, no answer
+        assert store.lookup(dc_replace(lk, focal_mm=105.0), w, h) is None
+        # another aperture needs bins on both sides
+        assert store.lookup(dc_replace(lk, focal_mm=50.0, fnumber=5.6), w, h) is None
+        store.put(_pa_profile(lk, 24.0, 8.0, -0.3))
+        store.put(_pa_profile(lk, 70.0, 8.0, -0.1))
+        mid = store.lookup(dc_replace(lk, focal_mm=50.0, fnumber=5.6), w, h)
+        assert mid is not None and mid.notes.count("(") == 4
+        fields = [store.lookup(dc_replace(lk, focal_mm=50.0, fnumber=n), w, h).model(w, h).log_field((h, w))
+                  for n in (4.0, 8.0)]
+        lo, hi = sorted(float(np.mean(f)) for f in fields)
+        assert lo <= float(np.mean(mid.model(w, h).log_field((h, w)))) <= hi
+        # an untrusted bin makes the interpolation untrusted
+        store.put(dc_replace(_pa_profile(lk, 24.0, 4.0, -0.5), trusted=False))
+        assert not store.lookup(lk, w, h).trusted
+        assert store.lookup(lk, w, h, trusted_only=True) is None

@@ -706,6 +706,25 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_profile_interp(args: argparse.Namespace) -> int:
+    """A lens's profiles answering between their bins, on lensfun's held-out calibrations."""
+    from vigproc.bench import profile as B
+
+    output_file(args.json)
+    rows = B.run_interpolation(max_points=args.points)
+    print("between bins: lensfun zoom lenses' interior calibrations held out, the others stored as profiles; "
+          "error = RMS of log2(answer/held-out calibration) about its mean (EV)")
+    print(f"{'method':<24}{'between':<10}{'points':>7}{'median EV':>11}{'p90 EV':>9}{'<=1sd':>7}{'<=2sd':>7}")
+    for r in rows:
+        print(f"{r.method:<24}{r.axis:<10}{r.n_points:>7}{r.median_ev:>11.4f}{r.p90_ev:>9.4f}"
+              f"{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}")
+    if args.json:
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(args.json), json.dumps([asdict(r) for r in rows], indent=1) + "\n")
+    return 0
+
+
 def cmd_bench_io(args: argparse.Namespace) -> int:
     """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
     from vigproc.bench.io import bench_formats, bench_raw
@@ -1130,6 +1149,12 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--peer", help="the built rgs_peer executable (default: $VIGPROC_RGS_PEER)")
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_profile_clean)
+    bp = bsub.add_parser("profile-interp", help="a lens's profiles answering between their focal and aperture "
+                         "bins, on lensfun's held-out calibrations")
+    bp.add_argument("--points", type=number(1, 100_000, integer=True), default=200,
+                    help="held-out calibrations at most (default %(default)s)")
+    bp.add_argument("--json", help="write the figures to this file")
+    bp.set_defaults(fn=cmd_bench_profile_interp)
     bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")
     bp.add_argument("--width", type=int, default=6000, help="frame width in px (default %(default)s)")
     bp.add_argument("--height", type=int, default=4000, help="frame height in px (default %(default)s)")

@@ -145,6 +145,9 @@ ANY = "any"
 TRUSTED_BOUND_EV = 0.08
 #: The 1-σ uncertainty below which a profile is trusted.
 TRUSTED_SIGMA_EV = TRUSTED_BOUND_EV / 2
+#: Bins a lookup interpolates across (:func:`interpolate_profiles`) are at most this far
+#: apart: (octaves of focal length, stops of aperture).
+INTERPOLATION_REACH = (2.0, 2.0)
 #: ... and it was learned from at least this many frames (a scatter estimate needs
 #: more than two).
 TRUSTED_MIN_FRAMES = 3
@@ -783,6 +786,96 @@ def _valid_theta(theta: np.ndarray, aspect: float) -> bool:
     return _field_and_jacobian(theta, aspect)[2] > 0.0
 
 
+def _bin_value(label: str) -> float | None:
+    """The number of a focal or aperture bin label ("f=23.6mm", "N=4.0"); None for "any"."""
+    if label == ANY:
+        return None
+    return float(label[2:-2] if label.endswith("mm") else label[2:])
+
+
+def _bracket(points: dict[float, Any], x: float, reach: float) -> list[tuple[Any, float]] | None:
+    """Linear-interpolation weights at ``x`` between the nearest points on either side
+    (a point at ``x`` itself: weight 1); None when ``x`` is not bracketed or the two
+    points are further apart than ``reach``."""
+    if x in points:
+        return [(points[x], 1.0)]
+    lo = max((p for p in points if p < x), default=None)
+    hi = min((p for p in points if p > x), default=None)
+    if lo is None or hi is None or hi - lo > reach:
+        return None
+    t = (x - lo) / (hi - lo)
+    return [(points[lo], 1.0 - t), (points[hi], t)]
+
+
+def interpolate_profiles(profiles: Sequence[Profile], key: ProfileKey, focal_mm: float,
+                         fnumber: float) -> Profile | None:
+    """A lens's profile at a focal length and f-number between its bins.
+
+    Bilinear in (log2 focal length, stops = 2·log2 N), as lensfun interpolates its
+    calibrations between focal lengths and apertures: at each of the two nearest
+    aperture bins on either side of ``fnumber`` (or at its own), linear in log focal
+    length between the nearest bins on either side (or its own), then linear across
+    the two apertures; the log2 fields are combined, then written as the Kang-Weiss
+    model. Never extrapolated; bins further apart than :data:`INTERPOLATION_REACH`
+    are not bridged.
+
+    Uncertainty: σ = hypot(Σ w_i σ_i, s), s the weighted RMS of the bins' fields
+    about the interpolated one (how much the lens changes across the span, of which
+    a linear interpolation may miss a part; ``vigproc bench profile-interp`` measures
+    how often the error stays within it).
+
+    Parameters
+    ----------
+    profiles : sequence of Profile
+        Profiles of one lens and aspect (others are ignored).
+    key : ProfileKey
+        The key asked for (its lens id and aspect select the profiles).
+
+    Returns
+    -------
+    Profile or None
+        ``key``'s profile, notes naming the bins and weights; None when the bins do
+        not bracket the request.
+    """
+    aspect = key.aspect_ratio
+    grid: dict[float, dict[float, Profile]] = {}
+    for p in profiles:
+        f, n = _bin_value(p.key.focal_bin), _bin_value(p.key.aperture_bin)
+        if p.key.lens_id != key.lens_id or p.key.aspect != key.aspect or f is None or n is None:
+            continue
+        grid.setdefault(2.0 * math.log2(n), {})[math.log2(f)] = p
+    x, y = math.log2(focal_mm), 2.0 * math.log2(fnumber)
+    reach_f, reach_n = INTERPOLATION_REACH
+    levels = {}
+    for level, row in grid.items():
+        w = _bracket(row, x, reach_f)
+        if w is not None:
+            levels[level] = w
+    across = _bracket(levels, y, reach_n)
+    if across is None:
+        return None
+    weights: list[tuple[Profile, float]] = [(p, wa * wf) for row, wa in across for p, wf in row if wa * wf > 0]
+    if len(weights) == 1:
+        return weights[0][0]
+    # the fields on a small frame of the key's aspect (natural log), combined
+    gw, gh = 48, max(4, round(48 / aspect))
+    fields = np.array([denormalise(p.theta, None, gw, gh).log_field((gh, gw)).ravel() for p, _ in weights])
+    w = np.array([wt for _, wt in weights])
+    mean = w @ fields
+    spread = float(math.sqrt(max(float(w @ np.mean((fields - mean) ** 2, axis=1)), 0.0))) / math.log(2.0)
+    sigmas = [p.field_sigma_ev for p, _ in weights]
+    sigma = None if any(sg is None for sg in sigmas) else math.hypot(float(w @ np.array(sigmas)), spread)
+    model, _ = fit_model_to_field(mean.reshape(gh, gw), gw, gh)
+    provenances = {p.provenance for p, _ in weights}
+    parts = ", ".join(f"{p.key.focal_bin} {p.key.aperture_bin} ({wt:.2f})" for p, wt in weights)
+    return Profile(
+        key=key, theta=normalise(model)[0], covariance=None, n_frames=sum(p.n_frames for p, _ in weights),
+        provenance=provenances.pop() if len(provenances) == 1 else "user",
+        trusted=all(p.trusted for p, _ in weights) and sigma is not None and sigma < TRUSTED_SIGMA_EV,
+        field_sigma_ev=sigma, notes=f"interpolated from {parts}",
+    )
+
+
 # --------------------------------------------------------------------------- #
 # the store
 # --------------------------------------------------------------------------- #
@@ -1167,17 +1260,24 @@ class ProfileStore(SQLiteFile):
     def lookup(self, lens_key: LensKey, width: int, height: int, *, trusted_only: bool = False) -> Profile | None:
         """The profile to use for a photograph.
 
-        The exact key (lens, focal bin, aperture bin, aspect) first; else, for a
-        known focal length, the neighbouring focal bin (±1 quarter octave) of the
-        same lens, aperture bin and aspect whose centre is nearest the focal length
-        (ties: trusted, then more frames).  The aperture is never relaxed (vignetting
-        changes fastest with aperture near wide open) and ``"any"`` bins only match
-        ``"any"`` (a key without focal length is never merged with a real bin).
+        1. The exact key (lens, focal bin, aperture bin, aspect).
+        2. Else, with the focal length and f-number known, the lens's profiles at
+           other bins interpolated to them (:func:`interpolate_profiles`: linear in
+           log focal length and in stops, between the nearest bins on either side,
+           never extrapolated), with the interpolated uncertainty.
+        3. Else, for a known focal length, the neighbouring focal bin (±1 quarter
+           octave) of the same lens, aperture bin and aspect whose centre is nearest
+           the focal length (ties: trusted, then more frames).
+
+        The aperture is never relaxed without a bin on either side (vignetting changes
+        fastest with aperture near wide open), and ``"any"`` bins only match ``"any"``
+        (a key without focal length is never merged with a real bin).
 
         Parameters
         ----------
         trusted_only : bool
-            Ignore profiles that are not trusted.
+            Ignore profiles that are not trusted (an interpolation is trusted when all
+            the profiles it uses are and its uncertainty is below the bound).
         """
         key = ProfileKey.from_lens(lens_key, width, height)
         with self._errors(f"looking up {key}"):
@@ -1187,6 +1287,12 @@ class ProfileStore(SQLiteFile):
                 return exact
             if lens_key.focal_mm is None:
                 return None
+            if lens_key.fnumber is not None:
+                same_lens = [p for p in self._select("WHERE lens_id = ? AND aspect = ?", (key.lens_id, key.aspect))
+                             if p.trusted or not trusted_only]
+                inter = interpolate_profiles(same_lens, key, float(lens_key.focal_mm), float(lens_key.fnumber))
+                if inter is not None and (inter.trusted or not trusted_only):
+                    return inter
             k = _focal_index(float(lens_key.focal_mm))
             for kk in (k - 1, k + 1):
                 p = self._get(replace(key, focal_bin=_focal_label(kk)))

@@ -265,3 +265,119 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
         float(np.mean([t[1] <= TRUSTED_BOUND_EV for t in reached])) if reached else math.nan,
         float(np.mean(later)) if later else math.nan)
     return rows, trust
+
+
+# --------------------------------------------------------------------------- #
+# between bins: a lens's profiles interpolated to a held-out setting
+# --------------------------------------------------------------------------- #
+
+
+@dataclass
+class InterpolationRow:
+    """Errors (EV) at held-out calibrations of lensfun's zoom lenses, by the way of
+    answering for a setting between a lens's profiles."""
+
+    method: str
+    axis: str  # "focal" or "aperture": what lies between the neighbours
+    n_points: int
+    median_ev: float
+    p90_ev: float
+    within_1sigma: float = math.nan
+    within_2sigma: float = math.nan
+
+
+def run_interpolation(width: int = 480, height: int = 320, max_points: int = 400) -> list[InterpolationRow]:
+    """A lens's profiles answering between their bins, on lensfun's own calibrations.
+
+    For every lens of the bundled lensfun database with calibrations (at infinity
+    focus) at three or more focal lengths of one aperture (or three or more apertures
+    of one focal length), each interior calibration is held out; the lens's other
+    calibrations become trusted profiles in a temporary store (each with a stated σ
+    of 0), and the store's :meth:`~vigproc.profiles.ProfileStore.lookup` answers for
+    the held-out setting. Error: the RMS of log2(answer / held-out calibration) about
+    its mean. Beside it: the nearest neighbour (the profile of the nearest bin along
+    the axis, what a store without interpolation could give at best) and lensfun's
+    own interpolation of the remaining calibrations (:func:`vigproc.lensfun.interpolate_pa`).
+    Points whose bin coincides with a neighbour's are skipped.
+    """
+    import tempfile
+    from pathlib import Path
+
+    from vigproc.bench.clean import gain_free_ev
+    from vigproc.exif import LensKey
+    from vigproc.lensfun import LensfunLens, interpolate_pa, load_lenses
+    from vigproc.normalised import denormalise, fit_model_to_field, normalise
+    from vigproc.profiles import Profile, ProfileKey, ProfileStore, aperture_bin, focal_bin
+
+    shape = (height, width)
+    errs: dict[tuple[str, str], list[float]] = {}
+    zs: dict[str, list[float]] = {"focal": [], "aperture": []}
+    points = 0
+    with tempfile.TemporaryDirectory(prefix="vigproc-bench-") as tmp:
+        for li, lens in enumerate(load_lenses()):
+            entries = [v for v in lens.vignetting if v.distance >= 1000]
+            thetas: dict[int, np.ndarray] = {}  # each calibration written as a profile once
+
+            def theta(v) -> np.ndarray:
+                if id(v) not in thetas:
+                    m, _ = fit_model_to_field(np.log(pa_field((64, 96), v.k1, v.k2, v.k3)), width, height)
+                    thetas[id(v)] = normalise(m)[0]
+                return thetas[id(v)]
+
+            for axis in ("focal", "aperture"):
+                groups: dict[float, list] = {}
+                for v in entries:
+                    groups.setdefault(v.aperture if axis == "focal" else v.focal, []).append(v)
+                for fixed, row in groups.items():
+                    row = sorted(row, key=lambda v: v.focal if axis == "focal" else v.aperture)
+                    for k in range(1, len(row) - 1):
+                        if points >= max_points:
+                            break
+                        held = row[k]
+                        others = [v for v in entries if v is not held]
+                        bins = {(focal_bin(v.focal), aperture_bin(v.aperture)) for v in others}
+                        key_bins = (focal_bin(held.focal), aperture_bin(held.aperture))
+                        if key_bins in bins:
+                            continue
+                        truth = np.log(pa_field(shape, held.k1, held.k2, held.k3))
+                        db = Path(tmp) / f"l{li}-{axis}-{k}-{fixed}.sqlite"
+                        lens_key = LensKey(make="bench", model="bench", lens=f"{lens.maker} {lens.model}",
+                                           focal_mm=held.focal, fnumber=held.aperture)
+                        with ProfileStore(db) as st:
+                            for v in others:
+                                key = ProfileKey.from_lens(replace_lens(lens_key, v.focal, v.aperture), width, height)
+                                st.put(Profile(key=key, theta=theta(v), n_frames=1, provenance="lensfun",
+                                               trusted=True, field_sigma_ev=0.0))
+                            got = st.lookup(lens_key, width, height)
+                        if got is None or not got.notes.startswith("interpolated"):
+                            continue
+                        points += 1
+                        e = gain_free_ev(got.model(width, height).log_field(shape) - truth)
+                        errs.setdefault(("store interpolation", axis), []).append(e)
+                        if got.field_sigma_ev:
+                            zs[axis].append(e / got.field_sigma_ev)
+                        near = min((row[k - 1], row[k + 1]), key=lambda v: abs(math.log(
+                            (v.focal / held.focal) if axis == "focal" else (v.aperture / held.aperture))))
+                        nearest = denormalise(theta(near), None, width, height)  # the same conversion
+                        errs.setdefault(("nearest neighbour", axis), []).append(
+                            gain_free_ev(nearest.log_field(shape) - truth))
+                        rest = LensfunLens(lens.maker, lens.model, lens.mounts, lens.crop_factor, lens.aspect_ratio,
+                                           tuple(others), lens.focal_norm_range)
+                        pa = interpolate_pa(rest, held.focal, held.aperture, 1000.0)
+                        errs.setdefault(("lensfun interpolate_pa", axis), []).append(
+                            gain_free_ev(np.log(pa_field(shape, pa.k1, pa.k2, pa.k3)) - truth))
+    rows = []
+    for (method, axis), e in sorted(errs.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+        a = np.asarray(e)
+        z = np.asarray(zs[axis]) if method == "store interpolation" and zs[axis] else None
+        rows.append(InterpolationRow(method, axis, a.size, float(np.median(a)), float(np.percentile(a, 90)),
+                                     float(np.mean(z <= 1)) if z is not None else math.nan,
+                                     float(np.mean(z <= 2)) if z is not None else math.nan))
+    return rows
+
+
+def replace_lens(lens_key, focal: float, fnumber: float):
+    """``lens_key`` at another focal length and f-number."""
+    from dataclasses import replace
+
+    return replace(lens_key, focal_mm=focal, fnumber=fnumber)
