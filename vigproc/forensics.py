@@ -54,7 +54,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from vigproc.errors import EXIT_CODES, ModelError, VigprocError
-from vigproc.lensmatch import MatchCalibration
+from vigproc.lensmatch import MatchCalibration, held_out_whitened
+from vigproc.lensmatch import whitener as _whitener
 from vigproc.model import VignettingModel
 
 log = logging.getLogger(__name__)
@@ -407,11 +408,6 @@ def _null_d2(cal: Calibration, n_frames: int, decided: bool) -> np.ndarray:
     return out
 
 
-def _whitener(cov: np.ndarray) -> np.ndarray:
-    """L⁻¹ with Σ = L Lᵀ (Cholesky, with a tiny ridge for near-singular Σ)."""
-    cov = 0.5 * (cov + cov.T)
-    ridge = 1e-9 * float(np.trace(cov)) / cov.shape[0]
-    return np.linalg.inv(np.linalg.cholesky(cov + ridge * np.eye(cov.shape[0])))
 
 
 def fit_calibration(
@@ -455,14 +451,7 @@ def fit_calibration(
         raise ForensicsError(f"calibration needs at least {max(folds, 10)} photographs and {5 * k} frames, "
                              f"got {uniq.size} and {len(r)}")
     # photographs to folds by a fixed shuffle, so every fold mixes sources
-    order = np.random.default_rng(0).permutation(uniq.size)
-    fold_of = dict(zip(uniq[order], np.arange(uniq.size) % folds))
-    fold = np.array([fold_of[v] for v in g])
-    z = np.empty_like(r)
-    for f in range(folds):
-        out = fold == f
-        mu_f = r[~out].mean(axis=0)
-        z[out] = (r[out] - mu_f) @ _whitener(np.cov(r[~out].T)).T
+    z = held_out_whitened(r, g, folds)
     mu = r.mean(axis=0)
     cov = np.cov(r.T)
     return Calibration(

@@ -134,10 +134,29 @@ def reference_coefficients(model, width: int, height: int, family=None) -> np.nd
     return sol[1:]
 
 
-def _whitener(cov: np.ndarray) -> np.ndarray:
+def whitener(cov: np.ndarray) -> np.ndarray:
+    """L⁻¹ with Σ = L Lᵀ (Cholesky, with a tiny ridge for a near-singular Σ)."""
     cov = 0.5 * (cov + cov.T)
     ridge = 1e-9 * float(np.trace(cov)) / cov.shape[0]
     return np.linalg.inv(np.linalg.cholesky(cov + ridge * np.eye(cov.shape[0])))
+
+
+_whitener = whitener
+
+
+def held_out_whitened(r: np.ndarray, groups: np.ndarray, folds: int, centre=np.mean) -> np.ndarray:
+    """Each row whitened by the centre and covariance of the other folds, photographs
+    (``groups``) assigned to folds by a fixed shuffle: a null of frames the whitening
+    has not seen (k-fold cross-validation by photograph)."""
+    uniq = np.unique(groups)
+    order = np.random.default_rng(0).permutation(uniq.size)
+    fold_of = dict(zip(uniq[order], np.arange(uniq.size) % folds))
+    fold = np.array([fold_of[v] for v in groups])
+    z = np.empty_like(r)
+    for f in range(folds):
+        out = fold == f
+        z[out] = (r[out] - centre(r[~out], axis=0)) @ whitener(np.atleast_2d(np.cov(r[~out].T))).T
+    return z
 
 
 @dataclass(frozen=True)
@@ -319,14 +338,7 @@ def fit_match_calibration(residuals: np.ndarray, groups: Sequence[int], family, 
     if uniq.size < max(folds, 10) or len(r) < 20:
         raise MatchCalibrationError(f"calibration needs at least {max(folds, 10)} photographs and 20 frames, "
                                     f"got {uniq.size} and {len(r)}")
-    order = np.random.default_rng(0).permutation(uniq.size)
-    fold_of = dict(zip(uniq[order], np.arange(uniq.size) % folds))
-    fold = np.array([fold_of[v] for v in g])
-    z = np.empty_like(r)
-    for f in range(folds):
-        out = fold == f
-        mu_f = np.median(r[~out], axis=0)
-        z[out] = (r[out] - mu_f) @ _whitener(np.atleast_2d(np.cov(r[~out].T))).T
+    z = held_out_whitened(r, g, folds, np.median)
     try:
         return MatchCalibration(
             mean=tuple(float(v) for v in np.median(r, axis=0)),
