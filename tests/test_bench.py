@@ -251,3 +251,24 @@ def test_bench_clean_scores_methods_on_crops_of_large_frames(tmp_path):
         assert row["median_ev"] < row["uncorrected_ev"]
     assert 0.0 <= fields["lens-family"]["within_1sigma"] <= fields["lens-family"]["within_2sigma"] <= 1.0
     assert "no harm" in r.stdout and "rgs-c++" not in r.stdout
+
+
+def test_bench_profile_flat_learns_a_white_wall(tmp_path):
+    """``vigproc bench profile-flat``: three unevenly lit shots of a vignetted white frame
+    give a trusted flat-field profile close to the field; no white pairs is a usage error."""
+    from vigproc.lensfun import bench_lenses, pa_field
+
+    d = tmp_path / "flat"
+    d.mkdir()
+    _, pa = bench_lenses(1)[0]
+    white = np.full((120, 180), 0.5)
+    for name, img in (("white", white), ("white1_vig", white * pa_field((120, 180), pa.k1, pa.k2, pa.k3))):
+        write_image(d / f"{name}.png", np.repeat(img[..., None], 3, axis=2).astype(np.float32), bit_depth="uint16")
+    out = tmp_path / "flat.json"
+    r = _bench("profile-flat", "--images", d, "--input-transfer", "linear", "--methods", "flat-field", "--json", out)
+    assert r.returncode == 0, r.stderr
+    (row,) = json.loads(out.read_text())
+    assert row["method"] == "flat-field" and row["trusted"]
+    assert row["error_ev"] < 0.1 * row["uncorrected_ev"], row
+    r = _bench("profile-flat", "--images", tmp_path / "nowhere")
+    assert r.returncode == 2 and "no white pairs" in r.stderr and "Traceback" not in r.stderr

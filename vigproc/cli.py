@@ -725,6 +725,38 @@ def cmd_bench_profile_interp(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_profile_flat(args: argparse.Namespace) -> int:
+    """Profiles learned from three shots of a flat field (Zheng et al.'s white pairs)."""
+    from vigproc.bench import profile as B
+    from vigproc.bench.real import find_inputs
+    from vigproc.image import luminance
+    from vigproc.io import read_image
+    from vigproc.pipeline import IMAGE_SUFFIXES
+
+    output_file(args.json)
+    pairs = [(v, c) for v, c in find_inputs(Path(args.images), IMAGE_SUFFIXES)[0]
+             if c.stem.lower().startswith("white")]
+    if not pairs:
+        print(f"vigproc: bench profile-flat: no white pairs (white*_vig with white) under {args.images}",
+              file=sys.stderr)
+        return EXIT_CODES["usage"]
+    frames = [(luminance(read_image(v, transfer=args.input_transfer)[0]),
+               luminance(read_image(c, transfer=args.input_transfer)[0]), v.name) for v, c in pairs]
+    rows = B.run_flat_field([f for f in frames if f[0].shape == f[1].shape], args.methods)
+    print(f"flat-field profiles: {len(pairs)} white pairs under {args.images}, 3 unevenly lit shots of each "
+          f"learned into a store (input transfer {args.input_transfer}); error = RMS of log2(profile/true field) "
+          "about its mean (EV)")
+    print(f"{'frame':<20}{'method':<12}{'error EV':>9}{'uncorr':>8}{'sigma':>7}{'trusted':>9}")
+    for r in rows:
+        print(f"{r.name:<20}{r.method:<12}{r.error_ev:>9.3f}{r.uncorrected_ev:>8.3f}{r.sigma_ev:>7.3f}"
+              f"{'yes' if r.trusted else 'no':>9}")
+    if args.json:
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(args.json), json.dumps([asdict(r) for r in rows], indent=1) + "\n")
+    return 0
+
+
 def cmd_bench_io(args: argparse.Namespace) -> int:
     """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
     from vigproc.bench.io import bench_formats, bench_raw
@@ -1155,6 +1187,15 @@ def build_parser() -> argparse.ArgumentParser:
                     help="held-out calibrations at most (default %(default)s)")
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_profile_interp)
+    bp = bsub.add_parser("profile-flat", help="profiles learned from a few shots of a flat field "
+                         "(Zheng et al.'s white pairs), flat-field against the default")
+    bp.add_argument("--images", default="../shared/data/vignetted", help="folder with white*_vig / white pairs "
+                    "(default %(default)s)")
+    bp.add_argument("--methods", nargs="+", default=["flat-field", "default"], choices=list(METHODS),
+                    help="methods to learn with (default %(default)s)")
+    add_transfer(bp)
+    bp.add_argument("--json", help="write the figures to this file")
+    bp.set_defaults(fn=cmd_bench_profile_flat)
     bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")
     bp.add_argument("--width", type=int, default=6000, help="frame width in px (default %(default)s)")
     bp.add_argument("--height", type=int, default=4000, help="frame height in px (default %(default)s)")
