@@ -18,6 +18,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Sequence
 
+from vigproc.commands._options import write_json_result
 from vigproc.errors import EXIT_CODES, DiskFullError, PriorError, VigprocError, one_line
 
 log = logging.getLogger("vigproc")
@@ -369,10 +370,7 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
         r = B.run_flat(ims, name, _estimator(name, settings=settings, family=family))
         results.append(asdict(r))
         print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.candidate_median_ev:>11.3f}{r.fallbacks:>8}")
-    if args.json:
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(args.json), json.dumps(results, indent=1) + "\n")
+    write_json_result(args.json, results)
     return 0
 
 
@@ -438,10 +436,7 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
         r = C.run_harm(bases, name, fn)
         results.append(asdict(r))
         print(f"{r.method:<18}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.fallbacks:>8}")
-    if args.json:
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(args.json), json.dumps({"bases": names, "results": results}, indent=1) + "\n")
+    write_json_result(args.json, {"bases": names, "results": results})
     return 0
 
 
@@ -483,12 +478,7 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
         CropCalibration(np.asarray(r.null_z), f"vigproc bench crops: {r.n_bases} clean bases x {r.n_lenses} "
                         f"lenses x {len(K.FALLOFFS_EV)} fall-offs, uncropped").save(args.calibrate)
         print(f"calibration ({len(r.null_z)} uncropped frames) written to {args.calibrate}")
-    if args.json:
-        from dataclasses import asdict
-
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(args.json), json.dumps(asdict(r), indent=1) + "\n")
+    write_json_result(args.json, asdict(r))
     return 0
 
 
@@ -554,10 +544,7 @@ def cmd_bench_real(args: argparse.Namespace) -> int:
             print(f"{f.stem:<22}{rows[0].crude_corner_ev:>8.2f}"
                   + "".join(f"{r.corner_ev:>12.2f}" if r.corrected else f"{'-':>12}" for r in rows))
         print(f"{'corrected':<22}{'':>8}" + "".join(f"{f'{corrected[m]}/{n}':>12}" for m in args.methods))
-    if args.json:
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(args.json), json.dumps(results, indent=1) + "\n")
+    write_json_result(args.json, results)
     return 0
 
 
@@ -698,11 +685,7 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
     print(f"trusted (2 sigma < {trust.bound_ev:g} EV): {trust.n_trusted}/{trust.n_lenses} lenses, after a median "
           f"{trust.median_frames:.0f} frames; error then below the bound on {trust.share_within_bound:.0%} of them, "
           f"and on {trust.share_within_bound_later:.0%} of trusted profiles at the counts above")
-    if args.json:
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(args.json), json.dumps({"rows": [asdict(r) for r in rows], "trust": asdict(trust)},
-                                                      indent=1) + "\n")
+    write_json_result(args.json, {"rows": [asdict(r) for r in rows], "trust": asdict(trust)})
     return 0
 
 
@@ -718,10 +701,7 @@ def cmd_bench_profile_interp(args: argparse.Namespace) -> int:
     for r in rows:
         print(f"{r.method:<24}{r.axis:<10}{r.n_points:>7}{r.median_ev:>11.4f}{r.p90_ev:>9.4f}"
               f"{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}")
-    if args.json:
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(args.json), json.dumps([asdict(r) for r in rows], indent=1) + "\n")
+    write_json_result(args.json, [asdict(r) for r in rows])
     return 0
 
 
@@ -750,10 +730,7 @@ def cmd_bench_profile_flat(args: argparse.Namespace) -> int:
     for r in rows:
         print(f"{r.name:<20}{r.method:<12}{r.error_ev:>9.3f}{r.uncorrected_ev:>8.3f}{r.sigma_ev:>7.3f}"
               f"{'yes' if r.trusted else 'no':>9}")
-    if args.json:
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(args.json), json.dumps([asdict(r) for r in rows], indent=1) + "\n")
+    write_json_result(args.json, [asdict(r) for r in rows])
     return 0
 
 

@@ -93,3 +93,14 @@ def add_clean_bases(bp: argparse.ArgumentParser) -> None:
     bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
                     help="frames whose long side is shorter are not used (default %(default)s)")
     bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+
+
+def write_json_result(path: str | None, data: object) -> None:
+    """A bench's figures as JSON at ``path`` (atomically; nothing when None)."""
+    if path:
+        import json
+        from pathlib import Path
+
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(path), json.dumps(data, indent=1) + "\n")

@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from vigproc.commands._options import add_method, add_transfer, number
+from vigproc.commands._options import add_method, add_transfer, number, write_json_result
 from vigproc.errors import VigprocError
 
 
@@ -282,9 +282,7 @@ def cmd_bench_forensics(args: argparse.Namespace) -> int:
               f"{100 * row.false_alarm:>7.1f}{100 * row.detection:>7.1f}"
               f"{100 * row.null_undecided:>5.0f}/{100 * row.alt_undecided:<4.0f}")
     if args.json:
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(args.json), json.dumps(asdict(r), indent=1) + "\n")
+        write_json_result(args.json, asdict(r))
         print(f"-> {args.json}")
     return 0
 
@@ -330,8 +328,6 @@ def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
         cal.save(args.calibrate)
         print(f"calibration ({cal.n_frames} frames of {cal.n_images} bases) -> {args.calibrate}")
     if args.json:
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(args.json), json.dumps(asdict(r), indent=1) + "\n")
+        write_json_result(args.json, asdict(r))
         print(f"-> {args.json}")
     return 0
