@@ -32,11 +32,8 @@ BENCH_COMMANDS = {
 #: Real commands that still import benchmark code. Moving the shared pieces down needs
 #: edits under vigproc/bench/, outside the change that added this test; not to grow.
 BENCH_DEBT = {
-    # prior fit-scene / fit-profile-bias read frames with bench.synthetic.read_protocol_images
-    ("vigproc.cli", "_fit_falloff"),
-    # forensics calibrate reads frames the same way and takes its lens classes and
-    # residuals from bench.forensics (bench_classes, calibration_residuals)
-    ("vigproc.commands.forensics", "_protocol_images"),
+    # forensics calibrate takes its lens classes and residuals from bench.forensics
+    # (bench_classes, calibration_residuals)
     ("vigproc.commands.forensics", "cmd_calibrate"),
 }
 

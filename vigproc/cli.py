@@ -230,7 +230,7 @@ def _fit_falloff(args: argparse.Namespace, what: str, source: str, estimate_with
     """Fit a mean fall-off (:func:`vigproc.scene.fit_scene_falloff`) on a folder's photos
     in the benchmarks' framing (3:2 landscape, 480x320, linear luminance) and write it."""
     from vigproc.atomic import atomic_write_text
-    from vigproc.bench.synthetic import read_protocol_images
+    from vigproc.protocol import read_protocol_images
     from vigproc.scene import fit_scene_falloff
 
     output_file(args.output)

@@ -12,7 +12,6 @@ fit (``candidate`` when it fell back).
 from __future__ import annotations
 
 import json
-import logging
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -22,10 +21,8 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from vigproc.model import VignettingModel
+from vigproc.protocol import HEIGHT, WIDTH, protocol_image, read_protocol_images  # noqa: F401  (re-exported)
 
-log = logging.getLogger(__name__)
-
-WIDTH, HEIGHT = 480, 320
 TABLE1_ALPHA = (0.02, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0)
 #: Lyu 2010, Table 1: (centre (cx, cy) px from the image centre, P in px⁻²).
 TABLE1 = {
@@ -39,45 +36,6 @@ def table1_model(setting: int) -> VignettingModel:
     """The ground-truth model of a Table 1 setting for a 480×320 frame."""
     c, p = TABLE1[setting]
     return VignettingModel(WIDTH, HEIGHT, center=c, p=p, alpha=TABLE1_ALPHA, method="table1")
-
-
-def protocol_image(img: np.ndarray) -> np.ndarray:
-    """Centre-crop to 3:2 landscape and resize to 480×320 (area filter); gray float64.
-
-    ``img`` holds stored values scaled to [0, 1] (not linearised: the paper's
-    protocol takes them as linear), H×W or H×W×C.
-    """
-    from vigproc.image import luminance
-    from vigproc.resample import resize_area
-
-    g = luminance(np.asarray(img, dtype=np.float64))
-    if g.shape[0] > g.shape[1]:
-        g = np.rot90(g)
-    h, w = g.shape
-    if w * 2 > h * 3:  # too wide: crop width
-        nw = int(round(h * 1.5))
-        x0 = (w - nw) // 2
-        g = g[:, x0 : x0 + nw]
-    else:
-        nh = int(round(w / 1.5))
-        y0 = (h - nh) // 2
-        g = g[y0 : y0 + nh, :]
-    return resize_area(g, HEIGHT, WIDTH)
-
-
-def read_protocol_images(files: Iterable[Path], transfer: str = "linear") -> list[np.ndarray]:
-    """:func:`protocol_image` of each readable file (decoded with ``transfer``); a file
-    that cannot be read is skipped with a warning."""
-    from vigproc.errors import VigprocError
-    from vigproc.io import read_image
-
-    ims = []
-    for f in files:
-        try:
-            ims.append(protocol_image(read_image(f, transfer=transfer)[0]))
-        except VigprocError as exc:
-            log.warning("skipping %s", exc)
-    return ims
 
 
 def psnr_best_gain(restored: np.ndarray, original: np.ndarray) -> float:

@@ -130,7 +130,7 @@ def _estimates(files: list[Path], method: str, transfer: str, what: str):
 
 
 def _protocol_images(folders, limit, transfer):
-    from vigproc.bench.synthetic import read_protocol_images
+    from vigproc.protocol import read_protocol_images
     from vigproc.pipeline import images_in
 
     ims = [im for folder in folders for im in read_protocol_images(images_in(Path(folder), limit), transfer)]
