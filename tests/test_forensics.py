@@ -389,6 +389,29 @@ def test_check_cli_does_not_check_a_frame_against_its_own_profile(tmp_path, clas
     assert doc["results"][0].get("expected_source") != "stored-profile", doc["results"][0]
 
 
+def test_hook_check_does_not_check_a_frame_against_its_own_profile(tmp_path, classes, capsys):
+    """A host's hook asking for the answer only (no output folder) took the profile
+    learned from this very frame as its reference and called the frame consistent."""
+    from vigproc.cli import main
+
+    from dngfixture import make_dng
+
+    c = classes[4]
+    path = tmp_path / "a.dng"
+    make_dng(path, width=W, height=H, field=c.field(H, W), scene=0.8 * textured(H, W, seed=53, contrast=0.15),
+             exif={"Make": "Pentax", "Model": "PENTAX *ist D", "LensModel": "vigproc test lens 35mm",
+                   "FocalLength": 35, "FNumber": 4})  # a lens lensfun does not know
+    db = tmp_path / "p.sqlite"
+    assert main(["profile", "--profile-db", str(db), "learn", str(path)]) == 0
+    capsys.readouterr()
+    for args in (["check", str(path), "--json"], ["hook", "--mode", "check", "--", str(path)]):
+        main([*args[:1], "--profile-db", str(db), *args[1:]] if args[0] == "check" else
+             [*args[:3], "--profile-db", str(db), *args[3:]])
+        (res,) = json.loads(capsys.readouterr().out)["results"]
+        v = res["verdict"] if isinstance(res["verdict"], dict) else res  # the hook nests the verdict
+        assert v["verdict"] == "unknown-lens" and v.get("expected_source") is None, json.dumps(res)
+
+
 def test_check_cli_line_escapes_a_newline_in_a_file_name(tmp_path, classes, capsys):
     from vigproc.cli import main
 

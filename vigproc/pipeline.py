@@ -876,7 +876,6 @@ class Processor:
             Also when an output would replace ``path`` or a protected file.
         """
         from vigproc.atomic import atomic_write_text
-        from vigproc.io import read_image
 
         s = self.settings
         t0 = time.perf_counter()
@@ -899,22 +898,8 @@ class Processor:
         for target in (dst if s.mode == "correct" else None, kept, sidecar,
                        safe_output(outdir, stem, ".vignetting.png") if s.picture else None):
             refuse_input(target, (own,), protect)
-        img, info = read_image(path, transfer=s.transfer)
-        fmt = output_format_for(s.output_format, path, info, like=like)
-        lens_key, lens = read_lens(self.reader, path)
-        embedded = None
-        if s.mode in ("correct", "estimate"):
-            from vigproc.dng_vignette import embedded_for
-
-            embedded = embedded_for(path, s.profile)
-        if s.mode in ("learn", "check") and frame_id is None and self.store is not None:
-            frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
-        out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
-                                      embedded=embedded)
-        res.lens = lens
-        if embedded is not None:
-            res.extra["embedded"] = embedded.to_dict(*img.shape[1::-1]) if res.source == "embedded" else \
-                embedded.to_dict()
+        out, res, img, info, fmt = self._process_path(path, frame_id, lambda info: output_format_for(
+            s.output_format, path, info, like=like))
         if out is not None and (res.applied or policy == "write"):
             from vigproc.metadata import make_record, write_corrected
 
@@ -941,6 +926,46 @@ class Processor:
         res.seconds = round(time.perf_counter() - t0, 4)
         atomic_write_text(sidecar, json.dumps(res.to_dict(), indent=1) + "\n")
         return res
+
+    def process_unwritten(self, path: str | os.PathLike[str], *, frame_id: str | None = None) -> FrameResult:
+        """Check or estimate a file without writing anything (a host asking for the
+        answer only): read, lens, DNG calibration and content id exactly as
+        :meth:`process_file` (so a check never takes a profile that pooled this very
+        file as its reference).
+
+        Raises
+        ------
+        VigprocError
+            In correct mode (a correction must be written somewhere).
+        """
+        if self.settings.mode == "correct":
+            raise VigprocError("correct mode writes its result: use process_file")
+        return self._process_path(Path(path), frame_id, lambda info: None)[1]
+
+    def _process_path(self, path: Path, frame_id: str | None, output_for):
+        """Read ``path`` and process it: (corrected image or None, FrameResult, image, its
+        ImageInfo, output format). ``output_for(info)``: the output format (None: none
+        written)."""
+        from vigproc.io import read_image
+
+        s = self.settings
+        img, info = read_image(path, transfer=s.transfer)
+        lens_key, lens = read_lens(self.reader, path)
+        embedded = None
+        if s.mode in ("correct", "estimate"):
+            from vigproc.dng_vignette import embedded_for
+
+            embedded = embedded_for(path, s.profile)
+        if s.mode in ("learn", "check") and frame_id is None and self.store is not None:
+            frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
+        fmt = output_for(info)
+        out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
+                                      embedded=embedded)
+        res.lens = lens
+        if embedded is not None:
+            res.extra["embedded"] = embedded.to_dict(*img.shape[1::-1]) if res.source == "embedded" else \
+                embedded.to_dict()
+        return out, res, img, info, fmt
 
     @staticmethod
     def _picture(path: Path, outdir: Path, stem: str, res: FrameResult) -> None:

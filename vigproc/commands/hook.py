@@ -188,8 +188,7 @@ class _HostLens:
 def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) -> dict[str, Any]:
     from vigproc.api import Result
     from vigproc.atomic import fsync_dir
-    from vigproc.io import read_image
-    from vigproc.pipeline import SIDECAR_SUFFIX, read_lens, safe_output
+    from vigproc.pipeline import SIDECAR_SUFFIX, safe_output
 
     path = Path(job["path"])
     s = proc.settings
@@ -227,11 +226,7 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) 
     if s.mode == "correct":
         raise UsageError("correct mode needs an output folder (-o) or an output file per input")
     # check/estimate without an output folder: nothing is written, the answer is the result
-    img, _ = read_image(path, transfer=s.transfer)
-    key, lens = read_lens(proc.reader, path)
-    _, res = proc.process_image(img, key, where=str(path))
-    res.lens = lens
-    out.update(Result.from_frame(res).to_dict())
+    out.update(Result.from_frame(proc.process_unwritten(path)).to_dict())
     return out
 
 
