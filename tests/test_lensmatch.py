@@ -143,6 +143,20 @@ def test_pooled_family_verdicts(classes, calibration):
     assert ok.verdict == "consistent"
 
 
+def test_a_fit_no_model_can_hold_is_insufficient_signal(classes, calibration, monkeypatch):
+    """The data-only fit of a frame without usable structure can land on coefficients no
+    lens has, whose model would black out part of the frame: that is no evidence (a
+    camera JPEG made `vigproc check` fail with exit 6 where estimate and correct went on)."""
+    import vigproc.lensmatch as lensmatch
+    from vigproc.family_fit import FrameCoefficients
+
+    monkeypatch.setattr(lensmatch, "frame_fit", lambda lum, fam=None, settings=None: FrameCoefficients(
+        np.array([5e3, -4e3]), np.eye(2), 1000))
+    img = textured(H, W, seed=6, contrast=0.15) * classes[4].field(H, W)
+    v = check_image(img, key_of(classes[4]), calibration=calibration)
+    assert v.verdict == "insufficient-signal", v.reason
+
+
 def test_unknown_lens_and_explicit_method(classes, calibration):
     from vigproc.forensics import ForensicsError
 

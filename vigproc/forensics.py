@@ -1085,13 +1085,20 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
     h, w = lum.shape
     fc = frame_fit(lum, fam)
     c = None if fc is None else np.asarray(fc.coefficients)
-    if c is None:
+    est = None
+    if c is not None:
+        try:
+            est = _family_model(c, w, h, fam, cal)
+        except ModelError:
+            # coefficients no lens has (a frame of no usable structure, the data alone
+            # wildly extrapolated): no evidence either way, as with too few pixels
+            log.info("the frame's lens-family fit is no vignetting a model can hold; insufficient signal")
+            c = None
+    if est is None:
         from vigproc.model import FitQuality
 
         est = VignettingModel.identity(w, h, method=FAMILY_TEST_METHOD,
                                        quality=FitQuality(confidence=0.0, fallback=True))
-    else:
-        est = _family_model(c, w, h, fam, cal)
     ref = find_reference(lens_key, w, h, store=store, frame_id=frame_id)
     return _family_verdict(est, c, ref, calibration=cal, family=fam,
                            lens_id=lens_key.lens_id() if lens_key is not None else None, alpha=alpha)
