@@ -97,7 +97,9 @@ class CropEvidence:
         p = f"p = {self.p_false_alarm:.3g}" if self.p_false_alarm is not None else "uncalibrated"
         if self.verdict == "off-centre":
             return f"vignetting centre off the frame's ({where}, {p}): a crop, a shift or a stitch"
-        return f"vignetting centred ({where}, {p})"
+        # "centred" means only that the test cannot tell it from a centred fall-off: a
+        # far centre with p above the threshold is a loosely placed one, not a crop
+        return f"not shown off-centre at p < {self.alpha:g} ({where}, {p})"
 
 
 @dataclass(frozen=True)
