@@ -347,3 +347,21 @@ def test_lens_data_takes_numpy_scalars_and_drops_absurd_numbers():
     assert numpy_.lens == plain.lens and plain.lens["key"]["focal_mm"] == 24.0
     _, huge = api.Pipeline("estimate").process(img, lens={**base, "focal_mm": 10**400})  # was OverflowError
     assert huge.lens["key"]["focal_mm"] is None and any("focal_mm" in p for p in huge.lens["key"]["problems"])
+
+
+def test_the_papers_fits_state_their_fall_off_and_no_made_up_certainty():
+    """ga and lyu2010 give no uncertainty: their quality measures the fall-off and leaves
+    σ and SNR unknown, instead of an empty FitQuality's 0 EV at infinite SNR."""
+    import math
+
+    import vigproc
+    from conftest import textured
+    from vigproc.bench.synthetic import table1_model
+
+    img = textured(320, 480, seed=3, contrast=0.05) * table1_model(1).field((320, 480))
+    for method in ("ga", "lyu2010"):
+        m = vigproc.estimate(img, method=method, channel_axis=None)
+        q = m.quality
+        assert q.field_ev_rms == pytest.approx(m.field_ev_rms()) and q.field_ev_rms > 0.1, method
+        assert math.isnan(q.field_sigma_ev) and math.isnan(q.snr), method
+        assert '"field_sigma_ev": null' in m.to_json()

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vigproc.errors import InvalidImageError
+from vigproc.errors import InvalidImageError, ModelError
 from vigproc.family_fit import LensHint
 from vigproc.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
 from vigproc.image import bin_mean, check_image, log_image, luminance
@@ -171,7 +172,14 @@ def estimate(
         log_image(work), prior or default_prior(), ml=method != "ga",
         random_start=method == "lyu2010-rand", seed=seed,
     )
-    return _from_working(m, k, w, h)
+    m = _from_working(m, k, w, h)
+    # the paper's fits state no uncertainty: their fall-off is measured, their σ unknown
+    # (NaN), not the "certain" defaults of an empty FitQuality
+    try:
+        ev = m.field_ev_rms()
+    except ModelError:  # a fit that blacks out part of the frame has no fall-off to state
+        ev = math.nan
+    return replace(m, quality=replace(m.quality, field_ev_rms=ev, field_sigma_ev=math.nan, snr=math.nan))
 
 
 def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
