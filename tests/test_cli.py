@@ -499,6 +499,14 @@ def test_profile_show_uses_the_profiles_own_frame_and_prints_a_summary(tmp_path)
     r = run("profile", "--profile-db", db, "show", "0", "--json", "--height", "300")
     doc = json.loads(r.stdout)  # JSON only on stdout
     assert (doc["width"], doc["height"]) == (400, 300)
+    # by the lens id that estimate and check print, while the lens has one profile
+    lens_id = run("profile", "--profile-db", db, "list").stdout.split("] ", 1)[1].split(" @ ")[0]
+    r = run("profile", "--profile-db", db, "show", lens_id)
+    assert r.returncode == 0 and "frame       6000x4500" in r.stdout, r.stderr
+    r = run("profile", "--profile-db", db, "import-lensfun", "Sigma", "105mm F1.4 DG HSM | Art 018",
+            "--focal", "105", "--aperture", "2.8", "--width", "4000", "--height", "3000")
+    r = run("profile", "--profile-db", db, "show", lens_id)
+    assert r.returncode == 8 and "has 2 profiles" in r.stderr, r.stderr
 
 
 def test_lines_printed_during_a_progress_bar_stay_whole(monkeypatch):

@@ -763,7 +763,8 @@ def _profile_line(i: int, p) -> str:
 
 
 def _pick_profile(store, ident: str):
-    """A stored profile by its index in ``profile list`` or its exact key text."""
+    """A stored profile by its index in ``profile list``, its exact key text, or its lens
+    id (as ``estimate`` and ``check`` print it) when that lens has one profile."""
     from vigproc.profiles import ProfileStoreError
 
     profiles = store.list()
@@ -772,6 +773,13 @@ def _pick_profile(store, ident: str):
     for p in profiles:
         if str(p.key) == ident:
             return p
+    of_lens = [p for p in profiles if p.key.lens_id == ident]
+    if len(of_lens) == 1:
+        return of_lens[0]
+    if of_lens:
+        keys = "; ".join(str(p.key) for p in of_lens[:5]) + (" …" if len(of_lens) > 5 else "")
+        raise ProfileStoreError(f"lens {ident!r} has {len(of_lens)} profiles (focal length, aperture, aspect): "
+                                f"name one by its number in 'vigproc profile list' or its key ({keys})")
     raise ProfileStoreError(f"no stored profile {ident!r} (see 'vigproc profile list')")
 
 
