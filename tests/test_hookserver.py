@@ -25,7 +25,7 @@ def server_env(tmp_path, monkeypatch):
     monkeypatch.setenv(hookserver.ENV_DIR, str(rt))
     monkeypatch.setenv("VIGPROC_HOOK_SERVER_IDLE", "20")
     yield rt
-    subprocess.run(["pkill", "-f", f"--socket {rt}"], check=False)  # leave no process behind
+    subprocess.run(["pkill", "-f", "--", f"--socket {rt}"], check=False)  # leave no process behind
 
 
 def _hook(*args, cwd=None, stdin=None):
@@ -100,3 +100,18 @@ def test_off_switch(monkeypatch):
     assert not hookserver.enabled()
     monkeypatch.setenv(hookserver.ENV_SWITCH, "on")
     assert hookserver.enabled()
+
+
+def test_a_terminated_server_removes_its_socket(tmp_path, server_env):
+    """SIGTERM (a logout, pkill) ends the server as its idle timeout does: no socket file
+    is left behind."""
+    write_image(tmp_path / "c.tif", photo_like(120, 180, seed=3)[..., None].repeat(3, axis=2).astype("float32"))
+    r = _hook("--mode", "estimate", "--profile", "estimate", "--", tmp_path / "c.tif")  # starts the server
+    assert r.returncode == 0, r.stderr
+    assert _wait_for_socket(server_env)
+    # "--": a pattern that starts with "--" is not an option of pkill's
+    assert subprocess.run(["pkill", "-TERM", "-f", "--", f"--socket {server_env}"]).returncode == 0
+    t0 = time.time()
+    while any(server_env.glob("*.sock")) and time.time() - t0 < 10:  # well before its 20 s idle exit
+        time.sleep(0.2)
+    assert not any(server_env.glob("*.sock"))

@@ -34,6 +34,7 @@ import io
 import json
 import logging
 import os
+import signal
 import socket
 import stat
 import struct
@@ -248,11 +249,11 @@ def serve(path: Path, run: Runner, idle: float = IDLE_SECONDS) -> int:
         if exc.errno == errno.EADDRINUSE:
             return 0
         raise
-    # load the estimator's kernels before the first call (the point of this process)
-    estimate(np.exp(np.random.default_rng(0).normal(0.0, 0.1, (96, 128))))
-    srv.settimeout(min(idle, 10.0))  # wake now and then: is the socket still ours to serve?
-    last = time.monotonic()
     try:
+        # load the estimator's kernels before the first call (the point of this process)
+        estimate(np.exp(np.random.default_rng(0).normal(0.0, 0.1, (96, 128))))
+        srv.settimeout(min(idle, 10.0))  # wake now and then: is the socket still ours to serve?
+        last = time.monotonic()
         while True:
             try:
                 conn, _ = srv.accept()
@@ -286,6 +287,8 @@ def _main(run: Runner, argv: Sequence[str] | None = None) -> int:
                    help="seconds without a call before leaving")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
+    # SIGTERM (a logout, `pkill`) ends the loop like the idle timeout: the socket is removed
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     return serve(Path(a.socket), run, a.idle)
 
 
