@@ -54,7 +54,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from vigproc.errors import EXIT_CODES, ModelError, VigprocError
-from vigproc.lensmatch import MatchCalibration, held_out_whitened
+from vigproc.lensmatch import MatchCalibration, held_out_whitened, pooled_null
 from vigproc.lensmatch import whitener as _whitener
 from vigproc.model import VignettingModel
 
@@ -395,19 +395,15 @@ def _null_d2(cal: Calibration, n_frames: int, decided: bool) -> np.ndarray:
         uniq = np.unique(g)
         if uniq.size < n_frames:
             raise ForensicsError(f"the calibration has {uniq.size} photographs, too few for {n_frames}-frame evidence")
-        by_group = [np.flatnonzero(g == u) for u in uniq]
-        rng = np.random.default_rng(12345 + n_frames)  # fixed: the same p-value every run
-        out = np.empty(NULL_DRAWS)
-        for i in range(NULL_DRAWS):
-            picks = rng.choice(uniq.size, n_frames, replace=False)
-            rows = [by_group[p][rng.integers(by_group[p].size)] for p in picks]
-            zm = z[rows].mean(axis=0)
-            out[i] = n_frames * float(zm @ zm)
-        out.sort()
+        out = pooled_null(z, g, n_frames, _mean_d2, seed=12345 + n_frames, draws=NULL_DRAWS)
     cal._null_cache[(n_frames, decided)] = out
     return out
 
 
+def _mean_d2(z: np.ndarray) -> float:
+    """n·|mean of the n whitened residuals|² (one row per frame): D² of their mean."""
+    zm = z.mean(axis=0)
+    return z.shape[0] * float(zm @ zm)
 
 
 def fit_calibration(
@@ -1200,7 +1196,7 @@ def pool_verdicts(verdicts: Sequence[Verdict], *,
     else:  # the mean of the whitened ring residuals
         cal = calibration if isinstance(calibration, Calibration) else default_calibration()
         z = rows.mean(axis=0)
-        d2 = float(n * z @ z)
+        d2 = _mean_d2(rows)
     if z.size != len(cal.mean):
         raise ForensicsError("the verdicts were not made with this calibration")
     p = cal.p_value(d2, n)

@@ -141,9 +141,6 @@ def whitener(cov: np.ndarray) -> np.ndarray:
     return np.linalg.inv(np.linalg.cholesky(cov + ridge * np.eye(cov.shape[0])))
 
 
-_whitener = whitener
-
-
 def held_out_whitened(r: np.ndarray, groups: np.ndarray, folds: int, centre=np.mean) -> np.ndarray:
     """Each row whitened by the centre and covariance of the other folds, photographs
     (``groups``) assigned to folds by a fixed shuffle: a null of frames the whitening
@@ -157,6 +154,25 @@ def held_out_whitened(r: np.ndarray, groups: np.ndarray, folds: int, centre=np.m
         out = fold == f
         z[out] = (r[out] - centre(r[~out], axis=0)) @ whitener(np.atleast_2d(np.cov(r[~out].T))).T
     return z
+
+
+def pooled_null(z: np.ndarray, groups: np.ndarray, n_frames: int, statistic, *, seed: int,
+                draws: int = NULL_DRAWS) -> np.ndarray:
+    """Sorted ``statistic`` of ``draws`` sets of ``n_frames`` rows of ``z``, each set from
+    different photographs (``groups``; one row of each): the null of a test pooling
+    frames of different scenes. The draws are fixed by ``seed``, so a p-value is the
+    same every run. The caller checks that there are ``n_frames`` photographs."""
+    g = np.asarray(groups)
+    uniq = np.unique(g)
+    by_group = [np.flatnonzero(g == u) for u in uniq]
+    rng = np.random.default_rng(seed)
+    out = np.empty(draws)
+    for i in range(draws):
+        picks = rng.choice(uniq.size, n_frames, replace=False)
+        rows = [by_group[p][rng.integers(by_group[p].size)] for p in picks]
+        out[i] = statistic(z[rows])
+    out.sort()
+    return out
 
 
 @dataclass(frozen=True)
@@ -248,14 +264,7 @@ class MatchCalibration:
             if uniq.size < n:
                 raise MatchCalibrationError(f"the calibration has {uniq.size} photographs, too few for "
                                             f"{n}-frame evidence")
-            by_group = [np.flatnonzero(g == u) for u in uniq]
-            rng = np.random.default_rng(2010 + n)  # fixed: the same p-value every run
-            out = np.empty(NULL_DRAWS)
-            for i in range(NULL_DRAWS):
-                picks = rng.choice(uniq.size, n, replace=False)
-                rows = [by_group[p][rng.integers(by_group[p].size)] for p in picks]
-                out[i] = pooled_d2(z[rows])
-            out.sort()
+            out = pooled_null(z, g, n, pooled_d2, seed=2010 + n)
         self._cache[n] = out
         return out
 
@@ -301,7 +310,7 @@ def whiten(residual: np.ndarray, calibration: MatchCalibration, *, add_bias: boo
     r = np.asarray(residual, dtype=np.float64)
     if add_bias:
         r = r - calibration.mean_vector
-    return _whitener(calibration.covariance_matrix * float(inflate)) @ r
+    return whitener(calibration.covariance_matrix * float(inflate)) @ r
 
 
 def pooled_d2(z: np.ndarray) -> float:
