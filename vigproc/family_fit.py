@@ -186,6 +186,21 @@ def field_spread_ev(basis: np.ndarray, cov: np.ndarray) -> float:
     return float(math.sqrt(max(float(np.mean(var)), 0.0)) / _LN2)
 
 
+def frame_rho_grid(width: int, height: int, n: int = 16) -> np.ndarray:
+    """ρ (half-diagonals from the frame centre) on an n×n grid spanning a frame: where a
+    family fit's field and its uncertainty are summarised."""
+    gx = np.linspace(-(width - 1) / 2, (width - 1) / 2, n)
+    gy = np.linspace(-(height - 1) / 2, (height - 1) / 2, n)
+    return _rho(gx, gy, half_diagonal(width, height))
+
+
+def field_sigma_ev(family: LensFamily, cov: np.ndarray, width: int, height: int) -> float:
+    """:func:`field_spread_ev` of family coefficients with covariance ``cov`` over a
+    ``width``×``height`` frame (:func:`frame_rho_grid`)."""
+    _, basis = family.profiles(frame_rho_grid(width, height))
+    return field_spread_ev(basis.reshape(-1, family.n_components), cov)
+
+
 def profile_to_model(log_profile: np.ndarray, radii: np.ndarray, width: int, height: int,
                      **kw) -> tuple[VignettingModel, float]:
     """Write a centred radial log-attenuation profile as the Kang-Weiss model.
@@ -469,17 +484,14 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     n = d.size
     c = _solve(d, a, labels, pmean, pmean, pinv, settings, settings.iterations)
     cov_jk = _jackknife_cov(d, a, labels, c, pmean, pinv, settings)
-    # uncertainty on a 16×16 grid of the frame
-    gx = np.linspace(-(w - 1) / 2, (w - 1) / 2, 16)
-    gy = np.linspace(-(h - 1) / 2, (h - 1) / 2, 16)
-    _, Bg = fam.profiles(_rho(gx, gy, radius))
-    sigma_jk = field_spread_ev(Bg.reshape(-1, fam.n_components), cov_jk)
+    grid = frame_rho_grid(w, h)
+    sigma_jk = field_sigma_ev(fam, cov_jk, w, h)
     sigma = math.hypot(settings.sigma_scale * sigma_jk, settings.sigma_floor)
     prof = fam.mean + c @ fam.components
     fit, conv_ev = profile_to_model(prof, fam.radii, w, h)
     ev_rms = fit.field_ev_rms()
     # the error and σ are about the frame mean (a gain is free), so is the signal
-    spread = float(np.std(fam.log_profile(c, _rho(gx, gy, radius)))) / _LN2
+    spread = float(np.std(fam.log_profile(c, grid))) / _LN2
     snr = spread / sigma if sigma > 0 else math.inf
     confidence = float(1.0 / (1.0 + math.exp(-2.0 * (snr - settings.min_snr))))
     accept = snr >= settings.min_snr

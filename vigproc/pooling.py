@@ -44,7 +44,7 @@ from typing import Sequence
 import numpy as np
 
 from vigproc.errors import InvalidImageError, ModelError
-from vigproc.family_fit import FamilySettings, FrameCoefficients, field_spread_ev, frame_coefficients, \
+from vigproc.family_fit import FamilySettings, FrameCoefficients, field_sigma_ev, frame_coefficients, \
     profile_to_model
 from vigproc.lensfamily import LensFamily, profile_family
 from vigproc.model import FitQuality, VignettingModel
@@ -159,11 +159,7 @@ def pool_family(fits: Sequence[FrameCoefficients], width: int, height: int,
         down = normalise(coefficients_model(c - step, width, height, fam))[0]
         jac[:, k] = (up - down) / 2e-4
     cov = jac @ cov_c @ jac.T
-    grid_x = np.linspace(-(width - 1) / 2, (width - 1) / 2, 16)
-    grid_y = np.linspace(-(height - 1) / 2, (height - 1) / 2, 16)
-    rho = np.hypot(grid_x[None, :], grid_y[:, None]) / math.hypot((width - 1) / 2, (height - 1) / 2)
-    _, basis = fam.profiles(rho)
-    sigma = field_spread_ev(basis.reshape(-1, fam.n_components), cov_c)
+    sigma = field_sigma_ev(fam, cov_c, width, height)
     ev_rms = model.field_ev_rms()
     q = FitQuality(confidence=1.0, field_ev_rms=ev_rms, field_sigma_ev=sigma,
                    snr=ev_rms / sigma if sigma > 0 else math.inf)
