@@ -383,8 +383,7 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
     from vigproc.lensfamily import lensfun_family
 
     output_file(args.json)
-    files = C.base_files([Path(f) for f in args.images], args.min_long_side)
-    bases, names = C.load_bases(files[: args.limit] if args.limit else files, args.crop)
+    bases, names = C.load_clean_bases(args.images, args.min_long_side, args.limit, args.crop)
     if len(bases) < 2:
         print(f"vigproc: bench clean: {len(bases)} usable frames under {' '.join(args.images)}; need 2",
               file=sys.stderr)
@@ -452,8 +451,7 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
     output_file(args.json)
     if args.calibrate:
         output_file(args.calibrate)
-    files = C.base_files([Path(f) for f in args.images], args.min_long_side)
-    bases, _ = C.load_bases(files[: args.limit] if args.limit else files)
+    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit)
     if len(bases) < 4:
         print(f"vigproc: bench crops: {len(bases)} usable frames; need 4", file=sys.stderr)
         return 2
@@ -660,8 +658,7 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
     from vigproc.lensfamily import PROFILE_COMPONENTS, lensfun_family
 
     output_file(args.json)
-    files = C.base_files([Path(f) for f in args.images], args.min_long_side)
-    bases, _ = C.load_bases(files[: args.limit] if args.limit else files)
+    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit)
     if len(bases) < max(args.counts):
         print(f"vigproc: bench profile-clean: {max(args.counts)} frames per lens need as many bases; "
               f"{len(bases)} usable under {' '.join(args.images)}", file=sys.stderr)

@@ -149,6 +149,15 @@ def load_bases(files: Sequence[Path], frac: float = CROP) -> tuple[list[np.ndarr
     return ims, names
 
 
+def load_clean_bases(folders: Iterable[str | Path], min_long_side: int = MIN_LONG_SIDE, limit: int | None = None,
+                     frac: float = CROP) -> tuple[list[np.ndarray], list[str]]:
+    """:func:`load_bases` of the first ``limit`` frames :func:`base_files` finds under
+    ``folders`` (what every clean-protocol bench reads, from its --images,
+    --min-long-side and --limit)."""
+    files = base_files([Path(f) for f in folders], min_long_side)
+    return load_bases(files[:limit] if limit else files, frac)
+
+
 def gain_free_ev(log_ratio: np.ndarray) -> float:
     """RMS of a natural-log field about its mean, in EV."""
     return float(np.std(log_ratio) / _LN2)

@@ -301,6 +301,7 @@ def run_interpolation(width: int = 480, height: int = 320, max_points: int = 400
     Points whose bin coincides with a neighbour's are skipped.
     """
     import tempfile
+    from dataclasses import replace
     from pathlib import Path
 
     from vigproc.bench.clean import gain_free_ev
@@ -345,7 +346,8 @@ def run_interpolation(width: int = 480, height: int = 320, max_points: int = 400
                                            focal_mm=held.focal, fnumber=held.aperture)
                         with ProfileStore(db) as st:
                             for v in others:
-                                key = ProfileKey.from_lens(replace_lens(lens_key, v.focal, v.aperture), width, height)
+                                key = ProfileKey.from_lens(replace(lens_key, focal_mm=v.focal, fnumber=v.aperture),
+                                                           width, height)
                                 st.put(Profile(key=key, theta=theta(v), n_frames=1, provenance="lensfun",
                                                trusted=True, field_sigma_ev=0.0))
                             got = st.lookup(lens_key, width, height)
@@ -374,13 +376,6 @@ def run_interpolation(width: int = 480, height: int = 320, max_points: int = 400
                                      float(np.mean(z <= 1)) if z is not None else math.nan,
                                      float(np.mean(z <= 2)) if z is not None else math.nan))
     return rows
-
-
-def replace_lens(lens_key, focal: float, fnumber: float):
-    """``lens_key`` at another focal length and f-number."""
-    from dataclasses import replace
-
-    return replace(lens_key, focal_mm=focal, fnumber=fnumber)
 
 
 # --------------------------------------------------------------------------- #

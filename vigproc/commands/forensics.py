@@ -298,8 +298,7 @@ def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
     output_file(args.json)
     if args.calibrate:
         output_file(args.calibrate)
-    files = C.base_files([Path(f) for f in args.images], args.min_long_side)
-    bases, _ = C.load_bases(files[: args.limit] if args.limit else files)
+    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit)
     if len(bases) < 20:
         print(f"vigproc: bench forensics-clean: {len(bases)} usable frames; need 20", file=sys.stderr)
         return 2
