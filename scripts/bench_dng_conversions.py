@@ -1,13 +1,13 @@
 """Measure the DNG opcode conversions on real lenses' fall-offs (docs/benchmarks/dng.md).
 
-For each of the 20 lenses of :func:`vigproc.lensfun.bench_lenses` (lensfun's calibration
+For each of the 20 lenses of :func:`vigproc.stores.lensfun.bench_lenses` (lensfun's calibration
 at its shortest focal length, widest aperture, farthest distance):
 
-* model -> FixVignetteRadial: the lens's Kang-Weiss model (:func:`vigproc.lensfun_io.kw_from_pa`)
-  written as the opcode (:func:`vigproc.dng_vignette.model_to_radial`), error stated;
+* model -> FixVignetteRadial: the lens's Kang-Weiss model (:func:`vigproc.stores.lensfun_io.kw_from_pa`)
+  written as the opcode (:func:`vigproc.io.dng_vignette.model_to_radial`), error stated;
 * FixVignetteRadial -> model: an opcode that removes the lens's pa fall-off (k0..k4 by
   least squares on the gain 1/pa over r in [0, 1]) read back as a Kang-Weiss model
-  (:func:`vigproc.dng_vignette.opcode_to_model`), error stated, centred and 5 % off-centre.
+  (:func:`vigproc.io.dng_vignette.opcode_to_model`), error stated, centred and 5 % off-centre.
 
 Also the shared GainMap blob (when ../shared is present) as a Kang-Weiss model.  Run from
 the repository root:  .venv/bin/python scripts/bench_dng_conversions.py
@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from vigproc.dng_opcodes import FixVignetteRadial, parse_opcode_list
-from vigproc.dng_vignette import model_to_radial, opcode_to_model
+from vigproc.io.dng_opcodes import FixVignetteRadial, parse_opcode_list
+from vigproc.io.dng_vignette import model_to_radial, opcode_to_model
 from vigproc.errors import ModelError
-from vigproc.lensfun import bench_lenses
-from vigproc.lensfun_io import kw_from_pa
+from vigproc.stores.lensfun import bench_lenses
+from vigproc.stores.lensfun_io import kw_from_pa
 
 log = logging.getLogger("bench_dng_conversions")
 W, H = 6000, 4000

@@ -12,9 +12,9 @@ reaches the opcode decoders rather than the framing.  Then:
 * decodes its vignetting opcodes; each must re-encode to its own bytes;
 * evaluates each decoded opcode's gain field on a small frame, and with
   ``--convert-every N`` fits the Kang-Weiss model to every N-th input's calibration
-  (:meth:`vigproc.dng_vignette.EmbeddedCalibration.fit`).
+  (:meth:`vigproc.io.dng_vignette.EmbeddedCalibration.fit`).
 
-Anything but :class:`vigproc.dng_opcodes.DngOpcodeError` is a failure, as is an input
+Anything but :class:`vigproc.io.dng_opcodes.DngOpcodeError` is a failure, as is an input
 that takes longer than ``--slow`` seconds.  Failing inputs are saved under ``--crashes``.
 The summary (inputs, outcomes, exceptions by type, slowest input, peak memory) is
 logged and written as JSON with ``--json``.
@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vigproc.dng_opcodes import DngOpcodeError, parse_opcode_list
+from vigproc.io.dng_opcodes import DngOpcodeError, parse_opcode_list
 
 log = logging.getLogger("fuzz_dng_opcodes")
 
@@ -180,7 +180,7 @@ def exercise(data: bytes, convert: bool, times: dict[str, float]) -> str:
             op.gain_field(24, 16)
     times["parse"] = time.perf_counter() - t0
     if convert and decoded:
-        from vigproc.dng_vignette import EmbeddedCalibration
+        from vigproc.io.dng_vignette import EmbeddedCalibration
         from vigproc.errors import VigprocError
 
         cal = EmbeddedCalibration.from_lists([("OpcodeList3", lst)], "fuzz input")

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from vigproc.io import linear_to_srgb, read_image
-from vigproc.lensfun import bench_lenses, pa_field
-from vigproc.model import VignettingModel
+from vigproc.io.images import linear_to_srgb, read_image
+from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.core.model import VignettingModel
 
 SRC = Path(__file__).resolve().parents[1].parent / "shared/data/natural/kodak"
 DST = Path(__file__).resolve().parents[1] / "vigproc/data/samples"

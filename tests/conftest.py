@@ -43,8 +43,8 @@ def textured(h: int, w: int, seed: int = 0, contrast: float = 0.3) -> np.ndarray
 
 def photo_like(h: int, w: int, seed: int = 0, contrast: float = 0.05) -> np.ndarray:
     """A texture that, like a real photograph, carries the average scene fall-off of
-    natural photos (:mod:`vigproc.scene`), which the default estimator divides out."""
-    from vigproc.scene import default_scene_falloff
+    natural photos (:mod:`vigproc.core.scene`), which the default estimator divides out."""
+    from vigproc.core.scene import default_scene_falloff
 
     return textured(h, w, seed=seed, contrast=contrast) * default_scene_falloff().model(w, h).field()
 
@@ -68,6 +68,6 @@ def _private_profile_store(tmp_path_factory, monkeypatch):
 @pytest.fixture(autouse=True)
 def _no_hook_server(monkeypatch):
     """`vigproc hook` starts a warm background server for the calls that follow
-    (vigproc.hookserver); the suite runs every call in-process unless a test asks for
+    (vigproc.frontends.hookserver); the suite runs every call in-process unless a test asks for
     the server itself (tests/test_hookserver.py), so no test leaves a process behind."""
     monkeypatch.setenv("VIGPROC_HOOK_SERVER", "off")

@@ -6,7 +6,7 @@ lens EXIF with the ``exiftool`` program, the way a real file carries them.  No
 third-party DNG writer is needed.
 
 The raw values are built so that LibRaw's linear development
-(:func:`vigproc.io.read_image`) gives back ``scene * field`` for every colour
+(:func:`vigproc.io.images.read_image`) gives back ``scene * field`` for every colour
 channel: a grey scene is multiplied per CFA colour by ``AsShotNeutral`` (what a
 camera with that white balance would record), and the camera colour matrix is
 the XYZ -> linear sRGB matrix, so the camera-to-sRGB conversion is the identity
@@ -192,7 +192,7 @@ def make_dng(
         Seed of the default scene and of the noise.
     opcode_lists : mapping, optional
         ``{1|2|3: bytes}``: DNG opcode lists written as OpcodeList1/2/3 of the raw IFD
-        (IFD0), as a camera writes them (see :mod:`vigproc.dng_opcodes`).
+        (IFD0), as a camera writes them (see :mod:`vigproc.io.dng_opcodes`).
 
     Returns
     -------

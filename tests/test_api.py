@@ -1,4 +1,4 @@
-"""The stable pipeline API (vigproc.api) and the entry-point extensions (vigproc.extensions)."""
+"""The stable pipeline API (vigproc.frontends.api) and the entry-point extensions (vigproc.core.extensions)."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vigproc import api
+from vigproc.frontends import api
 from vigproc.bench.synthetic import table1_model
 from vigproc.errors import InvalidImageError, VigprocError
-from vigproc.estimate import estimate
-from vigproc.extensions import (
+from vigproc.core.estimate import estimate
+from vigproc.core.extensions import (
     ESTIMATORS,
     PROFILE_SOURCES,
     ExtensionError,
@@ -24,7 +24,7 @@ from vigproc.extensions import (
     discover,
     method_names,
 )
-from vigproc.model import VignettingModel
+from vigproc.core.model import VignettingModel
 
 from conftest import textured
 
@@ -73,7 +73,7 @@ def test_bad_lens_data_is_a_request_error(bad):
 
 # ------------------------------------------------------------------ processing
 def test_correct_is_estimate_then_correct_and_reports_it():
-    from vigproc.correct import correct
+    from vigproc.core.correct import correct
 
     img = vignetted()
     before = img.copy()
@@ -127,7 +127,7 @@ def test_bad_inputs_are_typed_errors():
 
 
 def _trusted_store(path: Path, lens: dict, model: VignettingModel) -> None:
-    from vigproc.profiles import Profile, ProfileKey, ProfileStore, normalise
+    from vigproc.stores.profiles import Profile, ProfileKey, ProfileStore, normalise
 
     theta, _, _ = normalise(model)
     with ProfileStore(path) as st:
@@ -196,7 +196,7 @@ _CACHE_PROBE = textwrap.dedent("""
     import json, sys
     import numpy as np
     from numba.core.registry import CPUDispatcher
-    from vigproc.api import Pipeline
+    from vigproc.frontends.api import Pipeline
     rng = np.random.default_rng(0)
     img = np.exp(0.2 * rng.standard_normal((120, 180))).astype(np.float32)
     Pipeline("correct", profile="estimate", channel_axis=None).process(img)
@@ -235,7 +235,7 @@ def install_plugin(root: Path, dist: str, module: str, code: str, entry_points: 
 
 PLUGIN_CODE = """
     from vigproc.errors import InvalidImageError
-    from vigproc.model import VignettingModel
+    from vigproc.core.model import VignettingModel
 
     def centre_only(img, *, channel_axis, seed):
         h, w = img.shape[:2]

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 from conftest import textured
 
-from vigproc import backends as BK
-from vigproc import batch as B
-from vigproc.cli import main
-from vigproc.io import read_image, write_image
-from vigproc.journal import Journal
-from vigproc.pipeline import (SIDECAR_SUFFIX, Settings, corrected_name, output_location, output_name,
+from vigproc.frontends import backends as BK
+from vigproc.frontends import batch as B
+from vigproc.frontends.cli import main
+from vigproc.io.images import read_image, write_image
+from vigproc.stores.journal import Journal
+from vigproc.pipeline.processor import (SIDECAR_SUFFIX, Settings, corrected_name, output_location, output_name,
                               sweep_temporaries)
 
 EXIFTOOL = shutil.which("exiftool")
@@ -242,8 +242,8 @@ def test_pool_of_two_processes_matches_in_process(archive, tmp_path):
 def test_learn_pools_exactly_once_across_a_crash(archive, tmp_path):
     """A crash after the store pooled a frame but before the journal said done: the
     next run redoes the frame but does not pool it again (its content id is in the store)."""
-    from vigproc.journal import fingerprint
-    from vigproc.profiles import ProfileStore
+    from vigproc.stores.journal import fingerprint
+    from vigproc.stores.profiles import ProfileStore
 
     items, _ = B.collect(archive, tmp_path)
     items = [i for i in items if i.rel in ("f0.tif", "f1.tif")]
@@ -379,7 +379,7 @@ def test_localcluster_equals_single_process(archive, tmp_path, cluster):
 def test_localcluster_learn_pools_on_the_client(archive, tmp_path, cluster):
     """Workers return estimates; the client alone writes the store, and the pooled
     profile equals the one learned in a single process."""
-    from vigproc.profiles import ProfileStore
+    from vigproc.stores.profiles import ProfileStore
 
     items, _ = B.collect(archive, tmp_path)
     items = [i for i in items if i.rel != "broken.tif"]
@@ -399,8 +399,8 @@ def test_localcluster_learn_pools_on_the_client(archive, tmp_path, cluster):
 def test_localcluster_profile_auto_reads_a_snapshot(archive, tmp_path, cluster):
     """--profile auto on workers uses the client's snapshot of the store (workers never
     open the client's database)."""
-    from vigproc.exif import ExifReader
-    from vigproc.profiles import Profile, ProfileKey, ProfileStore, normalise
+    from vigproc.io.exif import ExifReader
+    from vigproc.stores.profiles import Profile, ProfileKey, ProfileStore, normalise
 
     items, _ = B.collect(archive, tmp_path)
     items = [i for i in items if i.rel.startswith("f")]
@@ -408,7 +408,7 @@ def test_localcluster_profile_auto_reads_a_snapshot(archive, tmp_path, cluster):
         key = ProfileKey.from_lens(reader.read(items[0].path), W, H)
     model = B.run_task(B.Task(items[0].path, items[0].rel),
                        B.JobSpec(settings=Settings(mode="estimate", profile="estimate"), outdir=str(tmp_path))).record
-    from vigproc.model import VignettingModel
+    from vigproc.core.model import VignettingModel
 
     theta, _, _ = normalise(VignettingModel.from_dict(model["model"]))
     db = tmp_path / "p.sqlite"

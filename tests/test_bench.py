@@ -9,12 +9,12 @@ import pytest
 
 from vigproc.bench.peers import estimate_rgs, radial_polynomial
 from vigproc.bench.synthetic import table1_model
-from vigproc.io import write_image
-from vigproc.lensfun import bench_lenses, pa_field
+from vigproc.io.images import write_image
+from vigproc.stores.lensfun import bench_lenses, pa_field
 
 from conftest import textured
 
-VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
 def _gain_free_ev(a: np.ndarray, b: np.ndarray) -> float:
@@ -110,7 +110,7 @@ def test_bench_bad_scene_prior_is_a_clear_error(image_folder, tmp_path, content,
 
 def test_bench_profile_reports_when_profiles_become_trusted():
     from vigproc.bench import profile as P
-    from vigproc.estimate import estimate
+    from vigproc.core.estimate import estimate
 
     ims = [textured(160, 240, seed=20 + i, contrast=0.05) for i in range(4)]
     rows, trust = P.run(ims, lambda v: estimate(v, "robust", channel_axis=None), n_lenses=2, counts=(1, 4), store=True)
@@ -148,7 +148,7 @@ def test_bench_profile_clean_learns_through_a_store(tmp_path):
 
 
 def test_prior_fit_lens_family_writes_the_shipped_kind(tmp_path):
-    from vigproc.lensfamily import LensFamily, profile_family
+    from vigproc.core.lensfamily import LensFamily, profile_family
 
     out = tmp_path / "family.json"
     r = subprocess.run([*VIGPROC, "prior", "fit-lens-family", "-o", out, "--components", "3"],
@@ -163,7 +163,7 @@ def test_prior_fit_lens_family_writes_the_shipped_kind(tmp_path):
 
 
 def test_prior_fit_scene_writes_a_loadable_falloff(clean_folder, tmp_path):
-    from vigproc.scene import SceneFalloff
+    from vigproc.core.scene import SceneFalloff
 
     command = "fit-scene"
     out = tmp_path / "out" / "falloff.json"
@@ -191,9 +191,9 @@ def test_real_bench_pairs_and_photographs(tmp_path):
     with a known field; other images are photographs; the field of a flat white frame
     is found, and a frame without vignetting of its own has no true fall-off."""
     from vigproc.bench.real import find_inputs, run_pair
-    from vigproc.estimate import estimate
-    from vigproc.model import VignettingModel
-    from vigproc.pipeline import IMAGE_SUFFIXES
+    from vigproc.core.estimate import estimate
+    from vigproc.core.model import VignettingModel
+    from vigproc.pipeline.processor import IMAGE_SUFFIXES
 
     h, w = 160, 240
     truth = table1_model(1).rescale(w, h).field()
@@ -256,7 +256,7 @@ def test_bench_clean_scores_methods_on_crops_of_large_frames(tmp_path):
 def test_bench_profile_flat_learns_a_white_wall(tmp_path):
     """``vigproc bench profile-flat``: three unevenly lit shots of a vignetted white frame
     give a trusted flat-field profile close to the field; no white pairs is a usage error."""
-    from vigproc.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import bench_lenses, pa_field
 
     d = tmp_path / "flat"
     d.mkdir()

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from vigproc.bench.synthetic import table1_model
-from vigproc.io import read_image, write_image
+from vigproc.io.images import read_image, write_image
 
 from conftest import photo_like, textured
 
-VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
 def run(*args, cwd=None):
@@ -64,7 +64,7 @@ def test_correct_writes_outputs_atomically_and_keeps_input(vignetted_tiff, tmp_p
     names = sorted(p.name for p in out.iterdir())
     # the one naming policy: the input's name; the image drops its extension when the format is its own
     assert names == ["frame.corrected.tif", "frame.tif.vignetting.png", "frame.tif.vigproc.json"]
-    from vigproc.metadata import read_record
+    from vigproc.io.metadata import read_record
 
     rec = read_record(out / "frame.corrected.tif")
     assert rec is not None and rec["model"].width == 240
@@ -149,7 +149,7 @@ def test_same_stem_inputs_get_distinct_outputs(tmp_path, vignetted_tiff):
 def test_output_stems_are_unique_deterministic_and_safe():
     from pathlib import Path
 
-    from vigproc.pipeline import output_stems, safe_output
+    from vigproc.pipeline.processor import output_stems, safe_output
 
     names = ["x/a.tif", "y/a.png", "a-2.tif", "A.tif", "a-3.jpg", "new\nline.tif", "-rf.tif", "..tif", ".h.tif",
              "%2Drf.tif", "a b é 100%.tif", "tab\there.tif", "b.tif", "b.png", "b-2.png"]
@@ -167,7 +167,7 @@ def test_output_stems_are_unique_deterministic_and_safe():
 def test_long_names_are_shortened_distinctly(tmp_path, vignetted_tiff):
     from pathlib import Path
 
-    from vigproc.pipeline import MAX_STEM_BYTES, output_stems
+    from vigproc.pipeline.processor import MAX_STEM_BYTES, output_stems
 
     long_a, long_b = "é" * 150 + "a", "é" * 150 + "b"  # 301 bytes each, same 180-byte prefix
     stems = output_stems([Path(long_a + ".tif"), Path(long_b + ".tif"), Path("short.tif")])
@@ -217,7 +217,7 @@ def test_file_names_cannot_forge_message_lines(tmp_path, vignetted_tiff):
 def test_estimate_raw_uses_half_size_and_reports_full_frame(tmp_path):
     from dngfixture import make_dng
 
-    from vigproc.model import VignettingModel
+    from vigproc.core.model import VignettingModel
 
     h, w = 256, 384
     truth = VignettingModel(w, h, center=(12.0, -8.0), p=(1 / 210.0**2, 0, 1 / 210.0**2),
@@ -240,7 +240,7 @@ def test_estimate_raw_uses_half_size_and_reports_full_frame(tmp_path):
 
 @pytest.mark.parametrize("fmt,suffix", [("tiff16", ".tif"), ("exr-half", ".exr"), ("exr-float", ".exr")])
 def test_output_formats_carry_the_record(tmp_path, vignetted_tiff, fmt, suffix):
-    from vigproc.metadata import read_record
+    from vigproc.io.metadata import read_record
 
     path, _ = vignetted_tiff
     out = tmp_path / "out"
@@ -256,8 +256,8 @@ def test_profile_store_flow(tmp_path, monkeypatch):
     """learn pools frames per lens; a trusted stored profile is applied with no estimation."""
     from dngfixture import make_dng
 
-    from vigproc.lensfun import bench_lenses, pa_field
-    from vigproc.model import VignettingModel
+    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.core.model import VignettingModel
 
     monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path / "store.sqlite"))
     lens, pa = bench_lenses(1)[0]
@@ -422,7 +422,7 @@ def test_help_and_usage_errors_import_no_numeric_stack():
     # they must not import numpy, scipy or numba (0.55 s of start-up before)
     code = (
         "import sys\n"
-        "from vigproc.cli import main\n"
+        "from vigproc.frontends.cli import main\n"
         "for argv in (['--help'], ['correct', 'x.jpg', '--strength', 'x'], ['bench', 'clean', '--help']):\n"
         "    try:\n"
         "        main(argv)\n"
@@ -452,16 +452,16 @@ def test_public_names_are_imported_on_first_use():
 
 def test_estimate_and_correct_stay_functions_when_their_modules_load_first():
     _fresh_python_says_true(
-        "import vigproc.estimate, vigproc.correct, vigproc.pipeline\n"
+        "import vigproc.core.estimate, vigproc.core.correct, vigproc.pipeline.processor\n"
         "import vigproc\n"
         "print(callable(vigproc.estimate) and callable(vigproc.correct)"
-        " and vigproc.estimate.__module__ == 'vigproc.estimate')\n")
+        " and vigproc.estimate.__module__ == 'vigproc.core.estimate')\n")
 
 
 def test_every_option_and_argument_has_help_text():
     import argparse
 
-    from vigproc.cli import build_parser
+    from vigproc.frontends.cli import build_parser
 
     missing = []
 
@@ -514,7 +514,7 @@ def test_lines_printed_during_a_progress_bar_stay_whole(monkeypatch):
     import io
     import logging
 
-    from vigproc.cli import _progress
+    from vigproc.frontends.cli import _progress
 
     class Tty(io.StringIO):
         def isatty(self):

@@ -5,7 +5,7 @@ import pytest
 
 import vigproc
 from vigproc.bench.synthetic import table1_model
-from vigproc.correct import correct_stripe
+from vigproc.core.correct import correct_stripe
 from vigproc.errors import InvalidImageError
 
 from conftest import textured
@@ -66,7 +66,7 @@ def test_bad_stripe_and_strength(frame):
 
 
 def test_interpolated_gains_stay_within_tolerance():
-    from vigproc.correct import GAIN_TOLERANCE, gain_step
+    from vigproc.core.correct import GAIN_TOLERANCE, gain_step
 
     # a real-lens-like gentle field at 12 MP: interpolation kicks in
     m = vigproc.VignettingModel(4200, 2800, center=(40.0, -25.0), p=(1 / 2600.0**2, 2e-9, 1 / 2400.0**2),
@@ -83,7 +83,7 @@ def test_interpolated_gains_stay_within_tolerance():
 
 def test_a_model_that_blacks_out_the_frame_is_refused_as_field_refuses_it():
     from vigproc.errors import ModelError
-    from vigproc.model import VignettingModel
+    from vigproc.core.model import VignettingModel
 
     bad = VignettingModel(64, 48, p=(1e-3, 0, 1e-3), alpha=(1.0,) + (0.0,) * 6)
     with pytest.raises(ModelError, match="geometric factor"):
@@ -98,8 +98,8 @@ def test_a_model_that_blacks_out_the_frame_is_refused_as_field_refuses_it():
     ((90.0, 10.0), (2e-4, -1e-4, 3e-3), (-0.2, 0.4)),      # centre outside the frame, G not monotone
 ])
 def test_smallest_g_over_the_frame_matches_the_grid(center, p, alpha):
-    from vigproc.correct import _min_g
-    from vigproc.model import VignettingModel, frame_coords
+    from vigproc.core.correct import _min_g
+    from vigproc.core.model import VignettingModel, frame_coords
 
     m = VignettingModel(64, 48, center=center, p=p, alpha=alpha + (0.0,) * 5)
     ex = frame_coords(64)[None, :] - center[0]

@@ -1,4 +1,4 @@
-"""The crop/shift test (vigproc.crops): a vignetting centre off the frame's is found and
+"""The crop/shift test (vigproc.forensics.crops): a vignetting centre off the frame's is found and
 placed; a centred one is not flagged; its calibration and AUC are what they say."""
 
 import json
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from vigproc.bench.crops import shifted_field
-from vigproc.crops import CropCalibration, CropCalibrationError, auc, check_crop
-from vigproc.io import write_image
+from vigproc.forensics.crops import CropCalibration, CropCalibrationError, auc, check_crop
+from vigproc.io.images import write_image
 
 from conftest import photo_like
 
@@ -82,12 +82,12 @@ def test_auc_is_the_mann_whitney_share():
 def test_check_reports_the_crop_test(tmp_path):
     p = tmp_path / "shifted.tif"
     write_image(p, np.repeat(_frame(0.4)[..., None], 3, axis=2).astype(np.float32), bit_depth="float")
-    r = subprocess.run([sys.executable, "-m", "vigproc.cli", "check", "--no-store", "--json", str(p)],
+    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "check", "--no-store", "--json", str(p)],
                        capture_output=True, text=True, timeout=300)
     doc = json.loads(r.stdout)
     crop = doc["results"][0]["crop"]
     assert crop["verdict"] in ("off-centre", "centred") and crop["shift"] > 0.2, crop
     assert len(crop["offset_px"]) == 2 and len(crop["covariance_px"]) == 2
-    r = subprocess.run([sys.executable, "-m", "vigproc.cli", "check", "--no-store", str(p)],
+    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "check", "--no-store", str(p)],
                        capture_output=True, text=True, timeout=300)
     assert "; crop test: " in r.stdout.splitlines()[0]  # on the frame's own line

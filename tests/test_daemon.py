@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from conftest import textured
-from vigproc.daemon import (
+from vigproc.frontends.daemon import (
     DISK_FULL,
     PERMANENT,
     TRANSIENT,
@@ -36,13 +36,13 @@ from vigproc.daemon import (
     output_stem,
 )
 from vigproc.errors import ImageReadError, ImageWriteError
-from vigproc.journal import Journal, fingerprint
-from vigproc.pipeline import corrected_name, output_location
-from vigproc.profiles import ProfileStoreError
+from vigproc.stores.journal import Journal, fingerprint
+from vigproc.pipeline.processor import corrected_name, output_location
+from vigproc.stores.profiles import ProfileStoreError
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "profiles" / "examples" / "sony-rx100-10.4mm-f1.8.json"  # 3:2 frames
-VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
 @pytest.fixture(autouse=True)
@@ -74,15 +74,15 @@ def test_output_stems_are_distinct_stable_and_safe():
 
 
 def test_errors_are_classified():
-    """The daemon's classifier is the shared policy (vigproc.faults; more in test_faults)."""
+    """The daemon's classifier is the shared policy (vigproc.pipeline.faults; more in test_faults)."""
     assert classify_error(ImageReadError("cannot read 'x.jpg': corrupt or truncated JPEG")).kind == PERMANENT
     assert classify_error(ImageWriteError("cannot write 'x.tif': No space left on device")).kind == DISK_FULL
     assert classify_error(OSError(28, "No space left on device")).kind == DISK_FULL
     assert classify_error(OSError(16, "Device or resource busy")).kind == TRANSIENT
     assert classify_error(ProfileStoreError("store: learn failed: locked by another process for more than 30 s")).kind \
         == TRANSIENT
-    f = classify_error(ModuleNotFoundError("No module named 'vigproc.forensics'"))
-    assert f.kind == PERMANENT and "vigproc.forensics" in f.reason
+    f = classify_error(ModuleNotFoundError("No module named 'vigproc.forensics.check'"))
+    assert f.kind == PERMANENT and "vigproc.forensics.check" in f.reason
     f = classify_error(ZeroDivisionError("division by zero"))
     assert f.kind == PERMANENT and f.reason.startswith("internal error (ZeroDivisionError")
     assert "\n" not in classify_error(ImageReadError("two\nlines")).reason
@@ -97,7 +97,7 @@ def test_errors_are_classified():
 def test_text_log_lines_cannot_be_forged_by_file_names():
     import logging
 
-    from vigproc.daemon import JsonLogFormatter, TextLogFormatter
+    from vigproc.frontends.daemon import JsonLogFormatter, TextLogFormatter
 
     rec = logging.LogRecord("vigproc.watch", logging.INFO, __file__, 1, "done %s", ("a\nFAKE ERROR line\r.jpg",), None)
     text = TextLogFormatter().format(rec)
@@ -131,7 +131,7 @@ def test_settle_tracker_waits_for_a_quiet_file(tmp_path):
 
 
 def test_own_folders_inside_the_watch_folder_are_not_watched(tmp_path):
-    from vigproc.daemon import Daemon as D, WatchConfig
+    from vigproc.frontends.daemon import Daemon as D, WatchConfig
 
     in_dir = tmp_path / "in"
     cfg = WatchConfig(in_dir=in_dir, out_dir=in_dir / "out", settings={"mode": "correct", "profile": "estimate"},
@@ -147,7 +147,7 @@ def test_own_folders_inside_the_watch_folder_are_not_watched(tmp_path):
 
 
 def test_archive_and_quarantine_folders_must_be_their_own(tmp_path):
-    from vigproc.daemon import WatchConfig, WatchError
+    from vigproc.frontends.daemon import WatchConfig, WatchError
 
     (tmp_path / "in").mkdir()
     base = dict(in_dir=tmp_path / "in", out_dir=tmp_path / "out", settings={"mode": "correct", "profile": "estimate"})
@@ -180,7 +180,7 @@ def _image(h: int, w: int, seed: int) -> np.ndarray:
 
 
 def _write_png_tif(path: Path, seed: int, size=(64, 96)) -> None:
-    from vigproc.io import write_image
+    from vigproc.io.images import write_image
 
     fmt = "png" if path.suffix.lower() == ".png" else "tiff"
     write_image(path, np.clip(_image(*size, seed), 0, 1), bit_depth="uint16", format=fmt)
@@ -524,7 +524,7 @@ def sitecustomize(module: str, faults: str) -> str:
     return faults + _PATCH_ON_IMPORT.replace("MODULE", repr(module))
 
 
-_FAULTS = sitecustomize("vigproc.pipeline", r'''
+_FAULTS = sitecustomize("vigproc.pipeline.processor", r'''
 """Test-only faults, injected into every vigproc process through sitecustomize."""
 import os, time
 
@@ -636,7 +636,7 @@ def test_learn_mode_pools_each_frame_once_across_a_kill(tmp_path):
     from dngfixture import make_dng
 
     from vigproc.bench.synthetic import table1_model
-    from vigproc.profiles import ProfileStore
+    from vigproc.stores.profiles import ProfileStore
 
     in_dir, out_dir, db = tmp_path / "in", tmp_path / "out", tmp_path / "profiles.sqlite"
     in_dir.mkdir()
@@ -674,9 +674,9 @@ def test_check_mode_gives_a_verdict_or_a_clear_per_file_error(tmp_path):
                                                   for e in journal_entries(out_dir).values()) == 2, timeout=120)
     assert d.stop() == 0
     entries = journal_entries(out_dir).values()
-    if importlib.util.find_spec("vigproc.forensics") is None:
+    if importlib.util.find_spec("vigproc.forensics.check") is None:
         for e in entries:
-            assert e.state == "quarantined" and "vigproc.forensics" in e.reason
+            assert e.state == "quarantined" and "vigproc.forensics.check" in e.reason
     else:  # a verdict, or a clear reason why this installation cannot give one (e.g. no calibration)
         for e in entries:
             if e.state == "done":

@@ -21,7 +21,7 @@ import pytest
 from test_daemon import (VIGPROC, Daemon, journal_entries, make_good, out_sidecar, output_files, output_stem, sha,
                          sidecars, sitecustomize)
 
-_FAULTS = sitecustomize("vigproc.metadata", r'''
+_FAULTS = sitecustomize("vigproc.io.metadata", r'''
 """Test-only faults, injected into every vigproc process through sitecustomize."""
 import os, shutil
 from collections import namedtuple
@@ -187,8 +187,8 @@ def test_retry_quarantined_brings_files_back_from_the_quarantine_folder(tmp_path
 def test_a_pause_resumes_as_soon_as_the_free_space_grows(tmp_path, monkeypatch):
     """The other way out of a pause: the free space grew (the disk was grown or cleaned),
     seen within a second; a quota (free space unchanged) waits for the probe instead."""
-    import vigproc.daemon as D
-    from vigproc.faults import DiskSpace
+    import vigproc.frontends.daemon as D
+    from vigproc.pipeline.faults import DiskSpace
 
     in_dir = tmp_path / "in"
     in_dir.mkdir()

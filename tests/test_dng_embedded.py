@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vigproc.dng_opcodes import AreaSpec, GainMap, Opcode, OpcodeList
-from vigproc.dng_vignette import model_to_radial, read_embedded, read_opcode_lists
+from vigproc.io.dng_opcodes import AreaSpec, GainMap, Opcode, OpcodeList
+from vigproc.io.dng_vignette import model_to_radial, read_embedded, read_opcode_lists
 from vigproc.errors import ModelError, VigprocError
-from vigproc.io import read_image
-from vigproc.model import VignettingModel
-from vigproc.pipeline import Processor, Settings
+from vigproc.io.images import read_image
+from vigproc.core.model import VignettingModel
+from vigproc.pipeline.processor import Processor, Settings
 
 from conftest import photo_like, textured
 from dngfixture import make_dng
@@ -110,7 +110,7 @@ def test_opcode_lists_are_read_from_the_raw_ifd(dngs: dict[str, Path]) -> None:
 
 
 def test_a_malformed_list_in_a_file_names_the_file(tmp_path: Path) -> None:
-    from vigproc.dng_opcodes import DngOpcodeError
+    from vigproc.io.dng_opcodes import DngOpcodeError
 
     bad = struct.pack(">I", 3) + b"\x00" * 20  # three opcodes declared, 20 bytes
     p = tmp_path / "bad list.dng"
@@ -159,8 +159,8 @@ def test_profile_embedded_without_opcodes_is_an_error(dngs: dict[str, Path], tmp
 
 
 def test_auto_order_trusted_profile_then_embedded_then_estimate(dngs: dict[str, Path], tmp_path: Path) -> None:
-    from vigproc.exif import read_lens_key
-    from vigproc.profiles import Profile, ProfileKey, ProfileStore, normalise
+    from vigproc.io.exif import read_lens_key
+    from vigproc.stores.profiles import Profile, ProfileKey, ProfileStore, normalise
 
     for d in "abc":
         (tmp_path / d).mkdir()
@@ -217,7 +217,7 @@ def test_output_dng_of_the_embedded_calibration_adds_nothing(dngs: dict[str, Pat
 
 
 def test_output_dng_needs_a_dng_input(tmp_path: Path) -> None:
-    from vigproc.io import write_image
+    from vigproc.io.images import write_image
 
     tif = tmp_path / "in.tif"
     write_image(tif, np.full((32, 48, 3), 0.5, np.float32), bit_depth="uint16")
@@ -227,7 +227,7 @@ def test_output_dng_needs_a_dng_input(tmp_path: Path) -> None:
 
 
 def check(path: Path, capsys) -> tuple[int, dict]:
-    from vigproc.cli import main
+    from vigproc.frontends.cli import main
 
     code = main(["check", "--json", "--no-store", "--method", "robust", str(path)])
     return code, json.loads(capsys.readouterr().out)["results"][0]
@@ -249,7 +249,7 @@ def test_check_compares_a_frame_with_its_own_calibration(dngs: dict[str, Path], 
 def test_output_dng_of_a_real_camera_dng(shared_data: Path, tmp_path: Path) -> None:
     """A DNG 1.1 written by a camera (Magic Lantern on a Canon 550D): the correction goes
     into its raw IFD, the version is raised to 1.3, LibRaw decodes the same raw data."""
-    from vigproc.dng_vignette import write_dng_correction
+    from vigproc.io.dng_vignette import write_dng_correction
 
     src = shared_data / "raw" / "tinydng" / "colorchart.dng"
     if not src.is_file():

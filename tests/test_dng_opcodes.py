@@ -1,4 +1,4 @@
-"""DNG opcode lists: parsing, round trips, hostile input (vigproc.dng_opcodes)."""
+"""DNG opcode lists: parsing, round trips, hostile input (vigproc.io.dng_opcodes)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from vigproc.dng_opcodes import (
+from vigproc.io.dng_opcodes import (
     DNG_VERSION_1_3,
     AreaSpec,
     DngOpcodeError,

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import vigproc
-from vigproc.io import read_image
-from vigproc.metadata import make_record, read_record, write_corrected
-from vigproc.model import VignettingModel
+from vigproc.io.images import read_image
+from vigproc.io.metadata import make_record, read_record, write_corrected
+from vigproc.core.model import VignettingModel
 
 from conftest import textured
 from dngfixture import DEFAULT_EXIF, make_dng

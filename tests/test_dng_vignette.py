@@ -1,4 +1,4 @@
-"""DNG vignetting opcodes as vigproc models and back (vigproc.dng_vignette)."""
+"""DNG vignetting opcodes as vigproc models and back (vigproc.io.dng_vignette)."""
 
 from __future__ import annotations
 
@@ -7,15 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from vigproc.dng_opcodes import AreaSpec, FixVignetteRadial, GainMap, OpcodeList, parse_opcode_list
-from vigproc.dng_vignette import (
+from vigproc.io.dng_opcodes import AreaSpec, FixVignetteRadial, GainMap, OpcodeList, parse_opcode_list
+from vigproc.io.dng_vignette import (
     EmbeddedCalibration,
     GainFieldModel,
     model_to_radial,
     opcode_to_model,
 )
 from vigproc.errors import ModelError
-from vigproc.model import VignettingModel
+from vigproc.core.model import VignettingModel
 
 W, H = 600, 400
 LN2 = math.log(2.0)

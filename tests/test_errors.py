@@ -11,11 +11,11 @@ from vigproc.errors import EXIT_CODES
 
 
 @pytest.mark.parametrize("module, name, key", [
-    ("vigproc.profiles", "ProfileStoreError", "profile_store"),
-    ("vigproc.journal", "JournalError", "journal"),
-    ("vigproc.batch", "BatchError", "batch"),
-    ("vigproc.forensics", "ForensicsError", "forensics"),
-    ("vigproc.extensions", "ExtensionError", "plugin"),
+    ("vigproc.stores.profiles", "ProfileStoreError", "profile_store"),
+    ("vigproc.stores.journal", "JournalError", "journal"),
+    ("vigproc.frontends.batch", "BatchError", "batch"),
+    ("vigproc.forensics.check", "ForensicsError", "forensics"),
+    ("vigproc.core.extensions", "ExtensionError", "plugin"),
     ("vigproc.errors", "InvalidImageError", "invalid_image"),
     ("vigproc.errors", "UnsupportedFormatError", "read"),
 ])
@@ -30,7 +30,7 @@ def test_codes_are_distinct():
 
 
 def test_check_command_codes():
-    from vigproc.commands import check
+    from vigproc.frontends.commands import check
 
     assert (check.EXIT_INCONSISTENT, check.EXIT_UNDECIDED) == (EXIT_CODES["inconsistent"], EXIT_CODES["undecided"])
 

@@ -6,8 +6,8 @@ import pytest
 import vigproc
 from vigproc.bench.synthetic import relative_errors, table1_model
 from vigproc.errors import InvalidImageError
-from vigproc.robust import RobustSettings
-from vigproc.scene import default_scene_falloff
+from vigproc.core.robust import RobustSettings
+from vigproc.core.scene import default_scene_falloff
 
 from conftest import textured
 
@@ -135,9 +135,9 @@ def test_unknown_method():
 def test_centred_refit_only_without_evidence_of_an_off_centre_fall_off(monkeypatch):
     """Model selection: a centred lens gets the centred refit; Table 1 setting 3
     (centre well off the middle, clear evidence) keeps the free fit."""
-    import vigproc.robust as R
+    import vigproc.core.robust as R
     from conftest import photo_like
-    from vigproc.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import bench_lenses, pa_field
 
     calls = []
     real = R.fit_robust
@@ -164,7 +164,7 @@ def test_centred_refit_only_without_evidence_of_an_off_centre_fall_off(monkeypat
 
 
 def test_shape_z_measures_departure_from_a_centred_circle():
-    from vigproc.robust import shape_z
+    from vigproc.core.robust import shape_z
 
     cov = np.diag([0.01**2, 0.01**2, 0.02**2, 0.01**2, 0.02**2] + [1.0] * 7)
     circle = np.array([0.0, 0.0, 1.0, 0.0, 1.0] + [0.0] * 7)
@@ -182,9 +182,9 @@ def test_shape_z_measures_departure_from_a_centred_circle():
 def test_centred_refit_holds_the_fall_off_circular(monkeypatch):
     """The selection's refit tightens both the centre and the ellipticity priors;
     selection="centre" only the centre."""
-    import vigproc.robust as R
+    import vigproc.core.robust as R
     from conftest import photo_like
-    from vigproc.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import bench_lenses, pa_field
 
     seen = []
     real = R.fit_robust
@@ -217,7 +217,7 @@ def test_power_loss_recovers_a_table1_field():
 
 
 def test_centre_z():
-    from vigproc.robust import centre_z
+    from vigproc.core.robust import centre_z
 
     cov = np.diag([0.01**2, 0.02**2] + [1.0] * 10)
     assert centre_z(np.array([0.03, 0.0] + [0.0] * 10), cov) == pytest.approx(3.0)
@@ -227,7 +227,7 @@ def test_centre_z():
 
 def test_joint_fit_of_several_frames():
     from vigproc.errors import InvalidImageError
-    from vigproc.robust import estimate_robust, estimate_robust_joint
+    from vigproc.core.robust import estimate_robust, estimate_robust_joint
 
     truth = table1_model(2)
     s = RobustSettings(scene_prior=False)
@@ -254,7 +254,7 @@ def test_settings_reject_unknown_choices():
 
 
 def test_power_loss_kernel_is_the_smoothed_hyper_laplacian():
-    from vigproc._kernels.robust import CAUCHY, POWER, POWER_EXPONENT, robust_loss
+    from vigproc.core._kernels.robust import CAUCHY, POWER, POWER_EXPONENT, robust_loss
 
     L = np.array([[0.0, 0.3]])
     valid = np.ones((1, 2), dtype=bool)
@@ -270,10 +270,10 @@ def test_power_loss_kernel_is_the_smoothed_hyper_laplacian():
 def test_shape_ratio_separates_real_lenses_from_broad_fall_off():
     """Real lenses keep the frame centre flat (lensfun: ratio 0.23 in the median);
     Lyu's Table 1 setting 2 falls off from the centre on (0.45)."""
-    from vigproc.lensfun import bench_lenses
-    from vigproc.lensfun_io import kw_from_pa
-    from vigproc.normalised import normalise
-    from vigproc.robust import REAL_LENS_SHAPE_RATIO, RobustSettings, shape_ratio, working_copy
+    from vigproc.stores.lensfun import bench_lenses
+    from vigproc.stores.lensfun_io import kw_from_pa
+    from vigproc.core.normalised import normalise
+    from vigproc.core.robust import REAL_LENS_SHAPE_RATIO, RobustSettings, shape_ratio, working_copy
 
     wc = working_copy(np.ones((320, 480)), RobustSettings())
     _, pa = bench_lenses(20)[8]
@@ -284,7 +284,7 @@ def test_shape_ratio_separates_real_lenses_from_broad_fall_off():
 
 
 def test_real_lens_method_refuses_broad_fall_off_only():
-    from vigproc.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import bench_lenses, pa_field
 
     base = textured(320, 480, seed=1, contrast=0.05)
     broad = base * table1_model(2).field()
@@ -299,8 +299,8 @@ def test_real_lens_method_refuses_broad_fall_off_only():
 
 
 def test_evidence_only_from_the_robust_methods():
-    from vigproc.estimate import estimate_with_evidence
-    from vigproc.extensions import UnknownMethodError
+    from vigproc.core.estimate import estimate_with_evidence
+    from vigproc.core.extensions import UnknownMethodError
 
     img = textured(160, 240, seed=2, contrast=0.05)
     m, ev = estimate_with_evidence(img, channel_axis=None, method="real-lens")
@@ -334,7 +334,7 @@ def test_flat_field_method_reads_a_frame_without_scene_exactly():
     """A white frame under a real lens's fall-off: "flat-field" recovers it; the default
     divides out the scene prior (the darker edges photographs of scenes have), which a
     frame of no scene does not have, and so under-corrects."""
-    from vigproc.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import bench_lenses, pa_field
 
     _, pa = bench_lenses(1)[0]
     h, w = 320, 480

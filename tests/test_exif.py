@@ -1,4 +1,4 @@
-"""Tests for vigproc.exif: lens keys from EXIF through one persistent ExifTool process.
+"""Tests for vigproc.io.exif: lens keys from EXIF through one persistent ExifTool process.
 
 Test images are written here with OpenImageIO and tagged with the ``exiftool``
 *program* (list arguments, no shell), not with the module under test, so a
@@ -24,9 +24,9 @@ import OpenImageIO as oiio
 import pytest
 
 import exiftool.exiftool as et_module
-from vigproc import exif as vexif
+from vigproc.io import exif as vexif
 from vigproc.errors import ImageReadError, UnsupportedFormatError, VigprocError
-from vigproc.exif import (
+from vigproc.io.exif import (
     ExifReader,
     FileNameError,
     LensKey,
@@ -170,7 +170,7 @@ def test_contradictory_numbers_become_missing_with_warning(
 ) -> None:
     path = tag(write_image(tmp_path / "contra.jpg"), "-Make=Canon", "-Model=Canon EOS 5D",
                "-FocalLength=0", "-FNumber=2.8", "-XMP-exif:FNumber=11")
-    with caplog.at_level(logging.WARNING, logger="vigproc.exif"):
+    with caplog.at_level(logging.WARNING, logger="vigproc.io.exif"):
         key = reader.read(path)
     assert key.focal_mm is None and key.fnumber is None
     assert "focal_mm" in key.missing and "fnumber" in key.missing
@@ -206,7 +206,7 @@ def test_hostile_strings_in_tags(tmp_path: Path, reader: ExifReader, caplog: pyt
         "-LensModel=" + "X" * 5000,  # absurd length
         "-LensSerialNumber=ab\"c'd",  # quotes
         "-FocalLength=35", "-FNumber=2")
-    with caplog.at_level(logging.WARNING, logger="vigproc.exif"):
+    with caplog.at_level(logging.WARNING, logger="vigproc.io.exif"):
         key = reader.read(path)
     assert key.model == "eos 5d mark ii"
     assert key.make is not None and key.make.startswith("can on") and "|" in key.make

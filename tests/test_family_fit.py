@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import vigproc
-from vigproc._kernels.family import cauchy_normal_equations, family_pairs
+from vigproc.core._kernels.family import cauchy_normal_equations, family_pairs
 from vigproc.errors import ModelError
-from vigproc.estimate import estimate_default
-from vigproc.family_fit import (
+from vigproc.core.estimate import estimate_default
+from vigproc.core.family_fit import (
     FamilySettings,
     LensHint,
     estimate_family,
@@ -19,8 +19,8 @@ from vigproc.family_fit import (
     fit_family,
     profile_to_model,
 )
-from vigproc.lensfamily import N_RADII, LensFamily, build_family, default_family
-from vigproc.lensfun import pa_field
+from vigproc.core.lensfamily import N_RADII, LensFamily, build_family, default_family
+from vigproc.stores.lensfun import pa_field
 
 from conftest import textured
 

@@ -1,4 +1,4 @@
-"""Whose fault a failure is (vigproc.faults), and what each front end does about it.
+"""Whose fault a failure is (vigproc.pipeline.faults), and what each front end does about it.
 
 Issue 22: with the output on a full 20 MB tmpfs, healthy photos were quarantined
 for good, because OpenImageIO's ``TIFFWriteScanline failed ... Write error`` and
@@ -20,7 +20,7 @@ import pytest
 
 from conftest import textured
 from vigproc.errors import DiskFullError, ImageReadError, ImageWriteError, InvalidImageError
-from vigproc.faults import (CRASH, DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, DiskSpace, attempt_limit, classify_error,
+from vigproc.pipeline.faults import (CRASH, DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, DiskSpace, attempt_limit, classify_error,
                             disk_space)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -100,7 +100,7 @@ def test_disk_space_reads_the_file_system_of_the_nearest_existing_folder(tmp_pat
 
 # ------------------------------------------------------------------ vigproc correct
 def _photo(path: Path, seed: int) -> Path:
-    from vigproc.io import write_image
+    from vigproc.io.images import write_image
 
     img = np.stack([textured(64, 96, seed=seed + c) for c in range(3)], -1)
     write_image(path, np.clip(img, 0, 1).astype(np.float32), bit_depth="uint16")
@@ -110,8 +110,8 @@ def _photo(path: Path, seed: int) -> Path:
 def test_correct_on_a_full_disk_says_so_and_stops(tmp_path, monkeypatch, capsys):
     """Issue 22: `vigproc correct` must say the output disk is full (exit 5, a typed
     error, no traceback) and stop, rather than fail every further file the same way."""
-    import vigproc.metadata
-    from vigproc.cli import main
+    import vigproc.io.metadata
+    from vigproc.frontends.cli import main
 
     out = tmp_path / "out"
     files = [_photo(tmp_path / f"{n}.png", i) for i, n in enumerate("abc")]
@@ -121,7 +121,7 @@ def test_correct_on_a_full_disk_says_so_and_stops(tmp_path, monkeypatch, capsys)
         calls.append(dst)
         raise ImageWriteError(OIIO_FULL.format(out=out))
 
-    monkeypatch.setattr(vigproc.metadata, "write_corrected", full_disk)
+    monkeypatch.setattr(vigproc.io.metadata, "write_corrected", full_disk)
     _stub_disk(monkeypatch, free=2_000_000)
     rc = main(["correct", "-o", str(out), "--profile", str(PROFILE), "--output-format", "tiff16",
                *map(str, files)])
@@ -134,17 +134,17 @@ def test_correct_on_a_full_disk_says_so_and_stops(tmp_path, monkeypatch, capsys)
 
 # ------------------------------------------------------------------ batch
 def test_batch_stops_handing_out_files_on_a_full_disk_and_charges_none(tmp_path, monkeypatch):
-    import vigproc.metadata
-    from vigproc import backends as BK
-    from vigproc import batch as B
-    from vigproc.journal import Journal
-    from vigproc.pipeline import Settings
+    import vigproc.io.metadata
+    from vigproc.frontends import backends as BK
+    from vigproc.frontends import batch as B
+    from vigproc.stores.journal import Journal
+    from vigproc.pipeline.processor import Settings
 
     src, out = tmp_path / "src", tmp_path / "out"
     src.mkdir()
     for i in range(4):
         _photo(src / f"f{i}.png", i)
-    monkeypatch.setattr(vigproc.metadata, "write_corrected",
+    monkeypatch.setattr(vigproc.io.metadata, "write_corrected",
                         lambda dst, *a, **kw: (_ for _ in ()).throw(ImageWriteError(EXIFTOOL_FULL.format(out=out))))
     _stub_disk(monkeypatch, free=1_000_000)
     items, _ = B.collect(src, out)
@@ -166,7 +166,7 @@ def test_batch_stops_handing_out_files_on_a_full_disk_and_charges_none(tmp_path,
 # ------------------------------------------------------------------ the fault benchmark
 def test_bench_faults_says_why_it_cannot_run(monkeypatch, capsys):
     """`vigproc bench faults` needs root to mount its tmpfs: without, one line saying so."""
-    from vigproc.cli import main
+    from vigproc.frontends.cli import main
 
     monkeypatch.setattr(os, "geteuid", lambda: 1000)
     assert main(["bench", "faults"]) == 1

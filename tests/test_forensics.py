@@ -1,4 +1,4 @@
-"""Tests of the forensic consistency check (vigproc.forensics), its reports (vigproc.report)
+"""Tests of the forensic consistency check (vigproc.forensics.check), its reports (vigproc.forensics.report)
 and the ``vigproc check`` command."""
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ import pytest
 
 from vigproc.bench.forensics import bench_classes, calibration_residuals
 from vigproc.errors import ImageWriteError
-from vigproc.estimate import estimate
-from vigproc.exif import LensKey
-from vigproc.forensics import (
+from vigproc.core.estimate import estimate
+from vigproc.io.exif import LensKey
+from vigproc.forensics.check import (
     FORENSICS_METHOD,
     FEATURE_NAMES,
     RING_RADII,
@@ -30,7 +30,7 @@ from vigproc.forensics import (
     frame_features,
     pool_verdicts,
 )
-from vigproc.model import FitQuality, VignettingModel
+from vigproc.core.model import FitQuality, VignettingModel
 
 from conftest import textured
 
@@ -239,7 +239,7 @@ def test_pooled_frames(classes, calibration):
 
 
 def test_stored_profiles_come_before_lensfun(tmp_path, classes, calibration):
-    from vigproc.profiles import Profile, ProfileKey, ProfileStore, normalise
+    from vigproc.stores.profiles import Profile, ProfileKey, ProfileStore, normalise
 
     strong, mild = classes[4], classes[5]
     key = key_of(strong)
@@ -265,8 +265,8 @@ def test_stored_profiles_come_before_lensfun(tmp_path, classes, calibration):
 
 
 def test_pipeline_check_mode_uses_the_shipped_calibration(classes, tmp_path):
-    from vigproc.forensics import default_calibration
-    from vigproc.pipeline import Processor, Settings
+    from vigproc.forensics.check import default_calibration
+    from vigproc.pipeline.processor import Processor, Settings
 
     cal = default_calibration()
     assert cal.method == FORENSICS_METHOD and cal.n_images >= 100 and "forensics calibrate" in cal.source
@@ -280,8 +280,8 @@ def test_pipeline_check_mode_uses_the_shipped_calibration(classes, tmp_path):
 
 # ------------------------------------------------------------------ reports
 def test_report_html_and_png(tmp_path, classes, calibration):
-    from vigproc.io import read_image
-    from vigproc.report import ReportItem, thumbnail, write_report
+    from vigproc.io.images import read_image
+    from vigproc.forensics.report import ReportItem, thumbnail, write_report
 
     img = frame(classes[4], seed=7)
     v = check_image(img, key_of(classes[5]), calibration=calibration)
@@ -308,7 +308,7 @@ def test_report_html_and_png(tmp_path, classes, calibration):
 
 def test_report_failure_keeps_the_old_file(tmp_path, classes, calibration, monkeypatch):
     import vigproc.atomic
-    from vigproc.report import ReportItem, write_report
+    from vigproc.forensics.report import ReportItem, write_report
 
     v = check_image(frame(classes[4], seed=8), None, calibration=calibration)
     out = tmp_path / "r.html"
@@ -326,15 +326,15 @@ def test_report_failure_keeps_the_old_file(tmp_path, classes, calibration, monke
 
 # ------------------------------------------------------------------ the command
 def _tiff(path: Path, img: np.ndarray) -> Path:
-    from vigproc.io import write_image
+    from vigproc.io.images import write_image
 
     write_image(path, np.repeat(img[..., None], 3, axis=2).astype(np.float32), bit_depth="float")
     return path
 
 
 def test_check_cli_exit_codes_json_and_report(tmp_path, classes, capsys):
-    from vigproc.cli import main
-    from vigproc.commands.check import EXIT_UNDECIDED
+    from vigproc.frontends.cli import main
+    from vigproc.frontends.commands.check import EXIT_UNDECIDED
 
     plain = _tiff(tmp_path / "plain.tif", frame(classes[4], seed=9))
     broken = tmp_path / "broken.jpg"
@@ -353,7 +353,7 @@ def test_check_cli_exit_codes_json_and_report(tmp_path, classes, capsys):
 
 
 def test_a_check_never_uses_a_profile_that_holds_the_frame_itself(tmp_path, classes, calibration):
-    from vigproc.profiles import ProfileKey, ProfileStore
+    from vigproc.stores.profiles import ProfileKey, ProfileStore
 
     strong = classes[4]
     key = key_of(strong)
@@ -371,7 +371,7 @@ def test_a_check_never_uses_a_profile_that_holds_the_frame_itself(tmp_path, clas
 
 
 def test_check_cli_does_not_check_a_frame_against_its_own_profile(tmp_path, classes, capsys):
-    from vigproc.cli import main
+    from vigproc.frontends.cli import main
 
     # learn the lens from one frame, then check that frame: its own profile is no reference
     from dngfixture import make_dng
@@ -392,7 +392,7 @@ def test_check_cli_does_not_check_a_frame_against_its_own_profile(tmp_path, clas
 def test_hook_check_does_not_check_a_frame_against_its_own_profile(tmp_path, classes, capsys):
     """A host's hook asking for the answer only (no output folder) took the profile
     learned from this very frame as its reference and called the frame consistent."""
-    from vigproc.cli import main
+    from vigproc.frontends.cli import main
 
     from dngfixture import make_dng
 
@@ -413,7 +413,7 @@ def test_hook_check_does_not_check_a_frame_against_its_own_profile(tmp_path, cla
 
 
 def test_check_cli_line_escapes_a_newline_in_a_file_name(tmp_path, classes, capsys):
-    from vigproc.cli import main
+    from vigproc.frontends.cli import main
 
     odd = _tiff(tmp_path / "a\nvigproc: all consistent.tif", frame(classes[4], seed=9))
     main(["check", str(odd), "--profile-db", str(tmp_path / "p.sqlite")])
@@ -426,8 +426,8 @@ def test_check_cli_line_escapes_a_newline_in_a_file_name(tmp_path, classes, caps
 def test_check_cli_on_dngs_with_lens_exif(tmp_path, classes, calibration, capsys):
     from dngfixture import EXIFTOOL, make_dng
 
-    from vigproc.cli import main
-    from vigproc.commands.check import EXIT_INCONSISTENT
+    from vigproc.frontends.cli import main
+    from vigproc.frontends.commands.check import EXIT_INCONSISTENT
 
     if EXIFTOOL is None:
         pytest.skip("exiftool is not installed")

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 from vigproc.bench.synthetic import table1_model
-from vigproc.cli import main
-from vigproc.io import read_image, write_image
+from vigproc.frontends.cli import main
+from vigproc.io.images import read_image, write_image
 
 from conftest import textured
 from test_api import ESTIMATORS, PLUGIN_CODE, install_plugin
 
-VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 pytestmark = pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
 
 
@@ -239,7 +239,7 @@ def test_exit_codes(frame, constant, tmp_path, capsys, monkeypatch):
 
 
 def test_internal_error_fails_one_file_only(frame, tmp_path, capsys, monkeypatch):
-    from vigproc.pipeline import Processor
+    from vigproc.pipeline.processor import Processor
 
     real = Processor.process_file
 
@@ -293,9 +293,9 @@ def test_estimate_without_output_folder_writes_nothing(frame, tmp_path, capsys, 
 
 def test_check_mode_answers_a_verdict(frame, capsys, monkeypatch):
     try:
-        import vigproc.forensics  # noqa: F401
+        import vigproc.forensics.check  # noqa: F401
     except Exception as exc:  # missing, or mid-edit by its author
-        pytest.skip(f"vigproc.forensics (issue 7) not usable in this checkout: {type(exc).__name__}")
+        pytest.skip(f"vigproc.forensics.check (issue 7) not usable in this checkout: {type(exc).__name__}")
     code, answer = hook(capsys, monkeypatch, "--mode", "check", "--", frame)
     r = answer["results"][0]
     if r.get("type") == "ForensicsError":

@@ -1,4 +1,4 @@
-"""The warm hook server (vigproc.hookserver): same answers as an in-process call, only
+"""The warm hook server (vigproc.frontends.hookserver): same answers as an in-process call, only
 faster; private to its user; never a second copy of the code."""
 
 import json
@@ -10,12 +10,12 @@ import time
 import numpy as np
 import pytest
 
-from vigproc import hookserver
-from vigproc.io import write_image
+from vigproc.frontends import hookserver
+from vigproc.io.images import write_image
 
 from conftest import photo_like
 
-VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""Tests of lens identification (vigproc.identify), ``vigproc forensics train|evaluate``
+"""Tests of lens identification (vigproc.forensics.identify), ``vigproc forensics train|evaluate``
 and the forensics benchmark's protocol (vigproc.bench.forensics)."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from vigproc.bench.forensics import bench_classes, crop_frame, field_separation, roc_auc, split_images
-from vigproc.estimate import estimate
-from vigproc.forensics import FORENSICS_METHOD, ForensicsError, ring_falloff
-from vigproc.identify import (
+from vigproc.core.estimate import estimate
+from vigproc.forensics.check import FORENSICS_METHOD, ForensicsError, ring_falloff
+from vigproc.forensics.identify import (
     FEATURE_SETS,
     LensClassifier,
     accuracy,
@@ -21,7 +21,7 @@ from vigproc.identify import (
     format_confusion,
     train_classifier,
 )
-from vigproc.normalised import normalise
+from vigproc.core.normalised import normalise
 
 from conftest import textured
 
@@ -37,7 +37,7 @@ def _clusters(seed=0, n=25, spread=0.3):
 
 # ------------------------------------------------------------------ features
 def test_feature_vectors(tmp_path):
-    from vigproc.lensfun_io import kw_from_pa
+    from vigproc.stores.lensfun_io import kw_from_pa
 
     c = bench_classes(1)[0]
     m = kw_from_pa(c.k1, c.k2, c.k3, 300, 200)
@@ -45,7 +45,7 @@ def test_feature_vectors(tmp_path):
     assert feature_vector(m, "falloff") == pytest.approx(ring_falloff(m))
     assert {k: len(feature_vector(m, k)) for k in FEATURE_SETS} == FEATURE_SETS
     # a fall-back's rejected fit is what describes the frame
-    from vigproc.model import VignettingModel
+    from vigproc.core.model import VignettingModel
 
     weak = VignettingModel.identity(300, 200, candidate=m)
     assert feature_vector(weak, "falloff") == pytest.approx(ring_falloff(m))
@@ -117,7 +117,7 @@ def test_confusion_matrix_format():
 
 # ------------------------------------------------------------------ the commands
 def _folder(root, classes, n, seed0):
-    from vigproc.io import write_image
+    from vigproc.io.images import write_image
 
     for name, c in classes.items():
         d = root / name
@@ -130,7 +130,7 @@ def _folder(root, classes, n, seed0):
 
 
 def test_train_and_evaluate_round_trip(tmp_path, capsys):
-    from vigproc.cli import main
+    from vigproc.frontends.cli import main
 
     strong = bench_classes(3)[4]  # Sigma 105 mm at f/1.4: 0.7 EV RMS
     classes = {"strong-lens": strong, "no-vignetting": None}
@@ -157,9 +157,9 @@ def test_train_and_evaluate_round_trip(tmp_path, capsys):
 
 
 def test_calibrate_command(tmp_path, capsys):
-    from vigproc.cli import main
-    from vigproc.forensics import Calibration
-    from vigproc.io import write_image
+    from vigproc.frontends.cli import main
+    from vigproc.forensics.check import Calibration
+    from vigproc.io.images import write_image
 
     d = tmp_path / "photos"
     d.mkdir()

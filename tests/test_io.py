@@ -1,4 +1,4 @@
-"""Tests for vigproc.io: linear-light reading, transfer curves, typed errors, atomic writing.
+"""Tests for vigproc.io.images: linear-light reading, transfer curves, typed errors, atomic writing.
 
 Every image is made here in ``tmp_path`` with OpenImageIO directly (not with the
 module under test) so a reader bug cannot be hidden by a matching writer bug.
@@ -17,7 +17,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from vigproc import io as vio
+from vigproc.io import images as vio
 from vigproc.errors import (
     ImageReadError,
     ImageWriteError,
@@ -25,7 +25,7 @@ from vigproc.errors import (
     UnsupportedFormatError,
     VigprocError,
 )
-from vigproc.io import ImageInfo, linear_to_srgb, read_image, srgb_to_linear, write_image
+from vigproc.io.images import ImageInfo, linear_to_srgb, read_image, srgb_to_linear, write_image
 
 RAW_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "raw"  # ../shared beside the repo
 # The two RAWs README.md / files.csv list as decodable by rawpy.
@@ -801,7 +801,7 @@ def test_write_refuses_nan_and_inf_for_float_outputs(tmp_path: Path, bad: float,
 
 def test_integer_output_warns_when_it_clips_much_above_white(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     codes = gradient_codes(top=65535).astype(np.uint16)  # integer codes, not [0, 1] floats
-    with caplog.at_level("WARNING", logger="vigproc.io"):
+    with caplog.at_level("WARNING", logger="vigproc.io.images"):
         write_image(tmp_path / "codes.tif", codes)
     assert any("above 1.0" in r.getMessage() and "integer codes" in r.getMessage() for r in caplog.records)
     np.testing.assert_array_equal(read_image(tmp_path / "codes.tif")[0][codes > 0], 1.0)  # still clipped, as documented
@@ -809,7 +809,7 @@ def test_integer_output_warns_when_it_clips_much_above_white(tmp_path: Path, cap
     caplog.clear()
     few = np.full((10, 10), 0.5, np.float32)
     few[0, 0] = 3.0  # 1 % exactly: a highlight, not a unit mistake
-    with caplog.at_level("WARNING", logger="vigproc.io"):
+    with caplog.at_level("WARNING", logger="vigproc.io.images"):
         write_image(tmp_path / "few.png", few)
     assert not caplog.records
 
@@ -847,7 +847,7 @@ def test_libraw_complaints_go_into_the_error_not_raw_stderr(tmp_path: Path) -> N
     data = kdc.read_bytes()
     cut = tmp_path / "cut.kdc"
     cut.write_bytes(data[: len(data) // 2])  # LibRaw decodes until the data ends, and says so
-    r = subprocess.run([sys.executable, "-m", "vigproc.cli", "correct", str(cut), "-o", str(tmp_path / "o")],
+    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "correct", str(cut), "-o", str(tmp_path / "o")],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 4  # its only file unreadable
     lines = r.stderr.splitlines()
@@ -866,7 +866,7 @@ def test_linear_tiffs_carry_a_linear_srgb_icc_profile(tmp_path: Path) -> None:
     import struct
     import subprocess
 
-    from vigproc.icc import DESCRIPTION, linear_srgb_profile
+    from vigproc.io.icc import DESCRIPTION, linear_srgb_profile
 
     icc = linear_srgb_profile()
     assert struct.unpack(">I", icc[:4])[0] == len(icc) and icc[36:40] == b"acsp" and icc[12:20] == b"mntrRGB "

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from vigproc.errors import VigprocError
-from vigproc.journal import (
+from vigproc.stores.journal import (
     COUNT_KEYS,
     FileChangedError,
     Fingerprint,
@@ -338,7 +338,7 @@ def test_concurrent_processes_claim_each_file_exactly_once(db):
 
 _KILLED_WRITER = r"""
 import sys, hashlib
-from vigproc.journal import Journal, Fingerprint
+from vigproc.stores.journal import Journal, Fingerprint
 j = Journal(sys.argv[1], job="k")
 i = 0
 while True:

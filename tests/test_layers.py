@@ -6,6 +6,11 @@ import keeps ``vigproc --help`` fast, but it is still an edge of the graph). Onl
 body of ``if __name__ == "__main__":`` is left out: it runs as the script
 ``__main__``, which no module imports.
 
+The package's folders are its layers, bottom up (:data:`LAYERS`): the foundation
+(``errors``, ``atomic``, ``processes``, ``_version``, the shipped ``data``), the numeric core, image and
+metadata I/O, the stores, forensics, the per-frame pipeline, the front ends. A module
+imports only from its own layer or below.
+
 The graph must have no cycle; no module may import the package ``vigproc`` itself
 (its ``__init__`` is the top: it re-exports, lazily); and the benchmarks
 (``vigproc.bench``) are imported only by the code of the ``vigproc bench`` commands.
@@ -26,16 +31,36 @@ BENCH = "vigproc.bench"
 #: Functions outside vigproc.bench that may import it: the ``vigproc bench`` commands
 #: and their helpers, by (module, top-level function).
 BENCH_COMMANDS = {
-    ("vigproc.cli", "_estimator"),  # the benches' estimator table (rgs, the peer)
-    ("vigproc.commands.watch", "_make_inputs"),  # bench watch's frames
+    ("vigproc.frontends.cli", "_estimator"),  # the benches' estimator table (rgs, the peer)
+    ("vigproc.frontends.commands.watch", "_make_inputs"),  # bench watch's frames
 }
 #: Real commands that still import benchmark code. Moving the shared pieces down needs
 #: edits under vigproc/bench/, outside the change that added this test; not to grow.
 BENCH_DEBT = {
     # forensics calibrate takes its lens classes and residuals from bench.forensics
     # (bench_classes, calibration_residuals)
-    ("vigproc.commands.forensics", "cmd_calibrate"),
+    ("vigproc.frontends.commands.forensics", "cmd_calibrate"),
 }
+
+
+#: The layers, bottom up: a module imports only from its own layer or a lower one.
+LAYERS = (
+    ("vigproc.errors", "vigproc.atomic", "vigproc.processes", "vigproc._version", "vigproc.data"),
+    ("vigproc.core",),
+    ("vigproc.io",),
+    ("vigproc.stores",),
+    ("vigproc.forensics",),
+    ("vigproc.pipeline",),
+    ("vigproc.frontends", "vigproc.bench"),
+)
+
+
+def layer_of(module: str) -> int | None:
+    """The index in :data:`LAYERS` of a module (None for the package ``vigproc`` itself)."""
+    for i, prefixes in enumerate(LAYERS):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return i
+    return None
 
 
 @dataclass(frozen=True)
@@ -161,12 +186,29 @@ def graph() -> list[Edge]:
 def test_the_graph_sees_imports_inside_functions(graph):
     lazy = [e for e in graph if e.function is not None]
     assert len(lazy) > 100  # vigproc imports lazily for start-up time; those are edges too
-    assert any(e.source == "vigproc.pipeline" and e.target == "vigproc.forensics" for e in lazy)  # check mode's
+    assert any(e.source == "vigproc.pipeline.processor" and e.target == "vigproc.forensics.check" for e in lazy)  # check mode's
 
 
 def test_no_import_cycle(graph):
     found = cycles(graph)
     assert not found, "import cycles: " + " | ".join(_describe(c, graph) for c in found)
+
+
+def test_every_module_sits_in_a_layer():
+    homeless = sorted(m for m in modules(PACKAGE) if m != "vigproc" and layer_of(m) is None)
+    assert not homeless, f"modules outside the layers of tests/test_layers.py: {homeless}"
+
+
+def test_imports_point_down_the_layers(graph):
+    up = sorted(f"{e.source}:{e.line} -> {e.target}" for e in graph
+                if e.source != "vigproc" and layer_of(e.target) is not None
+                and layer_of(e.target) > layer_of(e.source))
+    assert not up, f"imports of a higher layer: {up}"
+
+
+def test_the_layer_check_sees_an_upward_import():
+    assert layer_of("vigproc.core.model") < layer_of("vigproc.stores.profiles") < layer_of("vigproc.frontends.cli")
+    assert layer_of("vigproc.errors") == 0 and layer_of("vigproc") is None
 
 
 def test_no_module_imports_the_package_itself(graph):

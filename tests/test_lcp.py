@@ -1,4 +1,4 @@
-"""Adobe lens profiles (LCP) as vigproc profiles (vigproc.lcp).
+"""Adobe lens profiles (LCP) as vigproc profiles (vigproc.stores.lcp).
 
 The LCP files here are synthetic: Adobe's own profiles are not redistributable, and no
 LCP file under a licence that allows copying it into this repository was found.  They
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vigproc.lcp import LcpError, import_lcp, lens_id_for, read_lcp
+from vigproc.stores.lcp import LcpError, import_lcp, lens_id_for, read_lcp
 
 HEAD = ('<?xml version="1.0" encoding="UTF-8"?>\n<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
         ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
@@ -126,8 +126,8 @@ def test_import_keys_like_exif_and_states_the_fit_error(tmp_path: Path) -> None:
 
 
 def test_a_frame_with_that_exif_finds_the_imported_profile(tmp_path: Path) -> None:
-    from vigproc.exif import LensKey
-    from vigproc.profiles import ProfileStore
+    from vigproc.io.exif import LensKey
+    from vigproc.stores.profiles import ProfileStore
 
     imports, _ = import_lcp([write(tmp_path / "a.lcp", entry_attrs())])
     with ProfileStore(tmp_path / "p.sqlite") as store:
@@ -195,7 +195,7 @@ def test_a_vignette_that_blacks_out_the_frame_is_skipped(tmp_path: Path) -> None
 
 
 def test_cli_import_lcp(tmp_path: Path, capsys) -> None:
-    from vigproc.cli import main
+    from vigproc.frontends.cli import main
 
     f = write(tmp_path / "a.lcp", entry_attrs(), entry_attrs(n=4.0, vig=(-0.6, 0.2, -0.1)))
     db = tmp_path / "p.sqlite"

@@ -1,4 +1,4 @@
-"""Tests for vigproc.lensfun (lensfun pa vignetting data)."""
+"""Tests for vigproc.stores.lensfun (lensfun pa vignetting data)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vigproc.errors import InvalidImageError, ModelError
-from vigproc.lensfun import (
+from vigproc.stores.lensfun import (
     LensfunLens,
     PaVignetting,
     bench_lenses,

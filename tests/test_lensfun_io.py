@@ -1,4 +1,4 @@
-"""Tests for vigproc.lensfun_io (lensfun pa <-> Kang-Weiss, lensfun XML export)."""
+"""Tests for vigproc.stores.lensfun_io (lensfun pa <-> Kang-Weiss, lensfun XML export)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from vigproc.errors import ModelError
-from vigproc.lensfun import LensfunLens, PaVignetting, bench_lenses, interpolate_pa, load_lenses, pa_field
-from vigproc.lensfun_io import (
+from vigproc.stores.lensfun import LensfunLens, PaVignetting, bench_lenses, interpolate_pa, load_lenses, pa_field
+from vigproc.stores.lensfun_io import (
     LENSFUN_DB_VERSION,
     LensfunEntry,
     _KwProblem,
@@ -22,7 +22,7 @@ from vigproc.lensfun_io import (
     pa_from_model,
     pa_misfit_ev,
 )
-from vigproc.model import VignettingModel
+from vigproc.core.model import VignettingModel
 
 #: Measured (3:2 frames, bench_lenses(20)): max 6.8e-4 EV, median 2.7e-4 EV.
 KW_BOUND_EV = 2e-3
@@ -219,11 +219,11 @@ def test_pa_from_model_identity_and_off_centre(caplog: pytest.LogCaptureFixture)
     assert pa_from_model(VignettingModel.identity(W, H)) == (0.0, 0.0, 0.0, 0.0)
     p = (1.4 / math.hypot(W / 2, H / 2)) ** 2
     centred = VignettingModel(W, H, p=(p, 0.0, p), alpha=(0.0, 0.1, 0, 0, 0, 0, 0))
-    with caplog.at_level(logging.WARNING, logger="vigproc.lensfun_io"):
+    with caplog.at_level(logging.WARNING, logger="vigproc.stores.lensfun_io"):
         good = pa_from_model(centred)
     assert not caplog.records
     off = VignettingModel(W, H, center=(60.0, -20.0), p=(p, 0.0, 1.3 * p), alpha=centred.alpha)
-    with caplog.at_level(logging.WARNING, logger="vigproc.lensfun_io"):
+    with caplog.at_level(logging.WARNING, logger="vigproc.stores.lensfun_io"):
         bad = pa_from_model(off)
     assert any("off-centre" in r.getMessage() for r in caplog.records)
     assert good.rms_ev < KW_BOUND_EV
@@ -342,7 +342,7 @@ def test_export_rejects_nothing_and_replaces_atomically(tmp_path: Path) -> None:
 
 
 def test_reexport_to_the_same_path_is_reread(tmp_path):
-    from vigproc.lensfun import load_lenses
+    from vigproc.stores.lensfun import load_lenses
 
     path = tmp_path / "same.xml"
     entry = ("Vigproc", "Test 50mm f/2", "Generic", 1.0, 50.0, 2.0, 1000.0, -0.3, 0.1, -0.05)

@@ -1,4 +1,4 @@
-"""Tests of the lens-family mismatch test (vigproc.lensmatch) and of ``vigproc check``'s
+"""Tests of the lens-family mismatch test (vigproc.forensics.lensmatch) and of ``vigproc check``'s
 default verdicts, which come from it."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from vigproc.bench.forensics import bench_classes
-from vigproc.exif import LensKey
-from vigproc.family_fit import profile_to_model
-from vigproc.forensics import check_image, load_calibration, pool_verdicts
-from vigproc.lensfamily import default_family
-from vigproc.lensmatch import (
+from vigproc.io.exif import LensKey
+from vigproc.core.family_fit import profile_to_model
+from vigproc.forensics.check import check_image, load_calibration, pool_verdicts
+from vigproc.core.lensfamily import default_family
+from vigproc.forensics.lensmatch import (
     MatchCalibration,
     MatchCalibrationError,
     default_match_calibration,
@@ -56,7 +56,7 @@ def calibration(classes):
 
 
 def _identity():
-    from vigproc.model import VignettingModel
+    from vigproc.core.model import VignettingModel
 
     return VignettingModel.identity(W, H)
 
@@ -147,8 +147,8 @@ def test_a_fit_no_model_can_hold_is_insufficient_signal(classes, calibration, mo
     """The data-only fit of a frame without usable structure can land on coefficients no
     lens has, whose model would black out part of the frame: that is no evidence (a
     camera JPEG made `vigproc check` fail with exit 6 where estimate and correct went on)."""
-    import vigproc.lensmatch as lensmatch
-    from vigproc.family_fit import FrameCoefficients
+    import vigproc.forensics.lensmatch as lensmatch
+    from vigproc.core.family_fit import FrameCoefficients
 
     monkeypatch.setattr(lensmatch, "frame_fit", lambda lum, fam=None, settings=None: FrameCoefficients(
         np.array([5e3, -4e3]), np.eye(2), 1000))
@@ -158,7 +158,7 @@ def test_a_fit_no_model_can_hold_is_insufficient_signal(classes, calibration, mo
 
 
 def test_unknown_lens_and_explicit_method(classes, calibration):
-    from vigproc.forensics import ForensicsError
+    from vigproc.forensics.check import ForensicsError
 
     img = textured(H, W, seed=5, contrast=0.15)
     assert check_image(img, None, calibration=calibration).verdict == "unknown-lens"
@@ -167,8 +167,8 @@ def test_unknown_lens_and_explicit_method(classes, calibration):
 
 
 def test_cli_check_json_says_which_test(tmp_path, classes):
-    from vigproc.cli import main
-    from vigproc.io import write_image
+    from vigproc.frontends.cli import main
+    from vigproc.io.images import write_image
 
     img = textured(H, W, seed=7, contrast=0.15) * classes[4].field(H, W)
     f = tmp_path / "frame.tif"

@@ -1,13 +1,13 @@
-"""The paper's estimator (vigproc.lyu2010): its pieces, one by one (Lyu 2010, Section 3)."""
+"""The paper's estimator (vigproc.core.lyu2010): its pieces, one by one (Lyu 2010, Section 3)."""
 
 import math
 
 import numpy as np
 import pytest
 
-from vigproc.lyu2010 import _chol_to_p, _p_to_chol, gaussian_approximation, ml_objective_terms, \
+from vigproc.core.lyu2010 import _chol_to_p, _p_to_chol, gaussian_approximation, ml_objective_terms, \
     model_derivative_means
-from vigproc.prior import default_prior
+from vigproc.core.prior import default_prior
 
 H, W = 320, 480
 

@@ -17,7 +17,7 @@ from vigproc.errors import InvalidImageError, MemoryBudgetError
 
 
 def _photo(path: Path, seed: int) -> Path:
-    from vigproc.io import write_image
+    from vigproc.io.images import write_image
 
     img = np.stack([textured(64, 96, seed=seed + c) for c in range(3)], -1)
     write_image(path, np.clip(img, 0, 1).astype(np.float32), bit_depth="uint16")
@@ -48,7 +48,7 @@ def test_a_decompression_bomb_is_refused_by_the_memory_budget_before_decoding(tm
     bomb = _png_bomb(tmp_path / "bomb.png", 14000, 14000)
     assert bomb.stat().st_size < 1_000_000
     code = ("import resource, sys\n"
-            "from vigproc.io import read_image\n"
+            "from vigproc.io.images import read_image\n"
             "try:\n"
             "    read_image(sys.argv[1])\n"
             "except Exception as exc:\n"
@@ -66,7 +66,7 @@ def test_a_decompression_bomb_is_refused_by_the_memory_budget_before_decoding(tm
 
 
 def test_the_memory_budget_is_a_setting(tmp_path, monkeypatch):
-    from vigproc.io import DEFAULT_MEMORY_BUDGET, memory_budget, read_image
+    from vigproc.io.images import DEFAULT_MEMORY_BUDGET, memory_budget, read_image
 
     png = _photo(tmp_path / "a.png", 0)  # 96 x 64 x 3 float32 = 73728 bytes
     assert memory_budget() == DEFAULT_MEMORY_BUDGET == 2 * 2**30
@@ -88,7 +88,7 @@ def test_the_memory_budget_is_a_setting(tmp_path, monkeypatch):
 def test_a_raw_is_held_to_the_memory_budget_from_its_header(tmp_path):
     from dngfixture import make_dng
 
-    from vigproc.io import read_image
+    from vigproc.io.images import read_image
 
     dng = tmp_path / "a.dng"
     make_dng(dng, width=96, height=64)

@@ -1,4 +1,4 @@
-"""Metadata carried into corrected outputs (vigproc.metadata), with the exiftool program."""
+"""Metadata carried into corrected outputs (vigproc.io.metadata), with the exiftool program."""
 
 from __future__ import annotations
 
@@ -17,9 +17,9 @@ import pytest
 
 import vigproc
 from vigproc.errors import ImageWriteError, InvalidImageError
-from vigproc.io import LINEAR_TIFF_MARKER, read_image, write_image
-from vigproc.metadata import copy_metadata, make_record, read_record, write_corrected
-from vigproc.model import FitQuality, VignettingModel
+from vigproc.io.images import LINEAR_TIFF_MARKER, read_image, write_image
+from vigproc.io.metadata import copy_metadata, make_record, read_record, write_corrected
+from vigproc.core.model import FitQuality, VignettingModel
 
 pytestmark = pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
 
@@ -135,7 +135,7 @@ def test_tiff_round_trip(src: Path, outdir: Path, depth: str) -> None:
 
     # an output read back (a later pass, a check) gives the camera's lens key: the
     # record's own Model tag (the model JSON) is not taken for the camera model
-    from vigproc.exif import read_lens_key
+    from vigproc.io.exif import read_lens_key
 
     key = read_lens_key(dst)
     assert key.model is not None and key.problems == (), key.problems
@@ -292,7 +292,7 @@ def test_no_metadata_source_is_fine(tmp_path: Path, outdir: Path, caplog: pytest
     bare = tmp_path / "bare.png"
     write_image(bare, image())
     dst = outdir / "x.tif"
-    with caplog.at_level(logging.INFO, logger="vigproc.metadata"):
+    with caplog.at_level(logging.INFO, logger="vigproc.io.metadata"):
         write_corrected(dst, image(), bare, make_record(rich_model()))
     assert read_record(dst)["model"] == rich_model()
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
@@ -301,7 +301,7 @@ def test_no_metadata_source_is_fine(tmp_path: Path, outdir: Path, caplog: pytest
 def test_exiftool_warnings_are_logged(tmp_path: Path, outdir: Path, caplog: pytest.LogCaptureFixture) -> None:
     odd = tmp_path / "odd.jpg"
     odd.write_bytes(b"\xff\xd8\xff but no JPEG segments follow")
-    with caplog.at_level(logging.INFO, logger="vigproc.metadata"):
+    with caplog.at_level(logging.INFO, logger="vigproc.io.metadata"):
         write_corrected(outdir / "x.tif", image(), odd, None)
     assert any("JPEG format error" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
     # nothing to copy is only worth a note

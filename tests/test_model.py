@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from vigproc.errors import ModelError
-from vigproc.model import VignettingModel
+from vigproc.core.model import VignettingModel
 
 
 def table2():
@@ -41,7 +41,7 @@ def test_quality_with_unknown_figures_is_strict_json():
     import math
     from dataclasses import replace
 
-    from vigproc.model import FitQuality
+    from vigproc.core.model import FitQuality
 
     m = replace(table2(), quality=FitQuality(field_sigma_ev=math.nan, snr=math.inf, objective=math.nan))
     text = json.dumps(m.to_dict(), allow_nan=False)  # raises on NaN/Inf
@@ -130,7 +130,7 @@ def test_from_dict_type_checks_quality(quality, message):
 def test_quality_round_trip_keeps_types_and_null_figures():
     from dataclasses import replace
 
-    from vigproc.model import FitQuality
+    from vigproc.core.model import FitQuality
 
     q = FitQuality(confidence=0.25, snr=math.inf, fallback=True, objective=math.nan, iterations=12, seconds=0.5)
     m = replace(table2(), quality=q)

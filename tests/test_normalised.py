@@ -1,5 +1,5 @@
 """Model parameters in frame-normalised units, and fitting the model to a known field
-(vigproc.normalised)."""
+(vigproc.core.normalised)."""
 
 import math
 
@@ -8,7 +8,7 @@ import pytest
 
 from vigproc.bench.synthetic import table1_model
 from vigproc.errors import ModelError
-from vigproc.normalised import denormalise, fit_model_to_field, normalise
+from vigproc.core.normalised import denormalise, fit_model_to_field, normalise
 
 
 def test_the_same_field_at_two_resolutions_has_the_same_normalised_parameters():

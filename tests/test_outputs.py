@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 
 from vigproc.bench.synthetic import table1_model
-from vigproc.io import jpeg_quality, read_image, write_image
-from vigproc.pipeline import OUTPUT_FORMATS, Processor, Settings, output_format_for
+from vigproc.io.images import jpeg_quality, read_image, write_image
+from vigproc.pipeline.processor import OUTPUT_FORMATS, Processor, Settings, output_format_for
 
 from conftest import photo_like
 
 pytestmark = pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
 
-VIGPROC = [sys.executable, "-m", "vigproc.cli"]
+VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
 def run(*args):

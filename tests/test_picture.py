@@ -1,8 +1,8 @@
 import numpy as np
 
 from vigproc.bench.synthetic import table1_model
-from vigproc.model import VignettingModel
-from vigproc.picture import _AXIS_COLOURS, falloff_figure, vignetting_picture
+from vigproc.core.model import VignettingModel
+from vigproc.io.picture import _AXIS_COLOURS, falloff_figure, vignetting_picture
 
 
 def _has_colour(img, col):

@@ -1,4 +1,4 @@
-"""The per-frame pipeline's settings (vigproc.pipeline.Settings): the one predicate
+"""The per-frame pipeline's settings (vigproc.pipeline.processor.Settings): the one predicate
 every front end asks whether a ``profile`` names a file and whether a run needs the
 profile store (issue 23: five copies disagreed, and watch took ``source:foo`` for a file)."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from vigproc.pipeline import PROFILE_CHOICES, Settings, names_profile_file
+from vigproc.pipeline.processor import PROFILE_CHOICES, Settings, names_profile_file
 
 
 @pytest.mark.parametrize("profile, is_file", [

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from vigproc.bench.synthetic import table1_model
-from vigproc.io import read_image, write_image
-from vigproc.pipeline import corrected_name, output_name
+from vigproc.io.images import read_image, write_image
+from vigproc.pipeline.processor import corrected_name, output_name
 
 from conftest import photo_like, textured
 
@@ -43,7 +43,7 @@ def vigproc_program(folder: Path) -> Path:
     """An executable that runs this checkout's vigproc, in a folder with a hostile name."""
     folder.mkdir(parents=True, exist_ok=True)
     prog = folder / "vig'proc $(touch PWNED)"
-    prog.write_text(f"#!/bin/sh\nexec {shlex.quote(sys.executable)} -m vigproc.cli \"$@\"\n")
+    prog.write_text(f"#!/bin/sh\nexec {shlex.quote(sys.executable)} -m vigproc.frontends.cli \"$@\"\n")
     prog.chmod(0o755)
     return prog
 
@@ -67,7 +67,7 @@ def pwned(root: Path) -> list[Path]:
 
 def forensics_usable() -> bool:
     try:
-        import vigproc.forensics  # noqa: F401
+        import vigproc.forensics.check  # noqa: F401
     except Exception:
         return False
     return True
@@ -215,7 +215,7 @@ def test_the_digikam_harness_does_expose_naive_scripts(work, tmp_path):
 
 def test_digikam_check_mode_copies_the_input(work, tmp_path):
     if not forensics_usable():
-        pytest.skip("vigproc.forensics (issue 7) not usable in this checkout")
+        pytest.skip("vigproc.forensics.check (issue 7) not usable in this checkout")
     src = vignetted_tiff(work / f"{HOSTILE}.tif")
     out = work / "BatchTool-c.digikamtempfile.tif"
     r = run_like_digikam(bqm_script("check", vigproc_program(work / "bin")), str(src), str(out), cwd=work)

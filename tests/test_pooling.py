@@ -1,4 +1,4 @@
-"""Pooling a lens's frames into its profile (vigproc.pooling) and the frames' evidence."""
+"""Pooling a lens's frames into its profile (vigproc.core.pooling) and the frames' evidence."""
 
 import io
 import json
@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from vigproc.errors import ModelError
-from vigproc.estimate import frame_evidence
-from vigproc.family_fit import FrameCoefficients, frame_coefficients
-from vigproc.lensfamily import N_COMPONENTS, PROFILE_COMPONENTS, default_family, profile_family
-from vigproc.lensfun import bench_lenses, pa_field
-from vigproc.pooling import SIGMA_SCALE, frame_fit, pool_family, pooled_coefficients
-from vigproc.robust import RobustSettings, evidence_copy, working_copy
-from vigproc.scene import default_scene_falloff
+from vigproc.core.estimate import frame_evidence
+from vigproc.core.family_fit import FrameCoefficients, frame_coefficients
+from vigproc.core.lensfamily import N_COMPONENTS, PROFILE_COMPONENTS, default_family, profile_family
+from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.core.pooling import SIGMA_SCALE, frame_fit, pool_family, pooled_coefficients
+from vigproc.core.robust import RobustSettings, evidence_copy, working_copy
+from vigproc.core.scene import default_scene_falloff
 
 from conftest import textured
 
@@ -125,7 +125,7 @@ def test_format_1_evidence_gets_the_scene_prior_back():
     raw = working_copy(img, RobustSettings())
     divided = raw.L - default_scene_falloff().log_field(raw.xs, raw.ys)
     buf = io.BytesIO()
-    meta = json.dumps({"format": "vigproc.robust-evidence/1", "radius": raw.radius, "width": W, "height": H})
+    meta = json.dumps({"format": "vigproc.core.robust-evidence/1", "radius": raw.radius, "width": W, "height": H})
     np.savez_compressed(buf, L=divided.astype(np.float32), valid=raw.valid, xs=raw.xs, ys=raw.ys,
                         meta=np.frombuffer(meta.encode(), dtype=np.uint8))
     wc = evidence_copy(buf.getvalue())

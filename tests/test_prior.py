@@ -3,8 +3,8 @@ import pytest
 from scipy.stats import gennorm
 
 from vigproc.errors import PriorError
-from vigproc.prior import NaturalPrior, default_prior, fit_prior, ggd_moment_match
-from vigproc.stats import DELTA_MAX, OPERATORS
+from vigproc.core.prior import NaturalPrior, default_prior, fit_prior, ggd_moment_match
+from vigproc.core.stats import DELTA_MAX, OPERATORS
 
 from conftest import textured
 

@@ -1,4 +1,4 @@
-"""Tests of the per-lens profile store (vigproc.profiles)."""
+"""Tests of the per-lens profile store (vigproc.stores.profiles)."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from vigproc.exif import LensKey
-from vigproc.lensfun import bench_lenses, pa_field
-from vigproc.model import VignettingModel
-from vigproc.profiles import (
+from vigproc.io.exif import LensKey
+from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.core.model import VignettingModel
+from vigproc.stores.profiles import (
     ANY,
     DB_ENV,
     SCHEMA_VERSION,
@@ -603,9 +603,9 @@ def test_pooled_fits_are_cached_by_evidence_not_by_frame_id(tmp_path):
     frames' evidence (the store's fit cache must not hand one lens the other's fits)."""
     from conftest import photo_like
 
-    from vigproc.estimate import estimate, frame_evidence
-    from vigproc.pooling import frame_fit, pool_family
-    from vigproc.robust import evidence_copy
+    from vigproc.core.estimate import estimate, frame_evidence
+    from vigproc.core.pooling import frame_fit, pool_family
+    from vigproc.core.robust import evidence_copy
 
     h, w = 160, 240
     with ProfileStore(tmp_path / "p.sqlite") as store:
@@ -620,15 +620,15 @@ def test_pooled_fits_are_cached_by_evidence_not_by_frame_id(tmp_path):
 
 
 def test_with_evidence_sigma_is_the_pooled_medians(tmp_path):
-    """With evidence, the profile's σ is the median's (vigproc.pooling), robust to a
+    """With evidence, the profile's σ is the median's (vigproc.core.pooling), robust to a
     frame the scene fooled; the scatter reported is that of what the profile pools
     (the frames' lens-family fits), not of the frames' single-frame estimates."""
     from conftest import photo_like
 
-    from vigproc.estimate import estimate, frame_evidence
-    from vigproc.normalised import _field_and_jacobian, normalise
-    from vigproc.pooling import coefficients_model, frame_fit, pool_family, pooled_coefficients
-    from vigproc.robust import evidence_copy
+    from vigproc.core.estimate import estimate, frame_evidence
+    from vigproc.core.normalised import _field_and_jacobian, normalise
+    from vigproc.core.pooling import coefficients_model, frame_fit, pool_family, pooled_coefficients
+    from vigproc.core.robust import evidence_copy
 
     _lens, pa = bench_lenses(1)[0]
     h, w = 160, 240
@@ -648,12 +648,12 @@ def test_with_evidence_sigma_is_the_pooled_medians(tmp_path):
 
 def test_learning_with_evidence_pools_the_frames_family_fits(tmp_path):
     """With each frame's evidence the profile is the median of the frames' lens-family
-    fits (vigproc.pooling), whatever order the frames arrive in."""
+    fits (vigproc.core.pooling), whatever order the frames arrive in."""
     from conftest import photo_like
 
-    from vigproc.estimate import estimate, frame_evidence
-    from vigproc.pooling import frame_fit, pool_family
-    from vigproc.robust import evidence_copy
+    from vigproc.core.estimate import estimate, frame_evidence
+    from vigproc.core.pooling import frame_fit, pool_family
+    from vigproc.core.robust import evidence_copy
 
     lens, pa = bench_lenses(1)[0]
     h, w = 160, 240
@@ -690,7 +690,7 @@ def test_profile_file_that_is_not_a_regular_file(tmp_path):
 
 
 def _learn_frames(store, key, frames, first=0):
-    from vigproc.estimate import estimate, frame_evidence
+    from vigproc.core.estimate import estimate, frame_evidence
 
     p = None
     for i, f in enumerate(frames, start=first):
@@ -746,8 +746,8 @@ def test_every_frame_keeps_its_fit_and_an_older_store_gets_them_once(tmp_path):
 def test_the_profile_pools_every_frame_up_to_the_cap(tmp_path, monkeypatch):
     """Every frame refines the profile (the store pooled only 40 before), up to
     MAX_POOLED_FRAMES, chosen by frame id whatever the order of arrival."""
-    import vigproc.pooling as pooling
-    import vigproc.profiles as profiles
+    import vigproc.core.pooling as pooling
+    import vigproc.stores.profiles as profiles
 
     seen = []
     real = pooling.pool_family
@@ -845,8 +845,8 @@ def test_junk_evidence_is_named_as_such(tmp_path):
 
 
 def _pa_profile(lens_key, focal, fnumber, k1, w=180, h=120, sigma=0.01):
-    from vigproc.lensfun import pa_field
-    from vigproc.normalised import fit_model_to_field, normalise
+    from vigproc.stores.lensfun import pa_field
+    from vigproc.core.normalised import fit_model_to_field, normalise
 
     m, _ = fit_model_to_field(np.log(pa_field((64, 96), k1, 0.0, 0.0)), w, h)
     from dataclasses import replace
@@ -860,7 +860,7 @@ def test_lookup_interpolates_between_a_lenss_bins(tmp_path):
     length), and with a third at 70 mm f/8 for 50 mm f/5.6 (bilinear); never beyond."""
     from dataclasses import replace as dc_replace
 
-    from vigproc.lensfun import pa_field
+    from vigproc.stores.lensfun import pa_field
 
     lk = LensKey(make="nikon", model="nikon d800", lens="af-s nikkor 24-70mm f/2.8g ed", focal_mm=40.0, fnumber=4.0)
     w, h = 180, 120

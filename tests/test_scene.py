@@ -1,11 +1,11 @@
-"""The robust estimator's scene prior (vigproc.scene): the mean fall-off of photographs."""
+"""The robust estimator's scene prior (vigproc.core.scene): the mean fall-off of photographs."""
 
 import numpy as np
 import pytest
 
 from vigproc.errors import PriorError
-from vigproc.model import VignettingModel
-from vigproc.scene import NONE, SceneFalloff, default_scene_falloff, fit_scene_falloff, frame_grid
+from vigproc.core.model import VignettingModel
+from vigproc.core.scene import NONE, SceneFalloff, default_scene_falloff, fit_scene_falloff, frame_grid
 
 from conftest import textured
 

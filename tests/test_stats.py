@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from vigproc.errors import InvalidImageError
-from vigproc.stats import DELTA_MAX, derivative_means, derivative_means_bruteforce
+from vigproc.core.stats import DELTA_MAX, derivative_means, derivative_means_bruteforce
 
 
 @pytest.mark.parametrize("shape", [(320, 480), (51, 51), (77, 130), (200, 61)])

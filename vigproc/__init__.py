@@ -5,12 +5,10 @@
 >>> phi = m.field((H, W))                # attenuation, 1.0 at the vignetting centre
 >>> out = vigproc.correct(img, m)
 
-Photo pipelines: :class:`vigproc.Pipeline` (:mod:`vigproc.api`, the stable interface).
+Photo pipelines: :class:`vigproc.Pipeline` (:mod:`vigproc.frontends.api`, the stable interface).
 """
 
 import os as _os
-import sys as _sys
-import types as _types
 
 
 def _numba_cache_fallback(environ=_os.environ, access=_os.access) -> str | None:
@@ -25,7 +23,7 @@ def _numba_cache_fallback(environ=_os.environ, access=_os.access) -> str | None:
 
     if environ.get("NUMBA_CACHE_DIR"):
         return None
-    if access(_os.path.join(_os.path.dirname(__file__), "_kernels"), _os.W_OK):
+    if access(_os.path.join(_os.path.dirname(__file__), "core", "_kernels"), _os.W_OK):
         return None
     home = environ.get("XDG_CACHE_HOME") or _os.path.join(_os.path.expanduser("~"), ".cache")
     probe = home
@@ -42,29 +40,14 @@ if (_cache := _numba_cache_fallback()) is not None:
 # The public names are imported when first used (PEP 562): ``vigproc --help`` and a
 # host's hook call must not pay for scipy and the Numba kernels they do not need.
 _PUBLIC = {
-    "Pipeline": "vigproc.api", "Result": "vigproc.api", "correct": "vigproc.correct",
+    "Pipeline": "vigproc.frontends.api", "Result": "vigproc.frontends.api", "correct": "vigproc.core.correct",
     "ImageReadError": "vigproc.errors", "ImageWriteError": "vigproc.errors",
     "InvalidImageError": "vigproc.errors", "ModelError": "vigproc.errors", "PriorError": "vigproc.errors",
     "UnsupportedFormatError": "vigproc.errors", "VigprocError": "vigproc.errors",
-    "METHODS": "vigproc.methods", "estimate": "vigproc.estimate",
-    "FitQuality": "vigproc.model", "VignettingModel": "vigproc.model", "RobustSettings": "vigproc.robust",
+    "METHODS": "vigproc.core.methods", "estimate": "vigproc.core.estimate",
+    "FitQuality": "vigproc.core.model", "VignettingModel": "vigproc.core.model", "RobustSettings": "vigproc.core.robust",
 }
 
-
-# Two public functions share their module's name. Importing the submodule (which any
-# code may do first) sets the package attribute to the module; the package keeps the
-# function there instead, as the eager ``from vigproc.estimate import estimate`` did.
-_FUNCTION_MODULES = ("estimate", "correct")
-
-
-class _Package(_types.ModuleType):
-    def __setattr__(self, name: str, value) -> None:
-        if name in _FUNCTION_MODULES and isinstance(value, _types.ModuleType):
-            value = getattr(value, name)
-        super().__setattr__(name, value)
-
-
-_sys.modules[__name__].__class__ = _Package
 
 
 def __getattr__(name: str):

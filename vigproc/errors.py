@@ -69,7 +69,7 @@ class DiskFullError(ImageWriteError):
 
 class MemoryBudgetError(InvalidImageError):
     """Decoding the image would exceed the memory budget (``VIGPROC_MEMORY_BUDGET``,
-    see :func:`vigproc.io.memory_budget`); decided from the file's header, before any
+    see :func:`vigproc.io.images.memory_budget`); decided from the file's header, before any
     pixel is decoded."""
 
 
@@ -97,11 +97,11 @@ EXIT_CODES = {
     "write": ImageWriteError.exit_code,
     "model": ModelError.exit_code,
     "prior": PriorError.exit_code,
-    "profile_store": 8,  # vigproc.profiles.ProfileStoreError
-    "journal": 9,  # vigproc.journal.JournalError
-    "batch": 10,  # vigproc.batch.BatchError
-    "forensics": 11,  # vigproc.forensics.ForensicsError
-    "plugin": 12,  # vigproc.extensions.ExtensionError
+    "profile_store": 8,  # vigproc.stores.profiles.ProfileStoreError
+    "journal": 9,  # vigproc.stores.journal.JournalError
+    "batch": 10,  # vigproc.frontends.batch.BatchError
+    "forensics": 11,  # vigproc.forensics.check.ForensicsError
+    "plugin": 12,  # vigproc.core.extensions.ExtensionError
     "inconsistent": 20,  # vigproc check: a frame does not match its claimed lens
     "undecided": 21,  # vigproc check: unknown lens or too little signal, nothing inconsistent
     "internal": 70,  # a bug (EX_SOFTWARE): a one-line message; vigproc hook reports it as JSON

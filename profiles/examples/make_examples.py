@@ -6,7 +6,7 @@ Run from the repository root::
 
 Each example is a real lensfun ``pa`` vignetting calibration (the database bundled
 with lensfunpy), converted to vigproc's Kang-Weiss parameters by a least-squares fit
-of log φ over a 3:2 grid (:func:`vigproc.profiles.fit_model_to_field`).
+of log φ over a 3:2 grid (:func:`vigproc.stores.profiles.fit_model_to_field`).
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vigproc.lensfun import bench_lenses, pa_field
-from vigproc.exif import LensKey, normalise_text
-from vigproc.profiles import (
+from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.io.exif import LensKey, normalise_text
+from vigproc.stores.profiles import (
     Profile, ProfileKey, aperture_bin, aspect_label, export_profile, fit_model_to_field, focal_bin, normalise,
 )
 

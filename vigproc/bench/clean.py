@@ -7,7 +7,7 @@ Each crop is cut to 3:2 (portrait turned landscape), box-resized to 480×320 and
 linearised (the file's transfer: sRGB for camera JPEGs; a file named ``*linear*`` is
 read as linear), then multiplied by:
 
-- the ``pa`` field of each of 20 lensfun lenses (:func:`vigproc.lensfun.bench_lenses`:
+- the ``pa`` field of each of 20 lensfun lenses (:func:`vigproc.stores.lensfun.bench_lenses`:
   shortest focal length, widest aperture), the crop taken as the full frame (ρ = 1
   at its corner);
 - Lyu 2010's Table 1 fields (settings 1–3);
@@ -20,7 +20,7 @@ Calibration: the share of frames whose error is within 1σ and 2σ of the estima
 ``quality.field_sigma_ev``.
 
 The lens-family estimator is given a family built *without* the 20 test lenses
-(:func:`vigproc.lensfamily.lensfun_family` with ``exclude``): an estimate never holds
+(:func:`vigproc.stores.lensfun.lensfun_family` with ``exclude``): an estimate never holds
 the lens it is measured on.
 """
 
@@ -36,7 +36,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from vigproc.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import bench_lenses, pa_field
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ Estimator = Callable[[np.ndarray, "Field | None"], Estimate]
 
 def crop_base(lum: np.ndarray, frac: float = CROP) -> np.ndarray:
     """Central ``frac`` of each side, cut to 3:2 landscape, box-resized to 480×320."""
-    from vigproc.resample import resize_area
+    from vigproc.core.resample import resize_area
 
     g = np.asarray(lum, dtype=np.float64)
     if g.shape[0] > g.shape[1]:
@@ -95,7 +95,7 @@ def base_files(folders: Iterable[Path], min_long_side: int = MIN_LONG_SIDE) -> l
     """Image files under ``folders`` whose long side is at least ``min_long_side``,
     read from each folder tree's ``files.csv`` when present (size column), else by
     probing. BSDS and Kodak are left out: film scans with their own fall-off."""
-    from vigproc.io import read_image
+    from vigproc.io.images import read_image
 
     out: list[Path] = []
     for folder in folders:
@@ -130,8 +130,8 @@ def load_bases(files: Sequence[Path], frac: float = CROP) -> tuple[list[np.ndarr
     """Linear luminance crops (central ``frac`` of each side) of ``files``; unreadable or
     blank ones are skipped."""
     from vigproc.errors import VigprocError
-    from vigproc.image import luminance
-    from vigproc.io import read_image
+    from vigproc.core.pixels import luminance
+    from vigproc.io.images import read_image
 
     ims, names = [], []
     for f in files:
@@ -248,7 +248,7 @@ def model_estimator(fn: Callable[..., object], exif: bool = False) -> Estimator:
     """An :data:`Estimator` from a function returning a VignettingModel; with ``exif``,
     ``fn(lum, hint=LensHint(...))`` is told the field's 35-mm focal length and f-number
     (never which lens it is)."""
-    from vigproc.family_fit import LensHint
+    from vigproc.core.family_fit import LensHint
 
     def run(im: np.ndarray, field: Field | None = None) -> Estimate:
         if exif:
@@ -279,11 +279,11 @@ class SigmaCalibration:
 
 def calibrate_sigma(bases: Sequence[np.ndarray], fields: Sequence[Field], family,
                     target_1sigma: float = 0.68, min_2sigma: float = 0.92) -> SigmaCalibration:
-    """Fit σ = hypot(scale·σ_jackknife, floor) of :mod:`vigproc.family_fit` so that on
+    """Fit σ = hypot(scale·σ_jackknife, floor) of :mod:`vigproc.core.family_fit` so that on
     the even-numbered bases (× every field, and no field) the error is within 1σ on
     ``target_1sigma`` of the frames and within 2σ on at least ``min_2sigma``; report the
     shares on the odd-numbered bases, which the fit did not see."""
-    from vigproc.family_fit import FamilySettings, estimate_family
+    from vigproc.core.family_fit import FamilySettings, estimate_family
 
     raw = FamilySettings(sigma_scale=1.0, sigma_floor=0.0, min_snr=0.0)
     rows = []

@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from vigproc.bench.clean import HEIGHT, WIDTH
-from vigproc.lensfun import pa_poly
+from vigproc.stores.lensfun import pa_poly
 
 FALLOFFS_EV = (0.25, 0.5, 1.0)
 OFFSETS = (0.10, 0.25, 0.40)
@@ -69,7 +69,7 @@ class CropBench:
 def run(bases: Sequence[np.ndarray], lenses: Sequence[tuple[float, float, float]], family, *,
         alpha: float = 0.01, seed: int = 0, falloffs=FALLOFFS_EV, offsets=OFFSETS,
         statistic: str = "shift") -> CropBench:
-    from vigproc.crops import CropCalibration, auc, crop_statistic
+    from vigproc.forensics.crops import CropCalibration, auc, crop_statistic
 
     rng = np.random.default_rng(seed)
     res = CropBench(len(bases), len(lenses), alpha=alpha)

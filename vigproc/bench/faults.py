@@ -210,7 +210,7 @@ def run_faults(images: list[Path], *, workers: int = 2, small_mb: int = 20, grow
                tmp: str | None = None, timeout: float = 900.0, keep: bool = False) -> FaultFigures:
     """Run the daemon through a filling and grown tmpfs with ``kills`` SIGKILLs (about
     half while the disk is full, the rest while it catches up); count what is left."""
-    from vigproc.journal import Journal
+    from vigproc.stores.journal import Journal
 
     fig = FaultFigures(inputs=len(images), small_mb=small_mb, grown_mb=grow_mb)
     base = Path(tempfile.mkdtemp(prefix="vigproc-bench-faults-", dir=tmp))
@@ -223,7 +223,7 @@ def run_faults(images: list[Path], *, workers: int = 2, small_mb: int = 20, grow
     try:
         _mount(out_dir, small_mb)
         mounted = True
-        watch = _Watch([sys.executable, "-m", "vigproc.cli", "watch", str(in_dir), "-o", str(out_dir),
+        watch = _Watch([sys.executable, "-m", "vigproc.frontends.cli", "watch", str(in_dir), "-o", str(out_dir),
                         "--workers", str(workers), "--settle", "0.3", "--quarantine", str(qdir),
                         "--profile", "estimate", "--profile-db", str(base / "profiles.sqlite"),
                         "--output-format", "tiff16", "--retry-base", "1", "--retry-cap", "8", "--log-json"],
@@ -340,7 +340,7 @@ def cmd_bench_faults(args: argparse.Namespace) -> int:
 
 
 def register(bench_subparsers) -> None:
-    """``vigproc bench faults`` (registered by :mod:`vigproc.commands.watch`)."""
+    """``vigproc bench faults`` (registered by :mod:`vigproc.frontends.commands.watch`)."""
     bp = bench_subparsers.add_parser(
         "faults", help="the watch daemon with its output on a small tmpfs that fills, is grown, and kill -9 (root)")
     bp.add_argument("--images", default=str(DEFAULT_IMAGES),

@@ -3,7 +3,7 @@
 Protocol
 --------
 * **Lens classes** (:func:`bench_classes`): the first ``n_lenses`` lenses of
-  :func:`vigproc.lensfun.bench_lenses` that have two calibrated apertures at their
+  :func:`vigproc.stores.lensfun.bench_lenses` that have two calibrated apertures at their
   shortest focal length at least one stop apart with different fall-off (corner
   attenuation differing by ≥ 0.05; some compact-camera entries repeat one
   calibration for every aperture, and such "classes" could not be told apart by
@@ -15,7 +15,7 @@ Protocol
   half trains the classifiers and calibrates the check, the *test* half is
   measured.  No photograph is in both.
 * **Identification**: the paper's nearest neighbour on (p1, p2, p3, α1..α7) and
-  vigproc's classifier (:mod:`vigproc.identify`), one frame and ``frames`` frames
+  vigproc's classifier (:mod:`vigproc.forensics.identify`), one frame and ``frames`` frames
   (distinct test photographs of one class) at a time.  Lens-level accuracy counts a
   prediction right when the lens is right whatever the aperture.
 * **Consistency check**, with the calibration fitted on the training frames:
@@ -43,7 +43,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from vigproc.model import VignettingModel
+from vigproc.core.model import VignettingModel
 
 log = logging.getLogger(__name__)
 
@@ -74,13 +74,13 @@ class LensClass:
         return f"{self.lens} f/{self.aperture:g}"
 
     def field(self, height: int, width: int) -> np.ndarray:
-        from vigproc.lensfun import pa_field
+        from vigproc.stores.lensfun import pa_field
 
         return pa_field((height, width), self.k1, self.k2, self.k3)
 
     def true_model(self, width: int, height: int) -> VignettingModel:
         """The lensfun model a check of this lens compares with (:func:`kw_from_pa`)."""
-        from vigproc.lensfun_io import kw_from_pa
+        from vigproc.stores.lensfun_io import kw_from_pa
 
         return kw_from_pa(self.k1, self.k2, self.k3, width, height)
 
@@ -95,7 +95,7 @@ def bench_classes(n_lenses: int = 8, *, min_corner_change: float = 0.05) -> list
         If the database has too few suitable lenses.
     """
     from vigproc.errors import ModelError
-    from vigproc.lensfun import bench_lenses, interpolate_pa
+    from vigproc.stores.lensfun import bench_lenses, interpolate_pa
 
     out: list[LensClass] = []
     for lens, _ in bench_lenses(200):
@@ -119,7 +119,7 @@ def bench_classes(n_lenses: int = 8, *, min_corner_change: float = 0.05) -> list
 def crop_frame(frame: np.ndarray, kappa: float, corner: int) -> np.ndarray:
     """Crop ``kappa`` of the width and height at a corner (0 top-left, 1 top-right,
     2 bottom-left, 3 bottom-right) and resize back to the frame's size (area filter)."""
-    from vigproc.resample import resize_area
+    from vigproc.core.resample import resize_area
 
     h, w = frame.shape
     ch, cw = max(2, round(h * kappa)), max(2, round(w * kappa))
@@ -161,7 +161,7 @@ def estimate_frames(
     """Estimate photograph ``i`` × class ``c`` for every ``i`` in ``which`` and every
     class; with ``crops``, one off-centre crop per (photograph, class) instead
     (κ and corner cycling)."""
-    from vigproc.forensics import frame_features, is_weak
+    from vigproc.forensics.check import frame_features, is_weak
 
     out = []
     for ci, c in enumerate(classes):
@@ -275,8 +275,8 @@ def run(
         Frames → one VignettingModel (a joint multi-frame fit); adds identification
         rows that classify each group of ``frames`` by the features of its joint fit.
     """
-    from vigproc.forensics import expected_from_field, fit_calibration, frame_features, score
-    from vigproc.identify import accuracy, confusion_matrix, feature_vector, train_classifier
+    from vigproc.forensics.check import expected_from_field, fit_calibration, frame_features, score
+    from vigproc.forensics.identify import accuracy, confusion_matrix, feature_vector, train_classifier
 
     t_start = time.perf_counter()
     say = progress or (lambda s: None)
@@ -406,7 +406,7 @@ def calibration_residuals(
     *, per_image: int = 4, progress: Callable[[str], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Feature residuals f(estimate) − f(true field) of photographs × lens fields, for
-    :func:`vigproc.forensics.fit_calibration`: photograph i gets ``per_image`` classes
+    :func:`vigproc.forensics.check.fit_calibration`: photograph i gets ``per_image`` classes
     (cycling through ``classes``).
 
     Returns
@@ -417,7 +417,7 @@ def calibration_residuals(
     weak : ndarray of bool (N,)
         Whether the frame's estimate was too weak for a verdict.
     """
-    from vigproc.forensics import frame_features, is_weak
+    from vigproc.forensics.check import frame_features, is_weak
 
     res, groups, weak = [], [], []
     truth: dict[tuple[int, int, int], np.ndarray] = {}

@@ -2,7 +2,7 @@
 
 Bases: the vignetting-free camera crops of :mod:`vigproc.bench.clean` (480×320, linear).
 Frames: a base × the lensfun ``pa`` field of a lens A. The test is the one ``vigproc
-check`` runs (:mod:`vigproc.lensmatch`): the frame's data-only lens-family fit against
+check`` runs (:mod:`vigproc.forensics.lensmatch`): the frame's data-only lens-family fit against
 the claimed lens's coefficients, by a Mahalanobis distance whose null is calibrated on
 vignetting-free frames.
 
@@ -16,7 +16,7 @@ vignetting-free frames.
 * **Lens mismatch**: genuine = base × A claiming A; forged = the same frames claiming
   another test lens B. AUC of D², by the RMS (about the mean, EV) difference of A's and
   B's fields; from one frame and from ``frames`` frames of distinct bases tested together
-  (coordinate-wise median, :func:`vigproc.lensmatch.pooled_d2`).
+  (coordinate-wise median, :func:`vigproc.forensics.lensmatch.pooled_d2`).
 * **False alarms** at ``alpha``: the share of genuine frames (and groups) called
   inconsistent.
 * **Lens identification** among ``id_lenses`` lensfun lenses whose fields differ
@@ -55,13 +55,13 @@ class BenchLens:
         return f"{self.maker} {self.model}"
 
     def log_field(self) -> np.ndarray:
-        from vigproc.lensfun import pa_field
+        from vigproc.stores.lensfun import pa_field
 
         return np.log(pa_field((HEIGHT, WIDTH), *self.k))
 
     def kw_model(self):
         """The Kang-Weiss model ``vigproc check`` compares with (lensfun_io.kw_from_pa)."""
-        from vigproc.lensfun_io import kw_from_pa
+        from vigproc.stores.lensfun_io import kw_from_pa
 
         return kw_from_pa(*self.k, WIDTH, HEIGHT)
 
@@ -72,14 +72,14 @@ def field_difference(a: BenchLens, b: BenchLens) -> float:
 
 
 def _bench(n: int) -> list[BenchLens]:
-    from vigproc.lensfun import bench_lenses
+    from vigproc.stores.lensfun import bench_lenses
 
     return [BenchLens(lens.maker, lens.model, (pa.k1, pa.k2, pa.k3)) for lens, pa in bench_lenses(n)]
 
 
 def select_lenses(n_test: int = 20, n_id: int = 8, min_separation: float = 0.15,
                   n_calibration: int = 20) -> tuple[list[BenchLens], list[BenchLens], list[BenchLens]]:
-    """The mismatch lenses (the first ``n_test`` of :func:`vigproc.lensfun.bench_lenses`, as
+    """The mismatch lenses (the first ``n_test`` of :func:`vigproc.stores.lensfun.bench_lenses`, as
     ``bench clean``), the identification lenses (greedy in the same order: each lens's
     field differs from every one already taken by at least ``min_separation`` EV) and
     the calibration lenses (the next ``n_calibration`` lenses in that order that are in
@@ -139,7 +139,7 @@ def frame_coefficients_table(bases: Sequence[np.ndarray], lenses: Sequence[Bench
                              progress: Callable[[str], None] | None = None) -> tuple[np.ndarray, list[float]]:
     """Data-only family coefficients of every base × lens field (None: no field), shape
     (lenses, bases, K), NaN where a frame has too few usable pixels; and the seconds per fit."""
-    from vigproc.lensmatch import frame_fit
+    from vigproc.forensics.lensmatch import frame_fit
 
     out = np.full((len(lenses), len(bases), family.n_components), np.nan)
     secs = []
@@ -158,17 +158,17 @@ def frame_coefficients_table(bases: Sequence[np.ndarray], lenses: Sequence[Bench
 
 def references(lenses: Sequence[BenchLens | None], family) -> np.ndarray:
     """Each lens's lensfun model projected into the family (no field: the identity)."""
-    from vigproc.lensmatch import reference_coefficients
-    from vigproc.model import VignettingModel
+    from vigproc.forensics.lensmatch import reference_coefficients
+    from vigproc.core.model import VignettingModel
 
     return np.array([reference_coefficients(lens.kw_model() if lens else VignettingModel.identity(WIDTH, HEIGHT),
                                             WIDTH, HEIGHT, family) for lens in lenses])
 
 
 def calibrate(coef: np.ndarray, refs: np.ndarray, bases: np.ndarray, family, *, alpha: float, source: str = ""):
-    """A :class:`~vigproc.lensmatch.MatchCalibration` from the rows ``coef[:, bases]``
+    """A :class:`~vigproc.forensics.lensmatch.MatchCalibration` from the rows ``coef[:, bases]``
     (calibration fields × the chosen bases) against their references."""
-    from vigproc.lensmatch import fit_match_calibration
+    from vigproc.forensics.lensmatch import fit_match_calibration
 
     res = (coef[:, bases] - refs[:, None, :]).reshape(-1, coef.shape[2])
     groups = np.tile(np.asarray(bases), coef.shape[0])
@@ -188,9 +188,9 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
         n_test: int = 20, n_id: int = 8, min_separation: float = 0.15,
         progress: Callable[[str], None] | None = None) -> CleanForensics:
     """The benchmark (module docstring)."""
-    from vigproc.crops import auc
-    from vigproc.lensfamily import lensfun_family
-    from vigproc.lensmatch import pooled_d2, whiten
+    from vigproc.forensics.crops import auc
+    from vigproc.stores.lensfun import lensfun_family
+    from vigproc.forensics.lensmatch import pooled_d2, whiten
 
     test, ident, calib = select_lenses(n_test, n_id, min_separation)
     family = lensfun_family(exclude={(lens.maker, lens.model) for lens in test + ident})
@@ -259,8 +259,8 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
 def shipped_calibration(bases: Sequence[np.ndarray], *, alpha: float = 0.01, source: str = "",
                         progress: Callable[[str], None] | None = None):
     """The calibration ``vigproc check`` ships: every base × (no field and the calibration
-    lenses), in the shipped family (:func:`vigproc.lensfamily.default_family`)."""
-    from vigproc.lensfamily import default_family
+    lenses), in the shipped family (:func:`vigproc.core.lensfamily.default_family`)."""
+    from vigproc.core.lensfamily import default_family
 
     family = default_family()
     _, _, calib = select_lenses()

@@ -15,7 +15,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from vigproc.errors import VigprocError
-from vigproc.io import read_image, write_image
+from vigproc.io.images import read_image, write_image
 
 #: (label, file suffix, write_image bit depth) of the synthetic frames.
 FORMATS = (

@@ -1,6 +1,6 @@
 """Real-lens protocol: lensfun's calibrated vignetting applied to natural images.
 
-For each of ``n_lenses`` lenses from :func:`vigproc.lensfun.bench_lenses` (shortest
+For each of ``n_lenses`` lenses from :func:`vigproc.stores.lensfun.bench_lenses` (shortest
 focal length, widest aperture), each natural image (linearised, 480×320, the frame
 taken as the lens's full calibration frame) is multiplied by the lens's "pa" field.
 The error of an estimate is the RMS over the frame of log2(φ̂ / φ), in EV (both
@@ -28,8 +28,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from vigproc.lensfun import bench_lenses, pa_field
-from vigproc.model import VignettingModel
+from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.core.model import VignettingModel
 
 
 def rms_ev(log_ratio: np.ndarray) -> float:

@@ -32,9 +32,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from vigproc.model import VignettingModel
-from vigproc.robust import RobustSettings, working_copy
-from vigproc.scene import frame_grid
+from vigproc.core.model import VignettingModel
+from vigproc.core.robust import RobustSettings, working_copy
+from vigproc.core.scene import frame_grid
 
 #: Exponent of the hyper-Laplacian gradient prior (Zheng et al., Eq. 5).
 EXPONENT = 0.8
@@ -91,7 +91,7 @@ def estimate_rgs(lum: np.ndarray) -> VignettingModel:
     """Radial-gradient-symmetry peer: the centred radial fall-off as a Kang-Weiss model.
 
     The polynomial is clamped to log φ ≤ 0 (a vignetting field does not brighten)
-    and fitted with :func:`vigproc.normalised.fit_model_to_field`, so that the
+    and fitted with :func:`vigproc.core.normalised.fit_model_to_field`, so that the
     benchmarks score it exactly as they score vigproc's own models.
 
     Parameters
@@ -103,7 +103,7 @@ def estimate_rgs(lum: np.ndarray) -> VignettingModel:
     VignettingModel
         For the H×W frame, ``method="rgs"``.
     """
-    from vigproc.normalised import fit_model_to_field
+    from vigproc.core.normalised import fit_model_to_field
 
     h, w = lum.shape
     a = radial_polynomial(lum)
@@ -166,7 +166,7 @@ def published_rgs(exe: str, encoding: str = "linear", timeout: float = 60.0):
     from pathlib import Path
 
     from vigproc.bench.clean import Estimate
-    from vigproc.io import linear_to_srgb
+    from vigproc.io.images import linear_to_srgb
 
     def run(lum: np.ndarray, _field=None) -> Estimate:
         a = np.asarray(lum, dtype=np.float64)

@@ -1,20 +1,20 @@
 """Profile accuracy versus number of frames (issue 4's protocol).
 
-For each lens of :func:`vigproc.lensfun.bench_lenses` (widest aperture), frames are
+For each lens of :func:`vigproc.stores.lensfun.bench_lenses` (widest aperture), frames are
 natural images multiplied by the lens's "pa" field; each frame is estimated on its
 own (the default estimator's fit, kept even when it would fall back, with its
 covariance), and the per-frame estimates are pooled three ways after n frames:
 
 * ``information``: inverse-variance pooling of the normalised parameters
-  (:func:`vigproc.profiles.pool_information`, what the store does);
+  (:func:`vigproc.stores.profiles.pool_information`, what the store does);
 * ``mean-theta``: the plain mean of the normalised parameters;
 * ``mean-field``: the mean of the per-frame log-fields (field-space pooling, the
   best a refit of the pooled field could do);
 * ``joint``: one robust fit to the first n frames' data together
-  (:func:`vigproc.robust.estimate_robust_joint`), the joint multi-frame fit;
+  (:func:`vigproc.core.robust.estimate_robust_joint`), the joint multi-frame fit;
 * ``store``: what the profile store holds after learning the n frames one by one
-  with their evidence (:meth:`vigproc.profiles.ProfileStore.learn`: information sums,
-  then the debiased mean of centred fits of :mod:`vigproc.pooling`), in a temporary
+  with their evidence (:meth:`vigproc.stores.profiles.ProfileStore.learn`: information sums,
+  then the debiased mean of centred fits of :mod:`vigproc.core.pooling`), in a temporary
   store.
 
 The error is the RMS over the frame of log2(φ̂/φ), in EV.
@@ -29,8 +29,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from vigproc.errors import ModelError
-from vigproc.lensfun import bench_lenses, pa_field
-from vigproc.model import VignettingModel
+from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.core.model import VignettingModel
 
 POOLINGS = ("information", "mean-theta", "mean-field", "joint", "store")
 
@@ -68,8 +68,8 @@ def _learned_fields(frames, fits, li, w, h):
     import tempfile
     from pathlib import Path
 
-    from vigproc.estimate import frame_evidence
-    from vigproc.profiles import ProfileKey, ProfileStore, aspect_label
+    from vigproc.core.estimate import frame_evidence
+    from vigproc.stores.profiles import ProfileKey, ProfileStore, aspect_label
 
     key = ProfileKey(f"bench|lens|{li}", "any", "any", aspect_label(w / h))
     with tempfile.TemporaryDirectory(prefix="vigproc-bench-") as tmp, \
@@ -90,7 +90,7 @@ def run(
     """Pooled-profile errors after each of ``counts`` frames, per pooling method
     (``joint`` only when a joint estimator is given, ``store`` only when asked; then
     also when each lens's stored profile became trusted, as a :class:`TrustResult`)."""
-    from vigproc.profiles import denormalise, normalise, pool_information, pool_mean
+    from vigproc.stores.profiles import denormalise, normalise, pool_information, pool_mean
 
     nmax = max(counts)
     errors: dict[tuple[str, int], list[float]] = {(p, n): [] for p in POOLINGS for n in counts}
@@ -195,8 +195,8 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
     Each lens (``fields``: :func:`vigproc.bench.clean.lens_fields`) sees the bases in
     an order of its own (seeded by ``seed`` and the lens), up to ``max(counts)``
     frames; every frame is estimated and learned as ``vigproc profile learn`` does
-    (:func:`vigproc.estimate.estimate_with_evidence`, then
-    :meth:`~vigproc.profiles.ProfileStore.learn` with its evidence), in a store
+    (:func:`vigproc.core.estimate.estimate_with_evidence`, then
+    :meth:`~vigproc.stores.profiles.ProfileStore.learn` with its evidence), in a store
     pooling in ``family`` (built without the test lenses). Error: the RMS of
     log2(profile/true field) about its mean (a gain is free), EV; median and p90 over
     the lenses. Beside it: each frame estimated alone by the default estimator, and
@@ -206,8 +206,8 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
     from pathlib import Path
 
     from vigproc.bench.clean import gain_free_ev
-    from vigproc.estimate import estimate, estimate_with_evidence
-    from vigproc.profiles import TRUSTED_BOUND_EV, ProfileKey, ProfileStore, aspect_label
+    from vigproc.core.estimate import estimate, estimate_with_evidence
+    from vigproc.stores.profiles import TRUSTED_BOUND_EV, ProfileKey, ProfileStore, aspect_label
 
     h, w = bases[0].shape
     nmax = min(max(counts), len(bases))
@@ -293,11 +293,11 @@ def run_interpolation(width: int = 480, height: int = 320, max_points: int = 400
     focus) at three or more focal lengths of one aperture (or three or more apertures
     of one focal length), each interior calibration is held out; the lens's other
     calibrations become trusted profiles in a temporary store (each with a stated σ
-    of 0), and the store's :meth:`~vigproc.profiles.ProfileStore.lookup` answers for
+    of 0), and the store's :meth:`~vigproc.stores.profiles.ProfileStore.lookup` answers for
     the held-out setting. Error: the RMS of log2(answer / held-out calibration) about
     its mean. Beside it: the nearest neighbour (the profile of the nearest bin along
     the axis, what a store without interpolation could give at best) and lensfun's
-    own interpolation of the remaining calibrations (:func:`vigproc.lensfun.interpolate_pa`).
+    own interpolation of the remaining calibrations (:func:`vigproc.stores.lensfun.interpolate_pa`).
     Points whose bin coincides with a neighbour's are skipped.
     """
     import tempfile
@@ -305,10 +305,10 @@ def run_interpolation(width: int = 480, height: int = 320, max_points: int = 400
     from pathlib import Path
 
     from vigproc.bench.clean import gain_free_ev
-    from vigproc.exif import LensKey
-    from vigproc.lensfun import LensfunLens, interpolate_pa, load_lenses
-    from vigproc.normalised import denormalise, fit_model_to_field, normalise
-    from vigproc.profiles import Profile, ProfileKey, ProfileStore, aperture_bin, focal_bin
+    from vigproc.io.exif import LensKey
+    from vigproc.stores.lensfun import LensfunLens, interpolate_pa, load_lenses
+    from vigproc.core.normalised import denormalise, fit_model_to_field, normalise
+    from vigproc.stores.profiles import Profile, ProfileKey, ProfileStore, aperture_bin, focal_bin
 
     shape = (height, width)
     errs: dict[tuple[str, str], list[float]] = {}
@@ -411,8 +411,8 @@ def run_flat_field(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], methods:
     from pathlib import Path
 
     from vigproc.bench.real import _blocks
-    from vigproc.estimate import EVIDENCE_METHODS, estimate, estimate_with_evidence
-    from vigproc.profiles import ProfileKey, ProfileStore, aspect_label
+    from vigproc.core.estimate import EVIDENCE_METHODS, estimate, estimate_with_evidence
+    from vigproc.stores.profiles import ProfileKey, ProfileStore, aspect_label
 
     rng = np.random.default_rng(seed)
     out = []

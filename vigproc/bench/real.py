@@ -32,7 +32,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from vigproc.model import VignettingModel
+from vigproc.core.model import VignettingModel
 
 #: Side of the blocks on which the true and estimated fields are compared (px).
 BLOCK = 8

@@ -20,8 +20,8 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from vigproc.model import VignettingModel
-from vigproc.protocol import HEIGHT, WIDTH, protocol_image, read_protocol_images  # noqa: F401  (re-exported)
+from vigproc.core.model import VignettingModel
+from vigproc.io.protocol import HEIGHT, WIDTH, protocol_image, read_protocol_images  # noqa: F401  (re-exported)
 
 TABLE1_ALPHA = (0.02, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0)
 #: Lyu 2010, Table 1: (centre (cx, cy) px from the image centre, P in px⁻²).

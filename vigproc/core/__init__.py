@@ -1,0 +1,1 @@
+"""The numeric core: pure functions over arrays (model, statistics, priors, estimators, correction, Numba kernels)."""

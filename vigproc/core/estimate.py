@@ -1,0 +1,256 @@
+"""Public estimation API: one linear image in, a :class:`VignettingModel` out."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from vigproc.errors import InvalidImageError, ModelError
+from vigproc.core.family_fit import LensHint
+from vigproc.core.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
+from vigproc.core.pixels import bin_mean, check_image, log_image, luminance
+from vigproc.core.model import VignettingModel
+from vigproc.core.robust import RobustSettings, estimate_robust
+
+if TYPE_CHECKING:
+    from vigproc.core.prior import NaturalPrior
+
+log = logging.getLogger(__name__)
+
+#: Long side of the working copy used by the paper's methods (its protocol size).
+LYU_WORK_SIZE = 480
+#: A pixel at or above this fraction of the frame's maximum counts as clipped
+#: when more than ``CLIP_MIN_FRACTION`` of the pixels reach it.
+CLIP_LEVEL = 0.995
+CLIP_MIN_FRACTION = 1e-3
+
+
+def clipped_mask(img: np.ndarray) -> np.ndarray | None:
+    """Pixels that are not clipped highlights (any channel), or None if none are clipped.
+
+    Clipped areas have zero gradient whatever the vignetting, so they would pull the
+    estimate towards "no vignetting".
+    """
+    peak = float(img.max())
+    hot = img >= CLIP_LEVEL * peak
+    if img.ndim == 3:
+        hot = hot.any(axis=2)
+    if hot.mean() < CLIP_MIN_FRACTION:
+        return None
+    return ~hot
+
+
+def _from_working(m: VignettingModel, k: int, width: int, height: int) -> VignettingModel:
+    """Map a model estimated on a k×k-binned copy (remainder cropped) to the full frame."""
+    if k == 1 and (m.width, m.height) == (width, height):
+        return m
+    # the binned frame's centre sits (W_b·k − W)/2 px from the full frame's centre
+    ox = (m.width * k - width) / 2.0
+    oy = (m.height * k - height) / 2.0
+    p1, p2, p3 = m.p
+    return replace(
+        m, width=width, height=height,
+        center=(m.center[0] * k + ox, m.center[1] * k + oy),
+        p=(p1 / k**2, p2 / k**2, p3 / k**2),
+    )
+
+
+def _named(model: VignettingModel, method: str) -> VignettingModel:
+    """A real-lens or flat-field estimate says so (the corrected file's record names
+    the method)."""
+    return replace(model, method=method) if method in ("real-lens", "flat-field") else model
+
+
+def _robust_settings(method: str, settings: RobustSettings | None) -> RobustSettings:
+    """The robust estimator's settings for ``method`` (one of :data:`ROBUST_METHODS`)."""
+    from vigproc.core.robust import REAL_LENS_SHAPE_RATIO
+
+    s = settings or RobustSettings()
+    if method == "real-lens":
+        return replace(s, max_shape_ratio=REAL_LENS_SHAPE_RATIO)
+    if method == "flat-field":  # no scene: no scene shading to divide out
+        return replace(s, scene_prior=False)
+    return s
+
+
+def estimate(
+    img: np.ndarray, method: str = "default", *, channel_axis: int | None = -1,
+    prior: NaturalPrior | None = None, settings: RobustSettings | None = None,
+    seed: int | None = None, hint: LensHint | None = None,
+) -> VignettingModel:
+    """Estimate the vignetting function of one linear image.
+
+    Parameters
+    ----------
+    img : ndarray
+        H×W or H×W×C (``channel_axis``) linear intensities, any float/int dtype.
+        Colour images are reduced to Rec. 709 luminance.
+    method : {"default", "robust", "real-lens", "flat-field", "lyu2010", "lyu2010-rand", "ga"} or str
+        "default"/"robust": vigproc's robust per-pixel estimator, with fall-back to
+        no correction when the evidence is weak. "real-lens": the same, also falling
+        back when the fitted fall-off is broader than real lenses' (for photographs
+        of real lenses: fewer corrections of photos that do not vignette; see
+        :data:`vigproc.core.robust.REAL_LENS_SHAPE_RATIO`). "flat-field": the same without
+        the scene prior, for frames of no scene (a white wall, a diffuser over the
+        lens, an evenly lit sky), whose fall-off is all the lens's; on a photograph
+        of a scene it reads the scene's own darker edges as vignetting.
+        "lens-family": a centred fall-off in the two-parameter family that
+        lensfun's calibrations of real lenses span (:mod:`vigproc.core.family_fit`), with
+        a calibrated uncertainty; for uncropped frames of real lenses.
+        "lyu2010": the paper's Gaussian
+        approximation followed by the ML fit of Eq. (6). "lyu2010-rand": the ML fit
+        from a random start. "ga": Gaussian approximation only (Eqs. 17–20).
+        Any other name: an installed estimator plugin (:mod:`vigproc.core.extensions`).
+    channel_axis : int or None
+        Axis of colour channels; None for a 2-D image.
+    prior : NaturalPrior, optional
+        Natural-image prior for the paper's methods (default: the shipped one).
+    settings : RobustSettings, optional
+        Tuning of the robust Kang-Weiss estimators ("robust", "real-lens",
+        "flat-field"); given with "default", the robust estimator runs with them.
+    seed : int, optional
+        Seed for "lyu2010-rand".
+    hint : LensHint, optional
+        EXIF focal length (35-mm equivalent) and f-number for "lens-family": its
+        prior becomes the spread of lensfun calibrations like them. Never the
+        lens's own calibration: only focal length and aperture are used.
+
+    Returns
+    -------
+    VignettingModel
+        Parameters for the input's full H×W frame.
+
+    Raises
+    ------
+    UnknownMethodError
+        ``method`` is neither built in nor an installed estimator plugin.
+    ExtensionError
+        The estimator plugin is broken or returned no valid model.
+    InvalidImageError
+        Bad dimensions, NaN/Inf, no positive pixel, constant image, or too small
+        for the method (the paper's methods need 51×51 px at the working size).
+
+    References
+    ----------
+    S. Lyu, ACM MM&Sec 2010 (methods "lyu2010", "ga").
+    """
+    if method not in METHODS:
+        # an installed estimator plugin (vigproc.core.extensions), else UnknownMethodError
+        from vigproc.core.extensions import estimator
+
+        plugin = estimator(method)
+        a = check_image(img, channel_axis)
+        return plugin(a, channel_axis=-1 if a.ndim == 3 else None, seed=seed)
+    a = check_image(img, channel_axis)
+    h, w = a.shape[:2]
+    keep = clipped_mask(a)
+    lum = luminance(a)
+    if method == "default" and settings is None:
+        return estimate_default(lum, keep, hint)
+    if method in ROBUST_METHODS:
+        return _named(estimate_robust(lum, _robust_settings(method, settings), keep), method)
+    if method == "lens-family":
+        from vigproc.core.family_fit import estimate_family
+
+        return estimate_family(lum, mask=keep, hint=hint)
+
+    from vigproc.core.lyu2010 import estimate_lyu2010
+
+    from vigproc.core.prior import default_prior  # the paper's methods only
+
+    k = max(1, -(-max(h, w) // LYU_WORK_SIZE))
+    work, _ = bin_mean(lum, k)
+    if min(work.shape) < 2 * (prior or default_prior()).delta_max + 1:
+        raise InvalidImageError(
+            f"image of {w}x{h} px is too small for method {method!r} (needs 51 px a side)"
+        )
+    m = estimate_lyu2010(
+        log_image(work), prior or default_prior(), ml=method != "ga",
+        random_start=method == "lyu2010-rand", seed=seed,
+    )
+    m = _from_working(m, k, w, h)
+    # the paper's fits state no uncertainty: their fall-off is measured, their σ unknown
+    # (NaN), not the "certain" defaults of an empty FitQuality
+    try:
+        ev = m.field_ev_rms()
+    except ModelError:  # a fit that blacks out part of the frame has no fall-off to state
+        ev = math.nan
+    return replace(m, quality=replace(m.quality, field_ev_rms=ev, field_sigma_ev=math.nan, snr=math.nan))
+
+
+def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
+                     hint: LensHint | None = None, family=None) -> VignettingModel:
+    """vigproc's default estimate of a linear luminance frame.
+
+    An uncropped frame of a real lens: the lens-family fit
+    (:func:`vigproc.core.family_fit.estimate_family`). When the fall-off's centre may be
+    off the frame's (:func:`vigproc.core.family_fit.fit_centre`: a crop, a shifted lens, a
+    stitched image), the free off-centre, elliptical Kang-Weiss fit
+    (:func:`vigproc.core.robust.estimate_robust`) is tried too, and kept when it explains
+    the frame's log differences clearly better (:func:`vigproc.core.family_fit.pair_losses`).
+    """
+    from vigproc.core.family_fit import FamilySettings, fit_centre, fit_family, pair_losses
+
+    s = FamilySettings()
+    model, coef = fit_family(lum, s, mask, family, hint)
+    if coef is None:
+        return model
+    centre = fit_centre(lum, coef, s, mask, family, hint)
+    if not centre.off_centre(s.off_centre_shift):
+        return model
+    free = estimate_robust(lum, RobustSettings(), mask)
+    loss_family, loss_free = pair_losses(lum, [model.candidate or model, free.candidate or free], s, mask)
+    if loss_free < loss_family - s.select_margin:
+        log.info("vignetting centre off the frame's by (%.0f, %.0f) px and the free Kang-Weiss fit explains "
+                 "the frame better (loss %.3f < %.3f): using it", centre.offset[0], centre.offset[1],
+                 loss_free, loss_family)
+        return free
+    return model
+
+
+def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
+                   settings: RobustSettings | None = None) -> bytes:
+    """A frame's data for its lens's profile (:func:`vigproc.core.robust.frame_evidence`,
+    pooled by :mod:`vigproc.core.pooling`), prepared as :func:`estimate` prepares it for
+    the default method (luminance, clipped pixels masked, binned, log), before the
+    scene prior.
+
+    The profile store keeps it per frame and pools the lens's profile from all of
+    them (:meth:`vigproc.stores.profiles.ProfileStore.learn`).
+
+    Raises
+    ------
+    InvalidImageError
+        As :func:`estimate`.
+    """
+    from vigproc.core.robust import frame_evidence as _evidence
+
+    a = check_image(img, channel_axis)
+    return _evidence(luminance(a), settings or RobustSettings(), clipped_mask(a))
+
+
+def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
+                           settings: RobustSettings | None = None,
+                           method: str = "default") -> tuple[VignettingModel, bytes]:
+    """``estimate(img, method)`` and :func:`frame_evidence` of the same frame,
+    preparing the frame once (learn mode needs both); ``method`` is one of
+    :data:`EVIDENCE_METHODS`.
+
+    Raises
+    ------
+    InvalidImageError
+        As :func:`estimate`.
+    """
+    from vigproc.core.robust import estimate_robust_with_evidence
+
+    if method not in EVIDENCE_METHODS:
+        from vigproc.core.extensions import UnknownMethodError
+
+        raise UnknownMethodError(f"frame evidence comes with {', '.join(EVIDENCE_METHODS)}, not {method!r}")
+    a = check_image(img, channel_axis)
+    m, evidence = estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings), clipped_mask(a))
+    return _named(m, method), evidence

@@ -1,0 +1,509 @@
+"""The lens-family estimator: a centred fall-off in the space real lenses span.
+
+Real lenses' fall-offs are a two-parameter family (:mod:`vigproc.core.lensfamily`), so a
+single photograph need only fix two coefficients, not the twelve of the free
+Kang-Weiss model: far less room for the scene's own shading to pass as vignetting.
+
+1. Bin the linear luminance to a working copy (long side ≈ ``work_size``), masking
+   dark, clipped and invalid pixels; take logs.
+2. Data: log differences per unit step d = (L(v+s·e) − L(v))/s, s ∈ ``steps``,
+   e ∈ {x, y}. Natural images' log-gradients are sparse and peaked at zero, so the
+   lens shows as their mode: a Cauchy loss of small scale σ follows the mode and
+   ignores edges and texture (Zheng et al.'s radial-gradient insight).
+3. Model: log φ(ρ) = m(ρ) + Σ_k c_k b_k(ρ), ρ = distance from the frame centre in
+   half-diagonals; a Gaussian prior on c from lensfun's calibrations (narrowed to
+   lenses like the frame's EXIF when given). Linear in c: IRLS solves it exactly
+   (Numba kernel :func:`vigproc.core._kernels.family.family_normal_equations`).
+4. Uncertainty: neighbouring pairs are far from independent, so the Gauss-Newton
+   covariance understates the error. A delete-one-quadrant jackknife measures how
+   much the scene moves the estimate; its field spread, scaled by a factor measured
+   on vignetting-free photographs (``sigma_scale``, ``sigma_floor``), is
+   ``quality.field_sigma_ev``.
+5. Do no harm: when the field is not ``min_snr`` times its uncertainty, return the
+   identity model and keep the fit as ``candidate``.
+6. The profile is written as the Kang-Weiss model (centred, circular P, α1..α7 by
+   least squares) so every consumer of :class:`~vigproc.core.model.VignettingModel` works
+   unchanged; the conversion error is about 0.001 EV.
+
+References
+----------
+S. Lyu, ACM MM&Sec 2010, Eq. (2) (the model the result is written in).
+Y. Zheng, S. Lin, S. B. Kang, R. Xiao, J. Gee, C. Kambhamettu, "Single-image
+vignetting correction from gradient distribution symmetries", IEEE TPAMI 35(6), 2013.
+B. Efron, C. Stein, "The jackknife estimate of variance", Ann. Statist. 9(3), 1981.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import numpy as np
+
+from vigproc.core._kernels.family import cauchy_normal_equations, family_pairs
+from vigproc.core.pixels import binned_coords, binned_log_copy
+from vigproc.core.lensfamily import LensFamily, default_family
+from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
+
+log = logging.getLogger(__name__)
+
+_LN2 = math.log(2.0)
+#: Method name recorded in the models this estimator returns.
+METHOD = "lens-family"
+#: Fewer usable bins than this: no estimate (identity, fallback).
+MIN_VALID_BINS = 200
+#: ρ samples for writing the profile as a Kang-Weiss model.
+_KW_SAMPLES = 129
+#: r = KW_SCALE at the frame corner in the written model (A = 1/(1+(r/2)²)² there).
+KW_SCALE = 1.0
+
+
+@dataclass(frozen=True)
+class LensHint:
+    """What EXIF says of the lens, to narrow the prior to lenses like it.
+
+    Attributes
+    ----------
+    focal35 : float or None
+        35-mm-equivalent focal length in mm.
+    fnumber : float or None
+    """
+
+    focal35: float | None = None
+    fnumber: float | None = None
+
+
+@dataclass(frozen=True)
+class FamilySettings:
+    """Tuning of the lens-family estimator (measured on vignetting-free photographs:
+    ``vigproc bench clean``; see docs/estimator.md).
+
+    Attributes
+    ----------
+    work_size : int
+        Long side of the binned working copy.
+    steps : tuple of int
+        Pair steps in working-copy bins.
+    sigma : float
+        Cauchy scale of the per-step log-difference residual. Small: the fit follows
+        the mode of the gradients (flat parts of the scene), not their mean.
+    kappa : float
+        Tempering of the data's information (pairs are correlated).
+    iterations : int
+        Most IRLS steps (it stops when the coefficients move by less than 1e-4).
+    jackknife_blocks : int
+        The frame is cut into this many × this many blocks for the jackknife.
+    jackknife_iterations : int
+        IRLS steps of each jackknife fit (started from the full fit).
+    dark_fraction : float
+        Bins darker than this fraction of the 99th percentile are masked.
+    sigma_scale, sigma_floor : float
+        Calibration of the reported uncertainty: σ = hypot(scale·σ_jackknife, floor) EV.
+    min_snr : float
+        Fall back to no correction below this field / σ.
+    off_centre_shift : float
+        A centre at least this far from the frame's (half-diagonals,
+        :func:`fit_centre`) makes the default estimator try the free Kang-Weiss fit.
+    select_margin : float
+        ... which it keeps when its mean Cauchy loss per pair (:func:`pair_losses`) is
+        lower than the lens-family fit's by more than this.
+    """
+
+    work_size: int = 120
+    steps: tuple[int, ...] = (1, 2, 4)
+    sigma: float = 0.01
+    kappa: float = 10.0
+    iterations: int = 8
+    jackknife_blocks: int = 2
+    jackknife_iterations: int = 8
+    dark_fraction: float = 0.01
+    sigma_scale: float = 2.5
+    sigma_floor: float = 0.005
+    min_snr: float = 1.0
+    off_centre_shift: float = 0.2
+    select_margin: float = 0.01
+
+
+def _working_copy(lum: np.ndarray, settings: FamilySettings, mask: np.ndarray | None):
+    """Log working copy, its valid bins, and the bins' centres (px from the frame centre)."""
+    h, w = lum.shape
+    L, valid, k = binned_log_copy(lum, settings.work_size, settings.dark_fraction, mask)
+    return L, valid, binned_coords(w, k), binned_coords(h, k)
+
+
+def _pair_steps(settings: FamilySettings, shape: tuple[int, int]) -> np.ndarray:
+    """The pair steps that fit in a working copy of ``shape``."""
+    return np.asarray([s for s in settings.steps if s < min(shape)], dtype=np.int64)
+
+
+def _block_labels(shape: tuple[int, int], nb: int) -> np.ndarray:
+    """Each bin's block in an nb × nb cut of the working copy (row-major labels)."""
+    hb, wb = shape
+    return (nb * (np.arange(hb) * nb // hb)[:, None] + (np.arange(wb) * nb // wb)[None, :]).astype(np.int64)
+
+
+def half_diagonal(width: int, height: int) -> float:
+    """Distance (px) from the frame centre to its corner pixel's centre: ρ = 1 there."""
+    return math.hypot((width - 1) / 2.0, (height - 1) / 2.0)
+
+
+def _rho(xs: np.ndarray, ys: np.ndarray, radius: float) -> np.ndarray:
+    return np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2) / radius
+
+
+def _solve(d, a, labels, c0, pmean, pinv, s: FamilySettings, iterations: int, skip: int = -1) -> np.ndarray:
+    """IRLS of the Cauchy-loss fit with a Gaussian prior, from ``c0``; pairs labelled
+    ``skip`` are left out."""
+    c = c0.copy()
+    scale = 1.0 / (s.sigma * s.sigma * s.kappa)
+    for _ in range(iterations):
+        H, g = cauchy_normal_equations(d, a, labels, c, s.sigma, skip)
+        c_new = np.linalg.solve(H * scale + pinv, g * scale + pinv @ pmean)
+        done = float(np.max(np.abs(c_new - c))) < 1e-4
+        c = c_new
+        if done:
+            break
+    return c
+
+
+def _jackknife_cov(d, a, labels, c, pmean, pinv, s: FamilySettings) -> np.ndarray:
+    """Delete-one-block jackknife covariance of the coefficients (each block's pairs
+    left out and the fit redone from the full fit's coefficients)."""
+    nb = s.jackknife_blocks**2
+    jack = np.array([_solve(d, a, labels, c, pmean, pinv, s, s.jackknife_iterations, j) for j in range(nb)])
+    dev = jack - jack.mean(axis=0)
+    return (nb - 1) / nb * dev.T @ dev
+
+
+def field_spread_ev(basis: np.ndarray, cov: np.ndarray) -> float:
+    """RMS over the samples of the s.d. of log2 φ about its frame mean, for coefficient
+    covariance ``cov`` (``basis``: samples × K components)."""
+    b = basis - basis.mean(axis=0)
+    var = np.einsum("ij,jk,ik->i", b, cov, b)
+    return float(math.sqrt(max(float(np.mean(var)), 0.0)) / _LN2)
+
+
+def frame_rho_grid(width: int, height: int, n: int = 16) -> np.ndarray:
+    """ρ (half-diagonals from the frame centre) on an n×n grid spanning a frame: where a
+    family fit's field and its uncertainty are summarised."""
+    gx = np.linspace(-(width - 1) / 2, (width - 1) / 2, n)
+    gy = np.linspace(-(height - 1) / 2, (height - 1) / 2, n)
+    return _rho(gx, gy, half_diagonal(width, height))
+
+
+def field_sigma_ev(family: LensFamily, cov: np.ndarray, width: int, height: int) -> float:
+    """:func:`field_spread_ev` of family coefficients with covariance ``cov`` over a
+    ``width``×``height`` frame (:func:`frame_rho_grid`)."""
+    _, basis = family.profiles(frame_rho_grid(width, height))
+    return field_spread_ev(basis.reshape(-1, family.n_components), cov)
+
+
+def profile_to_model(log_profile: np.ndarray, radii: np.ndarray, width: int, height: int,
+                     **kw) -> tuple[VignettingModel, float]:
+    """Write a centred radial log-attenuation profile as the Kang-Weiss model.
+
+    A circular P with r = :data:`KW_SCALE` at the corner; α1..α7 by least squares so
+    that A·G matches the profile (Lyu 2010, Eq. 2).
+
+    Returns
+    -------
+    model : VignettingModel
+    rms_ev : float
+        RMS (over ρ) of the written model's log2 error against the profile.
+    """
+    rho = np.linspace(0.0, 1.0, _KW_SAMPLES)
+    f = np.interp(rho, radii, log_profile)
+    r = KW_SCALE * rho
+    a = 1.0 / (1.0 + (r / 2.0) ** 2) ** 2
+    target = 1.0 - np.exp(f) / a  # = Σ α_i r^i
+    V = np.stack([r**i for i in range(1, N_ALPHA + 1)], axis=1)
+    alpha, *_ = np.linalg.lstsq(V, target, rcond=None)
+    g = 1.0 - V @ alpha
+    err = float(np.sqrt(np.mean((np.log(np.maximum(a * g, 1e-300)) - f) ** 2)) / _LN2)
+    p = (KW_SCALE / half_diagonal(width, height)) ** 2
+    model = VignettingModel(width, height, center=(0.0, 0.0), p=(p, 0.0, p),
+                            alpha=tuple(float(x) for x in alpha), method=METHOD, **kw)
+    return model, err
+
+
+@dataclass(frozen=True)
+class CentreFit:
+    """Where the fall-off's centre is, by the lens-family fit with a free centre.
+
+    Attributes
+    ----------
+    offset : tuple of float
+        (cx, cy) px from the frame centre.
+    covariance : ndarray (2, 2)
+        Its jackknife covariance (px²), scaled by ``sigma_scale``².
+    z : float
+        Mahalanobis distance of the offset from the frame centre.
+    shift : float
+        |offset| in half-diagonals.
+    """
+
+    offset: tuple[float, float]
+    covariance: np.ndarray
+    z: float
+    shift: float
+
+    def off_centre(self, min_shift: float, min_z: float = 0.0) -> bool:
+        return self.shift >= min_shift and self.z >= min_z
+
+
+def _extended(fam: LensFamily, c: np.ndarray, rho: np.ndarray):
+    """Mean, components and the full profile's slope at ``rho``, extended linearly
+    past the corner (ρ > 1 occurs once the centre moves off the frame's)."""
+    r = np.asarray(rho)
+    inside = np.minimum(r, 1.0)
+    past = np.maximum(r - 1.0, 0.0)
+    m_slope = np.gradient(fam.mean, fam.radii)
+    c_slope = np.gradient(fam.components, fam.radii, axis=1)
+    mean = np.interp(inside.ravel(), fam.radii, fam.mean).reshape(r.shape) + past * m_slope[-1]
+    basis = np.stack([np.interp(inside.ravel(), fam.radii, b).reshape(r.shape) + past * sl[-1]
+                      for b, sl in zip(fam.components, c_slope)], axis=-1)
+    slope = m_slope + c @ c_slope
+    return mean, basis, np.interp(inside.ravel(), fam.radii, slope).reshape(r.shape)
+
+
+def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
+               mask: np.ndarray | None = None, family: LensFamily | None = None,
+               hint: LensHint | None = None, work_size: int = 60, iterations: int = 12) -> CentreFit:
+    """Fit the fall-off's centre together with its family coefficients (Gauss-Newton
+    on the centre, IRLS inside), from the centred fit's coefficients ``c``.
+
+    The lens family describes uncropped frames; a crop of a larger frame, a shifted
+    lens or a stitched image moves the centre. This is the test that sends such
+    frames to the free Kang-Weiss fit, and the crop evidence of forensics.
+    """
+    fam = family or default_family()
+    h, w = lum.shape
+    small = replace(settings, work_size=work_size)
+    L, valid, xs, ys = _working_copy(lum, small, mask)
+    radius = half_diagonal(w, h)
+    X, Y = xs[None, :] / radius, ys[:, None] / radius
+    hint = hint or LensHint()
+    pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
+    K = fam.n_components
+    pm = np.concatenate([pmean, [0.0, 0.0]])
+    P = np.zeros((K + 2, K + 2))
+    P[:K, :K] = pcov
+    P[K, K] = P[K + 1, K + 1] = 0.5**2  # the centre within about half a half-diagonal
+    pinv = np.linalg.inv(P)
+    steps = _pair_steps(settings, L.shape)
+    nb = settings.jackknife_blocks
+    blocks = _block_labels(L.shape, nb)
+    u = np.zeros(2)
+    coef = np.asarray(c, dtype=np.float64).copy()
+    cov = np.zeros((2, 2))
+    for it in range(iterations):
+        dx, dy = X - u[0], Y - u[1]
+        rho = np.maximum(np.hypot(dx, dy), 1e-9)
+        M, B, slope = _extended(fam, coef, rho)
+        # ∂f/∂u = f'(ρ)·∂ρ/∂u, ∂ρ/∂u = −(v − u)/ρ; f's value at u is already in M + B·c
+        Bu = np.concatenate([B, (-slope * dx / rho)[..., None], (-slope * dy / rho)[..., None]], axis=-1)
+        d, a, labels = family_pairs(L, valid, np.ascontiguousarray(M), np.ascontiguousarray(Bu), steps, blocks)
+        if d.size < MIN_VALID_BINS:
+            break
+        x0 = np.concatenate([coef, [0.0, 0.0]])
+        pm_it = pm.copy()
+        pm_it[K:] = -u  # the prior is on the centre, not on the step
+        sol = _solve(d, a, labels, x0, pm_it, pinv, settings, 4)
+        coef = sol[:K]
+        u = u + sol[K:]
+        if float(np.max(np.abs(sol[K:]))) < 1e-3:
+            break
+    if d.size >= MIN_VALID_BINS:
+        n_blocks = nb * nb
+        jack = np.array([_solve(d, a, labels, sol, pm_it, pinv, settings, settings.jackknife_iterations, j)[K:]
+                         for j in range(n_blocks)])
+        dev = jack - jack.mean(axis=0)
+        cov = (n_blocks - 1) / n_blocks * dev.T @ dev * settings.sigma_scale**2
+    cov_px = cov * radius**2 + np.eye(2) * 1e-6
+    off = u * radius
+    z = float(math.sqrt(max(float(off @ np.linalg.solve(cov_px, off)), 0.0)))
+    return CentreFit((float(off[0]), float(off[1])), cov_px, z, float(np.hypot(*u)))
+
+
+def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: FamilySettings = FamilySettings(),
+                mask: np.ndarray | None = None) -> list[float]:
+    """Mean Cauchy loss log(1 + (e/σ)²) per pair of the frame's log differences once each
+    model's field is divided out: how well a field explains the frame, the same measure
+    for any model (the default estimator's choice between fits). One working copy."""
+    L, valid, xs, ys = _working_copy(lum, settings, mask)
+    X = np.ascontiguousarray(np.broadcast_to(xs[None, :], L.shape))
+    Y = np.ascontiguousarray(np.broadcast_to(ys[:, None], L.shape))
+    steps = _pair_steps(settings, L.shape)
+    none, one_block = np.zeros(L.shape + (1,)), np.zeros(L.shape, dtype=np.int64)
+    out = []
+    for model in models:
+        F = np.ascontiguousarray(model.log_field_at(X, Y))
+        d, _, _ = family_pairs(L, valid, F, none, steps, one_block)
+        out.append(float(np.mean(np.log1p((d / settings.sigma) ** 2))) if d.size else math.inf)
+    return out
+
+
+@dataclass(frozen=True)
+class FrameCoefficients:
+    """What one frame says of its lens in the family, without the prior: the pooling
+    unit of a lens profile (:func:`vigproc.core.pooling.pool_family`).
+
+    A frame's estimate under the prior is shrunk towards the prior's mean: the
+    shrinkage is largest for the strongest lenses, and averaging shrunk estimates
+    keeps it (measured on the clean protocol: strong lenses under-estimated by about
+    15 % whatever the number of frames). The data term alone is equivariant (a
+    field in the family added to a frame moves the fit by exactly its coefficients),
+    so its frame-to-frame errors are the scenes' and average away; the prior is
+    applied once, to the pooled coefficients.
+
+    Attributes
+    ----------
+    coefficients : ndarray (K,)
+        The fit of the data term alone (a vanishing ridge towards the prior mean keeps
+        it defined on a frame without structure).
+    covariance : ndarray (K, K)
+        Its delete-one-block jackknife covariance, scaled by ``sigma_scale``².
+    pairs : int
+        Log-difference pairs the fit used.
+    """
+
+    coefficients: np.ndarray
+    covariance: np.ndarray
+    pairs: int
+
+
+#: The likelihood fit's ridge: the prior's precision times this (it only keeps a
+#: frame without structure from a singular system).
+LIKELIHOOD_RIDGE = 1e-6
+#: Most IRLS steps of the likelihood fit: without the prior the objective is flat
+#: along the first component, and 8 steps from the prior mean stop short of the
+#: minimum on strong lenses (another source of shrinkage).
+LIKELIHOOD_ITERATIONS = 100
+
+
+def frame_coefficients(L: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.ndarray,
+                       width: int, height: int, settings: FamilySettings = FamilySettings(),
+                       family: LensFamily | None = None) -> FrameCoefficients | None:
+    """The family coefficients of one frame's working copy, from its data alone.
+
+    Parameters
+    ----------
+    L, valid : ndarray (h, w)
+        Log working copy and its usable bins (:func:`vigproc.core.pixels.binned_log_copy`).
+    xs, ys : ndarray (w,), (h,)
+        Bin centres in px from the frame centre.
+    width, height : int
+        The full frame (ρ = 1 at its corner).
+    settings : FamilySettings
+    family : LensFamily, optional
+
+    Returns
+    -------
+    FrameCoefficients, or None when fewer than :data:`MIN_VALID_BINS` bins are usable.
+
+    References
+    ----------
+    Zheng et al., TPAMI 2013 (the per-frame data term); Efron and Stein 1981 (the
+    jackknife).
+    """
+    fam = family or default_family()
+    if int(valid.sum()) < MIN_VALID_BINS:
+        return None
+    M, B = fam.profiles(_rho(xs, ys, half_diagonal(width, height)))
+    steps = _pair_steps(settings, L.shape)
+    d, a, labels = family_pairs(L, valid, np.ascontiguousarray(M), np.ascontiguousarray(B), steps,
+                                _block_labels(L.shape, settings.jackknife_blocks))
+    if d.size < MIN_VALID_BINS:
+        return None
+    pmean, pcov = fam.prior()
+    pinv = np.linalg.inv(pcov) * LIKELIHOOD_RIDGE
+    c = _solve(d, a, labels, pmean, pmean, pinv, settings, LIKELIHOOD_ITERATIONS)
+    jk = replace(settings, jackknife_iterations=max(settings.jackknife_iterations, 30))
+    cov = _jackknife_cov(d, a, labels, c, pmean, pinv, jk) * settings.sigma_scale**2
+    return FrameCoefficients(c, 0.5 * (cov + cov.T), int(d.size))
+
+
+def estimate_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
+                    mask: np.ndarray | None = None, family: LensFamily | None = None,
+                    hint: LensHint | None = None) -> VignettingModel:
+    """Estimate a centred lens fall-off from an H×W linear luminance image.
+
+    :func:`fit_family` without its coefficients; see there.
+    """
+    return fit_family(lum, settings, mask, family, hint)[0]
+
+
+def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
+               mask: np.ndarray | None = None, family: LensFamily | None = None,
+               hint: LensHint | None = None) -> tuple[VignettingModel, np.ndarray | None]:
+    """Estimate a centred lens fall-off from an H×W linear luminance image.
+
+    Parameters
+    ----------
+    lum : ndarray, H×W, linear intensities
+    settings : FamilySettings
+    mask : ndarray of bool, H×W, optional
+        Pixels that may be used (e.g. excluding clipped highlights).
+    family : LensFamily, optional
+        Default: the shipped family (every lensfun lens).
+    hint : LensHint, optional
+        EXIF focal length (35-mm equivalent) and f-number: the prior becomes the
+        spread of the calibrations nearest to them.
+
+    Returns
+    -------
+    model : VignettingModel
+        Centred, circular, for the H×W frame; ``quality.field_sigma_ev`` is the
+        calibrated 1-σ error of log2 φ (RMS over the frame, about its mean). When the
+        evidence is weak, the identity model with ``quality.fallback`` and the fit as
+        ``candidate``.
+    coefficients : ndarray (K,) or None
+        The family coefficients of the fit (None when too few pixels were usable).
+    """
+    t0 = time.perf_counter()
+    fam = family or default_family()
+    h, w = lum.shape
+    L, valid, xs, ys = _working_copy(lum, settings, mask)
+    if int(valid.sum()) < MIN_VALID_BINS:
+        log.info("too few usable pixels (%d bins); no correction", int(valid.sum()))
+        q = FitQuality(confidence=0.0, fallback=True, seconds=time.perf_counter() - t0)
+        return VignettingModel.identity(w, h, method=METHOD, quality=q), None
+    radius = half_diagonal(w, h)
+    M, B = fam.profiles(_rho(xs, ys, radius))
+    M = np.ascontiguousarray(M)
+    B = np.ascontiguousarray(B)
+    hint = hint or LensHint()
+    pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
+    pinv = np.linalg.inv(pcov)
+    steps = _pair_steps(settings, L.shape)
+    quad = _block_labels(L.shape, settings.jackknife_blocks)
+    d, a, labels = family_pairs(L, valid, M, B, steps, quad)
+    n = d.size
+    c = _solve(d, a, labels, pmean, pmean, pinv, settings, settings.iterations)
+    cov_jk = _jackknife_cov(d, a, labels, c, pmean, pinv, settings)
+    grid = frame_rho_grid(w, h)
+    sigma_jk = field_sigma_ev(fam, cov_jk, w, h)
+    sigma = math.hypot(settings.sigma_scale * sigma_jk, settings.sigma_floor)
+    prof = fam.mean + c @ fam.components
+    fit, conv_ev = profile_to_model(prof, fam.radii, w, h)
+    ev_rms = fit.field_ev_rms()
+    # the error and σ are about the frame mean (a gain is free), so is the signal
+    spread = float(np.std(fam.log_profile(c, grid))) / _LN2
+    snr = spread / sigma if sigma > 0 else math.inf
+    confidence = float(1.0 / (1.0 + math.exp(-2.0 * (snr - settings.min_snr))))
+    accept = snr >= settings.min_snr
+    residual = d - np.einsum("ij,j->i", a, c)  # einsum: no BLAS threads, the same bits in every process
+    q = FitQuality(confidence=confidence, field_ev_rms=ev_rms, field_sigma_ev=sigma, snr=snr,
+                   fallback=not accept, objective=float(np.mean(np.log1p((residual / settings.sigma) ** 2))),
+                   iterations=settings.iterations,
+                   seconds=time.perf_counter() - t0)
+    fit = VignettingModel(w, h, center=fit.center, p=fit.p, alpha=fit.alpha, method=METHOD, quality=q)
+    log.debug("lens-family fit: c=%s, %.3f EV ± %.3f (jackknife %.3f), %d pairs, written with %.4f EV error",
+              np.round(c, 3), ev_rms, sigma, sigma_jk, n, conv_ev)
+    if accept:
+        return fit, c
+    log.info("weak evidence (%.3f EV about the mean at SNR %.2f); no correction", spread, snr)
+    return VignettingModel.identity(w, h, method=METHOD, quality=q, candidate=fit), c

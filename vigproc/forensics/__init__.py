@@ -1,0 +1,1 @@
+"""Forensics: lens consistency, lens identification, crop detection, reports."""

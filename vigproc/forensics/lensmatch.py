@@ -1,0 +1,385 @@
+"""Lens-mismatch test in the lens family: does a frame's fall-off match the claimed lens?
+
+Real lenses' fall-offs span a two-dimensional family (:mod:`vigproc.core.lensfamily`), so
+a frame and a claimed lens can be compared in two coefficients rather than in the
+features of a twelve-parameter fit:
+
+1. **The frame's data alone** (:func:`frame_fit`: :func:`vigproc.core.family_fit.frame_coefficients`,
+   the first :data:`~vigproc.core.lensfamily.N_COMPONENTS` components, no prior). The
+   data term is equivariant: a field of the family multiplied onto a frame moves the
+   fit by exactly its coefficients, so what a frame gets wrong is its scene's, the same
+   whatever lens took it. (An estimate under the family prior would be shrunk towards
+   the prior's mean, most for the strongest lenses, and its error would depend on the
+   lens.)
+2. **The claimed lens in the family** (:func:`reference_coefficients`): its log field
+   projected onto the family by least squares over the frame (a free constant: a gain
+   is not vignetting).
+3. **Mahalanobis distance** D² = (r − μ)ᵀ Σ⁻¹ (r − μ) of r = c_frame − c_lens, where μ
+   and Σ are the *scenes'* bias and scatter of the coefficients, measured on
+   vignetting-free camera frames × lensfun fields (:class:`MatchCalibration`; the
+   clean protocol of ``vigproc bench clean``). The fit's own jackknife covariance is far
+   smaller than that scatter and ranks frames worse (measured, see
+   docs/benchmarks/forensics.md), so it is not used.
+4. **False-alarm probability**: the share of held-out calibration frames (5-fold by
+   photograph) with a D² at least as large, an empirical p-value.
+5. **Several frames** of one claimed lens: the coordinate-wise median of their whitened
+   residuals z̄, statistic n·|z̄|², against medians of n calibration frames from
+   different photographs (the median, as lens profiles pool their frames,
+   :mod:`vigproc.core.pooling`: one fooled frame moves it by one rank).
+
+References
+----------
+S. Lyu, "Estimating Vignetting Function from a Single Image for Image Authentication",
+ACM MM&Sec 2010 (vignetting as forensic evidence).
+Y. Zheng et al., "Single-image vignetting correction from gradient distribution
+symmetries", IEEE TPAMI 35(6), 2013 (the per-frame data term).
+P. C. Mahalanobis, "On the generalized distance in statistics", 1936.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from vigproc.errors import EXIT_CODES, VigprocError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "MatchCalibration",
+    "MatchCalibrationError",
+    "default_match_calibration",
+    "family_fingerprint",
+    "fit_match_calibration",
+    "frame_fit",
+    "pooled_d2",
+    "reference_coefficients",
+    "whiten",
+]
+
+#: The schema of a calibration file.
+MATCH_SCHEMA = "vigproc.forensics.lensmatch-calibration/1"
+#: The shipped calibration (package data).
+SHIPPED_MATCH_CALIBRATION = "lensmatch_calibration.json"
+#: Default false-alarm probability below which a frame is inconsistent with its lens.
+DEFAULT_ALPHA = 0.01
+#: Draws of a multi-frame null distribution.
+NULL_DRAWS = 4000
+#: Grid (rows) on which a claimed lens's field is projected onto the family.
+_PROJECTION_ROWS = 48
+
+
+class MatchCalibrationError(VigprocError):
+    """The lens-mismatch calibration is missing, invalid or made for another family."""
+
+    exit_code = EXIT_CODES["forensics"]
+
+
+def family_fingerprint(family) -> tuple[float, ...]:
+    """A few numbers that change when the family does: its size, and each component's
+    sum and corner value (a calibration holds for the family it was made in)."""
+    comps = np.asarray(family.components, dtype=np.float64)
+    return tuple([float(comps.shape[0])] + [round(float(v), 4) for c in comps for v in (c.sum(), c[-1])])
+
+
+def frame_fit(lum: np.ndarray, family=None, settings=None):
+    """The family coefficients of an H×W linear luminance frame from its data alone.
+
+    Returns
+    -------
+    FrameCoefficients or None
+        :func:`vigproc.core.family_fit.frame_coefficients` on the frame's working copy; None
+        when too few pixels are usable.
+    """
+    from vigproc.core.family_fit import FamilySettings, frame_coefficients
+    from vigproc.core.pixels import binned_coords, binned_log_copy
+    from vigproc.core.lensfamily import default_family
+
+    s = settings or FamilySettings()
+    fam = family or default_family()
+    h, w = lum.shape
+    L, valid, k = binned_log_copy(lum, s.work_size, s.dark_fraction, None)
+    return frame_coefficients(L, valid, binned_coords(w, k), binned_coords(h, k), w, h, s, fam)
+
+
+def _projection_grid(width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rows = min(_PROJECTION_ROWS, height)
+    cols = max(2, round(rows * width / height))
+    x = np.linspace(-(width - 1) / 2, (width - 1) / 2, cols)
+    y = np.linspace(-(height - 1) / 2, (height - 1) / 2, rows)
+    rho = np.hypot(x[None, :], y[:, None]) / math.hypot((width - 1) / 2, (height - 1) / 2)
+    return x, y, rho
+
+
+def reference_coefficients(model, width: int, height: int, family=None) -> np.ndarray:
+    """A lens's vignetting (any :class:`~vigproc.core.model.VignettingModel`) as family
+    coefficients: least squares of its natural-log field over a grid of the
+    ``width``×``height`` frame, against the family's mean + components and a constant."""
+    from vigproc.core.lensfamily import default_family
+
+    fam = family or default_family()
+    x, y, rho = _projection_grid(width, height)
+    target = np.asarray(model.log_field_at(x[None, :], y[:, None]), dtype=np.float64)
+    mean, basis = fam.profiles(rho)
+    a = np.column_stack([np.ones(rho.size), basis.reshape(-1, fam.n_components)])
+    sol, *_ = np.linalg.lstsq(a, (target - mean).ravel(), rcond=None)
+    return sol[1:]
+
+
+def whitener(cov: np.ndarray) -> np.ndarray:
+    """L⁻¹ with Σ = L Lᵀ (Cholesky, with a tiny ridge for a near-singular Σ)."""
+    cov = 0.5 * (cov + cov.T)
+    ridge = 1e-9 * float(np.trace(cov)) / cov.shape[0]
+    return np.linalg.inv(np.linalg.cholesky(cov + ridge * np.eye(cov.shape[0])))
+
+
+def held_out_whitened(r: np.ndarray, groups: np.ndarray, folds: int, centre=np.mean) -> np.ndarray:
+    """Each row whitened by the centre and covariance of the other folds, photographs
+    (``groups``) assigned to folds by a fixed shuffle: a null of frames the whitening
+    has not seen (k-fold cross-validation by photograph)."""
+    uniq = np.unique(groups)
+    order = np.random.default_rng(0).permutation(uniq.size)
+    fold_of = dict(zip(uniq[order], np.arange(uniq.size) % folds))
+    fold = np.array([fold_of[v] for v in groups])
+    z = np.empty_like(r)
+    for f in range(folds):
+        out = fold == f
+        z[out] = (r[out] - centre(r[~out], axis=0)) @ whitener(np.atleast_2d(np.cov(r[~out].T))).T
+    return z
+
+
+def pooled_null(z: np.ndarray, groups: np.ndarray, n_frames: int, statistic, *, seed: int,
+                draws: int = NULL_DRAWS) -> np.ndarray:
+    """Sorted ``statistic`` of ``draws`` sets of ``n_frames`` rows of ``z``, each set from
+    different photographs (``groups``; one row of each): the null of a test pooling
+    frames of different scenes. The draws are fixed by ``seed``, so a p-value is the
+    same every run. The caller checks that there are ``n_frames`` photographs."""
+    g = np.asarray(groups)
+    uniq = np.unique(g)
+    by_group = [np.flatnonzero(g == u) for u in uniq]
+    rng = np.random.default_rng(seed)
+    out = np.empty(draws)
+    for i in range(draws):
+        picks = rng.choice(uniq.size, n_frames, replace=False)
+        rows = [by_group[p][rng.integers(by_group[p].size)] for p in picks]
+        out[i] = statistic(z[rows])
+    out.sort()
+    return out
+
+
+@dataclass(frozen=True)
+class MatchCalibration:
+    """The scenes' scatter of the family coefficients, and the test's null distribution.
+
+    Attributes
+    ----------
+    mean : tuple of float
+        μ: median over calibration frames of c_frame − c_lens (the scenes' bias).
+    covariance : tuple of tuple of float
+        Σ: their covariance.
+    null : tuple of tuple of float
+        Whitened held-out residuals L⁻¹(r − μ_k), Σ_k = L Lᵀ fitted on the other folds
+        (5-fold by photograph): D² of a matching frame is distributed as their squared
+        norms.
+    null_groups : tuple of int
+        The photograph of each ``null`` row (multi-frame draws take distinct ones).
+    family : tuple of float
+        :func:`family_fingerprint` of the family the coefficients are in.
+    alpha : float
+        False-alarm probability below which a frame is called inconsistent.
+    n_frames, n_images : int
+    source : str
+        The command that made it.
+    """
+
+    mean: tuple[float, ...]
+    covariance: tuple[tuple[float, ...], ...]
+    null: tuple[tuple[float, ...], ...]
+    null_groups: tuple[int, ...]
+    family: tuple[float, ...]
+    alpha: float = DEFAULT_ALPHA
+    n_frames: int = 0
+    n_images: int = 0
+    source: str = ""
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        try:
+            mu = np.asarray(self.mean, dtype=np.float64)
+            cov = np.asarray(self.covariance, dtype=np.float64)
+            z = np.asarray(self.null, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise MatchCalibrationError("lens-mismatch calibration: non-numeric arrays") from None
+        k = mu.size
+        if mu.shape != (k,) or k < 1 or cov.shape != (k, k) or z.ndim != 2 or z.shape[1] != k \
+                or not all(np.all(np.isfinite(a)) for a in (mu, cov, z)):
+            raise MatchCalibrationError("lens-mismatch calibration: mean, covariance and null must be finite "
+                                        "arrays of one dimension")
+        if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12) or np.linalg.eigvalsh(cov)[0] <= 0:
+            raise MatchCalibrationError("lens-mismatch calibration: covariance is not symmetric positive definite")
+        if len(z) < 20 or len(self.null_groups) != len(z):
+            raise MatchCalibrationError("lens-mismatch calibration: needs at least 20 null rows, each with its "
+                                        "photograph")
+        if not 0.0 < float(self.alpha) < 1.0:
+            raise MatchCalibrationError(f"lens-mismatch calibration: alpha must be within (0, 1), got {self.alpha}")
+
+    @property
+    def n_components(self) -> int:
+        return len(self.mean)
+
+    @property
+    def mean_vector(self) -> np.ndarray:
+        return np.asarray(self.mean, dtype=np.float64)
+
+    @property
+    def covariance_matrix(self) -> np.ndarray:
+        return np.asarray(self.covariance, dtype=np.float64)
+
+    def check_family(self, family) -> None:
+        """Raise when the calibration was made in another family than ``family``."""
+        if tuple(self.family) != family_fingerprint(family):
+            raise MatchCalibrationError("the lens-mismatch calibration was made in another lens family; "
+                                        "recalibrate (vigproc bench forensics-clean --calibrate FILE)")
+
+    def null_d2(self, n_frames: int = 1) -> np.ndarray:
+        """Sorted statistics of matching frames: |z|² for one frame, n·|median of n z|²
+        for ``n_frames`` frames of different photographs (fixed draws)."""
+        n = int(n_frames)
+        if n in self._cache:
+            return self._cache[n]
+        z = np.asarray(self.null, dtype=np.float64)
+        if n <= 1:
+            out = np.sort(np.einsum("ij,ij->i", z, z))
+        else:
+            g = np.asarray(self.null_groups)
+            uniq = np.unique(g)
+            if uniq.size < n:
+                raise MatchCalibrationError(f"the calibration has {uniq.size} photographs, too few for "
+                                            f"{n}-frame evidence")
+            out = pooled_null(z, g, n, pooled_d2, seed=2010 + n)
+        self._cache[n] = out
+        return out
+
+    def p_value(self, d2: float, n_frames: int = 1) -> float:
+        """False-alarm probability (k + 1)/(N + 1): k of the N null statistics are at
+        least ``d2``."""
+        null = self.null_d2(n_frames)
+        k = null.size - int(np.searchsorted(null, float(d2), side="left"))
+        return (k + 1.0) / (null.size + 1.0)
+
+    # -- files --------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {"schema": MATCH_SCHEMA, "family": list(self.family), "mean": list(self.mean),
+                "covariance": [list(r) for r in self.covariance], "alpha": self.alpha,
+                "n_frames": self.n_frames, "n_images": self.n_images, "source": self.source,
+                "null_groups": list(self.null_groups), "null": [[round(v, 5) for v in r] for r in self.null]}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> MatchCalibration:
+        if not isinstance(d, dict) or d.get("schema") != MATCH_SCHEMA:
+            raise MatchCalibrationError(f"not a lens-mismatch calibration (schema {MATCH_SCHEMA!r} expected)")
+        try:
+            return cls(mean=tuple(float(v) for v in d["mean"]),
+                       covariance=tuple(tuple(float(v) for v in r) for r in d["covariance"]),
+                       null=tuple(tuple(float(v) for v in r) for r in d["null"]),
+                       null_groups=tuple(int(v) for v in d["null_groups"]),
+                       family=tuple(float(v) for v in d["family"]), alpha=float(d.get("alpha", DEFAULT_ALPHA)),
+                       n_frames=int(d.get("n_frames", 0)), n_images=int(d.get("n_images", 0)),
+                       source=str(d.get("source", "")))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MatchCalibrationError(f"invalid lens-mismatch calibration: {exc!r}") from None
+
+    def save(self, path: str | Path) -> None:
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(path), json.dumps(self.to_dict(), separators=(",", ":")) + "\n")
+
+
+def whiten(residual: np.ndarray, calibration: MatchCalibration, *, add_bias: bool = True,
+           inflate: float = 1.0) -> np.ndarray:
+    """z = L⁻¹(r − μ) with Σ·``inflate`` = L Lᵀ; without ``add_bias`` μ is not subtracted
+    (a learned profile already holds the scenes' median bias)."""
+    r = np.asarray(residual, dtype=np.float64)
+    if add_bias:
+        r = r - calibration.mean_vector
+    return whitener(calibration.covariance_matrix * float(inflate)) @ r
+
+
+def pooled_d2(z: np.ndarray) -> float:
+    """n·|coordinate-wise median of the n whitened residuals|² (one row per frame)."""
+    z = np.atleast_2d(np.asarray(z, dtype=np.float64))
+    med = np.median(z, axis=0)
+    return float(z.shape[0] * med @ med)
+
+
+def fit_match_calibration(residuals: np.ndarray, groups: Sequence[int], family, *, alpha: float = DEFAULT_ALPHA,
+                          folds: int = 5, source: str = "") -> MatchCalibration:
+    """A :class:`MatchCalibration` from the residuals c_frame − c_lens of frames that match
+    their lens.
+
+    Parameters
+    ----------
+    residuals : ndarray (N, K)
+    groups : sequence of int
+        The photograph each row was made from: folds never split one.
+    family : LensFamily
+        The family the coefficients are in (recorded by its fingerprint).
+    alpha, folds, source
+
+    Raises
+    ------
+    MatchCalibrationError
+        Too few photographs or rows, or a degenerate scatter.
+    """
+    r = np.asarray(residuals, dtype=np.float64)
+    g = np.asarray(groups)
+    if r.ndim != 2 or len(g) != len(r) or not np.all(np.isfinite(r)):
+        raise MatchCalibrationError("calibration needs an N×K array of finite residuals and a photograph per row")
+    uniq = np.unique(g)
+    if uniq.size < max(folds, 10) or len(r) < 20:
+        raise MatchCalibrationError(f"calibration needs at least {max(folds, 10)} photographs and 20 frames, "
+                                    f"got {uniq.size} and {len(r)}")
+    z = held_out_whitened(r, g, folds, np.median)
+    try:
+        return MatchCalibration(
+            mean=tuple(float(v) for v in np.median(r, axis=0)),
+            covariance=tuple(tuple(float(v) for v in row) for row in np.atleast_2d(np.cov(r.T))),
+            null=tuple(tuple(float(v) for v in row) for row in z), null_groups=tuple(int(v) for v in g),
+            family=family_fingerprint(family), alpha=float(alpha), n_frames=len(r), n_images=int(uniq.size),
+            source=source)
+    except np.linalg.LinAlgError:
+        raise MatchCalibrationError("degenerate scatter of the calibration frames") from None
+
+
+@functools.lru_cache(maxsize=1)
+def default_match_calibration() -> MatchCalibration:
+    """The shipped calibration (package data, made by the command in its ``source``)."""
+    try:
+        text = resources.files("vigproc.data").joinpath(SHIPPED_MATCH_CALIBRATION).read_text(encoding="utf-8")
+    except (FileNotFoundError, OSError):
+        raise MatchCalibrationError("the shipped lens-mismatch calibration is missing; make one with "
+                                    "'vigproc bench forensics-clean --calibrate FILE'") from None
+    return MatchCalibration.from_dict(json.loads(text))
+
+
+def load_match_calibration(path: str | Path) -> MatchCalibration:
+    """The calibration in ``path``.
+
+    Raises
+    ------
+    MatchCalibrationError
+        Unreadable, not JSON, or not a lens-mismatch calibration.
+    """
+    try:
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise MatchCalibrationError(f"cannot read calibration {path}: {exc}") from None
+    return MatchCalibration.from_dict(d)

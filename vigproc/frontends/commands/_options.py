@@ -1,0 +1,106 @@
+"""Command-line options shared by every command that processes frames, so that
+``correct``, ``watch``, ``batch``, ``hook``, ``check`` and ``forensics`` spell and
+document them the same way (and accept installed estimator plugins alike)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Callable
+
+PROFILE_HELP = ("auto (a trusted stored profile of the frame's lens, else a DNG's own vignetting opcodes, else "
+                "an installed profile-source plugin, else estimate), estimate, lensfun (lensfun's calibration of "
+                "the frame's lens), embedded (the DNG's own FixVignetteRadial/GainMap opcodes), source:NAME "
+                "(that profile-source plugin) or PATH of a profile file")
+
+
+def number(lo: float = -math.inf, hi: float = math.inf, *, integer: bool = False,
+           open_lo: bool = False) -> Callable[[str], float]:
+    """An argparse ``type``: a finite number within [lo, hi] (``open_lo``: above lo),
+    so that a bad value is a usage error (exit 2) before any work is done."""
+    what = "an integer" if integer else "a number"
+    bounds = f"{'(' if open_lo else '['}{lo:g}, {hi:g}]"
+
+    def parse(text: str) -> float:
+        try:
+            v = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        if not math.isfinite(v) or v < lo or v > hi or (open_lo and v == lo):
+            raise argparse.ArgumentTypeError(f"{text} is not within {bounds}")
+        return v
+
+    parse.__name__ = "integer" if integer else "number"  # argparse names the type in its messages
+    return parse
+
+
+def add_transfer(sp: argparse.ArgumentParser, default: str = "auto") -> None:
+    sp.add_argument("--input-transfer", choices=("auto", "linear", "srgb"), default=default,
+                    help="how to decode stored values to linear light (default: %(default)s; auto: from the "
+                         "file's metadata)")
+
+
+def add_method(sp: argparse.ArgumentParser) -> None:
+    from vigproc.core.methods import METHODS
+
+    # not argparse choices: installed estimator plugins are valid too (checked by Settings)
+    sp.add_argument("--method", default="default", metavar="NAME",
+                    help=f"estimator: {', '.join(METHODS)} or an installed estimator plugin "
+                         "(see 'vigproc plugins'; default: default)")
+
+
+def add_profile(sp: argparse.ArgumentParser, default: str = "auto") -> None:
+    sp.add_argument("--profile", default=default, help=PROFILE_HELP + f" (default {default})")
+
+
+def add_profile_db(sp: argparse.ArgumentParser) -> None:
+    sp.add_argument("--profile-db", help="profile store (default: $VIGPROC_PROFILE_DB or the user data folder)")
+
+
+def add_output(sp: argparse.ArgumentParser, *, picture: bool = True) -> None:
+    """Options of the corrected output: format, strength and (optionally) the picture."""
+    from vigproc.pipeline.processor import OUTPUT_FORMATS, UNAPPLIED_POLICIES
+
+    sp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="auto",
+                    help="auto (default): each input's own kind back (a JPEG as a JPEG at its quality, a PNG as "
+                         "a PNG, a TIFF/EXR as stored, a RAW as a linear 16-bit TIFF); jpeg, png (16-bit): "
+                         "sRGB; tiff16, tiff-float, exr-half, exr-float: linear, for further editing; dng (DNG "
+                         "inputs): a copy with its pixels untouched and the correction as a FixVignetteRadial "
+                         "opcode in OpcodeList3, for raw editors")
+    sp.add_argument("--unapplied", choices=list(UNAPPLIED_POLICIES), default="skip",
+                    help="when nothing is applied (weak evidence, strength 0): skip (default: only the JSON "
+                         "sidecar, saying why), copy or link the original as NAME.uncorrected.EXT, or write "
+                         "the frame as read under the corrected name")
+    sp.add_argument("--strength", type=number(0.0, 2.0), default=1.0,
+                    help="fraction of the fall-off removed, 0 to 2 (default 1)")
+    if picture:
+        sp.add_argument("--picture", action="store_true", help="also write a PNG picture of each estimated field")
+
+
+def add_processing(sp: argparse.ArgumentParser, *, profile_default: str = "auto", picture: bool = True) -> None:
+    """Everything a frame-processing command takes besides its files and folders."""
+    add_profile(sp, profile_default)
+    add_profile_db(sp)
+    add_method(sp)
+    add_output(sp, picture=picture)
+    add_transfer(sp)
+
+
+def add_clean_bases(bp: argparse.ArgumentParser) -> None:
+    """The clean protocol's bases (vigproc.bench.clean), as the clean benchmarks take them."""
+    bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
+                    help="folders of full-size camera frames (BSDS/Kodak are skipped: film scans)")
+    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
+                    help="frames whose long side is shorter are not used (default %(default)s)")
+    bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+
+
+def write_json_result(path: str | None, data: object) -> None:
+    """A bench's figures as JSON at ``path`` (atomically; nothing when None)."""
+    if path:
+        import json
+        from pathlib import Path
+
+        from vigproc.atomic import atomic_write_text
+
+        atomic_write_text(Path(path), json.dumps(data, indent=1) + "\n")

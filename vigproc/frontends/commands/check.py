@@ -1,0 +1,207 @@
+"""``vigproc check FILES...``: does each frame's vignetting match the lens its EXIF names?
+
+A DNG that carries its own vignetting calibration (FixVignetteRadial or GainMap opcodes,
+:mod:`vigproc.io.dng_vignette`) is also compared with it (``embedded`` in the JSON, a second
+line in the text output); its verdict counts like the others in the exit code.
+
+Every frame also gets the crop test (:mod:`vigproc.forensics.crops`: is the vignetting centred on
+the frame?), as ``crop`` in the JSON and at the end of the frame's line (``crop test:
+centred | off-centre | insufficient-signal``, with the centre, its distance and its
+calibrated false-alarm probability). It is reported, not counted in the exit code: its power on
+single natural frames is low (``vigproc bench crops``, docs/benchmarks/forensics.md).
+
+Exit codes (documented in ``vigproc check --help``):
+
+* 0 -- every frame is consistent with its lens;
+* :data:`EXIT_INCONSISTENT` (20) -- at least one frame (or pooled group) is inconsistent;
+* 1 -- some files could not be checked (and none was inconsistent); when *every* file
+  failed with the same error, that error's code (3-12), as ``estimate`` says it;
+* :data:`EXIT_UNDECIDED` (21) -- no inconsistency and no error, but some frames got
+  "unknown-lens" or "insufficient-signal".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from vigproc.errors import EXIT_CODES, VigprocError, one_line
+
+log = logging.getLogger(__name__)
+
+#: Exit code when a frame is inconsistent with its claimed lens.
+EXIT_INCONSISTENT = EXIT_CODES["inconsistent"]
+#: Exit code when nothing is inconsistent but some frames could not be decided.
+EXIT_UNDECIDED = EXIT_CODES["undecided"]
+
+_EPILOG = f"""exit codes: 0 every frame consistent; {EXIT_INCONSISTENT} at least one frame (or pooled
+group) inconsistent; 1 some files failed (none inconsistent; when every file failed alike, that
+error's code, 3-12); {EXIT_UNDECIDED} some frames undecided
+(unknown lens or insufficient signal), none inconsistent, no failures."""
+
+
+def register(subparsers) -> None:
+    from vigproc.frontends.commands._options import add_method, add_profile_db, add_transfer, number
+
+    sp = subparsers.add_parser(
+        "check", help="forensics: does each frame's vignetting match the lens its EXIF names?",
+        description="Estimate each frame's vignetting and compare it with the profile of the lens its "
+                    "metadata claims (a stored profile, else lensfun) and, for a DNG that carries one, with its "
+                    "own embedded calibration (FixVignetteRadial/GainMap opcodes): consistent, inconsistent, "
+                    "unknown-lens or insufficient-signal, with a calibrated false-alarm probability.",
+        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sp.add_argument("files", nargs="+", metavar="FILE",
+                    help="images to check against the lens their EXIF names")
+    store = sp.add_mutually_exclusive_group()  # a store that is then not read is a mistake
+    add_profile_db(store)
+    store.add_argument("--no-store", action="store_true", help="compare with lensfun only, not with stored profiles")
+    sp.add_argument("--report", help="write a readable report: PATH.html (self-contained) or PATH.png")
+    sp.add_argument("--json", action="store_true", help="print the verdicts as JSON")
+    sp.add_argument("--pool", action="store_true",
+                    help="also pool the evidence of all frames that claim the same lens profile")
+    sp.add_argument("--calibration", help="a calibration of the check: the lens-family test's ('vigproc bench "
+                                          "forensics-clean --calibrate') or the ring test's ('vigproc forensics "
+                                          "calibrate'), on photographs like yours (default: the shipped one)")
+    sp.add_argument("--alpha", type=number(0.0, 0.5, open_lo=True),
+                    help="false-alarm probability below which a frame is inconsistent "
+                                                "(default: the calibration's, 0.01 for the shipped one)")
+    add_method(sp)
+    add_transfer(sp)
+    sp.set_defaults(fn=cmd_check)
+
+
+def _line(name: str, v: dict, crop=None) -> str:
+    """One output line per frame: file names and EXIF strings are escaped (a newline in
+    a name must not start a line of its own); the crop test's answer at its end."""
+    p = v.get("p_false_alarm")
+    tail = "" if p is None else f"  p={p:.3g}  D²={v['score']:.2f}"
+    crop_tail = f"; crop test: {crop.verdict}, {crop.reason()}" if crop is not None else ""
+    return one_line(f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}{crop_tail}")
+
+
+def _embedded_verdict(path: Path, v, calibration, alpha):
+    """The frame against its DNG's own calibration, or None when it carries none (or it
+    cannot be read: said as a warning, the lens check stands)."""
+    from vigproc.io.dng_vignette import embedded_for
+    from vigproc.forensics.check import check_embedded
+
+    cal = embedded_for(path, "auto")
+    if cal is None or v.estimate is None:
+        return None
+    try:
+        model = cal.model(v.estimate.width, v.estimate.height)
+    except VigprocError as exc:
+        log.warning("%s: its embedded calibration is not compared: %s", path, exc)
+        return None
+    return check_embedded(v.estimate, model, calibration=calibration, lens_id=v.lens_id, alpha=alpha,
+                          profile=f"the DNG's own {cal.kind}")
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from vigproc.forensics.crops import check_crop
+    from vigproc.forensics.check import check_image, default_calibration, load_calibration, pool_verdicts
+    from vigproc.forensics.lensmatch import default_match_calibration
+    from vigproc.io.images import read_image
+    from vigproc.pipeline.processor import InputFiles, Processor, Settings, file_sha256, output_file, read_lens, refuse_input
+
+    files = [Path(f) for f in args.files]
+    refuse_input(args.report, InputFiles(files))
+    output_file(args.report)
+    settings = Settings(mode="check", method=args.method, transfer=args.input_transfer)
+    # the lens-family test by default (vigproc.forensics.lensmatch); --method X: the ring test made with X
+    calibration = load_calibration(args.calibration) if args.calibration else \
+        default_match_calibration() if args.method == "default" else default_calibration()
+    store = None
+    if not args.no_store:
+        from vigproc.stores.profiles import ProfileStore
+
+        store = ProfileStore(args.profile_db)
+    results, items, verdicts = [], [], []
+    failed = 0
+    try:
+        with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
+            for f in files:
+                try:
+                    img, _ = read_image(f, transfer=args.input_transfer)
+                    lens_key, lens = read_lens(proc.reader, f)
+                    # the pipeline's check step, with this run's calibration and threshold
+                    # the frame's content id: a stored profile that pooled it is no reference
+                    fid = file_sha256(f) if proc.store is not None else None
+                    v = check_image(img, lens_key, store=proc.store, method=settings.method,
+                                    calibration=calibration, alpha=args.alpha, frame_id=fid)
+                except VigprocError as exc:
+                    failed += 1
+                    results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__,
+                                    "exit_code": exc.exit_code})
+                    print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
+                    continue
+                rec = {"file": str(f), "lens": lens, **v.to_dict()}
+                # is the vignetting centred on the frame? (a crop, a shift, a stitch; Lyu 2010 §5)
+                crop = check_crop(img, channel_axis=-1 if img.ndim == 3 else None)
+                rec["crop"] = crop.to_dict()
+                ve = _embedded_verdict(f, v, calibration, args.alpha)
+                if ve is not None:  # disagreeing with its own calibration is evidence too
+                    rec["embedded"] = {k: x for k, x in ve.to_dict().items() if k != "estimate"}
+                results.append(rec)
+                verdicts.append((f, v))
+                if args.report:
+                    from vigproc.forensics.report import ReportItem, thumbnail
+
+                    items.append(ReportItem(f.name, v, thumbnail(img)))
+                del img
+                if not args.json:
+                    print(_line(str(f), rec, crop))
+                    if "embedded" in rec:
+                        print(_line(f"{f} (against its embedded calibration)", rec["embedded"]))
+    finally:
+        if store is not None:
+            store.close()
+    pooled = []
+    if args.pool:
+        groups: dict[tuple, list] = {}
+        for f, v in verdicts:
+            if v.whitened is not None:
+                groups.setdefault((v.expected_source, v.profile), []).append(v)
+        for (source, profile), vs in sorted(groups.items(), key=lambda kv: str(kv[0])):
+            if len(vs) < 2:
+                continue
+            pv = pool_verdicts(vs, calibration=calibration)
+            d = pv.to_dict()
+            pooled.append(d)
+            if args.report:
+                from vigproc.forensics.report import ReportItem
+
+                items.append(ReportItem(f"{len(vs)} frames of {profile}", pv, None))
+            if not args.json:
+                print(_line(f"pooled, {len(vs)} frames of {profile}", d))
+    counts: dict[str, int] = {}
+    for r in results + pooled + [r["embedded"] for r in results if "embedded" in r]:
+        if "verdict" in r:
+            counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
+    codes = {r.get("exit_code") for r in results if "error" in r}
+    if counts.get("inconsistent"):
+        code = EXIT_INCONSISTENT
+    elif failed and failed == len(files) and len(codes) == 1:
+        code = codes.pop()  # every file failed alike: that error's code, as estimate says it
+    elif failed:
+        code = 1
+    elif counts.get("unknown-lens") or counts.get("insufficient-signal"):
+        code = EXIT_UNDECIDED
+    else:
+        code = 0
+    if args.report and items:
+        from vigproc.forensics.report import write_report
+
+        out = write_report(args.report, items)
+        if not args.json:
+            print(f"report -> {out}")
+    if args.json:
+        print(json.dumps({"results": results, "pooled": pooled, "counts": counts, "failed": failed,
+                          "exit_code": code}, indent=1))
+    else:
+        summary = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
+        print(f"{summary}; {failed} failed" if summary else f"{failed} failed")
+    return code

@@ -1,0 +1,1152 @@
+"""Image input/output: read any supported image as float32 *linear* light, write atomically.
+
+Reading
+-------
+:func:`read_image` returns an ``HxW`` (single channel) or ``HxWx3`` (colour)
+``float32`` array whose values are proportional to scene light, plus an
+:class:`ImageInfo` describing what was read and which transfer curve was assumed.
+
+* JPEG, PNG, TIFF and OpenEXR go through OpenImageIO.  Integer formats come back
+  nominally in ``[0, 1]``; float formats are returned as stored (no clipping).
+* Camera RAW files (anything LibRaw decodes: DNG, CR2, NEF, ARW, KDC, RAF, ...) go
+  through rawpy with a linear (gamma 1), non-auto-brightened, camera-white-balanced
+  16-bit development, scaled to ``[0, 1]``.
+* The format is decided by *content*: a PNG renamed ``.jpg`` is read as PNG, a
+  text file renamed ``.jpg`` raises :class:`~vigproc.errors.UnsupportedFormatError`.
+* Orientation is never applied (neither the EXIF ``Orientation`` tag nor the RAW
+  flip): the pixel grid stays in sensor order, which is what a vignetting model
+  centred on the optical axis needs, and keeps RAW and developed files consistent.
+
+Transfer functions (``transfer="auto"``)
+----------------------------------------
+Observed with OpenImageIO 3.2 (``oiio:ColorSpace`` as reported on read):
+
+=========================  =======================================================
+file                       reported colour space
+=========================  =======================================================
+JPEG (any)                 ``srgb_rec709_scene``
+PNG 8/16-bit, no chunk     ``srgb_rec709_scene`` (also with an ``sRGB`` chunk)
+PNG with ``gAMA`` 1/2.2    ``g22_rec709_scene`` and ``oiio:Gamma`` = 2.2
+PNG with ``gAMA`` 1.0      ``lin_rec709_scene``
+TIFF (int or float)        nothing, unless EXIF ColorSpace = 1 -> ``srgb_rec709_scene``
+OpenEXR half/float         nothing unless written with a colour space
+=========================  =======================================================
+
+Rules: float formats (EXR, float TIFF) are linear; integer files whose colour
+space is missing or sRGB are sRGB-encoded; a gamma (``oiio:Gamma`` or a
+``gNN_`` colour-space name) is honoured as a pure power law; a linear colour
+space (``lin_*``, ``linear``, ACES...) means linear.  A TIFF written by
+:func:`write_image` with ``transfer="linear"`` carries the marker
+:data:`LINEAR_TIFF_MARKER` in its ``ImageDescription`` (TIFF has no standard tag
+OpenImageIO maps to "linear") and is read back as linear.
+
+Writing
+-------
+:func:`write_image` writes TIFF (8/16-bit or float), OpenEXR (half or float) and
+PNG (8/16-bit) atomically: a temporary file in the destination directory is
+written, fsync'ed and renamed over the destination with :func:`os.replace`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import logging
+import numbers
+import os
+import re
+import stat
+import tempfile
+import threading
+from dataclasses import dataclass
+from typing import Callable, Union
+
+import numpy as np
+import OpenImageIO as oiio
+
+from vigproc.atomic import publish
+from vigproc.errors import (
+    ImageReadError,
+    ImageWriteError,
+    InvalidImageError,
+    MemoryBudgetError,
+    UnsupportedFormatError,
+)
+
+try:  # rawpy is optional at import time: without it RAW files are "unsupported".
+    import rawpy
+except ImportError:  # pragma: no cover - rawpy is installed in the project venv
+    rawpy = None  # type: ignore[assignment]
+
+__all__ = [
+    "ImageInfo",
+    "LINEAR_TIFF_MARKER",
+    "RAW_EXTENSIONS",
+    "SUPPORTED_OIIO_FORMATS",
+    "DEFAULT_MEMORY_BUDGET",
+    "MEMORY_BUDGET_ENV",
+    "linear_to_srgb",
+    "memory_budget",
+    "read_image",
+    "srgb_to_linear",
+    "write_image",
+]
+
+logger = logging.getLogger(__name__)
+
+PathLike = Union[str, "os.PathLike[str]", bytes]
+
+#: OpenImageIO format names :func:`read_image` accepts (others, e.g. GIF, BMP, are rejected).
+SUPPORTED_OIIO_FORMATS = frozenset({"jpeg", "png", "tiff", "openexr"})
+
+#: Extensions tried with LibRaw *first* (content still decides: see :func:`read_image`).
+RAW_EXTENSIONS = frozenset(
+    {
+        ".3fr", ".ari", ".arw", ".bay", ".cap", ".cr2", ".cr3", ".crw", ".dcr", ".dcs",
+        ".dng", ".drf", ".eip", ".erf", ".fff", ".gpr", ".iiq", ".k25", ".kdc", ".mdc",
+        ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".ptx", ".pxn", ".r3d",
+        ".raf", ".raw", ".rw2", ".rwl", ".rwz", ".sr2", ".srf", ".srw", ".sti", ".x3f",
+    }
+)
+
+#: Written into the ImageDescription of linear integer/float TIFFs by :func:`write_image`.
+LINEAR_TIFF_MARKER = "vigproc:transfer=linear"
+
+#: Default memory budget of one decoded image, in bytes: the float32 pixels
+#: :func:`read_image` returns (width x height x channels x 4).  2 GiB takes a
+#: 178-megapixel colour frame (a 150-MP medium-format RAW fits) and refuses a
+#: 196-MP colour PNG bomb of 572 KB.  Decoding an 8-bit file peaks at about 1.25x
+#: the decoded size (its integer buffer too; more for 16-bit files and RAW); a whole
+#: correction about 4-5x (0.77 GB for a 12-MP frame, 144 MB of float32).
+DEFAULT_MEMORY_BUDGET = 2 * 2**30
+#: Environment variable that sets the budget (bytes, or with a K/M/G/T suffix: powers of 1024).
+MEMORY_BUDGET_ENV = "VIGPROC_MEMORY_BUDGET"
+_SIZE_UNITS = {"": 1, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}
+
+# Below this many bits per sensor pixel a RAW cannot hold its image (even lossy
+# DNG needs ~2 bits/px; the 1996 Kodak DC50 KDC has ~1.9); such files are
+# metadata stubs or badly truncated, and LibRaw would silently return zeros/garbage.
+_RAW_MIN_BITS_PER_PIXEL = 0.25
+
+_MAGIC: tuple[tuple[int, bytes, str], ...] = (
+    (0, b"\x89PNG\r\n\x1a\n", "png"),
+    (0, b"\xff\xd8\xff", "jpeg"),
+    (0, b"II*\x00", "tiff"),
+    (0, b"MM\x00*", "tiff"),
+    (0, b"II+\x00", "tiff"),  # BigTIFF
+    (0, b"MM\x00+", "tiff"),
+    (0, b"v/1\x01", "openexr"),
+    (0, b"GIF87a", "gif"),
+    (0, b"GIF89a", "gif"),
+    (8, b"WEBP", "webp"),
+    (4, b"jP  ", "jpeg2000"),
+    (0, b"\xff\x4f\xff\x51", "jpeg2000"),
+)
+# Content kinds that can never be a camera RAW (so no LibRaw attempt for them).
+_NON_RAW_KINDS = frozenset({"png", "jpeg", "openexr", "gif", "webp", "jpeg2000"})
+
+_FLOAT_FORMATS = frozenset({"half", "float", "double"})
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What :func:`read_image` read and how it decoded it.
+
+    Attributes
+    ----------
+    path : str
+        The path as given (``os.fspath``).
+    format : str
+        ``'jpeg'``, ``'png'``, ``'tiff'``, ``'openexr'`` or ``'raw'``.
+    width, height : int
+        Size of the returned array (after RAW half-size, if any).
+    channels : int
+        Channels of the returned array: 1 (``HxW``) or 3 (``HxWx3``); alpha is dropped.
+    bit_depth : str
+        Stored sample type: ``'uint8'``, ``'uint16'``, ``'half'``, ``'float'``...
+        (``'uint16'`` for RAW: the LibRaw development depth).
+    transfer : str
+        Transfer curve that was inverted: ``'linear'``, ``'srgb'`` or ``'gamma<g>'``.
+    colorspace : str or None
+        Colour space the file declared as reported by OpenImageIO
+        (``oiio:ColorSpace``), ``None`` if it declared none (always ``None`` for RAW).
+    """
+
+    path: str
+    format: str
+    width: int
+    height: int
+    channels: int
+    bit_depth: str
+    transfer: str
+    colorspace: str | None
+
+
+# --------------------------------------------------------------------------- #
+# Transfer curves
+# --------------------------------------------------------------------------- #
+
+
+def _as_float(x: np.ndarray | float) -> np.ndarray:
+    a = np.asarray(x)
+    if not np.issubdtype(a.dtype, np.floating):
+        a = a.astype(np.float64)
+    return a
+
+
+def srgb_to_linear(x: np.ndarray | float) -> np.ndarray:
+    """Decode sRGB-encoded values to linear light (IEC 61966-2-1).
+
+    Parameters
+    ----------
+    x : array_like
+        Encoded values, nominally in ``[0, 1]``.  Values outside are extended
+        symmetrically (``f(-v) = -f(v)``) and by the power segment above 1.
+
+    Returns
+    -------
+    numpy.ndarray
+        Linear values, same shape; float dtype of the input is kept (integers
+        become float64).
+    """
+    a = _as_float(x)
+    v = np.abs(a)
+    lin = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    return np.copysign(lin, a).astype(a.dtype, copy=False)
+
+
+def linear_to_srgb(x: np.ndarray | float) -> np.ndarray:
+    """Encode linear light with the sRGB curve (inverse of :func:`srgb_to_linear`).
+
+    Parameters
+    ----------
+    x : array_like
+        Linear values, nominally in ``[0, 1]``.
+
+    Returns
+    -------
+    numpy.ndarray
+        sRGB-encoded values, same shape and float dtype rules as :func:`srgb_to_linear`.
+    """
+    a = _as_float(x)
+    v = np.abs(a)
+    enc = np.where(v <= 0.0031308, v * 12.92, 1.055 * v ** (1.0 / 2.4) - 0.055)
+    return np.copysign(enc, a).astype(a.dtype, copy=False)
+
+
+def _gamma_to_linear(x: np.ndarray, gamma: float) -> np.ndarray:
+    a = _as_float(x)
+    return np.copysign(np.abs(a) ** gamma, a).astype(a.dtype, copy=False)
+
+
+_GAMMA_RE = re.compile(r"^gamma\s*([0-9]*\.?[0-9]+)$")
+
+
+def _parse_transfer(transfer: str, *, allow_auto: bool) -> str:
+    """Normalise a user transfer name; ``'gamma2.2'`` style names are accepted.
+
+    Raises
+    ------
+    InvalidImageError
+        Not a string, or not a known curve (a ``ValueError`` too).
+    """
+    if not isinstance(transfer, str):
+        raise InvalidImageError(f"transfer must be a string, got {transfer!r}")
+    t = transfer.strip().lower()
+    if t in ("linear", "srgb") or (allow_auto and t == "auto"):
+        return t
+    m = _GAMMA_RE.match(t)
+    if m and float(m.group(1)) > 0:
+        return _gamma_name(float(m.group(1)))
+    allowed = "'auto', 'linear', 'srgb' or 'gamma<g>'" if allow_auto else "'linear' or 'srgb'"
+    raise InvalidImageError(f"unknown transfer {transfer!r}: expected {allowed}")
+
+
+def _gamma_name(g: float) -> str:
+    if abs(g - 1.0) < 1e-3:
+        return "linear"
+    return f"gamma{g:.4g}"
+
+
+def _decoder(transfer: str) -> Callable[[np.ndarray], np.ndarray]:
+    if transfer == "linear":
+        return lambda v: _as_float(v)
+    if transfer == "srgb":
+        return srgb_to_linear
+    g = float(transfer[len("gamma"):])
+    return lambda v: _gamma_to_linear(v, g)
+
+
+@functools.lru_cache(maxsize=16)
+def _decode_lut(transfer: str, levels: int) -> np.ndarray:
+    # Computed in float64 so 8/16-bit codes decode exactly (to float32 rounding).
+    codes = np.arange(levels, dtype=np.float64) / (levels - 1)
+    lut = _decoder(transfer)(codes).astype(np.float32)
+    lut.setflags(write=False)
+    return lut
+
+
+def _auto_transfer(is_float: bool, colorspace: str | None, gamma: float, description: str) -> str:
+    """Decide the transfer curve from file metadata (rules in the module docstring)."""
+    if is_float:
+        if colorspace and not _is_linear_name(colorspace.lower()):
+            logger.warning(
+                "float image declares colour space %r; float data is treated as linear",
+                colorspace,
+            )
+        return "linear"
+    if LINEAR_TIFF_MARKER in description:
+        return "linear"
+    cs = (colorspace or "").strip().lower()
+    if not cs:
+        return _gamma_name(gamma) if gamma > 0 else "srgb"
+    if _is_linear_name(cs):
+        return "linear"
+    if cs.startswith("srgb") or cs == "rec709":  # OIIO maps legacy "Rec709" to sRGB too
+        return "srgb"
+    if gamma > 0:
+        return _gamma_name(gamma)
+    m = re.match(r"^g(\d)(\d)_", cs) or re.match(r"^gamma\s*([0-9])\.?([0-9]*)", cs)
+    if m:
+        return _gamma_name(float(f"{m.group(1)}.{m.group(2) or 0}"))
+    logger.warning("unknown colour space %r on an integer image; assuming sRGB", colorspace)
+    return "srgb"
+
+
+def _is_linear_name(cs: str) -> bool:
+    return cs.startswith("lin") or "linear" in cs or cs.startswith("aces") or cs == "raw"
+
+
+# --------------------------------------------------------------------------- #
+# Reading
+# --------------------------------------------------------------------------- #
+
+
+def _q(path: str) -> str:
+    # repr() keeps messages on one line even for names containing newlines.
+    return repr(path)
+
+
+def _fspath(path: PathLike, error: type[Exception] = ImageReadError) -> str:
+    """``path`` as a str; anything that is not a path raises ``error`` (a typed error)."""
+    try:
+        p = os.fspath(path)
+    except TypeError:
+        verb = "read image" if issubclass(error, ImageReadError) else "write"
+        raise error(f"cannot {verb}: path must be a str, bytes or os.PathLike, "
+                    f"got {type(path).__name__}") from None
+    return os.fsdecode(p) if isinstance(p, bytes) else p
+
+
+def _unencodable(path: str) -> bool:
+    # Names that are not valid UTF-8 on disk (surrogate-escaped by Python) cannot
+    # be passed to OpenImageIO, whose binding only takes UTF-8 strings.
+    try:
+        path.encode("utf-8")
+    except UnicodeEncodeError:
+        return True
+    return False
+
+
+def _check_regular_file(path: str) -> int:
+    """Stat ``path``; return its size or raise a typed error."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise ImageReadError(f"cannot read image {_q(path)}: file not found") from None
+    except PermissionError:
+        raise ImageReadError(f"cannot read image {_q(path)}: permission denied") from None
+    except (OSError, ValueError) as exc:  # ValueError: embedded NUL byte
+        raise ImageReadError(f"cannot read image {_q(path)}: {exc}") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise ImageReadError(f"cannot read image {_q(path)}: is a directory")
+    if not stat.S_ISREG(st.st_mode):
+        # FIFOs/devices would block or stream forever.
+        raise ImageReadError(f"cannot read image {_q(path)}: not a regular file")
+    if st.st_size == 0:
+        raise ImageReadError(f"cannot read image {_q(path)}: file is empty (0 bytes)")
+    if _unencodable(path):
+        raise ImageReadError(f"cannot read image {_q(path)}: file name is not valid UTF-8; rename the file")
+    return st.st_size
+
+
+def _read_head(path: str, n: int = 64) -> bytes:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(n)
+    except OSError as exc:
+        raise ImageReadError(f"cannot read image {_q(path)}: {exc.strerror or exc}") from None
+
+
+def _sniff(head: bytes) -> str | None:
+    for offset, magic, kind in _MAGIC:
+        if head[offset : offset + len(magic)] == magic:
+            return kind
+    return None
+
+
+class _RawUnsupported(Exception):
+    """LibRaw does not recognise the file (internal: lets the caller try OpenImageIO)."""
+
+
+def memory_budget() -> int:
+    """The memory budget of one decoded image in bytes: ``$VIGPROC_MEMORY_BUDGET``
+    (``2G``, ``1500M``, ``800MiB``, ``3000000000``) or :data:`DEFAULT_MEMORY_BUDGET`.
+
+    Raises
+    ------
+    InvalidImageError
+        The variable is set but is not a positive size.
+    """
+    text = os.environ.get(MEMORY_BUDGET_ENV, "").strip()
+    if not text:
+        return DEFAULT_MEMORY_BUDGET
+    m = re.fullmatch(r"(\d+(?:\.\d*)?)\s*([kmgt]?)(?:i?b)?", text.lower())
+    value = float(m.group(1)) * _SIZE_UNITS[m.group(2)] if m else 0.0
+    if not value >= 1:
+        raise InvalidImageError(f"{MEMORY_BUDGET_ENV}={text!r} is not a memory size (e.g. 2G, 1500M or bytes)")
+    return int(value)
+
+
+def _check_budget(path: str, width: int, height: int, channels: int, budget: int) -> None:
+    """Refuse, from the header alone, an image whose decoded float32 pixels exceed ``budget``."""
+    need = width * height * channels * 4
+    if need > budget:
+        raise MemoryBudgetError(
+            f"cannot read image {_q(path)}: its {width}x{height}x{channels} pixels need {need / 2**30:.2f} GiB "
+            f"as float32, over the memory budget of {budget / 2**30:.2f} GiB ({MEMORY_BUDGET_ENV}); "
+            "refused before decoding (possible decompression bomb)")
+
+
+def read_image(
+    path: PathLike,
+    *,
+    transfer: str = "auto",
+    raw_half_size: bool = False,
+    max_pixels: int = 200_000_000,
+    max_bytes: int | None = None,
+) -> tuple[np.ndarray, ImageInfo]:
+    """Read an image as float32 linear light.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Image file (JPEG, PNG, TIFF, OpenEXR or a camera RAW LibRaw decodes).
+        The format is decided by content; the extension only decides whether
+        LibRaw is tried first.  The file is never modified.
+    transfer : {'auto', 'linear', 'srgb', 'gamma<g>'}
+        Transfer curve to invert.  ``'auto'`` follows the file's metadata (see the
+        module docstring); the others force a curve for OpenImageIO formats.
+        RAW files are always developed linearly and ignore this argument.
+    raw_half_size : bool
+        Develop RAW files at half resolution (each 2x2 Bayer block -> one pixel,
+        no demosaicing).  Ignored for other formats.
+    max_pixels : int
+        Refuse images with more than this many pixels (width * height) before any
+        pixel is decoded, to defuse decompression bombs.  Must be positive.
+    max_bytes : int, optional
+        Memory budget: refuse, from the header and before any pixel is decoded,
+        an image whose float32 result (width * height * channels * 4 bytes) would
+        be larger.  Default :func:`memory_budget` (``$VIGPROC_MEMORY_BUDGET``, else
+        :data:`DEFAULT_MEMORY_BUDGET`, 2 GiB).
+
+    Returns
+    -------
+    pixels : numpy.ndarray
+        ``float32``, ``HxW`` for single-channel images, ``HxWx3`` for colour
+        (alpha and extra channels dropped).  Integer formats and RAW are nominally
+        in ``[0, 1]``; float formats are returned as stored.
+    info : ImageInfo
+        What was read and how it was decoded.
+
+    Raises
+    ------
+    ImageReadError
+        Missing, unreadable, empty, truncated or corrupt file, or ``path`` is not a path.
+    UnsupportedFormatError
+        Content is not a supported image format (or a RAW LibRaw cannot decode).
+    InvalidImageError
+        Zero or absurd dimensions, or no usable channels; also an unknown
+        ``transfer`` name or a ``max_pixels`` that is not a positive number (this
+        error is a ``ValueError`` too).
+    MemoryBudgetError
+        The decoded image would exceed the memory budget (an ``InvalidImageError``).
+    """
+    fspath = _fspath(path)
+    want = _parse_transfer(transfer, allow_auto=True)
+    # bool is an int, but max_pixels=True would refuse every image; NaN fails "> 0".
+    budget = memory_budget() if max_bytes is None else max_bytes
+    for name, v in (("max_pixels", max_pixels), ("max_bytes", budget)):
+        if not isinstance(v, numbers.Real) or isinstance(v, bool) or not v > 0:
+            raise InvalidImageError(f"{name} must be a positive integer, got {v!r}")
+    budget = int(budget)
+    size = _check_regular_file(fspath)
+    head = _read_head(fspath)
+    kind = _sniff(head)
+    ext = os.path.splitext(fspath)[1].lower()
+
+    raw_first = ext in RAW_EXTENSIONS and kind not in _NON_RAW_KINDS
+    raw_note = ""
+    if raw_first:
+        try:
+            return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget)
+        except _RawUnsupported as exc:
+            raw_note = str(exc)
+            logger.debug("%s: LibRaw does not recognise it (%s); trying OpenImageIO", fspath, exc)
+
+    inp, err = _oiio_open(fspath)
+    if inp is None:
+        if err and (("exceeds the" in err and "limit" in err) or "claimed to be" in err):
+            raise InvalidImageError(
+                f"cannot read image {_q(fspath)}: declared size is absurd "
+                f"(possible decompression bomb): {_one_line(err)}"
+            )
+        if kind in SUPPORTED_OIIO_FORMATS:
+            raise ImageReadError(
+                f"cannot read image {_q(fspath)}: corrupt or truncated {kind.upper()} file: "
+                f"{_one_line(err)}"
+            )
+        if not raw_first and kind is None:
+            try:
+                # Content unknown and the name does not claim RAW: any LibRaw
+                # failure to open means "not a RAW", not "broken RAW".
+                return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget, probing=True)
+            except _RawUnsupported as exc:
+                raw_note = str(exc)
+        if kind is not None:
+            raise UnsupportedFormatError(
+                f"cannot read image {_q(fspath)}: {kind} files are not supported "
+                "(JPEG, PNG, TIFF, OpenEXR and camera RAW are)"
+            )
+        start = head[:8]
+        raise UnsupportedFormatError(
+            f"cannot read image {_q(fspath)}: content is not a recognised image format "
+            f"(JPEG, PNG, TIFF, OpenEXR or camera RAW; file starts with {start!r})"
+            + (f"; OpenImageIO: {_one_line(err)}" if err else "")
+        )
+
+    try:
+        spec = inp.spec()
+        if raw_first and kind == "tiff" and _tiff_has_subifds(fspath):
+            # named as a camera RAW, laid out like one (the sensor data in a SubIFD), and
+            # LibRaw cannot decode it: OpenImageIO would read its embedded preview, not the
+            # photograph (a plain TIFF merely named .nef has no SubIFDs and is read)
+            raise UnsupportedFormatError(
+                f"cannot read image {_q(fspath)}: camera RAW that LibRaw cannot decode"
+                + (f" ({raw_note})" if raw_note else "")
+                + "; its embedded preview is not used (rename the file if it is a plain TIFF)"
+            )
+        if kind == "tiff" and _tiff_looks_raw(head, spec):
+            # OIIO would read IFD0 (usually a thumbnail, or the undemosaiced CFA).
+            inp.close()
+            inp = None
+            if raw_first:
+                raise UnsupportedFormatError(
+                    f"cannot read image {_q(fspath)}: camera RAW that LibRaw cannot decode"
+                    + (f" ({raw_note})" if raw_note else "")
+                )
+            try:
+                return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget)
+            except _RawUnsupported as exc:
+                raise UnsupportedFormatError(
+                    f"cannot read image {_q(fspath)}: looks like a TIFF-based camera RAW "
+                    f"but LibRaw cannot decode it ({exc})"
+                ) from None
+        return _read_oiio(inp, fspath, want, max_pixels, budget)
+    finally:
+        if inp is not None:
+            inp.close()
+
+
+def _one_line(msg: str | None) -> str:
+    return " / ".join(s.strip() for s in (msg or "unknown error").splitlines() if s.strip())
+
+
+def _oiio_open(path: str) -> tuple[oiio.ImageInput | None, str]:
+    oiio.geterror()  # clear stale global errors so the message is about this file
+    config = oiio.ImageSpec()
+    # Keep colour values as stored; OIIO would otherwise premultiply by alpha.
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    try:
+        inp = oiio.ImageInput.open(path, config)
+    except Exception as exc:  # binding-level failures (e.g. unencodable path)
+        return None, f"{type(exc).__name__}: {exc}"
+    if inp is None:
+        return None, oiio.geterror()
+    return inp, ""
+
+
+def _tiff_has_subifds(path: str, limit: int = 1 << 16) -> bool:
+    """Whether a TIFF's first IFD has a SubIFDs tag (330): the layout of NEF, ARW, PEF,
+    DNG... whose IFD0 is a preview and whose sensor data lives in a SubIFD."""
+    import struct
+
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(limit)
+        order = {b"II": "<", b"MM": ">"}.get(data[:2])
+        if order is None:
+            return False
+        (ifd,) = struct.unpack_from(order + "I", data, 4)
+        (n,) = struct.unpack_from(order + "H", data, ifd)
+        for i in range(min(n, 4096)):
+            (tag,) = struct.unpack_from(order + "H", data, ifd + 2 + 12 * i)
+            if tag == 330:
+                return True
+    except (OSError, struct.error):
+        return False
+    return False
+
+
+def _tiff_looks_raw(head: bytes, spec: oiio.ImageSpec) -> bool:
+    """Whether a TIFF-structured file is really a camera RAW (DNG, CR2, NEF, KDC...)."""
+    if head[8:10] == b"CR":  # Canon CR2 signature after the TIFF header
+        return True
+    photometric = spec.get_int_attribute("tiff:PhotometricInterpretation", -1)
+    if photometric in (32803, 34892):  # CFA, LinearRaw (DNG)
+        return True
+    # NewSubfileType bit 0 on the first IFD: it is a reduced-resolution preview,
+    # the real image lives in a SubIFD -- the layout of DNG/NEF/KDC/ARW...
+    return bool(spec.get_int_attribute("tiff:subfiletype", 0) & 1)
+
+
+def _select_channels(spec: oiio.ImageSpec, path: str) -> list[int]:
+    """The channels to read: [R, G, B], or [grey].
+
+    Alpha and depth are dropped. Two colour-like channels are grey plus an extra
+    sample only when the file says it is grey (TIFF photometric min-is-black/white,
+    the usual grey + alpha without an alpha tag); otherwise they are neither grey nor
+    RGB and the file is refused rather than silently read as its first channel.
+    """
+    names = [str(n) for n in spec.channelnames]
+    upper = [n.upper() for n in names]
+    alpha = spec.alpha_channel
+    if all(c in upper for c in ("R", "G", "B")):
+        return [upper.index("R"), upper.index("G"), upper.index("B")]
+    if "Y" in upper:
+        return [upper.index("Y")]
+    usable = [i for i in range(spec.nchannels) if i != alpha and upper[i] not in ("A", "Z")]
+    if len(usable) >= 3:
+        if len(usable) > 3:
+            logger.warning("%s: reading channels %s as RGB and ignoring %s", path,
+                           [names[i] for i in usable[:3]], [names[i] for i in usable[3:]])
+        return usable[:3]
+    if len(usable) == 2:
+        if spec.get_int_attribute("tiff:PhotometricInterpretation", -1) in (0, 1):
+            logger.info("%s: grey TIFF with an extra sample; reading the grey channel", path)
+            return usable[:1]
+        raise UnsupportedFormatError(
+            f"cannot read image {_q(path)}: two colour channels {[names[i] for i in usable]} "
+            "are neither grey nor RGB"
+        )
+    return usable[:1]
+
+
+def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
+               budget: int = DEFAULT_MEMORY_BUDGET) -> tuple[np.ndarray, ImageInfo]:
+    fmt = inp.format_name()
+    spec = inp.spec()
+    if fmt not in SUPPORTED_OIIO_FORMATS:
+        raise UnsupportedFormatError(
+            f"cannot read image {_q(path)}: {fmt} files are not supported "
+            "(JPEG, PNG, TIFF, OpenEXR and camera RAW are)"
+        )
+    if spec.deep:
+        raise UnsupportedFormatError(f"cannot read image {_q(path)}: deep images are not supported")
+    w, h, d = int(spec.width), int(spec.height), int(spec.depth)
+    if w <= 0 or h <= 0 or d <= 0:
+        raise InvalidImageError(f"cannot read image {_q(path)}: zero dimension ({w}x{h})")
+    if d > 1:
+        raise UnsupportedFormatError(f"cannot read image {_q(path)}: volume images (depth {d}) are not supported")
+    # Checked on the header only: no pixel has been decoded yet.
+    if w * h > max_pixels:
+        raise InvalidImageError(
+            f"cannot read image {_q(path)}: declared size {w}x{h} = {w * h} pixels exceeds "
+            f"the limit of {max_pixels} pixels (possible decompression bomb)"
+        )
+    chans = _select_channels(spec, path)
+    if not chans:
+        raise InvalidImageError(f"cannot read image {_q(path)}: no colour channel (channels {list(spec.channelnames)})")
+    _check_budget(path, w, h, len(chans), budget)
+
+    stored = str(spec.format)
+    is_float = stored in _FLOAT_FORMATS
+    colorspace = spec.get_string_attribute("oiio:ColorSpace", "") or None
+    gamma = float(spec.get_float_attribute("oiio:Gamma", 0.0))
+    description = spec.get_string_attribute("ImageDescription", "")
+    tr = _auto_transfer(is_float, colorspace, gamma, description) if want == "auto" else want
+
+    # 8/16-bit are read as integers and decoded through an exact float64 LUT.
+    read_as = stored if stored in ("uint8", "uint16") else "float"
+    try:
+        data = inp.read_image(0, 0, 0, spec.nchannels, read_as)
+    except Exception as exc:  # binding-level failure (e.g. MemoryError)
+        raise ImageReadError(f"cannot read image {_q(path)}: {type(exc).__name__}: {exc}") from None
+    err = inp.geterror()
+    if data is None:
+        raise ImageReadError(f"cannot read image {_q(path)}: corrupt or truncated {fmt.upper()} file: {_one_line(err)}")
+    if err:
+        if re.search(r"extraneous bytes before marker", err) and "Premature" not in err:
+            # libjpeg skipped garbage between markers; the scan decoded completely.
+            logger.warning("%s: %s", path, _one_line(err))
+        else:
+            raise ImageReadError(
+                f"cannot read image {_q(path)}: corrupt or truncated {fmt.upper()} file: {_one_line(err)}"
+            )
+    data = np.asarray(data).reshape(h, w, spec.nchannels)
+    if len(chans) == 1:
+        data = data[..., chans[0]]
+    elif chans != list(range(spec.nchannels)):  # avoid a copy for plain RGB
+        data = data[..., chans]
+
+    if read_as in ("uint8", "uint16"):
+        levels = 256 if read_as == "uint8" else 65536
+        pixels = _decode_lut(tr, levels)[data]
+    else:
+        pixels = np.ascontiguousarray(data, dtype=np.float32)
+        if tr != "linear":
+            pixels = _decoder(tr)(pixels).astype(np.float32, copy=False)
+    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
+
+    info = ImageInfo(
+        path=path,
+        format=fmt,
+        width=w,
+        height=h,
+        channels=1 if pixels.ndim == 2 else int(pixels.shape[2]),
+        bit_depth=stored,
+        transfer=tr,
+        colorspace=colorspace,
+    )
+    logger.debug("read %s: %s", path, info)
+    return pixels, info
+
+
+#: One capture of the C-level stderr at a time (it is the process's, not a thread's).
+_STDERR_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _c_stderr_into(lines: list[str]):
+    """Capture what C code writes to file descriptor 2 meanwhile into ``lines``.
+
+    LibRaw prints some complaints (``FILE: Unexpected end of file``) straight to the C
+    stderr, which would break a one-JSON-object-per-line log and say things twice; the
+    caller routes them through logging or into its error instead.
+    """
+    with _STDERR_LOCK:
+        try:
+            saved = os.dup(2)
+        except OSError:  # no stderr at all: nothing to capture
+            yield
+            return
+        try:
+            with tempfile.TemporaryFile() as tmp:
+                os.dup2(tmp.fileno(), 2)
+                try:
+                    yield
+                finally:
+                    os.dup2(saved, 2)
+                    tmp.seek(0)
+                    text = tmp.read(1 << 16).decode("utf-8", "replace")
+                    for line in text.splitlines():
+                        line = " ".join(line.split())
+                        if line and line not in lines:
+                            lines.append(line)
+        finally:
+            os.close(saved)
+
+
+def _read_raw(path: str, *args, **kwargs) -> tuple[np.ndarray, ImageInfo]:
+    """Develop a RAW linearly with LibRaw (:func:`_read_raw_libraw`); LibRaw's own
+    messages go into the error when it fails and to the log (info) when it does not."""
+    said: list[str] = []
+    try:
+        with _c_stderr_into(said):
+            return _read_raw_libraw(path, *args, **kwargs)
+    except (ImageReadError, InvalidImageError) as exc:
+        if not said:
+            raise
+        shown = "; ".join(s.replace(path, "").strip(": ") or s for s in said)[:300]
+        err = type(exc)(f"{exc} (LibRaw said: {shown})")
+        err.__dict__.update(exc.__dict__)
+        raise err from None
+    finally:
+        if said:
+            logger.info("%s: LibRaw said: %s", path, "; ".join(said)[:500])
+
+
+def _read_raw_libraw(
+    path: str, size: int, want: str, half_size: bool, max_pixels: int, budget: int = DEFAULT_MEMORY_BUDGET, *,
+    probing: bool = False
+) -> tuple[np.ndarray, ImageInfo]:
+    """Develop a RAW linearly with LibRaw.
+
+    Raises ``_RawUnsupported`` if LibRaw does not recognise the file (with
+    ``probing=True``: if LibRaw fails to open it for any reason).
+    """
+    if rawpy is None:  # pragma: no cover
+        raise _RawUnsupported("rawpy is not installed")
+    if want != "linear" and want != "auto":
+        logger.warning("%s: transfer=%r ignored for RAW files (always developed linearly)", path, want)
+    try:
+        raw = rawpy.imread(path)
+    except rawpy.LibRawFileUnsupportedError as exc:
+        raise _RawUnsupported(_libraw_msg(exc)) from None
+    except (rawpy.LibRawError, OSError, ValueError, UnicodeError) as exc:
+        if probing:
+            raise _RawUnsupported(_libraw_msg(exc)) from None
+        if isinstance(exc, rawpy.LibRawTooBigError):
+            raise InvalidImageError(
+                f"cannot read image {_q(path)}: RAW dimensions are absurd ({_libraw_msg(exc)})"
+            ) from None
+        raise ImageReadError(f"cannot read image {_q(path)}: RAW file is truncated or corrupt ({_libraw_msg(exc)})") from None
+    try:
+        sizes = raw.sizes
+        rw, rh = int(sizes.raw_width), int(sizes.raw_height)
+        if rw <= 0 or rh <= 0 or sizes.width <= 0 or sizes.height <= 0:
+            raise InvalidImageError(f"cannot read image {_q(path)}: RAW has zero dimension ({rw}x{rh})")
+        if rw * rh > max_pixels:
+            raise InvalidImageError(
+                f"cannot read image {_q(path)}: RAW sensor size {rw}x{rh} exceeds the limit of "
+                f"{max_pixels} pixels"
+            )
+        if size * 8 < _RAW_MIN_BITS_PER_PIXEL * rw * rh:
+            raise ImageReadError(
+                f"cannot read image {_q(path)}: RAW file is truncated or its image data was stripped "
+                f"({size} bytes for a {rw}x{rh} sensor)"
+            )
+        ow, oh = int(sizes.width), int(sizes.height)  # the developed frame (user_flip=0: not rotated)
+        if half_size:
+            ow, oh = (ow + 1) // 2, (oh + 1) // 2
+        _check_budget(path, ow, oh, 3, budget)
+        rgb = raw.postprocess(
+            gamma=(1.0, 1.0),  # linear output
+            no_auto_bright=True,  # no data-dependent exposure scaling
+            adjust_maximum_thr=0.0,  # keep the white level fixed (default lowers it per image)
+            use_camera_wb=True,
+            output_bps=16,
+            half_size=half_size,
+            # 0 = never rotate: sensor order, as OIIO does (it ignores EXIF Orientation).
+            user_flip=0,
+        )
+    except (InvalidImageError, ImageReadError):
+        raise
+    except rawpy.LibRawTooBigError as exc:
+        raise InvalidImageError(f"cannot read image {_q(path)}: RAW dimensions are absurd ({_libraw_msg(exc)})") from None
+    except (rawpy.LibRawError, OSError, ValueError, MemoryError) as exc:
+        raise ImageReadError(f"cannot read image {_q(path)}: RAW decoding failed ({_libraw_msg(exc)})") from None
+    finally:
+        raw.close()
+
+    pixels = np.asarray(rgb, dtype=np.float32)
+    pixels *= np.float32(1.0 / 65535.0)
+    if pixels.ndim == 3 and pixels.shape[2] == 1:
+        pixels = pixels[..., 0]
+    h, w = pixels.shape[:2]
+    info = ImageInfo(
+        path=path,
+        format="raw",
+        width=int(w),
+        height=int(h),
+        channels=1 if pixels.ndim == 2 else int(pixels.shape[2]),
+        bit_depth="uint16",
+        transfer="linear",
+        colorspace=None,
+    )
+    logger.debug("read RAW %s: %s", path, info)
+    return pixels, info
+
+
+def _libraw_msg(exc: BaseException) -> str:
+    msg = exc.args[0] if exc.args else exc
+    if isinstance(msg, bytes):
+        msg = msg.decode("utf-8", "replace")
+    return f"{type(exc).__name__}: {msg}"
+
+
+# --------------------------------------------------------------------------- #
+# Writing
+# --------------------------------------------------------------------------- #
+
+#: The writers' formats, by file extension and by name (one table for io and metadata).
+WRITE_EXT_FORMAT = {".tif": "tiff", ".tiff": "tiff", ".png": "png", ".exr": "openexr", ".jpg": "jpeg",
+                    ".jpeg": "jpeg"}
+WRITE_FORMAT_ALIASES = {"tif": "tiff", "tiff": "tiff", "png": "png", "exr": "openexr", "openexr": "openexr",
+                        "jpg": "jpeg", "jpeg": "jpeg"}
+WRITE_FORMAT_EXT = {"tiff": ".tif", "png": ".png", "openexr": ".exr", "jpeg": ".jpg"}
+_EXT_FORMAT, _FORMAT_ALIASES, _FORMAT_EXT = WRITE_EXT_FORMAT, WRITE_FORMAT_ALIASES, WRITE_FORMAT_EXT
+_FORMAT_DEPTHS = {
+    "tiff": ("uint16", "uint8", "float"),
+    "png": ("uint16", "uint8"),
+    "openexr": ("half", "float"),
+    "jpeg": ("uint8",),
+}
+#: JPEG quality when the source's cannot be read (:func:`jpeg_quality`).
+DEFAULT_JPEG_QUALITY = 95
+
+# IJG's (libjpeg's) luminance quantisation table at quality 50 (ITU-T T.81, Annex K.1),
+# in zig-zag order as a DQT segment stores it.
+_IJG_LUMA_ZIGZAG = (
+    16, 11, 12, 14, 12, 10, 16, 14, 13, 14, 18, 17, 16, 19, 24, 40, 26, 24, 22, 22, 24, 49, 35, 37,
+    29, 40, 58, 51, 61, 60, 57, 51, 56, 55, 64, 72, 92, 78, 64, 68, 87, 69, 55, 56, 80, 109, 81, 87,
+    95, 98, 103, 104, 103, 62, 77, 113, 121, 112, 100, 120, 92, 101, 103, 99,
+)
+
+
+def jpeg_quality(path: PathLike, max_bytes: int = 1 << 20) -> int | None:
+    """The IJG quality (1–100) whose luminance table is closest to the JPEG's own.
+
+    Reads the first DQT segment's table 0 (the first ``max_bytes`` bytes at most) and
+    compares it with IJG's standard table scaled to every quality (libjpeg's
+    ``jpeg_quality_scaling``). Encoders with their own tables (cameras) get the
+    closest IJG quality.
+
+    Returns
+    -------
+    int or None
+        None when the file is not a JPEG or its table cannot be found.
+    """
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(max_bytes)
+    except (OSError, TypeError, ValueError):
+        return None
+    if not data.startswith(b"\xff\xd8"):
+        return None
+    i = 2
+    table = None
+    while i + 4 <= len(data) and data[i] == 0xFF:
+        marker = data[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        size = int.from_bytes(data[i + 2:i + 4], "big")
+        if marker == 0xDB:  # DQT: [Pq/Tq][64 or 128 bytes]...
+            seg = data[i + 4:i + 2 + size]
+            j = 0
+            while j < len(seg):
+                pq, tq = seg[j] >> 4, seg[j] & 15
+                n = 128 if pq else 64
+                vals = seg[j + 1:j + 1 + n]
+                if len(vals) < n:
+                    break
+                if tq == 0:
+                    table = ([int.from_bytes(vals[k:k + 2], "big") for k in range(0, n, 2)] if pq
+                             else list(vals))
+                    break
+                j += 1 + n
+            if table is not None:
+                break
+        if marker == 0xDA:  # start of scan: no table before it
+            break
+        i += 2 + size
+    if table is None or len(table) != 64:
+        return None
+    q_table = np.asarray(table, dtype=np.float64)
+    base = np.asarray(_IJG_LUMA_ZIGZAG, dtype=np.float64)
+    best, best_err = None, math.inf
+    for q in range(1, 101):
+        scale = 5000.0 / q if q < 50 else 200.0 - 2.0 * q
+        ref = np.clip(np.floor((base * scale + 50.0) / 100.0), 1, 255)
+        err = float(np.sum(np.abs(np.log(ref) - np.log(np.maximum(q_table, 1)))))
+        if err < best_err:
+            best, best_err = q, err
+    return best
+
+
+#: Largest finite value of each float bit depth (IEEE half and single precision).
+FLOAT_MAX = {"half": 65504.0, "float": float(np.finfo(np.float32).max)}
+
+
+def write_image(
+    path: PathLike,
+    img: np.ndarray,
+    *,
+    format: str | None = None,
+    bit_depth: str | None = None,
+    transfer: str = "linear",
+    quality: int | None = None,
+) -> None:
+    """Write a linear image atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination.  Replaced atomically (temporary file in the same directory,
+        fsync, :func:`os.replace`); never left partially written.
+    img : numpy.ndarray
+        ``HxW``, ``HxWx1`` or ``HxWx3`` linear values (any real dtype), finite.
+        Integer outputs clip to ``[0, 1]`` (with a warning when more than 1 % of the
+        values are above 1, the sign of integer codes passed instead of ``[0, 1]``
+        floats); float outputs are written as given and must fit the format
+        (``|v| <= 65504`` for half, float32's range for float).
+    format : {'tiff', 'png', 'openexr', 'jpeg'}, optional
+        Defaults to the extension (``.tif``/``.tiff``, ``.png``, ``.exr``,
+        ``.jpg``/``.jpeg``).
+    bit_depth : {'uint8', 'uint16', 'half', 'float'}, optional
+        Defaults to ``'uint16'`` for TIFF/PNG, ``'half'`` for EXR and ``'uint8'`` for
+        JPEG.  TIFF takes uint8/uint16/float, PNG uint8/uint16, EXR half/float, JPEG
+        uint8.
+    transfer : {'linear', 'srgb'}
+        Encoding of the stored values; ``'srgb'`` is for integer depths only, and
+        JPEG takes only ``'srgb'`` (8 bits cannot hold linear shadows).  The file is
+        tagged so that :func:`read_image` decodes it back to ``img``.
+    quality : int, optional
+        JPEG quality 1–100 (default :data:`DEFAULT_JPEG_QUALITY`); other formats
+        refuse it.
+
+    Raises
+    ------
+    InvalidImageError
+        ``img`` has an unusable shape or dtype, or NaN/Inf.
+    ImageWriteError
+        ``path`` is not a path, bad format/depth/transfer combination, values
+        beyond the range of a float output, or any I/O failure.  Nothing is
+        created on disk when the arguments or the values are refused.
+    """
+    fspath = _fspath(path, ImageWriteError)
+    q = _q(fspath)
+    if _unencodable(fspath):
+        raise ImageWriteError(f"cannot write {q}: file name is not valid UTF-8")
+    ext = os.path.splitext(fspath)[1].lower()
+    if format is None:
+        fmt = _EXT_FORMAT.get(ext)
+        if fmt is None:
+            raise ImageWriteError(f"cannot write {q}: unknown extension {ext!r} (use .tif, .png, .exr or .jpg, "
+                                  "or pass format=)")
+    else:
+        fmt = _FORMAT_ALIASES.get(str(format).lower())
+        if fmt is None:
+            raise ImageWriteError(f"cannot write {q}: unsupported format {format!r} (tiff, png, openexr, jpeg)")
+    depth = bit_depth or _FORMAT_DEPTHS[fmt][0]
+    if depth not in _FORMAT_DEPTHS[fmt]:
+        raise ImageWriteError(f"cannot write {q}: {fmt} does not take bit_depth={depth!r} (allowed: {_FORMAT_DEPTHS[fmt]})")
+    try:
+        tr = _parse_transfer(transfer, allow_auto=False)
+    except ValueError as exc:
+        raise ImageWriteError(f"cannot write {q}: {exc}") from None
+    if tr not in ("linear", "srgb"):  # no portable tag to read a pure gamma back
+        raise ImageWriteError(f"cannot write {q}: transfer must be 'linear' or 'srgb', got {transfer!r}")
+    is_int = depth in ("uint8", "uint16")
+    if tr == "srgb" and not is_int:
+        raise ImageWriteError(f"cannot write {q}: transfer='srgb' needs an integer bit_depth (float data is linear)")
+    if fmt == "jpeg" and tr != "srgb":
+        raise ImageWriteError(f"cannot write {q}: JPEG stores sRGB-encoded values (pass transfer='srgb')")
+    if quality is not None and (fmt != "jpeg" or isinstance(quality, bool) or not isinstance(quality, (int, np.integer))
+                                or not 1 <= int(quality) <= 100):
+        raise ImageWriteError(f"cannot write {q}: quality must be an integer 1-100 and is for JPEG only, "
+                              f"got {quality!r}")
+
+    arr = np.asarray(img)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[..., 0]
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3) or arr.size == 0:
+        raise InvalidImageError(f"cannot write {q}: image must be HxW or HxWx3 and non-empty, got shape {arr.shape}")
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer) or arr.dtype == bool):
+        raise InvalidImageError(f"cannot write {q}: unsupported array dtype {arr.dtype}")
+    h, w = arr.shape[:2]
+    nch = 1 if arr.ndim == 2 else 3
+    # NaN/Inf of the caller's own: checked before the float32 cast, whose overflow
+    # (float64 beyond 3.4e38) is reported below as out of range instead.  No mask:
+    # NaN propagates to both extremes and ±Inf shows in one of them.
+    if np.issubdtype(arr.dtype, np.floating) and not (np.isfinite(arr.max()) and np.isfinite(arr.min())):
+        raise InvalidImageError(f"cannot write {q}: the image holds NaN/Inf, which cannot be stored as {depth}")
+    with np.errstate(over="ignore"):  # overflow to Inf is detected right below
+        data = arr.astype(np.float32, copy=False)
+
+    if not is_int:
+        # OIIO would store out-of-range values as Inf without a word.
+        peak = max(float(data.max()), -float(data.min()))
+        limit = FLOAT_MAX[depth]
+        if not peak <= limit:
+            shown = "beyond 3.4e38" if np.isinf(peak) else f"{peak:.4g}"
+            wider = " (bit_depth='float' holds 3.4e38)" if depth == "half" else ""
+            raise ImageWriteError(
+                f"cannot write {q}: values reach {shown}, beyond the {limit:.4g} that {fmt} {depth} "
+                f"holds; they would be stored as Inf: scale the image down{wider}")
+    if is_int:
+        above = int(np.count_nonzero(data > 1.0))
+        if above > 0.01 * data.size:
+            # Integer outputs take [0, 1]; raw integer codes (0..65535) would turn white.
+            logger.warning(
+                "%s: %.1f %% of the values are above 1.0 (up to %.4g) and are clipped to white in %s; "
+                "integer outputs take linear values in [0, 1], not integer codes",
+                q, 100.0 * above / data.size, float(data.max()), depth)
+        if tr == "srgb":
+            data = linear_to_srgb(data)
+        top = 255.0 if depth == "uint8" else 65535.0
+        # Quantise here (round half up, clipped) rather than trusting OIIO's conversion.
+        data = np.floor(np.clip(data, 0.0, 1.0) * np.float32(top) + np.float32(0.5)).astype(depth)
+    # Always HxWxC: OIIO's Python binding takes a 2-D array as (width, height)
+    # or scanline-major depending on version, which silently transposes gray images.
+    data = np.ascontiguousarray(data.reshape(h, w, nch))
+
+    spec = oiio.ImageSpec(w, h, nch, depth)
+    spec.attribute("Software", "vigproc")
+    if fmt == "tiff":
+        spec.attribute("compression", "zip")
+        if tr == "srgb":
+            spec.attribute("oiio:ColorSpace", "srgb_rec709_scene")  # -> EXIF ColorSpace = sRGB
+        else:
+            # TIFF has no tag OIIO reads back as linear: use our marker; EXIF
+            # ColorSpace "uncalibrated" (also avoids a spurious libtiff EXIF error).
+            spec.attribute("ImageDescription", LINEAR_TIFF_MARKER)
+            spec.attribute("Exif:ColorSpace", 65535)
+            if nch == 3:
+                # what editors and viewers go by: without it they take the values for
+                # sRGB-encoded and show a linear frame far too dark
+                from vigproc.io.icc import linear_srgb_profile
+
+                icc = linear_srgb_profile()
+                spec.attribute("ICCProfile", oiio.TypeDesc(f"uint8[{len(icc)}]"), np.frombuffer(icc, dtype=np.uint8))
+    else:
+        spec.attribute("oiio:ColorSpace", "srgb_rec709_scene" if tr == "srgb" else "lin_rec709_scene")
+    if fmt == "jpeg":
+        spec.attribute("Compression", f"jpeg:{int(quality or DEFAULT_JPEG_QUALITY)}")
+
+    directory = os.path.dirname(os.path.abspath(fspath))
+    name = os.path.basename(fspath)
+    # Temp name keeps a format extension so OIIO picks the right writer; the
+    # basename is shortened so prefix+suffix stay within NAME_MAX.
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{name[:100]}.tmp-", suffix=_FORMAT_EXT[fmt], dir=directory)
+    except (OSError, ValueError) as exc:
+        raise ImageWriteError(f"cannot write {q}: cannot create a temporary file in {directory!r}: {exc}") from None
+    os.close(fd)
+    done = False
+    try:
+        _oiio_write(tmp, spec, data, q)
+        publish(tmp, fspath)
+        done = True
+    except ImageWriteError:
+        raise
+    except OSError as exc:
+        raise ImageWriteError(f"cannot write {q}: {exc.strerror or exc}") from None
+    finally:
+        if not done:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+    logger.debug("wrote %s (%s, %s, %s, %dx%dx%d)", fspath, fmt, depth, tr, w, h, nch)
+
+
+def _oiio_write(tmp: str, spec: oiio.ImageSpec, data: np.ndarray, q: str) -> None:
+    oiio.geterror()
+    out = oiio.ImageOutput.create(tmp)
+    if out is None:
+        raise ImageWriteError(f"cannot write {q}: {_one_line(oiio.geterror())}")
+    ok = False
+    try:
+        ok = bool(out.open(tmp, spec)) and bool(out.write_image(data))
+    except Exception as exc:  # binding-level failure
+        out.close()
+        raise ImageWriteError(f"cannot write {q}: {type(exc).__name__}: {exc}") from None
+    ok = bool(out.close()) and ok
+    err = out.geterror()
+    if not ok:
+        raise ImageWriteError(f"cannot write {q}: {_one_line(err or oiio.geterror())}")
+    if err:  # success with a message: libtiff chatter, keep it out of the user's way
+        logger.debug("%s: OpenImageIO reported while writing: %s", tmp, _one_line(err))

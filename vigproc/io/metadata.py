@@ -1,0 +1,795 @@
+"""Carry the source photo's metadata into a corrected output, plus a record of the correction.
+
+After vigproc writes a corrected image it copies the source file's metadata
+(camera, lens, exposure, dates, author, GPS, IPTC/XMP descriptions, maker notes)
+into it with the ``exiftool`` program, and adds what vigproc did as XMP in its
+own namespace.  :func:`write_corrected` does pixels and metadata on a temporary
+file and renames it into place only when both succeeded, so a crash never
+leaves an output without (or with half of) its metadata.
+
+What is preserved, per output format
+------------------------------------
+===========  ===============================================================
+output       metadata
+===========  ===============================================================
+TIFF, PNG    All writable EXIF/GPS/IPTC/XMP tags and maker notes of the
+             source (``exiftool -tagsFromFile SRC -all:all``), *minus* the
+             tags listed below; the record as XMP (``XMP-vigproc:*``).
+             PNG keeps EXIF in an ``eXIf`` chunk and XMP in ``iTXt``.
+OpenEXR      exiftool cannot write OpenEXR (it is read-only there), so the
+             file is rewritten with OpenImageIO header attributes instead:
+             the camera/lens/exposure fields of :data:`EXR_TAGS` (``Make``,
+             ``Model``, ``Exif:LensModel``, ``Exif:FocalLength``...; the
+             capture time also goes to ``DateTime``, which OpenEXR stores as
+             its standard ``capDate``) and the record as ``vigproc:*``
+             attributes.  No GPS, IPTC, XMP or maker notes.
+===========  ===============================================================
+
+Tags that are *not* copied because they would be wrong for the output:
+
+* thumbnails and previews (IFD1, ``*Thumbnail*``, ``*Preview*``, ``JpgFromRaw``,
+  ``OtherImage``; a preview inside maker notes is deleted too);
+* the description of the pixel encoding, which :func:`vigproc.io.images.write_image`
+  sets for the data it wrote: EXIF ``ColorSpace``, ``Gamma``, the
+  interoperability IFD (``R98`` = sRGB...), PNG gamma/chromaticity/sRGB chunks,
+  and the IFD0 ``ImageDescription`` (it holds the linear-TIFF marker
+  :data:`vigproc.io.images.LINEAR_TIFF_MARKER`; an XMP ``dc:description`` is kept);
+* the ICC profile.  A linear output's source profile describes the source's own
+  tone curve, so keeping it would make colour-managed viewers decode the output
+  wrongly (a linear RGB TIFF carries vigproc's own linear-sRGB profile instead,
+  :mod:`vigproc.io.icc`).  exiftool does not copy it with ``-all:all`` anyway; it is excluded
+  explicitly as well.  (A display-encoded output of a display-encoded source --
+  a JPEG back as a JPEG -- keeps the source's colour description, ICC profile and
+  interoperability index included: ``keep_colour`` of :func:`copy_metadata`.);
+* image-structure tags (size, bits, compression, YCbCr layout, EXIF pixel
+  dimensions, their XMP ``tiff:``/``exif:`` copies) -- exiftool protects the
+  TIFF ones; the others are excluded here;
+* ``Software`` and ``ModifyDate`` in every group, with its ``SubSecTime`` and
+  ``OffsetTime`` (the output is vigproc's, written now), and all composite
+  tags (exiftool would otherwise write ``ModifyDate`` back through
+  ``Composite:SubSecModifyDate``; the real tags behind composites are copied
+  directly);
+* RAW/DNG-only data: DNG version, ``UniqueCameraModel``, private DNG data,
+  the embedded original RAW, CFA/level tags (most are protected by exiftool);
+* Adobe Camera Raw settings (``XMP-crs``): they include ACR's own vignette and
+  lens-profile corrections, which an editor would apply a second time;
+* an existing ``XMP-vigproc`` record of the source.
+
+``Orientation`` is kept: :func:`vigproc.io.images.read_image` never rotates pixels
+(nor does the RAW development), so the output's pixel grid is the source's
+stored grid and the source's orientation flag still describes it.
+
+The correction record
+---------------------
+=========================  ============================================
+XMP (TIFF, PNG)            OpenEXR attribute
+=========================  ============================================
+``XMP-vigproc:Model``      ``vigproc:Model`` -- :meth:`VignettingModel.to_json`
+``XMP-vigproc:Method``     ``vigproc:Method`` -- estimator name
+``XMP-vigproc:Version``    ``vigproc:Version`` -- vigproc version
+``XMP-vigproc:Applied``    ``vigproc:Applied`` -- bool (int 0/1 in EXR)
+``XMP-vigproc:Strength``   ``vigproc:Strength`` -- correction strength
+=========================  ============================================
+
+The namespace URI is :data:`XMP_NAMESPACE`; exiftool learns it from a config
+file this module writes to a private temporary folder per call (nothing is
+installed next to the package).  The record is written after the copy, and any
+record the *source* carried is excluded from the copy: it described an earlier
+correction, not this output.
+
+Cost: two exiftool runs per output (check/read the source, then write), about
+0.1 s each; an OpenEXR output is written twice (pixels, then with attributes).
+
+File names
+----------
+exiftool is always run as an argument list (no shell).  Paths are passed
+absolute, so a name starting with ``-`` (or equal to ``-`` or ``@``, which
+exiftool reads as stdin / "the target file") cannot be taken as an option;
+target files also follow ``--``.  Names may contain spaces, quotes, newlines
+and non-ASCII characters: argv carries them verbatim (an ``-@`` argument file
+could not, it is one argument per line, so none is used).  exiftool expands
+``%d``, ``%f``, ``%e``... in the ``-tagsFromFile`` name and has no escape for
+``%``; such a source is passed through a symbolic link with a plain name.
+
+The program is ``$VIGPROC_EXIFTOOL`` if set, else ``exiftool`` on ``PATH``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import shutil
+import signal
+import stat
+import subprocess
+import tempfile
+from typing import Any, Mapping
+
+import numpy as np
+import OpenImageIO as oiio
+
+from vigproc._version import __version__
+from vigproc.atomic import publish
+from vigproc.errors import ImageReadError, ImageWriteError, InvalidImageError, ModelError
+from vigproc.io.images import WRITE_EXT_FORMAT as _EXT_FORMAT
+from vigproc.io.images import WRITE_FORMAT_ALIASES as _FORMAT_ALIASES
+from vigproc.io.images import WRITE_FORMAT_EXT as _FORMAT_EXT
+from vigproc.io.images import write_image
+from vigproc.core.model import VignettingModel
+from vigproc.processes import AVAILABLE as DIES_WITH_PARENT, die_with_parent
+
+__all__ = [
+    "EXR_TAGS",
+    "XMP_NAMESPACE",
+    "copy_metadata",
+    "exiftool_path",
+    "make_record",
+    "read_record",
+    "write_corrected",
+]
+
+logger = logging.getLogger(__name__)
+
+#: URI of vigproc's XMP namespace (prefix ``vigproc``).  ``.invalid`` (RFC 6761)
+#: can never be registered by anyone, so the URI cannot collide.
+XMP_NAMESPACE = "http://vigproc.invalid/ns/xmp/1.0/"
+
+#: Record fields: record key -> (XMP/EXR tag name, kind).
+_RECORD_FIELDS: dict[str, tuple[str, str]] = {
+    "model": ("Model", "str"),
+    "method": ("Method", "str"),
+    "version": ("Version", "str"),
+    "applied": ("Applied", "bool"),
+    "strength": ("Strength", "float"),
+}
+
+_CONFIG = f"""\
+# exiftool config written by vigproc.io.metadata: vigproc's XMP namespace
+%Image::ExifTool::UserDefined = (
+    'Image::ExifTool::XMP::Main' => {{
+        vigproc => {{ SubDirectory => {{ TagTable => 'Image::ExifTool::UserDefined::vigproc' }} }},
+    }},
+);
+%Image::ExifTool::UserDefined::vigproc = (
+    GROUPS => {{ 0 => 'XMP', 1 => 'XMP-vigproc', 2 => 'Image' }},
+    NAMESPACE => {{ 'vigproc' => '{XMP_NAMESPACE}' }},
+    WRITABLE => 'string',
+    Model => {{ }},
+    Method => {{ }},
+    Version => {{ }},
+    Applied => {{ Writable => 'boolean' }},
+    Strength => {{ Writable => 'real' }},
+);
+1;
+"""
+
+#: Tags not copied from the source (see the module docstring for why).
+_EXCLUDE = (
+    # thumbnails / previews
+    "IFD1:all", "*Thumbnail*", "*Preview*", "JpgFromRaw", "OtherImage",
+    # pixel encoding: write_image describes the data it wrote
+    "ColorSpace", "Gamma", "InteropIFD:all", "ICC_Profile:all", "IFD0:ImageDescription",
+    "SRGBRendering", "WhitePointX", "WhitePointY", "RedX", "RedY", "GreenX", "GreenY",
+    "BlueX", "BlueY",
+    # image structure
+    "ImageWidth", "ImageHeight", "ExifImageWidth", "ExifImageHeight", "BitsPerSample",
+    "Compression", "PhotometricInterpretation", "SamplesPerPixel", "PlanarConfiguration",
+    "YCbCrSubSampling", "YCbCrPositioning", "YCbCrCoefficients", "ComponentsConfiguration",
+    "CompressedBitsPerPixel",
+    # written by vigproc now (composites such as SubSecModifyDate would write ModifyDate back)
+    "Software", "ModifyDate", "SubSecTime", "OffsetTime", "XMP-tiff:DateTime",
+    "XMP-xmp:MetadataDate", "XMP-xmp:CreatorTool", "Composite:all",
+    # RAW/DNG only
+    "DNGVersion", "DNGBackwardVersion", "UniqueCameraModel", "LocalizedCameraModel",
+    "DNGPrivateData", "DNGAdobeData", "MakerNoteSafety", "OriginalRawFileData",
+    "CFAPattern2", "CFARepeatPatternDim", "BlackLevel", "WhiteLevel",
+    # Camera Raw develop settings; an older vigproc record
+    "XMP-crs:all", "XMP-vigproc:all",
+)
+#: Deleted after the copy: images inside copied maker-note blocks (not excludable).
+_DELETE_AFTER = ("PreviewImage", "ThumbnailImage", "JpgFromRaw", "OtherImage")
+
+#: Fields carried into OpenEXR outputs: (exiftool tag, OpenImageIO attribute, type).
+EXR_TAGS: tuple[tuple[str, str, str], ...] = (
+    ("Make", "Make", "str"),
+    ("Model", "Model", "str"),
+    ("SerialNumber", "Exif:BodySerialNumber", "str"),
+    ("LensMake", "Exif:LensMake", "str"),
+    ("LensModel", "Exif:LensModel", "str"),
+    ("LensSerialNumber", "Exif:LensSerialNumber", "str"),
+    ("LensInfo", "Exif:LensSpecification", "float4"),
+    ("FocalLength", "Exif:FocalLength", "float"),
+    ("FocalLengthIn35mmFormat", "Exif:FocalLengthIn35mmFilm", "int"),
+    ("FNumber", "FNumber", "float"),
+    ("ExposureTime", "ExposureTime", "float"),
+    ("ISO", "Exif:PhotographicSensitivity", "int"),
+    ("ExposureCompensation", "Exif:ExposureBiasValue", "float"),
+    ("DateTimeOriginal", "Exif:DateTimeOriginal", "str"),
+    ("CreateDate", "Exif:DateTimeDigitized", "str"),
+    ("OffsetTimeOriginal", "Exif:OffsetTimeOriginal", "str"),
+    ("Orientation", "Orientation", "int"),
+    ("Artist", "Artist", "str"),
+    ("Copyright", "Copyright", "str"),
+)
+
+_EXR_MAGIC = b"v/1\x01"
+# exiftool's FilenameSPrintf tokens: a -tagsFromFile name containing one is a pattern
+_EXIFTOOL_FMT = re.compile(r"%[-+]?\d*[.:]?\d*[lu]?[dDfFeEtgso]")
+_TIMEOUT = 300.0
+
+
+# --------------------------------------------------------------------------- #
+# exiftool plumbing
+# --------------------------------------------------------------------------- #
+
+
+def exiftool_path() -> str:
+    """Path of the exiftool program (``$VIGPROC_EXIFTOOL``, else ``exiftool`` on PATH).
+
+    Raises
+    ------
+    ImageWriteError
+        exiftool is not installed.
+    """
+    env = os.environ.get("VIGPROC_EXIFTOOL")
+    found = shutil.which(env) if env else shutil.which("exiftool")
+    if not found:
+        raise ImageWriteError(
+            f"exiftool program not found ({env!r})" if env else
+            "exiftool program not found: install it (Debian/Ubuntu: libimage-exiftool-perl)"
+        )
+    return found
+
+
+def _q(path: str) -> str:
+    return repr(path)  # one line even for names with newlines
+
+
+def _trim(name: str, nbytes: int = 60) -> str:
+    """At most ``nbytes`` UTF-8 bytes of ``name`` (for temp names within NAME_MAX).
+
+    Bytes that are not UTF-8 (surrogate-escaped names) are dropped, so the
+    temporary name is always valid UTF-8 for OpenImageIO.
+    """
+    return name.encode("utf-8", "surrogateescape")[:nbytes].decode("utf-8", "ignore")
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+def _one_line(text: str) -> str:
+    return " / ".join(s.strip() for s in text.splitlines() if s.strip())
+
+
+class _Exiftool:
+    """A private temp folder with the namespace config; runs exiftool with it."""
+
+    def __enter__(self) -> _Exiftool:
+        self.exe = exiftool_path()
+        self.dir = tempfile.mkdtemp(prefix="vigproc-exiftool-")
+        self.config = os.path.join(self.dir, "vigproc.config")
+        self._said: set[tuple[str, str]] = set()
+        with open(self.config, "w", encoding="utf-8") as fh:
+            fh.write(_CONFIG)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+    def run(
+        self, args: list[str], what: str, *, check: bool = True, name: str = ""
+    ) -> subprocess.CompletedProcess[bytes]:
+        """Run exiftool; log its warnings (about ``name``); raise ImageWriteError(``what``...) on failure.
+
+        With ``check=False`` a non-zero exit status is left to the caller.  An exiftool
+        killed by a signal always raises, with ``transient`` set (a retry may succeed).
+        """
+        # -config must come first; it also stops a user's ~/.ExifTool_config loading.
+        cmd = [self.exe, "-config", self.config, *args]
+        try:
+            res = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, timeout=_TIMEOUT,
+                                 preexec_fn=die_with_parent if DIES_WITH_PARENT else None)
+        except subprocess.TimeoutExpired:
+            raise ImageWriteError(f"{what}: exiftool did not finish within {_TIMEOUT:.0f} s") from None
+        except OSError as exc:
+            raise ImageWriteError(f"{what}: cannot run exiftool {self.exe!r}: {exc.strerror or exc}") from None
+        err = res.stderr.decode("utf-8", "replace")
+        errors = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("Warning:")]
+        paths = [a for a in args if os.path.sep in a or os.path.exists(a)]
+        for ln in err.splitlines():
+            if not ln.startswith("Warning:"):
+                continue
+            # exiftool names the file it warns about ("... - /tmp/.x.tmp-1234.tif"): our
+            # temporary names mean nothing to a user, who already sees ``name``
+            text = ln
+            for a in paths:
+                text = text.replace(f" - {a}", "").replace(f" in {a}", "")
+            if (name, text) in self._said:  # once per file, not once per exiftool call
+                continue
+            self._said.add((name, text))
+            if "[minor]" in ln:  # harmless, said once when the source's EXIF was read
+                logger.debug("%s: exiftool: %s", name, text)
+            elif "No writable tags set from" in ln:  # the source just has no metadata
+                logger.info("%s: exiftool: %s", name, text)
+            else:
+                logger.warning("%s: exiftool: %s", name, text)
+        if res.returncode < 0:  # killed (e.g. a stop signal to every process): not the file's fault
+            exc = ImageWriteError(f"{what}: exiftool was killed by {_signal_name(-res.returncode)}")
+            exc.transient = True
+            raise exc
+        if check and (res.returncode != 0 or any(ln.startswith("Error") for ln in errors)):
+            msg = _one_line("\n".join(errors) or err) or f"exit status {res.returncode}"
+            raise ImageWriteError(f"{what}: exiftool failed: {msg}")
+        return res
+
+    def source_name(self, src: str) -> str:
+        """A name for ``-tagsFromFile`` that exiftool takes literally."""
+        if not _EXIFTOOL_FMT.search(src):
+            return src
+        ext = re.sub(r"[^A-Za-z0-9.]", "", os.path.splitext(src)[1])[:10]
+        alias = os.path.join(self.dir, "source" + ext)
+        try:
+            os.symlink(src, alias)
+        except OSError:  # no symlinks here: a private copy (the source stays untouched)
+            shutil.copyfile(src, alias)
+        return alias
+
+
+def _parse_json(stdout: bytes) -> dict[str, Any]:
+    """The first object of exiftool's ``-j`` output, numbers kept as their text.
+
+    exiftool prints number-like strings unquoted, so ``"1.10"`` would come back
+    as ``1.1``; parsing numbers as ``str`` keeps them exact.
+    """
+    try:
+        data = json.loads(stdout.decode("utf-8", "replace"), parse_float=str, parse_int=str)
+        first = data[0]
+    except (ValueError, IndexError, TypeError, KeyError):
+        raise ValueError("not exiftool JSON") from None
+    if not isinstance(first, dict):
+        raise ValueError("not exiftool JSON")
+    return first
+
+
+def _read_tags(et: _Exiftool, src: str, what: str) -> dict[str, Any]:
+    """Check that ``src`` is an image exiftool can read; return its :data:`EXR_TAGS` fields.
+
+    Values are exiftool's numeric (``-n``) ones, keyed by exiftool tag name.  For
+    an OpenEXR source they come from its OpenImageIO attributes instead.
+    """
+    tags = ["-FileType", "-MIMEType", "-Error", "-Warning"] + [f"-{t}" for t, _, _ in EXR_TAGS]
+    # exit status 1 with JSON output: the file's problem is in its "Error" field
+    res = et.run(["-j", "-n", "-G0", *tags, "--", src], what, check=False, name=src)
+    try:
+        info = _parse_json(res.stdout)
+    except ValueError:
+        msg = _one_line(res.stderr.decode("utf-8", "replace")) or f"exit status {res.returncode}"
+        raise ImageWriteError(f"{what}: exiftool cannot read the source {_q(src)}: {msg}") from None
+    if info.get("ExifTool:Error"):
+        raise ImageWriteError(f"{what}: source {_q(src)}: {info['ExifTool:Error']}")
+    warning = info.get("ExifTool:Warning")
+    if warning:  # e.g. "JPEG format error": metadata may still copy
+        # "[minor]" ones (a maker-note offset exiftool fixes) were already said, once, when
+        # the file's EXIF was read (vigproc.io.exif)
+        (logger.debug if "[minor]" in str(warning) else logger.warning)("%s: exiftool: %s", src, warning)
+    mime = str(info.get("File:MIMEType", ""))
+    if not mime.startswith("image/"):
+        kind = info.get("File:FileType", "unknown")
+        raise ImageWriteError(f"{what}: source {_q(src)} is not an image (exiftool: file type {kind})")
+    out: dict[str, Any] = {}
+    if _is_exr(src):
+        try:
+            attrs = _exr_attributes(src)
+        except ImageReadError as exc:
+            raise ImageWriteError(f"{what}: {exc}") from None
+        for et_name, oiio_name, kind in EXR_TAGS:
+            if oiio_name in attrs:
+                v = attrs[oiio_name]
+                out[et_name] = " ".join(f"{x:g}" for x in v) if kind == "float4" else v
+        return out
+    for key, val in info.items():
+        group, _, name = key.partition(":")
+        if group in ("File", "ExifTool") or not name:
+            continue
+        if name not in out or group == "EXIF":  # EXIF wins over maker notes / XMP copies
+            out[name] = val
+    return out
+
+
+# --------------------------------------------------------------------------- #
+# the record
+# --------------------------------------------------------------------------- #
+
+
+def make_record(
+    model: VignettingModel,
+    *,
+    applied: bool | None = None,
+    strength: float = 1.0,
+    method: str | None = None,
+) -> dict[str, Any]:
+    """Build the correction record for :func:`copy_metadata` / :func:`write_corrected`.
+
+    Parameters
+    ----------
+    model : VignettingModel
+        The model that was (or would have been) divided out.
+    applied : bool, optional
+        Whether the pixels were corrected; default: the model is not the
+        identity and ``strength > 0``.
+    strength : float
+        Strength passed to :func:`vigproc.correct`.
+    method : str, optional
+        Estimator name; default ``model.method``.
+
+    Returns
+    -------
+    dict
+        Keys ``model``, ``method``, ``version``, ``applied``, ``strength``.
+    """
+    if applied is None:
+        applied = (not model.is_identity) and strength > 0
+    return {
+        "model": model,
+        "method": method or model.method,
+        "version": __version__,
+        "applied": bool(applied),
+        "strength": float(strength),
+    }
+
+
+def _normalise_record(record: Mapping[str, Any]) -> dict[str, Any]:
+    """Record -> {tag name: value} with the model as JSON text."""
+    unknown = set(record) - set(_RECORD_FIELDS)
+    if unknown:
+        raise ValueError(f"unknown record keys {sorted(unknown)}; allowed: {sorted(_RECORD_FIELDS)}")
+    out: dict[str, Any] = {}
+    for key, value in record.items():
+        if value is None:
+            continue
+        tag, kind = _RECORD_FIELDS[key]
+        if key == "model":
+            if isinstance(value, VignettingModel):
+                value = value.to_json()
+            elif isinstance(value, Mapping):
+                value = json.dumps(dict(value))
+            elif not isinstance(value, str):
+                raise ValueError(f"record 'model' must be a VignettingModel, dict or JSON text, got {type(value).__name__}")
+        elif kind == "bool":
+            value = bool(value)
+        elif kind == "float":
+            value = float(value)
+            if not math.isfinite(value):
+                raise ValueError(f"record {key!r} must be finite, got {value}")
+        else:
+            value = str(value)
+        out[tag] = value
+    if "Method" not in out and isinstance(record.get("model"), VignettingModel):
+        out["Method"] = record["model"].method
+    return out
+
+
+def _record_from_tags(tags: Mapping[str, Any], path: str) -> dict[str, Any] | None:
+    by_tag = {tag: key for key, (tag, _) in _RECORD_FIELDS.items()}
+    rec: dict[str, Any] = {}
+    for tag, value in tags.items():
+        key = by_tag.get(tag)
+        if key is None:
+            continue
+        kind = _RECORD_FIELDS[key][1]
+        if kind == "bool":
+            value = value if isinstance(value, bool) else str(value).strip().lower() in ("1", "true", "yes")
+        elif kind == "float":
+            value = float(value)
+        else:
+            value = str(value)
+        rec[key] = value
+    if not rec:
+        return None
+    if "model" in rec:
+        text = rec["model"]
+        rec["model_json"] = text
+        try:
+            rec["model"] = VignettingModel.from_json(text)
+        except ModelError as exc:
+            raise ImageReadError(f"cannot read the vigproc record of {_q(path)}: {exc}") from None
+    return rec
+
+
+# --------------------------------------------------------------------------- #
+# public API
+# --------------------------------------------------------------------------- #
+
+
+def _fspath(path: Any) -> str:
+    p = os.fspath(path)
+    return os.path.abspath(os.fsdecode(p) if isinstance(p, bytes) else p)
+
+
+def _is_exr(path: str) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(4) == _EXR_MAGIC
+    except OSError:
+        return False
+
+
+#: The source's description of its colours, kept by ``keep_colour`` (see copy_metadata).
+_COLOUR_TAGS = ("ColorSpace", "InteropIFD:all", "ICC_Profile:all")
+
+
+def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *,
+                  keep_colour: bool = False) -> None:
+    """Copy ``src``'s metadata into the image ``dst`` and add the vigproc record.
+
+    ``dst`` is modified in place (exiftool rewrites it to a temporary file and
+    renames it over ``dst``; for OpenEXR OpenImageIO does the same); ``src`` is
+    only read.  What is copied per format: see the module docstring.
+
+    Parameters
+    ----------
+    src : str or os.PathLike
+        The original image (JPEG, TIFF, PNG, camera RAW, OpenEXR...).
+    dst : str or os.PathLike
+        The corrected TIFF, PNG or OpenEXR written by vigproc.
+    record : dict, optional
+        Correction record (see :func:`make_record`): keys ``model``
+        (VignettingModel, dict or JSON text), ``method``, ``version``,
+        ``applied``, ``strength``; ``None`` copies metadata only.
+    keep_colour : bool
+        Keep the source's colour description (EXIF ``ColorSpace``, the interoperability
+        index, the ICC profile) instead of the one :func:`vigproc.io.images.write_image` wrote.
+        For a display-encoded output of a display-encoded source: vigproc divides a
+        gain out and never converts primaries, so an Adobe RGB or Display P3 JPEG is still
+        one (tagged sRGB, its colours would be shown wrong).
+
+    Raises
+    ------
+    ImageWriteError
+        exiftool is missing or failed (message names the file and quotes
+        exiftool), the source is not an image, or ``src`` and ``dst`` are the
+        same file.
+    ValueError
+        Unknown record keys.
+    """
+    s, d = _fspath(src), _fspath(dst)
+    what = f"cannot copy metadata into {_q(d)}"
+    tags = _normalise_record(record) if record is not None else {}
+    for p, role in ((s, "source"), (d, "destination")):
+        if not os.path.isfile(p):
+            raise ImageWriteError(f"{what}: {role} {_q(p)} does not exist or is not a file")
+    if os.path.samefile(s, d):
+        raise ImageWriteError(f"{what}: source and destination are the same file")
+    with _Exiftool() as et:
+        src_tags = _read_tags(et, s, what)
+        if _is_exr(d):
+            _exr_write_metadata(d, src_tags, tags, what)
+            return
+        args = ["-tagsFromFile", et.source_name(s), "-all:all"]
+        args += [f"--{t}" for t in _EXCLUDE if not (keep_colour and t in _COLOUR_TAGS)]
+        if keep_colour:  # -all:all copies neither the ICC profile nor the interop index: name them
+            args += ["-ICC_Profile", "-InteropIndex", "-InteropVersion"]
+        if _is_exr(s):
+            # an EXR holds no EXIF exiftool can copy: assign the key fields read above
+            args += [f"-{k}={v}" for k, v in src_tags.items()]
+        args += [f"-{t}=" for t in _DELETE_AFTER]
+        for tag, value in tags.items():
+            if isinstance(value, bool):
+                value = "True" if value else "False"
+            args.append(f"-XMP-vigproc:{tag}={value}")
+        args += ["-overwrite_original", "--", d]
+        et.run(args, what, name=d)
+    logger.debug("copied metadata %s -> %s (record: %s)", s, d, sorted(tags))
+
+
+def _exr_attributes(path: str) -> dict[str, Any]:
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ImageReadError(f"cannot read {_q(path)}: {_one_line(oiio.geterror())}")
+    try:
+        return {a.name: a.value for a in inp.spec().extra_attribs}
+    finally:
+        inp.close()
+
+
+def _exr_write_metadata(path: str, src_tags: Mapping[str, Any], record: Mapping[str, Any], what: str) -> None:
+    """Rewrite the EXR ``path`` with the key source fields and the record as attributes."""
+    oiio.geterror()
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ImageWriteError(f"{what}: cannot reopen it: {_one_line(oiio.geterror())}")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, spec.format)
+        err = inp.geterror()
+    finally:
+        inp.close()
+    if pixels is None:
+        raise ImageWriteError(f"{what}: cannot reread its pixels: {_one_line(err)}")
+    for et_name, name, kind in EXR_TAGS:
+        value = src_tags.get(et_name)
+        if value is None or value == "":
+            continue
+        try:
+            if kind == "str":
+                spec.attribute(name, str(value))
+            elif kind == "int":
+                spec.attribute(name, int(float(value)))
+            elif kind == "float":
+                spec.attribute(name, float(value))
+            else:  # "float4": exiftool -n gives "min max fmin fmax"
+                vals = tuple(float(x) for x in str(value).split())
+                if len(vals) == 4:
+                    spec.attribute(name, oiio.TypeDesc("float[4]"), vals)
+        except (TypeError, ValueError):
+            logger.warning("%s: source %s=%r is not a valid %s; not copied", path, et_name, value, kind)
+    if src_tags.get("DateTimeOriginal"):
+        # OpenEXR's standard capDate ("when the image was captured") is OIIO's DateTime
+        spec.attribute("DateTime", str(src_tags["DateTimeOriginal"]))
+    for tag, value in record.items():
+        name = f"vigproc:{tag}"
+        if isinstance(value, bool):
+            spec.attribute(name, int(value))
+        elif isinstance(value, float):
+            spec.attribute(name, value)
+        else:
+            spec.attribute(name, str(value))
+    directory = os.path.dirname(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{_trim(os.path.basename(path))}.meta-", suffix=".exr", dir=directory)
+    os.close(fd)
+    try:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None:
+            raise ImageWriteError(f"{what}: {_one_line(oiio.geterror())}")
+        ok = bool(out.open(tmp, spec)) and bool(out.write_image(pixels))
+        ok = bool(out.close()) and ok
+        if not ok:
+            raise ImageWriteError(f"{what}: {_one_line(out.geterror() or oiio.geterror())}")
+        os.chmod(tmp, stat.S_IMODE(os.stat(path).st_mode))
+        os.replace(tmp, path)
+    except ImageWriteError:
+        raise
+    except OSError as exc:
+        raise ImageWriteError(f"{what}: {exc.strerror or exc}") from None
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def read_record(path: Any) -> dict[str, Any] | None:
+    """Read back the vigproc correction record of an output file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A TIFF/PNG (XMP) or OpenEXR (attributes) written by :func:`write_corrected`.
+
+    Returns
+    -------
+    dict or None
+        ``None`` if the file has no record; else the keys present among
+        ``model`` (:class:`VignettingModel`), ``model_json`` (the stored text),
+        ``method``, ``version``, ``applied`` (bool), ``strength`` (float).
+
+    Raises
+    ------
+    ImageReadError
+        The file cannot be read, or the stored model is invalid.
+    """
+    p = _fspath(path)
+    if not os.path.isfile(p):
+        raise ImageReadError(f"cannot read {_q(p)}: file not found")
+    if _is_exr(p):
+        attrs = _exr_attributes(p)
+        tags = {k[len("vigproc:"):]: v for k, v in attrs.items() if k.startswith("vigproc:")}
+        return _record_from_tags(tags, p)
+    try:
+        with _Exiftool() as et:
+            res = et.run(["-j", "-n", "-XMP-vigproc:all", "--", p], f"cannot read {_q(p)}", name=p)
+    except ImageWriteError as exc:  # same failure, reading side
+        raise ImageReadError(str(exc)) from None
+    try:
+        info = _parse_json(res.stdout)
+    except ValueError:
+        raise ImageReadError(f"cannot read {_q(p)}: cannot parse exiftool's output") from None
+    info.pop("SourceFile", None)
+    return _record_from_tags(info, p)
+
+
+def _resolve_format(path: str, format: str | None) -> str:
+    if format is None:
+        fmt = _EXT_FORMAT.get(os.path.splitext(path)[1].lower())
+        if fmt is None:
+            raise ImageWriteError(
+                f"cannot write {_q(path)}: unknown extension (use .tif, .png, .exr or .jpg, or pass format=)"
+            )
+        return fmt
+    fmt = _FORMAT_ALIASES.get(str(format).lower())
+    if fmt is None:
+        raise ImageWriteError(f"cannot write {_q(path)}: unsupported format {format!r} (tiff, png, openexr, jpeg)")
+    return fmt
+
+
+def write_corrected(
+    dst: Any,
+    img: np.ndarray,
+    src: Any,
+    record: Mapping[str, Any] | None,
+    *,
+    bit_depth: str | None = None,
+    format: str | None = None,
+    transfer: str = "linear",
+    quality: int | None = None,
+    keep_colour: bool = False,
+) -> None:
+    """Write a corrected image with the source's metadata and the record, atomically.
+
+    Pixels are written with :func:`vigproc.io.images.write_image` to a temporary file in
+    ``dst``'s folder, the metadata is added to that file (:func:`copy_metadata`),
+    and only then is it renamed onto ``dst``.  On any failure the temporary
+    files are removed and an existing ``dst`` is left as it was.
+
+    Parameters
+    ----------
+    dst : str or os.PathLike
+        Output path (``.tif``/``.tiff``, ``.png``, ``.exr`` or pass ``format``).
+    img : numpy.ndarray
+        Linear ``HxW`` or ``HxWx3`` image (see :func:`vigproc.io.images.write_image`).
+    src : str or os.PathLike
+        The source image whose metadata is copied; never modified.
+    record : dict or None
+        Correction record (:func:`make_record`); ``None`` for metadata only.
+    bit_depth, format, transfer, quality
+        As for :func:`vigproc.io.images.write_image`.
+    keep_colour : bool
+        As for :func:`copy_metadata`.
+
+    Raises
+    ------
+    ImageWriteError
+        Pixel or metadata writing failed.
+    InvalidImageError
+        ``img`` cannot be written.
+    """
+    d = _fspath(dst)
+    fmt = _resolve_format(d, format)
+    if record is not None:
+        _normalise_record(record)  # a bad record fails before any pixel is written
+    directory, name = os.path.split(d)
+    try:
+        # short prefix: io.write_image nests its own temp name inside this one
+        fd, tmp = tempfile.mkstemp(prefix=f".{_trim(name)}.tmp-", suffix=_FORMAT_EXT[fmt], dir=directory)
+    except (OSError, ValueError) as exc:
+        raise ImageWriteError(f"cannot write {_q(d)}: cannot create a temporary file in {directory!r}: {exc}") from None
+    os.close(fd)
+    leftovers = (tmp, tmp + "_exiftool_tmp")  # the latter: exiftool's own, if it was killed
+    done = False
+    try:
+        try:
+            write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer, quality=quality)
+            copy_metadata(src, tmp, record, keep_colour=keep_colour)
+        except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
+            err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))
+            err.__dict__.update(exc.__dict__)  # e.g. ``transient``
+            raise err from None
+        publish(tmp, d)
+        done = True
+    except ImageWriteError:
+        raise
+    except OSError as exc:
+        raise ImageWriteError(f"cannot write {_q(d)}: {exc.strerror or exc}") from None
+    finally:
+        if not done:
+            for p in leftovers:
+                try:
+                    os.unlink(p)
+                except OSError:
+                    pass
+    logger.debug("wrote %s with metadata from %s", d, src)

@@ -1,0 +1,1 @@
+"""What vigproc keeps and consults: per-lens profiles, job journals, lensfun and Adobe profile sources."""
