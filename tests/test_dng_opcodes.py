@@ -264,3 +264,17 @@ def test_large_gain_map_is_bounded_by_its_bytes() -> None:
     t0 = time.perf_counter()
     f = gm.gain_field(400, 300)
     assert time.perf_counter() - t0 < 2.0 and np.allclose(f, 1.5)
+
+
+def test_cfa_gain_maps_cover_the_first_row_and_column() -> None:
+    """Four pitch-2 maps (one per Bayer phase, the phases starting at rows/columns 0 and 1)
+    averaged give the map's field on every pixel, row 0 and column 0 included (they belong
+    to the first 2×2 cell of the phases starting at 1); the exact opcode still leaves them."""
+    from vigproc.io.dng_opcodes import AreaSpec, GainMap
+
+    gains = np.full((3, 3), 2.0)
+    maps = [GainMap(AreaSpec(t, l, 8, 12, 0, 1, 2, 2), gains, 0.5, 0.5) for t in (0, 1) for l in (0, 1)]
+    mean = sum(np.log(m.gain_field(12, 8)) for m in maps) / 4
+    np.testing.assert_allclose(mean, np.log(2.0))
+    exact = maps[3].gain_field(12, 8, ignore_pitch=False)  # phase (1, 1)
+    assert exact[0, 0] == 1.0 and exact[1, 1] == 2.0 and exact[1, 0] == 1.0

@@ -672,8 +672,11 @@ class GainMap:
             return out
         row = np.floor(rel_v * height)
         col = np.floor(rel_h * width)
-        iv = np.flatnonzero((row >= a.top) & (row < a.bottom))
-        ih = np.flatnonzero((col >= a.left) & (col < a.right))
+        # a pitch-p map (one phase of a CFA) stands for the p×p cells of the pattern its
+        # pixels lie in: a cell's rows and columns before the phase's own (row 0 for a
+        # phase starting at row 1) are in its field too
+        iv = np.flatnonzero((row >= a.top - a.top % a.row_pitch) & (row < a.bottom))
+        ih = np.flatnonzero((col >= a.left - a.left % a.col_pitch) & (col < a.right))
         if iv.size == 0 or ih.size == 0:
             return out
         g = self.gains[:, :, min(plane, self.map_planes - 1)].astype(np.float64)
