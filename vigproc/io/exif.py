@@ -133,6 +133,8 @@ _TAGS: tuple[str, ...] = (
     # it is not the camera's Model
     "--XMP-vigproc:all",
 )
+# What every record needs for _check_record (file type, exiftool's own error and warning).
+_CHECK_TAGS: tuple[str, ...] = ("-File:FileType", "-File:MIMEType", "-ExifTool:Error", "-ExifTool:Warning")
 # -G: family-0 group names ("EXIF:Make", "MakerNotes:LensType", "XMP:Lens", ...).
 # -fast: do not scan JPEGs to the end for trailers (no lens data there); ~10 %
 # faster on the shared camera JPEGs with identical keys.  (-fast2 would skip
@@ -1102,12 +1104,43 @@ class ExifReader:
                 results[i] = res
         return results  # type: ignore[return-value]
 
-    def _execute(self, args: list[Union[str, bytes]]) -> tuple[list[Any], str]:
-        """One ExifTool command; returns (JSON records, stderr)."""
+    def read_tags(self, path: PathLike, tags: Sequence[str]) -> dict[str, Any]:
+        """Numeric values (``-TAG#``) of ``tags`` (``GROUP:Name``, family-1 groups such as
+        ``SubIFD:VignettingCorrParams``) in one file, keyed as requested; tags the file
+        lacks are absent.
+
+        exiftool reads each tag from the group named only, but reports it under its
+        family-0 group (the reader's ``-G``): the names must differ from one another.
+
+        Raises
+        ------
+        ImageReadError, UnsupportedFormatError, FileNameError
+            Typed errors naming the file and the cause.
+        ValueError
+            Two requested tags share a name.
+        """
+        wanted = {t.rsplit(":", 1)[-1]: t for t in tags}
+        if len(wanted) != len(tags):
+            raise ValueError(f"tag names must differ: {list(tags)}")
+        job = _prepare(path)
+        if isinstance(job, VigprocError):
+            raise job
+        res = self._run_jobs([job], tags=(*_CHECK_TAGS, *(f"-{t}#" for t in tags)))[0]
+        if isinstance(res, VigprocError):
+            raise res
+        out: dict[str, Any] = {}
+        for key, value in res[1].items():
+            name = key.rsplit(":", 1)[-1]
+            if name in wanted and key not in ("SourceFile", *(t[1:] for t in _CHECK_TAGS)):
+                out[wanted[name]] = value
+        return out
+
+    def _execute(self, args: list[Union[str, bytes]], tags: Sequence[str] = _TAGS) -> tuple[list[Any], str]:
+        """One ExifTool command (``tags`` then ``args``); returns (JSON records, stderr)."""
         with self._lock:
             self.start()
             assert self._et is not None
-            out = self._et.execute("-j", *_TAGS, *args, raw_bytes=True)
+            out = self._et.execute("-j", *tags, *args, raw_bytes=True)
             err = self._et.last_stderr or b""
         text = out.decode("utf-8", errors="replace").strip()
         records = json.loads(text) if text else []
@@ -1115,15 +1148,16 @@ class ExifReader:
             raise ValueError("exiftool JSON output is not a list")
         return records, err.decode("utf-8", errors="replace")
 
-    def _run_jobs(self, jobs: list[_Job]) -> list[tuple[str, dict[str, Any]] | VigprocError]:
+    def _run_jobs(self, jobs: list[_Job], tags: Sequence[str] = _TAGS
+                  ) -> list[tuple[str, dict[str, Any]] | VigprocError]:
         try:
-            records, stderr = self._execute([j.arg for j in jobs])
+            records, stderr = self._execute([j.arg for j in jobs], tags)
         except Exception as exc:  # noqa: BLE001 - any failure of the command itself
             logger.warning("exiftool command failed for %d file(s): %s", len(jobs), _safe_msg(exc))
             self._restart()
             if len(jobs) > 1:
                 # Isolate the culprit: the others must still be read.
-                return [self._run_jobs([j])[0] for j in jobs]
+                return [self._run_jobs([j], tags)[0] for j in jobs]
             return [_path_error(ImageReadError, jobs[0].display, f"exiftool failed: {_safe_msg(exc)}")]
         by_name: dict[str, deque[dict[str, Any]]] = {}
         for rec in records:
