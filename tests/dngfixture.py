@@ -19,11 +19,11 @@ import os
 import shutil
 import struct
 import subprocess
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["DEFAULT_EXIF", "EXIFTOOL", "make_dng", "smooth_scene"]
+__all__ = ["DEFAULT_EXIF", "EXIFTOOL", "make_dng", "smooth_scene", "sony_vignetting_tags"]
 
 EXIFTOOL = shutil.which("exiftool")
 
@@ -44,8 +44,10 @@ DEFAULT_EXIF: dict[str, Any] = {
 }
 
 # TIFF field types
-_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _UNDEFINED, _SRATIONAL = 1, 2, 3, 4, 5, 7, 10
-_TYPE_SIZE = {_BYTE: 1, _ASCII: 1, _SHORT: 2, _LONG: 4, _RATIONAL: 8, _UNDEFINED: 1, _SRATIONAL: 8}
+_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _UNDEFINED, _SSHORT, _SRATIONAL = 1, 2, 3, 4, 5, 7, 8, 10
+_TYPE_SIZE = {_BYTE: 1, _ASCII: 1, _SHORT: 2, _LONG: 4, _RATIONAL: 8, _UNDEFINED: 1, _SSHORT: 2, _SRATIONAL: 8}
+#: Sony's lens-correction tags of an ARW's raw IFD (exiftool: SubIFD:...; int16s).
+SONY_VIGNETTING_CORR_PARAMS, SONY_CA_CORR_PARAMS, SONY_DISTORTION_CORR_PARAMS = 0x7032, 0x7035, 0x7037
 #: DNG opcode list tags (DNG 1.3): OpcodeList1, OpcodeList2, OpcodeList3.
 OPCODE_LIST_TAGS = {1: 51008, 2: 51009, 3: 51022}
 
@@ -98,6 +100,8 @@ def _entry(tag: int, typ: int, values: Any) -> tuple[int, int, int, bytes]:
         raw = bytes(vals)
     elif typ == _SHORT:
         raw = struct.pack(f"<{len(vals)}H", *vals)
+    elif typ == _SSHORT:
+        raw = struct.pack(f"<{len(vals)}h", *vals)
     elif typ == _LONG:
         raw = struct.pack(f"<{len(vals)}I", *vals)
     elif typ in (_RATIONAL, _SRATIONAL):
@@ -108,45 +112,68 @@ def _entry(tag: int, typ: int, values: Any) -> tuple[int, int, int, bytes]:
     return tag, typ, len(vals), raw
 
 
-def _write_tiff(path: str, entries: list[tuple[int, int, Any]], strip: bytes) -> None:
-    """Write a single-IFD little-endian TIFF whose only strip is ``strip``.
-
-    ``entries`` must not contain StripOffsets/StripByteCounts (added here).
-    """
-    enc = [_entry(t, ty, v) for t, ty, v in entries]
-    n = len(enc) + 2
-    ifd_off = 8
-    ifd_size = 2 + 12 * n + 4
-    data_off = ifd_off + ifd_size
-    # out-of-line values (over 4 bytes) follow the IFD, word aligned; then the strip
+def _ifd_bytes(enc: list[tuple[int, int, int, bytes]], at: int) -> bytes:
+    """One IFD (entries sorted by tag) placed at offset ``at``, its out-of-line values
+    (over 4 bytes) right after it, word aligned."""
+    enc = sorted(enc, key=lambda e: e[0])
+    data_off = at + 2 + 12 * len(enc) + 4
     blobs = b""
-    offsets: dict[int, int] = {}
-    for tag, _typ, _cnt, raw in enc:
+    head = struct.pack("<H", len(enc))
+    for tag, typ, cnt, raw in enc:
         if len(raw) > 4:
             if (data_off + len(blobs)) % 2:
                 blobs += b"\0"
-            offsets[tag] = data_off + len(blobs)
+            head += struct.pack("<HHII", tag, typ, cnt, data_off + len(blobs))
             blobs += raw
-    strip_off = data_off + len(blobs)
-    strip_off += (-strip_off) % 8
-    enc += [
-        _entry(273, _LONG, strip_off),
-        _entry(279, _LONG, len(strip)),
-    ]
-    enc.sort(key=lambda e: e[0])
-    out = bytearray(b"II*\0" + struct.pack("<I", ifd_off))
-    out += struct.pack("<H", n)
-    for tag, typ, cnt, raw in enc:
-        if len(raw) > 4:
-            out += struct.pack("<HHII", tag, typ, cnt, offsets[tag])
         else:
-            out += struct.pack("<HHI", tag, typ, cnt) + raw.ljust(4, b"\0")
-    out += struct.pack("<I", 0)  # no next IFD
-    out += blobs
-    out += b"\0" * (strip_off - len(out))
-    out += strip
+            head += struct.pack("<HHI", tag, typ, cnt) + raw.ljust(4, b"\0")
+    return head + struct.pack("<I", 0) + blobs  # no next IFD
+
+
+def _write_tiff(path: str, ifds: list[tuple[list[tuple[int, int, Any]], bytes]]) -> None:
+    """Write a little-endian TIFF: IFD0, then (when more are given) the others as its
+    SubIFDs; each IFD has one strip (``(entries, strip)``; ``entries`` without
+    StripOffsets/StripByteCounts/SubIFDs, which are added here)."""
+    def encoded(i: int, strip_offsets: list[int], sub_offsets: list[int]) -> list[tuple[int, int, int, bytes]]:
+        entries, strip = ifds[i]
+        enc = [_entry(t, ty, v) for t, ty, v in entries]
+        enc += [_entry(273, _LONG, strip_offsets[i]), _entry(279, _LONG, len(strip))]
+        if i == 0 and len(ifds) > 1:
+            enc.append(_entry(330, _LONG, sub_offsets))  # SubIFDs
+        return enc
+
+    # the layout's sizes do not depend on the offsets: measure with zeros, then place
+    zeros = [0] * len(ifds)
+    at, ifd_at = 8, []
+    for i in range(len(ifds)):
+        ifd_at.append(at)
+        at += len(_ifd_bytes(encoded(i, zeros, zeros[1:]), at))
+        at += at % 2
+    strip_at = []
+    for _entries, strip in ifds:
+        at += (-at) % 8
+        strip_at.append(at)
+        at += len(strip)
+    out = bytearray(b"II*\0" + struct.pack("<I", ifd_at[0]))
+    for i in range(len(ifds)):
+        out += b"\0" * (ifd_at[i] - len(out))
+        out += _ifd_bytes(encoded(i, strip_at, ifd_at[1:]), ifd_at[i])
+    for i, (_entries, strip) in enumerate(ifds):
+        out += b"\0" * (strip_at[i] - len(out))
+        out += strip
     with open(path, "wb") as fh:
         fh.write(out)
+
+
+def sony_vignetting_tags(values: Sequence[int]) -> list[tuple[int, int, Any]]:
+    """Sony's three lens-correction tags of an ARW's raw IFD as darktable needs them:
+    ``VignettingCorrParams`` with ``values`` (after their count), zero distortion and
+    chromatic aberration tables of the same count (darktable 4.2 reads the vignetting
+    only when all three are present and their counts agree)."""
+    n = len(values)
+    return [(SONY_VIGNETTING_CORR_PARAMS, _SSHORT, [n, *values]),
+            (SONY_CA_CORR_PARAMS, _SSHORT, [2 * n] + [0] * (2 * n)),
+            (SONY_DISTORTION_CORR_PARAMS, _SSHORT, [n] + [0] * n)]
 
 
 def make_dng(
@@ -163,6 +190,8 @@ def make_dng(
     noise: float = 0.0,
     seed: int = 0,
     opcode_lists: Mapping[int, bytes] | None = None,
+    raw_tags: Sequence[tuple[int, int, Any]] = (),
+    subifd: bool = False,
 ) -> np.ndarray:
     """Write a small RGGB Bayer DNG of ``scene * field`` that LibRaw decodes.
 
@@ -192,7 +221,14 @@ def make_dng(
         Seed of the default scene and of the noise.
     opcode_lists : mapping, optional
         ``{1|2|3: bytes}``: DNG opcode lists written as OpcodeList1/2/3 of the raw IFD
-        (IFD0), as a camera writes them (see :mod:`vigproc.io.dng_opcodes`).
+        (IFD0, or the raw SubIFD with ``subifd``), as a camera writes them (see
+        :mod:`vigproc.io.dng_opcodes`).
+    raw_tags : sequence of (tag, type, values)
+        More tags of the raw IFD (e.g. Sony's ``VignettingCorrParams``, type 8: int16s).
+    subifd : bool
+        Write the raw image as the first SubIFD of IFD0, which holds an 8×8 preview and
+        the DNG's colour tags (the layout of camera DNGs and of ARWs, where exiftool
+        names the raw IFD's tags ``SubIFD:``); default the raw image in IFD0.
 
     Returns
     -------
@@ -253,8 +289,18 @@ def make_dng(
     ]
     for n, blob in (opcode_lists or {}).items():
         entries.append((OPCODE_LIST_TAGS[n], _UNDEFINED, blob))
+    entries += list(raw_tags)
     fspath = os.fspath(path)
-    _write_tiff(fspath, entries, raw.tobytes())
+    if not subifd:
+        _write_tiff(fspath, [(entries, raw.tobytes())])
+    else:
+        # DNG: the camera's colour tags in IFD0, the raw image's own in its IFD
+        ifd0_tags = {50706, 50707, 50708, 50721, 50728, 50778}
+        preview = [(254, _LONG, 1), (256, _LONG, 8), (257, _LONG, 8), (258, _SHORT, (8, 8, 8)), (259, _SHORT, 1),
+                   (262, _SHORT, 2), (274, _SHORT, 1), (277, _SHORT, 3), (278, _LONG, 8), (284, _SHORT, 1)]
+        preview += [e for e in entries if e[0] in ifd0_tags]
+        rawifd = [e for e in entries if e[0] not in ifd0_tags and e[0] != 274]
+        _write_tiff(fspath, [(preview, bytes(8 * 8 * 3)), (rawifd, raw.tobytes())])
 
     if tags:
         if EXIFTOOL is None:

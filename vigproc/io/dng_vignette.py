@@ -243,6 +243,11 @@ class EmbeddedCalibration:
         return "+".join(dict.fromkeys(type(o.opcode).__name__ for o in self.opcodes))
 
     @property
+    def label(self) -> str:
+        """How a verdict names this reference."""
+        return f"the DNG's own {self.kind}"
+
+    @property
     def has_gain_map(self) -> bool:
         return any(isinstance(o.opcode, GainMap) for o in self.opcodes)
 

@@ -640,7 +640,8 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
 
     ``sources`` are the loaded profile-source plugins ``{name: ProfileSource}``
     consulted by ``profile="auto"`` (default: none); ``embedded`` the frame's DNG
-    calibration (:func:`vigproc.io.dng_vignette.embedded_for`), used by ``embedded`` and,
+    calibration (its opcodes, else its maker's calibration:
+    :func:`vigproc.io.makernotes.calibration_for`), used by ``embedded`` and,
     after a trusted stored profile, by ``auto``."""
     from vigproc.core.estimate import estimate
 
@@ -658,7 +659,7 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
     if profile == "embedded":
         if embedded is None:
             raise ModelError(f"{where} carries no vignetting calibration of its own (no FixVignetteRadial or "
-                             "GainMap opcode in its DNG opcode lists)")
+                             "GainMap opcode in its DNG opcode lists, no Sony or Fujifilm vignetting tag)")
         return embedded.model(w, h), "embedded"
     if settings.profile_is_file:
         from vigproc.stores.profiles import import_profile
@@ -953,9 +954,9 @@ class Processor:
         lens_key, lens = read_lens(self.reader, path)
         embedded = None
         if s.mode in ("correct", "estimate"):
-            from vigproc.io.dng_vignette import embedded_for
+            from vigproc.io.makernotes import calibration_for
 
-            embedded = embedded_for(path, s.profile)
+            embedded = calibration_for(path, s.profile, self.reader)
         if s.mode in ("learn", "check") and frame_id is None and self.store is not None:
             frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
         fmt = output_for(info)

@@ -1,7 +1,8 @@
 """``vigproc check FILES...``: does each frame's vignetting match the lens its EXIF names?
 
 A DNG that carries its own vignetting calibration (FixVignetteRadial or GainMap opcodes,
-:mod:`vigproc.io.dng_vignette`) is also compared with it (``embedded`` in the JSON, a second
+:mod:`vigproc.io.dng_vignette`), or a raw file its maker's (Sony's or Fujifilm's tags,
+:mod:`vigproc.io.makernotes`), is also compared with it (``embedded`` in the JSON, a second
 line in the text output); its verdict counts like the others in the exit code.
 
 Every frame also gets the crop test (:mod:`vigproc.forensics.crops`: is the vignetting centred on
@@ -82,13 +83,14 @@ def _line(name: str, v: dict, crop=None) -> str:
     return one_line(f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}{crop_tail}")
 
 
-def _embedded_verdict(path: Path, v, calibration, alpha):
-    """The frame against its DNG's own calibration, or None when it carries none (or it
-    cannot be read: said as a warning, the lens check stands)."""
-    from vigproc.io.dng_vignette import embedded_for
+def _embedded_verdict(path: Path, v, calibration, alpha, reader=None):
+    """The frame against its file's own calibration (a DNG's opcodes, else its maker's
+    tags), or None when it carries none (or it cannot be read: said as a warning, the
+    lens check stands)."""
     from vigproc.forensics.check import check_embedded
+    from vigproc.io.makernotes import calibration_for
 
-    cal = embedded_for(path, "auto")
+    cal = calibration_for(path, "auto", reader)
     if cal is None or v.estimate is None:
         return None
     try:
@@ -97,7 +99,7 @@ def _embedded_verdict(path: Path, v, calibration, alpha):
         log.warning("%s: its embedded calibration is not compared: %s", path, exc)
         return None
     return check_embedded(v.estimate, model, calibration=calibration, lens_id=v.lens_id, alpha=alpha,
-                          profile=f"the DNG's own {cal.kind}")
+                          profile=cal.label)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -142,7 +144,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                 # is the vignetting centred on the frame? (a crop, a shift, a stitch; Lyu 2010 §5)
                 crop = check_crop(img, channel_axis=-1 if img.ndim == 3 else None)
                 rec["crop"] = crop.to_dict()
-                ve = _embedded_verdict(f, v, calibration, args.alpha)
+                ve = _embedded_verdict(f, v, calibration, args.alpha, proc.reader)
                 if ve is not None:  # disagreeing with its own calibration is evidence too
                     rec["embedded"] = {k: x for k, x in ve.to_dict().items() if k != "estimate"}
                 results.append(rec)
