@@ -125,7 +125,7 @@ def test_format_1_evidence_gets_the_scene_prior_back():
     raw = working_copy(img, RobustSettings())
     divided = raw.L - default_scene_falloff().log_field(raw.xs, raw.ys)
     buf = io.BytesIO()
-    meta = json.dumps({"format": "vigproc.core.robust-evidence/1", "radius": raw.radius, "width": W, "height": H})
+    meta = json.dumps({"format": "vigproc.robust-evidence/1", "radius": raw.radius, "width": W, "height": H})
     np.savez_compressed(buf, L=divided.astype(np.float32), valid=raw.valid, xs=raw.xs, ys=raw.ys,
                         meta=np.frombuffer(meta.encode(), dtype=np.uint8))
     wc = evidence_copy(buf.getvalue())

@@ -25,7 +25,7 @@ from vigproc.errors import ModelError
 N_ALPHA = 7
 #: Order of the parameter vector used for covariances: (cx, cy, p1, p2, p3, α1..α7).
 PARAM_NAMES = ("cx", "cy", "p1", "p2", "p3") + tuple(f"alpha{i}" for i in range(1, N_ALPHA + 1))
-SCHEMA = "vigproc.core.model/1"
+SCHEMA = "vigproc.model/1"
 
 
 def _show(v: Any) -> str:

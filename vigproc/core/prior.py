@@ -33,7 +33,7 @@ from vigproc.core.stats import DELTA_MAX, OPERATORS, derivative_means
 log = logging.getLogger(__name__)
 
 SHIPPED_PRIOR = "prior_lyu2010.json"
-SCHEMA = "vigproc.core.prior/1"
+SCHEMA = "vigproc.prior/1"
 BETA_RANGE = (0.2, 8.0)
 
 

@@ -638,8 +638,8 @@ def joint_model(wcs: list[WorkingCopy], settings: RobustSettings = RobustSetting
 #: Format tag of :func:`frame_evidence` blobs: the working copy before the scene
 #: division.  Format 1 (vigproc ≤ session 4) stored it after the division by the
 #: scene prior shipped at the time.
-EVIDENCE_FORMAT = "vigproc.core.robust-evidence/2"
-_EVIDENCE_V1 = "vigproc.core.robust-evidence/1"
+EVIDENCE_FORMAT = "vigproc.robust-evidence/2"
+_EVIDENCE_V1 = "vigproc.robust-evidence/1"
 
 
 def frame_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),

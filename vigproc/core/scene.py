@@ -42,7 +42,7 @@ from vigproc.errors import ModelError, PriorError
 
 log = logging.getLogger(__name__)
 
-SCHEMA = "vigproc.core.scene/1"
+SCHEMA = "vigproc.scene/1"
 SHIPPED = "scene_falloff.json"
 N_PARAMS = 12
 

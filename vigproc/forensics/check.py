@@ -120,7 +120,7 @@ DEFAULT_ALPHA = 0.05
 PRIOR_FRAMES = 10.0
 #: Draws of the multi-frame null distribution.
 NULL_DRAWS = 4000
-CALIBRATION_SCHEMA = "vigproc.forensics.check-calibration/1"
+CALIBRATION_SCHEMA = "vigproc.forensics-calibration/1"
 SHIPPED_CALIBRATION = "forensics_calibration.json"
 _ANGLES = np.linspace(0.0, 2.0 * math.pi, 180, endpoint=False)
 _LN2 = math.log(2.0)
@@ -356,7 +356,7 @@ def load_calibration(path: str | Path) -> Calibration | MatchCalibration:
     """
     d = read_json(path, "calibration")
     if isinstance(d, dict) and d.get("schema") != CALIBRATION_SCHEMA:
-        if str(d.get("schema", "")).startswith("vigproc.forensics.lensmatch"):
+        if str(d.get("schema", "")).startswith("vigproc.lensmatch"):
             return MatchCalibration.from_dict(d)
     return Calibration.from_dict(d)
 
