@@ -241,3 +241,13 @@ def test_field_accepts_integral_float_and_numpy_shapes():
     m = table2()
     np.testing.assert_array_equal(m.field((320.0, 480.0)), m.field())
     np.testing.assert_array_equal(m.field(np.array([160, 240])), m.field((160, 240)))
+
+
+def test_models_written_before_the_package_move_still_load():
+    # Persisted schema names are a file format, not module paths: a model JSON as
+    # every earlier release wrote it must load (the move to vigproc.core once
+    # rewrote the name the reader expects).
+    text = ('{"schema": "vigproc.model/1", "width": 480, "height": 320, "center": [-80.0, -60.0], '
+            '"p": [1e-4, 5e-5, 1.5e-4], "alpha": [0.02, 0.01, 0, 0, 0, 0, 0]}')
+    m = VignettingModel.from_json(text)
+    assert m.center == (-80.0, -60.0) and json.loads(m.to_json())["schema"] == "vigproc.model/1"
