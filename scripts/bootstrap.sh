@@ -41,7 +41,11 @@ want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     echo "bootstrap: installing vigproc and its dependencies into .venv" >&2
     .venv/bin/python -m pip install -q --upgrade pip >/dev/null 2>&1 || true
-    .venv/bin/python -m pip install -q -e ".[test]" 2>&1 | grep -v "^WARNING: Location" >&2 || true
+    # setuptools' "BuildBackendWarning: Editable installation ... folders with the same name as
+    # your package" banner is about a layout this project has on purpose (vigproc/ is the
+    # package): silenced by its message, every other warning still shows
+    PYTHONWARNINGS="ignore:Editable installation" \
+        .venv/bin/python -m pip install -q -e ".[test]" 2>&1 | grep -v "^WARNING: Location" >&2 || true
     .venv/bin/python -c "import vigproc, numba, rawpy, OpenImageIO, exiftool, watchdog, lensfunpy, distributed" \
         || { echo "bootstrap: installation failed" >&2; exit 1; }
     echo "$want" > "$stamp"
