@@ -66,7 +66,7 @@ __all__ = [
 ]
 
 #: The schema of a calibration file.
-MATCH_SCHEMA = "vigproc.forensics.lensmatch-calibration/1"
+MATCH_SCHEMA = "vigproc.lensmatch-calibration/1"
 #: The shipped calibration (package data).
 SHIPPED_MATCH_CALIBRATION = "lensmatch_calibration.json"
 #: Default false-alarm probability below which a frame is inconsistent with its lens.
