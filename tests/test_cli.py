@@ -33,7 +33,9 @@ def test_estimate_json(vignetted_tiff):
     path, truth = vignetted_tiff
     r = run("estimate", path, "--json")
     assert r.returncode == 0, r.stderr
-    doc = json.loads(r.stdout)
+    top = json.loads(r.stdout)  # one document, for one file as for many (README, --json)
+    assert (top["done"], top["failed"], top["exit_code"]) == (1, 0, 0)
+    [doc] = top["results"]
     assert doc["model"]["width"] == 240
     c = np.array(doc["model"]["center"])
     assert np.linalg.norm(c - np.array(truth.center)) < 0.15 * np.linalg.norm(truth.center)
@@ -44,12 +46,18 @@ def test_estimate_takes_many_files(vignetted_tiff, tmp_path):
     other = tmp_path / "copy.tif"
     other.write_bytes(path.read_bytes())
     r = run("estimate", path, tmp_path / "missing.tif", other, "--json")
-    docs = [json.loads(line) for line in r.stdout.splitlines()]  # one object per line
-    assert [d["file"] for d in docs] == [str(path), str(other)]
-    for d in docs:
+    top = json.loads(r.stdout)  # the same one document as for one file, failures in their place
+    docs = top["results"]
+    assert [d["file"] for d in docs] == [str(path), str(tmp_path / "missing.tif"), str(other)]
+    assert docs[1]["exit_code"] == 4 and docs[1]["type"] == "ImageReadError" and "model" not in docs[1]
+    for d in (docs[0], docs[2]):
         del d["model"]["quality"]["seconds"]
-    assert docs[0]["model"] == docs[1]["model"]
-    assert r.returncode == 4 and "missing.tif" in r.stderr  # the failure's exit code, after the others
+    assert docs[0]["model"] == docs[2]["model"]
+    # some files failed: 1, as correct, check and hook say it (a file's own code only when all fail alike)
+    assert (top["done"], top["failed"], top["exit_code"]) == (2, 1, 1)
+    assert r.returncode == 1 and "missing.tif" in r.stderr
+    r = run("estimate", tmp_path / "missing.tif", tmp_path / "gone.tif", "--json")
+    assert r.returncode == 4 and json.loads(r.stdout)["exit_code"] == 4
     r = run("estimate", path, other)
     assert r.returncode == 0 and r.stdout.count("fall-off") == 2
 
@@ -228,7 +236,7 @@ def test_estimate_raw_uses_half_size_and_reports_full_frame(tmp_path):
                    "FocalLength": 24, "FNumber": 4})
     r = run("estimate", dng, "--json")
     assert r.returncode == 0, r.stderr
-    doc = json.loads(r.stdout)
+    [doc] = json.loads(r.stdout)["results"]
     m = VignettingModel.from_dict(doc["model"])
     assert (m.width, m.height) == (w, h)
     err = np.log2(m.field() / truth.field())
@@ -277,7 +285,7 @@ def test_profile_store_flow(tmp_path, monkeypatch):
     assert r.returncode == 0, r.stderr
     r = run("profile", "list")
     assert "frames=2" in r.stdout and "learning" in r.stdout
-    lens_id = json.loads(run("estimate", dngs[0], "--json").stdout)["lens"]["lens_id"]
+    lens_id = json.loads(run("estimate", dngs[0], "--json").stdout)["results"][0]["lens"]["lens_id"]
     r = run("profile", "import-lensfun", lens.maker, lens.model, "--focal", pa.focal, "--aperture", pa.aperture,
             "--width", w, "--height", h, "--lens-id", lens_id, "--crop-factor", lens.crop_factor)
     assert r.returncode == 0, r.stderr
@@ -544,3 +552,34 @@ def test_correct_leaves_no_empty_folder_when_every_file_fails(tmp_path):
     (tmp_path / "kept").mkdir()
     r = run("correct", tmp_path / "missing.jpg", "-o", tmp_path / "kept")
     assert (tmp_path / "kept").is_dir()  # a folder that was there stays
+
+
+def test_json_is_one_document_for_estimate_correct_and_check(tmp_path, vignetted_tiff):
+    """A new user got an indented object from one file and JSON lines from several, and
+    another shape from correct and check: now one document each, with the same keys."""
+    path, _ = vignetted_tiff
+    missing = tmp_path / "missing.tif"
+    for cmd in (["estimate"], ["correct", "-o", tmp_path / "out"], ["check", "--no-store"]):
+        for files in ([path], [path, missing]):
+            r = run(*cmd, *files, "--json")
+            doc = json.loads(r.stdout)  # the whole of stdout is one JSON document
+            assert {"results", "done", "failed", "exit_code"} <= set(doc), (cmd, doc.keys())
+            assert [x["file"] for x in doc["results"]] == [str(f) for f in files]
+            assert doc["exit_code"] == r.returncode
+            if len(files) == 2:
+                assert doc["failed"] == 1 and doc["results"][1]["exit_code"] == 4
+                assert r.returncode == 1  # some files failed (check: none inconsistent)
+
+
+def test_a_rejected_fit_is_said_with_the_figure_its_json_holds():
+    """estimate printed 'fall-off 0.000 EV RMS' for a frame whose fit was rejected while
+    its JSON's field_ev_rms (and the demo's picture) said 0.085 EV: one figure, one name."""
+    from importlib import resources
+
+    sample = resources.files("vigproc.data").joinpath("samples", "kodim05_vignetted.jpg")
+    [doc] = json.loads(run("estimate", sample, "--json").stdout)["results"]
+    q = doc["model"]["quality"]
+    assert q["fallback"] and q["field_ev_rms"] > 0.01
+    text = run("estimate", sample).stdout
+    assert "NOT applied" in text and "0.000 EV" not in text
+    assert f"the rejected fit: {q['field_ev_rms']:.3f} EV RMS" in text

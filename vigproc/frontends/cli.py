@@ -18,7 +18,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Sequence
 
-from vigproc.frontends.commands._options import write_json_result
+from vigproc.frontends.commands._options import JSON_HELP, failure_record, files_exit_code, print_json_results, write_json_result
 from vigproc.errors import EXIT_CODES, DiskFullError, PriorError, VigprocError, one_line
 
 log = logging.getLogger("vigproc")
@@ -69,24 +69,31 @@ def _progress(items: Sequence, what: str):
 
 # ----------------------------------------------------------------- commands
 def cmd_estimate(args: argparse.Namespace) -> int:
-    """Each file in turn; the exit code is the first failure's (0 when all succeed)."""
+    """Each file in turn; the exit code is :func:`files_exit_code`'s. ``--json`` prints
+    one JSON document at the end, for one file as for many (README, "--json")."""
     from vigproc.pipeline.processor import Settings
 
     Settings(mode="estimate", method=args.method, transfer=args.input_transfer)  # a bad --method: one usage error
     from vigproc.io.exif import ExifReader
 
-    code = 0
+    results: list[dict] = []
+    codes: list[int | None] = []
     with ExifReader() as reader:  # one exiftool process for all the files
         for f in args.files:
             try:
-                _estimate_file(args, f, reader, many=len(args.files) > 1)
+                results.append(_estimate_file(args, f, reader))
+                codes.append(None)
             except VigprocError as exc:  # one line naming the file, as the multi-file commands do
                 print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
-                code = code or exc.exit_code
+                results.append(failure_record(f, exc))
+                codes.append(exc.exit_code)
+    code = files_exit_code(codes)
+    if args.json:
+        print_json_results(results, code)
     return code
 
 
-def _estimate_file(args: argparse.Namespace, file: str, reader, many: bool) -> None:
+def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     from vigproc.core.estimate import estimate
     from vigproc.io.images import read_image
     from vigproc.pipeline.processor import lens_hint, read_lens
@@ -99,10 +106,8 @@ def _estimate_file(args: argparse.Namespace, file: str, reader, many: bool) -> N
                  hint=lens_hint(key, args.method))
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
-    if args.json:  # several files: one JSON object per line
-        doc = {"file": str(file), "lens": lens, "model": m.to_dict()}
-        print(json.dumps(doc) if many else json.dumps(doc, indent=1), flush=True)
-    else:
+    doc = {"file": str(file), "lens": lens, "model": m.to_dict()}
+    if not args.json:
         q = m.quality
         # the frame the model is for: a RAW's full frame, though estimated at half size
         half = f", estimated on its {info.width}x{info.height} half-size development" if info.format == "raw" else ""
@@ -112,11 +117,17 @@ def _estimate_file(args: argparse.Namespace, file: str, reader, many: bool) -> N
         print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
         print(f"  P (px^-2)   p1={m.p[0]:.4g} p2={m.p[1]:.4g} p3={m.p[2]:.4g}")
         print(f"  alpha       {', '.join(f'{a:.4g}' for a in m.alpha)}")
-        print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame")
+        if q is not None and q.fallback and m.candidate is not None:
+            # the model is no correction; its quality (and the JSON's field_ev_rms) is the
+            # rejected fit's: say that figure, under that name
+            print(f"  fall-off    none applied; the rejected fit: {m.candidate.field_ev_rms():.3f} EV RMS over the frame")
+        else:
+            print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame")
         if q is not None and m.method in ("robust", "real-lens", "flat-field", "lens-family"):
             why = "weak evidence or not a real lens's shape" if m.method == "real-lens" else "weak evidence"
             state = f"NOT applied ({why})" if q.fallback else "applied"
             print(f"  confidence  {q.confidence:.2f} (SNR {q.snr:.1f}, ±{q.field_sigma_ev:.3f} EV): {state}")
+    return doc
 
 
 def _applied_ev(rec: dict) -> float:
@@ -144,7 +155,6 @@ def cmd_correct(args: argparse.Namespace) -> int:
                         output_format=args.output_format, picture=args.picture, strength=args.strength,
                         unapplied=args.unapplied)
     failed = unapplied = 0
-    codes: set[int] = set()  # exit codes of the failures
     results = []
     full = None  # the fault of the last failure (vigproc.pipeline.faults)
     store = _open_store(args) if settings.needs_store else None
@@ -165,8 +175,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
                         print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))
                 except VigprocError as exc:
                     failed += 1
-                    codes.add(exc.exit_code)
-                    results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__})
+                    results.append(failure_record(f, exc))
                     print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
                     full = classify_error(exc, outdir)
                     if full.kind == DISK_FULL:  # the machine's fault: every further file would fail the same way
@@ -176,20 +185,24 @@ def cmd_correct(args: argparse.Namespace) -> int:
             store.close()
     not_started = len(files) - len(results)
     failed += not_started
+    stop = None
+    if full is not None and full.kind == DISK_FULL:
+        stop = DiskFullError(f"{full.reason}; stopped with {not_started} file(s) not started: free space on "
+                             f"{outdir} and run again")
+        results += [failure_record(f, DiskFullError("not started: the output disk is full")) for f in files[len(results):]]
     if made and failed == len(files):  # nothing written: leave no empty folder behind
         with contextlib.suppress(OSError):
             outdir.rmdir()
+    # every file failed alike: that error's code, as estimate, check and hook say it
+    code = stop.exit_code if stop is not None else files_exit_code([r.get("exit_code") for r in results])
     if args.json:
-        print(json.dumps({"results": results, "done": len(files) - failed, "failed": failed}, indent=1))
+        print_json_results(results, code)
     else:
         print(f"{len(files) - failed - unapplied} corrected, {unapplied} not corrected, {failed} failed; "
               + (f"outputs in {outdir}" if failed < len(files) else "nothing written"))
-    if full is not None and full.kind == DISK_FULL:
-        raise DiskFullError(f"{full.reason}; stopped with {not_started} file(s) not started: free space on "
-                            f"{outdir} and run again")
-    if failed and failed == len(files) and len(codes) == 1:
-        return codes.pop()  # every file failed alike: that error's code, as estimate and hook say it
-    return 0 if failed == 0 else 1
+    if stop is not None:
+        raise stop
+    return code
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -945,8 +958,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("estimate", help="estimate the vignetting of images (nothing is written)")
     sp.add_argument("files", nargs="+", metavar="FILE", help="images to estimate")
     add_method(sp)
-    sp.add_argument("--json", action="store_true",
-                    help="print the model as JSON (one object per line for several files)")
+    sp.add_argument("--json", action="store_true", help=JSON_HELP)
     sp.add_argument("--seed", type=int, default=0, help="random start of --method lyu2010-rand")
     add_transfer(sp)
     sp.set_defaults(fn=cmd_estimate)
@@ -957,7 +969,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, metavar="OUT_DIR",
                     help="folder for the corrected images and their JSON records")
     add_processing(sp)
-    sp.add_argument("--json", action="store_true", help="print each frame's record as JSON")
+    sp.add_argument("--json", action="store_true", help=JSON_HELP)
     sp.set_defaults(fn=cmd_correct)
 
     sp = sub.add_parser("demo", help="correct the bundled sample images (the README's first command)")

@@ -5,8 +5,11 @@ document them the same way (and accept installed estimator plugins alike)."""
 from __future__ import annotations
 
 import argparse
+import json
 import math
-from typing import Callable
+from typing import Callable, Sequence
+
+from vigproc.errors import VigprocError
 
 PROFILE_HELP = ("auto (a trusted stored profile of the frame's lens, else a DNG's own vignetting opcodes, else "
                 "an installed profile-source plugin, else estimate), estimate, lensfun (lensfun's calibration of "
@@ -104,3 +107,35 @@ def write_json_result(path: str | None, data: object) -> None:
         from vigproc.atomic import atomic_write_text
 
         atomic_write_text(Path(path), json.dumps(data, indent=1) + "\n")
+
+
+# ------------------------------------------------------------------ --json and exit codes
+#: The help of ``--json`` on the commands that take several files (estimate, correct, check).
+JSON_HELP = ("print one JSON document at the end, for one file as for many: {results: one record per file, "
+             "in order (a failure as {file, error, type, exit_code}), done, failed, exit_code}")
+
+
+def files_exit_code(codes: Sequence[int | None]) -> int:
+    """The exit code of a command over several files, one code per file (None: done):
+    0 when every file is done; the files' code when every file failed alike (so one
+    bad file gives that file's code); else 1. estimate, correct, check and hook say it alike."""
+    failed = [c for c in codes if c is not None]
+    if not failed:
+        return 0
+    if len(failed) == len(codes) and len(set(failed)) == 1:
+        return failed[0]
+    return 1
+
+
+def failure_record(file, exc: VigprocError) -> dict:
+    """A failed file's record in a command's ``--json`` results."""
+    return {"file": str(file), "error": str(exc), "type": type(exc).__name__, "exit_code": exc.exit_code}
+
+
+def print_json_results(results: list[dict], code: int, **extra) -> None:
+    """The one ``--json`` document of estimate, correct and check: every file's record in
+    ``results`` (in the order given; a failure as {file, error, type, exit_code}), then
+    how many were done and failed and the command's exit code."""
+    failed = sum("error" in r for r in results)
+    doc = {"results": results, "done": len(results) - failed, "failed": failed, **extra, "exit_code": code}
+    print(json.dumps(doc, indent=1), flush=True)

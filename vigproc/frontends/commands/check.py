@@ -24,12 +24,12 @@ Exit codes (documented in ``vigproc check --help``):
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
 
 from vigproc.errors import EXIT_CODES, VigprocError, one_line
+from vigproc.frontends.commands._options import JSON_HELP, failure_record, files_exit_code, print_json_results
 
 log = logging.getLogger(__name__)
 
@@ -38,10 +38,19 @@ EXIT_INCONSISTENT = EXIT_CODES["inconsistent"]
 #: Exit code when nothing is inconsistent but some frames could not be decided.
 EXIT_UNDECIDED = EXIT_CODES["undecided"]
 
-_EPILOG = f"""exit codes: 0 every frame consistent; {EXIT_INCONSISTENT} at least one frame (or pooled
-group) inconsistent; 1 some files failed (none inconsistent; when every file failed alike, that
-error's code, 3-12); {EXIT_UNDECIDED} some frames undecided
-(unknown lens or insufficient signal), none inconsistent, no failures."""
+_EPILOG = f"""exit codes:
+  0   every frame consistent
+  {EXIT_INCONSISTENT}  at least one frame (or pooled group) inconsistent
+  {EXIT_UNDECIDED}  some frames undecided (unknown lens or insufficient signal), none
+      inconsistent, no failures
+  1   some files failed, none inconsistent (when every file failed alike: that
+      error's code, 3-12)"""
+
+_DESCRIPTION = """Estimate each frame's vignetting and compare it with the profile of the lens its
+metadata claims (a stored profile, else lensfun) and, for a DNG that carries one, with
+its own embedded calibration (FixVignetteRadial/GainMap opcodes): consistent,
+inconsistent, unknown-lens or insufficient-signal, with a calibrated false-alarm
+probability."""
 
 
 def register(subparsers) -> None:
@@ -49,10 +58,7 @@ def register(subparsers) -> None:
 
     sp = subparsers.add_parser(
         "check", help="forensics: does each frame's vignetting match the lens its EXIF names?",
-        description="Estimate each frame's vignetting and compare it with the profile of the lens its "
-                    "metadata claims (a stored profile, else lensfun) and, for a DNG that carries one, with its "
-                    "own embedded calibration (FixVignetteRadial/GainMap opcodes): consistent, inconsistent, "
-                    "unknown-lens or insufficient-signal, with a calibrated false-alarm probability.",
+        description=_DESCRIPTION,
         epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sp.add_argument("files", nargs="+", metavar="FILE",
                     help="images to check against the lens their EXIF names")
@@ -60,7 +66,7 @@ def register(subparsers) -> None:
     add_profile_db(store)
     store.add_argument("--no-store", action="store_true", help="compare with lensfun only, not with stored profiles")
     sp.add_argument("--report", help="write a readable report: PATH.html (self-contained) or PATH.png")
-    sp.add_argument("--json", action="store_true", help="print the verdicts as JSON")
+    sp.add_argument("--json", action="store_true", help=JSON_HELP + "; also pooled and counts")
     sp.add_argument("--pool", action="store_true",
                     help="also pool the evidence of all frames that claim the same lens profile")
     sp.add_argument("--calibration", help="a calibration of the check: the lens-family test's ('vigproc bench "
@@ -136,8 +142,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                                     calibration=calibration, alpha=args.alpha, frame_id=fid)
                 except VigprocError as exc:
                     failed += 1
-                    results.append({"file": str(f), "error": str(exc), "type": type(exc).__name__,
-                                    "exit_code": exc.exit_code})
+                    results.append(failure_record(f, exc))
                     print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
                     continue
                 rec = {"file": str(f), "lens": lens, **v.to_dict()}
@@ -183,13 +188,10 @@ def cmd_check(args: argparse.Namespace) -> int:
     for r in results + pooled + [r["embedded"] for r in results if "embedded" in r]:
         if "verdict" in r:
             counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
-    codes = {r.get("exit_code") for r in results if "error" in r}
     if counts.get("inconsistent"):
         code = EXIT_INCONSISTENT
-    elif failed and failed == len(files) and len(codes) == 1:
-        code = codes.pop()  # every file failed alike: that error's code, as estimate says it
-    elif failed:
-        code = 1
+    elif failed:  # every file failed alike: that error's code, as estimate, correct and hook say it; else 1
+        code = files_exit_code([r.get("exit_code") for r in results])
     elif counts.get("unknown-lens") or counts.get("insufficient-signal"):
         code = EXIT_UNDECIDED
     else:
@@ -201,8 +203,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         if not args.json:
             print(f"report -> {out}")
     if args.json:
-        print(json.dumps({"results": results, "pooled": pooled, "counts": counts, "failed": failed,
-                          "exit_code": code}, indent=1))
+        print_json_results(results, code, pooled=pooled, counts=counts)
     else:
         summary = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
         print(f"{summary}; {failed} failed" if summary else f"{failed} failed")

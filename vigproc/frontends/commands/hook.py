@@ -240,12 +240,9 @@ def _error(file: str, exc: BaseException) -> dict[str, Any]:
 
 def overall_exit_code(results: list[dict[str, Any]]) -> int:
     """0 when every file is done; the shared code when every file failed alike; else 1."""
-    codes = [r["exit_code"] for r in results if r["status"] != "ok"]
-    if not codes:
-        return 0
-    if len(codes) == len(results) and len(set(codes)) == 1:
-        return codes[0]
-    return 1
+    from vigproc.frontends.commands._options import files_exit_code
+
+    return files_exit_code([None if r["status"] == "ok" else r["exit_code"] for r in results])
 
 
 # ------------------------------------------------------------------ command
