@@ -859,6 +859,30 @@ def test_libraw_complaints_go_into_the_error_not_raw_stderr(tmp_path: Path) -> N
     os.write(2, b"")  # still a valid descriptor
 
 
+def test_libpng_complaints_stay_off_stderr(tmp_path: Path) -> None:
+    """libpng printed 'libpng error: IDAT: Read error: hit end of file in png reader' straight
+    to the C stderr, beside vigproc's own line (a new user's truncated PNG): one line per
+    failed file, whatever the decoder says on its own."""
+    import subprocess
+    import sys
+
+    good = tmp_path / "good.png"
+    rng = np.random.default_rng(1)
+    write_image(good, rng.uniform(0.05, 1.0, (64, 96, 3)).astype(np.float32), bit_depth="uint8", transfer="srgb")
+    data = good.read_bytes()
+    cut = tmp_path / "cut.png"
+    cut.write_bytes(data[: len(data) // 2])
+    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "estimate", str(cut)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 4
+    lines = r.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vigproc: ") and "cut.png" in lines[0], lines
+    with pytest.raises(ImageReadError, match="PNG"):
+        read_image(cut)
+    os.write(2, b"")  # fd 2 is ours again
+    assert read_image(good)[0].shape == (64, 96, 3)
+
+
 def test_linear_tiffs_carry_a_linear_srgb_icc_profile(tmp_path: Path) -> None:
     """Editors take a TIFF without a profile for sRGB-encoded and show a linear one far
     too dark: a linear RGB TIFF says what it holds (sRGB primaries, gamma 1.0)."""

@@ -495,6 +495,26 @@ def read_image(
             raw_note = str(exc)
             logger.debug("%s: LibRaw does not recognise it (%s); trying OpenImageIO", fspath, exc)
 
+    if kind == "png":
+        # libpng prints its errors (``libpng error: IDAT: Read error``) straight to the C
+        # stderr, outside OpenImageIO, whose own message already holds them: kept off the
+        # terminal and out of --log-json's one object per line, logged at debug level
+        said: list[str] = []
+        try:
+            with _c_stderr_into(said):
+                return _read_through_oiio(fspath, size, kind, head, want, raw_first, raw_note, raw_half_size,
+                                          max_pixels, budget)
+        finally:
+            if said:
+                logger.debug("%s: libpng said: %s", fspath, "; ".join(said)[:500])
+    return _read_through_oiio(fspath, size, kind, head, want, raw_first, raw_note, raw_half_size, max_pixels,
+                              budget)
+
+
+def _read_through_oiio(fspath: str, size: int, kind: str | None, head: bytes, want: str, raw_first: bool,
+                       raw_note: str, raw_half_size: bool, max_pixels: int, budget: int) -> tuple[np.ndarray, ImageInfo]:
+    """The rest of :func:`read_image` once LibRaw did not take the file: OpenImageIO, or
+    LibRaw after all for what turns out to be a TIFF-based RAW."""
     inp, err = _oiio_open(fspath)
     if inp is None:
         if err and (("exceeds the" in err and "limit" in err) or "claimed to be" in err):
@@ -724,7 +744,7 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
 
 
 #: One capture of the C-level stderr at a time (it is the process's, not a thread's).
-_STDERR_LOCK = threading.Lock()
+_STDERR_LOCK = threading.RLock()  # re-entrant: a capture may nest (PNG, then LibRaw)
 
 
 @contextlib.contextmanager
