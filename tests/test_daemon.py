@@ -139,11 +139,11 @@ def test_own_folders_inside_the_watch_folder_are_not_watched(tmp_path):
     (in_dir / "sub").mkdir(parents=True)
     cfg.validate()
     d = D(cfg)
-    wanted = {rel: d._wanted(str(cfg.in_dir / rel)) for rel in
+    wanted = {rel: d.watcher.wanted(str(cfg.in_dir / rel)) for rel in
               ["a.jpg", "sub/a.png", "out/a.corrected.tif", "q/bad.jpg", "outside.jpg.part", ".cache/a.jpg",
                "@eaDir/a.jpg", "a.txt", "sub/.a.jpg", "output/a.jpg"]}
     assert [r for r, w in wanted.items() if w] == ["a.jpg", "sub/a.png", "output/a.jpg"]
-    assert not d._wanted(str(tmp_path / "elsewhere.jpg"))
+    assert not d.watcher.wanted(str(tmp_path / "elsewhere.jpg"))
 
 
 def test_archive_and_quarantine_folders_must_be_their_own(tmp_path):

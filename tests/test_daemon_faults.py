@@ -188,6 +188,7 @@ def test_a_pause_resumes_as_soon_as_the_free_space_grows(tmp_path, monkeypatch):
     """The other way out of a pause: the free space grew (the disk was grown or cleaned),
     seen within a second; a quota (free space unchanged) waits for the probe instead."""
     import vigproc.frontends.daemon as D
+    import vigproc.frontends.daemon.scheduler as S
     from vigproc.pipeline.faults import DiskSpace
 
     in_dir = tmp_path / "in"
@@ -195,20 +196,21 @@ def test_a_pause_resumes_as_soon_as_the_free_space_grows(tmp_path, monkeypatch):
     cfg = D.WatchConfig(in_dir=in_dir, out_dir=tmp_path / "out", settings={"mode": "correct", "profile": "estimate"})
     cfg.validate()
     d = D.Daemon(cfg)
+    s = d.scheduler  # what schedules holds the pause
     d.journal = D.Journal(cfg.journal, job=cfg.job)  # for the status the resume writes
     free = [5_000_000]
-    monkeypatch.setattr(D, "disk_space", lambda p: DiskSpace(free[0], 20_000_000, 1000))
+    monkeypatch.setattr(S, "disk_space", lambda p: DiskSpace(free[0], 20_000_000, 1000))
     now = time.monotonic()
-    d._disk = D._DiskPause(reason="output disk full", since=time.time(), free_bytes=5_000_000, delay=60,
-                           probe_at=now + 60, held={str(in_dir / "a.png")})
+    s.disk = S._DiskPause(reason="output disk full", since=time.time(), free_bytes=5_000_000, delay=60,
+                          probe_at=now + 60, held={str(in_dir / "a.png")})
     (in_dir / "a.png").write_bytes(b"x")
-    assert d._disk_go() is None  # still full, and no probe due
+    assert s.disk_go() is None  # still full, and no probe due
     cfg.min_free = 1_000_000  # "not low" now, but not grown either: a quota, say
-    d._disk.next_look = 0
-    assert d._disk_go() is None
+    s.disk.next_look = 0
+    assert s.disk_go() is None
     free[0] = 500_000_000  # grown
-    d._disk.next_look = 0
-    assert d._disk_go() == "resume" and d._disk is None
-    assert list(d.ready) == [str(in_dir / "a.png")] and str(in_dir / "a.png") in d._disk_ready
+    s.disk.next_look = 0
+    assert s.disk_go() == "resume" and s.disk is None
+    assert list(d.watcher.ready) == [str(in_dir / "a.png")] and str(in_dir / "a.png") in s.disk_ready
     assert json.loads(cfg.status_file.read_text())["state"] == "running"
     d.journal.close()

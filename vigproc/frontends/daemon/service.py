@@ -1,0 +1,246 @@
+"""The :class:`Daemon`: one job's lock, its journal, its signals and its loop, composing
+what watches (:class:`~.watcher.Watcher`), what schedules (:class:`~.scheduler.Scheduler`)
+and what records (:class:`~.recorder.Recorder`).
+
+One turn of the loop: the watcher takes its events (and rescans when due), the files
+that settled are offered; due retries come back; the scheduler hands files to idle
+workers, waits a tick for what they say and has the recorder record it; workers that
+overran ``--timeout`` are killed; the status file is rewritten every second.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import threading
+import time
+from typing import Any
+
+from vigproc.stores.journal import Journal
+
+from .config import RunFlags, WatchConfig, WatchError
+from .logs import _ev, _sd_notify, log
+from .recorder import Recorder
+from .scheduler import Scheduler
+from .watcher import Watcher
+
+__all__ = ["Daemon"]
+
+
+class Daemon:
+    """The watch-folder loop (see :mod:`vigproc.frontends.daemon`). ``Daemon(cfg).run()``
+    returns an exit code: 0 after a drained SIGTERM/SIGINT, 1 after an abort (a second
+    signal).
+
+    Attributes
+    ----------
+    watcher : Watcher
+        What watches: events, rescans, settling, candidate filtering.
+    scheduler : Scheduler
+        What schedules: workers, dispatch, retries, timeouts, the full-disk pause.
+    recorder : Recorder
+        What records: the journal, archive and quarantine moves, the status file.
+
+    Raises
+    ------
+    WatchError, JournalError
+        Startup problems (another daemon on the job, unusable folders or journal,
+        workers that cannot start).
+    """
+
+    #: Seconds between journal queries for due retries and between status writes.
+    DUE_EVERY = 1.0
+    STATUS_EVERY = 1.0
+
+    def __init__(self, cfg: WatchConfig) -> None:
+        self.cfg = cfg
+        self.flags = RunFlags()
+        self.recorder = Recorder(cfg)
+        self.watcher = Watcher(cfg, self.recorder, busy=self._busy)
+        self.scheduler = Scheduler(cfg, self.watcher, self.recorder, self.flags, on_status=self._write_status)
+        self._lock_fd: int | None = None
+        self._wake_r: socket.socket | None = None
+        self._wake_w: socket.socket | None = None
+
+    def _busy(self, path: str) -> bool:
+        return path in self.scheduler.inflight
+
+    @property
+    def journal(self) -> Journal:
+        """The job's journal (open while :meth:`run` runs); the recorder's."""
+        return self.recorder.journal
+
+    @journal.setter
+    def journal(self, journal: Journal) -> None:
+        self.recorder.journal = journal
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """This run's counts (the recorder's)."""
+        return self.recorder.stats
+
+    # ---------------------------------------------------------- life cycle
+    def run(self) -> int:
+        cfg = self.cfg
+        cfg.validate()
+        self._take_lock()
+        try:
+            self.journal = Journal(cfg.journal, job=cfg.job, retry_base=cfg.retry_base, retry_cap=cfg.retry_cap)
+            try:
+                return self._run()
+            finally:
+                self.journal.close()
+        finally:
+            self._release_lock()
+
+    def _run(self) -> int:
+        cfg, rec, flags = self.cfg, self.recorder, self.flags
+        unfinished = [e.path for state in ("running", "pending", "failed") for e in self.journal.entries(state)]
+        rec.recover()
+        rec.remove_stale_temps(unfinished)
+        if cfg.retry_quarantined:
+            # first back into the watch folder, then pending: in this order a crash between the
+            # two leaves files the next start simply quarantines (moves) again, never stranded
+            back = rec.return_quarantined(self.watcher.wanted)
+            k = self.journal.requeue("quarantined")
+            log.info("%d quarantined file(s) will be tried again (%d moved back from the quarantine folder)", k, back,
+                     extra=_ev("requeue", count=k, moved_back=back))
+        old_handlers = self._install_signals()
+        try:
+            for i in range(cfg.workers):
+                self.scheduler.start_worker(i)
+            self.watcher.start_observer(self._wake_w)
+            self.watcher.rescan()
+            log.info("watching %s -> %s (%s mode, %d worker(s), %s, settle %.3g s)", cfg.in_dir, cfg.out_dir,
+                     cfg.settings.get("mode"), cfg.workers,
+                     f"polling every {cfg.poll:g} s" if cfg.poll else "native events", cfg.settle,
+                     extra=_ev("start", in_dir=str(cfg.in_dir), out_dir=str(cfg.out_dir), job=cfg.job,
+                               workers=cfg.workers, poll=cfg.poll, settle=cfg.settle, pid=os.getpid()))
+            _sd_notify("READY=1\nSTATUS=watching")
+            self._loop()
+        finally:
+            self.watcher.stop_observer()
+            self.scheduler.shutdown()
+            self._restore_signals(old_handlers)
+            self._write_status(state="stopped" if not flags.abort else "aborted")
+            _sd_notify("STOPPING=1")
+        if flags.abort:
+            log.warning("aborted: files in progress were handed back for the next start", extra=_ev("aborted"))
+            return 1
+        log.info("stopped (%s): %d done, %d quarantined, %d retried this run", flags.stop, self.stats["done"],
+                 self.stats["quarantined"], self.stats["retried"], extra=_ev("stopped", reason=flags.stop, **self.stats))
+        return 0
+
+    def _take_lock(self) -> None:
+        import fcntl
+
+        cfg = self.cfg
+        try:
+            cfg.lock_file.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(cfg.lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise WatchError(f"cannot create the lock file {str(cfg.lock_file)!r}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                other = os.read(fd, 64).decode("ascii", "replace").strip()
+            except OSError:
+                other = "?"
+            os.close(fd)
+            raise WatchError(f"another vigproc watch (pid {other or '?'}) is already running on {str(cfg.in_dir)!r} "
+                             f"-> {str(cfg.out_dir)!r} (lock {str(cfg.lock_file)!r})") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._lock_fd = fd
+
+    def _release_lock(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+    # ---------------------------------------------------------- signals
+    def _install_signals(self) -> dict[Any, Any]:
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        if threading.current_thread() is not threading.main_thread():  # embedded: the host handles signals
+            return {}
+        old: dict[Any, Any] = {"wakeup": signal.set_wakeup_fd(self._wake_w.fileno(), warn_on_full_buffer=False)}
+        flags = self.flags
+
+        def on_stop(signum: int, _frame: Any) -> None:
+            if flags.stop is None:
+                flags.stop = signal.Signals(signum).name
+            else:
+                flags.abort = True
+
+        def on_hup(_signum: int, _frame: Any) -> None:
+            flags.rescan = True
+
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            old[sig] = signal.signal(sig, on_stop)
+        if hasattr(signal, "SIGHUP"):
+            old[signal.SIGHUP] = signal.signal(signal.SIGHUP, on_hup)
+        return old
+
+    def _restore_signals(self, old: dict[Any, Any]) -> None:
+        for sig, handler in old.items():
+            if sig == "wakeup":
+                signal.set_wakeup_fd(handler)
+            else:
+                signal.signal(sig, handler)
+        for s in (self._wake_r, self._wake_w):
+            if s is not None:
+                s.close()
+
+    # ---------------------------------------------------------- status
+    def _write_status(self, state: str = "running") -> None:
+        w, s = self.watcher, self.scheduler
+        running = s.running()
+        self.recorder.write_status(state, stopping=bool(self.flags.stop), settling=len(w.tracker), ready=len(w.ready),
+                                   dispatched=s.queued() - len(running), unreadable=len(s.unreadable),
+                                   running=running, paused=s.pause_status())
+
+    # ---------------------------------------------------------- loop
+    def _loop(self) -> None:
+        cfg, flags = self.cfg, self.flags
+        watcher, scheduler, rec = self.watcher, self.scheduler, self.recorder
+        tick = min(0.25, max(cfg.settle / 4, 0.02))
+        next_due = next_status = 0.0
+        watchdog_usec = int(os.environ.get("WATCHDOG_USEC", "0") or 0)
+        next_ping = 0.0
+        draining_logged = False
+        while True:
+            if flags.abort:
+                return
+            if flags.stop:
+                if not draining_logged:
+                    n = scheduler.queued()
+                    log.info("%s received: finishing %d file(s) in progress, then stopping", flags.stop, n,
+                             extra=_ev("draining", signal=flags.stop, in_progress=n))
+                    _sd_notify("STOPPING=1")
+                    watcher.stop_observer()
+                    draining_logged = True
+                if not scheduler.inflight:
+                    rec.flush_backlog()  # once more: what a full journal disk held back
+                    return
+            else:
+                rescan, flags.rescan = flags.rescan, False
+                watcher.look(rescan, self._wake_w)
+                now = time.monotonic()
+                if now >= next_due:
+                    rec.flush_backlog()
+                    scheduler.due_retries()
+                    next_due = now + self.DUE_EVERY
+                scheduler.dispatch()
+            scheduler.collect(tick, self._wake_r)
+            scheduler.check_timeouts()
+            now = time.monotonic()
+            if now >= next_status:
+                self._write_status()
+                next_status = now + self.STATUS_EVERY
+            if watchdog_usec and now >= next_ping:
+                _sd_notify("WATCHDOG=1")
+                next_ping = now + watchdog_usec / 2e6
