@@ -293,7 +293,7 @@ def test_report_html_and_png(tmp_path, classes, calibration):
     write_report(out, items)
     text = out.read_text()
     assert "<script>alert" not in text and "&lt;script&gt;" in text
-    assert text.count("data:image/png;base64,") == 2
+    assert text.count("data:image/jpeg;base64,") == 2
     assert "inconsistent" in text and "unknown-lens" in text
     png = tmp_path / "r.png"
     write_report(png, items)
