@@ -410,6 +410,8 @@ def test_hook_check_does_not_check_a_frame_against_its_own_profile(tmp_path, cla
         (res,) = json.loads(capsys.readouterr().out)["results"]
         v = res["verdict"] if isinstance(res["verdict"], dict) else res  # the hook nests the verdict
         assert v["verdict"] == "unknown-lens" and v.get("expected_source") is None, json.dumps(res)
+        # and says why, not 'no stored profile' (a new user had just learned the frame)
+        assert "learned from this very frame" in v["reason"] and "no stored profile" not in v["reason"], v["reason"]
 
 
 def test_check_cli_line_escapes_a_newline_in_a_file_name(tmp_path, classes, capsys):

@@ -1146,7 +1146,8 @@ def check_image(
             raise ForensicsError(f"the lens-family test runs its own fit, not the {method!r} estimator (give "
                                  f"--calibration a ring calibration made with 'vigproc forensics calibrate "
                                  f"--method {method}')")
-        return check_family(img, lens_key, store=store, calibration=calibration, alpha=alpha, frame_id=frame_id)
+        v = check_family(img, lens_key, store=store, calibration=calibration, alpha=alpha, frame_id=frame_id)
+        return _say_own_frame(v, lens_key, img.shape[1], img.shape[0], store, frame_id)
     cal = calibration if calibration is not None else default_calibration()
     method = forensic_method(method)
     if cal.method != method:
@@ -1156,8 +1157,27 @@ def check_image(
     m = estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)
     h, w = img.shape[:2]
     exp = expected_for(lens_key, w, h, store=store, calibration=cal, frame_id=frame_id)
-    return check_model(m, exp, calibration=cal, lens_id=lens_key.lens_id() if lens_key is not None else None,
-                       alpha=alpha)
+    v = check_model(m, exp, calibration=cal, lens_id=lens_key.lens_id() if lens_key is not None else None,
+                    alpha=alpha)
+    return _say_own_frame(v, lens_key, w, h, store, frame_id)
+
+
+def _say_own_frame(v: Verdict, lens_key, width: int, height: int, store, frame_id: str | None) -> Verdict:
+    """An unknown-lens verdict whose lens has a stored profile that pooled this very frame
+    says so: 'no stored profile' read as a lie to a user who had just learned the frame."""
+    if v.verdict != "unknown-lens" or lens_key is None or store is None or frame_id is None:
+        return v
+    try:
+        p = store.lookup(lens_key, width, height)
+        own = p is not None and store.holds_frame(p.key, frame_id)
+    except VigprocError:
+        return v
+    if not own:
+        return v
+    import dataclasses
+
+    return dataclasses.replace(v, reason=f"the stored profile {p.key} was learned from this very frame (a frame "
+                                         "cannot vouch for itself) and lensfun has no calibration for this lens")
 
 
 def pool_verdicts(verdicts: Sequence[Verdict], *,
