@@ -115,3 +115,24 @@ def test_a_terminated_server_removes_its_socket(tmp_path, server_env):
     while any(server_env.glob("*.sock")) and time.time() - t0 < 10:  # well before its 20 s idle exit
         time.sleep(0.2)
     assert not any(server_env.glob("*.sock"))
+
+
+def test_a_server_whose_socket_is_removed_leaves_within_seconds(tmp_path, server_env):
+    """vigproc bench hook removes its server's socket when done; the server went on for up
+    to 10 s more (a new user saw it in ps after the benchmark had ended)."""
+    img = np.repeat(photo_like(60, 90, seed=3)[..., None], 3, axis=2).astype(np.float32)
+    write_image(tmp_path / "a.tif", img, bit_depth="float")
+    assert _hook("--mode", "estimate", "--profile", "estimate", "--", "a.tif", cwd=tmp_path).returncode == 0
+    assert _wait_for_socket(server_env), "the first call did not start a server"
+    assert _hook("--mode", "estimate", "--profile", "estimate", "--", "a.tif", cwd=tmp_path).returncode == 0
+
+    def running() -> bool:
+        return subprocess.run(["pgrep", "-f", "--", f"--socket {server_env}"], capture_output=True).returncode == 0
+
+    assert running()
+    for sock in server_env.glob("*.sock"):
+        sock.unlink()
+    t0 = time.time()
+    while running() and time.time() - t0 < 8:
+        time.sleep(0.1)
+    assert not running() and time.time() - t0 < 4, f"still running after {time.time() - t0:.1f} s"
