@@ -237,6 +237,23 @@ def correct(
     Returns
     -------
     ndarray, float32, same layout as ``img``
+
+    Examples
+    --------
+    An evenly lit grey frame seen through a lens whose corners lose about half a stop:
+
+    >>> import numpy as np
+    >>> import vigproc
+    >>> lens = vigproc.VignettingModel(240, 160, p=(1 / 150**2, 0.0, 1 / 150**2))
+    >>> img = np.full((160, 240, 3), 0.5) * lens.field()[..., None]  # H×W×C, linear
+    >>> round(float(img[0, 0, 0]), 3)  # a corner, darker
+    0.331
+    >>> out = vigproc.correct(img, lens)
+    >>> out.shape, out.dtype, bool(np.allclose(out, 0.5, atol=1e-3))
+    ((160, 240, 3), dtype('float32'), True)
+    >>> half = vigproc.correct(img, lens, strength=0.5)  # half the fall-off (in stops) removed
+    >>> round(float(half[0, 0, 0]), 3)
+    0.407
     """
     a = np.asarray(img)
     if a.ndim == 2:

@@ -154,6 +154,17 @@ class VignettingModel:
     quality : FitQuality or None
     candidate : VignettingModel or None
         When the default estimator fell back to the identity model, the rejected fit.
+
+    Examples
+    --------
+    A centred, circular fall-off of effective focal length 150 px on a 240×160 frame:
+
+    >>> from vigproc import VignettingModel
+    >>> m = VignettingModel(240, 160, p=(1 / 150**2, 0.0, 1 / 150**2))
+    >>> round(m.field_ev_rms(), 2)  # how strong: RMS of log2 φ over the frame, in EV
+    0.25
+    >>> VignettingModel.identity(240, 160).is_identity
+    True
     """
 
     width: int
@@ -301,7 +312,24 @@ class VignettingModel:
         return -2.0 * np.log1p(0.25 * q) + np.log(g)
 
     def field(self, shape: tuple[int, int] | None = None) -> np.ndarray:
-        """φ on an H×W grid: the attenuation, 1.0 at the vignetting centre."""
+        """φ on an H×W grid: the attenuation, 1.0 at the vignetting centre.
+
+        ``shape`` as for :meth:`log_field` (default: the model's own frame size).
+
+        Examples
+        --------
+        >>> from vigproc import VignettingModel
+        >>> m = VignettingModel(240, 160, center=(20.0, 0.0), p=(1 / 150**2, 0.0, 1 / 150**2))
+        >>> phi = m.field()
+        >>> phi.shape, phi.dtype
+        ((160, 240), dtype('float64'))
+        >>> round(float(phi.max()), 3)  # 1 at the vignetting centre, 20 px right of the frame's
+        1.0
+        >>> round(float(phi[0, 0]), 2), round(float(phi[0, -1]), 2)  # the top corners: left is further out
+        (0.6, 0.72)
+        >>> m.field((80, 120)).shape  # the same frame at half the resolution
+        (80, 120)
+        """
         return np.exp(self.log_field(shape))
 
     def field_ev_rms(self, shape: tuple[int, int] | None = None) -> float:
@@ -326,6 +354,23 @@ class VignettingModel:
         ModelError
             If ``width``/``height`` are not positive integers (an integral float such
             as 64.0 counts), or the aspect ratio changes.
+
+        Examples
+        --------
+        Estimated on a 240×160 preview, applied to the 2400×1600 original:
+
+        >>> import numpy as np
+        >>> from vigproc import VignettingModel
+        >>> small = VignettingModel(240, 160, center=(12.0, -4.0), p=(1 / 150**2, 0.0, 1 / 150**2))
+        >>> big = small.rescale(2400, 1600)
+        >>> big.center, round(1 / big.p[0] ** 0.5)
+        ((120.0, -40.0), 1500)
+        >>> bool(np.allclose(big.field((160, 240)), small.field()))  # one frame, two resolutions
+        True
+        >>> small.rescale(240, 240)
+        Traceback (most recent call last):
+        ...
+        vigproc.errors.ModelError: rescaling 240x160 to 240x240 changes the aspect ratio: that is a different frame (crop?), not a resolution change
         """
         # the frame is stored as whole pixels: a fractional size would scale by one
         # factor and record another
@@ -375,6 +420,19 @@ class VignettingModel:
         return d
 
     def to_json(self, **kw: Any) -> str:
+        """The model as JSON text (:meth:`to_dict`; ``kw`` goes to :func:`json.dumps`),
+        read back by :meth:`from_json`.
+
+        Examples
+        --------
+        >>> from vigproc import VignettingModel
+        >>> m = VignettingModel(240, 160, center=(12.0, -4.0), p=(1 / 150**2, 0.0, 1 / 150**2), method="robust")
+        >>> text = m.to_json()
+        >>> text[:70]
+        '{"schema": "vigproc.model/1", "width": 240, "height": 160, "center": ['
+        >>> VignettingModel.from_json(text) == m  # exact: floats survive JSON
+        True
+        """
         return json.dumps(self.to_dict(), **kw)
 
     @classmethod
@@ -435,7 +493,20 @@ class VignettingModel:
 
     @classmethod
     def from_json(cls, text: str | bytes) -> VignettingModel:
-        """The model of a :meth:`to_json` text (see :meth:`from_dict` for the checks)."""
+        """The model of a :meth:`to_json` text (see :meth:`from_dict` for the checks).
+
+        Examples
+        --------
+        >>> from vigproc import VignettingModel
+        >>> m = VignettingModel.from_json('{"schema": "vigproc.model/1", "width": 240, "height": 160, '
+        ...                               '"center": [0, 0], "p": [4e-05, 0, 4e-05], "alpha": [0, 0, 0, 0, 0, 0, 0]}')
+        >>> m.width, m.height, m.p
+        (240, 160, (4e-05, 0.0, 4e-05))
+        >>> VignettingModel.from_json('{"width": 240, "height": 160}')
+        Traceback (most recent call last):
+        ...
+        vigproc.errors.ModelError: vignetting model is missing field 'center'
+        """
         if not isinstance(text, (str, bytes, bytearray)):
             raise ModelError(f"a vignetting model must be JSON text, got {type(text).__name__}")
         try:

@@ -3,12 +3,15 @@
 This is the interface photo pipelines program against; the names below keep their
 meaning across vigproc releases (:data:`API_VERSION` changes when they do not).
 
+>>> import numpy as np
 >>> from vigproc.frontends.api import Pipeline
->>> with Pipeline("correct", store="~/.local/share/vigproc/profiles.sqlite") as vp:
+>>> img = 0.5 + 0.05 * np.random.default_rng(0).random((160, 240, 3))  # a linear image (here: noise)
+>>> with Pipeline("correct") as vp:  # store="~/.local/share/vigproc/profiles.sqlite": stored profiles
 ...     out, res = vp.process(img, lens={"make": "Canon", "model": "Canon EOS 5D Mark II",
 ...                                      "lens": "EF24-105mm f/4L IS USM", "focal_mm": 24,
 ...                                      "fnumber": 4.0})
->>> res.applied, res.falloff_ev, res.confidence
+>>> res.applied, res.fallback, res.lens["lens_id"]  # no fall-off to correct in noise
+(False, True, 'canon|canon eos 5d mark ii|ef24-105mm f/4l is usm')
 
 One-off calls: :func:`process` (same arguments, no store unless given).
 
@@ -250,6 +253,34 @@ class Pipeline:
         Unknown mode.
     VigprocError
         Other invalid settings (unknown method, strength out of [0, 2]...).
+
+    Examples
+    --------
+    A frame of a white wall through a lens with a known fall-off (0.25 EV RMS);
+    "flat-field" is the estimator for frames of no scene:
+
+    >>> import numpy as np
+    >>> import vigproc
+    >>> lens = vigproc.VignettingModel(240, 160, p=(1 / 150**2, 0.0, 1 / 150**2))
+    >>> rng = np.random.default_rng(0)
+    >>> img = 0.5 * lens.field()[..., None] * (1 + 0.01 * rng.standard_normal((160, 240, 3)))
+    >>> with vigproc.Pipeline("correct", profile="estimate", method="flat-field") as vp:
+    ...     out, res = vp.process(img)
+    >>> res.applied, res.source, round(res.falloff_ev, 2), round(res.removed_ev, 2)
+    (True, 'estimate', 0.25, 0.25)
+    >>> out.shape, out.dtype, bool(out.std() / out.mean() < 0.02)  # flat again, up to the noise
+    ((160, 240, 3), dtype('float32'), True)
+
+    ``check`` returns the image itself, with a verdict:
+
+    >>> with vigproc.Pipeline("check", profile="estimate") as vp:
+    ...     same, res = vp.process(img)
+    >>> same is img, res.verdict["verdict"]  # no lens named: nothing to compare with
+    (True, 'unknown-lens')
+    >>> vigproc.Pipeline("sharpen")
+    Traceback (most recent call last):
+    ...
+    vigproc.frontends.api.RequestError: unknown mode 'sharpen' (choose from correct, check, estimate)
     """
 
     def __init__(self, mode: str = "correct", *, profile: str = "auto", method: str = "default",
