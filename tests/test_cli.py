@@ -583,3 +583,13 @@ def test_a_rejected_fit_is_said_with_the_figure_its_json_holds():
     text = run("estimate", sample).stdout
     assert "NOT applied" in text and "0.000 EV" not in text
     assert f"the rejected fit: {q['field_ev_rms']:.3f} EV RMS" in text
+
+
+def test_correct_prints_outputs_under_the_folder_as_given(tmp_path, vignetted_tiff):
+    """'-o out' printed '-> /abs/path/out/NAME' beside 'outputs in out' (the README's first
+    example shows the line)."""
+    path, _ = vignetted_tiff
+    r = run("correct", path, "-o", "out", "--profile", "estimate", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert f"{path} -> out/frame.corrected.tif  [" in r.stdout, r.stdout
+    assert r.stdout.rstrip().endswith("outputs in out")

@@ -143,6 +143,15 @@ def _open_store(args: argparse.Namespace):
     return ProfileStore(args.profile_db)
 
 
+def _as_given(path: str, outdir: Path) -> str:
+    """An output's path under ``outdir`` as the user wrote it (``-o out`` prints
+    ``out/NAME``, not the absolute path the record keeps)."""
+    try:
+        return str(outdir / Path(path).relative_to(outdir.resolve()))
+    except ValueError:
+        return path
+
+
 def cmd_correct(args: argparse.Namespace) -> int:
     from vigproc.pipeline.faults import DISK_FULL, classify_error
     from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
@@ -171,7 +180,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
                             tag = f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed"
                         else:
                             tag = f"not corrected: {rec.get('not_applied', 'nothing applied')}"
-                        where = rec.get("output") or "no image written (see its .vigproc.json)"
+                        where = _as_given(rec["output"], outdir) if rec.get("output") else \
+                            "no image written (see its .vigproc.json)"
                         print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))
                 except VigprocError as exc:
                     failed += 1
