@@ -24,7 +24,8 @@ features of a twelve-parameter fit:
    photograph) with a D² at least as large, an empirical p-value.
 5. **Several frames** of one claimed lens: the coordinate-wise median of their whitened
    residuals z̄, statistic n·|z̄|², against medians of n calibration frames from
-   different photographs (the median, as lens profiles pool their frames,
+   different photographs, each set shifted by one draw of the calibration centre's own
+   sampling error (a set shares that error; n frames do not average it away) (the median, as lens profiles pool their frames,
    :mod:`vigproc.core.pooling`: one fooled frame moves it by one rank).
 
 References
@@ -73,6 +74,9 @@ SHIPPED_MATCH_CALIBRATION = "lensmatch_calibration.json"
 DEFAULT_ALPHA = 0.01
 #: Draws of a multi-frame null distribution.
 NULL_DRAWS = 4000
+#: The spread of a median relative to the standard deviation of a Gaussian sample's
+#: mean (sqrt(pi/2)): the sampling error of the calibration's centre.
+MEDIAN_EFFICIENCY = math.sqrt(math.pi / 2)
 #: Grid (rows) on which a claimed lens's field is projected onto the family.
 _PROJECTION_ROWS = 48
 
@@ -264,7 +268,17 @@ class MatchCalibration:
             if uniq.size < n:
                 raise MatchCalibrationError(f"the calibration has {uniq.size} photographs, too few for "
                                             f"{n}-frame evidence")
-            out = pooled_null(z, g, n, pooled_d2, seed=2010 + n)
+            # The centre μ is the median of the calibration's photographs, so a set of
+            # frames sees it off by its sampling error, the same for every frame of the
+            # set: n frames shrink their own scatter, not that offset. Each draw adds one
+            # offset of the median's spread, 1.2533/sqrt(photographs) in whitened units.
+            spread = MEDIAN_EFFICIENCY / math.sqrt(uniq.size)
+            offsets = np.random.default_rng(2011 + n)
+
+            def statistic(rows: np.ndarray) -> float:
+                return pooled_d2(rows + offsets.normal(0.0, spread, rows.shape[1]))
+
+            out = pooled_null(z, g, n, statistic, seed=2010 + n)
         self._cache[n] = out
         return out
 
