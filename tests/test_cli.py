@@ -593,3 +593,14 @@ def test_correct_prints_outputs_under_the_folder_as_given(tmp_path, vignetted_ti
     assert r.returncode == 0, r.stderr
     assert f"{path} -> out/frame.corrected.tif  [" in r.stdout, r.stdout
     assert r.stdout.rstrip().endswith("outputs in out")
+
+
+def test_an_unknown_option_is_reported_by_its_command():
+    """'vigproc estimate --strength 3 x' printed the top-level usage and 'vigproc: error':
+    the command's own usage says which options it takes."""
+    r = run("estimate", "--strength", "3", "x.jpg")
+    assert r.returncode == 2
+    assert "usage: vigproc estimate" in r.stderr and "vigproc estimate: error: unrecognized arguments: --strength" \
+        in r.stderr, r.stderr
+    r = run("profile", "show", "0", "--bogus")
+    assert r.returncode == 2 and "vigproc profile show: error: unrecognized arguments: --bogus" in r.stderr

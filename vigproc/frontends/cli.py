@@ -1268,7 +1268,9 @@ def _terminate_like_ctrl_c():
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # said by the command's own parser (its usage line), not the top level's
+        _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(extra)}")
     handler = logging.StreamHandler()  # the current sys.stderr (the hook server swaps it per call)
     handler.setFormatter(_OneLineFormatter("%(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), handlers=[handler], force=True)
@@ -1280,6 +1282,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _hook_via_server(args, argv, hookserver)
     with _terminate_like_ctrl_c() as terminated:
         return _run(args, terminated)
+
+
+def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The (sub)parser of the command ``args`` are for: ``vigproc profile show``'s, say."""
+    for action in parser._actions:  # noqa: SLF001 - argparse keeps its subcommands there
+        if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+            name = getattr(args, action.dest, None)
+            if name in action.choices:
+                return _command_parser(action.choices[name], args)
+    return parser
 
 
 def _hook_via_server(args: argparse.Namespace, argv: list[str], hookserver) -> int:
