@@ -554,27 +554,41 @@ def _patch(module):
 
 
 def test_worker_crash_hang_and_full_disk(tmp_path):
+    """A worker that dies on a file, a full output disk, then a worker that hangs.
+
+    The hang is a phase of its own, the only file in the folder: ``--timeout`` is a
+    wall clock, so a good file beside it could overrun any timeout on a loaded machine
+    and be charged a crash (4 s did, on a fresh clone under load).  Nothing here waits
+    for a time to pass: every step waits for what the daemon records."""
     stage, in_dir, out_dir = (tmp_path / n for n in ("stage", "in", "out"))
     for d in (stage, in_dir, tmp_path / "site"):
         d.mkdir()
     (tmp_path / "site" / "sitecustomize.py").write_text(_FAULTS)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), os.environ.get("PYTHONPATH", "")]),
            "VIGPROC_TEST_FAULT_DIR": str(tmp_path)}
-    names = ["a CRASH.png", "b HANG.png", "c FULL.png", "d ok.png", "e ok.tif", "f ok.png"]
-    for i, n in enumerate(names):
+    names = ["a CRASH.png", "c FULL.png", "d ok.png", "e ok.tif", "f ok.png"]
+    for i, n in enumerate([*names, "b HANG.png"]):
         make_good(stage, n, i)
-    # --timeout leaves a good file room on a loaded machine (the suite runs on every core): 4 s quarantined one
-    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.3", "--timeout", "8", "--max-crashes", "2",
-               env=env).start()
+
+    def finished(count: int):
+        def pred() -> bool:
+            e = journal_entries(out_dir)
+            return len(e) == count and all(x.state in ("done", "quarantined") for x in e.values())
+        return pred
+
+    # 1. a crash and a full disk among good files (no --timeout: the default leaves them all the time they need)
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.3", "--max-crashes", "2", env=env).start()
     for n in names:
         shutil.copyfile(stage / n, in_dir / n)
-
-    def finished() -> bool:
-        e = journal_entries(out_dir)
-        return len(e) == len(names) and all(x.state in ("done", "quarantined") for x in e.values())
-
-    d.wait_for("all files finished", finished, timeout=150)
+    d.wait_for("all files finished", finished(len(names)), timeout=150)
     assert d.stop() == 0
+    # 2. a hang, alone: the timeout can only be the hung file's
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.3", "--timeout", "2", "--max-crashes", "2",
+               env=env).start()
+    shutil.copyfile(stage / "b HANG.png", in_dir / "b HANG.png")
+    d.wait_for("the hung file quarantined", finished(len(names) + 1), timeout=150)
+    assert d.stop() == 0
+
     e = {Path(p).name: x for p, x in journal_entries(out_dir).items()}
     assert e["a CRASH.png"].state == "quarantined" and "died" in e["a CRASH.png"].reason
     assert e["b HANG.png"].state == "quarantined" and "timed out" in e["b HANG.png"].reason
@@ -586,7 +600,8 @@ def test_worker_crash_hang_and_full_disk(tmp_path):
         assert e[n].state == "done" and e[n].attempts == 0 and e[n].crashes == 0
     assert len(sidecars(out_dir)) == 4
     restarts = [ev for ev in d.events() if ev.get("event") == "worker-restart"]
-    assert len(restarts) == 4  # two crashes, two hangs; the daemon itself never stopped
+    assert len(restarts) == 4  # two crashes, two hangs: workers restarted, the daemon never fell over
+    assert sum(ev.get("event") == "timeout" for ev in d.events()) == 2
 
 
 def test_second_daemon_on_the_same_folders_is_refused_and_bad_arguments(tmp_path):
