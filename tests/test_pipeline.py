@@ -27,3 +27,33 @@ def test_a_profile_names_a_file_unless_it_is_a_choice_or_a_source(profile, is_fi
 ])
 def test_a_run_needs_the_store_to_learn_to_check_or_to_look_a_profile_up(mode, profile, needs):
     assert Settings(mode=mode, profile=profile).needs_store is needs
+
+
+@pytest.mark.parametrize("method", ["default", "robust", "lens-family"])
+def test_a_frame_is_validated_once_at_the_pipelines_door(monkeypatch, method):
+    # issue 23: the door checks the pixels (NaN/Inf, range, size), then the checked
+    # array goes inward; the estimator does not scan a 24 MP frame again.
+    import numpy as np
+
+    import vigproc.core.estimate as E
+    import vigproc.core.pixels as P
+    from vigproc.pipeline.processor import Processor
+
+    from conftest import textured
+
+    calls = []
+    real = P.check_image
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(P, "check_image", counting)
+    monkeypatch.setattr(E, "check_image", counting)
+    img = np.repeat(textured(96, 144, seed=3)[..., None], 3, axis=2).astype(np.float32)
+    with Processor(Settings(mode="estimate", profile="estimate", method=method)) as proc:
+        _, res = proc.process_image(img)
+    assert res.model is not None and len(calls) == 1
+    with pytest.raises(Exception, match="too small"):  # the estimator's own minimum still holds
+        with Processor(Settings(mode="estimate", profile="estimate", method=method)) as proc:
+            proc.process_image(img[:5, :5])

@@ -12,7 +12,7 @@ import numpy as np
 from vigproc.errors import InvalidImageError, ModelError
 from vigproc.core.family_fit import LensHint
 from vigproc.core.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
-from vigproc.core.pixels import bin_mean, check_image, log_image, luminance
+from vigproc.core.pixels import bin_mean, check_image, log_image, luminance, require_size
 from vigproc.core.model import VignettingModel
 from vigproc.core.robust import RobustSettings, estimate_robust
 
@@ -164,14 +164,34 @@ def estimate(
     ...
     vigproc.errors.InvalidImageError: image has no positive pixel: linear intensities must be > 0
     """
+    plugin = None
     if method not in METHODS:
         # an installed estimator plugin (vigproc.core.extensions), else UnknownMethodError
+        # before the pixels are read
         from vigproc.core.extensions import estimator
 
         plugin = estimator(method)
-        a = check_image(img, channel_axis)
-        return plugin(a, channel_axis=-1 if a.ndim == 3 else None, seed=seed)
     a = check_image(img, channel_axis)
+    if plugin is not None:
+        return plugin(a, channel_axis=-1 if a.ndim == 3 else None, seed=seed)
+    return estimate_checked(a, method, prior=prior, settings=settings, seed=seed, hint=hint)
+
+
+def estimate_checked(
+    a: np.ndarray, method: str = "default", *, prior: NaturalPrior | None = None,
+    settings: RobustSettings | None = None, seed: int | None = None, hint: LensHint | None = None,
+) -> VignettingModel:
+    """:func:`estimate` of a frame that :func:`~vigproc.core.pixels.check_image` has
+    accepted: ``a`` is its result (H×W, or H×W×C with channels last, float). The
+    pipeline validates a frame once, at its door, and hands the checked array inward.
+
+    Parameters and errors as :func:`estimate` (``method`` may name a plugin).
+    """
+    require_size(a)  # the door may accept smaller frames (a correction by a profile)
+    if method not in METHODS:
+        from vigproc.core.extensions import estimator
+
+        return estimator(method)(a, channel_axis=-1 if a.ndim == 3 else None, seed=seed)
     h, w = a.shape[:2]
     keep = clipped_mask(a)
     lum = luminance(a)
@@ -260,11 +280,13 @@ def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
 
 
 def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
-                           settings: RobustSettings | None = None,
-                           method: str = "default") -> tuple[VignettingModel, bytes]:
+                           settings: RobustSettings | None = None, method: str = "default", *,
+                           checked: bool = False) -> tuple[VignettingModel, bytes]:
     """``estimate(img, method)`` and :func:`frame_evidence` of the same frame,
     preparing the frame once (learn mode needs both); ``method`` is one of
-    :data:`EVIDENCE_METHODS`.
+    :data:`EVIDENCE_METHODS`. With ``checked``, ``img`` is already the result of
+    :func:`~vigproc.core.pixels.check_image` (the pipeline's door) and is not
+    validated again.
 
     Raises
     ------
@@ -277,6 +299,7 @@ def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
         from vigproc.core.extensions import UnknownMethodError
 
         raise UnknownMethodError(f"frame evidence comes with {', '.join(EVIDENCE_METHODS)}, not {method!r}")
-    a = check_image(img, channel_axis)
+    a = img if checked else check_image(img, channel_axis)
+    require_size(a)
     m, evidence = estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings), clipped_mask(a))
     return _named(m, method), evidence

@@ -44,7 +44,19 @@ def as_channels_last(img: np.ndarray, channel_axis: int | None) -> np.ndarray:
 NEGATIVE_FRACTION = 0.05
 
 
-def check_image(img: np.ndarray, channel_axis: int | None = -1, min_size: int = 8) -> np.ndarray:
+#: The smallest frame side an estimator takes, in pixels.
+MIN_SIZE = 8
+
+
+def require_size(a: np.ndarray, min_size: int = MIN_SIZE) -> None:
+    """Raise :class:`InvalidImageError` when the H×W(×C) array ``a`` has a side shorter
+    than ``min_size`` px."""
+    h, w = a.shape[:2]
+    if h < min_size or w < min_size:
+        raise InvalidImageError(f"image of {w}x{h} px is too small (need at least {min_size} px a side)")
+
+
+def check_image(img: np.ndarray, channel_axis: int | None = -1, min_size: int = MIN_SIZE) -> np.ndarray:
     """Validate a linear image and return it as float H×W or H×W×C.
 
     Raises
@@ -65,9 +77,8 @@ def check_image(img: np.ndarray, channel_axis: int | None = -1, min_size: int = 
         raise InvalidImageError(f"image must be numeric, got dtype {a.dtype}")
     if a.ndim == 3 and not 1 <= a.shape[2] <= 4:
         raise InvalidImageError(f"expected 1-4 channels, got {a.shape[2]} (wrong channel_axis?)")
+    require_size(a, min_size)
     h, w = a.shape[:2]
-    if h < min_size or w < min_size:
-        raise InvalidImageError(f"image of {w}x{h} px is too small (need at least {min_size} px a side)")
     if h * w > MAX_PIXELS:
         raise InvalidImageError(f"image of {w}x{h} px exceeds the {MAX_PIXELS} px limit")
     # one pass each, no mask: NaN propagates to both extremes and ±Inf shows in one of them

@@ -642,11 +642,13 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
     consulted by ``profile="auto"`` (default: none); ``embedded`` the frame's DNG
     calibration (its opcodes, else its maker's calibration:
     :func:`vigproc.io.makernotes.calibration_for`), used by ``embedded`` and,
-    after a trusted stored profile, by ``auto``."""
-    from vigproc.core.estimate import estimate
+    after a trusted stored profile, by ``auto``.
+
+    ``img`` is the frame as the pipeline's door accepted it
+    (:func:`vigproc.core.pixels.check_image`'s result): it is not validated again."""
+    from vigproc.core.estimate import estimate_checked
 
     h, w = img.shape[:2]
-    ca = -1 if img.ndim == 3 else None
     profile = settings.profile
     if profile.startswith(SOURCE_PREFIX):
         from vigproc.core.extensions import profile_source
@@ -691,7 +693,7 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
                 continue
             if m is not None:
                 return m, f"source:{name}"
-    return estimate(img, settings.method, channel_axis=ca, hint=lens_hint(lens_key, settings.method)), "estimate"
+    return estimate_checked(img, settings.method, hint=lens_hint(lens_key, settings.method)), "estimate"
 
 
 def lens_hint(lens_key, method: str):
@@ -786,7 +788,7 @@ class Processor:
         t0 = time.perf_counter()
         # every mode, also a correction by a profile (which estimates nothing): NaN/Inf,
         # a constant frame or large negative values are bad input, not something to write
-        valid_image(img, -1 if np.ndim(img) == 3 else None, min_size=1)
+        checked = valid_image(img, -1 if np.ndim(img) == 3 else None, min_size=1)
         lens = ({"lens_id": lens_key.lens_id(), "key": lens_key.to_dict()} if lens_key is not None
                 else {"lens_id": None, "error": "no lens data given"})
         res = FrameResult(file=where, mode=s.mode, lens=lens)
@@ -799,9 +801,9 @@ class Processor:
             res.source = "estimate"
             res.model = getattr(verdict, "estimate", None)
         elif s.mode == "learn":
-            res.model, res.source, res.profile = self._learn(img, lens_key, frame_id)
+            res.model, res.source, res.profile = self._learn(checked, lens_key, frame_id)
         else:
-            m, res.source = choose_model(img, lens_key, s, self.store if s.profile == "auto" else None,
+            m, res.source = choose_model(checked, lens_key, s, self.store if s.profile == "auto" else None,
                                          where=where, sources=self.sources if s.profile == "auto" else None,
                                          embedded=embedded)
             res.model = m
@@ -823,7 +825,7 @@ class Processor:
         return out, res
 
     def _learn(self, img: np.ndarray, lens_key, frame_id: str | None):
-        from vigproc.core.estimate import EVIDENCE_METHODS, estimate, estimate_with_evidence
+        from vigproc.core.estimate import EVIDENCE_METHODS, estimate_checked, estimate_with_evidence
         from vigproc.stores.profiles import ProfileKey
 
         if self.store is None:
@@ -832,13 +834,12 @@ class Processor:
             raise VigprocError("cannot learn: the frame's lens is unknown (no usable EXIF)")
         h, w = img.shape[:2]
         key = ProfileKey.from_lens(lens_key, w, h)
-        ca = -1 if img.ndim == 3 else None
         evidence = None
         if self.settings.method in EVIDENCE_METHODS:
             # with the frame's data, so the store can pool the lens's profile from all its frames
-            m, evidence = estimate_with_evidence(img, channel_axis=ca, method=self.settings.method)
+            m, evidence = estimate_with_evidence(img, method=self.settings.method, checked=True)
         else:
-            m = estimate(img, self.settings.method, channel_axis=ca)
+            m = estimate_checked(img, self.settings.method)
         # a fit too weak to apply to this frame alone still carries evidence for the lens
         fit = m.candidate if m.candidate is not None else m
         if fit.covariance is None:
