@@ -183,6 +183,24 @@ def fit_log_field(log_phi_at, width: int, height: int, method: str) -> tuple[Vig
 # --------------------------------------------------------------------------- #
 
 
+def cached_fit(calibration, width: int, height: int, method: str, what: str) -> tuple[VignettingModel, float, float]:
+    """A calibration's gain field (``calibration.log_gain(width, height, rel=...)``) as
+    its closest Kang-Weiss model on a ``width``×``height`` frame (:func:`fit_log_field`),
+    fitted once per frame size (kept in ``calibration._fits``) and logged with its error:
+    a warning above :data:`WARN_RMS_EV`. Shared by a DNG's opcodes and a maker's
+    calibration (:mod:`vigproc.io.makernotes`)."""
+    key = (width, height)
+    hit = calibration._fits.get(key)
+    if hit is None:
+        hit = fit_log_field(lambda rv, rh: -calibration.log_gain(width, height, rel=(rv, rh)), width, height, method)
+        calibration._fits[key] = hit
+        m, rms, mx = hit
+        (logger.warning if rms > WARN_RMS_EV else logger.info)(
+            "%s: %s as a Kang-Weiss model: %.2e EV RMS, %.2e EV at most over the frame",
+            calibration.source, what, rms, mx)
+    return hit
+
+
 @dataclass(frozen=True)
 class EmbeddedOpcode:
     """One vignetting opcode of a DNG: the list it is in, its index there, the opcode."""
@@ -325,17 +343,7 @@ class EmbeddedCalibration:
         ModelError
             Gains outside :data:`GAIN_RANGE`, or no model fits.
         """
-        key = (width, height)
-        hit = self._fits.get(key)
-        if hit is not None:
-            return hit
-        m, rms, mx = fit_log_field(lambda rv, rh: -self.log_gain(width, height, rel=(rv, rh)), width, height,
-                                   f"dng:{self.kind}")
-        self._fits[key] = (m, rms, mx)
-        (logger.warning if rms > WARN_RMS_EV else logger.info)(
-            "%s: embedded %s as a Kang-Weiss model: %.2e EV RMS, %.2e EV at most over the frame",
-            self.source, self.kind, rms, mx)
-        return m, rms, mx
+        return cached_fit(self, width, height, f"dng:{self.kind}", f"embedded {self.kind}")
 
     def model(self, width: int, height: int) -> VignettingModel:
         """The model a ``width``×``height`` frame is corrected with.

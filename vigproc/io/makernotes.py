@@ -185,19 +185,9 @@ class MakerNoteCalibration:
         ModelError
             No model fits.
         """
-        from vigproc.io.dng_vignette import WARN_RMS_EV, fit_log_field
+        from vigproc.io.dng_vignette import cached_fit
 
-        key = (width, height)
-        hit = self._fits.get(key)
-        if hit is not None:
-            return hit
-        m, rms, mx = fit_log_field(lambda rv, rh: -self.log_gain(width, height, rel=(rv, rh)), width, height,
-                                   f"makernote:{self.maker}")
-        self._fits[key] = (m, rms, mx)
-        (logger.warning if rms > WARN_RMS_EV else logger.info)(
-            "%s: %s as a Kang-Weiss model: %.2e EV RMS, %.2e EV at most over the frame",
-            self.source, self.tag, rms, mx)
-        return m, rms, mx
+        return cached_fit(self, width, height, f"makernote:{self.maker}", self.tag)
 
     def model(self, width: int, height: int):
         """The model a ``width``×``height`` frame is corrected with: its parameters are the
