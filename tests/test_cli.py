@@ -505,8 +505,10 @@ def test_profile_show_uses_the_profiles_own_frame_and_prints_a_summary(tmp_path)
     assert r.returncode == 0, r.stderr
     assert "frame       6000x4500" in r.stdout and "EV RMS" in r.stdout and "{" not in r.stdout
     r = run("profile", "--profile-db", db, "show", "0", "--json", "--height", "300")
-    doc = json.loads(r.stdout)  # JSON only on stdout
-    assert (doc["width"], doc["height"]) == (400, 300)
+    doc = json.loads(r.stdout)  # JSON only on stdout: the profile's record and its model
+    assert (doc["width"], doc["height"]) == (400, 300) == (doc["model"]["width"], doc["model"]["height"])
+    assert doc["frames"] == 0 and doc["trusted"] is True and doc["provenance"].startswith("lensfun"), doc  # imported: no frames
+    assert doc["key"].startswith(doc["lens_id"]) and doc["aperture_bin"] == "N=1.4"
     # by the lens id that estimate and check print, while the lens has one profile
     lens_id = run("profile", "--profile-db", db, "list").stdout.split("] ", 1)[1].split(" @ ")[0]
     r = run("profile", "--profile-db", db, "show", lens_id)

@@ -861,8 +861,14 @@ def cmd_profile(args: argparse.Namespace) -> int:
             p = _pick_profile(store, args.id)
             width, height = _profile_frame(p.key.aspect_ratio, args.width, args.height)
             m = p.model(width, height)
-            if args.json:
-                print(json.dumps(m.to_dict(), indent=1))
+            if args.json:  # the profile's record, its model for the frame inside
+                sigma = p.field_sigma_ev
+                print(json.dumps({
+                    "key": str(p.key), "lens_id": p.key.lens_id, "focal_bin": p.key.focal_bin,
+                    "aperture_bin": p.key.aperture_bin, "aspect": p.key.aspect, "frames": p.n_frames,
+                    "trusted": bool(p.trusted), "field_sigma_ev": sigma if sigma is None or math.isfinite(sigma) else None,
+                    "provenance": p.provenance, "updated": p.updated, "width": width, "height": height,
+                    "model": m.to_dict()}, indent=1))
             else:
                 q = m.quality
                 print(_profile_line(0, p).split("] ", 1)[1])
