@@ -225,12 +225,12 @@ BAD_DECODE = {
 
 @pytest.mark.parametrize("what", sorted(BAD))
 def test_malformed_lists_are_typed_errors_naming_the_file(what: str) -> None:
-    t0 = time.perf_counter()
+    t0 = time.process_time()  # this process's CPU time: a loaded machine does not inflate it
     with pytest.raises(DngOpcodeError) as exc:
         parse_opcode_list(BAD[what], "IMG 0001.dng OpcodeList3")
     assert "IMG 0001.dng OpcodeList3" in str(exc.value)
     assert isinstance(exc.value, ImageReadError) and isinstance(exc.value, VigprocError)
-    assert time.perf_counter() - t0 < 0.5
+    assert time.process_time() - t0 < 0.5
 
 
 @pytest.mark.parametrize("what", sorted(BAD_DECODE))
@@ -261,9 +261,9 @@ def test_opcode_fields_are_checked_when_built() -> None:
 def test_large_gain_map_is_bounded_by_its_bytes() -> None:
     # a 1 x 200000 map (800 KB): its field on a frame allocates frame-sized arrays, not map x frame
     gm = GainMap(AreaSpec(0, 0, 300, 400), np.full((1, 200_000), 1.5, dtype=np.float32), 1.0, 1 / 199_999)
-    t0 = time.perf_counter()
+    t0 = time.process_time()  # CPU time, not wall time: the bound holds beside other work
     f = gm.gain_field(400, 300)
-    assert time.perf_counter() - t0 < 2.0 and np.allclose(f, 1.5)
+    assert time.process_time() - t0 < 2.0 and np.allclose(f, 1.5)
 
 
 def test_cfa_gain_maps_cover_the_first_row_and_column() -> None:
