@@ -251,7 +251,7 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     free = estimate_robust(lum, RobustSettings(), mask)
     loss_family, loss_free = pair_losses(lum, [model.candidate or model, free.candidate or free], s, mask)
     if loss_free < loss_family - s.select_margin:
-        log.info("vignetting centre off the frame's by (%.0f, %.0f) px and the free Kang-Weiss fit explains "
+        log.debug("vignetting centre off the frame's by (%.0f, %.0f) px and the free Kang-Weiss fit explains "
                  "the frame better (loss %.3f < %.3f): using it", centre.offset[0], centre.offset[1],
                  loss_free, loss_family)
         return free

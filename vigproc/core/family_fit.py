@@ -468,7 +468,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     h, w = lum.shape
     L, valid, xs, ys = _working_copy(lum, settings, mask)
     if int(valid.sum()) < MIN_VALID_BINS:
-        log.info("too few usable pixels (%d bins); no correction", int(valid.sum()))
+        log.debug("too few usable pixels (%d bins); no correction", int(valid.sum()))
         q = FitQuality(confidence=0.0, fallback=True, seconds=time.perf_counter() - t0)
         return VignettingModel.identity(w, h, method=METHOD, quality=q), None
     radius = half_diagonal(w, h)
@@ -505,5 +505,5 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
               np.round(c, 3), ev_rms, sigma, sigma_jk, n, conv_ev)
     if accept:
         return fit, c
-    log.info("weak evidence (%.3f EV about the mean at SNR %.2f); no correction", spread, snr)
+    log.debug("weak evidence (%.3f EV about the mean at SNR %.2f); no correction", spread, snr)
     return VignettingModel.identity(w, h, method=METHOD, quality=q, candidate=fit), c

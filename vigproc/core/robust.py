@@ -728,7 +728,7 @@ def _fit_copy(wc: WorkingCopy, settings: RobustSettings, t0: float) -> Vignettin
     h, w = wc.height, wc.width
     if wc.valid.sum() < MIN_VALID_BINS:
         q = FitQuality(confidence=0.0, fallback=True, seconds=time.perf_counter() - t0)
-        log.info("too few usable pixels (%d bins); no correction", int(wc.valid.sum()))
+        log.debug("too few usable pixels (%d bins); no correction", int(wc.valid.sum()))
         return VignettingModel.identity(w, h, method="robust", quality=q)
     theta, cov, info = _select(wc, settings)
     ev_rms, ev_sigma = field_uncertainty_ev(theta, cov, wc)
@@ -739,7 +739,7 @@ def _fit_copy(wc: WorkingCopy, settings: RobustSettings, t0: float) -> Vignettin
     if accept and math.isfinite(settings.max_shape_ratio):
         ratio = shape_ratio(theta, wc)
         if ratio > settings.max_shape_ratio:
-            log.info("the fitted fall-off is broader than a real lens's (shape ratio %.2f); no correction", ratio)
+            log.debug("the fitted fall-off is broader than a real lens's (shape ratio %.2f); no correction", ratio)
             accept = False
     th_px, cov_px = _to_pixels(theta, cov, wc.radius)
     q = FitQuality(

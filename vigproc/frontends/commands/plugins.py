@@ -35,7 +35,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
                           "extensions": rows, "broken": broken}, indent=1))
     else:
         print(f"built-in methods: {', '.join(METHODS)}")
-        print("built-in profiles: auto, estimate, lensfun, PATH of a profile file")
+        print("built-in profiles: auto, estimate, lensfun, embedded, source:NAME (a profile source below), PATH of a profile file")
         for group, what in GROUPS.items():
             mine = [r for r in rows if r["group"] == group]
             print(f"{what} plugins ({group}): {len(mine) or 'none installed'}")
