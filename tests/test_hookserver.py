@@ -132,7 +132,10 @@ def test_a_server_whose_socket_is_removed_leaves_within_seconds(tmp_path, server
     assert running()
     for sock in server_env.glob("*.sock"):
         sock.unlink()
+    # it looks for its socket about once a second; its idle exit (20 s here) is the other
+    # way out, so leaving well before that is leaving because the socket went (a bound
+    # against that, not a timing of the server, so a loaded machine cannot fail it)
     t0 = time.time()
-    while running() and time.time() - t0 < 8:
+    while running() and time.time() - t0 < 14:
         time.sleep(0.1)
-    assert not running() and time.time() - t0 < 4, f"still running after {time.time() - t0:.1f} s"
+    assert not running(), f"still running {time.time() - t0:.1f} s after its socket was removed (idle exit: 20 s)"
