@@ -201,3 +201,13 @@ def test_cli_check_json_says_which_test(tmp_path, classes):
     assert d["results"][0]["test"] == "lens-family" and d["results"][0]["verdict"] == "unknown-lens"
     assert code == 21
     assert math.isfinite(d["results"][0]["evidence"]["falloff_ev"][-1])
+
+
+def test_the_clean_forensics_bench_refuses_folds_too_small_for_a_set():
+    # bench forensics-clean --folds K: every fold must hold a multi-frame set of bases
+    from vigproc.bench import forensics_clean as F
+
+    bases = [np.ones((32, 48))] * 20
+    for folds in (1, 5):
+        with pytest.raises(ValueError, match="folds must be within 2..4"):
+            F.run(bases, frames=5, folds=folds)

@@ -90,6 +90,9 @@ def register_bench(bench_subparsers) -> None:
     bp.add_argument("--frames", type=number(2, 20, integer=True), default=5,
                     help="frames per multi-frame decision (default %(default)s)")
     bp.add_argument("--seed", type=int, default=0, help="seed of the multi-frame groups")
+    bp.add_argument("--folds", type=number(2, 100, integer=True), default=2,
+                    help="the bases are split into this many folds; each is tested against a calibration "
+                         "of the others (default %(default)s: even/odd halves)")
     bp.add_argument("--calibrate", metavar="FILE",
                     help="also write the calibration 'vigproc check' ships (every base, the shipped family)")
     bp.add_argument("--json", help="write the figures to this file")
@@ -303,10 +306,18 @@ def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
         print(f"vigproc: bench forensics-clean: {len(bases)} usable frames; need 20", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    r = F.run(bases, alpha=args.alpha, frames=args.frames, seed=args.seed, progress=print)
+    try:
+        r = F.run(bases, alpha=args.alpha, frames=args.frames, seed=args.seed, folds=args.folds, progress=print)
+    except ValueError as exc:
+        print(f"vigproc: bench forensics-clean: {exc}", file=sys.stderr)
+        return 2
+    split = ("calibrated on the even bases x {n} other lenses and no field, tested on the odd ones, and the "
+             "other way round" if args.folds == 2 else
+             f"{args.folds} folds: each tested against a calibration of the other folds' bases x {{n}} other "
+             "lenses and no field")
     print(f"\nlens mismatch on {r.n_bases} clean bases (480x320, linear) x {len(r.test_lenses)} lensfun lenses; "
-          f"calibrated on the even bases x {len(r.calibration_lenses)} other lenses and no field, tested on the "
-          f"odd ones, and the other way round; {r.ms_per_frame:.1f} ms per fit; {time.perf_counter() - t0:.0f} s")
+          f"{split.format(n=len(r.calibration_lenses))}; {r.ms_per_frame:.1f} ms per fit; "
+          f"{time.perf_counter() - t0:.0f} s")
     print(f"{'frames':>6}  {'true vs claimed field':<24}{'genuine':>9}{'forged':>8}{'AUC':>8}"
           f"{f'found at {r.alpha:g}':>15}")
     for row in r.mismatch:
