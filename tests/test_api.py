@@ -365,3 +365,13 @@ def test_the_papers_fits_state_their_fall_off_and_no_made_up_certainty():
         assert q.field_ev_rms == pytest.approx(m.field_ev_rms()) and q.field_ev_rms > 0.1, method
         assert math.isnan(q.field_sigma_ev) and math.isnan(q.snr), method
         assert '"field_sigma_ev": null' in m.to_json()
+
+
+def test_the_stable_api_keeps_its_name():
+    # pipelines written against vigproc.api (its name before the package became layers)
+    import vigproc
+    import vigproc.api as old
+    from vigproc.frontends import api as new
+
+    assert old.Pipeline is new.Pipeline is vigproc.Pipeline and old.Result is new.Result
+    assert set(old.__all__) == set(new.__all__) and all(hasattr(old, n) for n in new.__all__)

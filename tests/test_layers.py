@@ -51,7 +51,7 @@ LAYERS = (
     ("vigproc.stores",),
     ("vigproc.forensics",),
     ("vigproc.pipeline",),
-    ("vigproc.frontends", "vigproc.bench"),
+    ("vigproc.frontends", "vigproc.bench", "vigproc.api"),  # vigproc.api: the stable API's old name
 )
 
 

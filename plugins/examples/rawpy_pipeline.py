@@ -1,7 +1,7 @@
 """A plain Python photo pipeline that calls vigproc: rawpy -> vigproc -> OpenImageIO.
 
 Each RAW file is developed to linear RGB with rawpy, corrected (or checked) in memory
-through the stable API :mod:`vigproc.frontends.api`, and written as a half-float OpenEXR with
+through the stable API :mod:`vigproc.api`, and written as a half-float OpenEXR with
 OpenImageIO; the vigproc result travels in the EXR header (``vigproc:result``).
 
     python plugins/examples/rawpy_pipeline.py RAW... -o OUTDIR [--mode correct|check]
@@ -27,7 +27,7 @@ import numpy as np
 import OpenImageIO as oiio
 import rawpy
 
-from vigproc.frontends.api import Pipeline
+from vigproc.api import Pipeline
 from vigproc.errors import VigprocError
 from vigproc.io.exif import ExifReader
 
