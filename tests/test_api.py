@@ -375,3 +375,18 @@ def test_the_stable_api_keeps_its_name():
 
     assert old.Pipeline is new.Pipeline is vigproc.Pipeline and old.Result is new.Result
     assert set(old.__all__) == set(new.__all__) and all(hasattr(old, n) for n in new.__all__)
+
+
+def test_reading_and_the_lens_hint_have_short_names():
+    # the README's snippet: vigproc.LensHint and vigproc.io.read_image, as before the layers
+    import sys
+
+    import vigproc
+    import vigproc.io
+    from vigproc.core.family_fit import LensHint
+    from vigproc.io.images import read_image
+
+    assert vigproc.LensHint is LensHint and vigproc.io.read_image is read_image
+    with pytest.raises(AttributeError):
+        vigproc.io.no_such_name  # noqa: B018
+    assert "LensHint" in vigproc.__all__ and "vigproc.io.images" in sys.modules

@@ -51,6 +51,7 @@ _PUBLIC = {
     "UnsupportedFormatError": "vigproc.errors", "VigprocError": "vigproc.errors",
     "METHODS": "vigproc.core.methods", "estimate": "vigproc.core.estimate",
     "FitQuality": "vigproc.core.model", "VignettingModel": "vigproc.core.model", "RobustSettings": "vigproc.core.robust",
+    "LensHint": "vigproc.core.family_fit",
 }
 
 
@@ -72,7 +73,7 @@ def __dir__() -> list[str]:
 from vigproc._version import __version__  # noqa: E402  (re-exported)
 
 __all__ = [
-    "METHODS", "FitQuality", "ImageReadError", "ImageWriteError", "InvalidImageError",
+    "METHODS", "FitQuality", "ImageReadError", "ImageWriteError", "InvalidImageError", "LensHint",
     "ModelError", "Pipeline", "PriorError", "Result", "RobustSettings", "UnsupportedFormatError",
     "VignettingModel", "VigprocError", "correct", "estimate",
 ]
