@@ -673,7 +673,7 @@ def lensfun_family(exclude: Iterable[tuple[str, str]] = (), n_components: int = 
         if (lens.maker, lens.model) in skip:
             continue
         for v in lens.vignetting:
-            g = 1.0 + rho2 * (v.k1 + rho2 * (v.k2 + rho2 * v.k3))
+            g = pa_poly(rho2, v.k1, v.k2, v.k3)
             if g.min() <= lo or g.max() > hi:
                 continue
             rows.append(np.log(g))

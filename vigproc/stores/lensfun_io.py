@@ -61,7 +61,7 @@ from scipy.optimize import least_squares
 
 from vigproc.atomic import atomic_write_text
 from vigproc.errors import ModelError
-from vigproc.stores.lensfun import LensfunLens, interpolate_pa, load_lenses
+from vigproc.stores.lensfun import LensfunLens, interpolate_pa, load_lenses, pa_poly
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
 
 if TYPE_CHECKING:
@@ -161,8 +161,7 @@ def _frame_samples(width: int, height: int, n: int = GRID_SAMPLES) -> tuple[np.n
 
 
 def _log_pa(rho: np.ndarray, k1: float, k2: float, k3: float) -> np.ndarray:
-    r2 = rho * rho
-    pa = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    pa = pa_poly(rho * rho, k1, k2, k3)
     if np.any(pa <= 0.0):
         raise ModelError(
             f"pa attenuation 1 + {k1:g} r^2 + {k2:g} r^4 + {k3:g} r^6 falls to {pa.min():.3g} inside the "
@@ -361,8 +360,7 @@ def kw_from_pa(
     _log_pa(uc * corner_rho, *ks)  # the corner itself must be lit too
     # allowed slope: the target's own rise (a non-monotone pa field is followed), else 0
     rho_c = uc * corner_rho
-    r2 = rho_c * rho_c
-    pa_c = 1.0 + r2 * (ks[0] + r2 * (ks[1] + r2 * ks[2]))
+    pa_c = pa_poly(rho_c * rho_c, *ks)
     dpa = corner_rho * (2 * ks[0] * rho_c + 4 * ks[1] * rho_c**3 + 6 * ks[2] * rho_c**5)
     allow = np.maximum(dpa / pa_c, 0.0) + 1e-9
     prob = _KwProblem(u, counts.astype(np.float64), target, uc, allow)
