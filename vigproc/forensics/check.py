@@ -54,7 +54,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from vigproc.errors import EXIT_CODES, ModelError, VigprocError
-from vigproc.forensics.lensmatch import MatchCalibration, held_out_whitened, pooled_null
+from vigproc.forensics.lensmatch import MatchCalibration, empirical_p, held_out_whitened, pooled_null
 from vigproc.forensics.lensmatch import whitener as _whitener
 from vigproc.core.model import VignettingModel
 
@@ -295,9 +295,7 @@ class Calibration:
         """False-alarm probability: the fraction of matching frames (or means of
         ``n_frames`` of them; or, ``decided``, of single frames that get a verdict)
         with a statistic at least ``d2``, (k + 1)/(N + 1)."""
-        null = self.null_d2(n_frames, decided=decided)
-        k = null.size - int(np.searchsorted(null, float(d2), side="left"))
-        return (k + 1.0) / (null.size + 1.0)
+        return empirical_p(self.null_d2(n_frames, decided=decided), d2)
 
     # -- files --------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

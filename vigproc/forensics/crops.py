@@ -110,10 +110,9 @@ class CropCalibration:
     source: str = ""
 
     def p_value(self, z: float) -> float:
-        n = self.null_z.size
-        # (count at least as large + 1) / (n + 1): never exactly 0 from a finite sample
-        k = n - int(np.searchsorted(self.null_z, z, side="left"))
-        return (k + 1) / (n + 1)
+        from vigproc.forensics.lensmatch import empirical_p
+
+        return empirical_p(self.null_z, z)
 
     def to_dict(self) -> dict[str, Any]:
         return {"kind": "vigproc-crop-calibration", "version": 1, "source": self.source,

@@ -161,22 +161,38 @@ def held_out_whitened(r: np.ndarray, groups: np.ndarray, folds: int, centre=np.m
 
 
 def pooled_null(z: np.ndarray, groups: np.ndarray, n_frames: int, statistic, *, seed: int,
-                draws: int = NULL_DRAWS) -> np.ndarray:
+                draws: int = NULL_DRAWS, shift_spread: float = 0.0) -> np.ndarray:
     """Sorted ``statistic`` of ``draws`` sets of ``n_frames`` rows of ``z``, each set from
     different photographs (``groups``; one row of each): the null of a test pooling
     frames of different scenes. The draws are fixed by ``seed``, so a p-value is the
-    same every run. The caller checks that there are ``n_frames`` photographs."""
+    same every run. The caller checks that there are ``n_frames`` photographs.
+
+    ``shift_spread``: each set is shifted by one draw of N(0, shift_spread²) per
+    coordinate (its own stream, ``seed + 1``): an error that every frame of a set shares,
+    such as the calibration centre's sampling error, which n frames do not average away."""
     g = np.asarray(groups)
     uniq = np.unique(g)
     by_group = [np.flatnonzero(g == u) for u in uniq]
     rng = np.random.default_rng(seed)
+    shifts = np.random.default_rng(seed + 1) if shift_spread > 0 else None
     out = np.empty(draws)
     for i in range(draws):
         picks = rng.choice(uniq.size, n_frames, replace=False)
         rows = [by_group[p][rng.integers(by_group[p].size)] for p in picks]
-        out[i] = statistic(z[rows])
+        sample = z[rows]
+        if shifts is not None:
+            sample = sample + shifts.normal(0.0, shift_spread, sample.shape[1])
+        out[i] = statistic(sample)
     out.sort()
     return out
+
+
+def empirical_p(null: np.ndarray, statistic: float) -> float:
+    """False-alarm probability of ``statistic`` against a sorted null sample:
+    (k + 1)/(N + 1) with k of the N at least as large (never exactly 0 from a finite
+    sample)."""
+    k = null.size - int(np.searchsorted(null, float(statistic), side="left"))
+    return (k + 1.0) / (null.size + 1.0)
 
 
 @dataclass(frozen=True)
@@ -272,22 +288,15 @@ class MatchCalibration:
             # frames sees it off by its sampling error, the same for every frame of the
             # set: n frames shrink their own scatter, not that offset. Each draw adds one
             # offset of the median's spread, 1.2533/sqrt(photographs) in whitened units.
-            spread = MEDIAN_EFFICIENCY / math.sqrt(uniq.size)
-            offsets = np.random.default_rng(2011 + n)
-
-            def statistic(rows: np.ndarray) -> float:
-                return pooled_d2(rows + offsets.normal(0.0, spread, rows.shape[1]))
-
-            out = pooled_null(z, g, n, statistic, seed=2010 + n)
+            out = pooled_null(z, g, n, pooled_d2, seed=2010 + n,
+                              shift_spread=MEDIAN_EFFICIENCY / math.sqrt(uniq.size))
         self._cache[n] = out
         return out
 
     def p_value(self, d2: float, n_frames: int = 1) -> float:
         """False-alarm probability (k + 1)/(N + 1): k of the N null statistics are at
         least ``d2``."""
-        null = self.null_d2(n_frames)
-        k = null.size - int(np.searchsorted(null, float(d2), side="left"))
-        return (k + 1.0) / (null.size + 1.0)
+        return empirical_p(self.null_d2(n_frames), d2)
 
     # -- files --------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
