@@ -41,6 +41,29 @@ def textured(h: int, w: int, seed: int = 0, contrast: float = 0.3) -> np.ndarray
     return 0.4 * np.exp(tex)
 
 
+def coloured_scene(h: int, w: int, seed: int = 0, contrast: float = 0.05, patches: int = 12) -> np.ndarray:
+    """An H×W×3 scene as a photograph's: one texture (its shading) over patches of
+    different colour (surfaces), so that R, G and B change together inside a patch
+    and differently across a patch's edge."""
+    rng = np.random.default_rng(seed + 10_000)
+    tex = textured(h, w, seed=seed, contrast=contrast)
+    sites = rng.random((patches, 2)) * (h, w)
+    yy, xx = np.mgrid[0:h, 0:w]
+    nearest = np.argmin((yy[..., None] - sites[:, 0]) ** 2 + (xx[..., None] - sites[:, 1]) ** 2, axis=-1)
+    albedo = rng.uniform(0.3, 1.0, size=(patches, 3))
+    return tex[..., None] * albedo[nearest]
+
+
+def chromatic_glow(h: int, w: int, strength: float = 0.6) -> np.ndarray:
+    """Log gains (H×W×3) of a scene's own light that changes colour as it brightens:
+    a warm glow from one side of the frame (R most, B least), as a low sun or a lamp
+    throws; no lens does this."""
+    x = np.linspace(-1.0, 1.0, w)[None, :]
+    y = np.linspace(-1.0, 1.0, h)[:, None]
+    g = np.exp(-((x - 0.6) ** 2 + (y + 0.3) ** 2) / 0.5)
+    return strength * g[..., None] * np.array([1.0, 0.55, 0.15])
+
+
 def photo_like(h: int, w: int, seed: int = 0, contrast: float = 0.05) -> np.ndarray:
     """A texture that, like a real photograph, carries the average scene fall-off of
     natural photos (:mod:`vigproc.core.scene`), which the default estimator divides out."""

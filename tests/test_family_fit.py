@@ -22,7 +22,7 @@ from vigproc.core.family_fit import (
 from vigproc.core.lensfamily import N_RADII, LensFamily, build_family, default_family
 from vigproc.stores.lensfun import pa_field
 
-from conftest import textured
+from conftest import chromatic_glow, coloured_scene, textured
 
 H, W = 320, 480
 RADII = np.linspace(0.0, 1.0, N_RADII)
@@ -105,8 +105,10 @@ def test_kernels_match_numpy():
     B = rng.normal(size=(12, 15, 2))
     blocks = np.zeros((12, 15), dtype=np.int64)
     blocks[6:] = 1
-    d, a, labels = family_pairs(L, valid, M, B, np.array([1, 2], dtype=np.int64), blocks)
-    want_d, want_a = [], []
+    C = rng.normal(size=(3, 12, 15))
+    steps = np.array([1, 2], dtype=np.int64)
+    d, a, labels, weight = family_pairs(L, valid, M, B, steps, blocks, C, 0.7)
+    want_d, want_a, want_w = [], [], []
     for s in (1, 2):
         for dy, dx in ((s, 0), (0, s)):
             for y in range(12 - dy):
@@ -114,13 +116,19 @@ def test_kernels_match_numpy():
                     if valid[y, x] and valid[y + dy, x + dx]:
                         want_d.append((L[y + dy, x + dx] - L[y, x] - M[y + dy, x + dx] + M[y, x]) / s)
                         want_a.append((B[y + dy, x + dx] - B[y, x]) / s)
+                        dc = (C[:, y + dy, x + dx] - C[:, y, x]) / s
+                        want_w.append(1 / (1 + ((dc[0] - dc[1]) ** 2 + (dc[2] - dc[1]) ** 2) / 0.7**2))
     np.testing.assert_allclose(d, want_d)
     np.testing.assert_allclose(a, want_a)
+    np.testing.assert_allclose(weight, want_w)
+    grey = family_pairs(L, valid, M, B, steps, blocks, np.zeros((0, 12, 15)), 0.7)
+    np.testing.assert_array_equal(grey[0], d)
+    np.testing.assert_array_equal(grey[3], np.ones(d.size))  # no colour: every pair weighs 1
     c = np.array([0.3, -0.2])
-    Hm, g = cauchy_normal_equations(d, a, labels, c, 0.5, 1)
+    Hm, g = cauchy_normal_equations(d, a, labels, c, 0.5, 1, weight)
     keep = labels != 1
     e = d[keep] - a[keep] @ c
-    wt = 1 / (1 + (e / 0.5) ** 2)
+    wt = weight[keep] / (1 + (e / 0.5) ** 2)
     np.testing.assert_allclose(Hm, (a[keep] * wt[:, None]).T @ a[keep])
     np.testing.assert_allclose(g, (a[keep] * wt[:, None]).T @ d[keep])
 
@@ -189,3 +197,33 @@ def test_default_sends_off_centre_frames_to_the_free_fit():
     family_only = estimate_family(img * truth.field())
     err = np.std(m.log_field() - truth.log_field())
     assert err < 0.5 * np.std((family_only.candidate or family_only).log_field() - truth.log_field())
+
+
+def test_colour_weights_leave_out_shading_that_changes_colour():
+    """A warm glow from one side of the frame (the scene's light: red brightens most,
+    blue least) pulls the fit of the luminance alone; told the frame's colour, the fit
+    weighs each pair by how alike its channels change, and the glow's pairs weigh
+    little."""
+    truth = np.log(_lens_field())
+    lum_errs, colour_errs = [], []
+    for seed in range(3):
+        img = coloured_scene(H, W, seed=seed) * np.exp(truth)[..., None] * np.exp(chromatic_glow(H, W, 1.0))
+        lum = vigproc.core.pixels.luminance(img)
+        s = FamilySettings(min_snr=0.0)
+        for errs, colour in ((lum_errs, None), (colour_errs, img)):
+            m = estimate_family(lum, s, colour=colour)
+            errs.append(np.std(m.log_field((H, W)) - truth) / math.log(2))
+    assert np.median(colour_errs) < 0.05 and np.median(colour_errs) < 0.5 * np.median(lum_errs), \
+        (colour_errs, lum_errs)
+
+
+def test_a_grey_frame_in_three_channels_fits_as_its_luminance():
+    """Channels that change alike weigh every pair 1: the colour fit is the grey one."""
+    img = textured(H, W, seed=5, contrast=0.1) * _lens_field()
+    rgb = img[..., None] * np.array([0.8, 1.0, 0.6])
+    lum = vigproc.core.pixels.luminance(rgb)
+    _, c_grey = fit_family(lum)
+    _, c_rgb = fit_family(lum, colour=rgb)
+    np.testing.assert_allclose(c_rgb, c_grey, atol=1e-6)
+    np.testing.assert_allclose(vigproc.estimate(rgb).field(), vigproc.estimate(lum, channel_axis=None).field(),
+                               rtol=1e-5)

@@ -168,7 +168,7 @@ def test_a_fit_no_model_can_hold_is_insufficient_signal(classes, calibration, mo
     import vigproc.forensics.lensmatch as lensmatch
     from vigproc.core.family_fit import FrameCoefficients
 
-    monkeypatch.setattr(lensmatch, "frame_fit", lambda lum, fam=None, settings=None: FrameCoefficients(
+    monkeypatch.setattr(lensmatch, "frame_fit", lambda lum, fam=None, settings=None, colour=None: FrameCoefficients(
         np.array([5e3, -4e3]), np.eye(2), 1000))
     img = textured(H, W, seed=6, contrast=0.15) * classes[4].field(H, W)
     v = check_image(img, key_of(classes[4]), calibration=calibration)

@@ -126,9 +126,10 @@ def base_files(folders: Iterable[Path], min_long_side: int = MIN_LONG_SIDE) -> l
     return out
 
 
-def load_bases(files: Sequence[Path], frac: float = CROP) -> tuple[list[np.ndarray], list[str]]:
+def load_bases(files: Sequence[Path], frac: float = CROP, colour: bool = False) -> tuple[list[np.ndarray], list[str]]:
     """Linear luminance crops (central ``frac`` of each side) of ``files``; unreadable or
-    blank ones are skipped."""
+    blank ones are skipped. With ``colour``, 480×320×3 R, G, B crops of the same
+    frames (grey files repeated in each channel), scaled as their luminance is."""
     from vigproc.errors import VigprocError
     from vigproc.core.pixels import luminance
     from vigproc.io.images import read_image
@@ -144,18 +145,29 @@ def load_bases(files: Sequence[Path], frac: float = CROP) -> tuple[list[np.ndarr
         if not np.all(np.isfinite(c)) or c.max() <= 0 or np.ptp(c) <= 1e-6 * c.max():
             log.warning("skipping %s: its central crop is blank", f.name)
             continue
-        ims.append(c / c.max())
+        if colour:
+            rgb = a[..., :3] if a.ndim == 3 and a.shape[-1] >= 3 else np.repeat(luminance(a)[..., None], 3, axis=-1)
+            ims.append(np.stack([crop_base(rgb[..., ch], frac) for ch in range(3)], axis=-1) / c.max())
+        else:
+            ims.append(c / c.max())
         names.append(f.name)
     return ims, names
 
 
 def load_clean_bases(folders: Iterable[str | Path], min_long_side: int = MIN_LONG_SIDE, limit: int | None = None,
-                     frac: float = CROP) -> tuple[list[np.ndarray], list[str]]:
+                     frac: float = CROP, colour: bool = False) -> tuple[list[np.ndarray], list[str]]:
     """:func:`load_bases` of the first ``limit`` frames :func:`base_files` finds under
     ``folders`` (what every clean-protocol bench reads, from its --images,
     --min-long-side and --limit)."""
     files = base_files([Path(f) for f in folders], min_long_side)
-    return load_bases(files[:limit] if limit else files, frac)
+    return load_bases(files[:limit] if limit else files, frac, colour)
+
+
+def vignetted(im: np.ndarray, log_field: np.ndarray) -> np.ndarray:
+    """A base (H×W, or H×W×3 with channels last) through a field (H×W, natural log):
+    every channel divided alike, as a lens does."""
+    gain = np.exp(log_field)
+    return im * (gain[..., None] if im.ndim == 3 else gain)
 
 
 def gain_free_ev(log_ratio: np.ndarray) -> float:
@@ -200,7 +212,7 @@ def run_fields(bases: Sequence[np.ndarray], method: str, fn: Estimator,
         errs = []
         for im in bases:
             t0 = time.perf_counter()
-            est = fn(im * np.exp(true_log), f)
+            est = fn(vignetted(im, true_log), f)
             secs.append(time.perf_counter() - t0)
             e = gain_free_ev(est.log_field - true_log)
             errs.append(e)
@@ -257,7 +269,7 @@ def model_estimator(fn: Callable[..., object], exif: bool = False) -> Estimator:
         else:
             m = fn(im)
         q = m.quality
-        return Estimate(m.log_field(im.shape), bool(q and q.fallback),
+        return Estimate(m.log_field(im.shape[:2]), bool(q and q.fallback),
                         float(q.field_sigma_ev) if q and q.field_sigma_ev > 0 else math.nan)
 
     return run
@@ -283,14 +295,16 @@ def calibrate_sigma(bases: Sequence[np.ndarray], fields: Sequence[Field], family
     the even-numbered bases (× every field, and no field) the error is within 1σ on
     ``target_1sigma`` of the frames and within 2σ on at least ``min_2sigma``; report the
     shares on the odd-numbered bases, which the fit did not see."""
-    from vigproc.core.family_fit import FamilySettings, estimate_family
+    from vigproc.core.family_fit import FamilySettings, colour_of, estimate_family
+    from vigproc.core.pixels import luminance
 
     raw = FamilySettings(sigma_scale=1.0, sigma_floor=0.0, min_snr=0.0)
     rows = []
     for f in list(fields) + [Field("none", np.zeros((HEIGHT, WIDTH)))]:
         true_log = f.log_field
         for i, im in enumerate(bases):
-            m = estimate_family(im * np.exp(true_log), raw, family=family)
+            frame = vignetted(im, true_log)
+            m = estimate_family(luminance(frame), raw, family=family, colour=colour_of(frame))
             rows.append((i % 2, gain_free_ev(m.log_field((HEIGHT, WIDTH)) - true_log), m.quality.field_sigma_ev))
     r = np.asarray(rows)
     train, test = r[:, 0] == 0, r[:, 0] == 1

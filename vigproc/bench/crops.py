@@ -69,6 +69,9 @@ class CropBench:
 def run(bases: Sequence[np.ndarray], lenses: Sequence[tuple[float, float, float]], family, *,
         alpha: float = 0.01, seed: int = 0, falloffs=FALLOFFS_EV, offsets=OFFSETS,
         statistic: str = "shift") -> CropBench:
+    from vigproc.bench.clean import vignetted
+    from vigproc.core.family_fit import colour_of
+    from vigproc.core.pixels import luminance
     from vigproc.forensics.crops import CropCalibration, auc, crop_statistic
 
     rng = np.random.default_rng(seed)
@@ -82,9 +85,9 @@ def run(bases: Sequence[np.ndarray], lenses: Sequence[tuple[float, float, float]
             for bi, im in enumerate(bases):
                 angle = float(rng.uniform(0, 2 * math.pi))
                 for o in z:
-                    lum = im * np.exp(shifted_field(k, ev, o, angle))
+                    frame = vignetted(im, shifted_field(k, ev, o, angle))
                     t0 = time.perf_counter()
-                    _, _, zz, shift, _ = crop_statistic(lum, family)
+                    _, _, zz, shift, _ = crop_statistic(luminance(frame), family, colour_of(frame))
                     zz = zz if statistic == "z" else shift
                     secs.append(time.perf_counter() - t0)
                     z[o].append(zz)

@@ -139,17 +139,20 @@ class CleanForensics:
 
 def frame_coefficients_table(bases: Sequence[np.ndarray], lenses: Sequence[BenchLens | None], family,
                              progress: Callable[[str], None] | None = None) -> tuple[np.ndarray, list[float]]:
-    """Data-only family coefficients of every base × lens field (None: no field), shape
+    """Data-only family coefficients of every base (H×W, or H×W×3) × lens field (None: no field), shape
     (lenses, bases, K), NaN where a frame has too few usable pixels; and the seconds per fit."""
+    from vigproc.bench.clean import vignetted
+    from vigproc.core.family_fit import colour_of
+    from vigproc.core.pixels import luminance
     from vigproc.forensics.lensmatch import frame_fit
 
     out = np.full((len(lenses), len(bases), family.n_components), np.nan)
     secs = []
     for i, lens in enumerate(lenses):
-        f = np.exp(lens.log_field()) if lens is not None else 1.0
         for j, im in enumerate(bases):
             t0 = time.perf_counter()
-            r = frame_fit(im * f, family)
+            frame = vignetted(im, lens.log_field()) if lens is not None else im
+            r = frame_fit(luminance(frame), family, colour=colour_of(frame))
             secs.append(time.perf_counter() - t0)
             if r is not None:
                 out[i, j] = r.coefficients

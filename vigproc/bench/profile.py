@@ -189,18 +189,22 @@ class CleanTrust:
 
 
 def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Sequence[int] = (1, 5, 20, 50),
-              peer: Callable | None = None, seed: int = 0) -> tuple[list[CleanProfileRow], CleanTrust]:
+              peer: Callable | None = None, seed: int = 0, orders: int = 1) -> tuple[list[CleanProfileRow], CleanTrust]:
     """Profiles learned through a real store on the clean protocol.
 
     Each lens (``fields``: :func:`vigproc.bench.clean.lens_fields`) sees the bases in
-    an order of its own (seeded by ``seed`` and the lens), up to ``max(counts)``
-    frames; every frame is estimated and learned as ``vigproc profile learn`` does
+    ``orders`` orders of its own (seeded by ``seed``, the lens and the order; each
+    order a new store), up to ``max(counts)`` frames; the 51 bases are the same for
+    every lens, so one order per lens leaves the figures at the mercy of which
+    scenes come first. Bases are H×W (grey) or H×W×3 (colour, channels last).
+    Every frame is estimated and learned as ``vigproc profile learn`` does
     (:func:`vigproc.core.estimate.estimate_with_evidence`, then
     :meth:`~vigproc.stores.profiles.ProfileStore.learn` with its evidence), in a store
     pooling in ``family`` (built without the test lenses). Error: the RMS of
     log2(profile/true field) about its mean (a gain is free), EV; median and p90 over
     the lenses. Beside it: each frame estimated alone by the default estimator, and
-    the published peer's per-frame fields pooled by their point-wise median.
+    the published peer's per-frame fields pooled by their point-wise median (given
+    the luminance). Rows and trust count lens × order runs.
     """
     import tempfile
     from pathlib import Path
@@ -209,7 +213,10 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
     from vigproc.core.estimate import estimate, estimate_with_evidence
     from vigproc.stores.profiles import TRUSTED_BOUND_EV, ProfileKey, ProfileStore, aspect_label
 
-    h, w = bases[0].shape
+    from vigproc.core.pixels import luminance
+
+    h, w = bases[0].shape[:2]
+    axis = -1 if bases[0].ndim == 3 else None
     nmax = min(max(counts), len(bases))
     counts = [n for n in counts if n <= nmax]
     store_err: dict[int, list[float]] = {n: [] for n in counts}
@@ -218,17 +225,20 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
     single: list[float] = []
     trusted_at: list[tuple[int, float] | None] = []
     later: list[bool] = []
-    for li, fld in enumerate(fields):
+    runs = [(li, fld, o) for li, fld in enumerate(fields) for o in range(orders)]
+    for li, fld, o in runs:
         true_log = fld.log_field
-        order = np.random.default_rng(seed + li).permutation(len(bases))[:nmax]
+        gain = np.exp(true_log) if axis is None else np.exp(true_log)[..., None]
+        # order 0 is the single order of earlier runs (seed + lens)
+        order = np.random.default_rng(seed + li + 1000 * o).permutation(len(bases))[:nmax]
         key = ProfileKey(f"bench|lens|{li}", "any", "any", aspect_label(w / h))
         peer_fields, lens_single, first = [], [], None
         with tempfile.TemporaryDirectory(prefix="vigproc-bench-") as tmp, \
                 ProfileStore(Path(tmp) / "profiles.sqlite", family=family) as st:
             for n, j in enumerate(order, 1):
-                frame = bases[j] * np.exp(true_log)
-                lens_single.append(gain_free_ev(estimate(frame, channel_axis=None).log_field((h, w)) - true_log))
-                m, evidence = estimate_with_evidence(frame, channel_axis=None)
+                frame = bases[j] * gain
+                lens_single.append(gain_free_ev(estimate(frame, channel_axis=axis).log_field((h, w)) - true_log))
+                m, evidence = estimate_with_evidence(frame, channel_axis=axis)
                 fit = m.candidate if m.candidate is not None else m
                 p = st.learn(key, fit, frame_id=f"frame{j:04d}", evidence=evidence)
                 err = gain_free_ev(p.model(w, h).log_field((h, w)) - true_log)
@@ -238,7 +248,7 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
                     if n in counts:
                         later.append(err <= TRUSTED_BOUND_EV)
                 if peer is not None:
-                    peer_fields.append(peer(frame).log_field)
+                    peer_fields.append(peer(frame if axis is None else luminance(frame)).log_field)
                 if n in counts:
                     store_err[n].append(err)
                     store_z[n].append(err / p.field_sigma_ev if p.field_sigma_ev else math.inf)

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vigproc.errors import InvalidImageError, ModelError
-from vigproc.core.family_fit import LensHint
+from vigproc.core.family_fit import LensHint, colour_of
 from vigproc.core.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
 from vigproc.core.pixels import bin_mean, check_image, log_image, luminance, require_size
 from vigproc.core.model import VignettingModel
@@ -88,7 +88,9 @@ def estimate(
     ----------
     img : ndarray
         H×W or H×W×C (``channel_axis``) linear intensities, any float/int dtype.
-        Colour images are reduced to Rec. 709 luminance.
+        The fit reads Rec. 709 luminance; the default and lens-family estimators
+        also weigh each luminance difference by how alike the R, G and B channels
+        change there (a lens darkens them alike; a scene's coloured light does not).
     method : {"default", "robust", "real-lens", "flat-field", "lyu2010", "lyu2010-rand", "ga"} or str
         "default"/"robust": vigproc's robust per-pixel estimator, with fall-back to
         no correction when the evidence is weak. "real-lens": the same, also falling
@@ -196,13 +198,13 @@ def estimate_checked(
     keep = clipped_mask(a)
     lum = luminance(a)
     if method == "default" and settings is None:
-        return estimate_default(lum, keep, hint)
+        return estimate_default(lum, keep, hint, colour=colour_of(a))
     if method in ROBUST_METHODS:
         return _named(estimate_robust(lum, _robust_settings(method, settings), keep), method)
     if method == "lens-family":
         from vigproc.core.family_fit import estimate_family
 
-        return estimate_family(lum, mask=keep, hint=hint)
+        return estimate_family(lum, mask=keep, hint=hint, colour=colour_of(a))
 
     from vigproc.core.lyu2010 import estimate_lyu2010
 
@@ -229,7 +231,7 @@ def estimate_checked(
 
 
 def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
-                     hint: LensHint | None = None, family=None) -> VignettingModel:
+                     hint: LensHint | None = None, family=None, colour: np.ndarray | None = None) -> VignettingModel:
     """vigproc's default estimate of a linear luminance frame.
 
     An uncropped frame of a real lens: the lens-family fit
@@ -238,18 +240,20 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     stitched image), the free off-centre, elliptical Kang-Weiss fit
     (:func:`vigproc.core.robust.estimate_robust`) is tried too, and kept when it explains
     the frame's log differences clearly better (:func:`vigproc.core.family_fit.pair_losses`).
+    ``colour`` (H×W×3, the frame's R, G, B): the lens-family fits weigh each pair by
+    how alike its channels change.
     """
     from vigproc.core.family_fit import FamilySettings, fit_centre, fit_family, pair_losses
 
     s = FamilySettings()
-    model, coef = fit_family(lum, s, mask, family, hint)
+    model, coef = fit_family(lum, s, mask, family, hint, colour)
     if coef is None:
         return model
-    centre = fit_centre(lum, coef, s, mask, family, hint)
+    centre = fit_centre(lum, coef, s, mask, family, hint, colour=colour)
     if not centre.off_centre(s.off_centre_shift):
         return model
     free = estimate_robust(lum, RobustSettings(), mask)
-    loss_family, loss_free = pair_losses(lum, [model.candidate or model, free.candidate or free], s, mask)
+    loss_family, loss_free = pair_losses(lum, [model.candidate or model, free.candidate or free], s, mask, colour)
     if loss_free < loss_family - s.select_margin:
         log.debug("vignetting centre off the frame's by (%.0f, %.0f) px and the free Kang-Weiss fit explains "
                  "the frame better (loss %.3f < %.3f): using it", centre.offset[0], centre.offset[1],
@@ -276,7 +280,7 @@ def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
     from vigproc.core.robust import frame_evidence as _evidence
 
     a = check_image(img, channel_axis)
-    return _evidence(luminance(a), settings or RobustSettings(), clipped_mask(a))
+    return _evidence(luminance(a), settings or RobustSettings(), clipped_mask(a), colour_of(a))
 
 
 def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
@@ -301,5 +305,8 @@ def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
         raise UnknownMethodError(f"frame evidence comes with {', '.join(EVIDENCE_METHODS)}, not {method!r}")
     a = img if checked else check_image(img, channel_axis)
     require_size(a)
-    m, evidence = estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings), clipped_mask(a))
+    m, evidence = estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings), clipped_mask(a),
+                                                colour_of(a))
     return _named(m, method), evidence
+
+

@@ -177,3 +177,28 @@ def binned_log_copy(lum: np.ndarray, work_size: int, dark_fraction: float,
     if valid.any():
         valid &= b > dark_fraction * np.percentile(b[valid], 99)
     return log_image(b), valid, k
+
+
+def binned_log_channels(img: np.ndarray, k: int, valid: np.ndarray, dark_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """The working copy of each channel of an H×W×C linear frame, binned k×k as
+    :func:`binned_log_copy` bins its luminance (``valid``: that copy's usable bins).
+
+    A bin is usable in a channel when it is in ``valid`` and not darker than
+    ``dark_fraction`` of the channel's 99th percentile. Two strided sums, not a
+    k×k×C reshape: one pass over a 24 MP frame (about 0.1 s).
+
+    Returns
+    -------
+    L : ndarray, C×(H//k)×(W//k), log of each channel's bin means
+    valid : ndarray of bool, same shape
+    """
+    h, w, c = img.shape
+    hb, wb = valid.shape
+    a = np.asarray(img[: hb * k, : wb * k], dtype=np.float64)
+    sums = a.reshape(hb, k, wb * k, c).sum(axis=1).reshape(hb, wb, k, c).sum(axis=2)
+    b = np.moveaxis(sums / (k * k), -1, 0)
+    ok = np.broadcast_to(valid, b.shape).copy()
+    for i in range(c):
+        if ok[i].any():
+            ok[i] &= b[i] > dark_fraction * np.percentile(b[i][ok[i]], 99)
+    return log_image(b), ok

@@ -10,7 +10,9 @@ so a profile pools its frames' evidence:
    an uncropped frame vignettes around the frame centre, radially, as lensfun's
    calibrations do; the data term alone is equivariant, so what a frame gets wrong
    is its scene's, not a pull towards a prior that is strongest for the strongest
-   lenses.
+   lenses. In a colour frame each log-difference pair is weighted by how alike its
+   R, G and B change (a lens divides them alike; much of a scene's shading does not;
+   :mod:`vigproc.core.family_fit`, step 2).
 2. **The coordinate-wise median of the frames' coefficients**: a frame whose scene
    fooled the fit (a lit wall, a centred bright subject) moves it by one rank, not by
    its error. On the clean protocol the median beat the mean, a trimmed mean, the
@@ -75,8 +77,10 @@ def frame_fit(wc: WorkingCopy, family: LensFamily | None = None,
     InvalidImageError
         Too few usable bins.
     """
-    fit = frame_coefficients(wc.L, wc.valid, wc.xs * wc.radius, wc.ys * wc.radius, wc.width, wc.height,
-                             settings, family or profile_family())
+    fam = family or profile_family()
+    xs, ys = wc.xs * wc.radius, wc.ys * wc.radius
+    channels = None if wc.channels is None else (wc.channels, wc.channels_valid)
+    fit = frame_coefficients(wc.L, wc.valid, xs, ys, wc.width, wc.height, settings, fam, channels=channels)
     if fit is None:
         raise InvalidImageError(f"too few usable pixels for a fit ({int(wc.valid.sum())} bins)")
     return fit

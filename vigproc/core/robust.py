@@ -50,7 +50,7 @@ from vigproc.core._kernels.robust import (
     robust_loss,
 )
 from vigproc.core._kernels.field import log_field_grid
-from vigproc.core.pixels import binned_coords, binned_log_copy
+from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
 from vigproc.core.scene import SceneFalloff, default_scene_falloff
 
@@ -170,7 +170,11 @@ class RobustSettings:
 
 @dataclass(frozen=True)
 class WorkingCopy:
-    """Binned log luminance with validity mask and coordinates in half-diagonals."""
+    """Binned log luminance with validity mask and coordinates in half-diagonals.
+
+    ``channels`` and ``channels_valid`` (C×h×w), when present, are the same copy of each
+    colour channel: a lens profile fits each of them (:func:`vigproc.core.pooling.frame_fit`).
+    """
 
     L: np.ndarray
     valid: np.ndarray
@@ -179,9 +183,12 @@ class WorkingCopy:
     radius: float
     width: int
     height: int
+    channels: np.ndarray | None = None
+    channels_valid: np.ndarray | None = None
 
 
-def working_copy(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | None = None) -> WorkingCopy:
+def working_copy(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | None = None,
+                 colour: np.ndarray | None = None) -> WorkingCopy:
     """Bin an H×W linear luminance image for the estimator.
 
     Parameters
@@ -189,13 +196,18 @@ def working_copy(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | N
     lum : ndarray, H×W, linear
     mask : ndarray of bool, optional
         Pixels to use (e.g. not clipped); all positive finite pixels by default.
+    colour : ndarray, H×W×C, linear, optional
+        The frame's colour channels, binned the same way into ``channels``.
     """
     h, w = lum.shape
     L, valid, k = binned_log_copy(lum, settings.work_size, settings.dark_fraction, mask)
     radius = 0.5 * math.hypot(w, h)
+    channels = channels_valid = None
+    if colour is not None:
+        channels, channels_valid = binned_log_channels(colour, k, valid, settings.dark_fraction)
     return WorkingCopy(
         L=L, valid=valid, xs=binned_coords(w, k) / radius, ys=binned_coords(h, k) / radius,
-        radius=radius, width=w, height=h,
+        radius=radius, width=w, height=h, channels=channels, channels_valid=channels_valid,
     )
 
 
@@ -636,18 +648,21 @@ def joint_model(wcs: list[WorkingCopy], settings: RobustSettings = RobustSetting
 
 
 #: Format tag of :func:`frame_evidence` blobs: the working copy before the scene
-#: division.  Format 1 (vigproc ≤ session 4) stored it after the division by the
-#: scene prior shipped at the time.
-EVIDENCE_FORMAT = "vigproc.robust-evidence/2"
+#: division, with the colour channels' copies when the frame has them.  Format 1
+#: (vigproc ≤ session 4) stored it after the division by the scene prior shipped at
+#: the time; format 2 (≤ session 11) held the luminance copy only.
+EVIDENCE_FORMAT = "vigproc.robust-evidence/3"
 _EVIDENCE_V1 = "vigproc.robust-evidence/1"
+_EVIDENCE_V2 = "vigproc.robust-evidence/2"
 
 
 def frame_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
-                   mask: np.ndarray | None = None) -> bytes:
+                   mask: np.ndarray | None = None, colour: np.ndarray | None = None) -> bytes:
     """What a frame contributes to its lens's profile: its binned log working copy,
-    before any scene prior (≈ 25 KB at 96×64 bins), as bytes for the profile store
-    (:mod:`vigproc.core.pooling`)."""
-    return _evidence_bytes(working_copy(lum, settings, mask))
+    before any scene prior, and the same copy of each colour channel when ``colour``
+    (H×W×C, linear) is given (≈ 80 KB at 96×64 bins with three channels), as bytes
+    for the profile store (:mod:`vigproc.core.pooling`)."""
+    return _evidence_bytes(working_copy(lum, settings, mask, colour))
 
 
 def _evidence_bytes(wc: WorkingCopy) -> bytes:
@@ -656,8 +671,9 @@ def _evidence_bytes(wc: WorkingCopy) -> bytes:
 
     buf = io.BytesIO()
     meta = json.dumps({"format": EVIDENCE_FORMAT, "radius": wc.radius, "width": wc.width, "height": wc.height})
+    extra = {} if wc.channels is None else {"C": wc.channels.astype(np.float32), "Cvalid": wc.channels_valid}
     np.savez_compressed(buf, L=wc.L.astype(np.float32), valid=wc.valid, xs=wc.xs, ys=wc.ys,
-                        meta=np.frombuffer(meta.encode(), dtype=np.uint8))
+                        meta=np.frombuffer(meta.encode(), dtype=np.uint8), **extra)
     return buf.getvalue()
 
 
@@ -681,15 +697,20 @@ def evidence_copy(blob: bytes) -> WorkingCopy:
             meta = json.loads(bytes(z["meta"]).decode())
             L = z["L"].astype(np.float64)
             valid, xs, ys = z["valid"].astype(bool), z["xs"].astype(np.float64), z["ys"].astype(np.float64)
+            C = z["C"].astype(np.float64) if "C" in z.files else None
+            Cvalid = z["Cvalid"].astype(bool) if "Cvalid" in z.files else None
     except Exception as exc:  # noqa: BLE001 - any decoding failure means "not evidence"
         raise ValueError(f"not frame evidence: {exc}") from None
-    if meta.get("format") not in (EVIDENCE_FORMAT, _EVIDENCE_V1) or L.shape != valid.shape \
+    if meta.get("format") not in (EVIDENCE_FORMAT, _EVIDENCE_V2, _EVIDENCE_V1) or L.shape != valid.shape \
             or L.shape != (ys.size, xs.size) or not np.all(np.isfinite(L[valid])):
         raise ValueError("not frame evidence: inconsistent arrays")
+    if (C is None) != (Cvalid is None) or (C is not None and (
+            C.ndim != 3 or C.shape[1:] != L.shape or Cvalid.shape != C.shape or not np.all(np.isfinite(C[Cvalid])))):
+        raise ValueError("not frame evidence: inconsistent colour channels")
     if meta["format"] == _EVIDENCE_V1:
         L = L + default_scene_falloff().log_field(xs, ys)
     return WorkingCopy(L=L, valid=valid, xs=xs, ys=ys, radius=float(meta["radius"]), width=int(meta["width"]),
-                       height=int(meta["height"]))
+                       height=int(meta["height"]), channels=C, channels_valid=Cvalid)
 
 
 def estimate_robust(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
@@ -715,11 +736,13 @@ def estimate_robust(lum: np.ndarray, settings: RobustSettings = RobustSettings()
 
 
 def estimate_robust_with_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
-                                  mask: np.ndarray | None = None) -> tuple[VignettingModel, bytes]:
-    """:func:`estimate_robust` and the frame's :func:`frame_evidence`, from one working
-    copy (learn mode needs both; binning a large frame twice would cost as much as the fit)."""
+                                  mask: np.ndarray | None = None,
+                                  colour: np.ndarray | None = None) -> tuple[VignettingModel, bytes]:
+    """:func:`estimate_robust` and the frame's :func:`frame_evidence` (with ``colour``'s
+    channels), from one working copy (learn mode needs both; binning a large frame
+    twice would cost as much as the fit)."""
     t0 = time.perf_counter()
-    raw = working_copy(lum, settings, mask)
+    raw = working_copy(lum, settings, mask, colour)
     return _fit_copy(divide_scene(raw, settings), settings, t0), _evidence_bytes(raw)
 
 

@@ -1069,6 +1069,7 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
     from vigproc.core.pixels import check_image as valid_image
     from vigproc.core.pixels import luminance
     from vigproc.core.lensfamily import default_family
+    from vigproc.core.family_fit import colour_of
     from vigproc.forensics.lensmatch import default_match_calibration, frame_fit
 
     cal = calibration if calibration is not None else default_match_calibration()
@@ -1077,7 +1078,7 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
     a = valid_image(img, -1 if np.asarray(img).ndim == 3 else None)
     lum = luminance(a)
     h, w = lum.shape
-    fc = frame_fit(lum, fam)
+    fc = frame_fit(lum, fam, colour=colour_of(a))
     c = None if fc is None else np.asarray(fc.coefficients)
     est = None
     if c is not None:

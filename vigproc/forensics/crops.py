@@ -153,8 +153,10 @@ def default_crop_calibration() -> CropCalibration | None:
     return CropCalibration.from_dict(json.loads(f.read_text(encoding="utf-8")))
 
 
-def crop_statistic(lum: np.ndarray, family=None) -> tuple[np.ndarray, np.ndarray, float, float, float]:
-    """The free-centre fit of an H×W linear luminance frame.
+def crop_statistic(lum: np.ndarray, family=None,
+                   colour: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+    """The free-centre fit of an H×W linear luminance frame (``colour``, H×W×3: its
+    pairs weighted by how alike their channels change).
 
     Returns
     -------
@@ -168,11 +170,11 @@ def crop_statistic(lum: np.ndarray, family=None) -> tuple[np.ndarray, np.ndarray
     from vigproc.core.family_fit import FamilySettings, fit_centre, fit_family
 
     s = FamilySettings(min_snr=0.0)  # the test decides on its own evidence below
-    model, coef = fit_family(lum, s, family=family)
+    model, coef = fit_family(lum, s, family=family, colour=colour)
     snr = float(model.quality.snr) if model.quality is not None and model.quality.snr is not None else 0.0
     if coef is None:
         return np.zeros(2), np.eye(2), 0.0, 0.0, 0.0
-    c = fit_centre(lum, coef, s, family=family, work_size=CENTRE_WORK_SIZE)
+    c = fit_centre(lum, coef, s, family=family, work_size=CENTRE_WORK_SIZE, colour=colour)
     return np.asarray(c.offset, dtype=np.float64), np.asarray(c.covariance), c.z, c.shift, snr
 
 
@@ -195,11 +197,12 @@ def check_crop(img: np.ndarray, *, channel_axis: int | None = -1, calibration: C
     -------
     CropEvidence
     """
+    from vigproc.core.family_fit import colour_of
     from vigproc.core.pixels import check_image, luminance
 
     a = check_image(img, channel_axis)
     lum = luminance(a)
-    off, cov, z, shift, snr = crop_statistic(lum, family)
+    off, cov, z, shift, snr = crop_statistic(lum, family, colour_of(a))
     cal = calibration if calibration is not None else default_crop_calibration()
     p = cal.p_value(shift) if cal is not None else None
     if snr < MIN_SNR:

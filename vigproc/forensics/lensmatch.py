@@ -94,8 +94,9 @@ def family_fingerprint(family) -> tuple[float, ...]:
     return tuple([float(comps.shape[0])] + [round(float(v), 4) for c in comps for v in (c.sum(), c[-1])])
 
 
-def frame_fit(lum: np.ndarray, family=None, settings=None):
-    """The family coefficients of an H×W linear luminance frame from its data alone.
+def frame_fit(lum: np.ndarray, family=None, settings=None, colour: np.ndarray | None = None):
+    """The family coefficients of an H×W linear luminance frame from its data alone
+    (with ``colour``, H×W×3, its pairs weighted by how alike their channels change).
 
     Returns
     -------
@@ -104,14 +105,15 @@ def frame_fit(lum: np.ndarray, family=None, settings=None):
         when too few pixels are usable.
     """
     from vigproc.core.family_fit import FamilySettings, frame_coefficients
-    from vigproc.core.pixels import binned_coords, binned_log_copy
+    from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
     from vigproc.core.lensfamily import default_family
 
     s = settings or FamilySettings()
     fam = family or default_family()
     h, w = lum.shape
     L, valid, k = binned_log_copy(lum, s.work_size, s.dark_fraction, None)
-    return frame_coefficients(L, valid, binned_coords(w, k), binned_coords(h, k), w, h, s, fam)
+    channels = None if colour is None else binned_log_channels(colour[..., :3], k, valid, s.dark_fraction)
+    return frame_coefficients(L, valid, binned_coords(w, k), binned_coords(h, k), w, h, s, fam, channels=channels)
 
 
 def _projection_grid(width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

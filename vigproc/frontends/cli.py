@@ -313,7 +313,8 @@ def _scene_settings(spec: str):
 
 
 def _estimator(method: str, seed: int = 0, settings=None, family=None):
-    """A bench's estimator: ``vigproc.estimate`` on a gray frame, or the "rgs" peer.
+    """A bench's estimator: ``vigproc.estimate`` on a frame (H×W grey, or H×W×3 with
+    channels last), or the "rgs" peer (on its luminance).
 
     ``settings`` (``--scene-prior``) tune the robust Kang-Weiss estimators; the
     default and lens-family estimators have no scene prior. ``family``: the lens
@@ -321,18 +322,20 @@ def _estimator(method: str, seed: int = 0, settings=None, family=None):
     also take ``hint=`` (EXIF's focal length and f-number).
     """
     from vigproc.core.estimate import estimate, estimate_default
+    from vigproc.core.family_fit import colour_of
+    from vigproc.core.pixels import luminance
 
     if method == "rgs":
         from vigproc.bench.peers import estimate_rgs
 
-        return estimate_rgs
+        return lambda v: estimate_rgs(luminance(v))
     if method == "default":
-        return lambda v, hint=None: estimate_default(v, family=family, hint=hint)
+        return lambda v, hint=None: estimate_default(luminance(v), family=family, hint=hint, colour=colour_of(v))
     if method == "lens-family":
         from vigproc.core.family_fit import estimate_family
 
-        return lambda v, hint=None: estimate_family(v, family=family, hint=hint)
-    return lambda v: estimate(v, method, channel_axis=None, seed=seed, settings=settings)
+        return lambda v, hint=None: estimate_family(luminance(v), family=family, hint=hint, colour=colour_of(v))
+    return lambda v: estimate(v, method, channel_axis=-1 if v.ndim == 3 else None, seed=seed, settings=settings)
 
 
 def cmd_bench_synthetic(args: argparse.Namespace) -> int:
@@ -403,10 +406,11 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
 
     from vigproc.bench import clean as C
     from vigproc.bench.peers import PEER_ENV, published_rgs
+    from vigproc.core.pixels import luminance
     from vigproc.stores.lensfun import lensfun_family
 
     output_file(args.json)
-    bases, names = C.load_clean_bases(args.images, args.min_long_side, args.limit, args.crop)
+    bases, names = C.load_clean_bases(args.images, args.min_long_side, args.limit, args.crop, colour=not args.grey)
     if len(bases) < 2:
         print(f"vigproc: bench clean: {len(bases)} usable frames under {' '.join(args.images)}; need 2",
               file=sys.stderr)
@@ -428,13 +432,15 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
                 print(f"vigproc: bench clean: skipping {name}: no peer built (scripts/build_rgs_peer.sh; "
                       f"--peer or ${PEER_ENV})", file=sys.stderr)
                 continue
-            methods[name] = published_rgs(peer, "srgb" if name.endswith("srgb") else "linear")
+            rgs = published_rgs(peer, "srgb" if name.endswith("srgb") else "linear")
+            methods[name] = lambda v, f=None, rgs=rgs: rgs(luminance(v), f)  # it reads grey
         elif name.endswith("+exif"):  # told the field's focal length and f-number, as EXIF would
             base = name[: -len("+exif")]
             methods[name] = C.model_estimator(_estimator(base, family=family), exif=True)
         else:
             methods[name] = C.model_estimator(_estimator(name, family=family))
-    print(f"clean protocol: {len(bases)} central {args.crop:.0%} crops (480x320, linear) of frames >= "
+    print(f"clean protocol: {len(bases)} central {args.crop:.0%} crops (480x320, "
+          f"{'luminance' if args.grey else 'colour'}, linear) of frames >= "
           f"{args.min_long_side} px from {' '.join(args.images)}; error = RMS of log2(estimated/true) "
           "about its mean (EV); median per field, then median / p90 over fields")
     print(f"lens family for lens-family: {family.lenses} lensfun lenses, the {len(lens)} test lenses left out")
@@ -474,7 +480,7 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
     output_file(args.json)
     if args.calibrate:
         output_file(args.calibrate)
-    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit)
+    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
     if len(bases) < 4:
         print(f"vigproc: bench crops: {len(bases)} usable frames; need 4", file=sys.stderr)
         return 2
@@ -682,7 +688,7 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
     from vigproc.stores.lensfun import lensfun_family
 
     output_file(args.json)
-    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit)
+    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
     if len(bases) < max(args.counts):
         print(f"vigproc: bench profile-clean: {max(args.counts)} frames per lens need as many bases; "
               f"{len(bases)} usable under {' '.join(args.images)}", file=sys.stderr)
@@ -695,10 +701,11 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
     if peer is None:
         print(f"vigproc: bench profile-clean: no published peer (scripts/build_rgs_peer.sh; --peer or ${PEER_ENV}); "
               "its rows are left out", file=sys.stderr)
-    rows, trust = B.run_clean(bases, lens, family, args.counts, peer=peer, seed=args.seed)
+    rows, trust = B.run_clean(bases, lens, family, args.counts, peer=peer, seed=args.seed, orders=args.orders)
     print(f"profiles on the clean protocol: {len(lens)} lensfun lenses, each learning up to {max(args.counts)} of "
-          f"{len(bases)} clean bases (480x320, linear) in an order of its own; error = RMS of "
-          "log2(profile/true field) about its mean (EV), median / p90 over the lenses")
+          f"{len(bases)} clean bases (480x320, {'luminance' if args.grey else 'colour'}, linear) in "
+          f"{args.orders} order(s) of its own; error = RMS of log2(profile/true field) about its mean (EV), "
+          "median / p90 over the lens x order runs")
     print(f"{'method':<24}{'frames':>7}{'lenses':>8}{'median EV':>11}{'p90 EV':>9}{'<=1sd':>7}{'<=2sd':>7}")
     for r in rows:
         print(f"{r.method:<24}{r.n_frames:>7}{r.n_lenses:>8}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}"
@@ -1189,6 +1196,8 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--counts", type=number(1, 100_000, integer=True), nargs="+", default=[1, 5, 20, 50],
                     help="numbers of frames per lens to report (default 1 5 20 50)")
     bp.add_argument("--seed", type=int, default=0, help="seed of each lens's frame order (default 0)")
+    bp.add_argument("--orders", type=number(1, 100, integer=True), default=1,
+                    help="frame orders per lens, each into a new store (default %(default)s)")
     bp.add_argument("--peer", help="the built rgs_peer executable (default: $VIGPROC_RGS_PEER)")
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_profile_clean)

@@ -96,6 +96,8 @@ def add_clean_bases(bp: argparse.ArgumentParser) -> None:
     bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
                     help="frames whose long side is shorter are not used (default %(default)s)")
     bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
+    bp.add_argument("--grey", action="store_true",
+                    help="give the estimators the bases' luminance only (as before session 12), not their colour")
 
 
 def write_json_result(path: str | None, data: object) -> None:

@@ -301,7 +301,7 @@ def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
     output_file(args.json)
     if args.calibrate:
         output_file(args.calibrate)
-    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit)
+    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
     if len(bases) < 20:
         print(f"vigproc: bench forensics-clean: {len(bases)} usable frames; need 20", file=sys.stderr)
         return 2
