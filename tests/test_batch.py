@@ -41,7 +41,7 @@ def _out_rel(rel: str, what: str = "sidecar", suffix: str = ".tif") -> str:
 def _frame(seed: int) -> np.ndarray:
     yy, xx = np.mgrid[0:H, 0:W]
     r2 = ((xx - (W - 1) / 2) ** 2 + (yy - (H - 1) / 2) ** 2) / ((W / 2) ** 2 + (H / 2) ** 2)
-    img = textured(H, W, seed=seed, contrast=0.15) * (1 - 0.45 * r2 - 0.1 * r2**2)
+    img = textured(H, W, seed=seed) * (1 - 0.45 * r2 - 0.1 * r2**2)
     return img[..., None] * np.array([1.0, 0.9, 0.8])
 
 

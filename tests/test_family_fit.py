@@ -117,7 +117,8 @@ def test_kernels_match_numpy():
                         want_d.append((L[y + dy, x + dx] - L[y, x] - M[y + dy, x + dx] + M[y, x]) / s)
                         want_a.append((B[y + dy, x + dx] - B[y, x]) / s)
                         dc = (C[:, y + dy, x + dx] - C[:, y, x]) / s
-                        want_w.append(1 / (1 + ((dc[0] - dc[1]) ** 2 + (dc[2] - dc[1]) ** 2) / 0.7**2))
+                        q = (dc[0] - dc[1]) ** 2 + (dc[2] - dc[1]) ** 2
+                        want_w.append(1 / (1 + q / 0.7**2))
     np.testing.assert_allclose(d, want_d)
     np.testing.assert_allclose(a, want_a)
     np.testing.assert_allclose(weight, want_w)
@@ -227,3 +228,70 @@ def test_a_grey_frame_in_three_channels_fits_as_its_luminance():
     np.testing.assert_allclose(c_rgb, c_grey, atol=1e-6)
     np.testing.assert_allclose(vigproc.estimate(rgb).field(), vigproc.estimate(lum, channel_axis=None).field(),
                                rtol=1e-5)
+
+
+def test_a_fit_no_model_can_hold_falls_back(monkeypatch):
+    """Data far outside what lenses do can give coefficients whose profile no
+    Kang-Weiss model holds (G ≤ 0 in the frame): no correction, the coefficients kept
+    (the crop test reads them), no exception."""
+    from vigproc.core import family_fit
+
+    def no_model(*a, **k):
+        raise ModelError("the geometric factor G falls to -0.1 inside the frame")
+
+    monkeypatch.setattr(family_fit, "profile_to_model", no_model)
+    img = textured(H, W, seed=6, contrast=0.1) * _lens_field()
+    m, c = fit_family(img)
+    assert m.is_identity and m.quality.fallback and m.quality.confidence == 0.0 and m.candidate is None
+    assert c is not None and m.quality.snr > 0
+
+
+def test_the_default_asks_the_centre_and_the_choice_of_the_luminance(monkeypatch):
+    """A colour frame's lens-family fit weighs pairs by colour, but whether the centre
+    moved and which fit explains the frame better are asked of the luminance alone: the
+    free Kang-Weiss fit does not weigh pairs by colour, and a loss weighted by colour
+    would favour the fit that does. An off-centre, elliptical fall-off (Table 1
+    setting 2) still goes to the free fit."""
+    from vigproc.bench.synthetic import table1_model
+    from vigproc.core import family_fit
+
+    seen = []
+    real_centre, real_losses = family_fit.fit_centre, family_fit.pair_losses
+
+    def centre(*a, **k):
+        seen.append(("centre", k.get("colour")))
+        return real_centre(*a, **k)
+
+    def losses(*a, **k):
+        seen.append(("losses", k.get("colour")))
+        return real_losses(*a, **k)
+
+    monkeypatch.setattr(family_fit, "fit_centre", centre)
+    monkeypatch.setattr(family_fit, "pair_losses", losses)
+    img = coloured_scene(H, W, seed=3) * table1_model(2).field()[..., None]
+    m = estimate_default(vigproc.core.pixels.luminance(img), colour=img)
+    assert m.method == "robust"
+    assert seen == [("centre", None), ("losses", None)]
+
+
+def test_a_channel_too_dark_to_use_makes_a_grey_fit():
+    """A frame whose blue is too dark to read everywhere (an empty channel, sodium
+    light) is fitted as a grey frame, not dropped for want of pixels."""
+    img = textured(H, W, seed=7, contrast=0.1) * _lens_field()
+    rgb = img[..., None] * np.array([1.0, 0.8, 0.0])
+    lum = vigproc.core.pixels.luminance(rgb)
+    _, c_grey = fit_family(lum)
+    m, c_rgb = fit_family(lum, colour=rgb)
+    assert c_rgb is not None and not m.quality.fallback
+    np.testing.assert_allclose(c_rgb, c_grey, atol=1e-6)
+
+
+def test_estimate_reads_the_colour_of_a_colour_frame():
+    """vigproc.estimate hands a colour frame's R, G, B to the lens-family fit: a warm
+    glow from one side pulls the estimate of its luminance alone, not the colour one."""
+    truth = np.log(_lens_field())
+    img = coloured_scene(H, W, seed=1) * np.exp(truth)[..., None] * np.exp(chromatic_glow(H, W, 1.0))
+    lum = vigproc.core.pixels.luminance(img)
+    err = {k: np.std(vigproc.estimate(x, "lens-family", channel_axis=ax).log_field() - truth) / math.log(2)
+           for k, x, ax in (("colour", img, -1), ("grey", lum, None))}
+    assert err["colour"] < 0.5 * err["grey"], err

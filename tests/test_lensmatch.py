@@ -211,3 +211,28 @@ def test_the_clean_forensics_bench_refuses_folds_too_small_for_a_set():
     for folds in (1, 5):
         with pytest.raises(ValueError, match="folds must be within 2..4"):
             F.run(bases, frames=5, folds=folds)
+
+
+def test_a_grey_frame_is_judged_by_the_scatter_of_grey_fits(classes, calibration, tmp_path):
+    """A grey frame's fit has no colour to weigh its pairs by, so scenes scatter it more:
+    its residual is whitened by Σ × ``grey_inflate`` (a colour frame's by Σ). The factor
+    is kept in the calibration's file; a file without it reads as 1."""
+    from dataclasses import replace
+
+    strong, mild = classes[4], classes[5]
+    img = textured(H, W, seed=11, contrast=0.15) * mild.field(H, W)
+    plain = check_image(img, key_of(strong), calibration=calibration)
+    wider = check_image(img, key_of(strong), calibration=replace(calibration, grey_inflate=4.0))
+    assert wider.score == pytest.approx(plain.score / 4.0, rel=1e-9)
+    rgb = img[..., None] * np.array([0.9, 1.0, 0.7])  # channels alike: the same fit, but a colour frame
+    colour = check_image(rgb, key_of(strong), calibration=replace(calibration, grey_inflate=4.0))
+    assert colour.score == pytest.approx(plain.score, rel=1e-6)
+    cal = replace(calibration, grey_inflate=1.5)
+    cal.save(tmp_path / "c.json")
+    assert load_calibration(tmp_path / "c.json").grey_inflate == 1.5
+    d = cal.to_dict()
+    del d["grey_inflate"]
+    assert MatchCalibration.from_dict(d).grey_inflate == 1.0
+    with pytest.raises(MatchCalibrationError):
+        replace(calibration, grey_inflate=0.0)
+    assert default_match_calibration().grey_inflate > 1.0  # the shipped one was made on colour frames

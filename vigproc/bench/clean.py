@@ -36,6 +36,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
+from vigproc.io.protocol import vignetted  # noqa: F401  (re-exported: the benches' one way to vignette)
 from vigproc.stores.lensfun import bench_lenses, pa_field
 
 log = logging.getLogger(__name__)
@@ -161,13 +162,6 @@ def load_clean_bases(folders: Iterable[str | Path], min_long_side: int = MIN_LON
     --min-long-side and --limit)."""
     files = base_files([Path(f) for f in folders], min_long_side)
     return load_bases(files[:limit] if limit else files, frac, colour)
-
-
-def vignetted(im: np.ndarray, log_field: np.ndarray) -> np.ndarray:
-    """A base (H×W, or H×W×3 with channels last) through a field (H×W, natural log):
-    every channel divided alike, as a lens does."""
-    gain = np.exp(log_field)
-    return im * (gain[..., None] if im.ndim == 3 else gain)
 
 
 def gain_free_ev(log_ratio: np.ndarray) -> float:

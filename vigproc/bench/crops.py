@@ -69,7 +69,7 @@ class CropBench:
 def run(bases: Sequence[np.ndarray], lenses: Sequence[tuple[float, float, float]], family, *,
         alpha: float = 0.01, seed: int = 0, falloffs=FALLOFFS_EV, offsets=OFFSETS,
         statistic: str = "shift") -> CropBench:
-    from vigproc.bench.clean import vignetted
+    from vigproc.io.protocol import vignetted
     from vigproc.core.family_fit import colour_of
     from vigproc.core.pixels import luminance
     from vigproc.forensics.crops import CropCalibration, auc, crop_statistic

@@ -141,7 +141,7 @@ def frame_coefficients_table(bases: Sequence[np.ndarray], lenses: Sequence[Bench
                              progress: Callable[[str], None] | None = None) -> tuple[np.ndarray, list[float]]:
     """Data-only family coefficients of every base (H×W, or H×W×3) × lens field (None: no field), shape
     (lenses, bases, K), NaN where a frame has too few usable pixels; and the seconds per fit."""
-    from vigproc.bench.clean import vignetted
+    from vigproc.io.protocol import vignetted
     from vigproc.core.family_fit import colour_of
     from vigproc.core.pixels import luminance
     from vigproc.forensics.lensmatch import frame_fit
@@ -266,11 +266,30 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
 def shipped_calibration(bases: Sequence[np.ndarray], *, alpha: float = 0.01, source: str = "",
                         progress: Callable[[str], None] | None = None):
     """The calibration ``vigproc check`` ships: every base × (no field and the calibration
-    lenses), in the shipped family (:func:`vigproc.core.lensfamily.default_family`)."""
+    lenses), in the shipped family (:func:`vigproc.core.lensfamily.default_family`).
+
+    With colour bases, also the scale of Σ for grey frames (``grey_inflate``): the mean
+    D² of the same frames' luminance fits over that of their colour fits, so that a
+    black-and-white photograph is judged by the scatter of fits like its own."""
+    from dataclasses import replace
+
     from vigproc.core.lensfamily import default_family
+    from vigproc.core.pixels import luminance
+    from vigproc.forensics.lensmatch import whiten
 
     family = default_family()
     _, _, calib = select_lenses()
     fields: list[BenchLens | None] = [None, *calib]
+    refs = references(fields, family)
     coef, _ = frame_coefficients_table(bases, fields, family, progress)
-    return calibrate(coef, references(fields, family), np.arange(len(bases)), family, alpha=alpha, source=source)
+    cal = calibrate(coef, refs, np.arange(len(bases)), family, alpha=alpha, source=source)
+    if bases[0].ndim != 3:
+        return cal
+    grey, _ = frame_coefficients_table([luminance(b) for b in bases], fields, family, progress)
+
+    def mean_d2(c: np.ndarray) -> float:
+        r = (c - refs[:, None, :]).reshape(-1, c.shape[2])
+        z = np.array([whiten(v, cal) for v in r[np.all(np.isfinite(r), axis=1)]])
+        return float(np.mean(np.einsum("ij,ij->i", z, z)))
+
+    return replace(cal, grey_inflate=max(mean_d2(grey) / mean_d2(coef), 1.0))

@@ -28,6 +28,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from vigproc.io.protocol import vignetted
 from vigproc.stores.lensfun import bench_lenses, pa_field
 from vigproc.core.model import VignettingModel
 
@@ -83,10 +84,10 @@ def run_lensfun(
         for j in range(frames_per_lens):
             k = (idx * frames_per_lens + j) % len(images)
             im = images[k]
-            h, w = im.shape
+            h, w = im.shape[:2]
             true_log = np.log(pa_field((h, w), pa.k1, pa.k2, pa.k3))
             t0 = time.perf_counter()
-            m = fn(im * np.exp(true_log))
+            m = fn(vignetted(im, true_log))
             secs.append(time.perf_counter() - t0)
             errs.append(rms_ev(m.log_field((h, w)) - true_log))
             unc.append(rms_ev(true_log))
@@ -106,8 +107,8 @@ def run_flat(images: Sequence[np.ndarray], method: str, fn: Callable[[np.ndarray
     out, cand, fb = [], [], 0
     for im in images:
         m = fn(im)
-        out.append(rms_ev(m.log_field(im.shape)))
+        out.append(rms_ev(m.log_field(im.shape[:2])))
         c = m.candidate if m.candidate is not None else m
-        cand.append(rms_ev(c.log_field(im.shape)))
+        cand.append(rms_ev(c.log_field(im.shape[:2])))
         fb += bool(m.quality and m.quality.fallback)
     return FlatResult(method, len(images), float(np.median(out)), float(np.max(out)), float(np.median(cand)), fb)

@@ -21,7 +21,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from vigproc.core.model import VignettingModel
-from vigproc.io.protocol import HEIGHT, WIDTH, protocol_image, read_protocol_images  # noqa: F401  (re-exported)
+from vigproc.io.protocol import HEIGHT, WIDTH, protocol_image, read_protocol_images, vignetted  # noqa: F401  (re-exported)
 
 TABLE1_ALPHA = (0.02, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0)
 #: Lyu 2010, Table 1: (centre (cx, cy) px from the image centre, P in px⁻²).
@@ -87,7 +87,7 @@ def run(
     Parameters
     ----------
     images : sequence of ndarray
-        Protocol images (480×320 gray, from :func:`protocol_image`).
+        Protocol images (480×320 gray, or 480×320×3, from :func:`protocol_image`).
     methods : dict
         name → callable(vignetted gray image) → VignettingModel for that frame.
     quantize : bool
@@ -97,7 +97,8 @@ def run(
     for s in settings:
         truth = table1_model(s)
         phi = truth.field((HEIGHT, WIDTH))
-        vig = [np.round(im * phi * 255.0) / 255.0 if quantize else im * phi for im in images]
+        vig = [vignetted(im, np.log(phi)) for im in images]
+        vig = [np.round(v * 255.0) / 255.0 if quantize else v for v in vig]
         for name, fn in methods.items():
             ps, rp, rc, ra, secs, fb = [], [], [], [], [], 0
             for im, v in zip(images, vig):
@@ -105,7 +106,7 @@ def run(
                 m = fn(v)
                 secs.append(time.perf_counter() - t0)
                 est_phi = m.field((HEIGHT, WIDTH))
-                ps.append(psnr_best_gain(v / est_phi, im))
+                ps.append(psnr_best_gain(v / (est_phi[..., None] if v.ndim == 3 else est_phi), im))
                 # parameters of the fit itself; PSNR above is of what would be applied
                 e = relative_errors(m.candidate if m.candidate is not None else m, truth)
                 rp.append(e[0]); rc.append(e[1]); ra.append(e[2])

@@ -55,12 +55,13 @@ from vigproc.core.robust import WorkingCopy
 
 #: Method name of pooled profiles.
 METHOD = "profile-pooled"
-#: Scale of the pooled σ, measured on the clean protocol (the frames' stored fits of
-#: 20 lenses × 51 bases, 5 frame orders each, pooled after 1..50 frames): at 0.6 the
-#: error is within 2σ on 95–100 % of the profiles at every count and within 1σ on
-#: 70–84 % (1.0 overstated it: 87–100 % within 1σ); ``vigproc bench profile-clean``
-#: prints both shares.
-SIGMA_SCALE = 0.6
+#: Scale of the pooled σ, measured on the clean protocol (the frames' colour-weighted
+#: fits of 20 lenses × 51 bases, 10 frame orders each, pooled after 1 / 5 / 20 / 50
+#: frames): at 0.5 the error is within 1σ on 69 / 88 / 89 / 93 % of the profiles and
+#: within 2σ on 90 / 99 / 100 / 100 % (0.6 overstated it: 94–96 % within 1σ from 5
+#: frames on; 0.4 understated one frame's: 76 % within 2σ); ``vigproc bench
+#: profile-clean`` prints both shares.
+SIGMA_SCALE = 0.5
 #: Frames whose coefficients lie further than this many robust s.d. from the median
 #: are clipped there when the scatter is estimated.
 _WINSOR = 2.5

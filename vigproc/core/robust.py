@@ -607,7 +607,8 @@ def fit_joint(wcs: list[WorkingCopy], settings: RobustSettings) -> tuple[np.ndar
         rows_L.append(wc.L)
         rows_v.append(wc.valid)
         rows_y.append(wc.ys)
-    joint = replace(wcs[0], L=np.vstack(rows_L), valid=np.vstack(rows_v), ys=np.concatenate(rows_y))
+    joint = replace(wcs[0], L=np.vstack(rows_L), valid=np.vstack(rows_v), ys=np.concatenate(rows_y),
+                    channels=None, channels_valid=None)  # the joint fit reads the luminance
     if joint.valid.sum() < MIN_VALID_BINS:
         raise InvalidImageError("too few usable pixels for a joint fit")
     return _select(joint, replace(settings, n_eff=settings.n_eff * len(wcs)))
@@ -705,7 +706,8 @@ def evidence_copy(blob: bytes) -> WorkingCopy:
             or L.shape != (ys.size, xs.size) or not np.all(np.isfinite(L[valid])):
         raise ValueError("not frame evidence: inconsistent arrays")
     if (C is None) != (Cvalid is None) or (C is not None and (
-            C.ndim != 3 or C.shape[1:] != L.shape or Cvalid.shape != C.shape or not np.all(np.isfinite(C[Cvalid])))):
+            C.ndim != 3 or C.shape[0] != 3 or C.shape[1:] != L.shape or Cvalid.shape != C.shape
+            or not np.all(np.isfinite(C[Cvalid])))):
         raise ValueError("not frame evidence: inconsistent colour channels")
     if meta["format"] == _EVIDENCE_V1:
         L = L + default_scene_falloff().log_field(xs, ys)

@@ -976,9 +976,11 @@ def _family_model(c: np.ndarray, width: int, height: int, family, calibration) -
 
 
 def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Reference | None, *, calibration,
-                    family, lens_id: str | None, alpha: float | None) -> Verdict:
+                    family, lens_id: str | None, alpha: float | None, grey: bool = False) -> Verdict:
     """The lens-family test's verdict (:mod:`vigproc.forensics.lensmatch`) for a frame's data-only
-    coefficients ``c`` (None: too few usable pixels) against a reference."""
+    coefficients ``c`` (None: too few usable pixels) against a reference; ``grey``: a
+    frame without colour, whose fit the scenes scatter more
+    (:attr:`~vigproc.forensics.lensmatch.MatchCalibration.grey_inflate`)."""
     from vigproc.forensics.lensmatch import reference_coefficients, whiten
 
     alpha = calibration.alpha if alpha is None else float(alpha)
@@ -1000,6 +1002,8 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     # a learned profile holds the scenes' median bias already, and is uncertain by about
     # the median of its n frames' scatter (pi/2 sigma^2/n)
     inflate = 1.0 + math.pi / (2.0 * ref.n_frames) if ref.learned else 1.0
+    if grey:
+        inflate *= calibration.grey_inflate
     z = whiten(np.asarray(c) - c_ref, calibration, add_bias=not ref.learned, inflate=inflate)
     d2 = float(z @ z)
     p = calibration.p_value(d2)
@@ -1078,7 +1082,8 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
     a = valid_image(img, -1 if np.asarray(img).ndim == 3 else None)
     lum = luminance(a)
     h, w = lum.shape
-    fc = frame_fit(lum, fam, colour=colour_of(a))
+    colour = colour_of(a)
+    fc = frame_fit(lum, fam, colour=colour)
     c = None if fc is None else np.asarray(fc.coefficients)
     est = None
     if c is not None:
@@ -1096,7 +1101,8 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
                                        quality=FitQuality(confidence=0.0, fallback=True))
     ref = find_reference(lens_key, w, h, store=store, frame_id=frame_id)
     return _family_verdict(est, c, ref, calibration=cal, family=fam,
-                           lens_id=lens_key.lens_id() if lens_key is not None else None, alpha=alpha)
+                           lens_id=lens_key.lens_id() if lens_key is not None else None, alpha=alpha,
+                           grey=colour is None)
 
 
 def check_image(

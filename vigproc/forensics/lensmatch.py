@@ -220,6 +220,10 @@ class MatchCalibration:
     n_frames, n_images : int
     source : str
         The command that made it.
+    grey_inflate : float
+        Σ's scale for a grey frame: its fit has no colour to weigh pairs by, so the
+        scenes scatter it more (the ratio of the mean D² of the calibration frames' grey
+        and colour fits; 1 when the calibration was made on grey frames).
     """
 
     mean: tuple[float, ...]
@@ -231,6 +235,7 @@ class MatchCalibration:
     n_frames: int = 0
     n_images: int = 0
     source: str = ""
+    grey_inflate: float = 1.0
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -252,6 +257,9 @@ class MatchCalibration:
                                         "photograph")
         if not 0.0 < float(self.alpha) < 1.0:
             raise MatchCalibrationError(f"lens-mismatch calibration: alpha must be within (0, 1), got {self.alpha}")
+        if not (math.isfinite(float(self.grey_inflate)) and float(self.grey_inflate) > 0):
+            raise MatchCalibrationError(f"lens-mismatch calibration: grey_inflate must be positive, got "
+                                        f"{self.grey_inflate}")
 
     @property
     def n_components(self) -> int:
@@ -305,6 +313,7 @@ class MatchCalibration:
         return {"schema": MATCH_SCHEMA, "family": list(self.family), "mean": list(self.mean),
                 "covariance": [list(r) for r in self.covariance], "alpha": self.alpha,
                 "n_frames": self.n_frames, "n_images": self.n_images, "source": self.source,
+                "grey_inflate": round(float(self.grey_inflate), 4),
                 "null_groups": list(self.null_groups), "null": [[round(v, 5) for v in r] for r in self.null]}
 
     @classmethod
@@ -318,7 +327,7 @@ class MatchCalibration:
                        null_groups=tuple(int(v) for v in d["null_groups"]),
                        family=tuple(float(v) for v in d["family"]), alpha=float(d.get("alpha", DEFAULT_ALPHA)),
                        n_frames=int(d.get("n_frames", 0)), n_images=int(d.get("n_images", 0)),
-                       source=str(d.get("source", "")))
+                       source=str(d.get("source", "")), grey_inflate=float(d.get("grey_inflate", 1.0)))
         except (KeyError, TypeError, ValueError) as exc:
             raise MatchCalibrationError(f"invalid lens-mismatch calibration: {exc!r}") from None
 

@@ -345,7 +345,7 @@ def cmd_bench_synthetic(args: argparse.Namespace) -> int:
     settings = _scene_settings(args.scene_prior)
     output_file(args.json)
     files = _images_in(Path(args.images), args.limit)
-    ims = [S.protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
+    ims = [S.protocol_image(read_image(f, transfer=args.input_transfer)[0], args.colour) for f in files]
     order = ("ga", "lyu2010-rand", "lyu2010", "robust", "lens-family", "default", "rgs")
     chosen = {k: _estimator(k, settings=settings) for k in order if k in args.methods}
     for fn in chosen.values():  # JIT warm-up outside the timings
@@ -370,7 +370,7 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     settings = _scene_settings(args.scene_prior)
     output_file(args.json)
     files = _images_in(Path(args.images), args.limit)
-    ims = [protocol_image(read_image(f, transfer=args.input_transfer)[0]) for f in files]
+    ims = [protocol_image(read_image(f, transfer=args.input_transfer)[0], args.colour) for f in files]
     results = []
     print(f"lensfun protocol: {args.lenses} lenses x {args.frames_per_lens} frames from {len(ims)} images "
           f"(input transfer {args.input_transfer}, 480x320, scene prior {args.scene_prior}); "
@@ -488,7 +488,7 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
     family = lensfun_family(exclude={(lens.maker, lens.model) for lens, _ in chosen})
     r = K.run(bases, [(pa.k1, pa.k2, pa.k3) for _, pa in chosen], family, alpha=args.alpha,
               statistic=args.statistic)
-    print(f"crop test on {r.n_bases} clean bases x {r.n_lenses} lensfun lens shapes (480x320, linear); "
+    print(f"crop test on {r.n_bases} clean bases x {r.n_lenses} lensfun lens shapes (480x320, {'luminance' if args.grey else 'colour'}, linear); "
           f"statistic: {args.statistic} of the free-centre fit's centre; {r.ms_per_frame:.1f} ms/frame")
     print("AUC (cropped vs uncropped frames of the same fall-off):")
     print(f"{'corner fall-off':<18}" + "".join(f"{f'offset {o:.0%}':>14}" for o in K.OFFSETS))
@@ -961,6 +961,11 @@ def cmd_profile(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------ parser
+def _add_colour(bp: argparse.ArgumentParser) -> None:
+    bp.add_argument("--colour", action="store_true",
+                    help="give the estimators the images' R, G, B (the paper's protocol is grey: its luminance)")
+
+
 def _add_clean_bases(bp: argparse.ArgumentParser) -> None:
     """The clean protocol's bases (vigproc.bench.clean), as bench clean and bench crops take them."""
     from vigproc.frontends.commands._options import add_clean_bases
@@ -1114,6 +1119,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--methods", nargs="+", default=["ga", "lyu2010-rand", "lyu2010", "default"],
                     choices=["ga", "lyu2010-rand", "lyu2010", "robust", "lens-family", "default", "rgs"],
                     help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
+    _add_colour(bp)
     _add_scene_prior(bp)
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_synthetic)
@@ -1122,6 +1128,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--limit", type=int, help="use at most this many images")
     bp.add_argument("--lenses", type=int, default=20, help="lensfun lenses (default %(default)s)")
     bp.add_argument("--frames-per-lens", type=int, default=5, help="frames per lens (default %(default)s)")
+    _add_colour(bp)
     _add_estimator_bench(bp)
     bp.set_defaults(fn=cmd_bench_lensfun)
     bp = bsub.add_parser("clean", help="vignetting-free bases (central crops of camera frames) x real lens "

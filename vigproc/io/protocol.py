@@ -25,8 +25,9 @@ log = logging.getLogger(__name__)
 WIDTH, HEIGHT = 480, 320
 
 
-def protocol_image(img: np.ndarray) -> np.ndarray:
-    """Centre-crop to 3:2 landscape and resize to 480×320 (area filter); gray float64.
+def protocol_image(img: np.ndarray, colour: bool = False) -> np.ndarray:
+    """Centre-crop to 3:2 landscape and resize to 480×320 (area filter); gray float64,
+    or with ``colour`` 480×320×3 (R, G, B; a grey file in each channel).
 
     ``img`` holds stored values scaled to [0, 1] (not linearised: the paper's
     protocol takes them as linear), H×W or H×W×C.
@@ -34,7 +35,11 @@ def protocol_image(img: np.ndarray) -> np.ndarray:
     from vigproc.core.pixels import luminance
     from vigproc.core.resample import resize_area
 
-    g = luminance(np.asarray(img, dtype=np.float64))
+    a = np.asarray(img, dtype=np.float64)
+    if colour:
+        rgb = a[..., :3] if a.ndim == 3 and a.shape[-1] >= 3 else np.repeat(luminance(a)[..., None], 3, axis=-1)
+        return np.stack([protocol_image(rgb[..., c]) for c in range(3)], axis=-1)
+    g = luminance(a)
     if g.shape[0] > g.shape[1]:
         g = np.rot90(g)
     h, w = g.shape
@@ -49,7 +54,14 @@ def protocol_image(img: np.ndarray) -> np.ndarray:
     return resize_area(g, HEIGHT, WIDTH)
 
 
-def read_protocol_images(files: Iterable[Path], transfer: str = "linear") -> list[np.ndarray]:
+def vignetted(im: np.ndarray, log_field: np.ndarray) -> np.ndarray:
+    """A frame (H×W, or H×W×C with channels last) through a field (H×W, natural log):
+    every channel divided alike, as a lens does."""
+    gain = np.exp(log_field)
+    return im * (gain[..., None] if im.ndim == 3 else gain)
+
+
+def read_protocol_images(files: Iterable[Path], transfer: str = "linear", colour: bool = False) -> list[np.ndarray]:
     """:func:`protocol_image` of each readable file (decoded with ``transfer``); a file
     that cannot be read is skipped with a warning."""
     from vigproc.errors import VigprocError
@@ -58,7 +70,7 @@ def read_protocol_images(files: Iterable[Path], transfer: str = "linear") -> lis
     ims = []
     for f in files:
         try:
-            ims.append(protocol_image(read_image(f, transfer=transfer)[0]))
+            ims.append(protocol_image(read_image(f, transfer=transfer)[0], colour))
         except VigprocError as exc:
             log.warning("skipping %s", exc)
     return ims

@@ -315,7 +315,8 @@ def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
              "other way round" if args.folds == 2 else
              f"{args.folds} folds: each tested against a calibration of the other folds' bases x {{n}} other "
              "lenses and no field")
-    print(f"\nlens mismatch on {r.n_bases} clean bases (480x320, linear) x {len(r.test_lenses)} lensfun lenses; "
+    print(f"\nlens mismatch on {r.n_bases} clean bases (480x320, {'luminance' if args.grey else 'colour'}, linear) "
+          f"x {len(r.test_lenses)} lensfun lenses; "
           f"{split.format(n=len(r.calibration_lenses))}; {r.ms_per_frame:.1f} ms per fit; "
           f"{time.perf_counter() - t0:.0f} s")
     print(f"{'frames':>6}  {'true vs claimed field':<24}{'genuine':>9}{'forged':>8}{'AUC':>8}"
