@@ -892,3 +892,37 @@ def test_lookup_interpolates_between_a_lenss_bins(tmp_path):
         store.put(dc_replace(_pa_profile(lk, 24.0, 4.0, -0.5), trusted=False))
         assert not store.lookup(lk, w, h).trusted
         assert store.lookup(lk, w, h, trusted_only=True) is None
+
+
+def test_migration_6_refits_the_frames_from_their_evidence(tmp_path):
+    """A v5 store's frame fits were made before the colour weights: v6 drops them, and the
+    next pooling fits each frame again from its evidence, so a profile never pools fits
+    of two kinds."""
+    from conftest import photo_like
+
+    from vigproc.core.estimate import estimate, frame_evidence
+    from vigproc.core.pooling import frame_fit, pool_family
+    from vigproc.core.robust import evidence_copy
+
+    _lens, pa = bench_lenses(1)[0]
+    h, w = 160, 240
+    frames = [photo_like(h, w, seed=80 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(3)]
+    key = ProfileKey("vigproc|test|v6", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+    db = tmp_path / "p.sqlite"
+    with ProfileStore(db) as store:
+        for i, f in enumerate(frames[:2]):
+            m = estimate(f, "robust", channel_axis=None)
+            store.learn(key, m.candidate or m, frame_id=f"f{i}", evidence=frame_evidence(f, channel_axis=None))
+    con = sqlite3.connect(db)  # as v5 left it: its own (here: wrong) fits stored
+    stale = con.execute("SELECT family FROM pooled_frames").fetchall()
+    assert all(b is not None for (b,) in stale)
+    con.execute("UPDATE pooled_frames SET family = (SELECT family FROM pooled_frames WHERE frame = 'f0')")
+    con.execute("DELETE FROM schema_version WHERE version > 5")
+    con.commit()
+    con.close()
+    with ProfileStore(db) as store:
+        assert store.schema_version == SCHEMA_VERSION >= 6
+        m = estimate(frames[2], "robust", channel_axis=None)
+        p = store.learn(key, m.candidate or m, frame_id="f2", evidence=frame_evidence(frames[2], channel_axis=None))
+    expected = pool_family([frame_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
+    np.testing.assert_allclose(p.model(w, h).log_field((h, w)), expected.log_field((h, w)), atol=1e-6)

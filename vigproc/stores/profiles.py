@@ -970,10 +970,18 @@ def _migration_5(con: sqlite3.Connection) -> None:
     con.execute("ALTER TABLE pooled_frames ADD COLUMN family BLOB")
 
 
+def _migration_6(con: sqlite3.Connection) -> None:
+    """v6: the frames' lens-family fits are made again from their evidence the first
+    time their profile is pooled: fits stored before weighed no pair by its colour and
+    carried the σ scale of their day (:mod:`vigproc.core.family_fit`, session 13), and a
+    profile must not pool fits of two kinds."""
+    con.execute("UPDATE pooled_frames SET family = NULL")
+
+
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
 #: Append a function for the next version; never edit a released one.
 MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3,
-                                                                 _migration_4, _migration_5)
+                                                                 _migration_4, _migration_5, _migration_6)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
