@@ -295,3 +295,12 @@ def test_estimate_reads_the_colour_of_a_colour_frame():
     err = {k: np.std(vigproc.estimate(x, "lens-family", channel_axis=ax).log_field() - truth) / math.log(2)
            for k, x, ax in (("colour", img, -1), ("grey", lum, None))}
     assert err["colour"] < 0.5 * err["grey"], err
+
+
+def test_colour_of_another_shape_is_refused():
+    img = textured(H, W, seed=8, contrast=0.1)
+    from vigproc.errors import InvalidImageError
+
+    for bad in (np.stack([img] * 3), img, np.stack([img] * 3, axis=-1)[:-1], np.stack([img] * 2, axis=-1)):
+        with pytest.raises(InvalidImageError, match="colour must be"):
+            fit_family(img, colour=bad)

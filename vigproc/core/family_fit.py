@@ -54,7 +54,7 @@ from vigproc.core._kernels.family import cauchy_normal_equations, family_pairs
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import LensFamily, default_family
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
-from vigproc.errors import ModelError
+from vigproc.errors import InvalidImageError, ModelError
 
 log = logging.getLogger(__name__)
 
@@ -147,10 +147,13 @@ def _working_copy(lum: np.ndarray, settings: FamilySettings, mask: np.ndarray | 
     and the R, G, B log copies when ``colour`` (H×W×3, linear) is given
     (:func:`_with_chroma`: ``valid`` then keeps the bins every channel can use)."""
     h, w = lum.shape
+    if colour is not None and (np.ndim(colour) != 3 or np.shape(colour)[:2] != (h, w) or np.shape(colour)[2] < 3):
+        raise InvalidImageError(f"colour must be the frame's {h}x{w} R, G, B (channels last), "
+                                f"got an array of shape {np.shape(colour)}")
     L, valid, k = binned_log_copy(lum, settings.work_size, settings.dark_fraction, mask)
     channels = None
     if colour is not None:
-        channels = binned_log_channels(colour[..., :3], k, valid, settings.dark_fraction)
+        channels = binned_log_channels(np.asarray(colour)[..., :3], k, valid, settings.dark_fraction)
     valid, C = _with_chroma(valid, channels, settings)
     return L, valid, binned_coords(w, k), binned_coords(h, k), C
 
