@@ -457,8 +457,7 @@ LIKELIHOOD_ITERATIONS = 100
 
 def frame_coefficients(L: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.ndarray,
                        width: int, height: int, settings: FamilySettings = FamilySettings(),
-                       family: LensFamily | None = None, *, jackknife: bool = True,
-                       start: np.ndarray | None = None,
+                       family: LensFamily | None = None, *,
                        channels: tuple[np.ndarray, np.ndarray] | None = None) -> FrameCoefficients | None:
     """The family coefficients of one frame's working copy, from its data alone.
 
@@ -472,11 +471,6 @@ def frame_coefficients(L: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.
         The full frame (ρ = 1 at its corner).
     settings : FamilySettings
     family : LensFamily, optional
-    jackknife : bool
-        Measure the covariance (four more fits); without it the covariance is zero.
-    start : ndarray (K,), optional
-        Where the IRLS starts (default: the prior mean); the objective is the same,
-        a start near its minimum only takes fewer steps.
     channels : (ndarray (3, h, w), ndarray of bool (3, h, w)), optional
         The R, G, B log working copies and their usable bins: pairs weighted by how
         alike their channels change (module doc, step 2).
@@ -502,10 +496,7 @@ def frame_coefficients(L: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.
         return None
     pmean, pcov = fam.prior()
     pinv = np.linalg.inv(pcov) * LIKELIHOOD_RIDGE
-    c0 = pmean if start is None else np.asarray(start, dtype=np.float64)
-    c = _solve(d, a, labels, wt, c0, pmean, pinv, settings, LIKELIHOOD_ITERATIONS)
-    if not jackknife:
-        return FrameCoefficients(c, np.zeros((c.size, c.size)), int(d.size))
+    c = _solve(d, a, labels, wt, pmean, pmean, pinv, settings, LIKELIHOOD_ITERATIONS)
     jk = replace(settings, jackknife_iterations=max(settings.jackknife_iterations, 30))
     cov = _jackknife_cov(d, a, labels, wt, c, pmean, pinv, jk) * settings.sigma_scale**2
     return FrameCoefficients(c, 0.5 * (cov + cov.T), int(d.size))
