@@ -249,14 +249,18 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     model, coef = fit_family(lum, s, mask, family, hint, colour)
     if coef is None:
         return model
-    # Whether the centre moved, and which fit explains the frame better, is asked of the
+    # The centre must move for the luminance and, in a colour frame, for the colour-weighted
+    # pairs too: a scene's coloured light moves the luminance's centre (a sunset, a lit
+    # room), not the colour fit's. Which fit explains the frame better is asked of the
     # luminance alone, as of a grey frame: the free Kang-Weiss fit does not weigh pairs by
     # colour, and a loss weighted by colour favours the fit that does (with colour in the
-    # test and the loss, Lyu's Table 1 setting 3 on the clean bases went 0.69 -> 1.15 EV).
-    # The colour fit's coefficients only start the centre test; the luminance's own fit is
-    # made only for the comparison, on the frames whose centre seems to move.
+    # loss, Lyu's Table 1 setting 3 on the clean bases went 0.69 -> 1.15 EV). The
+    # luminance's own family fit is made only for that comparison.
     centre = fit_centre(lum, coef, s, mask, family, hint)
     if not centre.off_centre(s.off_centre_shift):
+        return model
+    if colour is not None and not fit_centre(lum, coef, s, mask, family, hint, colour=colour).off_centre(
+            s.off_centre_shift):
         return model
     grey = model if colour is None else fit_family(lum, s, mask, family, hint)[0]
     free = estimate_robust(lum, RobustSettings(), mask)
