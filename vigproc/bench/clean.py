@@ -36,7 +36,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from vigproc.io.protocol import vignetted  # noqa: F401  (re-exported: the benches' one way to vignette)
+from vigproc.io.protocol import rgb_of, vignetted  # noqa: F401  (vignetted re-exported for the benches)
 from vigproc.stores.lensfun import bench_lenses, pa_field
 
 log = logging.getLogger(__name__)
@@ -147,7 +147,7 @@ def load_bases(files: Sequence[Path], frac: float = CROP, colour: bool = False) 
             log.warning("skipping %s: its central crop is blank", f.name)
             continue
         if colour:
-            rgb = a[..., :3] if a.ndim == 3 and a.shape[-1] >= 3 else np.repeat(luminance(a)[..., None], 3, axis=-1)
+            rgb = rgb_of(a)
             ims.append(np.stack([crop_base(rgb[..., ch], frac) for ch in range(3)], axis=-1) / c.max())
         else:
             ims.append(c / c.max())

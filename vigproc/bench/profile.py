@@ -209,7 +209,7 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
     import tempfile
     from pathlib import Path
 
-    from vigproc.bench.clean import gain_free_ev
+    from vigproc.bench.clean import gain_free_ev, vignetted
     from vigproc.core.estimate import estimate, estimate_with_evidence
     from vigproc.stores.profiles import TRUSTED_BOUND_EV, ProfileKey, ProfileStore, aspect_label
 
@@ -228,7 +228,6 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
     runs = [(li, fld, o) for li, fld in enumerate(fields) for o in range(orders)]
     for li, fld, o in runs:
         true_log = fld.log_field
-        gain = np.exp(true_log) if axis is None else np.exp(true_log)[..., None]
         # order 0 is the single order of earlier runs (seed + lens)
         order = np.random.default_rng(seed + li + 1000 * o).permutation(len(bases))[:nmax]
         key = ProfileKey(f"bench|lens|{li}", "any", "any", aspect_label(w / h))
@@ -236,7 +235,7 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
         with tempfile.TemporaryDirectory(prefix="vigproc-bench-") as tmp, \
                 ProfileStore(Path(tmp) / "profiles.sqlite", family=family) as st:
             for n, j in enumerate(order, 1):
-                frame = bases[j] * gain
+                frame = vignetted(bases[j], true_log)
                 lens_single.append(gain_free_ev(estimate(frame, channel_axis=axis).log_field((h, w)) - true_log))
                 m, evidence = estimate_with_evidence(frame, channel_axis=axis)
                 fit = m.candidate if m.candidate is not None else m

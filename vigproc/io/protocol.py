@@ -37,7 +37,7 @@ def protocol_image(img: np.ndarray, colour: bool = False) -> np.ndarray:
 
     a = np.asarray(img, dtype=np.float64)
     if colour:
-        rgb = a[..., :3] if a.ndim == 3 and a.shape[-1] >= 3 else np.repeat(luminance(a)[..., None], 3, axis=-1)
+        rgb = rgb_of(a)
         return np.stack([protocol_image(rgb[..., c]) for c in range(3)], axis=-1)
     g = luminance(a)
     if g.shape[0] > g.shape[1]:
@@ -52,6 +52,15 @@ def protocol_image(img: np.ndarray, colour: bool = False) -> np.ndarray:
         y0 = (h - nh) // 2
         g = g[y0 : y0 + nh, :]
     return resize_area(g, HEIGHT, WIDTH)
+
+
+def rgb_of(img: np.ndarray) -> np.ndarray:
+    """The R, G, B of an H×W or H×W×C frame: its first three channels, or its luminance
+    in each of three (a grey file)."""
+    from vigproc.core.pixels import luminance
+
+    a = np.asarray(img)
+    return a[..., :3] if a.ndim == 3 and a.shape[-1] >= 3 else np.repeat(luminance(a)[..., None], 3, axis=-1)
 
 
 def vignetted(im: np.ndarray, log_field: np.ndarray) -> np.ndarray:
