@@ -272,3 +272,21 @@ def test_bench_profile_flat_learns_a_white_wall(tmp_path):
     assert row["error_ev"] < 0.1 * row["uncorrected_ev"], row
     r = _bench("profile-flat", "--images", tmp_path / "nowhere")
     assert r.returncode == 2 and "no white pairs" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_bench_learn_times_one_more_frame_in_a_new_process():
+    """The learn benchmark fills a store, learns one more frame warm and in a new
+    process, and skips a frame that cannot be estimated instead of failing."""
+    from vigproc.bench.learn import learn_speed
+    from conftest import coloured_scene
+
+    _, pa = bench_lenses(1)[0]
+    field = pa_field((160, 240), pa.k1, pa.k2, pa.k3)
+    frames = [coloured_scene(160, 240, seed=s) * field[..., None] for s in range(3)]
+    frames.insert(1, np.zeros((160, 240, 3)))  # blank: no positive pixel
+    r = learn_speed(frames, stored=3, rounds=1)
+    assert r.stored == 3 and r.rounds == 1
+    assert 0 < r.warm_ms and 0 < r.new_process_learn_ms <= r.new_process_learn_ms_max
+    assert r.new_process_import_ms > 0
+    with pytest.raises(ValueError, match="no frame"):
+        learn_speed([np.zeros((160, 240, 3))], stored=1, rounds=1)

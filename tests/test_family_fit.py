@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 import vigproc
-from vigproc.core._kernels.family import cauchy_normal_equations, family_pairs
 from vigproc.errors import ModelError
 from vigproc.core.estimate import estimate_default
 from vigproc.core.family_fit import (
     FamilySettings,
     LensHint,
     estimate_family,
+    family_pairs,
+    irls,
     fit_centre,
     fit_family,
     profile_to_model,
@@ -97,7 +98,7 @@ def test_profile_written_as_kang_weiss_model_matches_it():
         assert np.max(np.abs(model.log_field((H, W)) - want)) / math.log(2) < 0.01
 
 
-def test_kernels_match_numpy():
+def test_pairs_match_their_definition():
     rng = np.random.default_rng(1)
     L = rng.normal(size=(12, 15))
     valid = rng.random((12, 15)) > 0.1
@@ -108,7 +109,7 @@ def test_kernels_match_numpy():
     C = rng.normal(size=(3, 12, 15))
     steps = np.array([1, 2], dtype=np.int64)
     d, a, labels, weight = family_pairs(L, valid, M, B, steps, blocks, C, 0.7)
-    want_d, want_a, want_w = [], [], []
+    want_d, want_a, want_w, want_l = [], [], [], []
     for s in (1, 2):
         for dy, dx in ((s, 0), (0, s)):
             for y in range(12 - dy):
@@ -116,22 +117,38 @@ def test_kernels_match_numpy():
                     if valid[y, x] and valid[y + dy, x + dx]:
                         want_d.append((L[y + dy, x + dx] - L[y, x] - M[y + dy, x + dx] + M[y, x]) / s)
                         want_a.append((B[y + dy, x + dx] - B[y, x]) / s)
+                        want_l.append(blocks[y, x])
                         dc = (C[:, y + dy, x + dx] - C[:, y, x]) / s
                         q = (dc[0] - dc[1]) ** 2 + (dc[2] - dc[1]) ** 2
                         want_w.append(1 / (1 + q / 0.7**2))
     np.testing.assert_allclose(d, want_d)
     np.testing.assert_allclose(a, want_a)
+    np.testing.assert_array_equal(labels, want_l)
     np.testing.assert_allclose(weight, want_w)
-    grey = family_pairs(L, valid, M, B, steps, blocks, np.zeros((0, 12, 15)), 0.7)
+    grey = family_pairs(L, valid, M, B, steps, blocks, None, 0.7)
     np.testing.assert_array_equal(grey[0], d)
     np.testing.assert_array_equal(grey[3], np.ones(d.size))  # no colour: every pair weighs 1
-    c = np.array([0.3, -0.2])
-    Hm, g = cauchy_normal_equations(d, a, labels, c, 0.5, 1, weight)
-    keep = labels != 1
-    e = d[keep] - a[keep] @ c
-    wt = weight[keep] / (1 + (e / 0.5) ** 2)
-    np.testing.assert_allclose(Hm, (a[keep] * wt[:, None]).T @ a[keep])
-    np.testing.assert_allclose(g, (a[keep] * wt[:, None]).T @ d[keep])
+    none = family_pairs(L, valid, M, np.zeros((12, 15, 0)), steps, blocks, None, 0.7)
+    assert none[1].shape == (d.size, 0)
+
+
+def test_irls_solves_the_weighted_normal_equations():
+    """At its fixed point, IRLS's c solves (AᵀWA/(σ²κ) + Λ) c = AᵀWd/(σ²κ) + Λμ with the
+    Cauchy weights of its own residuals; a Gaussian fit (σ huge) is least squares."""
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=(400, 2))
+    d = a @ np.array([0.4, -0.3]) + 0.05 * rng.standard_cauchy(400)
+    weight = rng.random(400)
+    pmean, pinv = np.array([0.1, 0.0]), np.eye(2) * 3.0
+    sigma, kappa = 0.05, 0.5
+    c = irls(d, a, weight, np.zeros(2), pmean, pinv, sigma, kappa, 500)
+    w = weight / (1 + ((d - a @ c) / sigma) ** 2)
+    s = 1 / (sigma**2 * kappa)
+    H = (a * w[:, None]).T @ a * s + pinv
+    np.testing.assert_allclose(H @ c, (a * w[:, None]).T @ d * s + pinv @ pmean, rtol=1e-3)
+    assert np.allclose(c, [0.4, -0.3], atol=0.02)  # the outliers do not pull it
+    ls = irls(d, a, np.ones(400), np.zeros(2), np.zeros(2), np.zeros((2, 2)), 1e6, 1.0, 5)
+    np.testing.assert_allclose(ls, np.linalg.lstsq(a, d, rcond=None)[0], rtol=1e-6)
 
 
 def _lens_field(k1=-0.55, k2=0.05, center=None):

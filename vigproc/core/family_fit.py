@@ -11,7 +11,7 @@ Kang-Weiss model: far less room for the scene's own shading to pass as vignettin
    lens shows as their mode: a Cauchy loss of small scale σ follows the mode and
    ignores edges and texture (Zheng et al.'s radial-gradient insight).
    In a colour frame each pair is also weighted by how alike its R, G and B change
-   (:func:`vigproc.core._kernels.family.family_pairs`, ``chroma_tau``): a lens
+   (:func:`family_pairs`, ``chroma_tau``): a lens
    divides every channel alike, while much of a scene's own smooth shading changes
    colour as it changes brightness (a sky whitening towards the horizon, daylight
    meeting lamplight, one coloured surface meeting another). On vignetting-free
@@ -20,7 +20,9 @@ Kang-Weiss model: far less room for the scene's own shading to pass as vignettin
 3. Model: log φ(ρ) = m(ρ) + Σ_k c_k b_k(ρ), ρ = distance from the frame centre in
    half-diagonals; a Gaussian prior on c from lensfun's calibrations (narrowed to
    lenses like the frame's EXIF when given). Linear in c: IRLS solves it exactly
-   (Numba kernel :func:`vigproc.core._kernels.family.cauchy_normal_equations`).
+   (:func:`irls`, NumPy: each step is three matrix-vector products over the pairs'
+   precomputed a·aᵀ and a·d, faster than the Numba loop it replaced, and a process
+   that only pools a profile never waits for Numba to load).
 4. Uncertainty: neighbouring pairs are far from independent, so the Gauss-Newton
    covariance understates the error. A delete-one-quadrant jackknife measures how
    much the scene moves the estimate; its field spread, scaled by a factor measured
@@ -50,7 +52,6 @@ from typing import Sequence
 
 import numpy as np
 
-from vigproc.core._kernels.family import cauchy_normal_equations, family_pairs
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import LensFamily, default_family
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
@@ -191,13 +192,143 @@ def colour_of(img: np.ndarray) -> np.ndarray | None:
     return img[..., :3] if img.ndim == 3 and img.shape[-1] >= 3 else None
 
 
+def family_pairs(L: np.ndarray, valid: np.ndarray, M: np.ndarray, B: np.ndarray, steps: np.ndarray,
+                 block: np.ndarray, C: np.ndarray | None, tau: float):
+    """The log-difference pairs of a working copy: the data of the lens-family fit.
+
+    For each pair (v, v + s·e), e ∈ {y, x}, s ∈ ``steps``, of usable bins: the log
+    difference per unit step d = (L(v+se) − L(v) − M(v+se) + M(v)) / s and its
+    regressors a = (B(v+se) − B(v)) / s; the model predicts d = a·c (module doc,
+    steps 2–3).
+
+    Parameters
+    ----------
+    L : ndarray (h, w)
+        Log working copy.
+    valid : ndarray of bool (h, w)
+        Bins that may be used (with colour: every channel usable).
+    M : ndarray (h, w)
+        The family's mean log profile at each bin (or any field to divide out).
+    B : ndarray (h, w, K)
+        The components at each bin (K may be 0).
+    steps : ndarray of int (S,)
+        Pair steps in bins.
+    block : ndarray of int (h, w)
+        Each bin's block label (a pair takes its first bin's).
+    C : ndarray (3, h, w) or None
+        Log working copies of R, G, B; None: no colour.
+    tau : float
+        The chroma change (log units per step) at which a pair's weight halves.
+
+    Returns
+    -------
+    d : ndarray (n,), a : ndarray (n, K), labels : ndarray of int (n,)
+    weight : ndarray (n,)
+        Each pair's weight by how alike its colour channels change: with the chroma
+        change q = (ΔR − ΔG)² + (ΔB − ΔG)² of the per-unit-step log differences,
+        1 / (1 + q/τ²); ones without colour. A lens's fall-off changes every channel
+        alike; much of a scene's own shading does not.
+
+    References
+    ----------
+    Zheng et al., TPAMI 2013 (log-gradient pairs of a radial fall-off).
+    """
+    out_d, out_a, out_l, out_w = [], [], [], []
+    inv_t2 = 1.0 / (tau * tau) if C is not None else 0.0
+    for s in (int(x) for x in steps):
+        for first, second in (((slice(None, -s), slice(None)), (slice(s, None), slice(None))),
+                              ((slice(None), slice(None, -s)), (slice(None), slice(s, None)))):
+            both = valid[first] & valid[second]
+            out_d.append(((L[second] - L[first] - M[second] + M[first]) / s)[both])
+            out_a.append(((B[second] - B[first]) / s)[both])
+            out_l.append(block[first][both])
+            if C is None:
+                out_w.append(np.ones(out_d[-1].size))
+                continue
+            g = C[1][second] - C[1][first]
+            r = ((C[0][second] - C[0][first] - g) / s)[both]
+            b = ((C[2][second] - C[2][first] - g) / s)[both]
+            out_w.append(1.0 / (1.0 + (r * r + b * b) * inv_t2))
+    return (np.concatenate(out_d), np.concatenate(out_a),
+            np.concatenate(out_l).astype(np.int64), np.concatenate(out_w))
+
+
 def _pair_data(L, valid, C, M, B, steps, blocks, settings: FamilySettings):
     """:func:`family_pairs` with each pair's weight by how alike its colour channels
     change (``C``: the R, G, B log copies of :func:`_with_chroma`; None: every pair
     weighs 1)."""
-    C = np.zeros((0,) + L.shape) if C is None else C
-    return family_pairs(L, valid, np.ascontiguousarray(M), np.ascontiguousarray(B), steps, blocks, C,
-                        settings.chroma_tau)
+    return family_pairs(L, valid, M, B, steps, blocks, C, settings.chroma_tau)
+
+
+def irls(d: np.ndarray, a: np.ndarray, weight: np.ndarray, c0: np.ndarray, pmean: np.ndarray,
+         pinv: np.ndarray, sigma: float, kappa: float, iterations: int,
+         products: PairProducts | None = None) -> np.ndarray:
+    """The Cauchy-loss fit of d ≈ a·c with a Gaussian prior, by iteratively reweighted
+    least squares.
+
+    Each step solves (AᵀWA / (σ²κ) + Λ) c = AᵀWd / (σ²κ) + Λ·μ with the pair weights
+    W = weight / (1 + ((d − a·c)/σ)²); it stops when c moves by less than 1e-4.
+
+    Parameters
+    ----------
+    d, a, weight : ndarray (n,), (n, K), (n,)
+        Pairs (:func:`family_pairs`) and each pair's prior weight.
+    c0 : ndarray (K,)
+        Where the fit starts.
+    pmean, pinv : ndarray (K,), (K, K)
+        Prior mean μ and precision Λ.
+    sigma, kappa : float
+        Cauchy scale; tempering of the data's information.
+    iterations : int
+        Most steps.
+    products : PairProducts, optional
+        :func:`pair_products` of ``d``, ``a``, when the caller has them.
+
+    Returns
+    -------
+    ndarray (K,)
+
+    References
+    ----------
+    P. W. Holland, R. E. Welsch, "Robust regression using iteratively reweighted
+    least-squares", Comm. Statist. 6(9), 1977.
+    """
+    at, upper, ad = pair_products(d, a) if products is None else products
+    K = at.shape[0]
+    iu, ju = np.triu_indices(K)
+    c = np.array(c0, dtype=np.float64, copy=True)
+    scale = 1.0 / (sigma * sigma * kappa)
+    inv_s2 = 1.0 / (sigma * sigma)
+    prior = pinv @ pmean
+    H = np.empty((K, K))
+    for _ in range(iterations):
+        e = d - c @ at
+        e *= e
+        e *= inv_s2
+        e += 1.0
+        w = weight / e
+        h = upper @ w
+        H[iu, ju] = h
+        H[ju, iu] = h
+        c_new = np.linalg.solve(H * scale + pinv, (ad @ w) * scale + prior)
+        done = float(np.max(np.abs(c_new - c))) < 1e-4
+        c = c_new
+        if done:
+            break
+    return c
+
+
+#: :func:`irls`'s sums per pair, pairs along the last axis: aᵀ (K×n), the upper
+#: triangle of a·aᵀ (K(K+1)/2 × n, in :func:`numpy.triu_indices` order) and a·d (K×n).
+PairProducts = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def pair_products(d: np.ndarray, a: np.ndarray) -> PairProducts:
+    """:data:`PairProducts` of pairs ``d``, ``a``: a step of :func:`irls` is then three
+    matrix-vector products over contiguous rows."""
+    at = np.ascontiguousarray(a.T)
+    iu, ju = np.triu_indices(at.shape[0])
+    return at, at[iu] * at[ju], at * d
 
 
 def _pair_steps(settings: FamilySettings, shape: tuple[int, int]) -> np.ndarray:
@@ -220,26 +351,28 @@ def _rho(xs: np.ndarray, ys: np.ndarray, radius: float) -> np.ndarray:
     return np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2) / radius
 
 
-def _solve(d, a, labels, weight, c0, pmean, pinv, s: FamilySettings, iterations: int, skip: int = -1) -> np.ndarray:
-    """IRLS of the Cauchy-loss fit with a Gaussian prior, from ``c0``; pairs labelled
-    ``skip`` are left out, ``weight`` is each pair's prior weight."""
-    c = c0.copy()
-    scale = 1.0 / (s.sigma * s.sigma * s.kappa)
-    for _ in range(iterations):
-        H, g = cauchy_normal_equations(d, a, labels, c, s.sigma, skip, weight)
-        c_new = np.linalg.solve(H * scale + pinv, g * scale + pinv @ pmean)
-        done = float(np.max(np.abs(c_new - c))) < 1e-4
-        c = c_new
-        if done:
-            break
-    return c
+def _solve(d, a, wt, c0, pmean, pinv, s: FamilySettings, iterations: int) -> np.ndarray:
+    """One :func:`irls` fit of the Cauchy loss with a Gaussian prior, from ``c0``."""
+    return irls(d, a, wt, c0, pmean, pinv, s.sigma, s.kappa, iterations)
 
 
-def _jackknife_cov(d, a, labels, weight, c, pmean, pinv, s: FamilySettings) -> np.ndarray:
-    """Delete-one-block jackknife covariance of the coefficients (each block's pairs
-    left out and the fit redone from the full fit's coefficients)."""
-    nb = s.jackknife_blocks**2
-    jack = np.array([_solve(d, a, labels, weight, c, pmean, pinv, s, s.jackknife_iterations, j) for j in range(nb)])
+def _jackknife(d, a, labels, wt, c, pmean, pinv, s: FamilySettings) -> np.ndarray:
+    """The delete-one-block refits (``s.jackknife_blocks``² of them, each started from
+    the full fit's coefficients ``c``), as rows."""
+    products = pair_products(d, a)
+    # a block is left out by weighing its pairs 0: cheaper than copying the others
+    return np.array([irls(d, a, wt * (labels != j), c, pmean, pinv, s.sigma, s.kappa, s.jackknife_iterations,
+                          products) for j in range(s.jackknife_blocks**2)])
+
+
+def _jackknife_cov(d, a, labels, wt, c, pmean, pinv, s: FamilySettings) -> np.ndarray:
+    """Delete-one-block jackknife covariance of the coefficients."""
+    return _spread(_jackknife(d, a, labels, wt, c, pmean, pinv, s))
+
+
+def _spread(jack: np.ndarray) -> np.ndarray:
+    """The jackknife covariance of delete-one refits (rows; Efron and Stein 1981)."""
+    nb = jack.shape[0]
     dev = jack - jack.mean(axis=0)
     return (nb - 1) / nb * dev.T @ dev
 
@@ -380,17 +513,13 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
         x0 = np.concatenate([coef, [0.0, 0.0]])
         pm_it = pm.copy()
         pm_it[K:] = -u  # the prior is on the centre, not on the step
-        sol = _solve(d, a, labels, wt, x0, pm_it, pinv, settings, 4)
+        sol = _solve(d, a, wt, x0, pm_it, pinv, settings, 4)
         coef = sol[:K]
         u = u + sol[K:]
         if float(np.max(np.abs(sol[K:]))) < 1e-3:
             break
     if d.size >= MIN_VALID_BINS:
-        n_blocks = nb * nb
-        jack = np.array([_solve(d, a, labels, wt, sol, pm_it, pinv, settings, settings.jackknife_iterations, j)[K:]
-                         for j in range(n_blocks)])
-        dev = jack - jack.mean(axis=0)
-        cov = (n_blocks - 1) / n_blocks * dev.T @ dev * settings.sigma_scale**2
+        cov = _spread(_jackknife(d, a, labels, wt, sol, pm_it, pinv, settings)[:, K:]) * settings.sigma_scale**2
     cov_px = cov * radius**2 + np.eye(2) * 1e-6
     off = u * radius
     z = float(math.sqrt(max(float(off @ np.linalg.solve(cov_px, off)), 0.0)))
@@ -496,7 +625,7 @@ def frame_coefficients(L: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.
         return None
     pmean, pcov = fam.prior()
     pinv = np.linalg.inv(pcov) * LIKELIHOOD_RIDGE
-    c = _solve(d, a, labels, wt, pmean, pmean, pinv, settings, LIKELIHOOD_ITERATIONS)
+    c = _solve(d, a, wt, pmean, pmean, pinv, settings, LIKELIHOOD_ITERATIONS)
     jk = replace(settings, jackknife_iterations=max(settings.jackknife_iterations, 30))
     cov = _jackknife_cov(d, a, labels, wt, c, pmean, pinv, jk) * settings.sigma_scale**2
     return FrameCoefficients(c, 0.5 * (cov + cov.T), int(d.size))
@@ -562,7 +691,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     quad = _block_labels(L.shape, settings.jackknife_blocks)
     d, a, labels, wt = _pair_data(L, valid, C, M, B, steps, quad, settings)
     n = d.size
-    c = _solve(d, a, labels, wt, pmean, pmean, pinv, settings, settings.iterations)
+    c = _solve(d, a, wt, pmean, pmean, pinv, settings, settings.iterations)
     cov_jk = _jackknife_cov(d, a, labels, wt, c, pmean, pinv, settings)
     grid = frame_rho_grid(w, h)
     sigma_jk = field_sigma_ev(fam, cov_jk, w, h)

@@ -99,6 +99,61 @@ def frame_coords(n: int) -> np.ndarray:
     return np.arange(n, dtype=np.float64) - (n - 1) / 2.0
 
 
+def kw_field_and_jacobian(xs: np.ndarray, ys: np.ndarray, theta: np.ndarray, F: np.ndarray,
+                          J: np.ndarray) -> float:
+    """ln φ and ∂ ln φ / ∂θ of the generalized Kang-Weiss model on a grid.
+
+    φ(v; θ) = A·G with A = 1 / (1 + r²/4)², G = 1 − Σ α_k r^k and
+    r² = (v − c)ᵀ P (v − c), θ = (cx, cy, p1, p2, p3, α1..α7), P = [[p1, p2], [p2, p3]].
+
+    Parameters
+    ----------
+    xs, ys : ndarray (w,), (h,)
+        Grid coordinates, in the unit θ is in (the estimators use half-diagonals).
+    theta : ndarray (12,)
+    F : ndarray (h, w), output
+        ln φ (G below 1e-9 is taken as 1e-9).
+    J : ndarray (h, w, 12), output
+        ∂ ln φ / ∂θ.
+
+    Returns
+    -------
+    float
+        The smallest G on the grid (≤ 0: the model blacks out part of it).
+
+    References
+    ----------
+    S. Lyu, "Estimating vignetting function from a single image for image
+    authentication", ACM MM&Sec 2010, Eq. (2).
+    """
+    cx, cy, p1, p2, p3 = (float(t) for t in theta[:5])
+    alpha = np.asarray(theta[5:], dtype=np.float64)
+    dx = (np.asarray(xs, dtype=np.float64) - cx)[None, :]
+    dy = (np.asarray(ys, dtype=np.float64) - cy)[:, None]
+    q = np.maximum(p1 * dx * dx + 2.0 * p2 * dx * dy + p3 * dy * dy, 0.0)
+    r = np.sqrt(q)
+    # G = 1 − Σ α_k r^k and dG/dr, by Horner
+    g = np.zeros_like(r)
+    dg = np.zeros_like(r)
+    for k in range(alpha.size - 1, -1, -1):
+        dg = dg * r + (k + 1) * alpha[k]
+        g = (g + alpha[k]) * r
+    g = 1.0 - g
+    gs = np.maximum(g, 1e-9)
+    F[...] = -2.0 * np.log1p(0.25 * q) + np.log(gs)
+    dfdq = -0.5 / (1.0 + 0.25 * q) - dg / (2.0 * np.maximum(r, 1e-9) * gs)
+    J[..., 0] = -2.0 * dfdq * (p1 * dx + p2 * dy)
+    J[..., 1] = -2.0 * dfdq * (p2 * dx + p3 * dy)
+    J[..., 2] = dfdq * dx * dx
+    J[..., 3] = 2.0 * dfdq * dx * dy
+    J[..., 4] = dfdq * dy * dy
+    rk = np.ones_like(r)
+    for k in range(alpha.size):
+        rk = rk * r
+        J[..., 5 + k] = -rk / gs
+    return float(g.min()) if g.size else math.inf
+
+
 @dataclass(frozen=True)
 class FitQuality:
     """How much the image supports an estimate (filled in by the estimators).
@@ -306,7 +361,10 @@ class VignettingModel:
         p1, p2, p3 = self.p
         q = np.maximum(p1 * ex * ex + 2.0 * p2 * ex * ey + p3 * ey * ey, 0.0)
         r = np.sqrt(q)
-        g = 1.0 - (r[..., None] ** np.arange(1, N_ALPHA + 1)) @ np.asarray(self.alpha)
+        g = np.zeros_like(r)
+        for a in reversed(self.alpha):  # Horner: 1 − Σ α_i r^i
+            g = (g + a) * r
+        g = 1.0 - g
         if np.any(g <= 0.0):
             raise blackout_error(float(g.min()))
         return -2.0 * np.log1p(0.25 * q) + np.log(g)
@@ -338,7 +396,11 @@ class VignettingModel:
             # never upsampled: an upsampled grid's corner samples lie outside the frame
             s = min(1.0, 256.0 / max(self.width, self.height))
             shape = (max(2, round(self.height * s)), max(2, round(self.width * s)))
-        lf = self.log_field(shape) / math.log(2.0)
+        h, w = _field_shape(shape)
+        m = self.rescale(w, h) if (h, w) != (self.height, self.width) else self
+        # NumPy on this small grid (≤ 256 per side): as fast as the kernel, and a process
+        # that only pools a profile never waits for Numba to load
+        lf = m.log_field_at(frame_coords(w)[None, :], frame_coords(h)[:, None]) / math.log(2.0)
         return float(np.sqrt(np.mean(lf * lf)))
 
     # ------------------------------------------------------------ transforms

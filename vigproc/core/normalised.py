@@ -13,9 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from vigproc.core._kernels.robust import kw_field_and_jacobian
 from vigproc.errors import ModelError
-from vigproc.core.model import N_ALPHA, PARAM_NAMES, VignettingModel, frame_coords
+from vigproc.core.model import N_ALPHA, PARAM_NAMES, VignettingModel, frame_coords, kw_field_and_jacobian
 
 #: Number of model parameters (cx, cy, p1, p2, p3, α1..α7).
 N_PARAMS = len(PARAM_NAMES)

@@ -44,14 +44,13 @@ from vigproc.core._kernels.robust import (
     HUBER,
     POWER,
     POWER_EXPONENT,
-    kw_field_and_jacobian,
     normal_equations,
     pair_residuals,
     robust_loss,
 )
 from vigproc.core._kernels.field import log_field_grid
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
-from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
+from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel, kw_field_and_jacobian
 from vigproc.core.scene import SceneFalloff, default_scene_falloff
 
 log = logging.getLogger(__name__)

@@ -600,6 +600,31 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_learn(args: argparse.Namespace) -> int:
+    """Learning one more frame into a profile, warm and in a new process."""
+    from vigproc.bench.learn import learn_speed
+    from vigproc.io.protocol import read_protocol_images, vignetted
+    from vigproc.stores.lensfun import bench_lenses, pa_field
+
+    folder = Path(args.images) if args.images else Path(str(resources.files("vigproc.data").joinpath("samples")))
+    ims = read_protocol_images(_images_in(folder, args.limit), args.input_transfer, colour=True)
+    if not ims:
+        print(f"vigproc: bench learn: no readable images in {folder}", file=sys.stderr)
+        return 2
+    lens, pa = bench_lenses(1)[0]
+    field = pa_field(ims[0].shape[:2], pa.k1, pa.k2, pa.k3)
+    frames = [vignetted(im, field) for im in ims]
+    r = learn_speed(frames, stored=args.stored, rounds=args.rounds)
+    print(f"{len(ims)} photographs from {folder} x {lens.maker} {lens.model} (lensfun); a profile of "
+          f"{r.stored} frames learns one more, {r.rounds} rounds")
+    print(f"{'warm process':<34} median {r.warm_ms:8.1f} ms")
+    print(f"{'new process, the learn':<34} median {r.new_process_learn_ms:8.1f} ms  (largest "
+          f"{r.new_process_learn_ms_max:.1f} ms)")
+    print(f"{'new process, its imports':<34} median {r.new_process_import_ms:8.1f} ms")
+    write_json_result(args.json, asdict(r))
+    return 0
+
+
 def cmd_bench_correct(args: argparse.Namespace) -> int:
     """Full-resolution correction against a plain copy and a numpy divide, in one run."""
     import numpy as np
@@ -1178,6 +1203,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help="estimators to time (default: ga default)")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_speed)
+    bp = bsub.add_parser("learn", help="learning one more frame into a lens profile, warm and in a new process")
+    bp.add_argument("--images", help="folder of photographs (default: the bundled samples)")
+    bp.add_argument("--limit", type=int, default=60, help="use at most this many images (default %(default)s)")
+    bp.add_argument("--stored", type=int, default=50, help="frames already in the profile (default %(default)s)")
+    bp.add_argument("--rounds", type=int, default=5, help="timing rounds (default %(default)s)")
+    bp.add_argument("--json", help="write the figures as JSON")
+    add_transfer(bp)
+    bp.set_defaults(fn=cmd_bench_learn)
     bp = bsub.add_parser("io", help="frame read times per format and EXIF per file in batch")
     bp.add_argument("--width", type=int, default=6000, help="frame width in px (default %(default)s)")
     bp.add_argument("--height", type=int, default=4000, help="frame height in px (default %(default)s)")

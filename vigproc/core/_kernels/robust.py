@@ -39,50 +39,6 @@ def _rho_w(u2, kind):
 
 
 @njit(cache=True, nogil=True)
-def kw_field_and_jacobian(xs, ys, theta, F, J):
-    """log φ and ∂ log φ / ∂θ on the grid (xs, ys), θ = (cx, cy, p1, p2, p3, α1..α7).
-
-    Coordinates and θ are in any consistent unit (the estimator uses the frame's
-    half-diagonal). Returns the smallest G on the grid.
-    """
-    cx, cy, p1, p2, p3 = theta[0], theta[1], theta[2], theta[3], theta[4]
-    na = theta.shape[0] - 5
-    gmin = np.inf
-    for j in range(ys.shape[0]):
-        dy = ys[j] - cy
-        for i in range(xs.shape[0]):
-            dx = xs[i] - cx
-            q = p1 * dx * dx + 2.0 * p2 * dx * dy + p3 * dy * dy
-            if q < 0.0:
-                q = 0.0
-            r = np.sqrt(q)
-            # G = 1 − Σ α_k r^k and dG/dr, by Horner
-            g = 0.0
-            dg = 0.0
-            for k in range(na - 1, -1, -1):
-                dg = dg * r + (k + 1) * theta[5 + k]
-                g = (g + theta[5 + k]) * r
-            g = 1.0 - g
-            dg = -dg
-            if g < gmin:
-                gmin = g
-            gs = g if g > 1e-9 else 1e-9
-            F[j, i] = -2.0 * np.log1p(0.25 * q) + np.log(gs)
-            rs = r if r > 1e-9 else 1e-9
-            dfdq = -0.5 / (1.0 + 0.25 * q) + dg / (2.0 * rs * gs)
-            J[j, i, 0] = dfdq * (-2.0) * (p1 * dx + p2 * dy)
-            J[j, i, 1] = dfdq * (-2.0) * (p2 * dx + p3 * dy)
-            J[j, i, 2] = dfdq * dx * dx
-            J[j, i, 3] = dfdq * 2.0 * dx * dy
-            J[j, i, 4] = dfdq * dy * dy
-            rk = 1.0
-            for k in range(na):
-                rk *= r
-                J[j, i, 5 + k] = -rk / gs
-    return gmin
-
-
-@njit(cache=True, nogil=True)
 def robust_loss(L, valid, F, steps, sigma, kind=CAUCHY):
     """Σ ρ(e) over all valid pairs, and the number of pairs."""
     h, w = L.shape
