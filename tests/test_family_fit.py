@@ -332,3 +332,15 @@ def test_coloured_light_off_centre_does_not_send_a_colour_frame_to_the_free_fit(
         lum = vigproc.core.pixels.luminance(img)
         assert estimate_default(lum).method == "robust"
         assert estimate_default(lum, colour=img).method == "lens-family"
+
+
+def test_a_centre_fit_without_its_uncertainty_answers_for_the_shift():
+    """The default's centre test skips the jackknife: z is NaN, and the shift alone decides."""
+    lum = textured(160, 240, seed=5, contrast=0.05) * _lens_field(center=(50.0, 0.0))[::2, ::2]
+    fam = default_family()
+    full = fit_centre(lum, fam.prior()[0], family=fam)
+    quick = fit_centre(lum, fam.prior()[0], family=fam, uncertainty=False)
+    assert quick.offset == full.offset and quick.shift == full.shift
+    assert np.isnan(quick.z) and np.all(np.isnan(quick.covariance - np.eye(2) * 1e-6))
+    assert quick.off_centre(0.5 * full.shift) == full.off_centre(0.5 * full.shift) is True
+    assert not quick.off_centre(0.5 * full.shift, min_z=1.0)  # a z it does not have is not met

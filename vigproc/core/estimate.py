@@ -256,11 +256,12 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     # colour, and a loss weighted by colour favours the fit that does (with colour in the
     # loss, Lyu's Table 1 setting 3 on the clean bases went 0.69 -> 1.15 EV). The
     # luminance's own family fit is made only for that comparison.
-    centre = fit_centre(lum, coef, s, mask, family, hint)
+    # (the shift is all the test reads: no jackknife of the centre)
+    centre = fit_centre(lum, coef, s, mask, family, hint, uncertainty=False)
     if not centre.off_centre(s.off_centre_shift):
         return model
-    if colour is not None and not fit_centre(lum, coef, s, mask, family, hint, colour=colour).off_centre(
-            s.off_centre_shift):
+    if colour is not None and not fit_centre(lum, coef, s, mask, family, hint, colour=colour,
+                                             uncertainty=False).off_centre(s.off_centre_shift):
         return model
     grey = model if colour is None else fit_family(lum, s, mask, family, hint)[0]
     free = estimate_robust(lum, RobustSettings(), mask)

@@ -439,7 +439,7 @@ class CentreFit:
     covariance : ndarray (2, 2)
         Its jackknife covariance (px²), scaled by ``sigma_scale``².
     z : float
-        Mahalanobis distance of the offset from the frame centre.
+        Mahalanobis distance of the offset from the frame centre (NaN: not computed).
     shift : float
         |offset| in half-diagonals.
     """
@@ -450,7 +450,9 @@ class CentreFit:
     shift: float
 
     def off_centre(self, min_shift: float, min_z: float = 0.0) -> bool:
-        return self.shift >= min_shift and self.z >= min_z
+        """At least ``min_shift`` half-diagonals off, and ``min_z`` s.d. when asked (a fit
+        without its uncertainty has z NaN: it answers only for the shift)."""
+        return self.shift >= min_shift and (min_z <= 0.0 or self.z >= min_z)
 
 
 def _extended(fam: LensFamily, c: np.ndarray, rho: np.ndarray):
@@ -471,7 +473,7 @@ def _extended(fam: LensFamily, c: np.ndarray, rho: np.ndarray):
 def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
                mask: np.ndarray | None = None, family: LensFamily | None = None,
                hint: LensHint | None = None, work_size: int = 60, iterations: int = 12,
-               colour: np.ndarray | None = None) -> CentreFit:
+               colour: np.ndarray | None = None, uncertainty: bool = True) -> CentreFit:
     """Fit the fall-off's centre together with its family coefficients (Gauss-Newton
     on the centre, IRLS inside), from the centred fit's coefficients ``c``.
 
@@ -479,7 +481,9 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     lens or a stitched image moves the centre. This is the test that sends such
     frames to the free Kang-Weiss fit, and the crop evidence of forensics.
     ``colour`` (H×W×3): pairs weighted as in :func:`fit_family` (the forensic crop test
-    does; the default estimator's centre test reads the luminance alone).
+    does; the default estimator's centre test reads the luminance alone). Without
+    ``uncertainty`` the jackknife is skipped (a third of the time): covariance and z are
+    NaN, for a caller that reads only the shift.
     """
     fam = family or default_family()
     h, w = lum.shape
@@ -518,11 +522,13 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
         u = u + sol[K:]
         if float(np.max(np.abs(sol[K:]))) < 1e-3:
             break
-    if d.size >= MIN_VALID_BINS:
+    if not uncertainty:
+        cov = np.full((2, 2), math.nan)
+    elif d.size >= MIN_VALID_BINS:
         cov = _spread(_jackknife(d, a, labels, wt, sol, pm_it, pinv, settings)[:, K:]) * settings.sigma_scale**2
     cov_px = cov * radius**2 + np.eye(2) * 1e-6
     off = u * radius
-    z = float(math.sqrt(max(float(off @ np.linalg.solve(cov_px, off)), 0.0)))
+    z = float(math.sqrt(max(float(off @ np.linalg.solve(cov_px, off)), 0.0))) if uncertainty else math.nan
     return CentreFit((float(off[0]), float(off[1])), cov_px, z, float(np.hypot(*u)))
 
 
