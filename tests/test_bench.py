@@ -290,3 +290,30 @@ def test_bench_learn_times_one_more_frame_in_a_new_process():
     assert r.new_process_import_ms > 0
     with pytest.raises(ValueError, match="no frame"):
         learn_speed([np.zeros((160, 240, 3))], stored=1, rounds=1)
+
+
+def test_bench_scene_scatter_writes_what_pooling_reads(tmp_path):
+    """The scenes' scatter from vignetting-free frames, in the shipped form: pooling reads
+    it in any family; fewer than 10 frames is a clear error."""
+    from vigproc.core.lensfamily import profile_family
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(10):
+        write_image(folder / f"f{i}_linear.tif", textured(700, 1050, seed=60 + i, contrast=0.1).astype(np.float32),
+                    bit_depth="float")
+    out = tmp_path / "scatter.json"
+    r = subprocess.run(VIGPROC + ["bench", "scene-scatter", "-o", str(out), "--images", str(folder)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(out.read_text())
+    assert doc["frames"] == 10 and "bench scene-scatter" in doc["source"]
+    fam = profile_family()
+    S = np.asarray(doc["covariance"])
+    C = np.asarray(doc["components"])
+    np.testing.assert_allclose(C, fam.components, atol=1e-7)
+    assert S.shape == (3, 3) and np.all(np.linalg.eigvalsh(S) > 0)
+    (folder / "f9_linear.tif").unlink()
+    r = subprocess.run(VIGPROC + ["bench", "scene-scatter", "-o", str(tmp_path / "few.json"), "--images",
+                                  str(folder)], capture_output=True, text=True)
+    assert r.returncode != 0 and "at least 10" in r.stderr and "Traceback" not in r.stderr

@@ -12,7 +12,8 @@ from vigproc.core.estimate import frame_evidence
 from vigproc.core.family_fit import FrameCoefficients, frame_coefficients
 from vigproc.core.lensfamily import N_COMPONENTS, PROFILE_COMPONENTS, default_family, profile_family
 from vigproc.stores.lensfun import bench_lenses, pa_field
-from vigproc.core.pooling import SIGMA_SCALE, frame_fit, pool_family, pooled_coefficients
+from vigproc.core.pooling import (SIGMA_SCALE, frame_fit, pool_family, pooled_coefficients, scene_scatter,
+                                  t_location)
 from vigproc.core.robust import RobustSettings, evidence_copy, working_copy
 from vigproc.core.scene import default_scene_falloff
 
@@ -92,6 +93,36 @@ def test_pooling_needs_frames_of_one_family():
         pooled_coefficients([two, three])
     with pytest.raises(ModelError, match="2 coefficients"):
         pool_family([two], W, H)
+
+
+def test_the_t_location_weighs_down_a_far_frame_and_averages_the_rest():
+    """Under the scenes' scatter, frames that agree are averaged (not ranked, as by a
+    median), and one far out in that scatter's units barely moves the centre."""
+    S = np.diag([1.0, 0.25])
+    close = np.array([[0.1, 0.0], [-0.2, 0.1], [0.3, -0.1], [0.0, 0.05]])
+    np.testing.assert_allclose(t_location(close, S * 100), close.mean(axis=0), atol=1e-3)  # all near: a mean
+    fooled = np.vstack([close, [[12.0, -4.0]]])
+    m = t_location(fooled, S)
+    assert np.linalg.norm(m - close.mean(axis=0)) < 0.1
+    assert np.linalg.norm(fooled.mean(axis=0) - close.mean(axis=0)) > 2  # what a mean would do
+    np.testing.assert_allclose(t_location(fooled + [1.0, -2.0], S), m + [1.0, -2.0], atol=1e-6)  # equivariant
+    np.testing.assert_array_equal(t_location(close[:1], S), close[0])
+
+
+def test_the_scenes_scatter_reads_in_any_family():
+    """The shipped scatter is a log-profile covariance: a family whose components are the
+    shipped ones reordered and negated reads the same scatter, rotated alike."""
+    from dataclasses import replace as dc_replace
+
+    fam = profile_family()
+    S = scene_scatter(fam)
+    assert S.shape == (fam.n_components,) * 2 and np.all(np.linalg.eigvalsh(S) > 0)
+    R = -np.eye(fam.n_components)[::-1]
+    turned = dc_replace(fam, components=R @ fam.components, coefficients=fam.coefficients @ R.T)
+    np.testing.assert_allclose(scene_scatter(turned), R @ S @ R.T, atol=1e-9)
+    np.testing.assert_allclose(scene_scatter(fam.truncated(2)), S[:2, :2], atol=1e-9)
+    with pytest.raises(ModelError, match="scatter"):
+        pooled_coefficients([FrameCoefficients(np.zeros(3), np.eye(3), 100)], np.eye(2))
 
 
 def test_a_blank_frame_has_no_fit():

@@ -288,6 +288,33 @@ def cmd_prior_fit_lens_family(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_scene_scatter(args: argparse.Namespace) -> int:
+    """How vignetting-free photographs scatter a frame's data-only lens-family fit
+    (vigproc.core.pooling.scene_scatter), from the clean protocol's bases, fitted as the
+    profile store fits a frame (its evidence, the profile family)."""
+    import numpy as np
+
+    from vigproc.atomic import atomic_write_text
+    from vigproc.bench import clean as C
+    from vigproc.core.estimate import frame_evidence
+    from vigproc.core.lensfamily import profile_family
+    from vigproc.core.pooling import frame_fit, scene_scatter_record
+    from vigproc.core.robust import evidence_copy
+
+    output_file(args.output)
+    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
+    family = profile_family()
+    fits = [frame_fit(evidence_copy(frame_evidence(b)), family) for b in bases]
+    record = scene_scatter_record(
+        fits, family, source=f"vigproc bench scene-scatter -o FILE ({len(fits)} clean bases, "
+                             f"{'luminance' if args.grey else 'colour'}, no field)")
+    atomic_write_text(Path(args.output), json.dumps(record) + "\n")
+    sd = np.sqrt(np.diag(record["covariance"]))
+    print(f"wrote {args.output}: the scatter of {len(fits)} vignetting-free frames' fits; s.d. of the "
+          f"{family.n_components} coefficients {', '.join(f'{v:.3f}' for v in sd)}")
+    return 0
+
+
 def _scene_settings(spec: str):
     """RobustSettings for a bench's ``--scene-prior``: "shipped", "none" or a file
     written by ``vigproc prior fit-scene``."""
@@ -1203,6 +1230,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="estimators to time (default: ga default)")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_speed)
+    bp = bsub.add_parser("scene-scatter", help="how vignetting-free photographs scatter a frame's lens-family fit, "
+                         "from the clean protocol's bases: the profile store's pooling (vigproc/data/scene_scatter.json)")
+    bp.add_argument("-o", "--output", required=True, help="file to write (JSON)")
+    _add_clean_bases(bp)
+    bp.set_defaults(fn=cmd_bench_scene_scatter)
     bp = bsub.add_parser("learn", help="learning one more frame into a lens profile, warm and in a new process")
     bp.add_argument("--images", help="folder of photographs (default: the bundled samples)")
     bp.add_argument("--limit", type=int, default=60, help="use at most this many images (default %(default)s)")
