@@ -344,3 +344,24 @@ def test_a_centre_fit_without_its_uncertainty_answers_for_the_shift():
     assert np.isnan(quick.z) and np.all(np.isnan(quick.covariance - np.eye(2) * 1e-6))
     assert quick.off_centre(0.5 * full.shift) == full.off_centre(0.5 * full.shift) is True
     assert not quick.off_centre(0.5 * full.shift, min_z=1.0)  # a z it does not have is not met
+
+
+def test_a_colour_weighted_fit_uses_every_component_a_grey_one_two():
+    """Pairs weighted by colour let a third component pay; a grey frame, or one stored as
+    R = G = B (every weight 1), keeps to the first two."""
+    from vigproc.core.family_fit import colour_weighted, family_for
+    from vigproc.core.lensfamily import profile_family
+
+    fam = profile_family()
+    # channels with textures of their own: the chroma changes everywhere, as in a
+    # photograph's foliage or fabric (the weights average well below 0.5)
+    scene = np.stack([textured(H, W, seed=30 + k, contrast=0.1) for k in range(3)], axis=-1)
+    img = scene * _lens_field()[..., None]
+    lum = vigproc.core.pixels.luminance(img)
+    assert len(fit_family(lum, family=fam, colour=img)[1]) == fam.n_components == 3
+    assert len(fit_family(lum, family=fam)[1]) == 2
+    assert len(fit_family(lum, family=fam, colour=np.repeat(lum[..., None], 3, axis=-1))[1]) == 2
+    assert colour_weighted(np.full(10, 0.1)) and not colour_weighted(np.ones(10))
+    assert not colour_weighted(np.zeros(0))
+    assert family_for(fam, True) is fam and family_for(fam, False).n_components == 2
+    assert family_for(fam.truncated(1), False).n_components == 1

@@ -13,10 +13,11 @@ spread of calibrations like the frame's EXIF (:meth:`LensFamily.prior`).
 
 The shipped family (``vigproc/data/lens_family.json``, :data:`PROFILE_COMPONENTS`
 components) is built from every lens of the bundled lensfun database by
-:func:`vigproc.stores.lensfun.lensfun_family` (``vigproc prior fit-lens-family``); a single frame's fit uses
-its first :data:`N_COMPONENTS` (:func:`default_family`), a lens profile all of them
-(:func:`profile_family`). The benchmarks build families that leave their test lenses
-out.
+:func:`vigproc.stores.lensfun.lensfun_family` (``vigproc prior fit-lens-family``); a grey frame's fit
+and the forensic tests use its first :data:`N_COMPONENTS` (:func:`default_family`), a
+colour frame's fit and a lens profile all of them (:func:`profile_family`;
+:func:`vigproc.core.family_fit.family_for`). The benchmarks build families that leave
+their test lenses out.
 
 References
 ----------
@@ -43,8 +44,9 @@ log = logging.getLogger(__name__)
 
 #: Samples of the radial profile over ρ ∈ [0, 1].
 N_RADII = 65
-#: Components a single frame's fit uses (2 reconstruct lensfun's calibrations to
-#: 0.005 EV): one photograph's scene cannot pin down more.
+#: Components a grey frame's fit and the forensic tests use (2 reconstruct lensfun's
+#: calibrations to 0.005 EV): a grey photograph's scene cannot pin down more (a colour
+#: frame's fit, its pairs weighted by colour, uses all of the shipped family's).
 N_COMPONENTS = 2
 #: Components the shipped family keeps, and a lens profile pools in (3 reconstruct
 #: the calibrations to 0.002 EV): many frames average the scenes away, and then the

@@ -168,8 +168,10 @@ def crop_statistic(lum: np.ndarray, family=None,
         The centred fit's fall-off over its uncertainty.
     """
     from vigproc.core.family_fit import FamilySettings, fit_centre, fit_family
+    from vigproc.core.lensfamily import default_family
 
     s = FamilySettings(min_snr=0.0)  # the test decides on its own evidence below
+    family = family or default_family()  # the components its shipped null was made in
     model, coef = fit_family(lum, s, family=family, colour=colour)
     snr = float(model.quality.snr) if model.quality is not None and model.quality.snr is not None else 0.0
     if coef is None:

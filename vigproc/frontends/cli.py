@@ -404,11 +404,13 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
           "RMS of log2(estimated/true field)")
     print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'p90 EV':>9}{'uncorr EV':>11}{'gain-free':>11}"
           f"{'uncorr gf':>11}{'differ. EV':>12}{'fallbk':>8}{'s/img':>8}")
+    from vigproc.core.lensfamily import PROFILE_COMPONENTS
     from vigproc.stores.lensfun import lensfun_family
     from vigproc.stores.lensfun import bench_lenses
 
     # the lens-family fits never hold the lens they are scored on
-    family = lensfun_family(exclude={(lens.maker, lens.model) for lens, _ in bench_lenses(args.lenses)})
+    family = lensfun_family(exclude={(lens.maker, lens.model) for lens, _ in bench_lenses(args.lenses)},
+                            n_components=PROFILE_COMPONENTS)
     for name in args.methods:
         fn = _estimator(name, settings=settings, family=family)
         fn(ims[0])
@@ -433,6 +435,7 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
 
     from vigproc.bench import clean as C
     from vigproc.bench.peers import PEER_ENV, published_rgs
+    from vigproc.core.lensfamily import PROFILE_COMPONENTS
     from vigproc.core.pixels import luminance
     from vigproc.stores.lensfun import lensfun_family
 
@@ -443,7 +446,8 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     lens, excluded = C.lens_fields(args.lenses)
-    family = lensfun_family(exclude=excluded)  # never the lens an estimate is scored on
+    # never the lens an estimate is scored on; all the components a colour frame's fit uses
+    family = lensfun_family(exclude=excluded, n_components=PROFILE_COMPONENTS)
     if args.calibrate:
         cal = C.calibrate_sigma(bases, lens, family)
         print(f"lens-family sigma = hypot({cal.scale:g} x jackknife sigma, {cal.floor:g} EV), fitted on "
