@@ -123,6 +123,10 @@ def test_the_scenes_scatter_reads_in_any_family():
     np.testing.assert_allclose(scene_scatter(fam.truncated(2)), S[:2, :2], atol=1e-9)
     with pytest.raises(ModelError, match="scatter"):
         pooled_coefficients([FrameCoefficients(np.zeros(3), np.eye(3), 100)], np.eye(2))
+    # a singular scatter (a family with more components than it was measured in): the median
+    fits = [FrameCoefficients(np.array([v, 0.0, 0.0]), np.eye(3), 100) for v in (0.0, 1.0, 10.0)]
+    c, _ = pooled_coefficients(fits, np.diag([1.0, 1.0, 0.0]))
+    np.testing.assert_array_equal(c, [1.0, 0.0, 0.0])
 
 
 def test_a_blank_frame_has_no_fit():

@@ -197,6 +197,12 @@ def pooled_coefficients(fits: Sequence[FrameCoefficients],
         raise ModelError(f"a {np.shape(scatter)} scatter cannot pool {k} coefficients")
     C = np.array([f.coefficients for f in fits], dtype=np.float64)
     n = C.shape[0]
+    if scatter is not None:
+        ev = np.linalg.eigvalsh(0.5 * (scatter + scatter.T))
+        if not np.all(np.isfinite(ev)) or ev[0] <= 1e-8 * ev[-1]:
+            # a family with more components than the scatter was measured in: no distance
+            # along the others, so no t location
+            scatter = None
     centre = np.median(C, axis=0) if scatter is None else t_location(C, scatter)
     jack = np.mean([f.covariance for f in fits], axis=0)
     spread = _winsorised_cov(C) if n >= 3 else jack
