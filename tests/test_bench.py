@@ -290,6 +290,8 @@ def test_bench_learn_times_one_more_frame_in_a_new_process():
     assert r.new_process_import_ms > 0
     with pytest.raises(ValueError, match="no frame"):
         learn_speed([np.zeros((160, 240, 3))], stored=1, rounds=1)
+    square = [coloured_scene(180, 240, seed=s) for s in range(2)]  # 4:3 frames learn into a 4:3 profile
+    assert learn_speed(square, stored=1, rounds=1).new_process_learn_ms > 0
 
 
 def test_bench_scene_scatter_writes_what_pooling_reads(tmp_path):

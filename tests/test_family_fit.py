@@ -365,3 +365,19 @@ def test_a_colour_weighted_fit_uses_every_component_a_grey_one_two():
     assert not colour_weighted(np.zeros(0))
     assert family_for(fam, True) is fam and family_for(fam, False).n_components == 2
     assert family_for(fam.truncated(1), False).n_components == 1
+
+
+def test_a_strip_too_thin_for_any_pair_step_is_no_crash():
+    """A 32:1 strip: its centre test's working copy is one bin high, so no pair step
+    fits; the fits answer (no pairs) instead of failing."""
+    strip = textured(90, 2880, seed=8, contrast=0.05)
+    m = vigproc.estimate(strip, channel_axis=None)
+    assert m.width == 2880 and m.height == 90
+    d, a, labels, w = family_pairs(np.zeros((1, 5)), np.ones((1, 5), bool), np.zeros((1, 5)),
+                                   np.zeros((1, 5, 2)), np.array([1, 2], dtype=np.int64),
+                                   np.zeros((1, 5), np.int64), None, 0.003)
+    assert d.shape == (7,) and a.shape == (7, 2)  # x pairs only: 4 one apart, 3 two apart
+    d, a, labels, w = family_pairs(np.zeros((1, 1)), np.ones((1, 1), bool), np.zeros((1, 1)),
+                                   np.zeros((1, 1, 2)), np.array([], dtype=np.int64),
+                                   np.zeros((1, 1), np.int64), None, 0.003)
+    assert d.shape == (0,) and a.shape == (0, 2) and labels.dtype == np.int64 and w.shape == (0,)

@@ -121,6 +121,13 @@ def test_the_scenes_scatter_reads_in_any_family():
     turned = dc_replace(fam, components=R @ fam.components, coefficients=fam.coefficients @ R.T)
     np.testing.assert_allclose(scene_scatter(turned), R @ S @ R.T, atol=1e-9)
     np.testing.assert_allclose(scene_scatter(fam.truncated(2)), S[:2, :2], atol=1e-9)
+    # a family sampled at other radii reads the same scatter through the log profile
+    fine = np.linspace(0.0, 1.0, 2 * fam.radii.size - 1)
+    resampled = dc_replace(fam, radii=fine, mean=np.interp(fine, fam.radii, fam.mean),
+                           components=np.array([np.interp(fine, fam.radii, c) for c in fam.components]))
+    C = resampled.components
+    G = C @ C.T  # not orthonormal at the new radii: Σ = C F Cᵀ with F the field covariance
+    np.testing.assert_allclose(scene_scatter(resampled), G @ S @ G, rtol=1e-6, atol=1e-9)
     with pytest.raises(ModelError, match="scatter"):
         pooled_coefficients([FrameCoefficients(np.zeros(3), np.eye(3), 100)], np.eye(2))
     # a singular scatter (a family with more components than it was measured in): the median

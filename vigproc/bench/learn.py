@@ -11,7 +11,7 @@ does); then one more frame is learned, from a fresh copy of that store each roun
 
 The frames are 480×320 crops of the given photographs (linearised) × a lensfun lens's
 field; their content does not change the cost much (one lens-family fit of the new frame
-and the median of the stored fits).
+and the pooling of the stored fits).
 """
 
 from __future__ import annotations
@@ -35,11 +35,11 @@ t0 = time.perf_counter()
 from vigproc.core.model import VignettingModel
 from vigproc.stores.profiles import ProfileKey, ProfileStore
 t1 = time.perf_counter()
-db, model_path, evidence_path, lens = sys.argv[1:5]
+db, model_path, evidence_path, lens, aspect = sys.argv[1:6]
 model = VignettingModel.from_json(open(model_path).read())
 evidence = open(evidence_path, "rb").read()
 with ProfileStore(db) as store:
-    store.learn(ProfileKey(lens, "any", "any", "3:2"), model, frame_id="the-new-frame", evidence=evidence)
+    store.learn(ProfileKey(lens, "any", "any", aspect), model, frame_id="the-new-frame", evidence=evidence)
 t2 = time.perf_counter()
 print(json.dumps({"import_s": t1 - t0, "learn_s": t2 - t1}))
 """
@@ -102,7 +102,7 @@ def learn_speed(frames: Sequence[np.ndarray], stored: int = 50, rounds: int = 5)
             db = work / f"new{r}.sqlite"
             shutil.copy(base, db)
             out = subprocess.run([sys.executable, "-c", _CHILD, str(db), str(work / "model.json"),
-                                  str(work / "evidence.bin"), lens],
+                                  str(work / "evidence.bin"), lens, key.aspect],
                                  capture_output=True, text=True, check=True, timeout=300)
             t = json.loads(out.stdout.strip().splitlines()[-1])
             learn.append(t["learn_s"])

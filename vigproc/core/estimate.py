@@ -100,8 +100,8 @@ def estimate(
         the scene prior, for frames of no scene (a white wall, a diffuser over the
         lens, an evenly lit sky), whose fall-off is all the lens's; on a photograph
         of a scene it reads the scene's own darker edges as vignetting.
-        "lens-family": a centred fall-off in the two-parameter family that
-        lensfun's calibrations of real lenses span (:mod:`vigproc.core.family_fit`), with
+        "lens-family": a centred fall-off in the two- or three-parameter family
+        (three for a colour frame) that lensfun's calibrations of real lenses span (:mod:`vigproc.core.family_fit`), with
         a calibrated uncertainty; for uncropped frames of real lenses.
         "lyu2010": the paper's Gaussian
         approximation followed by the ML fit of Eq. (6). "lyu2010-rand": the ML fit
@@ -241,7 +241,8 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     (:func:`vigproc.core.robust.estimate_robust`) is tried too, and kept when it explains
     the frame's log differences clearly better (:func:`vigproc.core.family_fit.pair_losses`).
     ``colour`` (H×W×3, the frame's R, G, B): the lens-family fit weighs each pair by
-    how alike its channels change; the centre test and the choice read the luminance.
+    how alike its channels change; the centre must move for the luminance and for the
+    colour-weighted pairs; the choice between the fits reads the luminance.
     """
     from vigproc.core.family_fit import FamilySettings, fit_centre, fit_family, pair_losses
 

@@ -24,7 +24,7 @@ scene's own shading to pass as vignetting.
    lenses like the frame's EXIF when given). Linear in c: IRLS solves it exactly
    (:func:`irls`, NumPy: each step is three matrix-vector products over the pairs'
    precomputed a·aᵀ and a·d, faster than the Numba loop it replaced, and a process
-   that only pools a profile never waits for Numba to load).
+   that only pools a profile never waits for Numba to load its compiled kernels).
 4. Uncertainty: neighbouring pairs are far from independent, so the Gauss-Newton
    covariance understates the error. A delete-one-quadrant jackknife measures how
    much the scene moves the estimate; its field spread, scaled by a factor measured
@@ -251,6 +251,8 @@ def family_pairs(L: np.ndarray, valid: np.ndarray, M: np.ndarray, B: np.ndarray,
             r = ((C[0][second] - C[0][first] - g) / s)[both]
             b = ((C[2][second] - C[2][first] - g) / s)[both]
             out_w.append(1.0 / (1.0 + (r * r + b * b) * inv_t2))
+    if not out_d:  # no step fits in the copy (a strip one bin high)
+        return np.empty(0), np.empty((0, B.shape[-1])), np.empty(0, dtype=np.int64), np.empty(0)
     return (np.concatenate(out_d), np.concatenate(out_a),
             np.concatenate(out_l).astype(np.int64), np.concatenate(out_w))
 
@@ -516,7 +518,8 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     lens or a stitched image moves the centre. This is the test that sends such
     frames to the free Kang-Weiss fit, and the crop evidence of forensics.
     ``colour`` (H×W×3): pairs weighted as in :func:`fit_family` (the forensic crop test
-    does; the default estimator's centre test reads the luminance alone). Without
+    does; the default estimator asks the luminance and, in a colour frame, the
+    colour-weighted pairs too). The fit is in the components of ``c``. Without
     ``uncertainty`` the jackknife is skipped (a third of the time): covariance and z are
     NaN, for a caller that reads only the shift.
     """
@@ -695,7 +698,10 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     mask : ndarray of bool, H×W, optional
         Pixels that may be used (e.g. excluding clipped highlights).
     family : LensFamily, optional
-        Default: the shipped family (every lensfun lens).
+        Default: the shipped family (every lensfun lens, three components). A frame
+        whose pairs are weighted by colour is fitted in all its components, any other in
+        the first two (:func:`family_for`): how many coefficients come back depends on
+        the frame.
     hint : LensHint, optional
         EXIF focal length (35-mm equivalent) and f-number: the prior becomes the
         spread of the calibrations nearest to them.

@@ -109,9 +109,14 @@ class LensFamily:
             raise ModelError(f"a {self.n_components}-component family has no {k}-component truncation")
         if k == self.n_components:
             return self
-        by_k = self.reconstruction_by_k[:k]
-        return LensFamily(self.radii, self.mean, self.components[:k], self.coefficients[:, :k], self.focal35,
-                          self.fnumber, by_k[-1] if len(by_k) == k else math.nan, self.lenses, by_k)
+        # kept, as the priors are: a grey frame's fit asks for the same truncation every time
+        cache = self.__dict__.setdefault("_truncations", {})
+        if k not in cache:
+            by_k = self.reconstruction_by_k[:k]
+            cache[k] = LensFamily(self.radii, self.mean, self.components[:k], self.coefficients[:, :k],
+                                  self.focal35, self.fnumber, by_k[-1] if len(by_k) == k else math.nan,
+                                  self.lenses, by_k)
+        return cache[k]
 
     def profiles(self, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean profile and components at radii ``rho`` (any shape; clipped to [0, 1]).
@@ -276,6 +281,6 @@ def profile_family() -> LensFamily:
 
 @lru_cache(maxsize=1)
 def default_family() -> LensFamily:
-    """The shipped lens family truncated to :data:`N_COMPONENTS`: what a single
-    frame's fit uses (every lens of the bundled lensfun database)."""
+    """The shipped lens family truncated to :data:`N_COMPONENTS`: what a grey frame's
+    fit and the forensic tests use (every lens of the bundled lensfun database)."""
     return profile_family().truncated(N_COMPONENTS)

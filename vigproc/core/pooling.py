@@ -139,8 +139,10 @@ def scene_scatter_record(fits: Sequence[FrameCoefficients], family: LensFamily, 
     of vignetting-free frames in ``family``: their winsorised covariance (as
     :func:`pooled_coefficients` winsorises) with the family's radii and components."""
     C = np.array([f.coefficients for f in fits], dtype=np.float64)
-    if C.ndim != 2 or C.shape[0] < 10 or C.shape[1] != family.n_components:
-        raise ModelError(f"the scenes' scatter needs at least 10 fits in the family, got {C.shape[0]}")
+    if C.ndim != 2 or C.shape[1] != family.n_components:
+        raise ModelError(f"the scenes' scatter needs fits in the family's {family.n_components} components")
+    if C.shape[0] < 10:
+        raise ModelError(f"the scenes' scatter needs at least 10 fits, got {C.shape[0]}")
     S = _winsorised_cov(C)
     return {"radii": family.radii.round(6).tolist(),
             "components": [[round(float(v), 8) for v in row] for row in family.components],
@@ -246,9 +248,10 @@ def pool_family(fits: Sequence[FrameCoefficients], width: int, height: int,
         No fits, fits of another family, or a profile the model cannot write.
     """
     fam = family or profile_family()
+    if fits and np.asarray(fits[0].coefficients).size != fam.n_components:
+        raise ModelError(f"fits with {np.asarray(fits[0].coefficients).size} coefficients cannot pool in a "
+                         f"{fam.n_components}-component family")
     c, cov_c = pooled_coefficients(fits, scene_scatter(fam))
-    if c.size != fam.n_components:
-        raise ModelError(f"fits with {c.size} coefficients cannot pool in a {fam.n_components}-component family")
     model = coefficients_model(c, width, height, fam)
     theta = normalise(model)[0]
     # the model's parameters move with the coefficients through a least-squares fit:

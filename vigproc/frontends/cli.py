@@ -302,9 +302,14 @@ def cmd_bench_scene_scatter(args: argparse.Namespace) -> int:
     from vigproc.core.robust import evidence_copy
 
     output_file(args.output)
-    bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
+    bases, names = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
     family = profile_family()
-    fits = [frame_fit(evidence_copy(frame_evidence(b)), family) for b in bases]
+    fits = []
+    for b, name in zip(bases, names):
+        try:
+            fits.append(frame_fit(evidence_copy(frame_evidence(b)), family))
+        except VigprocError as exc:  # a base with too few usable pixels: leave it out
+            log.warning("skipping %s: %s", name, exc)
     record = scene_scatter_record(
         fits, family, source=f"vigproc bench scene-scatter -o FILE ({len(fits)} clean bases, "
                              f"{'luminance' if args.grey else 'colour'}, no field)")

@@ -1371,7 +1371,8 @@ class ProfileStore(SQLiteFile):
         evidence : bytes, optional
             The frame's data (:func:`vigproc.core.estimate.frame_evidence`), kept with the
             frame.  Once frames of the profile have evidence, the profile's θ,
-            covariance and σ are the median of their lens-family fits
+            covariance and σ are a robust centre (a multivariate t location under the
+            scenes' scatter) of their lens-family fits
             (:mod:`vigproc.core.pooling`, at most :data:`MAX_POOLED_FRAMES` frames), which
             measured better than pooling the per-frame estimates and than the centred
             Kang-Weiss fits pooled until session 10 (``vigproc bench profile --clean``).
