@@ -894,10 +894,11 @@ def test_lookup_interpolates_between_a_lenss_bins(tmp_path):
         assert store.lookup(lk, w, h, trusted_only=True) is None
 
 
-def test_migration_6_refits_the_frames_from_their_evidence(tmp_path):
-    """A v5 store's frame fits were made before the colour weights: v6 drops them, and the
-    next pooling fits each frame again from its evidence, so a profile never pools fits
-    of two kinds."""
+@pytest.mark.parametrize("old", [5, 6])
+def test_migrations_6_and_7_refit_the_frames_from_their_evidence(tmp_path, old):
+    """A v5 store's frame fits were made before the colour weights, a v6 store's with the
+    single-frame Cauchy scale: v6 and v7 drop them, and the next pooling fits each frame
+    again from its evidence, so a profile never pools fits of two kinds."""
     from conftest import photo_like
 
     from vigproc.core.estimate import estimate, frame_evidence
@@ -913,15 +914,15 @@ def test_migration_6_refits_the_frames_from_their_evidence(tmp_path):
         for i, f in enumerate(frames[:2]):
             m = estimate(f, "robust", channel_axis=None)
             store.learn(key, m.candidate or m, frame_id=f"f{i}", evidence=frame_evidence(f, channel_axis=None))
-    con = sqlite3.connect(db)  # as v5 left it: its own (here: wrong) fits stored
+    con = sqlite3.connect(db)  # as the old version left it: its own (here: wrong) fits stored
     stale = con.execute("SELECT family FROM pooled_frames").fetchall()
     assert all(b is not None for (b,) in stale)
     con.execute("UPDATE pooled_frames SET family = (SELECT family FROM pooled_frames WHERE frame = 'f0')")
-    con.execute("DELETE FROM schema_version WHERE version > 5")
+    con.execute("DELETE FROM schema_version WHERE version > ?", (old,))
     con.commit()
     con.close()
     with ProfileStore(db) as store:
-        assert store.schema_version == SCHEMA_VERSION >= 6
+        assert store.schema_version == SCHEMA_VERSION >= 7
         m = estimate(frames[2], "robust", channel_axis=None)
         p = store.learn(key, m.candidate or m, frame_id="f2", evidence=frame_evidence(frames[2], channel_axis=None))
     expected = pool_family([frame_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
