@@ -257,13 +257,6 @@ def family_pairs(L: np.ndarray, valid: np.ndarray, M: np.ndarray, B: np.ndarray,
             np.concatenate(out_l).astype(np.int64), np.concatenate(out_w))
 
 
-def _pair_data(L, valid, C, M, B, steps, blocks, settings: FamilySettings):
-    """:func:`family_pairs` with each pair's weight by how alike its colour channels
-    change (``C``: the R, G, B log copies of :func:`_with_chroma`; None: every pair
-    weighs 1)."""
-    return family_pairs(L, valid, M, B, steps, blocks, C, settings.chroma_tau)
-
-
 def irls(d: np.ndarray, a: np.ndarray, weight: np.ndarray, c0: np.ndarray, pmean: np.ndarray,
          pinv: np.ndarray, sigma: float, kappa: float, iterations: int,
          products: PairProducts | None = None) -> np.ndarray:
@@ -549,7 +542,7 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
         M, B, slope = _extended(fam, coef, rho)
         # ∂f/∂u = f'(ρ)·∂ρ/∂u, ∂ρ/∂u = −(v − u)/ρ; f's value at u is already in M + B·c
         Bu = np.concatenate([B, (-slope * dx / rho)[..., None], (-slope * dy / rho)[..., None]], axis=-1)
-        d, a, labels, wt = _pair_data(L, valid, C, M, Bu, steps, blocks, settings)
+        d, a, labels, wt = family_pairs(L, valid, M, Bu, steps, blocks, C, settings.chroma_tau)
         if d.size < MIN_VALID_BINS:
             break
         x0 = np.concatenate([coef, [0.0, 0.0]])
@@ -585,7 +578,7 @@ def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: Fa
     out = []
     for model in models:
         F = model.log_field_at(X, Y)
-        d, _, _, _ = _pair_data(L, valid, None, F, none, steps, one_block, settings)
+        d, _, _, _ = family_pairs(L, valid, F, none, steps, one_block, None, settings.chroma_tau)
         out.append(float(np.mean(np.log1p((d / settings.sigma) ** 2))) if d.size else math.inf)
     return out
 
@@ -663,8 +656,8 @@ def frame_coefficients(L: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.
         return None
     M, B = fam.profiles(_rho(xs, ys, half_diagonal(width, height)))
     steps = _pair_steps(settings, L.shape)
-    d, a, labels, wt = _pair_data(L, valid, C, M, B, steps, _block_labels(L.shape, settings.jackknife_blocks),
-                                  settings)
+    d, a, labels, wt = family_pairs(L, valid, M, B, steps, _block_labels(L.shape, settings.jackknife_blocks),
+                                    C, settings.chroma_tau)
     if d.size < MIN_VALID_BINS:
         return None
     pmean, pcov = fam.prior()
@@ -731,7 +724,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     M, B = fam.profiles(_rho(xs, ys, radius))
     steps = _pair_steps(settings, L.shape)
     quad = _block_labels(L.shape, settings.jackknife_blocks)
-    d, a, labels, wt = _pair_data(L, valid, C, M, B, steps, quad, settings)
+    d, a, labels, wt = family_pairs(L, valid, M, B, steps, quad, C, settings.chroma_tau)
     # components nest: the first k columns of a are the k-component family's
     fam = family_for(fam, colour_weighted(wt))
     a = a[:, :fam.n_components]
