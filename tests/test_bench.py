@@ -319,3 +319,13 @@ def test_bench_scene_scatter_writes_what_pooling_reads(tmp_path):
     r = subprocess.run(VIGPROC + ["bench", "scene-scatter", "-o", str(tmp_path / "few.json"), "--images",
                                   str(folder)], capture_output=True, text=True)
     assert r.returncode != 0 and "at least 10" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_bench_learn_command_prints_and_writes_its_figures(tmp_path):
+    out = tmp_path / "learn.json"
+    r = subprocess.run(VIGPROC + ["bench", "learn", "--stored", "2", "--rounds", "1", "--json", str(out)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "new process, the learn" in r.stdout
+    doc = json.loads(out.read_text())
+    assert doc["stored"] == 2 and doc["rounds"] == 1 and doc["new_process_learn_ms"] > 0

@@ -638,6 +638,8 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
 
 def cmd_bench_learn(args: argparse.Namespace) -> int:
     """Learning one more frame into a profile, warm and in a new process."""
+    import numpy as np
+
     from vigproc.bench.learn import learn_speed
     from vigproc.io.protocol import read_protocol_images, vignetted
     from vigproc.stores.lensfun import bench_lenses, pa_field
@@ -648,8 +650,8 @@ def cmd_bench_learn(args: argparse.Namespace) -> int:
         print(f"vigproc: bench learn: no readable images in {folder}", file=sys.stderr)
         return 2
     lens, pa = bench_lenses(1)[0]
-    field = pa_field(ims[0].shape[:2], pa.k1, pa.k2, pa.k3)
-    frames = [vignetted(im, field) for im in ims]
+    log_field = np.log(pa_field(ims[0].shape[:2], pa.k1, pa.k2, pa.k3))
+    frames = [vignetted(im, log_field) for im in ims]
     r = learn_speed(frames, stored=args.stored, rounds=args.rounds)
     print(f"{len(ims)} photographs from {folder} x {lens.maker} {lens.model} (lensfun); a profile of "
           f"{r.stored} frames learns one more, {r.rounds} rounds")
