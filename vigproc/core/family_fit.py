@@ -194,6 +194,78 @@ def colour_of(img: np.ndarray) -> np.ndarray | None:
     return img[..., :3] if img.ndim == 3 and img.shape[-1] >= 3 else None
 
 
+@dataclass(frozen=True)
+class PairIndex:
+    """The usable log-difference pairs of a working copy, apart from the field divided
+    out: what :func:`pairs_at` needs to give a fit's data for any field (the centre fit
+    asks for a new field at each step; the pairs and their weights stay).
+
+    Attributes
+    ----------
+    first, second : ndarray of int (n,)
+        Flat bin indices of each pair's bins (v and v + s·e).
+    inv_step : ndarray (n,)
+        1/s.
+    dlog : ndarray (n,)
+        (L(v + s·e) − L(v)) / s.
+    labels : ndarray of int (n,)
+        The block of each pair's first bin.
+    weight : ndarray (n,)
+        Each pair's colour weight (:func:`family_pairs`).
+    """
+
+    first: np.ndarray
+    second: np.ndarray
+    inv_step: np.ndarray
+    dlog: np.ndarray
+    labels: np.ndarray
+    weight: np.ndarray
+
+
+def pair_index(L: np.ndarray, valid: np.ndarray, steps: np.ndarray, block: np.ndarray,
+               C: np.ndarray | None, tau: float) -> PairIndex:
+    """The :class:`PairIndex` of a working copy; parameters as :func:`family_pairs`."""
+    h, w = L.shape
+    flat = np.arange(h * w).reshape(h, w)
+    first, second, inv, dl, lab, wt = [], [], [], [], [], []
+    inv_t2 = 1.0 / (tau * tau) if C is not None else 0.0
+    for s in (int(x) for x in steps):
+        for one, two in (((slice(None, -s), slice(None)), (slice(s, None), slice(None))),
+                         ((slice(None), slice(None, -s)), (slice(None), slice(s, None)))):
+            both = valid[one] & valid[two]
+            first.append(flat[one][both])
+            second.append(flat[two][both])
+            inv.append(np.full(first[-1].size, 1.0 / s))
+            dl.append(((L[two] - L[one]) / s)[both])
+            lab.append(block[one][both])
+            if C is None:
+                wt.append(np.ones(first[-1].size))
+                continue
+            g = C[1][two] - C[1][one]
+            r = ((C[0][two] - C[0][one] - g) / s)[both]
+            b = ((C[2][two] - C[2][one] - g) / s)[both]
+            wt.append(1.0 / (1.0 + (r * r + b * b) * inv_t2))
+    if not first:  # no step fits in the copy (a strip one bin high)
+        none = np.empty(0, dtype=np.int64)
+        return PairIndex(none, none, np.empty(0), np.empty(0), none, np.empty(0))
+    return PairIndex(np.concatenate(first), np.concatenate(second), np.concatenate(inv), np.concatenate(dl),
+                     np.concatenate(lab).astype(np.int64), np.concatenate(wt))
+
+
+def pairs_at(index: PairIndex, M: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs' data with field ``M`` (h, w) divided out and its components ``B``
+    (h, w, K) as regressors: d (n,) and a (n, K) of :func:`family_pairs`."""
+    m = M.reshape(-1)
+    d = index.dlog - (m.take(index.second) - m.take(index.first)) * index.inv_step
+    # gathered component by component (K × n): faster than by rows, and the transposed
+    # layout is what irls's products read (pair_products: no copy)
+    bt = np.ascontiguousarray(np.moveaxis(B, -1, 0)).reshape(B.shape[-1], m.size)
+    at = bt.take(index.second, axis=1)
+    at -= bt.take(index.first, axis=1)
+    at *= index.inv_step
+    return d, at.T
+
+
 def family_pairs(L: np.ndarray, valid: np.ndarray, M: np.ndarray, B: np.ndarray, steps: np.ndarray,
                  block: np.ndarray, C: np.ndarray | None, tau: float):
     """The log-difference pairs of a working copy: the data of the lens-family fit.
@@ -235,26 +307,9 @@ def family_pairs(L: np.ndarray, valid: np.ndarray, M: np.ndarray, B: np.ndarray,
     ----------
     Zheng et al., TPAMI 2013 (log-gradient pairs of a radial fall-off).
     """
-    out_d, out_a, out_l, out_w = [], [], [], []
-    inv_t2 = 1.0 / (tau * tau) if C is not None else 0.0
-    for s in (int(x) for x in steps):
-        for first, second in (((slice(None, -s), slice(None)), (slice(s, None), slice(None))),
-                              ((slice(None), slice(None, -s)), (slice(None), slice(s, None)))):
-            both = valid[first] & valid[second]
-            out_d.append(((L[second] - L[first] - M[second] + M[first]) / s)[both])
-            out_a.append(((B[second] - B[first]) / s)[both])
-            out_l.append(block[first][both])
-            if C is None:
-                out_w.append(np.ones(out_d[-1].size))
-                continue
-            g = C[1][second] - C[1][first]
-            r = ((C[0][second] - C[0][first] - g) / s)[both]
-            b = ((C[2][second] - C[2][first] - g) / s)[both]
-            out_w.append(1.0 / (1.0 + (r * r + b * b) * inv_t2))
-    if not out_d:  # no step fits in the copy (a strip one bin high)
-        return np.empty(0), np.empty((0, B.shape[-1])), np.empty(0, dtype=np.int64), np.empty(0)
-    return (np.concatenate(out_d), np.concatenate(out_a),
-            np.concatenate(out_l).astype(np.int64), np.concatenate(out_w))
+    index = pair_index(L, valid, steps, block, C, tau)
+    d, a = pairs_at(index, M, B)
+    return d, a, index.labels, index.weight
 
 
 def irls(d: np.ndarray, a: np.ndarray, weight: np.ndarray, c0: np.ndarray, pmean: np.ndarray,
@@ -325,7 +380,12 @@ def pair_products(d: np.ndarray, a: np.ndarray) -> PairProducts:
     matrix-vector products over contiguous rows."""
     at = np.ascontiguousarray(a.T)
     iu, ju = np.triu_indices(at.shape[0])
-    return at, at[iu] * at[ju], at * d
+    upper = np.empty((iu.size, at.shape[1]))
+    # row by row into one array: indexing at[iu] * at[ju] copied both operands first,
+    # and took 17 times as long (the same bits)
+    for k, (i, j) in enumerate(zip(iu, ju)):
+        np.multiply(at[i], at[j], out=upper[k])
+    return at, upper, at * d
 
 
 def _pair_steps(settings: FamilySettings, shape: tuple[int, int]) -> np.ndarray:
@@ -530,9 +590,10 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     P[:K, :K] = pcov
     P[K, K] = P[K + 1, K + 1] = 0.5**2  # the centre within about half a half-diagonal
     pinv = np.linalg.inv(P)
-    steps = _pair_steps(settings, L.shape)
-    nb = settings.jackknife_blocks
-    blocks = _block_labels(L.shape, nb)
+    # the pairs and their weights stay; only the field divided out moves with the centre
+    index = pair_index(L, valid, _pair_steps(settings, L.shape), _block_labels(L.shape, settings.jackknife_blocks),
+                       C, settings.chroma_tau)
+    labels, wt = index.labels, index.weight
     u = np.zeros(2)
     coef = np.asarray(c, dtype=np.float64).copy()
     cov = np.zeros((2, 2))
@@ -542,7 +603,7 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
         M, B, slope = _extended(fam, coef, rho)
         # ∂f/∂u = f'(ρ)·∂ρ/∂u, ∂ρ/∂u = −(v − u)/ρ; f's value at u is already in M + B·c
         Bu = np.concatenate([B, (-slope * dx / rho)[..., None], (-slope * dy / rho)[..., None]], axis=-1)
-        d, a, labels, wt = family_pairs(L, valid, M, Bu, steps, blocks, C, settings.chroma_tau)
+        d, a = pairs_at(index, M, Bu)
         if d.size < MIN_VALID_BINS:
             break
         x0 = np.concatenate([coef, [0.0, 0.0]])
