@@ -108,7 +108,7 @@ class FamilySettings:
     jackknife_blocks : int
         The frame is cut into this many × this many blocks for the jackknife.
     jackknife_iterations : int
-        IRLS steps of each jackknife fit (started from the full fit).
+        Most IRLS steps of each jackknife fit (started from the full fit).
     dark_fraction : float
         Bins darker than this fraction of the 99th percentile are masked.
     sigma_scale, sigma_floor : float
@@ -133,15 +133,31 @@ class FamilySettings:
     sigma: float = 0.01
     kappa: float = 0.3
     iterations: int = 100
-    jackknife_blocks: int = 2
-    jackknife_iterations: int = 30
+    jackknife_blocks: int = 3
+    jackknife_iterations: int = 5
     dark_fraction: float = 0.01
-    sigma_scale: float = 2.25
-    sigma_floor: float = 0.01
+    sigma_scale: float = 2.0
+    sigma_floor: float = 0.005
     min_snr: float = 0.75
     off_centre_shift: float = 0.2
     select_margin: float = 0.01
     chroma_tau: float = 0.003
+
+
+#: The jackknife and σ of a single frame's estimate (:class:`FamilySettings`' defaults):
+#: 3×3 blocks, refits of at most 5 steps, σ = hypot(2.0·σ_jackknife, 0.005 EV). On the
+#: clean protocol (20 lenses × 51 bases, a script) the error is then within 1σ on 71 %
+#: of the frames and within 2σ on 92 % (each half of the bases: 0.75 / 0.92 and
+#: 0.68 / 0.92). The 2×2 jackknife, whatever its scale, gave no better than 76 %
+#: within 1σ when 90.5 % were within 2σ: four refits measure a frame's spread too
+#: noisily, and the errors over σ had a heavy tail. Nine refits of 5 steps cost less
+#: than four of 30 (4.1 against 5.7 ms a frame).
+#:
+#: Profile pooling, the lens-match test and the crop test were calibrated (their
+#: shipped scene scatter and null tables) on covariances made the earlier way, and
+#: keep it: :data:`QUADRANT_JACKKNIFE`.
+QUADRANT_JACKKNIFE = FamilySettings(jackknife_blocks=2, jackknife_iterations=30, sigma_scale=2.25,
+                                    sigma_floor=0.01)
 
 
 def _working_copy(lum: np.ndarray, settings: FamilySettings, mask: np.ndarray | None,
