@@ -348,6 +348,7 @@ def test_values_beyond_the_output_format_fail_the_frame(tmp_path, vignetted_tiff
     """An HDR frame whose corrected values exceed half-float range is not written as Inf."""
     path, _ = vignetted_tiff
     img, _ = read_image(path)
+    img[-1, -1] = img.max()  # a highlight in the corner the fall-off darkens most
     hdr = tmp_path / "hdr.tif"
     write_image(hdr, (img * (60000.0 / img.max())).astype(np.float32), bit_depth="float")  # fits in half
     out = tmp_path / "out"

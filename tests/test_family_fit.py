@@ -202,19 +202,70 @@ def test_centre_fit_finds_an_off_centre_fall_off():
     assert shifted.offset[0] < -40 and shifted.offset[1] < -30
 
 
-def test_default_sends_off_centre_frames_to_the_free_fit():
+def test_default_fits_a_strong_off_centre_fall_off_in_the_family_off_centre():
     from vigproc.bench.synthetic import table1_model
+    from vigproc.core.robust import estimate_robust
 
     img = textured(H, W, seed=3, contrast=0.05)
     m = vigproc.estimate(img * _lens_field(), channel_axis=None)
     assert m.method == "lens-family"
-    # Lyu's Table 1 setting 2: off-centre and elliptical, beyond the lens family
+    # Lyu's Table 1 setting 2: off-centre and elliptical, beyond the centred family
     truth = table1_model(2)
-    m = estimate_default(img * truth.field())
-    assert m.method == "robust"
-    family_only = estimate_family(img * truth.field())
+    frame = img * truth.field()
+    m = estimate_default(frame)
+    assert m.method == "lens-family-off-centre"
     err = np.std(m.log_field() - truth.log_field())
+    family_only = estimate_family(frame)
     assert err < 0.5 * np.std((family_only.candidate or family_only).log_field() - truth.log_field())
+    free = estimate_robust(frame)
+    assert err < np.std((free.candidate or free).log_field() - truth.log_field())
+    # its centre is towards the true one, and it states its uncertainty
+    assert m.center[0] < -30 and m.center[1] < -20
+    assert 0 < m.quality.field_sigma_ev < 0.5 * m.field_ev_rms()
+
+
+def test_off_centre_family_fit_recovers_a_shifted_elliptical_lens():
+    """A real lens's profile, off-centre and elliptical: fit_off_centre finds its centre
+    and shape from the centred fit's start, and its field to a few hundredths of an EV."""
+    from vigproc.core.family_fit import fit_off_centre
+
+    fam = default_family()
+    prof = fam.mean + np.array([-2.5, 0.3]) @ fam.components[:2]
+    truth, _ = profile_to_model(prof, fam.radii, W, H, center=(-70.0, 40.0), shape=(0.3, -0.2))
+    img = textured(H, W, seed=5, contrast=0.05)
+    frame = img * truth.field()
+    _, c = fit_family(frame)
+    m = fit_off_centre(frame, c)
+    assert m is not None and m.method == "lens-family-off-centre" and not m.quality.fallback
+    assert abs(m.center[0] + 70) < 15 and abs(m.center[1] - 40) < 15
+    assert np.std(m.log_field() - truth.log_field()) / math.log(2) < 0.05
+
+
+def test_off_centre_family_fit_of_too_few_pixels_is_none():
+    from vigproc.core.family_fit import fit_off_centre
+
+    img = textured(H, W, seed=5, contrast=0.05)
+    mask = np.zeros((H, W), bool)
+    mask[:20, :20] = True
+    assert fit_off_centre(img, np.zeros(2), mask=mask) is None
+
+
+def test_profile_written_off_centre_and_elliptical_matches_it():
+    fam = default_family()
+    prof = fam.mean + np.array([-1.5, 0.2]) @ fam.components[:2]
+    center, (e1, e2) = (60.0, -35.0), (0.25, 0.15)
+    model, err = profile_to_model(prof, fam.radii, W, H, center=center, shape=(e1, e2))
+    assert err < 0.015  # seven α over a longer span of radii than a centred frame's
+    ys, xs = np.mgrid[0:H, 0:W]
+    dx = (xs - (W - 1) / 2 - center[0]) / math.hypot((W - 1) / 2, (H - 1) / 2)
+    dy = (ys - (H - 1) / 2 - center[1]) / math.hypot((W - 1) / 2, (H - 1) / 2)
+    rho = np.sqrt((1 + e1) * dx**2 + 2 * e2 * dx * dy + (1 - e1) * dy**2)
+    # past the corner radius of a centred frame the profile goes on linearly
+    slope = (prof[-1] - prof[-2]) / (fam.radii[-1] - fam.radii[-2])
+    want = np.interp(rho, fam.radii, prof) + np.maximum(rho - 1, 0) * slope
+    assert rho.max() > 1.2
+    diff = (model.log_field((H, W)) - want) / math.log(2)
+    assert np.std(diff) < 0.015 and np.max(np.abs(diff - diff.mean())) < 0.05
 
 
 def test_colour_weights_leave_out_shading_that_changes_colour():
@@ -268,7 +319,7 @@ def test_the_default_asks_the_centre_and_the_choice_of_the_luminance(monkeypatch
     pairs; which fit explains the frame better is asked of the luminance alone: the free
     Kang-Weiss fit does not weigh pairs by colour, and a loss weighted by colour would
     favour the fit that does. An off-centre, elliptical fall-off (Table 1 setting 2)
-    still goes to the free fit."""
+    still goes to an off-centre fit."""
     from vigproc.bench.synthetic import table1_model
     from vigproc.core import family_fit
 
@@ -287,7 +338,7 @@ def test_the_default_asks_the_centre_and_the_choice_of_the_luminance(monkeypatch
     monkeypatch.setattr(family_fit, "pair_losses", losses)
     img = coloured_scene(H, W, seed=3) * table1_model(2).field()[..., None]
     m = estimate_default(vigproc.core.pixels.luminance(img), colour=img)
-    assert m.method == "robust"
+    assert m.method == "lens-family-off-centre"
     assert [(what, c is not None) for what, c in seen] == [("centre", False), ("centre", True), ("losses", False)]
 
 

@@ -26,8 +26,8 @@ scene's own shading to pass as vignetting.
    precomputed a·aᵀ and a·d, faster than the Numba loop it replaced, and a process
    that only pools a profile never waits for Numba to load its compiled kernels).
 4. Uncertainty: neighbouring pairs are far from independent, so the Gauss-Newton
-   covariance understates the error. A delete-one-quadrant jackknife measures how
-   much the scene moves the estimate; its field spread, scaled by a factor measured
+   covariance understates the error. A delete-one-block jackknife (3×3 blocks) measures
+   how much the scene moves the estimate; its field spread, scaled by a factor measured
    on vignetting-free photographs (``sigma_scale``, ``sigma_floor``), is
    ``quality.field_sigma_ev``.
 5. Do no harm: when the field is not ``min_snr`` times its uncertainty, return the
@@ -35,6 +35,10 @@ scene's own shading to pass as vignetting.
 6. The profile is written as the Kang-Weiss model (centred, circular P, α1..α7 by
    least squares) so every consumer of :class:`~vigproc.core.model.VignettingModel` works
    unchanged; the conversion error is about 0.001 EV.
+7. Off-centre: :func:`fit_centre` fits the centre too (the test that sends a frame to an
+   off-centre fit, and the crop evidence of forensics); :func:`fit_off_centre` fits the
+   family's profile with a free centre and an elliptical radius (the default
+   estimator's fit of a strong fall-off whose centre moves).
 
 References
 ----------
@@ -117,7 +121,8 @@ class FamilySettings:
         Fall back to no correction below this field / σ.
     off_centre_shift : float
         A centre at least this far from the frame's (half-diagonals,
-        :func:`fit_centre`) makes the default estimator try the free Kang-Weiss fit.
+        :func:`fit_centre`) makes the default estimator try an off-centre fit
+        (:func:`fit_off_centre` or the free Kang-Weiss fit).
     select_margin : float
         ... which it keeps when its mean Cauchy loss per pair (:func:`pair_losses`) is
         lower than the lens-family fit's by more than this.
@@ -474,11 +479,16 @@ def field_sigma_ev(family: LensFamily, cov: np.ndarray, width: int, height: int)
 
 
 def profile_to_model(log_profile: np.ndarray, radii: np.ndarray, width: int, height: int,
+                     center: tuple[float, float] = (0.0, 0.0), shape: tuple[float, float] = (0.0, 0.0),
                      **kw) -> tuple[VignettingModel, float]:
-    """Write a centred radial log-attenuation profile as the Kang-Weiss model.
+    """Write a radial log-attenuation profile as the Kang-Weiss model.
 
-    A circular P with r = :data:`KW_SCALE` at the corner; α1..α7 by least squares so
-    that A·G matches the profile (Lyu 2010, Eq. 2).
+    ρ is in half-diagonals; the profile is extended linearly past its last radius. By
+    default the profile is centred and circular: P circular with r = :data:`KW_SCALE`
+    at the corner. With ``center`` (px from the frame centre) and ``shape`` (e1, e2),
+    ρ² = (1 + e1)·dx² + 2·e2·dx·dy + (1 − e1)·dy² about the centre (:func:`fit_off_centre`),
+    and P is that quadratic form scaled alike. α1..α7 by least squares so that A·G
+    matches the profile over the radii the frame holds (Lyu 2010, Eq. 2).
 
     Returns
     -------
@@ -486,8 +496,15 @@ def profile_to_model(log_profile: np.ndarray, radii: np.ndarray, width: int, hei
     rms_ev : float
         RMS (over ρ) of the written model's log2 error against the profile.
     """
-    rho = np.linspace(0.0, 1.0, _KW_SAMPLES)
-    f = np.interp(rho, radii, log_profile)
+    R = half_diagonal(width, height)
+    e1, e2 = shape
+    corners = np.array([[sx * (width - 1) / 2.0 - center[0], sy * (height - 1) / 2.0 - center[1]]
+                        for sx in (-1, 1) for sy in (-1, 1)]) / R
+    reach = float(np.sqrt(np.max((1 + e1) * corners[:, 0] ** 2 + 2 * e2 * corners[:, 0] * corners[:, 1]
+                                 + (1 - e1) * corners[:, 1] ** 2)))
+    rho = np.linspace(0.0, reach if reach > 1.0 + 1e-9 else 1.0, _KW_SAMPLES)
+    slope = (log_profile[-1] - log_profile[-2]) / (radii[-1] - radii[-2])
+    f = np.interp(rho, radii, log_profile) + np.maximum(rho - radii[-1], 0.0) * slope
     r = KW_SCALE * rho
     a = 1.0 / (1.0 + (r / 2.0) ** 2) ** 2
     target = 1.0 - np.exp(f) / a  # = Σ α_i r^i
@@ -495,8 +512,9 @@ def profile_to_model(log_profile: np.ndarray, radii: np.ndarray, width: int, hei
     alpha, *_ = np.linalg.lstsq(V, target, rcond=None)
     g = 1.0 - V @ alpha
     err = float(np.sqrt(np.mean((np.log(np.maximum(a * g, 1e-300)) - f) ** 2)) / _LN2)
-    p = (KW_SCALE / half_diagonal(width, height)) ** 2
-    model = VignettingModel(width, height, center=(0.0, 0.0), p=(p, 0.0, p),
+    p = (KW_SCALE / R) ** 2
+    model = VignettingModel(width, height, center=(float(center[0]), float(center[1])),
+                            p=(p * (1 + e1), p * e2, p * (1 - e1)),
                             alpha=tuple(float(x) for x in alpha), method=METHOD, **kw)
     return model, err
 
@@ -576,6 +594,62 @@ def _extended(fam: LensFamily, c: np.ndarray, rho: np.ndarray):
     return mean, basis, np.interp(inside.ravel(), fam.radii, slope).reshape(r.shape)
 
 
+def _prior_with_geometry(fam: LensFamily, hint: LensHint, n_geometry: int, spread: float):
+    """The family prior extended by ``n_geometry`` centre (and shape) parameters, each
+    N(0, ``spread``²): mean and precision."""
+    pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
+    K = fam.n_components
+    P = np.zeros((K + n_geometry, K + n_geometry))
+    P[:K, :K] = pcov
+    P[K:, K:] = np.eye(n_geometry) * spread**2
+    return np.concatenate([pmean, np.zeros(n_geometry)]), np.linalg.inv(P)
+
+
+def _geometry_fit(L, index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings: FamilySettings,
+                  elliptical: bool, iterations: int, tolerance: float = 1e-3):
+    """Gauss-Newton on the fall-off's centre u (and, ``elliptical``, its shape (e1, e2)),
+    four IRLS steps of the family coefficients inside each.
+
+    The radius is ρ² = (1 + e1)·dx² + 2·e2·dx·dy + (1 − e1)·dy² with (dx, dy) = v − u in
+    half-diagonals (ρ = |v − u| when circular). Returns the coefficients, the geometry
+    (u, or u and e), the last step's pairs, solution and prior mean (for the jackknife),
+    and the log field's derivatives by (c, geometry) at each bin (h × w × (K + 2 or 4)).
+    """
+    K = fam.n_components
+    E = 4 if elliptical else 2
+    geo = np.zeros(E)
+    coef = np.asarray(c, dtype=np.float64).copy()
+    d = a = sol = pm_it = J = None
+    for _ in range(iterations):
+        dx, dy = X - geo[0], Y - geo[1]
+        if elliptical:
+            e1, e2 = geo[2], geo[3]
+            rho = np.sqrt(np.maximum((1 + e1) * dx * dx + 2 * e2 * dx * dy + (1 - e1) * dy * dy, 1e-18))
+            gx, gy = (1 + e1) * dx + e2 * dy, e2 * dx + (1 - e1) * dy
+        else:
+            rho = np.maximum(np.hypot(dx, dy), 1e-9)
+            gx, gy = dx, dy
+        M, B, slope = _extended(fam, coef, rho)
+        # ∂f/∂θ = f'(ρ)·∂ρ/∂θ; ∂ρ/∂u = −(gx, gy)/ρ, ∂ρ/∂e = ((dx² − dy²)/2, dx·dy)/ρ;
+        # f's value at θ is already in M + B·c
+        cols = [B, (-slope * gx / rho)[..., None], (-slope * gy / rho)[..., None]]
+        if elliptical:
+            cols += [(slope * 0.5 * (dx * dx - dy * dy) / rho)[..., None], (slope * dx * dy / rho)[..., None]]
+        J = np.concatenate(cols, axis=-1)
+        d, a = pairs_at(index, M, J)
+        if d.size < MIN_VALID_BINS:
+            break
+        x0 = np.concatenate([coef, np.zeros(E)])
+        pm_it = pm.copy()
+        pm_it[K:] = -geo  # the prior is on the geometry, not on the step
+        sol = _solve(d, a, index.weight, x0, pm_it, pinv, settings, 4)
+        coef = sol[:K]
+        geo = geo + sol[K:]
+        if float(np.max(np.abs(sol[K:]))) < tolerance:
+            break
+    return coef, geo, d, a, sol, pm_it, J
+
+
 def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
                mask: np.ndarray | None = None, family: LensFamily | None = None,
                hint: LensHint | None = None, work_size: int = 60, iterations: int = 12,
@@ -585,7 +659,7 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
 
     The lens family describes uncropped frames; a crop of a larger frame, a shifted
     lens or a stitched image moves the centre. This is the test that sends such
-    frames to the free Kang-Weiss fit, and the crop evidence of forensics.
+    frames to the off-centre fits, and the crop evidence of forensics.
     ``colour`` (H×W×3): pairs weighted as in :func:`fit_family` (the forensic crop test
     does; the default estimator asks the luminance and, in a colour frame, the
     colour-weighted pairs too). The fit is in the components of ``c``. Without
@@ -594,50 +668,99 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     """
     fam = _in_components(family or profile_family(), len(c))
     h, w = lum.shape
-    small = replace(settings, work_size=work_size)
-    L, valid, xs, ys, C = _working_copy(lum, small, mask, colour)
+    L, valid, xs, ys, C = _working_copy(lum, replace(settings, work_size=work_size), mask, colour)
     radius = half_diagonal(w, h)
-    X, Y = xs[None, :] / radius, ys[:, None] / radius
-    hint = hint or LensHint()
-    pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
-    K = fam.n_components
-    pm = np.concatenate([pmean, [0.0, 0.0]])
-    P = np.zeros((K + 2, K + 2))
-    P[:K, :K] = pcov
-    P[K, K] = P[K + 1, K + 1] = 0.5**2  # the centre within about half a half-diagonal
-    pinv = np.linalg.inv(P)
+    # the centre within about half a half-diagonal
+    pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 2, 0.5)
     # the pairs and their weights stay; only the field divided out moves with the centre
     index = pair_index(L, valid, _pair_steps(settings, L.shape), _block_labels(L.shape, settings.jackknife_blocks),
                        C, settings.chroma_tau)
-    labels, wt = index.labels, index.weight
-    u = np.zeros(2)
-    coef = np.asarray(c, dtype=np.float64).copy()
+    K = fam.n_components
+    _, u, d, a, sol, pm_it, _ = _geometry_fit(L, index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv,
+                                           settings, False, iterations)
     cov = np.zeros((2, 2))
-    for it in range(iterations):
-        dx, dy = X - u[0], Y - u[1]
-        rho = np.maximum(np.hypot(dx, dy), 1e-9)
-        M, B, slope = _extended(fam, coef, rho)
-        # ∂f/∂u = f'(ρ)·∂ρ/∂u, ∂ρ/∂u = −(v − u)/ρ; f's value at u is already in M + B·c
-        Bu = np.concatenate([B, (-slope * dx / rho)[..., None], (-slope * dy / rho)[..., None]], axis=-1)
-        d, a = pairs_at(index, M, Bu)
-        if d.size < MIN_VALID_BINS:
-            break
-        x0 = np.concatenate([coef, [0.0, 0.0]])
-        pm_it = pm.copy()
-        pm_it[K:] = -u  # the prior is on the centre, not on the step
-        sol = _solve(d, a, wt, x0, pm_it, pinv, settings, 4)
-        coef = sol[:K]
-        u = u + sol[K:]
-        if float(np.max(np.abs(sol[K:]))) < 1e-3:
-            break
     if not uncertainty:
         cov = np.full((2, 2), math.nan)
-    elif d.size >= MIN_VALID_BINS:
-        cov = _spread(_jackknife(d, a, labels, wt, sol, pm_it, pinv, settings)[:, K:]) * settings.sigma_scale**2
+    elif d is not None and d.size >= MIN_VALID_BINS:
+        cov = _spread(_jackknife(d, a, index.labels, index.weight, sol, pm_it, pinv, settings)[:, K:]) \
+            * settings.sigma_scale**2
     cov_px = cov * radius**2 + np.eye(2) * 1e-6
     off = u * radius
     z = float(math.sqrt(max(float(off @ np.linalg.solve(cov_px, off)), 0.0))) if uncertainty else math.nan
     return CentreFit((float(off[0]), float(off[1])), cov_px, z, float(np.hypot(*u)))
+
+
+#: The method a :func:`fit_off_centre` model records.
+OFF_CENTRE_METHOD = "lens-family-off-centre"
+#: Most Gauss-Newton steps of :func:`fit_off_centre`.
+OFF_CENTRE_ITERATIONS = 30
+#: The prior s.d. of :func:`fit_off_centre`'s centre (half-diagonals) and shape (e1, e2).
+OFF_CENTRE_SPREAD = 0.5
+
+
+def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
+                   mask: np.ndarray | None = None, family: LensFamily | None = None,
+                   hint: LensHint | None = None, colour: np.ndarray | None = None) -> VignettingModel | None:
+    """The lens family's fall-off with a free centre and an elliptical shape, from the
+    centred fit's coefficients ``c``: the default estimator's fit for a frame whose
+    centre moves (a crop, a shifted lens, a stitched image).
+
+    Gauss-Newton on the centre u and the shape (e1, e2) of ρ² = (1 + e1)·dx² +
+    2·e2·dx·dy + (1 − e1)·dy² (half-diagonals from u), each with a N(0, 0.5²) prior, the
+    family coefficients by IRLS inside each step, on the :attr:`FamilySettings.work_size`
+    copy. The radial profile stays one that real lenses have; only where it sits on the
+    frame is free. Written as the Kang-Weiss model (Lyu 2010, Eq. 2) with centre u and
+    P ∝ the shape (:func:`profile_to_model`).
+
+    Returns
+    -------
+    VignettingModel or None
+        ``quality.field_sigma_ev`` as :func:`fit_family`'s (its jackknife over the centre
+        and shape too; calibrated on centred fits); the identity with the fit as
+        ``candidate`` when the fall-off is below ``min_snr`` σ. None when too few pixels
+        are usable or no Kang-Weiss model holds the fit (it would black out part of the
+        frame).
+    """
+    fam = _in_components(family or profile_family(), len(c))
+    h, w = lum.shape
+    L, valid, xs, ys, C = _working_copy(lum, settings, mask, colour)
+    if int(valid.sum()) < MIN_VALID_BINS:
+        return None
+    radius = half_diagonal(w, h)
+    pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 4, OFF_CENTRE_SPREAD)
+    index = pair_index(L, valid, _pair_steps(settings, L.shape), _block_labels(L.shape, settings.jackknife_blocks),
+                       C, settings.chroma_tau)
+    t0 = time.perf_counter()
+    coef, geo, d, a, sol, pm_it, J = _geometry_fit(L, index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm,
+                                                   pinv, settings, True, OFF_CENTRE_ITERATIONS)
+    if d is None or d.size < MIN_VALID_BINS or abs(complex(geo[2], geo[3])) >= 0.95:
+        return None  # no pairs, or an ellipse degenerate to a line
+    # σ as a centred fit's (fit_family), the jackknife over every parameter carried to
+    # the field by its derivatives at each bin
+    cov = _spread(_jackknife(d, a, index.labels, index.weight, sol, pm_it, pinv, settings))
+    sigma = math.hypot(settings.sigma_scale * field_spread_ev(J[valid], cov), settings.sigma_floor)
+    try:
+        model, _ = profile_to_model(fam.mean + coef @ fam.components, fam.radii, w, h,
+                                    center=(float(geo[0] * radius), float(geo[1] * radius)),
+                                    shape=(float(geo[2]), float(geo[3])))
+        # G > 0 over the frame: on the working copy's bins and at the corners (the
+        # largest radius of a convex form over a rectangle is at a corner)
+        cx = np.array([-(w - 1) / 2.0, (w - 1) / 2.0, -(w - 1) / 2.0, (w - 1) / 2.0])
+        cy = np.array([-(h - 1) / 2.0, -(h - 1) / 2.0, (h - 1) / 2.0, (h - 1) / 2.0])
+        field = model.log_field_at(np.concatenate([np.broadcast_to(xs[None, :], L.shape)[valid], cx]),
+                                   np.concatenate([np.broadcast_to(ys[:, None], L.shape)[valid], cy]))
+        ev_rms = model.field_ev_rms()
+    except ModelError:
+        return None
+    spread = float(np.std(field)) / _LN2
+    snr = spread / sigma if sigma > 0 else math.inf
+    q = FitQuality(confidence=float(1.0 / (1.0 + math.exp(-2.0 * (snr - settings.min_snr)))), field_ev_rms=ev_rms,
+                   field_sigma_ev=sigma, snr=snr, fallback=snr < settings.min_snr, iterations=OFF_CENTRE_ITERATIONS,
+                   seconds=time.perf_counter() - t0)
+    model = replace(model, method=OFF_CENTRE_METHOD, quality=q)
+    if q.fallback:
+        return VignettingModel.identity(w, h, method=OFF_CENTRE_METHOD, quality=q, candidate=model)
+    return model
 
 
 def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: FamilySettings = FamilySettings(),

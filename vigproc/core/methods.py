@@ -2,7 +2,7 @@
 the settings check need the names, not the estimators)."""
 
 #: Methods :func:`vigproc.core.estimate.estimate` accepts. "default": the lens-family fit,
-#: or the free Kang-Weiss fit for a frame whose centre is clearly off (a crop).
+#: or an off-centre fit for a frame whose centre is clearly off (a crop).
 METHODS = ("default", "robust", "real-lens", "flat-field", "lens-family", "lyu2010", "lyu2010-rand", "ga")
 #: The methods that are vigproc's robust Kang-Weiss estimator ("default" when given
 #: RobustSettings).
