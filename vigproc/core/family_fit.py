@@ -22,7 +22,7 @@ scene's own shading to pass as vignetting.
    half-diagonals, in every component of the family when the pairs are weighted by
    colour and in the first two otherwise (:func:`family_for`); a Gaussian prior on c from lensfun's calibrations (narrowed to
    lenses like the frame's EXIF when given). Linear in c: IRLS solves it exactly
-   (:func:`irls`, NumPy: each step is three matrix-vector products over the pairs'
+   (:func:`irls`, NumPy: each step is two matrix-vector products over the pairs'
    precomputed a·aᵀ and a·d, faster than the Numba loop it replaced, and a process
    that only pools a profile never waits for Numba to load its compiled kernels).
 4. Uncertainty: neighbouring pairs are far from independent, so the Gauss-Newton
@@ -366,24 +366,28 @@ def irls(d: np.ndarray, a: np.ndarray, weight: np.ndarray, c0: np.ndarray, pmean
     P. W. Holland, R. E. Welsch, "Robust regression using iteratively reweighted
     least-squares", Comm. Statist. 6(9), 1977.
     """
-    at, upper, ad = pair_products(d, a) if products is None else products
+    at, sums = pair_products(d, a) if products is None else products
     K = at.shape[0]
     iu, ju = np.triu_indices(K)
+    nu = iu.size
     c = np.array(c0, dtype=np.float64, copy=True)
     scale = 1.0 / (sigma * sigma * kappa)
-    inv_s2 = 1.0 / (sigma * sigma)
+    inv_s = 1.0 / sigma
     prior = pinv @ pmean
     H = np.empty((K, K))
+    e, w = np.empty(d.size), np.empty(d.size)
     for _ in range(iterations):
-        e = d - c @ at
-        e *= e
-        e *= inv_s2
+        # in place: a step is two matrix-vector products and five passes over the pairs
+        np.dot(c, at, out=e)
+        np.subtract(d, e, out=e)
+        e *= inv_s
+        np.multiply(e, e, out=e)
         e += 1.0
-        w = weight / e
-        h = upper @ w
-        H[iu, ju] = h
-        H[ju, iu] = h
-        c_new = np.linalg.solve(H * scale + pinv, (ad @ w) * scale + prior)
+        np.divide(weight, e, out=w)
+        g = sums @ w  # the upper triangle of AᵀWA, then AᵀWd
+        H[iu, ju] = g[:nu]
+        H[ju, iu] = g[:nu]
+        c_new = np.linalg.solve(H * scale + pinv, g[nu:] * scale + prior)
         done = float(np.max(np.abs(c_new - c))) < 1e-4
         c = c_new
         if done:
@@ -391,22 +395,25 @@ def irls(d: np.ndarray, a: np.ndarray, weight: np.ndarray, c0: np.ndarray, pmean
     return c
 
 
-#: :func:`irls`'s sums per pair, pairs along the last axis: aᵀ (K×n), the upper
-#: triangle of a·aᵀ (K(K+1)/2 × n, in :func:`numpy.triu_indices` order) and a·d (K×n).
-PairProducts = tuple[np.ndarray, np.ndarray, np.ndarray]
+#: :func:`irls`'s sums per pair, pairs along the last axis: aᵀ (K×n), and in one array
+#: the upper triangle of a·aᵀ (K(K+1)/2 rows, in :func:`numpy.triu_indices` order)
+#: followed by a·d (K rows).
+PairProducts = tuple[np.ndarray, np.ndarray]
 
 
 def pair_products(d: np.ndarray, a: np.ndarray) -> PairProducts:
-    """:data:`PairProducts` of pairs ``d``, ``a``: a step of :func:`irls` is then three
+    """:data:`PairProducts` of pairs ``d``, ``a``: a step of :func:`irls` is then two
     matrix-vector products over contiguous rows."""
     at = np.ascontiguousarray(a.T)
-    iu, ju = np.triu_indices(at.shape[0])
-    upper = np.empty((iu.size, at.shape[1]))
+    K = at.shape[0]
+    iu, ju = np.triu_indices(K)
+    sums = np.empty((iu.size + K, at.shape[1]))
     # row by row into one array: indexing at[iu] * at[ju] copied both operands first,
     # and took 17 times as long (the same bits)
     for k, (i, j) in enumerate(zip(iu, ju)):
-        np.multiply(at[i], at[j], out=upper[k])
-    return at, upper, at * d
+        np.multiply(at[i], at[j], out=sums[k])
+    np.multiply(at, d, out=sums[iu.size:])
+    return at, sums
 
 
 def _pair_steps(settings: FamilySettings, shape: tuple[int, int]) -> np.ndarray:
