@@ -53,9 +53,11 @@ def test_robust_falls_back_on_vignetting_free_texture():
 
 def test_default_does_no_harm_on_vignetting_free_textures():
     models = [vigproc.estimate(textured(320, 480, seed=s, contrast=0.05), channel_axis=None) for s in range(6)]
-    assert sum(m.quality.fallback for m in models) >= 5
+    # most are left alone; what is applied to the others is negligible (SNR just above
+    # the threshold: a field of about 0.015 EV)
+    assert sum(m.quality.fallback for m in models) >= 4
     assert all(m.is_identity and m.candidate is not None for m in models if m.quality.fallback)
-    assert max(float(np.std(m.log_field())) / np.log(2) for m in models) < 0.05
+    assert max(float(np.std(m.log_field())) / np.log(2) for m in models) < 0.02
 
 
 def test_ga_is_exact_for_a_gaussian_field():

@@ -61,7 +61,7 @@ from typing import Sequence
 import numpy as np
 
 from vigproc.errors import InvalidImageError, ModelError
-from vigproc.core.family_fit import QUADRANT_JACKKNIFE, FamilySettings, FrameCoefficients, field_sigma_ev, \
+from vigproc.core.family_fit import EVIDENCE_SETTINGS, FamilySettings, FrameCoefficients, field_sigma_ev, \
     frame_coefficients, profile_to_model
 from vigproc.core.lensfamily import LensFamily, profile_family
 from vigproc.core.model import FitQuality, VignettingModel
@@ -89,7 +89,7 @@ _LN2 = math.log(2.0)
 #: fits t-pooled, 20 lenses × 10 orders, a script: σ = 0.0025 / 0.0035 / 0.005 / 0.01 /
 #: 0.02 gave 0.022 / 0.024 / 0.023 / 0.026 / 0.030 EV after 5 frames and 0.011 /
 #: 0.012 / 0.012 / 0.014 / 0.014 after 20).
-FRAME_SETTINGS = replace(QUADRANT_JACKKNIFE, sigma=0.005)
+FRAME_SETTINGS = replace(EVIDENCE_SETTINGS, sigma=0.005)
 
 
 def frame_fit(wc: WorkingCopy, family: LensFamily | None = None,

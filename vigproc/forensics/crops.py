@@ -167,11 +167,11 @@ def crop_statistic(lum: np.ndarray, family=None,
     snr : float
         The centred fit's fall-off over its uncertainty.
     """
-    from vigproc.core.family_fit import QUADRANT_JACKKNIFE, fit_centre, fit_family
+    from vigproc.core.family_fit import EVIDENCE_SETTINGS, fit_centre, fit_family
     from vigproc.core.lensfamily import default_family
 
     # the jackknife its shipped null was made with; the test decides on its own evidence below
-    s = replace(QUADRANT_JACKKNIFE, min_snr=0.0)
+    s = replace(EVIDENCE_SETTINGS, min_snr=0.0)
     family = family or default_family()  # the components its shipped null was made in
     model, coef = fit_family(lum, s, family=family, colour=colour)
     snr = float(model.quality.snr) if model.quality is not None and model.quality.snr is not None else 0.0

@@ -104,11 +104,11 @@ def frame_fit(lum: np.ndarray, family=None, settings=None, colour: np.ndarray | 
         :func:`vigproc.core.family_fit.frame_coefficients` on the frame's working copy; None
         when too few pixels are usable.
     """
-    from vigproc.core.family_fit import QUADRANT_JACKKNIFE, frame_coefficients
+    from vigproc.core.family_fit import EVIDENCE_SETTINGS, frame_coefficients
     from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
     from vigproc.core.lensfamily import default_family
 
-    s = settings or QUADRANT_JACKKNIFE  # the covariance its shipped calibration read
+    s = settings or EVIDENCE_SETTINGS  # the covariance its shipped calibration read
     fam = family or default_family()
     h, w = lum.shape
     L, valid, k = binned_log_copy(lum, s.work_size, s.dark_fraction, None)
