@@ -23,7 +23,7 @@ so a profile pools its frames' evidence:
    frames' stored fits, 20 lenses × 10 orders, scatter measured on the other half of
    the bases): 0.020 / 0.012 / 0.008 EV after 5 / 20 / 50 frames, against the
    coordinate-wise median's 0.027 / 0.013 / 0.008 (the single-frame fit's Cauchy scale;
-   with :data:`FRAME_SETTINGS` ``vigproc bench profile-clean`` gives 0.019 / 0.009 /
+   with :data:`FRAME_SETTINGS` ``vigproc bench profile-clean`` gives 0.018 / 0.009 /
    0.007), which had beaten the mean, trimmed
    means, Hodges-Lehmann, the spatial median and Huber weights. The median is the
    fall-back when no scatter is known.
@@ -88,8 +88,11 @@ _LN2 = math.log(2.0)
 #: closely; pooled, the frames' fits then agree better (clean protocol, the frames'
 #: fits t-pooled, 20 lenses × 10 orders, a script: σ = 0.0025 / 0.0035 / 0.005 / 0.01 /
 #: 0.02 gave 0.022 / 0.024 / 0.023 / 0.026 / 0.030 EV after 5 frames and 0.011 /
-#: 0.012 / 0.012 / 0.014 / 0.014 after 20).
-FRAME_SETTINGS = replace(EVIDENCE_SETTINGS, sigma=0.005)
+#: 0.012 / 0.012 / 0.014 / 0.014 after 20). The chroma scale τ is the single-frame fit's
+#: (0.002 since session 15; ``vigproc bench profile-clean`` with the scene scatter
+#: re-measured: 0.0188 / 0.0088 / 0.0069 → 0.0178 / 0.0086 / 0.0070 EV after 5 / 20 / 50
+#: frames against τ = 0.003).
+FRAME_SETTINGS = replace(EVIDENCE_SETTINGS, sigma=0.005, chroma_tau=0.002)
 
 
 def frame_fit(wc: WorkingCopy, family: LensFamily | None = None,
