@@ -29,21 +29,23 @@ CLIP_LEVEL = 0.995
 CLIP_MIN_FRACTION = 1e-3
 #: The default estimator fits a colour frame's fall-off in the lens family off-centre and
 #: elliptical (:func:`vigproc.core.family_fit.fit_off_centre`) rather than by the free
-#: Kang-Weiss fit when the centre tests put the centre at least this far off (half-diagonals) and the
-#: centred fit's fall-off is at least :data:`OFF_CENTRE_MIN_EV` (EV RMS): a fall-off's
-#: shape and place can be read only when it is strong. On the clean protocol (a script
-#: over the same frames' fits) the centre tests fire on a fifth of the real lenses' frames
-#: (scenes move the centre); without these gates the off-centre family fit was taken on
-#: many of them and the real lenses' median went 0.044 -> 0.048 EV; with them (0.3 then)
-#: it stayed 0.044 while Table 1 settings 2 / 3 went 0.565 / 0.775 -> 0.26 / 0.34 EV. With
-#: the centred fit retuned (session 15) the gate at 0.25 keeps setting 3 at 0.33 (0.47 at
-#: 0.3; its median sits where frames go either way), the real lenses at 0.041.
+#: Kang-Weiss fit when the centre tests put the centre at least this far off
+#: (half-diagonals) and the centred fit's fall-off is at least :data:`OFF_CENTRE_MIN_EV`
+#: (EV RMS): a fall-off's shape and place can be read only when it is strong. On the
+#: clean protocol the centre tests fire on a fifth of the real lenses' frames (scenes
+#: move the centre); without these gates the off-centre family fit was taken on many of
+#: them (real lenses 0.044 -> 0.048 EV, a script, session 15 before the retune); with
+#: them the real lenses stay where the centred fit puts them (0.041 EV) and Table 1
+#: settings 2 / 3 go 0.565 / 0.775 -> 0.293 / 0.465 EV (``vigproc bench clean``;
+#: docs/benchmarks/clean.md).
 OFF_CENTRE_FAMILY_SHIFT = 0.25
 OFF_CENTRE_MIN_EV = 0.5
 #: The settings of the default estimator's off-centre path (the centre tests, the
-#: off-centre fits and the choice between fits): the lens-family fit's before session 15
-#: retuned its Cauchy scale, κ and τ for centred fits (Table 1 settings 2 / 3 on the clean
-#: bases: 0.260 / 0.339 EV with these, 0.356 / 0.520 with the retuned ones).
+#: off-centre fits, the centred fit they are compared with, and the comparison): the
+#: lens-family fit's before session 15 retuned its Cauchy scale, κ and τ for centred
+#: fits; with the retuned ones here too, Table 1 setting 3 on the clean bases went
+#: 0.34 -> 0.52 EV (a run of ``vigproc bench clean``). The off-centre fit's σ reads
+#: these settings' jackknife with the single-frame scale and floor.
 OFF_CENTRE_SETTINGS = FamilySettings(sigma=0.01, kappa=0.3, chroma_tau=0.003)
 
 
@@ -291,7 +293,7 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
         centre_colour = fit_centre(lum, coef, s, mask, family, hint, colour=colour, uncertainty=False)
         if not centre_colour.off_centre(s.off_centre_shift):
             return model
-    grey = model if colour is None else fit_family(lum, s, mask, family, hint)[0]
+    grey = fit_family(lum, s, mask, family, hint)[0]  # the luminance's, as the comparison reads
     shift = centre.shift if colour is None else min(centre.shift, centre_colour.shift)
     strong = (model.candidate or model).quality.field_ev_rms >= OFF_CENTRE_MIN_EV
     alt = None

@@ -617,37 +617,52 @@ def _prior_with_geometry(fam: LensFamily, hint: LensHint, n_geometry: int, sprea
     return np.concatenate([pmean, np.zeros(n_geometry)]), np.linalg.inv(P)
 
 
-def _geometry_fit(L, index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings: FamilySettings,
+#: Largest |e| = |(e1, e2)| a Gauss-Newton step of the elliptical fit may reach: ρ² stays
+#: positive over the frame (at |e| = 1 the ellipse degenerates to a line).
+MAX_ELLIPTICITY = 0.9
+
+
+def _geometry_columns(fam: LensFamily, coef: np.ndarray, geo: np.ndarray, X: np.ndarray, Y: np.ndarray):
+    """The family's log field at (X, Y) (half-diagonals from the frame centre) for centre
+    u = geo[:2] and, when ``geo`` has four entries, shape e = geo[2:]: its mean part M and
+    its derivatives J by (c, geometry), shape (…, K + 2 or 4); log φ = M + J[..., :K]·c.
+
+    ρ² = (1 + e1)·dx² + 2·e2·dx·dy + (1 − e1)·dy², (dx, dy) = v − u; ∂f/∂θ = f'(ρ)·∂ρ/∂θ with
+    ∂ρ/∂u = −(gx, gy)/ρ, (gx, gy) = ((1 + e1)·dx + e2·dy, e2·dx + (1 − e1)·dy), and
+    ∂ρ/∂e = ((dx² − dy²)/2, dx·dy)/ρ.
+    """
+    dx, dy = X - geo[0], Y - geo[1]
+    if geo.size == 4:
+        e1, e2 = geo[2], geo[3]
+        rho = np.sqrt(np.maximum((1 + e1) * dx * dx + 2 * e2 * dx * dy + (1 - e1) * dy * dy, 1e-18))
+        gx, gy = (1 + e1) * dx + e2 * dy, e2 * dx + (1 - e1) * dy
+    else:
+        rho = np.maximum(np.hypot(dx, dy), 1e-9)
+        gx, gy = dx, dy
+    M, B, slope = _extended(fam, coef, rho)
+    cols = [B, (-slope * gx / rho)[..., None], (-slope * gy / rho)[..., None]]
+    if geo.size == 4:
+        cols += [(slope * 0.5 * (dx * dx - dy * dy) / rho)[..., None], (slope * dx * dy / rho)[..., None]]
+    return M, np.concatenate(cols, axis=-1)
+
+
+def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings: FamilySettings,
                   elliptical: bool, iterations: int, tolerance: float = 1e-3):
     """Gauss-Newton on the fall-off's centre u (and, ``elliptical``, its shape (e1, e2)),
-    four IRLS steps of the family coefficients inside each.
+    four IRLS steps of the family coefficients inside each (:func:`_geometry_columns`;
+    a step is shortened so that |e| stays within :data:`MAX_ELLIPTICITY`).
 
-    The radius is ρ² = (1 + e1)·dx² + 2·e2·dx·dy + (1 − e1)·dy² with (dx, dy) = v − u in
-    half-diagonals (ρ = |v − u| when circular). Returns the coefficients, the geometry
-    (u, or u and e), the last step's pairs, solution and prior mean (for the jackknife),
-    and the log field's derivatives by (c, geometry) at each bin (h × w × (K + 2 or 4)).
+    Returns the coefficients, the geometry (u, or u and e), the last step's pairs,
+    solution and prior mean (for the jackknife), and the number of steps taken.
     """
     K = fam.n_components
     E = 4 if elliptical else 2
     geo = np.zeros(E)
     coef = np.asarray(c, dtype=np.float64).copy()
-    d = a = sol = pm_it = J = None
+    d = a = sol = pm_it = None
+    steps = 0
     for _ in range(iterations):
-        dx, dy = X - geo[0], Y - geo[1]
-        if elliptical:
-            e1, e2 = geo[2], geo[3]
-            rho = np.sqrt(np.maximum((1 + e1) * dx * dx + 2 * e2 * dx * dy + (1 - e1) * dy * dy, 1e-18))
-            gx, gy = (1 + e1) * dx + e2 * dy, e2 * dx + (1 - e1) * dy
-        else:
-            rho = np.maximum(np.hypot(dx, dy), 1e-9)
-            gx, gy = dx, dy
-        M, B, slope = _extended(fam, coef, rho)
-        # ∂f/∂θ = f'(ρ)·∂ρ/∂θ; ∂ρ/∂u = −(gx, gy)/ρ, ∂ρ/∂e = ((dx² − dy²)/2, dx·dy)/ρ;
-        # f's value at θ is already in M + B·c
-        cols = [B, (-slope * gx / rho)[..., None], (-slope * gy / rho)[..., None]]
-        if elliptical:
-            cols += [(slope * 0.5 * (dx * dx - dy * dy) / rho)[..., None], (slope * dx * dy / rho)[..., None]]
-        J = np.concatenate(cols, axis=-1)
+        M, J = _geometry_columns(fam, coef, geo, X, Y)
         d, a = pairs_at(index, M, J)
         if d.size < MIN_VALID_BINS:
             break
@@ -655,11 +670,20 @@ def _geometry_fit(L, index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, setti
         pm_it = pm.copy()
         pm_it[K:] = -geo  # the prior is on the geometry, not on the step
         sol = _solve(d, a, index.weight, x0, pm_it, pinv, settings, 4)
+        if not np.all(np.isfinite(sol)):
+            break
+        steps += 1
         coef = sol[:K]
-        geo = geo + sol[K:]
+        step = sol[K:].copy()
+        if elliptical:
+            e = geo[2:] + step[2:]
+            size = float(np.hypot(*e))
+            if size > MAX_ELLIPTICITY:  # along the step, to the largest shape allowed
+                step[2:] = e * (MAX_ELLIPTICITY / size) - geo[2:]
+        geo = geo + step
         if float(np.max(np.abs(sol[K:]))) < tolerance:
             break
-    return coef, geo, d, a, sol, pm_it, J
+    return coef, geo, d, a, sol, pm_it, steps
 
 
 def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
@@ -688,8 +712,8 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     index = pair_index(L, valid, _pair_steps(settings, L.shape), _block_labels(L.shape, settings.jackknife_blocks),
                        C, settings.chroma_tau)
     K = fam.n_components
-    _, u, d, a, sol, pm_it, _ = _geometry_fit(L, index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv,
-                                           settings, False, iterations)
+    _, u, d, a, sol, pm_it, _ = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv,
+                                              settings, False, iterations)
     cov = np.zeros((2, 2))
     if not uncertainty:
         cov = np.full((2, 2), math.nan)
@@ -733,6 +757,7 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
         are usable or no Kang-Weiss model holds the fit (it would black out part of the
         frame).
     """
+    t0 = time.perf_counter()
     fam = _in_components(family or profile_family(), len(c))
     h, w = lum.shape
     L, valid, xs, ys, C = _working_copy(lum, settings, mask, colour)
@@ -742,15 +767,20 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 4, OFF_CENTRE_SPREAD)
     index = pair_index(L, valid, _pair_steps(settings, L.shape), _block_labels(L.shape, settings.jackknife_blocks),
                        C, settings.chroma_tau)
-    t0 = time.perf_counter()
-    coef, geo, d, a, sol, pm_it, J = _geometry_fit(L, index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm,
-                                                   pinv, settings, True, OFF_CENTRE_ITERATIONS)
-    if d is None or d.size < MIN_VALID_BINS or abs(complex(geo[2], geo[3])) >= 0.95:
-        return None  # no pairs, or an ellipse degenerate to a line
-    # σ as a centred fit's (fit_family), the jackknife over every parameter carried to
-    # the field by its derivatives at each bin
+    coef, geo, d, a, sol, pm_it, steps = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c,
+                                                       pm, pinv, settings, True, OFF_CENTRE_ITERATIONS)
+    if d is None or d.size < MIN_VALID_BINS or not np.all(np.isfinite(geo)) \
+            or float(np.hypot(geo[2], geo[3])) >= MAX_ELLIPTICITY - 1e-9:
+        return None  # no pairs, or a shape held at the bound: no fit
+    # σ and the signal as fit_family's: the jackknife over every parameter carried to the
+    # field by its derivatives at the fit, both on a 16×16 grid over the whole frame
+    n = 16
+    gx = np.linspace(-(w - 1) / 2.0, (w - 1) / 2.0, n)
+    gy = np.linspace(-(h - 1) / 2.0, (h - 1) / 2.0, n)
+    GX, GY = np.broadcast_to(gx[None, :], (n, n)), np.broadcast_to(gy[:, None], (n, n))
+    _, J = _geometry_columns(fam, coef, geo, GX / radius, GY / radius)
     cov = _spread(_jackknife(d, a, index.labels, index.weight, sol, pm_it, pinv, settings))
-    sigma = math.hypot(settings.sigma_scale * field_spread_ev(J[valid], cov), settings.sigma_floor)
+    sigma = math.hypot(settings.sigma_scale * field_spread_ev(J.reshape(n * n, -1), cov), settings.sigma_floor)
     try:
         model, _ = profile_to_model(fam.mean + coef @ fam.components, fam.radii, w, h,
                                     center=(float(geo[0] * radius), float(geo[1] * radius)),
@@ -759,15 +789,15 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
         # largest radius of a convex form over a rectangle is at a corner)
         cx = np.array([-(w - 1) / 2.0, (w - 1) / 2.0, -(w - 1) / 2.0, (w - 1) / 2.0])
         cy = np.array([-(h - 1) / 2.0, -(h - 1) / 2.0, (h - 1) / 2.0, (h - 1) / 2.0])
-        field = model.log_field_at(np.concatenate([np.broadcast_to(xs[None, :], L.shape)[valid], cx]),
-                                   np.concatenate([np.broadcast_to(ys[:, None], L.shape)[valid], cy]))
+        model.log_field_at(np.concatenate([np.broadcast_to(xs[None, :], L.shape)[valid], cx]),
+                           np.concatenate([np.broadcast_to(ys[:, None], L.shape)[valid], cy]))
+        spread = float(np.std(model.log_field_at(GX, GY))) / _LN2
         ev_rms = model.field_ev_rms()
     except ModelError:
         return None
-    spread = float(np.std(field)) / _LN2
     snr = spread / sigma if sigma > 0 else math.inf
     q = FitQuality(confidence=float(1.0 / (1.0 + math.exp(-2.0 * (snr - settings.min_snr)))), field_ev_rms=ev_rms,
-                   field_sigma_ev=sigma, snr=snr, fallback=snr < settings.min_snr, iterations=OFF_CENTRE_ITERATIONS,
+                   field_sigma_ev=sigma, snr=snr, fallback=snr < settings.min_snr, iterations=steps,
                    seconds=time.perf_counter() - t0)
     model = replace(model, method=OFF_CENTRE_METHOD, quality=q)
     if q.fallback:
