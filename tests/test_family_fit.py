@@ -444,3 +444,19 @@ def test_a_strip_too_thin_for_any_pair_step_is_no_crash():
                                    np.zeros((1, 1, 2)), np.array([], dtype=np.int64),
                                    np.zeros((1, 1), np.int64), None, 0.003)
     assert d.shape == (0,) and a.shape == (0, 2) and labels.dtype == np.int64 and w.shape == (0,)
+
+
+def test_a_grey_fit_states_its_sigma_on_the_grey_scale():
+    """A fit whose pairs are not weighted by colour has its own σ scale (calibrated on
+    luminance fits); a colour-weighted fit's σ does not read it."""
+    from dataclasses import replace
+
+    grey = textured(H, W, seed=4, contrast=0.05) * _lens_field()
+    colour = _colour_texture(seed=4) * _lens_field()[..., None]
+    s = FamilySettings()
+    for frame, col, follows in ((grey, None, True), (colour, colour, False)):
+        lum = frame if frame.ndim == 2 else vigproc.core.pixels.luminance(frame)
+        a = fit_family(lum, s, colour=col)[0]
+        b = fit_family(lum, replace(s, grey_sigma_scale=2 * s.grey_sigma_scale), colour=col)[0]
+        ratio = b.quality.field_sigma_ev / a.quality.field_sigma_ev
+        assert (1.6 < ratio < 2.01) if follows else ratio == 1.0
