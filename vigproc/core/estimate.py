@@ -301,8 +301,8 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     # wins too easily (BSDS x lensfun fields, grey: 0.086 EV with it, 0.074 without); a
     # colour frame's is fitted on colour-weighted pairs and judged on the luminance's. A
     # fit weighted by colour is the one in more than N_COMPONENTS components (family_for):
-    # a grey frame stored as R = G = B is fitted as grey, and goes the same way here.
-    weighted = colour is not None and len(coef) > N_COMPONENTS
+    # a grey frame, or one stored as R = G = B, is fitted as grey and goes the same way.
+    weighted = len(coef) > N_COMPONENTS
     if shift >= OFF_CENTRE_FAMILY_SHIFT and strong and weighted:
         alt = fit_off_centre(lum, coef, s, mask, family, hint, colour)
     if alt is None:

@@ -225,6 +225,11 @@ def _with_chroma(valid: np.ndarray, channels: tuple[np.ndarray, np.ndarray] | No
     return both, np.ascontiguousarray(C, dtype=np.float64)
 
 
+def _confidence(snr: float, min_snr: float) -> float:
+    """A fit's confidence: a logistic of its SNR about the fall-back threshold."""
+    return float(1.0 / (1.0 + math.exp(-2.0 * (snr - min_snr))))
+
+
 def colour_of(img: np.ndarray) -> np.ndarray | None:
     """The R, G, B channels of a checked frame (H×W×C, channels last) whose chroma the
     fit may weigh pairs by, or None (a grey frame, or one with fewer channels)."""
@@ -287,6 +292,13 @@ def pair_index(L: np.ndarray, valid: np.ndarray, steps: np.ndarray, block: np.nd
         return PairIndex(none, none, np.empty(0), np.empty(0), none, np.empty(0))
     return PairIndex(np.concatenate(first), np.concatenate(second), np.concatenate(inv), np.concatenate(dl),
                      np.concatenate(lab).astype(np.int64), np.concatenate(wt))
+
+
+def _settings_index(L: np.ndarray, valid: np.ndarray, C: np.ndarray | None, settings: FamilySettings) -> PairIndex:
+    """The :class:`PairIndex` of a working copy with ``settings``' pair steps, jackknife
+    blocks and chroma scale."""
+    return pair_index(L, valid, _pair_steps(settings, L.shape), _block_labels(L.shape, settings.jackknife_blocks),
+                      C, settings.chroma_tau)
 
 
 def pairs_at(index: PairIndex, M: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -488,12 +500,23 @@ def field_spread_ev(basis: np.ndarray, cov: np.ndarray) -> float:
     return float(math.sqrt(max(float(np.mean(var)), 0.0)) / _LN2)
 
 
+def _frame_grid(width: int, height: int, n: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """x (n,) and y (n,), px from the frame centre, of an n×n grid spanning a frame: where
+    a fit's field and its uncertainty are summarised."""
+    return (np.linspace(-(width - 1) / 2, (width - 1) / 2, n),
+            np.linspace(-(height - 1) / 2, (height - 1) / 2, n))
+
+
+def _frame_corners(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """x (4,) and y (4,) of the frame's corner pixels' centres, px from the frame centre."""
+    x, y = (width - 1) / 2.0, (height - 1) / 2.0
+    return np.array([-x, -x, x, x]), np.array([-y, y, -y, y])
+
+
 def frame_rho_grid(width: int, height: int, n: int = 16) -> np.ndarray:
-    """ρ (half-diagonals from the frame centre) on an n×n grid spanning a frame: where a
+    """ρ (half-diagonals from the frame centre) on the :func:`_frame_grid`: where a
     family fit's field and its uncertainty are summarised."""
-    gx = np.linspace(-(width - 1) / 2, (width - 1) / 2, n)
-    gy = np.linspace(-(height - 1) / 2, (height - 1) / 2, n)
-    return _rho(gx, gy, half_diagonal(width, height))
+    return _rho(*_frame_grid(width, height, n), half_diagonal(width, height))
 
 
 def field_sigma_ev(family: LensFamily, cov: np.ndarray, width: int, height: int) -> float:
@@ -523,13 +546,11 @@ def profile_to_model(log_profile: np.ndarray, radii: np.ndarray, width: int, hei
     """
     R = half_diagonal(width, height)
     e1, e2 = shape
-    corners = np.array([[sx * (width - 1) / 2.0 - center[0], sy * (height - 1) / 2.0 - center[1]]
-                        for sx in (-1, 1) for sy in (-1, 1)]) / R
-    reach = float(np.sqrt(np.max((1 + e1) * corners[:, 0] ** 2 + 2 * e2 * corners[:, 0] * corners[:, 1]
-                                 + (1 - e1) * corners[:, 1] ** 2)))
+    cx, cy = _frame_corners(width, height)
+    cx, cy = (cx - center[0]) / R, (cy - center[1]) / R
+    reach = float(np.sqrt(np.max((1 + e1) * cx**2 + 2 * e2 * cx * cy + (1 - e1) * cy**2)))
     rho = np.linspace(0.0, reach if reach > 1.0 + 1e-9 else 1.0, _KW_SAMPLES)
-    slope = (log_profile[-1] - log_profile[-2]) / (radii[-1] - radii[-2])
-    f = np.interp(rho, radii, log_profile) + np.maximum(rho - radii[-1], 0.0) * slope
+    f = _extrapolated(rho, radii, log_profile)
     r = KW_SCALE * rho
     a = 1.0 / (1.0 + (r / 2.0) ** 2) ** 2
     target = 1.0 - np.exp(f) / a  # = Σ α_i r^i
@@ -604,19 +625,23 @@ def _in_components(family: LensFamily, k: int) -> LensFamily:
     return family.truncated(k)
 
 
+def _extrapolated(rho: np.ndarray, radii: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` (a profile over ``radii``) at ``rho``, extended linearly past the last
+    radius with the last interval's slope (ρ > 1 occurs once the centre moves off the
+    frame's)."""
+    r = np.asarray(rho)
+    slope = (values[-1] - values[-2]) / (radii[-1] - radii[-2])
+    return np.interp(r.ravel(), radii, values).reshape(r.shape) + np.maximum(r - radii[-1], 0.0) * slope
+
+
 def _extended(fam: LensFamily, c: np.ndarray, rho: np.ndarray):
     """Mean, components and the full profile's slope at ``rho``, extended linearly
-    past the corner (ρ > 1 occurs once the centre moves off the frame's)."""
+    past the corner (:func:`_extrapolated`)."""
     r = np.asarray(rho)
-    inside = np.minimum(r, 1.0)
-    past = np.maximum(r - 1.0, 0.0)
-    m_slope = np.gradient(fam.mean, fam.radii)
-    c_slope = np.gradient(fam.components, fam.radii, axis=1)
-    mean = np.interp(inside.ravel(), fam.radii, fam.mean).reshape(r.shape) + past * m_slope[-1]
-    basis = np.stack([np.interp(inside.ravel(), fam.radii, b).reshape(r.shape) + past * sl[-1]
-                      for b, sl in zip(fam.components, c_slope)], axis=-1)
-    slope = m_slope + c @ c_slope
-    return mean, basis, np.interp(inside.ravel(), fam.radii, slope).reshape(r.shape)
+    slope = np.gradient(fam.mean, fam.radii) + c @ np.gradient(fam.components, fam.radii, axis=1)
+    mean = _extrapolated(r, fam.radii, fam.mean)
+    basis = np.stack([_extrapolated(r, fam.radii, b) for b in fam.components], axis=-1)
+    return mean, basis, np.interp(np.minimum(r, 1.0).ravel(), fam.radii, slope).reshape(r.shape)
 
 
 def _prior_with_geometry(fam: LensFamily, hint: LensHint, n_geometry: int, spread: float):
@@ -722,8 +747,7 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     # the centre within about half a half-diagonal
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 2, 0.5)
     # the pairs and their weights stay; only the field divided out moves with the centre
-    index = pair_index(L, valid, _pair_steps(settings, L.shape), _block_labels(L.shape, settings.jackknife_blocks),
-                       C, settings.chroma_tau)
+    index = _settings_index(L, valid, C, settings)
     K = fam.n_components
     _, u, d, a, sol, pm_it, _ = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv,
                                               settings, False, iterations)
@@ -778,8 +802,7 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
         return None
     radius = half_diagonal(w, h)
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 4, OFF_CENTRE_SPREAD)
-    index = pair_index(L, valid, _pair_steps(settings, L.shape), _block_labels(L.shape, settings.jackknife_blocks),
-                       C, settings.chroma_tau)
+    index = _settings_index(L, valid, C, settings)
     coef, geo, d, a, sol, pm_it, steps = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c,
                                                        pm, pinv, settings, True, OFF_CENTRE_ITERATIONS)
     if d is None or d.size < MIN_VALID_BINS or not np.all(np.isfinite(geo)) \
@@ -787,21 +810,18 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
         return None  # no pairs, or a shape held at the bound: no fit
     # σ and the signal as fit_family's: the jackknife over every parameter carried to the
     # field by its derivatives at the fit, both on a 16×16 grid over the whole frame
-    n = 16
-    gx = np.linspace(-(w - 1) / 2.0, (w - 1) / 2.0, n)
-    gy = np.linspace(-(h - 1) / 2.0, (h - 1) / 2.0, n)
-    GX, GY = np.broadcast_to(gx[None, :], (n, n)), np.broadcast_to(gy[:, None], (n, n))
+    gx, gy = _frame_grid(w, h)
+    GX, GY = np.meshgrid(gx, gy)
     _, J = _geometry_columns(fam, coef, geo, GX / radius, GY / radius)
     cov = _spread(_jackknife(d, a, index.labels, index.weight, sol, pm_it, pinv, settings))
-    sigma = math.hypot(settings.sigma_scale * field_spread_ev(J.reshape(n * n, -1), cov), settings.sigma_floor)
+    sigma = math.hypot(settings.sigma_scale * field_spread_ev(J.reshape(GX.size, -1), cov), settings.sigma_floor)
     try:
         model, _ = profile_to_model(fam.mean + coef @ fam.components, fam.radii, w, h,
                                     center=(float(geo[0] * radius), float(geo[1] * radius)),
                                     shape=(float(geo[2]), float(geo[3])))
         # G > 0 over the frame: on the working copy's bins and at the corners (the
         # largest radius of a convex form over a rectangle is at a corner)
-        cx = np.array([-(w - 1) / 2.0, (w - 1) / 2.0, -(w - 1) / 2.0, (w - 1) / 2.0])
-        cy = np.array([-(h - 1) / 2.0, -(h - 1) / 2.0, (h - 1) / 2.0, (h - 1) / 2.0])
+        cx, cy = _frame_corners(w, h)
         model.log_field_at(np.concatenate([np.broadcast_to(xs[None, :], L.shape)[valid], cx]),
                            np.concatenate([np.broadcast_to(ys[:, None], L.shape)[valid], cy]))
         spread = float(np.std(model.log_field_at(GX, GY))) / _LN2
@@ -809,7 +829,7 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
     except ModelError:
         return None
     snr = spread / sigma if sigma > 0 else math.inf
-    q = FitQuality(confidence=float(1.0 / (1.0 + math.exp(-2.0 * (snr - settings.min_snr)))), field_ev_rms=ev_rms,
+    q = FitQuality(confidence=_confidence(snr, settings.min_snr), field_ev_rms=ev_rms,
                    field_sigma_ev=sigma, snr=snr, fallback=snr < settings.min_snr, iterations=steps,
                    seconds=time.perf_counter() - t0)
     model = replace(model, method=OFF_CENTRE_METHOD, quality=q)
@@ -981,7 +1001,8 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     quad = _block_labels(L.shape, settings.jackknife_blocks)
     d, a, labels, wt = family_pairs(L, valid, M, B, steps, quad, C, settings.chroma_tau)
     # components nest: the first k columns of a are the k-component family's
-    fam = family_for(fam, colour_weighted(wt))
+    weighted = colour_weighted(wt)
+    fam = family_for(fam, weighted)
     a = a[:, :fam.n_components]
     hint = hint or LensHint()
     pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
@@ -992,13 +1013,12 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     grid = frame_rho_grid(w, h)
     sigma_jk = field_sigma_ev(fam, cov_jk, w, h)
     # a fit that does not weigh its pairs by colour is calibrated on its own
-    weighted = colour_weighted(wt)
     scale = settings.sigma_scale if weighted else settings.grey_sigma_scale
     sigma = math.hypot(scale * sigma_jk, settings.sigma_floor)
     # the error and σ are about the frame mean (a gain is free), so is the signal
     spread = float(np.std(fam.log_profile(c, grid))) / _LN2
     snr = spread / sigma if sigma > 0 else math.inf
-    confidence = float(1.0 / (1.0 + math.exp(-2.0 * (snr - settings.min_snr))))
+    confidence = _confidence(snr, settings.min_snr)
     accept = snr >= settings.min_snr
     residual = d - np.einsum("ij,j->i", a, c)  # einsum: no BLAS threads, the same bits in every process
     q = FitQuality(confidence=confidence, field_ev_rms=math.nan, field_sigma_ev=sigma, snr=snr,
