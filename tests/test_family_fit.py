@@ -183,17 +183,17 @@ def test_lens_family_sigma_is_stated_and_falls_back_on_no_evidence():
 
 def test_hint_narrows_the_prior():
     img = textured(H, W, seed=2, contrast=0.3) * _lens_field()
-    _, c0 = fit_family(img)
-    _, c1 = fit_family(img, hint=LensHint(focal35=24.0, fnumber=2.8))
+    c0 = fit_family(img).coefficients
+    c1 = fit_family(img, hint=LensHint(focal35=24.0, fnumber=2.8)).coefficients
     assert c0 is not None and c1 is not None and not np.allclose(c0, c1)
 
 
 def test_centre_fit_finds_an_off_centre_fall_off():
     img = textured(H, W, seed=3, contrast=0.3)
-    _, c = fit_family(img * _lens_field())
+    c = fit_family(img * _lens_field()).coefficients
     centred = fit_centre(img * _lens_field(), c)
     shifted_img = img * _lens_field(center=(-90.0, -60.0))
-    _, c2 = fit_family(shifted_img)
+    c2 = fit_family(shifted_img).coefficients
     shifted = fit_centre(shifted_img, c2)
     s = FamilySettings()
     assert not centred.off_centre(s.off_centre_shift)
@@ -246,7 +246,7 @@ def test_off_centre_family_fit_recovers_a_shifted_elliptical_lens():
     truth, _ = profile_to_model(prof, fam.radii, W, H, center=(-70.0, 40.0), shape=(0.3, -0.2))
     img = textured(H, W, seed=5, contrast=0.05)
     frame = img * truth.field()
-    _, c = fit_family(frame)
+    c = fit_family(frame).coefficients
     m = fit_off_centre(frame, c)
     assert m is not None and m.method == "lens-family-off-centre" and not m.quality.fallback
     assert abs(m.center[0] + 70) < 15 and abs(m.center[1] - 40) < 15
@@ -303,8 +303,8 @@ def test_a_grey_frame_in_three_channels_fits_as_its_luminance():
     img = textured(H, W, seed=5, contrast=0.1) * _lens_field()
     rgb = img[..., None] * np.array([0.8, 1.0, 0.6])
     lum = vigproc.core.pixels.luminance(rgb)
-    _, c_grey = fit_family(lum)
-    _, c_rgb = fit_family(lum, colour=rgb)
+    c_grey = fit_family(lum).coefficients
+    c_rgb = fit_family(lum, colour=rgb).coefficients
     np.testing.assert_allclose(c_rgb, c_grey, atol=1e-6)
     np.testing.assert_allclose(vigproc.estimate(rgb).field(), vigproc.estimate(lum, channel_axis=None).field(),
                                rtol=1e-5)
@@ -321,7 +321,7 @@ def test_a_fit_no_model_can_hold_falls_back(monkeypatch):
 
     monkeypatch.setattr(family_fit, "profile_to_model", no_model)
     img = textured(H, W, seed=6, contrast=0.1) * _lens_field()
-    m, c = fit_family(img)
+    m, c, _ = fit_family(img)
     assert m.is_identity and m.quality.fallback and m.quality.confidence == 0.0 and m.candidate is None
     assert c is not None and m.quality.snr > 0
 
@@ -360,8 +360,8 @@ def test_a_channel_too_dark_to_use_makes_a_grey_fit():
     img = textured(H, W, seed=7, contrast=0.1) * _lens_field()
     rgb = img[..., None] * np.array([1.0, 0.8, 0.0])
     lum = vigproc.core.pixels.luminance(rgb)
-    _, c_grey = fit_family(lum)
-    m, c_rgb = fit_family(lum, colour=rgb)
+    c_grey = fit_family(lum).coefficients
+    m, c_rgb, _ = fit_family(lum, colour=rgb)
     assert c_rgb is not None and not m.quality.fallback
     np.testing.assert_allclose(c_rgb, c_grey, atol=1e-6)
 
@@ -421,9 +421,12 @@ def test_a_colour_weighted_fit_uses_every_component_a_grey_one_two():
     scene = np.stack([textured(H, W, seed=30 + k, contrast=0.1) for k in range(3)], axis=-1)
     img = scene * _lens_field()[..., None]
     lum = vigproc.core.pixels.luminance(img)
-    assert len(fit_family(lum, family=fam, colour=img)[1]) == fam.n_components == 3
-    assert len(fit_family(lum, family=fam)[1]) == 2
-    assert len(fit_family(lum, family=fam, colour=np.repeat(lum[..., None], 3, axis=-1))[1]) == 2
+    fits = [fit_family(lum, family=f, colour=c) for f in (fam, fam.truncated(2))
+            for c in (img, None, np.repeat(lum[..., None], 3, axis=-1))]
+    assert [len(f.coefficients) for f in fits] == [3, 2, 2, 2, 2, 2]
+    # the flag says how the pairs were weighed, whatever the family's size: a caller
+    # cannot read it from the number of coefficients
+    assert [f.colour_weighted for f in fits] == [True, False, False, True, False, False]
     assert colour_weighted(np.full(10, 0.1)) and not colour_weighted(np.ones(10))
     assert not colour_weighted(np.zeros(0))
     assert family_for(fam, True) is fam and family_for(fam, False).n_components == 2
@@ -456,7 +459,7 @@ def test_a_grey_fit_states_its_sigma_on_the_grey_scale():
     s = FamilySettings()
     for frame, col, follows in ((grey, None, True), (colour, colour, False)):
         lum = frame if frame.ndim == 2 else vigproc.core.pixels.luminance(frame)
-        a = fit_family(lum, s, colour=col)[0]
-        b = fit_family(lum, replace(s, grey_sigma_scale=2 * s.grey_sigma_scale), colour=col)[0]
+        a = fit_family(lum, s, colour=col).model
+        b = fit_family(lum, replace(s, grey_sigma_scale=2 * s.grey_sigma_scale), colour=col).model
         ratio = b.quality.field_sigma_ev / a.quality.field_sigma_ev
         assert (1.6 < ratio < 2.01) if follows else ratio == 1.0

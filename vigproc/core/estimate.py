@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vigproc.errors import InvalidImageError, ModelError
-from vigproc.core.family_fit import FamilySettings, LensHint, colour_of
+from vigproc.core.family_fit import EVIDENCE_FIT, FamilySettings, LensHint, colour_of
 from vigproc.core.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
 from vigproc.core.pixels import bin_mean, check_image, log_image, luminance, require_size
 from vigproc.core.model import VignettingModel
@@ -46,7 +46,7 @@ OFF_CENTRE_MIN_EV = 0.5
 #: fits; with the retuned ones here too, Table 1 setting 3 on the clean bases went
 #: 0.34 -> 0.52 EV (a run of ``vigproc bench clean``). The off-centre fit's σ reads
 #: these settings' jackknife with the single-frame scale and floor.
-OFF_CENTRE_SETTINGS = FamilySettings(sigma=0.01, kappa=0.3, tolerance=1e-4, chroma_tau=0.003)
+OFF_CENTRE_SETTINGS = FamilySettings(**EVIDENCE_FIT)
 
 
 def clipped_mask(img: np.ndarray) -> np.ndarray | None:
@@ -271,9 +271,8 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     colour-weighted pairs; the choice between the fits reads the luminance.
     """
     from vigproc.core.family_fit import fit_centre, fit_family, fit_off_centre, pair_losses
-    from vigproc.core.lensfamily import N_COMPONENTS
 
-    model, coef = fit_family(lum, FamilySettings(), mask, family, hint, colour)
+    model, coef, weighted = fit_family(lum, FamilySettings(), mask, family, hint, colour)
     if coef is None:
         return model
     s = OFF_CENTRE_SETTINGS
@@ -293,16 +292,14 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
         centre_colour = fit_centre(lum, coef, s, mask, family, hint, colour=colour, uncertainty=False)
         if not centre_colour.off_centre(s.off_centre_shift):
             return model
-    grey = fit_family(lum, s, mask, family, hint)[0]  # the luminance's, as the comparison reads
+    grey = fit_family(lum, s, mask, family, hint).model  # the luminance's, as the comparison reads
     shift = centre.shift if colour is None else min(centre.shift, centre_colour.shift)
     strong = (model.candidate or model).quality.field_ev_rms >= OFF_CENTRE_MIN_EV
     alt = None
     # a grey frame's off-centre family fit is fitted on the very pairs that judge it, and
     # wins too easily (BSDS x lensfun fields, grey: 0.086 EV with it, 0.074 without); a
     # colour frame's is fitted on colour-weighted pairs and judged on the luminance's. A
-    # fit weighted by colour is the one in more than N_COMPONENTS components (family_for):
-    # a grey frame, or one stored as R = G = B, is fitted as grey and goes the same way.
-    weighted = len(coef) > N_COMPONENTS
+    # grey frame, or one stored as R = G = B, is fitted as grey and goes the same way.
     if shift >= OFF_CENTRE_FAMILY_SHIFT and strong and weighted:
         alt = fit_off_centre(lum, coef, s, mask, family, hint, colour)
     if alt is None:

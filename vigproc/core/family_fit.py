@@ -54,7 +54,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -177,8 +177,13 @@ class FamilySettings:
 #: shipped scene scatter and null tables) on fits made with the settings before session
 #: 15 (a 2×2 jackknife of 30-step refits, σ scale 2.25 and floor 0.01, Cauchy scale
 #: 0.01, κ = 0.3, τ = 0.003), and keep them: :data:`EVIDENCE_SETTINGS`.
-EVIDENCE_SETTINGS = FamilySettings(sigma=0.01, kappa=0.3, tolerance=1e-4, jackknife_blocks=2, jackknife_iterations=30,
-                                   sigma_scale=2.25, sigma_floor=0.01, grey_sigma_scale=2.25, chroma_tau=0.003)
+#:
+#: The fit those settings make (Cauchy scale, κ, tolerance, τ), apart from its jackknife
+#: and σ calibration: the evidence's, and the default estimator's off-centre path's
+#: (:data:`vigproc.core.estimate.OFF_CENTRE_SETTINGS`).
+EVIDENCE_FIT = {"sigma": 0.01, "kappa": 0.3, "tolerance": 1e-4, "chroma_tau": 0.003}
+EVIDENCE_SETTINGS = FamilySettings(**EVIDENCE_FIT, jackknife_blocks=2, jackknife_iterations=30,
+                                   sigma_scale=2.25, sigma_floor=0.01, grey_sigma_scale=2.25)
 
 
 def _working_copy(lum: np.ndarray, settings: FamilySettings, mask: np.ndarray | None,
@@ -950,13 +955,37 @@ def estimate_family(lum: np.ndarray, settings: FamilySettings = FamilySettings()
 
     :func:`fit_family` without its coefficients; see there.
     """
-    return fit_family(lum, settings, mask, family, hint, colour)[0]
+    return fit_family(lum, settings, mask, family, hint, colour).model
+
+
+class FamilyFit(NamedTuple):
+    """:func:`fit_family`'s answer.
+
+    Attributes
+    ----------
+    model : VignettingModel
+        Centred, circular, for the H×W frame; ``quality.field_sigma_ev`` is the
+        calibrated 1-σ error of log2 φ (RMS over the frame, about its mean). When the
+        evidence is weak, the identity model with ``quality.fallback`` and the fit as
+        ``candidate``.
+    coefficients : ndarray (K,) or None
+        The family coefficients of the fit (None when too few pixels were usable).
+    colour_weighted : bool
+        Whether the pairs were weighted by how alike their colour channels change
+        (:func:`colour_weighted`): the fit is then in every component of the family,
+        else in the first :data:`~vigproc.core.lensfamily.N_COMPONENTS`
+        (:func:`family_for`).
+    """
+
+    model: VignettingModel
+    coefficients: np.ndarray | None
+    colour_weighted: bool = False
 
 
 def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
                mask: np.ndarray | None = None, family: LensFamily | None = None,
                hint: LensHint | None = None,
-               colour: np.ndarray | None = None) -> tuple[VignettingModel, np.ndarray | None]:
+               colour: np.ndarray | None = None) -> FamilyFit:
     """Estimate a centred lens fall-off from an H×W linear luminance image.
 
     Parameters
@@ -979,13 +1008,8 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
 
     Returns
     -------
-    model : VignettingModel
-        Centred, circular, for the H×W frame; ``quality.field_sigma_ev`` is the
-        calibrated 1-σ error of log2 φ (RMS over the frame, about its mean). When the
-        evidence is weak, the identity model with ``quality.fallback`` and the fit as
-        ``candidate``.
-    coefficients : ndarray (K,) or None
-        The family coefficients of the fit (None when too few pixels were usable).
+    FamilyFit
+        The model, its family coefficients and whether its pairs were weighted by colour.
     """
     t0 = time.perf_counter()
     h, w = lum.shape
@@ -994,7 +1018,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     if int(valid.sum()) < MIN_VALID_BINS:
         log.debug("too few usable pixels (%d bins); no correction", int(valid.sum()))
         q = FitQuality(confidence=0.0, fallback=True, seconds=time.perf_counter() - t0)
-        return VignettingModel.identity(w, h, method=METHOD, quality=q), None
+        return FamilyFit(VignettingModel.identity(w, h, method=METHOD, quality=q), None)
     radius = half_diagonal(w, h)
     M, B = fam.profiles(_rho(xs, ys, radius))
     steps = _pair_steps(settings, L.shape)
@@ -1035,12 +1059,12 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
         # corners): no model holds it, so nothing to apply or to offer as a candidate
         log.debug("lens-family fit c=%s is no fall-off a model can hold; no correction", np.round(c, 3))
         q = replace(q, confidence=0.0, fallback=True)
-        return VignettingModel.identity(w, h, method=METHOD, quality=q), c
+        return FamilyFit(VignettingModel.identity(w, h, method=METHOD, quality=q), c, weighted)
     q = replace(q, field_ev_rms=ev_rms)
     fit = VignettingModel(w, h, center=fit.center, p=fit.p, alpha=fit.alpha, method=METHOD, quality=q)
     log.debug("lens-family fit: c=%s, %.3f EV ± %.3f (jackknife %.3f), %d pairs, written with %.4f EV error",
               np.round(c, 3), ev_rms, sigma, sigma_jk, n, conv_ev)
     if accept:
-        return fit, c
+        return FamilyFit(fit, c, weighted)
     log.debug("weak evidence (%.3f EV about the mean at SNR %.2f); no correction", spread, snr)
-    return VignettingModel.identity(w, h, method=METHOD, quality=q, candidate=fit), c
+    return FamilyFit(VignettingModel.identity(w, h, method=METHOD, quality=q, candidate=fit), c, weighted)

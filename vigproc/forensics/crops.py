@@ -173,7 +173,7 @@ def crop_statistic(lum: np.ndarray, family=None,
     # the jackknife its shipped null was made with; the test decides on its own evidence below
     s = replace(EVIDENCE_SETTINGS, min_snr=0.0)
     family = family or default_family()  # the components its shipped null was made in
-    model, coef = fit_family(lum, s, family=family, colour=colour)
+    model, coef, _ = fit_family(lum, s, family=family, colour=colour)
     snr = float(model.quality.snr) if model.quality is not None and model.quality.snr is not None else 0.0
     if coef is None:
         return np.zeros(2), np.eye(2), 0.0, 0.0, 0.0
