@@ -236,3 +236,67 @@ def test_a_grey_frame_is_judged_by_the_scatter_of_grey_fits(classes, calibration
     with pytest.raises(MatchCalibrationError):
         replace(calibration, grey_inflate=0.0)
     assert default_match_calibration().grey_inflate > 1.0  # the shipped one was made on colour frames
+
+
+def test_the_scene_gate_is_a_chi2_limit(tmp_path):
+    """A calibration made with its frames' own coefficients sets the scene limit (the χ²
+    quantile of SCENE_GATE_P); its null keeps every row. Old calibrations (no limit) load
+    with the gate off."""
+    from scipy.stats import chi2
+
+    from vigproc.forensics.lensmatch import SCENE_GATE_P, scene_d2
+
+    rng = np.random.default_rng(5)
+    fam = default_family()
+    r = rng.normal(size=(240, 2)) * [2.0, 0.7]
+    m, _ = fam.prior()
+    own = m[:2] + rng.normal(size=(240, 2)) * 0.3
+    own[:12] += [80.0, 0.0]  # twelve frames no lens explains (a sunset's glow, say)
+    groups = np.repeat(np.arange(60), 4)
+    cal = fit_match_calibration(r, groups, fam, coefficients=own)
+    plain = fit_match_calibration(r, groups, fam)
+    assert plain.scene_limit is None
+    assert cal.scene_limit == pytest.approx(chi2.isf(SCENE_GATE_P, 2))
+    scene = np.array([scene_d2(c, cal, fam) for c in own])
+    assert np.all(scene[:12] > cal.scene_limit) and np.all(scene[12:] <= cal.scene_limit)
+    assert np.array_equal(cal.null_d2(1), plain.null_d2(1))
+    assert scene_d2(m[:2] + cal.mean_vector, cal, fam) == pytest.approx(0.0)
+    far = m[:2] + cal.mean_vector + [10.0, 0.0]
+    assert scene_d2(far, cal, fam, inflate=4.0) < scene_d2(far, cal, fam)
+    cal.save(tmp_path / "c.json")
+    assert load_calibration(tmp_path / "c.json").scene_limit == pytest.approx(cal.scene_limit, abs=1e-4)
+    old = {k: v for k, v in cal.to_dict().items() if k != "scene_limit"}
+    assert "scene_limit" not in plain.to_dict() and MatchCalibration.from_dict(old).scene_limit is None
+    for bad in (-1.0, float("nan"), 0.0):
+        with pytest.raises(MatchCalibrationError):
+            MatchCalibration.from_dict(cal.to_dict() | {"scene_limit": bad})
+    with pytest.raises(MatchCalibrationError):
+        fit_match_calibration(r, groups, fam, coefficients=own[:10])
+
+
+def test_a_frame_no_lens_explains_is_left_undecided(classes, calibration):
+    """A scene that brightens towards its corners fits as no lens does: the check leaves
+    it undecided (and says why) rather than accuse the lens it claims; a frame of the lens
+    is decided as before. Its numbers stay, so a pool of frames still counts it."""
+    from dataclasses import replace
+
+    from vigproc.forensics.lensmatch import SCENE_GATE_P
+    from scipy.stats import chi2
+
+    strong, mild = classes[4], classes[5]
+    gated = replace(calibration, scene_limit=float(chi2.isf(SCENE_GATE_P, 2)))
+    yy, xx = np.mgrid[0:H, 0:W]
+    rho2 = ((xx - (W - 1) / 2) ** 2 + (yy - (H - 1) / 2) ** 2) / ((W - 1) ** 2 + (H - 1) ** 2) * 4
+    glow = textured(H, W, seed=12, contrast=0.15) * np.exp(1.5 * rho2)  # +2.2 EV at the corners
+    v = check_image(glow, key_of(mild), calibration=gated)
+    assert v.verdict == "insufficient-signal" and "unlike any lens" in v.reason, v.reason
+    assert v.evidence.scene_d2 > gated.scene_limit and v.whitened is not None
+    ungated = check_image(glow, key_of(mild), calibration=calibration)
+    assert ungated.verdict == "inconsistent" and ungated.evidence.scene_limit is None
+    lens = textured(H, W, seed=11, contrast=0.15) * strong.field(H, W)
+    right = check_image(lens, key_of(strong), calibration=gated)
+    wrong = check_image(lens, key_of(mild), calibration=gated)
+    assert (right.verdict, wrong.verdict) == ("consistent", "inconsistent")
+    assert right.evidence.scene_d2 <= gated.scene_limit
+    pv = pool_verdicts([v, wrong, wrong], calibration=gated)
+    assert pv.n_frames == 3

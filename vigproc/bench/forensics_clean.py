@@ -19,8 +19,12 @@ vignetting-free frames.
   another test lens B. AUC of D², by the RMS (about the mean, EV) difference of A's and
   B's fields; from one frame and from ``frames`` frames of distinct bases tested together
   (coordinate-wise median, :func:`vigproc.forensics.lensmatch.pooled_d2`).
+* **Undecided single frames**: a frame whose fit no lens explains
+  (:func:`vigproc.forensics.lensmatch.scene_d2` above the calibration's ``scene_limit``)
+  is left undecided, as ``vigproc check`` leaves it; the AUC is over the decided frames,
+  with the undecided shares and the AUC of every frame by its D² beside it.
 * **False alarms** at ``alpha``: the share of genuine frames (and groups) called
-  inconsistent.
+  inconsistent (an undecided frame is no alarm).
 * **Lens identification** among ``id_lenses`` lensfun lenses whose fields differ
   pairwise by at least ``min_separation`` EV: the claim with the smallest statistic.
 """
@@ -116,8 +120,11 @@ class MismatchRow:
     bucket: str
     n_genuine: int
     n_forged: int
-    auc: float
-    detection: float  # share of forged claims called inconsistent at alpha
+    auc: float  # over the frames the test decides (one frame: those within the scene limit)
+    detection: float  # share of all forged claims called inconsistent at alpha
+    undecided_genuine: float = 0.0  # share left undecided: no lens explains the frame's fit
+    undecided_forged: float = 0.0
+    auc_ungated: float = math.nan  # every frame by its D², none left undecided
 
 
 @dataclass
@@ -175,10 +182,11 @@ def calibrate(coef: np.ndarray, refs: np.ndarray, bases: np.ndarray, family, *, 
     (calibration fields × the chosen bases) against their references."""
     from vigproc.forensics.lensmatch import fit_match_calibration
 
+    own = coef[:, bases].reshape(-1, coef.shape[2])
     res = (coef[:, bases] - refs[:, None, :]).reshape(-1, coef.shape[2])
     groups = np.tile(np.asarray(bases), coef.shape[0])
     ok = np.all(np.isfinite(res), axis=1)
-    return fit_match_calibration(res[ok], groups[ok], family, alpha=alpha, source=source)
+    return fit_match_calibration(res[ok], groups[ok], family, alpha=alpha, source=source, coefficients=own[ok])
 
 
 def _groups(rng: np.random.Generator, idx: np.ndarray, n: int, draws: int) -> list[np.ndarray]:
@@ -197,7 +205,7 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
         raise ValueError(f"folds must be within 2..{len(bases) // frames} (a fold holds at least {frames} bases)")
     from vigproc.forensics.crops import auc
     from vigproc.stores.lensfun import lensfun_family
-    from vigproc.forensics.lensmatch import pooled_d2, whiten
+    from vigproc.forensics.lensmatch import pooled_d2, scene_d2, whiten
 
     test, ident, calib = select_lenses(n_test, n_id, min_separation)
     family = lensfun_family(exclude={(lens.maker, lens.model) for lens in test + ident})
@@ -221,6 +229,9 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
     # stat[frames][(a, b)] -> list of statistics; pv: their p-values
     stat: dict[int, dict[tuple[int, int], list[float]]] = {1: {}, frames: {}}
     pv: dict[int, dict[tuple[int, int], list[float]]] = {1: {}, frames: {}}
+    # a single frame whose fit no lens explains is undecided (lensmatch.scene_d2); sets
+    # of frames are pooled by their median, which one such frame moves by one rank
+    decided: dict[int, dict[tuple[int, int], list[bool]]] = {1: {}, frames: {}}
     id_hits = {1: [], frames: []}
     for h in range(folds):
         held = parts[(h + 1) % folds]  # 2 folds: the odd bases first, as the halves ran
@@ -229,6 +240,8 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
             ok = held[np.all(np.isfinite(c_test[a, held]), axis=1)]
             claims = sorted(set(ti + ii))
             z = {b: np.array([whiten(c_test[a, j] - r_test[b], cal) for j in ok]) for b in claims}
+            limit = cal.scene_limit if cal.scene_limit is not None else math.inf
+            inside = [scene_d2(c_test[a, j], cal, family) <= limit for j in ok]
             pos = {j: k for k, j in enumerate(ok)}
             single = {b: np.einsum("ij,ij->i", z[b], z[b]) for b in claims}
             groups = [np.array([pos[j] for j in g]) for g in _groups(rng, ok, frames, draws)]
@@ -238,6 +251,7 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
                     for b in ti:
                         stat[n].setdefault((a, b), []).extend(s[b])
                         pv[n].setdefault((a, b), []).extend(cal.p_value(v, n) for v in s[b])
+                        decided[n].setdefault((a, b), []).extend(inside if n == 1 else [True] * len(s[b]))
                 if a in ii:
                     m = np.array([s[b] for b in ii])  # claims × frames
                     id_hits[n].extend(np.asarray(ii)[np.argmin(m, axis=0)] == a)
@@ -247,7 +261,9 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
     for n in (1, frames):
         gen = np.concatenate([stat[n][(a, a)] for a in ti])
         gen_p = np.concatenate([pv[n][(a, a)] for a in ti])
-        res.false_alarm[str(n)] = float(np.mean(gen_p < alpha))
+        gen_in = np.concatenate([decided[n][(a, a)] for a in ti]).astype(bool)
+        # an undecided frame is no alarm and no detection
+        res.false_alarm[str(n)] = float(np.mean((gen_p < alpha) & gen_in))
         res.n_genuine[str(n)] = int(gen.size)
         for lo, hi in zip(SEPARATION_BUCKETS[:-1], SEPARATION_BUCKETS[1:]):
             keys = [(a, b) for a in ti for b in ti if a != b and lo <= diff[(a, b)] < hi]
@@ -255,9 +271,12 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
                 continue
             forged = np.concatenate([stat[n][k] for k in keys])
             forged_p = np.concatenate([pv[n][k] for k in keys])
+            forged_in = np.concatenate([decided[n][k] for k in keys]).astype(bool)
             label = f"{lo:g}-{hi:g} EV" if math.isfinite(hi) else f">= {lo:g} EV"
-            res.mismatch.append(MismatchRow(n, label, int(gen.size), int(forged.size), auc(forged, gen),
-                                            float(np.mean(forged_p < alpha))))
+            res.mismatch.append(MismatchRow(
+                n, label, int(gen.size), int(forged.size), auc(forged[forged_in], gen[gen_in]),
+                float(np.mean((forged_p < alpha) & forged_in)), undecided_genuine=float(1.0 - gen_in.mean()),
+                undecided_forged=float(1.0 - forged_in.mean()), auc_ungated=auc(forged, gen)))
         res.identification[str(n)] = float(np.mean(id_hits[n]))
         res.n_identification[str(n)] = len(id_hits[n])
     return res

@@ -697,6 +697,10 @@ class Evidence:
         Minor/major axis ratio of the iso-attenuation ellipses.
     field_diff_ev : float or None
         RMS over the frame of log2(φ̂/φ_expected), EV (raw, no bias removed).
+    scene_d2, scene_limit : float or None
+        The lens-family test: how unlike any lens's the frame's fit is
+        (:func:`vigproc.forensics.lensmatch.scene_d2`) and the calibration's limit above
+        which the frame is left undecided.
     """
 
     ring_radii: tuple[float, ...]
@@ -712,6 +716,8 @@ class Evidence:
     centre_d2: float | None = None
     expected_shape_ratio: float | None = None
     field_diff_ev: float | None = None
+    scene_d2: float | None = None
+    scene_limit: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -981,7 +987,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     coefficients ``c`` (None: too few usable pixels) against a reference; ``grey``: a
     frame without colour, whose fit the scenes scatter more
     (:attr:`~vigproc.forensics.lensmatch.MatchCalibration.grey_inflate`)."""
-    from vigproc.forensics.lensmatch import reference_coefficients, whiten
+    from vigproc.forensics.lensmatch import SCENE_GATE_P, reference_coefficients, scene_d2, whiten
 
     alpha = calibration.alpha if alpha is None else float(alpha)
     fit = _fit_of(estimate)
@@ -1004,6 +1010,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     inflate = 1.0 + math.pi / (2.0 * ref.n_frames) if ref.learned else 1.0
     if grey:
         inflate *= calibration.grey_inflate
+    scene = scene_d2(c, calibration, family, inflate=calibration.grey_inflate if grey else 1.0)
     z = whiten(np.asarray(c) - c_ref, calibration, add_bias=not ref.learned, inflate=inflate)
     d2 = float(z @ z)
     p = calibration.p_value(d2)
@@ -1025,10 +1032,18 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
         expected_falloff_ev=tuple(float(v) for v in expected_rings), falloff_diff_ev=tuple(float(v) for v in diff),
         falloff_sigma_ev=tuple(float(v) for v in sd), expected_centre_px=(float(m.center[0]), float(m.center[1])),
         centre_offset=float(math.hypot(fit.center[0] - m.center[0], fit.center[1] - m.center[1]) / big_r),
-        expected_shape_ratio=_shape_ratio(m), field_diff_ev=field_diff)
+        expected_shape_ratio=_shape_ratio(m), field_diff_ev=field_diff, scene_d2=scene,
+        scene_limit=calibration.scene_limit)
     common.update(expected_source=ref.source, profile=ref.profile, score=d2, p_false_alarm=p, expected=m,
                   whitened=tuple(float(v) for v in z), evidence=ev)
     against = f"against {ref.describe()}"
+    if calibration.scene_limit is not None and scene > calibration.scene_limit:
+        # the frame's own light shaped its fit: comparing it with the lens would judge
+        # the scene (lensmatch, step 4b); its numbers stay, for pooling and for people
+        return Verdict("insufficient-signal", f"the frame's shading is unlike any lens's fall-off (scene D² "
+                       f"{scene:.1f} > {calibration.scene_limit:.1f}, which a lens's frame exceeds about once in "
+                       f"{1 / SCENE_GATE_P:.0f}): its own light, not its lens, shaped the estimate, so it is not "
+                       f"compared {against} (false-alarm probability {p:.3g} if it were)", **common)
     if p < alpha:
         d = float(diff[-1])
         return Verdict("inconsistent", f"false-alarm probability {p:.3g} < {alpha:g} {against}: {abs(d):.2f} EV "

@@ -319,11 +319,14 @@ def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
           f"x {len(r.test_lenses)} lensfun lenses; "
           f"{split.format(n=len(r.calibration_lenses))}; {r.ms_per_frame:.1f} ms per fit; "
           f"{time.perf_counter() - t0:.0f} s")
+    print("AUC: over the frames the test decides; undecided: frames whose fit no lens explains (genuine / "
+          "forged); AUC all: every frame by its D2")
     print(f"{'frames':>6}  {'true vs claimed field':<24}{'genuine':>9}{'forged':>8}{'AUC':>8}"
-          f"{f'found at {r.alpha:g}':>15}")
+          f"{f'found at {r.alpha:g}':>15}{'undecided':>15}{'AUC all':>9}")
     for row in r.mismatch:
         print(f"{row.frames:>6}  {row.bucket:<24}{row.n_genuine:>9}{row.n_forged:>8}{row.auc:>8.3f}"
-              f"{row.detection:>15.3f}")
+              f"{row.detection:>15.3f}{f'{row.undecided_genuine:.3f} / {row.undecided_forged:.3f}':>15}"
+              f"{row.auc_ungated:>9.3f}")
     for n, fa in r.false_alarm.items():
         print(f"false alarms at {r.alpha:g}, {n} frame(s): {fa:.4f} of {r.n_genuine[n]} genuine")
     print(f"\nlens identification among {len(r.id_lenses)} lensfun lenses (fields >= "
