@@ -350,3 +350,35 @@ def test_reexport_to_the_same_path_is_reread(tmp_path):
     first = load_lenses([path])[0].vignetting[0].k1
     export_lensfun_xml([entry[:7] + (-0.5, 0.1, -0.05)], path)
     assert first == -0.3 and load_lenses([path])[0].vignetting[0].k1 == -0.5
+
+
+def test_cli_exports_learned_profiles_of_any_aspect_with_their_lens_names(tmp_path):
+    """`profile export-lensfun` writes every learned profile, a 4:3 one too (it failed:
+    its model was asked for a 3:2 frame), under the lens's own name as EXIF gave it (a
+    "|" in it was written %7C)."""
+    import xml.etree.ElementTree as ET
+
+    from vigproc.frontends.cli import main
+    from vigproc.io.exif import LensKey
+    from vigproc.core.model import VignettingModel
+    from vigproc.stores.profiles import Profile, ProfileKey, ProfileStore, normalise
+
+    db = tmp_path / "p.sqlite"
+    lenses = [(LensKey(make="Olympus", model="E-P3", lens="M.Zuiko 17mm F1.8", focal_mm=17.0, fnumber=1.8),
+               (400, 300)),
+              (LensKey(make="Sigma", model="Camera X", lens="105mm F1.4 DG HSM | Art 018", focal_mm=105.0,
+                       fnumber=1.4), (450, 300)),
+              (LensKey(make="Acme", model="Compact 1", lens=None, focal_mm=6.0, fnumber=2.8), (300, 450))]
+    with ProfileStore(db) as st:
+        for key, (w, h) in lenses:
+            m = VignettingModel(w, h, p=(1 / (0.8 * w) ** 2, 0.0, 1 / (0.8 * w) ** 2))
+            st.put(Profile(key=ProfileKey.from_lens(key, w, h), theta=normalise(m)[0], provenance="learned"))
+    out = tmp_path / "lf.xml"
+    assert main(["profile", "--profile-db", str(db), "export-lensfun", str(out)]) == 0
+    found = {(el.findtext("maker"), el.findtext("model")): el.find("calibration/vignetting")
+             for el in ET.parse(out).getroot().iter("lens")}
+    assert set(found) == {("Olympus", "M.Zuiko 17mm F1.8"), ("Sigma", "105mm F1.4 DG HSM | Art 018"),
+                          ("Acme", "Compact 1")}
+    # the same fall-off, whatever the aspect: lensfun's radius is 1 at the corner
+    k1 = {name: float(v.get("k1")) for name, v in found.items()}
+    assert all(v < 0 for v in k1.values())

@@ -1007,15 +1007,22 @@ def cmd_profile(args: argparse.Namespace) -> int:
         elif args.profile_command == "import-lcp":
             return _import_lcp(args, store)
         elif args.profile_command == "export-lensfun":
+            from vigproc.io.exif import unescape_key_part
             from vigproc.stores.lensfun_io import export_lensfun_xml, pa_from_model
 
             entries = []
             for p in store.list():
                 if p.provenance != "learned" or p.key.focal_bin == "any" or p.key.aperture_bin == "any":
                     continue
-                k1, k2, k3, rms = pa_from_model(p.model(3000, 2000))
-                make, _, rest = p.key.lens_id.partition("|")
-                entries.append((make or "unknown", rest.replace("|", " ") or p.key.lens_id, args.mount,
+                # a frame of the profile's own aspect: lensfun's pa radius is 1 at the corner
+                # of any frame, so the coefficients do not depend on which one
+                a = p.key.aspect_ratio
+                size = (3000, max(1, round(3000 / a))) if a >= 1 else (max(1, round(3000 * a)), 3000)
+                k1, k2, k3, rms = pa_from_model(p.model(*size))
+                # the id is make|camera model|lens (a compact's lens is "?": its camera names it)
+                make, camera, lens = ([unescape_key_part(v) for v in p.key.lens_id.split("|")] + ["?"] * 3)[:3]
+                model = next((v for v in (lens, camera, make) if v not in ("", "?")), p.key.lens_id)
+                entries.append((make if make not in ("", "?") else "unknown", model, args.mount,
                                 args.crop_factor, float(p.key.focal_bin[2:-2]), float(p.key.aperture_bin[2:]),
                                 1000.0, k1, k2, k3))
             n = export_lensfun_xml(entries, args.file)

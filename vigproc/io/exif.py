@@ -290,6 +290,12 @@ def escape_key_part(part: str | None) -> str:
     return part.replace("%", "%25").replace("|", "%7C").replace("?", "%3F")
 
 
+def unescape_key_part(part: str) -> str:
+    """The text :func:`escape_key_part` escaped (for people and for exports; never to
+    build a key from)."""
+    return part.replace("%3F", "?").replace("%7C", "|").replace("%25", "%")
+
+
 def casefold_lens_id(lens_id: str) -> str:
     """A typed lens id in the form :meth:`LensKey.lens_id` gives: casefolded, except its
     ``%XX`` escapes, which stay as :func:`escape_key_part` writes them (``%7C``)."""
