@@ -463,3 +463,38 @@ def test_a_grey_fit_states_its_sigma_on_the_grey_scale():
         b = fit_family(lum, replace(s, grey_sigma_scale=2 * s.grey_sigma_scale), colour=col).model
         ratio = b.quality.field_sigma_ev / a.quality.field_sigma_ev
         assert (1.6 < ratio < 2.01) if follows else ratio == 1.0
+
+
+def test_a_frame_whose_centred_fit_sees_little_is_not_fitted_off_centre(monkeypatch):
+    """Where the centred fit rules out OFF_CENTRE_ANY_MIN_EV of fall-off (at 2σ), no
+    off-centre fit is tried: a free fit there follows the scene's light (a camera JPEG of
+    a lit room had 1.32 EV removed by it at confidence 1.00)."""
+    import vigproc.core.estimate as est
+    import vigproc.core.family_fit as ff
+
+    def refuse(*a, **k):
+        raise AssertionError("an off-centre fit was tried")
+
+    monkeypatch.setattr(ff, "fit_centre", refuse)
+    monkeypatch.setattr(est, "estimate_robust", refuse)
+    weak = textured(H, W, seed=4, contrast=0.1) * _lens_field(k1=-0.15, k2=0.0)
+    m = estimate_default(weak)
+    assert m.method == "lens-family"
+    q = (m.candidate or m).quality
+    assert q.field_ev_rms + 2 * q.field_sigma_ev < est.OFF_CENTRE_ANY_MIN_EV
+    # a strong fall-off still asks where its centre is
+    with pytest.raises(AssertionError, match="off-centre fit was tried"):
+        estimate_default(textured(H, W, seed=4, contrast=0.1) * _lens_field())
+
+
+def test_a_lit_room_is_not_corrected_by_a_free_fit(shared_data):
+    """The Canon IXUS 400 JPEG of ../shared/data (a museum room lit from above): its
+    centred fit sees 0.02 EV, and the default leaves it alone (the free fit removed 1.32 EV)."""
+    from vigproc.core.estimate import estimate
+    from vigproc.io import read_image
+
+    f = shared_data / "jpeg_exif" / "metadata-extractor-images" / "Canon_IXUS_400.jpg"
+    if not f.is_file():
+        pytest.skip(f"{f} not present")
+    m = estimate(read_image(f)[0], channel_axis=-1)
+    assert m.method == "lens-family" and m.field_ev_rms() < 0.25
