@@ -614,3 +614,20 @@ def test_an_unknown_option_is_reported_by_its_command():
         in r.stderr, r.stderr
     r = run("profile", "show", "0", "--bogus")
     assert r.returncode == 2 and "vigproc profile show: error: unrecognized arguments: --bogus" in r.stderr
+
+
+def test_output_folder_paths_are_taken_as_meant(tmp_path, vignetted_tiff):
+    """An empty -o is refused (it wrote into the current folder); a path through '..'
+    makes only the folder it names (mkdir made the folders it passed through too); an
+    output format the input cannot have is a write error of that file (exit 5), as every
+    other failure of the only file is its own code."""
+    path, _ = vignetted_tiff
+    work = tmp_path / "w"
+    work.mkdir()
+    r = run("correct", path, "-o", "", cwd=work)
+    assert r.returncode == 5 and "empty path" in r.stderr, r.stderr
+    r = run("correct", path, "-o", "x/../y/../../s/dots", cwd=work)
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in work.iterdir()) == [] and (tmp_path / "s" / "dots").is_dir()
+    r = run("correct", path, "-o", tmp_path / "d", "--output-format", "dng")
+    assert r.returncode == 5 and "needs a DNG input" in r.stderr, r.stderr

@@ -116,7 +116,7 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
         raise VigprocError(f"unknown output format {name!r}")
     src_suffix = Path(like).suffix.lower() if like is not None else path.suffix.lower()
     if fixed is not None and fixed.format == "dng" and src_suffix != ".dng":
-        raise VigprocError(f"--output-format dng needs a DNG input, not {path.name!r}")
+        raise ImageWriteError(f"--output-format dng needs a DNG input, not {path.name!r}")
     if fixed is not None and fixed.format != "jpeg":
         return fixed
     kind = "jpeg" if fixed is not None else _AUTO_KIND.get(src_suffix)
@@ -552,9 +552,16 @@ def output_folder(path: str | os.PathLike[str]) -> Path:
     Raises
     ------
     ImageWriteError
-        It cannot be created or is not a folder (a file, a read-only mount).
+        It cannot be created or is not a folder (a file, a read-only mount), or the path
+        is empty.
     """
+    if not os.fspath(path):
+        raise ImageWriteError("the output folder is an empty path: name a folder ('.' for this one)")
     out = Path(path)
+    if ".." in out.parts:
+        # mkdir would make every folder the path names on its way, "x" of "x/../y" too
+        real = os.path.realpath(out)
+        out = Path(real) if out.is_absolute() else Path(os.path.relpath(real))
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
