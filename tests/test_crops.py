@@ -91,3 +91,23 @@ def test_check_reports_the_crop_test(tmp_path):
     r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "check", "--no-store", str(p)],
                        capture_output=True, text=True, timeout=300)
     assert "; crop test: " in r.stdout.splitlines()[0]  # on the frame's own line
+
+
+def test_a_known_profile_places_the_centre_of_its_own_lens():
+    """bench crops --statistic known-profile fits the centre alone, in a family that is the
+    lens's own profile: on a texture with little shading it finds a 40 % shift, and an
+    uncropped frame stays near the centre."""
+    from vigproc.bench.crops import _known_profile_shift, known_profile_family
+    from vigproc.core.pixels import luminance
+
+    fam = known_profile_family(K, 1.5)
+    assert fam.n_components == 1 and np.allclose(fam.prior()[0], 0.0, atol=1e-9)
+    shifted = _known_profile_shift(luminance(_frame(0.4)), None, fam)
+    centred = _known_profile_shift(luminance(_frame(0.0)), None, fam)
+    assert abs(shifted - 0.4) < 0.1 and centred < 0.1, (shifted, centred)
+
+
+def test_bench_crops_calibrates_only_the_tests_own_statistic(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "bench", "crops", "--statistic",
+                        "known-profile", "--calibrate", str(tmp_path / "c.json")], capture_output=True, text=True)
+    assert r.returncode == 2 and "needs --statistic shift" in r.stderr and not (tmp_path / "c.json").exists()

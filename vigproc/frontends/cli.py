@@ -513,6 +513,10 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
     from vigproc.stores.lensfun import lensfun_family
     from vigproc.stores.lensfun import bench_lenses
 
+    if args.calibrate and args.statistic != "shift":
+        print("vigproc: bench crops: --calibrate writes the test's own null: it needs --statistic shift",
+              file=sys.stderr)
+        return 2
     output_file(args.json)
     if args.calibrate:
         output_file(args.calibrate)
@@ -1229,9 +1233,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="lensfun lens shapes (default %(default)s)")
     bp.add_argument("--alpha", type=number(0.0, 1.0, open_lo=True), default=0.01,
                     help="false-alarm probability of the test (default %(default)s)")
-    bp.add_argument("--statistic", choices=["shift", "z"], default="shift", help="shift: the free-centre fit's "
-                    "centre's distance from the frame's in half-diagonals (the test's); z: its Mahalanobis distance "
-                    "by the jackknife covariance (default %(default)s)")
+    bp.add_argument("--statistic", choices=["shift", "z", "known-profile"], default="shift",
+                    help="shift: the free-centre fit's centre's distance from the frame's in half-diagonals (the "
+                    "test's); z: its Mahalanobis distance by the jackknife covariance; known-profile: the shift "
+                    "when the centre is fitted with the lens's own profile known exactly, how far any test of "
+                    "the centre could go (default %(default)s)")
     bp.add_argument("--calibrate", metavar="FILE", help="write the null distribution (every uncropped frame's "
                     "statistic) as a crop calibration")
     bp.add_argument("--json", help="write the figures to this file")
