@@ -24,8 +24,8 @@ features of a twelve-parameter fit:
    photograph) with a D² at least as large, an empirical p-value.
 4b. **A single frame no lens explains is left undecided** (:func:`scene_d2`): when its
    fit is further from lensfun's lenses, seen through a scene's scatter, than a frame of
-   a lens would be once in :data:`SCENE_GATE_P⁻¹ <SCENE_GATE_P>` (were lenses and
-   scenes Gaussian with the measured spreads: a χ² quantile), its own light shaped the
+   a lens would be once in 1 / :data:`SCENE_GATE_P` frames (were lenses and scenes
+   Gaussian with the measured spreads: a χ² quantile), its own light shaped the
    estimate (a sunset's radial glow, a scene that brightens towards its corners), and
    comparing it with the claimed lens would judge the scene. On the clean protocol a
    few such scenes make most of a single frame's errors (without the three worst of 51
