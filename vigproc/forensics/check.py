@@ -1038,12 +1038,14 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
                   whitened=tuple(float(v) for v in z), evidence=ev)
     against = f"against {ref.describe()}"
     if calibration.scene_limit is not None and scene > calibration.scene_limit:
-        # the frame's own light shaped its fit: comparing it with the lens would judge
-        # the scene (lensmatch, step 4b); its numbers stay, for pooling and for people
+        # the frame's own light (or an edit) shaped its fit: comparing it with the lens
+        # would judge the scene (lensmatch, step 4b); its numbers stay, for pooling and
+        # for people, and the reason says an edit is one cause
         return Verdict("insufficient-signal", f"the frame's shading is unlike any lens's fall-off (scene D² "
                        f"{scene:.1f} > {calibration.scene_limit:.1f}, which a lens's frame exceeds about once in "
-                       f"{1 / SCENE_GATE_P:.0f}): its own light, not its lens, shaped the estimate, so it is not "
-                       f"compared {against} (false-alarm probability {p:.3g} if it were)", **common)
+                       f"{1 / SCENE_GATE_P:.0f}): its own light or an edit (an added vignette, say), not a lens, "
+                       f"shaped the estimate, so it is not compared {against} (false-alarm probability {p:.3g} "
+                       f"if it were)", **common)
     if p < alpha:
         d = float(diff[-1])
         return Verdict("inconsistent", f"false-alarm probability {p:.3g} < {alpha:g} {against}: {abs(d):.2f} EV "
