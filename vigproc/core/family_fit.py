@@ -643,7 +643,13 @@ def _extended(fam: LensFamily, c: np.ndarray, rho: np.ndarray):
     """Mean, components and the full profile's slope at ``rho``, extended linearly
     past the corner (:func:`_extrapolated`)."""
     r = np.asarray(rho)
-    slope = np.gradient(fam.mean, fam.radii) + c @ np.gradient(fam.components, fam.radii, axis=1)
+    # the profiles' slopes depend on the family alone: kept on it (a Gauss-Newton fit asks
+    # at every step), as its priors are
+    grads = fam.__dict__.get("_gradients")
+    if grads is None:
+        grads = fam.__dict__.setdefault(
+            "_gradients", (np.gradient(fam.mean, fam.radii), np.gradient(fam.components, fam.radii, axis=1)))
+    slope = grads[0] + c @ grads[1]
     mean = _extrapolated(r, fam.radii, fam.mean)
     basis = np.stack([_extrapolated(r, fam.radii, b) for b in fam.components], axis=-1)
     return mean, basis, np.interp(np.minimum(r, 1.0).ravel(), fam.radii, slope).reshape(r.shape)
