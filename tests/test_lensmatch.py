@@ -300,3 +300,8 @@ def test_a_frame_no_lens_explains_is_left_undecided(classes, calibration):
     assert right.evidence.scene_d2 <= gated.scene_limit
     pv = pool_verdicts([v, wrong, wrong], calibration=gated)
     assert pv.n_frames == 3
+    # an examiner's report shows the number and the limit
+    from vigproc.forensics.report import ReportItem, report_html
+
+    page = report_html([ReportItem("glow.png", v, np.repeat(glow[..., None], 3, axis=-1))])
+    assert f"{v.evidence.scene_d2:.1f} (undecided above {gated.scene_limit:.1f})" in page

@@ -309,7 +309,15 @@ def _summary_lines(v: Verdict) -> list[str]:
         if e.falloff_d2 is not None:
             lines.append(f"parts of D²: fall-off {e.falloff_d2:.2f} (4 d.o.f.), centre {e.centre_d2:.2f} (2 d.o.f.);"
                          f"  field difference {_fmt(e.field_diff_ev, '.2f')} EV RMS")
+        if e.scene_d2 is not None:
+            lines.append(f"unlike any lens (scene D²): {_scene_value(e)}")
     return lines
+
+
+def _scene_value(e) -> str:
+    """How unlike any lens's the frame's fit is (the lens-family test's scene gate)."""
+    limit = "no limit" if e.scene_limit is None else f"undecided above {e.scene_limit:.1f}"
+    return f"{e.scene_d2:.1f} ({limit})"
 
 
 # ------------------------------------------------------------------ HTML
@@ -350,6 +358,8 @@ def _html_section(item: ReportItem) -> str:
         if e.falloff_d2 is not None:
             rows.append(_row("parts of D²", f"fall-off {e.falloff_d2:.2f}, centre {e.centre_d2:.2f}"))
             rows.append(_row("field difference (EV RMS, raw)", _fmt(e.field_diff_ev, ".3f")))
+        if e.scene_d2 is not None:
+            rows.append(_row("unlike any lens (scene D²)", _scene_value(e)))
     return (f'<section><h2>{html.escape(item.name)} <span class="v {html.escape(v.verdict)}">'
             f"{html.escape(v.verdict)}</span></h2>"
             f'<img alt="vignetting of {html.escape(item.name, quote=True)}" src="data:image/jpeg;base64,{fig}">'
