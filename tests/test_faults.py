@@ -173,3 +173,19 @@ def test_bench_faults_says_why_it_cannot_run(monkeypatch, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["vigproc: bench faults cannot run here: it needs root, to mount the small tmpfs that fills "
                    "(mount -t tmpfs)"]
+
+
+def test_an_output_format_the_input_cannot_have_is_given_up(tmp_path, monkeypatch):
+    """--output-format dng of a JPEG is the settings' fault, not the output disk's: a
+    watch folder or a batch gives the file up (it was retried without limit, and called a
+    full disk on a nearly full one)."""
+    from vigproc.errors import OutputFormatError
+    from vigproc.pipeline.processor import output_format_for
+
+    out = str(tmp_path)
+    _stub_disk(monkeypatch, free=3_000_000)
+    with pytest.raises(OutputFormatError) as e:
+        output_format_for("dng", tmp_path / "a.jpg")
+    f = classify_error(e.value, out)
+    assert f.kind == PERMANENT and not f.output_side and f.max_attempts(3) == 3, f
+    assert e.value.exit_code == 5

@@ -255,8 +255,9 @@ def test_the_scene_gate_is_a_chi2_limit(tmp_path):
     groups = np.repeat(np.arange(60), 4)
     cal = fit_match_calibration(r, groups, fam, coefficients=own)
     plain = fit_match_calibration(r, groups, fam)
-    assert plain.scene_limit is None
+    assert plain.scene_limit is None and plain.scene_share is None
     assert cal.scene_limit == pytest.approx(chi2.isf(SCENE_GATE_P, 2))
+    assert cal.scene_share == pytest.approx(12 / 240)  # measured on its own frames, not assumed
     scene = np.array([scene_d2(c, cal, fam) for c in own])
     assert np.all(scene[:12] > cal.scene_limit) and np.all(scene[12:] <= cal.scene_limit)
     assert np.array_equal(cal.null_d2(1), plain.null_d2(1))
@@ -264,12 +265,13 @@ def test_the_scene_gate_is_a_chi2_limit(tmp_path):
     far = m[:2] + cal.mean_vector + [10.0, 0.0]
     assert scene_d2(far, cal, fam, inflate=4.0) < scene_d2(far, cal, fam)
     cal.save(tmp_path / "c.json")
-    assert load_calibration(tmp_path / "c.json").scene_limit == pytest.approx(cal.scene_limit, abs=1e-4)
-    old = {k: v for k, v in cal.to_dict().items() if k != "scene_limit"}
+    back = load_calibration(tmp_path / "c.json")
+    assert back.scene_limit == pytest.approx(cal.scene_limit, abs=1e-4) and back.scene_share == cal.scene_share
+    old = {k: v for k, v in cal.to_dict().items() if k not in ("scene_limit", "scene_share")}
     assert "scene_limit" not in plain.to_dict() and MatchCalibration.from_dict(old).scene_limit is None
-    for bad in (-1.0, float("nan"), 0.0):
+    for bad in ({"scene_limit": -1.0}, {"scene_limit": float("nan")}, {"scene_limit": 0.0}, {"scene_share": 1.5}):
         with pytest.raises(MatchCalibrationError):
-            MatchCalibration.from_dict(cal.to_dict() | {"scene_limit": bad})
+            MatchCalibration.from_dict(cal.to_dict() | bad)
     with pytest.raises(MatchCalibrationError):
         fit_match_calibration(r, groups, fam, coefficients=own[:10])
 
@@ -284,12 +286,13 @@ def test_a_frame_no_lens_explains_is_left_undecided(classes, calibration):
     from scipy.stats import chi2
 
     strong, mild = classes[4], classes[5]
-    gated = replace(calibration, scene_limit=float(chi2.isf(SCENE_GATE_P, 2)))
+    gated = replace(calibration, scene_limit=float(chi2.isf(SCENE_GATE_P, 2)), scene_share=0.023)
     yy, xx = np.mgrid[0:H, 0:W]
     rho2 = ((xx - (W - 1) / 2) ** 2 + (yy - (H - 1) / 2) ** 2) / ((W - 1) ** 2 + (H - 1) ** 2) * 4
     glow = textured(H, W, seed=12, contrast=0.15) * np.exp(1.5 * rho2)  # +2.2 EV at the corners
     v = check_image(glow, key_of(mild), calibration=gated)
     assert v.verdict == "insufficient-signal" and "unlike any lens" in v.reason, v.reason
+    assert "2.3 % of the calibration's genuine frames" in v.reason  # the measured share, not the Gaussian one
     assert v.evidence.scene_d2 > gated.scene_limit and v.whitened is not None
     ungated = check_image(glow, key_of(mild), calibration=calibration)
     assert ungated.verdict == "inconsistent" and ungated.evidence.scene_limit is None
@@ -300,6 +303,11 @@ def test_a_frame_no_lens_explains_is_left_undecided(classes, calibration):
     assert right.evidence.scene_d2 <= gated.scene_limit
     pv = pool_verdicts([v, wrong, wrong], calibration=gated)
     assert pv.n_frames == 3
+    # a set of such frames is pooled by its median and decided, as the benchmark counts it
+    glows = [check_image(textured(H, W, seed=30 + i, contrast=0.15) * np.exp(1.5 * rho2), key_of(mild),
+                         calibration=gated) for i in range(3)]
+    assert all(g.verdict == "insufficient-signal" for g in glows)
+    assert pool_verdicts(glows, calibration=gated).verdict == "inconsistent"
     # an examiner's report shows the number and the limit
     from vigproc.forensics.report import ReportItem, report_html
 

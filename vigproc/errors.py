@@ -61,6 +61,15 @@ class ImageWriteError(VigprocError, OSError):
     exit_code = 5
 
 
+class OutputFormatError(ImageWriteError):
+    """The output format asked for cannot be made from this input (``--output-format
+    dng`` of a JPEG): the settings' fault, not the output disk's, so a watch folder or a
+    batch gives the file up rather than retry it (exit code 5, as for any output that
+    could not be written)."""
+
+    output_side = False
+
+
 class DiskFullError(ImageWriteError):
     """The output disk is full (or over quota): the machine's fault, not the photo's.
     Free space and run again; nothing was charged to the files (exit code 5, as

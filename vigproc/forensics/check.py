@@ -987,7 +987,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     coefficients ``c`` (None: too few usable pixels) against a reference; ``grey``: a
     frame without colour, whose fit the scenes scatter more
     (:attr:`~vigproc.forensics.lensmatch.MatchCalibration.grey_inflate`)."""
-    from vigproc.forensics.lensmatch import SCENE_GATE_P, reference_coefficients, scene_d2, whiten
+    from vigproc.forensics.lensmatch import reference_coefficients, scene_d2, whiten
 
     alpha = calibration.alpha if alpha is None else float(alpha)
     fit = _fit_of(estimate)
@@ -1041,11 +1041,12 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
         # the frame's own light (or an edit) shaped its fit: comparing it with the lens
         # would judge the scene (lensmatch, step 4b); its numbers stay, for pooling and
         # for people, and the reason says an edit is one cause
+        share = ("" if calibration.scene_share is None else
+                 f", as {100 * calibration.scene_share:.1f} % of the calibration's genuine frames are")
         return Verdict("insufficient-signal", f"the frame's shading is unlike any lens's fall-off (scene D² "
-                       f"{scene:.1f} > {calibration.scene_limit:.1f}, which a lens's frame exceeds about once in "
-                       f"{1 / SCENE_GATE_P:.0f}): its own light or an edit (an added vignette, say), not a lens, "
-                       f"shaped the estimate, so it is not compared {against} (false-alarm probability {p:.3g} "
-                       f"if it were)", **common)
+                       f"{scene:.1f} > {calibration.scene_limit:.1f}{share}): its own light or an edit (an added "
+                       f"vignette, say), not a lens, shaped the estimate, so it is not compared {against} "
+                       f"(false-alarm probability {p:.3g} if it were)", **common)
     if p < alpha:
         d = float(diff[-1])
         return Verdict("inconsistent", f"false-alarm probability {p:.3g} < {alpha:g} {against}: {abs(d):.2f} EV "
@@ -1202,6 +1203,12 @@ def _say_own_frame(v: Verdict, lens_key, width: int, height: int, store, frame_i
                                          "cannot vouch for itself) and lensfun has no calibration for this lens")
 
 
+def _beyond_scene_limit(v: Verdict) -> bool:
+    """Whether the lens-family test left ``v`` undecided because no lens explains its fit."""
+    e = v.evidence
+    return e is not None and e.scene_d2 is not None and e.scene_limit is not None and e.scene_d2 > e.scene_limit
+
+
 def pool_verdicts(verdicts: Sequence[Verdict], *,
                   calibration: Calibration | MatchCalibration | None = None) -> Verdict:
     """One verdict from several frames that claim the same lens profile.
@@ -1247,7 +1254,9 @@ def pool_verdicts(verdicts: Sequence[Verdict], *,
     common = dict(lens_id=first.lens_id, expected_source=first.expected_source, profile=first.profile,
                   score=d2, p_false_alarm=p, alpha=alpha, n_frames=n, whitened=tuple(float(v) for v in z),
                   expected=first.expected, test=first.test)
-    if all(v.verdict == "insufficient-signal" for v in usable):
+    # frames the lens-family test left undecided because no lens explains their fit
+    # (lensmatch, step 4b) are pooled by their median like any other and decide with them
+    if all(v.verdict == "insufficient-signal" and not _beyond_scene_limit(v) for v in usable):
         return Verdict("insufficient-signal", f"all {n} frames have weak vignetting estimates", **common)
     if p < alpha:
         return Verdict("inconsistent", f"{n} frames: false-alarm probability {p:.3g} < {alpha:g}", **common)

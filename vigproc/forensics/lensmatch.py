@@ -247,6 +247,10 @@ class MatchCalibration:
         The :func:`scene_d2` above which a single frame's fit is unlike any lens's and
         the test leaves it undecided (:data:`SCENE_GATE_P`). None (a calibration made
         before it, or without the frames' own coefficients): no frame is left out.
+    scene_share : float or None
+        The share of the calibration's own frames (genuine, each with its lens) beyond
+        ``scene_limit``: how often a genuine frame is left undecided, measured (scenes are
+        not Gaussian: it is far above SCENE_GATE_P).
     """
 
     mean: tuple[float, ...]
@@ -260,6 +264,7 @@ class MatchCalibration:
     source: str = ""
     grey_inflate: float = 1.0
     scene_limit: float | None = None
+    scene_share: float | None = None
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -288,6 +293,9 @@ class MatchCalibration:
                                                  and float(self.scene_limit) > 0):
             raise MatchCalibrationError(f"lens-mismatch calibration: scene_limit must be positive, got "
                                         f"{self.scene_limit}")
+        if self.scene_share is not None and not 0.0 <= float(self.scene_share) <= 1.0:
+            raise MatchCalibrationError(f"lens-mismatch calibration: scene_share must be within [0, 1], got "
+                                        f"{self.scene_share}")
 
     @property
     def n_components(self) -> int:
@@ -343,6 +351,7 @@ class MatchCalibration:
                 "n_frames": self.n_frames, "n_images": self.n_images, "source": self.source,
                 "grey_inflate": round(float(self.grey_inflate), 4),
                 **({} if self.scene_limit is None else {"scene_limit": round(float(self.scene_limit), 4)}),
+                **({} if self.scene_share is None else {"scene_share": round(float(self.scene_share), 4)}),
                 "null_groups": list(self.null_groups), "null": [[round(v, 5) for v in r] for r in self.null]}
 
     @classmethod
@@ -357,7 +366,8 @@ class MatchCalibration:
                        family=tuple(float(v) for v in d["family"]), alpha=float(d.get("alpha", DEFAULT_ALPHA)),
                        n_frames=int(d.get("n_frames", 0)), n_images=int(d.get("n_images", 0)),
                        source=str(d.get("source", "")), grey_inflate=float(d.get("grey_inflate", 1.0)),
-                       scene_limit=None if d.get("scene_limit") is None else float(d["scene_limit"]))
+                       scene_limit=None if d.get("scene_limit") is None else float(d["scene_limit"]),
+                       scene_share=None if d.get("scene_share") is None else float(d["scene_share"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise MatchCalibrationError(f"invalid lens-mismatch calibration: {exc!r}") from None
 
@@ -463,7 +473,9 @@ def fit_match_calibration(residuals: np.ndarray, groups: Sequence[int], family, 
         # The null keeps every row, those beyond the limit too: conditioned on the gate
         # (a lighter tail) it let 1.9 % of decided genuine frames fall below α = 0.01 on
         # the clean protocol with 10 folds, against none unconditioned (bench forensics-clean).
-        return replace(cal, scene_limit=float(chi2.isf(SCENE_GATE_P, cal.n_components)))
+        limit = float(chi2.isf(SCENE_GATE_P, cal.n_components))
+        scene = np.array([scene_d2(c, cal, family) for c in np.asarray(coefficients, dtype=np.float64)])
+        return replace(cal, scene_limit=limit, scene_share=float(np.mean(scene > limit)))
     except np.linalg.LinAlgError:
         raise MatchCalibrationError("degenerate scatter of the calibration frames") from None
 

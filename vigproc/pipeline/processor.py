@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Container, Iterable, Sequence
 
-from vigproc.errors import ImageReadError, ImageWriteError, ModelError, VigprocError
+from vigproc.errors import ImageReadError, ImageWriteError, ModelError, OutputFormatError, VigprocError
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +116,7 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
         raise VigprocError(f"unknown output format {name!r}")
     src_suffix = Path(like).suffix.lower() if like is not None else path.suffix.lower()
     if fixed is not None and fixed.format == "dng" and src_suffix != ".dng":
-        raise ImageWriteError(f"--output-format dng needs a DNG input, not {path.name!r}")
+        raise OutputFormatError(f"--output-format dng needs a DNG input, not {path.name!r}")
     if fixed is not None and fixed.format != "jpeg":
         return fixed
     kind = "jpeg" if fixed is not None else _AUTO_KIND.get(src_suffix)
