@@ -109,7 +109,15 @@ def test_aspect_labels():
     assert aspect_label(4000 / 6000) == "2:3"
     assert aspect_label(5184 / 3888) == "4:3"
     assert aspect_label(1.5 * 1.03) != "3:2"  # a 3 % crop is another key component
-    assert aspect_label(1.234).startswith("a=")
+    assert aspect_label(1.1).startswith("a=") and aspect_label(1.234) == "5:4"  # 1.234: its grid cell is 5:4's
+    # every label reads back as itself, so every frame can be keyed: a ratio between 1 %
+    # and 2 % off a named one fell in a grid cell whose label was refused (3000x2030)
+    for k in range(-120, 121):
+        for a in (1.02**k * 0.995, 1.02**k, 1.02**k * 1.005):
+            label = aspect_label(a)
+            assert aspect_label(ProfileKey("x", "f=23.6mm", "N=4.0", label).aspect_ratio) == label
+    lk = LensKey(make="a", model="b", lens="c", focal_mm=20.0, fnumber=4.0)
+    assert ProfileKey.from_lens(lk, 3000, 2030).aspect == "3:2" and ProfileKey.from_lens(lk, 4000, 2962).aspect == "4:3"
 
 
 def test_key_from_lens_and_missing_fields():

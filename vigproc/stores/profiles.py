@@ -265,7 +265,8 @@ def aperture_bin(fnumber: float | None) -> str:
 
 def aspect_label(aspect: float) -> str:
     """Aspect-ratio (W/H) label: a named ratio ("3:2", "2:3", "4:3", ...) when within
-    ±1 %, else ``"a=<W/H>"`` on a 2 % logarithmic grid.
+    ±1 % (or when its cell of the grid below is), else ``"a=<W/H>"`` on a 2 %
+    logarithmic grid.
 
     Portrait frames get their own label: a frame rotated by an unknown ±90° cannot be
     mapped onto the landscape profile (the sign of cx or cy would be a guess).
@@ -273,11 +274,14 @@ def aspect_label(aspect: float) -> str:
     a = float(aspect)
     if not (math.isfinite(a) and a > 0):
         raise ProfileStoreError(f"aspect ratio must be positive, got {aspect!r}")
-    for w, h in _NAMED_ASPECTS:
-        for num, den in ((w, h), (h, w)):
-            if abs(math.log(a * den / num)) <= math.log1p(ASPECT_TOLERANCE):
-                return f"{num}:{den}"
     k = round(math.log(a) / math.log(1.02))
+    # a grid cell whose value is a named ratio's is that ratio too: its label must read
+    # back as itself (a 3000x2030 frame's cell, a=1.486, is 3:2's; it was refused)
+    for value in (a, 1.02**k):
+        for w, h in _NAMED_ASPECTS:
+            for num, den in ((w, h), (h, w)):
+                if abs(math.log(value * den / num)) <= math.log1p(ASPECT_TOLERANCE):
+                    return f"{num}:{den}"
     return f"a={1.02 ** k:.3f}"
 
 
