@@ -227,6 +227,13 @@ def test_a_grey_frame_is_judged_by_the_scatter_of_grey_fits(classes, calibration
     rgb = img[..., None] * np.array([0.9, 1.0, 0.7])  # channels alike: the same fit, but a colour frame
     colour = check_image(rgb, key_of(strong), calibration=replace(calibration, grey_inflate=4.0))
     assert colour.score == pytest.approx(plain.score, rel=1e-6)
+    assert wider.evidence.grey is True and colour.evidence.grey is False
+    # the check against the file's own calibration reads the same: a grey frame's Σ is wider
+    from vigproc.forensics.check import check_embedded
+
+    inflated = replace(calibration, grey_inflate=4.0)
+    emb = [check_embedded(wider.estimate, mild.true_model(W, H), calibration=inflated, grey=g) for g in (False, True)]
+    assert emb[1].score == pytest.approx(emb[0].score / 4.0, rel=1e-9) and emb[1].evidence.grey
     cal = replace(calibration, grey_inflate=1.5)
     cal.save(tmp_path / "c.json")
     assert load_calibration(tmp_path / "c.json").grey_inflate == 1.5

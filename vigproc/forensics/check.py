@@ -701,6 +701,10 @@ class Evidence:
         The lens-family test: how unlike any lens's the frame's fit is
         (:func:`vigproc.forensics.lensmatch.scene_d2`) and the calibration's limit above
         which the frame is left undecided.
+    grey : bool or None
+        The lens-family test: the frame had no colour to weigh its pairs by, and was
+        judged by the scatter of grey fits (a check against its file's own calibration
+        reads this).
     """
 
     ring_radii: tuple[float, ...]
@@ -718,6 +722,7 @@ class Evidence:
     field_diff_ev: float | None = None
     scene_d2: float | None = None
     scene_limit: float | None = None
+    grey: bool | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -932,7 +937,8 @@ def check_model(
 
 def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *,
                    calibration: Calibration | MatchCalibration,
-                   lens_id: str | None = None, alpha: float | None = None, profile: str = "embedded") -> Verdict:
+                   lens_id: str | None = None, alpha: float | None = None, profile: str = "embedded",
+                   grey: bool = False) -> Verdict:
     """Verdict for a frame's estimate against the calibration its own file carries (a
     DNG's vignetting opcodes, :mod:`vigproc.io.dng_vignette`): a true field, so matching
     frames scatter around it plus the image bias, as for lensfun (:func:`expected_from_field`).
@@ -950,6 +956,9 @@ def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *,
         As for :func:`check_model`.
     profile : str
         What the verdict names as the reference.
+    grey : bool
+        The lens-family test: the frame had no colour (``Verdict.evidence.grey`` of its
+        lens check), so it is judged by the scatter of grey fits.
     """
     if isinstance(calibration, MatchCalibration):  # the lens-family test: the estimate is its data-only fit
         from vigproc.core.lensfamily import default_family
@@ -961,7 +970,7 @@ def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *,
         c = None if fit.is_identity and estimate.quality is not None and estimate.quality.fallback else \
             reference_coefficients(fit, fit.width, fit.height, fam)
         return _family_verdict(estimate, c, Reference(embedded, "embedded", profile), calibration=calibration,
-                               family=fam, lens_id=lens_id, alpha=alpha)
+                               family=fam, lens_id=lens_id, alpha=alpha, grey=grey)
     exp = expected_from_field(embedded, calibration, source="embedded", profile=profile)
     return check_model(estimate, exp, calibration=calibration, lens_id=lens_id, alpha=alpha)
 
@@ -1033,7 +1042,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
         falloff_sigma_ev=tuple(float(v) for v in sd), expected_centre_px=(float(m.center[0]), float(m.center[1])),
         centre_offset=float(math.hypot(fit.center[0] - m.center[0], fit.center[1] - m.center[1]) / big_r),
         expected_shape_ratio=_shape_ratio(m), field_diff_ev=field_diff, scene_d2=scene,
-        scene_limit=calibration.scene_limit)
+        scene_limit=calibration.scene_limit, grey=bool(grey))
     common.update(expected_source=ref.source, profile=ref.profile, score=d2, p_false_alarm=p, expected=m,
                   whitened=tuple(float(v) for v in z), evidence=ev)
     against = f"against {ref.describe()}"

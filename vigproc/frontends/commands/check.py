@@ -105,7 +105,7 @@ def _embedded_verdict(path: Path, v, calibration, alpha, reader=None):
         log.warning("%s: its embedded calibration is not compared: %s", path, exc)
         return None
     return check_embedded(v.estimate, model, calibration=calibration, lens_id=v.lens_id, alpha=alpha,
-                          profile=cal.label)
+                          profile=cal.label, grey=bool(v.evidence is not None and v.evidence.grey))
 
 
 def cmd_check(args: argparse.Namespace) -> int:
