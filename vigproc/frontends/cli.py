@@ -1024,9 +1024,9 @@ def cmd_profile(args: argparse.Namespace) -> int:
                 size = (3000, max(1, round(3000 / a))) if a >= 1 else (max(1, round(3000 * a)), 3000)
                 k1, k2, k3, rms = pa_from_model(p.model(*size))
                 # the id is make|camera model|lens (a compact's lens is "?": its camera names it)
-                make, camera, lens = ([unescape_key_part(v) for v in p.key.lens_id.split("|")] + ["?"] * 3)[:3]
-                model = next((v for v in (lens, camera, make) if v not in ("", "?")), p.key.lens_id)
-                entries.append((make if make not in ("", "?") else "unknown", model, args.mount,
+                make, camera, lens = ([unescape_key_part(v) for v in p.key.lens_id.split("|")] + [None] * 3)[:3]
+                model = next((v for v in (lens, camera, make) if v), p.key.lens_id)
+                entries.append((make or "unknown", model, args.mount,
                                 args.crop_factor, float(p.key.focal_bin[2:-2]), float(p.key.aperture_bin[2:]),
                                 1000.0, k1, k2, k3))
             n = export_lensfun_xml(entries, args.file)

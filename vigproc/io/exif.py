@@ -290,10 +290,12 @@ def escape_key_part(part: str | None) -> str:
     return part.replace("%", "%25").replace("|", "%7C").replace("?", "%3F")
 
 
-def unescape_key_part(part: str) -> str:
-    """The text :func:`escape_key_part` escaped (for people and for exports; never to
-    build a key from)."""
-    return part.replace("%3F", "?").replace("%7C", "|").replace("%25", "%")
+def unescape_key_part(part: str) -> str | None:
+    """The inverse of :func:`escape_key_part`: the text a key component holds ("?", a
+    missing one, is None), for people and exports; never to build a key from."""
+    if part == "?":
+        return None
+    return part.replace("%7C", "|").replace("%3F", "?").replace("%25", "%")
 
 
 def casefold_lens_id(lens_id: str) -> str:

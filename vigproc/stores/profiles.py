@@ -73,7 +73,7 @@ import numpy as np
 from vigproc.atomic import atomic_write_text
 from vigproc.stores.db import SQLiteFile
 from vigproc.errors import EXIT_CODES, ModelError, VigprocError
-from vigproc.io.exif import LensKey, normalise_text
+from vigproc.io.exif import LensKey, normalise_text, unescape_key_part
 from vigproc.core.model import N_ALPHA, PARAM_NAMES, FitQuality, VignettingModel
 from vigproc.core.normalised import (  # noqa: F401  (normalise, denormalise, fit_model_to_field: re-exported)
     FIELD_GRID,
@@ -1660,19 +1660,14 @@ _UNITS = {
 }
 
 
-def _unescape(part: str) -> str | None:
-    if part == "?":
-        return None
-    return part.replace("%7C", "|").replace("%3F", "?").replace("%25", "%")
-
-
 def _split_lens_id(lens_id: str) -> dict[str, str | None]:
     parts = lens_id.split("|")
     if len(parts) == 4 and parts[3].startswith("sn:"):
-        return {"make": _unescape(parts[0]), "model": _unescape(parts[1]), "lens": _unescape(parts[2]),
-                "lens_serial": _unescape(parts[3][3:])}
+        return {"make": unescape_key_part(parts[0]), "model": unescape_key_part(parts[1]),
+                "lens": unescape_key_part(parts[2]), "lens_serial": unescape_key_part(parts[3][3:])}
     if len(parts) == 3:
-        return {"make": _unescape(parts[0]), "model": _unescape(parts[1]), "lens": _unescape(parts[2])}
+        return {"make": unescape_key_part(parts[0]), "model": unescape_key_part(parts[1]),
+                "lens": unescape_key_part(parts[2])}
     return {}
 
 
