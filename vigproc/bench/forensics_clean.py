@@ -205,7 +205,7 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
         raise ValueError(f"folds must be within 2..{len(bases) // frames} (a fold holds at least {frames} bases)")
     from vigproc.forensics.crops import auc
     from vigproc.stores.lensfun import lensfun_family
-    from vigproc.forensics.lensmatch import pooled_d2, scene_d2, whiten
+    from vigproc.forensics.lensmatch import beyond_scene_limit, pooled_d2, scene_d2, whiten
 
     test, ident, calib = select_lenses(n_test, n_id, min_separation)
     family = lensfun_family(exclude={(lens.maker, lens.model) for lens in test + ident})
@@ -240,8 +240,7 @@ def run(bases: Sequence[np.ndarray], *, alpha: float = 0.01, frames: int = 5, se
             ok = held[np.all(np.isfinite(c_test[a, held]), axis=1)]
             claims = sorted(set(ti + ii))
             z = {b: np.array([whiten(c_test[a, j] - r_test[b], cal) for j in ok]) for b in claims}
-            limit = cal.scene_limit if cal.scene_limit is not None else math.inf
-            inside = [scene_d2(c_test[a, j], cal, family) <= limit for j in ok]
+            inside = [not beyond_scene_limit(scene_d2(c_test[a, j], cal, family), cal.scene_limit) for j in ok]
             pos = {j: k for k, j in enumerate(ok)}
             single = {b: np.einsum("ij,ij->i", z[b], z[b]) for b in claims}
             groups = [np.array([pos[j] for j in g]) for g in _groups(rng, ok, frames, draws)]

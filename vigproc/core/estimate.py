@@ -306,7 +306,7 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
             return model
     grey = fit_family(lum, s, mask, family, hint).model  # the luminance's, as the comparison reads
     shift = centre.shift if colour is None else min(centre.shift, centre_colour.shift)
-    strong = (model.candidate or model).quality.field_ev_rms >= OFF_CENTRE_MIN_EV
+    strong = q.field_ev_rms >= OFF_CENTRE_MIN_EV
     alt = None
     # a grey frame's off-centre family fit is fitted on the very pairs that judge it, and
     # wins too easily (BSDS x lensfun fields, grey: 0.086 EV with it, 0.074 without); a

@@ -996,7 +996,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     coefficients ``c`` (None: too few usable pixels) against a reference; ``grey``: a
     frame without colour, whose fit the scenes scatter more
     (:attr:`~vigproc.forensics.lensmatch.MatchCalibration.grey_inflate`)."""
-    from vigproc.forensics.lensmatch import reference_coefficients, scene_d2, whiten
+    from vigproc.forensics.lensmatch import beyond_scene_limit, reference_coefficients, scene_d2, whiten
 
     alpha = calibration.alpha if alpha is None else float(alpha)
     fit = _fit_of(estimate)
@@ -1046,7 +1046,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     common.update(expected_source=ref.source, profile=ref.profile, score=d2, p_false_alarm=p, expected=m,
                   whitened=tuple(float(v) for v in z), evidence=ev)
     against = f"against {ref.describe()}"
-    if calibration.scene_limit is not None and scene > calibration.scene_limit:
+    if beyond_scene_limit(scene, calibration.scene_limit):
         # the frame's own light (or an edit) shaped its fit: comparing it with the lens
         # would judge the scene (lensmatch, step 4b); its numbers stay, for pooling and
         # for people, and the reason says an edit is one cause
@@ -1212,12 +1212,6 @@ def _say_own_frame(v: Verdict, lens_key, width: int, height: int, store, frame_i
                                          "cannot vouch for itself) and lensfun has no calibration for this lens")
 
 
-def _beyond_scene_limit(v: Verdict) -> bool:
-    """Whether the lens-family test left ``v`` undecided because no lens explains its fit."""
-    e = v.evidence
-    return e is not None and e.scene_d2 is not None and e.scene_limit is not None and e.scene_d2 > e.scene_limit
-
-
 def pool_verdicts(verdicts: Sequence[Verdict], *,
                   calibration: Calibration | MatchCalibration | None = None) -> Verdict:
     """One verdict from several frames that claim the same lens profile.
@@ -1234,7 +1228,7 @@ def pool_verdicts(verdicts: Sequence[Verdict], *,
     ForensicsError
         No frame with an expected model, or frames compared with different profiles.
     """
-    from vigproc.forensics.lensmatch import default_match_calibration, pooled_d2
+    from vigproc.forensics.lensmatch import beyond_scene_limit, default_match_calibration, pooled_d2
 
     usable = [v for v in verdicts if v.whitened is not None]
     if not usable:
@@ -1265,7 +1259,9 @@ def pool_verdicts(verdicts: Sequence[Verdict], *,
                   expected=first.expected, test=first.test)
     # frames the lens-family test left undecided because no lens explains their fit
     # (lensmatch, step 4b) are pooled by their median like any other and decide with them
-    if all(v.verdict == "insufficient-signal" and not _beyond_scene_limit(v) for v in usable):
+    if all(v.verdict == "insufficient-signal"
+           and not (v.evidence is not None and beyond_scene_limit(v.evidence.scene_d2, v.evidence.scene_limit))
+           for v in usable):
         return Verdict("insufficient-signal", f"all {n} frames have weak vignetting estimates", **common)
     if p < alpha:
         return Verdict("inconsistent", f"{n} frames: false-alarm probability {p:.3g} < {alpha:g}", **common)

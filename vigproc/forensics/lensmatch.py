@@ -67,6 +67,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "MatchCalibration",
     "MatchCalibrationError",
+    "beyond_scene_limit",
     "default_match_calibration",
     "family_fingerprint",
     "fit_match_calibration",
@@ -417,6 +418,12 @@ def scene_d2(coefficients: np.ndarray, calibration: MatchCalibration, family, *,
     return float(e @ np.linalg.solve(q, e))
 
 
+def beyond_scene_limit(scene: float | None, limit: float | None) -> bool:
+    """Whether a single frame of scene D² ``scene`` (:func:`scene_d2`) is left undecided
+    by a calibration's ``scene_limit`` (None: no limit, or no D²)."""
+    return scene is not None and limit is not None and scene > limit
+
+
 def pooled_d2(z: np.ndarray) -> float:
     """n·|coordinate-wise median of the n whitened residuals|² (one row per frame)."""
     z = np.atleast_2d(np.asarray(z, dtype=np.float64))
@@ -474,8 +481,9 @@ def fit_match_calibration(residuals: np.ndarray, groups: Sequence[int], family, 
         # (a lighter tail) it let 1.9 % of decided genuine frames fall below α = 0.01 on
         # the clean protocol with 10 folds, against none unconditioned (bench forensics-clean).
         limit = float(chi2.isf(SCENE_GATE_P, cal.n_components))
-        scene = np.array([scene_d2(c, cal, family) for c in np.asarray(coefficients, dtype=np.float64)])
-        return replace(cal, scene_limit=limit, scene_share=float(np.mean(scene > limit)))
+        beyond = [beyond_scene_limit(scene_d2(c, cal, family), limit)
+                  for c in np.asarray(coefficients, dtype=np.float64)]
+        return replace(cal, scene_limit=limit, scene_share=float(np.mean(beyond)))
     except np.linalg.LinAlgError:
         raise MatchCalibrationError("degenerate scatter of the calibration frames") from None
 
