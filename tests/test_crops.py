@@ -97,13 +97,14 @@ def test_a_known_profile_places_the_centre_of_its_own_lens():
     """bench crops --statistic known-profile fits the centre alone, in a family that is the
     lens's own profile: on a texture with little shading it finds a 40 % shift, and an
     uncropped frame stays near the centre."""
-    from vigproc.bench.crops import _known_profile_shift, known_profile_family
+    from vigproc.bench.crops import known_profile_family
     from vigproc.core.pixels import luminance
+    from vigproc.forensics.crops import crop_statistic
 
     fam = known_profile_family(K, 1.5)
     assert fam.n_components == 1 and np.allclose(fam.prior()[0], 0.0, atol=1e-9)
-    shifted = _known_profile_shift(luminance(_frame(0.4)), None, fam)
-    centred = _known_profile_shift(luminance(_frame(0.0)), None, fam)
+    shifted = crop_statistic(luminance(_frame(0.4)), fam)[3]
+    centred = crop_statistic(luminance(_frame(0.0)), fam)[3]
     assert abs(shifted - 0.4) < 0.1 and centred < 0.1, (shifted, centred)
 
 

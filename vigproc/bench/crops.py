@@ -58,8 +58,8 @@ def shifted_field(k, corner_ev: float, offset: float, angle: float) -> np.ndarra
 
 def known_profile_family(k: tuple[float, float, float], corner_ev: float):
     """A lens family that is one lens: the profile of ``k`` at ``corner_ev`` as its mean,
-    and one component (ρ², centred) held at 0 by a prior of spread 0.01: a centre fit in
-    it fits the centre alone."""
+    and one component (ρ², centred) held at 0 by a prior of spread 0.01: the crop test
+    (:func:`vigproc.forensics.crops.crop_statistic`) in it fits the centre alone."""
     from vigproc.core.lensfamily import N_RADII, LensFamily
 
     radii = np.linspace(0.0, 1.0, N_RADII)
@@ -67,17 +67,6 @@ def known_profile_family(k: tuple[float, float, float], corner_ev: float):
     spread = np.random.default_rng(0).normal(0.0, 0.01, (50, 1))
     return LensFamily(radii, lens_log_profile(k, corner_ev, radii), (comp / np.linalg.norm(comp))[None, :],
                       spread - spread.mean(), np.full(50, 50.0), np.full(50, 2.8), 0.0, 1)
-
-
-def _known_profile_shift(lum: np.ndarray, colour, family) -> float:
-    from dataclasses import replace
-
-    from vigproc.core.family_fit import EVIDENCE_SETTINGS, fit_centre
-    from vigproc.forensics.crops import CENTRE_WORK_SIZE
-
-    s = replace(EVIDENCE_SETTINGS, min_snr=0.0)
-    return fit_centre(lum, np.zeros(1), s, family=family, work_size=CENTRE_WORK_SIZE, colour=colour,
-                      uncertainty=False).shift
 
 
 @dataclass
@@ -116,11 +105,9 @@ def run(bases: Sequence[np.ndarray], lenses: Sequence[tuple[float, float, float]
                 for o in z:
                     frame = vignetted(im, shifted_field(k, ev, o, angle))
                     t0 = time.perf_counter()
-                    if known is not None:
-                        zz = _known_profile_shift(luminance(frame), colour_of(frame), known)
-                    else:
-                        _, _, zz, shift, _ = crop_statistic(luminance(frame), family, colour_of(frame))
-                        zz = zz if statistic == "z" else shift
+                    # the crop test itself, in the lens's own family when its profile is known
+                    _, _, zz, shift, _ = crop_statistic(luminance(frame), known if known is not None else family, colour_of(frame))
+                    zz = zz if statistic == "z" else shift
                     secs.append(time.perf_counter() - t0)
                     z[o].append(zz)
                     even[o].append(bi % 2 == 0)
