@@ -253,6 +253,35 @@ def test_bench_clean_scores_methods_on_crops_of_large_frames(tmp_path):
     assert "no harm" in r.stdout and "rgs-c++" not in r.stdout
 
 
+def test_bench_clean_base_falloff_scores_table1_against_bases_that_carry_a_lens(tmp_path):
+    """``--base-falloff`` gives each base a test lens's fall-off (as BSDS's film scans carry
+    their cameras'): only Table 1's fields are scored, each with the paper's PSNR, and the
+    bases' own fall-off is now something a correction removes (no harm is no longer 0)."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(2):
+        write_image(folder / f"f{i}_linear.tif", textured(900, 1350, seed=50 + i, contrast=0.1).astype(np.float32),
+                    bit_depth="float")
+    runs = {}
+    for flag in ((), ("--base-falloff",)):
+        out = tmp_path / f"clean{len(flag)}.json"
+        r = _bench("clean", "--images", folder, "--lenses", "2", "--grey", "--methods", "lens-family", *flag,
+                   "--json", out)
+        assert r.returncode == 0, r.stderr
+        runs[flag] = json.loads(out.read_text())["results"]
+    plain, carried = runs[()], runs[("--base-falloff",)]
+    assert [row["fields"] for row in carried if "fields" in row] == ["table1-1", "table1-2", "table1-3"]
+    assert {row["fields"] for row in plain if "fields" in row} == {"lensfun", "table1-1", "table1-2", "table1-3"}
+    for row in (r for r in plain + carried if "fields" in r):
+        assert 5.0 < row["psnr_db"] < 80.0, row
+    def worst_harm(rows):
+        return next(r for r in rows if "worst_ev" in r)["worst_ev"]
+
+    assert worst_harm(carried) > worst_harm(plain)
+    r = _bench("clean", "--images", folder, "--base-falloff", "--no-table1")
+    assert r.returncode == 2 and "--base-falloff" in r.stderr and "Traceback" not in r.stderr
+
+
 def test_bench_profile_flat_learns_a_white_wall(tmp_path):
     """``vigproc bench profile-flat``: three unevenly lit shots of a vignetted white frame
     give a trusted flat-field profile close to the field; no white pairs is a usage error."""

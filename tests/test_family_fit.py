@@ -236,6 +236,68 @@ def test_default_fits_a_strong_off_centre_fall_off_in_the_family_off_centre():
     assert estimate_default(grey, colour=np.repeat(grey[..., None], 3, axis=2)).method == "robust"
 
 
+def _off_centre_kw(p: float) -> "vigproc.VignettingModel":
+    """A Kang-Weiss fall-off centred where Lyu's Table 1 setting 2 puts it, of strength ``p``."""
+    return vigproc.VignettingModel(W, H, center=(-80.0, -60.0), p=(p, p / 2, 1.5 * p),
+                                   alpha=(0.02, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0))
+
+
+def _spy_free_fits(monkeypatch) -> list:
+    """The settings of every free Kang-Weiss fit the default makes."""
+    import vigproc.core.estimate as E
+
+    calls, real = [], E.estimate_robust
+
+    def spy(lum, settings, mask=None):
+        calls.append(settings)
+        return real(lum, settings, mask)
+
+    monkeypatch.setattr(E, "estimate_robust", spy)
+    return calls
+
+
+def test_default_free_fit_drops_the_real_lens_priors_only_for_a_strong_fall_off(monkeypatch):
+    """Once the centre tests put a strong fall-off off-centre, the free fit is made without
+    the priors of a centred, round real lens and without the scene prior; a fall-off the
+    centred fit sees as weaker than OFF_CENTRE_FREE_MIN_EV keeps the robust settings."""
+    from vigproc.core.estimate import OFF_CENTRE_FREE_MIN_EV, OFF_CENTRE_FREE_SETTINGS
+    from vigproc.core.robust import RobustSettings
+
+    img = textured(H, W, seed=3, contrast=0.05)
+    calls = _spy_free_fits(monkeypatch)
+    strong = _off_centre_kw(1e-4)  # Table 1 setting 2's strength: 2.6 EV RMS
+    m = estimate_default(img * strong.field())
+    assert calls == [OFF_CENTRE_FREE_SETTINGS] and m.method == "robust"
+    assert np.std(m.log_field() - strong.log_field()) / math.log(2) < 0.1
+    calls.clear()
+    milder = _off_centre_kw(2e-5)  # 0.8 EV RMS, which the centred fit sees as less
+    assert estimate_family(img * milder.field()).quality.field_ev_rms < OFF_CENTRE_FREE_MIN_EV
+    m = estimate_default(img * milder.field())
+    assert calls == [RobustSettings()] and m.method == "robust"
+
+
+def test_default_applies_an_uncertain_off_centre_fit_rather_than_none(monkeypatch):
+    """The centred fit surely sees a fall-off and the off-centre fit explains the frame
+    better: that fit is applied even when its own uncertainty would have it fall back
+    (an identity would be the one answer surely wrong)."""
+    import dataclasses
+
+    import vigproc.core.estimate as E
+
+    real = E.estimate_robust
+
+    def unsure(lum, settings, mask=None):
+        fit = real(lum, settings, mask)
+        fit = dataclasses.replace(fit, quality=dataclasses.replace(fit.quality, fallback=True))
+        return vigproc.VignettingModel.identity(W, H, method="robust", quality=fit.quality, candidate=fit)
+
+    monkeypatch.setattr(E, "estimate_robust", unsure)
+    truth = _off_centre_kw(1e-4)
+    m = estimate_default(textured(H, W, seed=3, contrast=0.05) * truth.field())
+    assert m.method == "robust" and not m.is_identity and not m.quality.fallback
+    assert np.std(m.log_field() - truth.log_field()) / math.log(2) < 0.1
+
+
 def test_off_centre_family_fit_recovers_a_shifted_elliptical_lens():
     """A real lens's profile, off-centre and elliptical: fit_off_centre finds its centre
     and shape from the centred fit's start, and its field to a few hundredths of an EV."""

@@ -453,6 +453,12 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
     lens, excluded = C.lens_fields(args.lenses)
     # never the lens an estimate is scored on; all the components a colour frame's fit uses
     family = lensfun_family(exclude=excluded, n_components=PROFILE_COMPONENTS)
+    if args.base_falloff and (args.calibrate or args.no_table1):
+        print("vigproc: bench clean: --base-falloff scores Table 1's fields; not with --calibrate or --no-table1",
+              file=sys.stderr)
+        return 2
+    if args.base_falloff:  # the bases' own fall-off is then part of what is scored against
+        bases = [C.vignetted(b, lens[i % len(lens)].log_field) for i, b in enumerate(bases)]
     if args.calibrate:
         cal = C.calibrate_sigma(bases, lens, family)
         print(f"lens-family sigma = hypot({cal.scale:g} x jackknife sigma, {cal.floor:g} EV), fitted on "
@@ -476,14 +482,14 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
         else:
             methods[name] = C.model_estimator(_estimator(name, family=family))
     print(f"clean protocol: {len(bases)} central {args.crop:.0%} crops (480x320, "
-          f"{'luminance' if args.grey else 'colour'}, linear) of frames >= "
+          f"{'luminance' if args.grey else 'colour'}, linear{', each with a test lens fall-off' if args.base_falloff else ''}) of frames >= "
           f"{args.min_long_side} px from {' '.join(args.images)}; error = RMS of log2(estimated/true) "
           "about its mean (EV); median per field, then median / p90 over fields")
     print(f"lens family for lens-family: {family.lenses} lensfun lenses, the {len(lens)} test lenses left out")
     head = (f"{'method':<18}{'fields':<9}{'median EV':>10}{'p90 EV':>8}{'frames med':>11}{'uncorr':>8}"
-            f"{'<=1sd':>7}{'<=2sd':>7}{'fallbk':>8}{'ms/frame':>10}")
+            f"{'<=1sd':>7}{'<=2sd':>7}{'fallbk':>8}{'ms/frame':>10}{'PSNR dB':>9}")
     results = []
-    groups = [("lensfun", lens)] + ([] if args.no_table1 else
+    groups = ([] if args.base_falloff else [("lensfun", lens)]) + ([] if args.no_table1 else
                                     [(f"table1-{i + 1}", [f]) for i, f in enumerate(C.table1_fields())])
     print(head)
     for name, fn in methods.items():
@@ -493,7 +499,7 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
             results.append(asdict(r))
             print(f"{r.method:<18}{r.fields:<9}{r.median_ev:>10.3f}{r.p90_ev:>8.3f}{r.frame_median_ev:>11.3f}"
                   f"{r.uncorrected_ev:>8.3f}{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}{r.fallbacks:>8}"
-                  f"{r.ms_per_frame:>10.1f}", flush=True)
+                  f"{r.ms_per_frame:>10.1f}{r.psnr_db:>9.2f}", flush=True)
     print("no harm (the same crops, no vignetting): RMS of log2 of the applied field about its mean")
     print(f"{'method':<18}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'fallbk':>8}")
     for name, fn in methods.items():
@@ -1221,6 +1227,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "(built by scripts/build_rgs_peer.sh), given linear or sRGB-encoded 8-bit frames")
     bp.add_argument("--peer", help="the built rgs_peer executable (default: $VIGPROC_RGS_PEER)")
     bp.add_argument("--no-table1", action="store_true", help="only the lensfun fields")
+    bp.add_argument("--base-falloff", action="store_true",
+                    help="give each base a test lens's fall-off first (the lenses in turn), as a film scan "
+                         "carries its camera's, and score Table 1's fields against the bases with it, as the "
+                         "BSDS protocols do (Table 1's fields and no harm only)")
     bp.add_argument("--calibrate", action="store_true",
                     help="only fit the lens-family estimator's sigma scale and floor (even frames) and check "
                          "them (odd frames)")
