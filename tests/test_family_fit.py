@@ -259,8 +259,10 @@ def _spy_free_fits(monkeypatch) -> list:
 def test_default_free_fit_drops_the_real_lens_priors_only_for_a_strong_fall_off(monkeypatch):
     """Once the centre tests put a strong fall-off off-centre, the free fit is made without
     the priors of a centred, round real lens and without the scene prior; a fall-off the
-    centred fit sees as weaker than OFF_CENTRE_FREE_MIN_EV keeps the robust settings."""
-    from vigproc.core.estimate import OFF_CENTRE_FREE_MIN_EV, OFF_CENTRE_FREE_SETTINGS
+    centred fit sees as weaker than OFF_CENTRE_FREE_MIN_EV keeps the robust settings, and
+    in a grey frame is not fitted off-centre at all (OFF_CENTRE_GREY_MIN_EV)."""
+    from vigproc.core.estimate import OFF_CENTRE_FREE_MIN_EV, OFF_CENTRE_FREE_SETTINGS, OFF_CENTRE_GREY_MIN_EV
+    from vigproc.core.pixels import luminance
     from vigproc.core.robust import RobustSettings
 
     img = textured(H, W, seed=3, contrast=0.05)
@@ -269,11 +271,16 @@ def test_default_free_fit_drops_the_real_lens_priors_only_for_a_strong_fall_off(
     m = estimate_default(img * strong.field())
     assert calls == [OFF_CENTRE_FREE_SETTINGS] and m.method == "robust"
     assert np.std(m.log_field() - strong.log_field()) / math.log(2) < 0.1
-    calls.clear()
     milder = _off_centre_kw(2e-5)  # 0.8 EV RMS, which the centred fit sees as less
-    assert estimate_family(img * milder.field()).quality.field_ev_rms < OFF_CENTRE_FREE_MIN_EV
-    m = estimate_default(img * milder.field())
+    assert estimate_family(img * milder.field()).quality.field_ev_rms < min(OFF_CENTRE_FREE_MIN_EV,
+                                                                            OFF_CENTRE_GREY_MIN_EV)
+    calls.clear()
+    frame = _colour_texture() * milder.field()[..., None]
+    m = estimate_default(luminance(frame), colour=frame)
     assert calls == [RobustSettings()] and m.method == "robust"
+    calls.clear()
+    m = estimate_default(img * milder.field())
+    assert calls == [] and m.method == "lens-family"
 
 
 def test_default_applies_an_uncertain_off_centre_fit_rather_than_none(monkeypatch):
@@ -450,12 +457,20 @@ def test_colour_of_another_shape_is_refused():
 
 def test_coloured_light_off_centre_does_not_send_a_colour_frame_to_the_free_fit():
     """A warm glow from one side moves the luminance's fall-off centre, and a grey frame
-    goes to the free Kang-Weiss fit; a colour frame's centre must also move for its
-    colour-weighted pairs, which leave the glow out: it stays with the lens family."""
+    tried off-centre would go to the free Kang-Weiss fit; a colour frame's centre must also
+    move for its colour-weighted pairs, which leave the glow out: it stays with the lens
+    family."""
+    import vigproc.core.estimate as est
+
     for seed in (0, 3, 5):
         img = coloured_scene(H, W, seed=seed) * _lens_field()[..., None] * np.exp(chromatic_glow(H, W, 1.5))
         lum = vigproc.core.pixels.luminance(img)
-        assert estimate_default(lum).method == "robust"
+        # the grey frame's fall-off is too weak to be tried off-centre at all ...
+        assert estimate_default(lum).method == "lens-family"
+        with pytest.MonkeyPatch.context() as mp:
+            # ... and were it tried, the glow would send it to the free fit
+            mp.setattr(est, "OFF_CENTRE_GREY_MIN_EV", 0.0)
+            assert estimate_default(lum).method == "robust"
         assert estimate_default(lum, colour=img).method == "lens-family"
 
 
@@ -469,6 +484,24 @@ def test_a_centre_fit_without_its_uncertainty_answers_for_the_shift():
     assert np.isnan(quick.z) and np.all(np.isnan(quick.covariance - np.eye(2) * 1e-6))
     assert quick.off_centre(0.5 * full.shift) == full.off_centre(0.5 * full.shift) is True
     assert not quick.off_centre(0.5 * full.shift, min_z=1.0)  # a z it does not have is not met
+
+
+def test_a_fit_not_weighted_by_colour_reads_its_own_cauchy_scale():
+    """grey_sigma is the Cauchy scale of a fit whose pairs are not weighted by colour; a
+    colour-weighted fit reads sigma. The evidence fits keep one scale for both (their
+    calibrations were made so)."""
+    from vigproc.core.family_fit import EVIDENCE_SETTINGS, FamilySettings
+
+    grey = textured(H, W, seed=6, contrast=0.1) * _lens_field()
+    coef = lambda **kw: fit_family(grey, FamilySettings(**kw)).coefficients  # noqa: E731
+    assert np.array_equal(coef(grey_sigma=0.01), coef(sigma=0.02, grey_sigma=0.01))
+    assert not np.array_equal(coef(grey_sigma=0.01), coef(grey_sigma=0.004))
+    frame = _colour_texture(6) * _lens_field()[..., None]
+    lum = vigproc.core.pixels.luminance(frame)
+    col = lambda **kw: fit_family(lum, FamilySettings(**kw), colour=frame)  # noqa: E731
+    assert col().colour_weighted
+    assert np.array_equal(col(grey_sigma=0.01).coefficients, col(grey_sigma=0.004).coefficients)
+    assert EVIDENCE_SETTINGS.grey_sigma == EVIDENCE_SETTINGS.sigma
 
 
 def test_a_colour_weighted_fit_uses_every_component_a_grey_one_two():
@@ -544,9 +577,11 @@ def test_a_frame_whose_centred_fit_sees_little_is_not_fitted_off_centre(monkeypa
     assert m.method == "lens-family"
     q = (m.candidate or m).quality
     assert q.field_ev_rms + 2 * q.field_sigma_ev < est.OFF_CENTRE_ANY_MIN_EV
-    # a strong fall-off still asks where its centre is
+    # a strong fall-off still asks where its centre is (a colour frame: a grey one's
+    # fall-off must be stronger still, OFF_CENTRE_GREY_MIN_EV)
+    frame = _colour_texture(4) * _lens_field()[..., None]
     with pytest.raises(AssertionError, match="off-centre fit was tried"):
-        estimate_default(textured(H, W, seed=4, contrast=0.1) * _lens_field())
+        estimate_default(vigproc.core.pixels.luminance(frame), colour=frame)
 
 
 def test_a_lit_room_is_not_corrected_by_a_free_fit(shared_data):
