@@ -82,6 +82,17 @@ OFF_CENTRE_FREE_MIN_EV = 0.8
 #: 0.8 EV: 0.076, 0.0702, 24.3 / 24.5; 0.9: 0.0755, 0.0679, 24.2 / 24.3; 1.0: 0.074,
 #: 0.0679, 23.7 / 23.1. 0.9 is the strongest gate that keeps Table 1 restored to 24 dB.
 OFF_CENTRE_GREY_MIN_EV = 0.9
+#: An off-centre fit that explains the frame better is kept only when the fall-off it finds
+#: is at least this strong (EV RMS of log2 φ over the frame): a scene's own shading makes
+#: weaker off-centre fits win. On the clean protocol every base is an uncropped centre
+#: crop, so every off-centre fit kept on its real-lens frames is wrong (errors 0.4-0.5 EV
+#: against the family's 0.04); the fall-offs of those that won the comparison spread over
+#: 0.74-1.58 EV (10th-90th percentile; 33 of 1020 frames), Lyu's Table 1 settings 2-3
+#: over 1.78-2.64 EV (a script, session 17). At 1.5 the real lenses went 0.0412 -> 0.0406
+#: EV, Table 1 unchanged; at 1.7 setting 3 went 0.325 -> 0.452 EV. On 123 camera frames
+#: this was not tuned on (metadata-extractor-images, outside ../shared): 0.0436 -> 0.0407
+#: EV, no-harm worst 0.832 -> 0.644 EV.
+OFF_CENTRE_KEEP_MIN_EV = 1.5
 OFF_CENTRE_FREE_SETTINGS = RobustSettings(sigma_center=0.5, sigma_ellipticity=1.0, scene_prior=False,
                                           n_eff=1600.0, sigma_scale=0.1)
 
@@ -348,7 +359,7 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
         free = OFF_CENTRE_FREE_SETTINGS if q.field_ev_rms >= OFF_CENTRE_FREE_MIN_EV else RobustSettings()
         alt = estimate_robust(lum, free, mask)
     loss_family, loss_alt = pair_losses(lum, [grey.candidate or grey, alt.candidate or alt], s, mask)
-    if loss_alt < loss_family - s.select_margin:
+    if loss_alt < loss_family - s.select_margin and (alt.candidate or alt).field_ev_rms() >= OFF_CENTRE_KEEP_MIN_EV:
         if alt.quality.fallback and alt.candidate is not None and not model.quality.fallback:
             # the centred fit surely sees a fall-off and the off-centre fit places it better:
             # the off-centre fit's own uncertainty is no reason to apply no correction at all
