@@ -259,9 +259,11 @@ def _spy_free_fits(monkeypatch) -> list:
 def test_default_free_fit_drops_the_real_lens_priors_only_for_a_strong_fall_off(monkeypatch):
     """Once the centre tests put a strong fall-off off-centre, the free fit is made without
     the priors of a centred, round real lens and without the scene prior; a fall-off the
-    centred fit sees as weaker than OFF_CENTRE_FREE_MIN_EV keeps the robust settings, and
-    in a grey frame is not fitted off-centre at all (OFF_CENTRE_GREY_MIN_EV)."""
-    from vigproc.core.estimate import OFF_CENTRE_FREE_MIN_EV, OFF_CENTRE_FREE_SETTINGS, OFF_CENTRE_GREY_MIN_EV
+    centred fit sees as weaker than OffCentreRule.free_min_ev keeps the robust settings, and
+    in a grey frame is not fitted off-centre at all (OffCentreRule.grey_min_ev)."""
+    from dataclasses import replace
+
+    from vigproc.core.estimate import OffCentreRule
     from vigproc.core.pixels import luminance
     from vigproc.core.robust import RobustSettings
 
@@ -269,20 +271,18 @@ def test_default_free_fit_drops_the_real_lens_priors_only_for_a_strong_fall_off(
     calls = _spy_free_fits(monkeypatch)
     strong = _off_centre_kw(1e-4)  # Table 1 setting 2's strength: 2.6 EV RMS
     m = estimate_default(img * strong.field())
-    assert calls == [OFF_CENTRE_FREE_SETTINGS] and m.method == "robust"
+    rule = OffCentreRule()
+    assert calls == [rule.free_settings] and m.method == "robust"
     assert np.std(m.log_field() - strong.log_field()) / math.log(2) < 0.1
     milder = _off_centre_kw(2e-5)  # 0.8 EV RMS, which the centred fit sees as less
-    assert estimate_family(img * milder.field()).quality.field_ev_rms < min(OFF_CENTRE_FREE_MIN_EV,
-                                                                            OFF_CENTRE_GREY_MIN_EV)
+    assert estimate_family(img * milder.field()).quality.field_ev_rms < min(rule.free_min_ev, rule.grey_min_ev)
     calls.clear()
     frame = _colour_texture() * milder.field()[..., None]
     m = estimate_default(luminance(frame), colour=frame)
-    # tried with the robust settings; what it finds is weaker than OFF_CENTRE_KEEP_MIN_EV,
+    # tried with the robust settings; what it finds is weaker than rule.keep_min_ev,
     # where a scene's shading makes off-centre fits win, and the centred fit is kept
     assert calls == [RobustSettings()] and m.method == "lens-family"
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(vigproc.core.estimate, "OFF_CENTRE_KEEP_MIN_EV", 0.0)
-        assert estimate_default(luminance(frame), colour=frame).method == "robust"
+    assert estimate_default(luminance(frame), colour=frame, rule=replace(rule, keep_min_ev=0.0)).method == "robust"
     calls.clear()
     m = estimate_default(img * milder.field())
     assert calls == [] and m.method == "lens-family"
@@ -465,18 +465,16 @@ def test_coloured_light_off_centre_does_not_send_a_colour_frame_to_the_free_fit(
     tried off-centre would go to the free Kang-Weiss fit; a colour frame's centre must also
     move for its colour-weighted pairs, which leave the glow out: it stays with the lens
     family."""
-    import vigproc.core.estimate as est
+    from vigproc.core.estimate import OffCentreRule
 
+    anything_off_centre = OffCentreRule(grey_min_ev=0.0, keep_min_ev=0.0)
     for seed in (0, 3, 5):
         img = coloured_scene(H, W, seed=seed) * _lens_field()[..., None] * np.exp(chromatic_glow(H, W, 1.5))
         lum = vigproc.core.pixels.luminance(img)
         # the grey frame's fall-off is too weak to be tried off-centre at all ...
         assert estimate_default(lum).method == "lens-family"
-        with pytest.MonkeyPatch.context() as mp:
-            # ... and were it tried, the glow would send it to the free fit
-            mp.setattr(est, "OFF_CENTRE_GREY_MIN_EV", 0.0)
-            mp.setattr(est, "OFF_CENTRE_KEEP_MIN_EV", 0.0)
-            assert estimate_default(lum).method == "robust"
+        # ... and were it tried, the glow would send it to the free fit
+        assert estimate_default(lum, rule=anything_off_centre).method == "robust"
         assert estimate_default(lum, colour=img).method == "lens-family"
 
 
@@ -567,7 +565,7 @@ def test_a_grey_fit_states_its_sigma_on_the_grey_scale():
 
 
 def test_a_frame_whose_centred_fit_sees_little_is_not_fitted_off_centre(monkeypatch):
-    """Where the centred fit rules out OFF_CENTRE_ANY_MIN_EV of fall-off (at 2σ), no
+    """Where the centred fit rules out OffCentreRule.any_min_ev of fall-off (at 2σ), no
     off-centre fit is tried: a free fit there follows the scene's light (a camera JPEG of
     a lit room had 1.32 EV removed by it at confidence 1.00)."""
     import vigproc.core.estimate as est
@@ -582,9 +580,9 @@ def test_a_frame_whose_centred_fit_sees_little_is_not_fitted_off_centre(monkeypa
     m = estimate_default(weak)
     assert m.method == "lens-family"
     q = (m.candidate or m).quality
-    assert q.field_ev_rms + 2 * q.field_sigma_ev < est.OFF_CENTRE_ANY_MIN_EV
+    assert q.field_ev_rms + 2 * q.field_sigma_ev < est.OffCentreRule().any_min_ev
     # a strong fall-off still asks where its centre is (a colour frame: a grey one's
-    # fall-off must be stronger still, OFF_CENTRE_GREY_MIN_EV)
+    # fall-off must be stronger still, OffCentreRule.grey_min_ev)
     frame = _colour_texture(4) * _lens_field()[..., None]
     with pytest.raises(AssertionError, match="off-centre fit was tried"):
         estimate_default(vigproc.core.pixels.luminance(frame), colour=frame)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -27,74 +27,82 @@ LYU_WORK_SIZE = 480
 #: when more than ``CLIP_MIN_FRACTION`` of the pixels reach it.
 CLIP_LEVEL = 0.995
 CLIP_MIN_FRACTION = 1e-3
-#: The default estimator fits a colour frame's fall-off in the lens family off-centre and
-#: elliptical (:func:`vigproc.core.family_fit.fit_off_centre`) rather than by the free
-#: Kang-Weiss fit when the centre tests put the centre at least this far off
-#: (half-diagonals) and the centred fit's fall-off is at least :data:`OFF_CENTRE_MIN_EV`
-#: (EV RMS): a fall-off's shape and place can be read only when it is strong. On the
-#: clean protocol the centre tests fire on a fifth of the real lenses' frames (scenes
-#: move the centre); without these gates the off-centre family fit was taken on many of
-#: them (real lenses 0.044 -> 0.048 EV, a script, session 15 before the retune); with
-#: them the real lenses stay where the centred fit puts them (0.041 EV) and Table 1
-#: settings 2 / 3 go 0.565 / 0.775 -> 0.293 / 0.465 EV (``vigproc bench clean``;
-#: docs/benchmarks/clean.md).
-OFF_CENTRE_FAMILY_SHIFT = 0.25
-OFF_CENTRE_MIN_EV = 0.5
-#: No off-centre fit at all when the centred fit rules out a fall-off of this much (EV
-#: RMS: its candidate's fall-off plus 2σ is below it): a fall-off strong enough for a free
-#: fit to place shows in the centred fit too, and where the centred fit surely sees almost
-#: none, a free fit's twelve parameters follow the scene's own light. A Canon IXUS 400
-#: JPEG (a museum room lit from above) had 1.32 EV removed at confidence 1.00 by the free
-#: fit where the centred fit saw 0.02 ± 0.10 EV. Without the 2σ (the fall-off alone below
-#: 0.25) one Table 1 frame of the clean protocol, whose centred fit sees 0.10 ± 0.77 EV,
-#: lost its free fit; with it every benchmark of the default is unchanged (clean protocol
-#: with Table 1's fields, BSDS Table 1, Zheng's pairs and photographs; a run of each).
-OFF_CENTRE_ANY_MIN_EV = 0.25
-#: The settings of the default estimator's off-centre path (the centre tests, the
-#: off-centre fits, the centred fit they are compared with, and the comparison): the
-#: lens-family fit's before session 15 retuned its Cauchy scale, κ and τ for centred
-#: fits; with the retuned ones here too, Table 1 setting 3 on the clean bases went
-#: 0.34 -> 0.52 EV (a run of ``vigproc bench clean``). The off-centre fit's σ reads
-#: these settings' jackknife with the single-frame scale and floor.
-OFF_CENTRE_SETTINGS = FamilySettings(**EVIDENCE_FIT)
-#: The free Kang-Weiss fit of the default's off-centre path, for a frame whose centred fit
-#: sees at least :data:`OFF_CENTRE_FREE_MIN_EV` of fall-off (EV RMS). Its centre tests have
-#: already put the fall-off off the frame's centre, so the free estimator's priors ("robust":
-#: a real lens's centred, round fall-off, and the mean scene of centred photographs divided
-#: out) are overruled there: the centre and shape priors are widened (0.15 -> 0.5
-#: half-diagonals, ellipticity 0.3 -> 1.0), no scene prior is divided out, and the pairs
-#: weigh more against the α prior (n_eff 400 -> 1600, Cauchy scale 0.2 -> 0.1). On the clean
-#: bases' luminance, Lyu's Table 1 settings 2 / 3 went 21.1 / 19.5 -> 24.3 / 24.5 dB (with
-#: the fall-back rule in :func:`estimate_default`; scripts, session 17; 24.2 / 24.3 with
-#: :data:`OFF_CENTRE_GREY_MIN_EV`, ``vigproc bench clean --grey``). Below the strength
-#: gate the free fit keeps the robust settings: with the wide priors everywhere, the free
-#: fit won the comparison on 117 of the 1020 real-lens frames of the clean protocol (14
-#: before) and their median error went 0.041 -> 0.050 EV; gated at 0.5 EV, 0.042; at 0.8,
-#: 0.041 (16 frames).
-OFF_CENTRE_FREE_MIN_EV = 0.8
-#: A fit whose pairs are not weighted by colour (a grey frame, or one whose channels
-#: change alike) is tried off-centre only when its centred fall-off is at least this
-#: strong (EV RMS): without the colour weights a scene's shading moves the centre of a
-#: weaker fall-off, and the free fit, which follows it, won the comparison on 41 of the
-#: clean protocol's 1020 real-lens frames given their luminance (median error 0.081 EV).
-#: Session 17, a script (clean bases' luminance × 20 lenses, median EV; BSDS × lensfun
-#: fields, gain-free; Lyu's Table 1 settings 2 / 3 restored on the clean bases, dB):
-#: 0.8 EV: 0.076, 0.0702, 24.3 / 24.5; 0.9: 0.0755, 0.0679, 24.2 / 24.3; 1.0: 0.074,
-#: 0.0679, 23.7 / 23.1. 0.9 is the strongest gate that keeps Table 1 restored to 24 dB.
-OFF_CENTRE_GREY_MIN_EV = 0.9
-#: An off-centre fit that explains the frame better is kept only when the fall-off it finds
-#: is at least this strong (EV RMS of log2 φ over the frame): a scene's own shading makes
-#: weaker off-centre fits win. On the clean protocol every base is an uncropped centre
-#: crop, so every off-centre fit kept on its real-lens frames is wrong (errors 0.4-0.5 EV
-#: against the family's 0.04); the fall-offs of those that won the comparison spread over
-#: 0.74-1.58 EV (10th-90th percentile; 33 of 1020 frames), Lyu's Table 1 settings 2-3
-#: over 1.78-2.64 EV (a script, session 17). At 1.5 the real lenses went 0.0412 -> 0.0406
-#: EV, Table 1 unchanged; at 1.7 setting 3 went 0.325 -> 0.452 EV. On 123 camera frames
-#: this was not tuned on (metadata-extractor-images, outside ../shared): 0.0436 -> 0.0407
-#: EV, no-harm worst 0.832 -> 0.644 EV.
-OFF_CENTRE_KEEP_MIN_EV = 1.5
-OFF_CENTRE_FREE_SETTINGS = RobustSettings(sigma_center=0.5, sigma_ellipticity=1.0, scene_prior=False,
-                                          n_eff=1600.0, sigma_scale=0.1)
+@dataclass(frozen=True)
+class OffCentreRule:
+    """When vigproc's default estimate (:func:`estimate_default`) tries an off-centre fit,
+    which one, and when it keeps it. Each threshold was measured on the clean protocol
+    (``vigproc bench clean``: vignetting-free camera frames × 20 lensfun lenses, and Lyu's
+    Table 1 fields; docs/benchmarks/clean.md), where every base is an uncropped centre crop,
+    so any off-centre fit kept on a real lens's frame is wrong.
+
+    Attributes
+    ----------
+    any_min_ev : float
+        No off-centre fit at all when the centred fit rules out a fall-off of this much (EV
+        RMS: its candidate's fall-off plus 2σ is below it): a fall-off strong enough for a
+        free fit to place shows in the centred fit too, and where the centred fit surely
+        sees almost none, a free fit's twelve parameters follow the scene's own light. A
+        Canon IXUS 400 JPEG (a museum room lit from above) had 1.32 EV removed at confidence
+        1.00 by the free fit where the centred fit saw 0.02 ± 0.10 EV. Without the 2σ one
+        Table 1 frame, whose centred fit sees 0.10 ± 0.77 EV, lost its free fit.
+    grey_min_ev : float
+        A fit whose pairs are not weighted by colour (a grey frame, or one whose channels
+        change alike) is tried off-centre only when its centred fall-off is at least this
+        strong: without the colour weights a scene's shading moves a weaker fall-off's
+        centre, and the free fit, which follows it, won the comparison on 41 of 1020
+        real-lens frames given their luminance (median error 0.081 EV). Session 17, a script
+        (clean luminance × 20 lenses, median EV; BSDS × lensfun fields, gain-free; Table 1
+        settings 2 / 3 restored on the clean bases, dB): 0.8 EV: 0.076, 0.0702, 24.3 / 24.5;
+        0.9: 0.0755, 0.0679, 24.2 / 24.3; 1.0: 0.074, 0.0679, 23.7 / 23.1. 0.9 is the
+        strongest gate that keeps Table 1 restored to 24 dB.
+    family_shift, family_min_ev : float
+        A colour frame's fall-off is fitted in the lens family off-centre and elliptical
+        (:func:`vigproc.core.family_fit.fit_off_centre`) rather than by the free Kang-Weiss
+        fit when the centre tests put the centre at least ``family_shift`` half-diagonals
+        off and the centred fit's fall-off is at least ``family_min_ev``: a fall-off's shape
+        and place can be read only when it is strong. Without these gates the off-centre
+        family fit was taken on many real-lens frames (0.044 -> 0.048 EV, session 15); with
+        them Table 1 settings 2 / 3 went 0.565 / 0.775 -> 0.293 / 0.465 EV.
+    free_min_ev : float
+        From this centred fall-off on, the free fit is made with ``free_settings``, below it
+        with the robust estimator's own.
+    keep_min_ev : float
+        An off-centre fit that explains the frame better is kept only when the fall-off it
+        finds is at least this strong (EV RMS of log2 φ over the frame): a scene's own
+        shading makes weaker off-centre fits win. The fall-offs of the (wrong) off-centre
+        fits that won on real-lens frames spread over 0.74-1.58 EV (10th-90th percentile; 33
+        of 1020 frames), Table 1 settings 2-3's over 1.78-2.64 EV (a script, session 17). At
+        1.5 the real lenses went 0.0412 -> 0.0406 EV with Table 1 unchanged; at 1.7 setting 3
+        went 0.325 -> 0.452 EV. On 123 camera frames this was not tuned on
+        (``scripts/heldout_frames.sh``): 0.0436 -> 0.0407 EV, no-harm worst 0.832 -> 0.542.
+    settings : FamilySettings
+        The centre tests, the off-centre family fit, the centred fit they are compared with,
+        and the comparison: the lens-family fit's settings before session 15 retuned them for
+        centred fits (with the retuned ones here too, Table 1 setting 3 went 0.34 -> 0.52
+        EV). The off-centre fit's σ reads their jackknife with the single-frame scale and
+        floor.
+    free_settings : RobustSettings
+        The free fit of a strong fall-off. The centre tests have already put it off-centre,
+        so the free estimator's priors ("robust": a real lens's centred, round fall-off, and
+        the mean scene of centred photographs divided out) are overruled: the centre and
+        shape priors are widened (0.15 -> 0.5 half-diagonals, ellipticity 0.3 -> 1.0), no
+        scene prior is divided out, and the pairs weigh more against the α prior (n_eff
+        400 -> 1600, Cauchy scale 0.2 -> 0.1). On the clean bases' luminance, Table 1
+        settings 2 / 3 went 21.1 / 19.5 -> 24.3 / 24.5 dB (with the fall-back rule of
+        :func:`estimate_default`; scripts, session 17). With these settings for every free
+        fit, the free fit won on 117 of 1020 real-lens frames (14 before; 0.041 -> 0.050
+        EV); from 0.5 EV, 0.042; from 0.8, 0.041.
+    """
+
+    any_min_ev: float = 0.25
+    grey_min_ev: float = 0.9
+    family_shift: float = 0.25
+    family_min_ev: float = 0.5
+    free_min_ev: float = 0.8
+    keep_min_ev: float = 1.5
+    settings: FamilySettings = FamilySettings(**EVIDENCE_FIT)
+    free_settings: RobustSettings = RobustSettings(sigma_center=0.5, sigma_ellipticity=1.0, scene_prior=False,
+                                                   n_eff=1600.0, sigma_scale=0.1)
 
 
 def clipped_mask(img: np.ndarray) -> np.ndarray | None:
@@ -301,7 +309,8 @@ def estimate_checked(
 
 
 def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
-                     hint: LensHint | None = None, family=None, colour: np.ndarray | None = None) -> VignettingModel:
+                     hint: LensHint | None = None, family=None, colour: np.ndarray | None = None,
+                     rule: OffCentreRule = OffCentreRule()) -> VignettingModel:
     """vigproc's default estimate of a linear luminance frame.
 
     An uncropped frame of a real lens: the lens-family fit
@@ -310,12 +319,12 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     stitched image), an off-centre fit is tried too, and kept when it explains the frame's
     log differences clearly better (:func:`vigproc.core.family_fit.pair_losses`): in a
     colour frame whose fall-off is strong and whose centre is clearly off
-    (:data:`OFF_CENTRE_FAMILY_SHIFT`, :data:`OFF_CENTRE_MIN_EV`) the family's profile with
+    (``rule``: :class:`OffCentreRule`) the family's profile with
     a free centre and an elliptical shape (:func:`vigproc.core.family_fit.fit_off_centre`),
     else the free off-centre, elliptical Kang-Weiss fit
-    (:func:`vigproc.core.robust.estimate_robust`). A frame whose centred fit rules out
-    :data:`OFF_CENTRE_ANY_MIN_EV` of fall-off is not fitted off-centre at all, nor a
-    fit not weighted by colour whose fall-off is below :data:`OFF_CENTRE_GREY_MIN_EV`.
+    (:func:`vigproc.core.robust.estimate_robust`), kept only when what it finds is strong.
+    A frame whose centred fit rules out a fall-off, or a fit not weighted by colour whose
+    fall-off is weak, is not fitted off-centre at all.
     ``colour`` (H×W×3, the frame's R, G, B): the lens-family fit weighs each pair by
     how alike its channels change; the centre must move for the luminance and for the
     colour-weighted pairs; the choice between the fits reads the luminance.
@@ -324,11 +333,11 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
 
     model, coef, weighted = fit_family(lum, FamilySettings(), mask, family, hint, colour)
     q = (model.candidate or model).quality
-    if coef is None or q.field_ev_rms + 2.0 * q.field_sigma_ev < OFF_CENTRE_ANY_MIN_EV:
+    if coef is None or q.field_ev_rms + 2.0 * q.field_sigma_ev < rule.any_min_ev:
         return model
-    if not weighted and q.field_ev_rms < OFF_CENTRE_GREY_MIN_EV:
+    if not weighted and q.field_ev_rms < rule.grey_min_ev:
         return model
-    s = OFF_CENTRE_SETTINGS
+    s = rule.settings
     # The centre must move for the luminance and, in a colour frame, for the colour-weighted
     # pairs too: a scene's coloured light moves the luminance's centre (a sunset, a lit
     # room), not the colour fit's. Which fit explains the frame better is asked of the
@@ -347,19 +356,19 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
             return model
     grey = fit_family(lum, s, mask, family, hint).model  # the luminance's, as the comparison reads
     shift = centre.shift if colour is None else min(centre.shift, centre_colour.shift)
-    strong = q.field_ev_rms >= OFF_CENTRE_MIN_EV
+    strong = q.field_ev_rms >= rule.family_min_ev
     alt = None
     # a grey frame's off-centre family fit is fitted on the very pairs that judge it, and
     # wins too easily (BSDS x lensfun fields, grey: 0.086 EV with it, 0.074 without); a
     # colour frame's is fitted on colour-weighted pairs and judged on the luminance's. A
     # grey frame, or one stored as R = G = B, is fitted as grey and goes the same way.
-    if shift >= OFF_CENTRE_FAMILY_SHIFT and strong and weighted:
+    if shift >= rule.family_shift and strong and weighted:
         alt = fit_off_centre(lum, coef, s, mask, family, hint, colour)
     if alt is None:
-        free = OFF_CENTRE_FREE_SETTINGS if q.field_ev_rms >= OFF_CENTRE_FREE_MIN_EV else RobustSettings()
+        free = rule.free_settings if q.field_ev_rms >= rule.free_min_ev else RobustSettings()
         alt = estimate_robust(lum, free, mask)
     loss_family, loss_alt = pair_losses(lum, [grey.candidate or grey, alt.candidate or alt], s, mask)
-    if loss_alt < loss_family - s.select_margin and (alt.candidate or alt).field_ev_rms() >= OFF_CENTRE_KEEP_MIN_EV:
+    if loss_alt < loss_family - s.select_margin and (alt.candidate or alt).field_ev_rms() >= rule.keep_min_ev:
         if alt.quality.fallback and alt.candidate is not None and not model.quality.fallback:
             # the centred fit surely sees a fall-off and the off-centre fit places it better:
             # the off-centre fit's own uncertainty is no reason to apply no correction at all

@@ -188,7 +188,7 @@ class FamilySettings:
 #:
 #: The fit those settings make (Cauchy scale, κ, tolerance, τ), apart from its jackknife
 #: and σ calibration: the evidence's, and the default estimator's off-centre path's
-#: (:data:`vigproc.core.estimate.OFF_CENTRE_SETTINGS`).
+#: (:attr:`vigproc.core.estimate.OffCentreRule.settings`).
 EVIDENCE_FIT = {"sigma": 0.01, "grey_sigma": 0.01, "kappa": 0.3, "tolerance": 1e-4, "chroma_tau": 0.003}
 EVIDENCE_SETTINGS = FamilySettings(**EVIDENCE_FIT, jackknife_blocks=2, jackknife_iterations=30,
                                    sigma_scale=2.25, sigma_floor=0.01, grey_sigma_scale=2.25)
