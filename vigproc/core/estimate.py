@@ -264,12 +264,16 @@ def estimate(
 def estimate_checked(
     a: np.ndarray, method: str = "default", *, prior: NaturalPrior | None = None,
     settings: RobustSettings | None = None, seed: int | None = None, hint: LensHint | None = None,
+    family=None,
 ) -> VignettingModel:
     """:func:`estimate` of a frame that :func:`~vigproc.core.pixels.check_image` has
     accepted: ``a`` is its result (H×W, or H×W×C with channels last, float). The
     pipeline validates a frame once, at its door, and hands the checked array inward.
 
-    Parameters and errors as :func:`estimate` (``method`` may name a plugin).
+    Parameters and errors as :func:`estimate` (``method`` may name a plugin), and
+    ``family`` (:class:`~vigproc.core.lensfamily.LensFamily`, optional): the lens family
+    of the "default" and "lens-family" fits (default: the shipped one; a benchmark
+    passes one without the lenses it scores).
     """
     require_size(a)  # the door may accept smaller frames (a correction by a profile)
     if method not in METHODS:
@@ -280,13 +284,13 @@ def estimate_checked(
     keep = clipped_mask(a)
     lum = luminance(a)
     if method == "default" and settings is None:
-        return estimate_default(lum, keep, hint, colour=colour_of(a))
+        return estimate_default(lum, keep, hint, family, colour=colour_of(a))
     if method in ROBUST_METHODS:
         return _named(estimate_robust(lum, _robust_settings(method, settings), keep), method)
     if method == "lens-family":
         from vigproc.core.family_fit import estimate_family
 
-        return estimate_family(lum, mask=keep, hint=hint, colour=colour_of(a))
+        return estimate_family(lum, mask=keep, family=family, hint=hint, colour=colour_of(a))
 
     from vigproc.core.lyu2010 import estimate_lyu2010
 

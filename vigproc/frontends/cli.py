@@ -353,23 +353,17 @@ def _estimator(method: str, seed: int = 0, settings=None, family=None):
     family they fit in (a bench whose fields are lensfun lenses leaves them out); they
     also take ``hint=`` (EXIF's focal length and f-number).
     """
-    from vigproc.core.estimate import clipped_mask, estimate, estimate_default
-    from vigproc.core.family_fit import colour_of
+    from vigproc.core.estimate import estimate, estimate_checked
     from vigproc.core.pixels import luminance
 
     if method == "rgs":
         from vigproc.bench.peers import estimate_rgs
 
         return lambda v: estimate_rgs(luminance(v))
-    # clipped highlights masked, as vigproc.estimate masks them
-    if method == "default":
-        return lambda v, hint=None: estimate_default(luminance(v), clipped_mask(v), family=family, hint=hint,
-                                                     colour=colour_of(v))
-    if method == "lens-family":
-        from vigproc.core.family_fit import estimate_family
-
-        return lambda v, hint=None: estimate_family(luminance(v), mask=clipped_mask(v), family=family, hint=hint,
-                                                    colour=colour_of(v))
+    if method in ("default", "lens-family"):
+        # the product's own path (clipped highlights masked, colour read), in ``family``; a
+        # bench's frames are float, channels last: what check_image would hand on
+        return lambda v, hint=None: estimate_checked(v, method, hint=hint, family=family)
     return lambda v: estimate(v, method, channel_axis=-1 if v.ndim == 3 else None, seed=seed, settings=settings)
 
 
