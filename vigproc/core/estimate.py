@@ -337,7 +337,8 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     how alike its channels change; the centre must move for the luminance and for the
     colour-weighted pairs; the choice between the fits reads the luminance.
     """
-    from vigproc.core.family_fit import fit_centre, fit_family, fit_off_centre, pair_losses
+    from vigproc.core.family_fit import CENTRE_WORK_SIZE, fit_centre, fit_family, fit_off_centre, luminance_copy, \
+        pair_losses, with_colour
 
     model, coef, weighted = fit_family(lum, FamilySettings(), mask, family, hint, colour)
     q = (model.candidate or model).quality
@@ -354,12 +355,15 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     # loss, Lyu's Table 1 setting 3 on the clean bases went 0.69 -> 1.15 EV). The
     # luminance's own family fit is made only for that comparison.
     # (the shift is all the test reads: no jackknife of the centre)
-    centre = fit_centre(lum, coef, s, mask, family, hint, uncertainty=False)
+    # one binning of the luminance for both centre fits
+    centre_copy = luminance_copy(lum, replace(s, work_size=CENTRE_WORK_SIZE), mask)
+    centre = fit_centre(lum, coef, s, mask, family, hint, uncertainty=False, copy=centre_copy)
     if not centre.off_centre(s.off_centre_shift):
         return model
     centre_colour = None
     if colour is not None:
-        centre_colour = fit_centre(lum, coef, s, mask, family, hint, colour=colour, uncertainty=False)
+        centre_colour = fit_centre(lum, coef, s, mask, family, hint, uncertainty=False,
+                                   copy=with_colour(centre_copy, colour, s))
         if not centre_colour.off_centre(s.off_centre_shift):
             return model
     grey = fit_family(lum, s, mask, family, hint).model  # the luminance's, as the comparison reads
