@@ -166,6 +166,9 @@ def test_irls_solves_the_weighted_normal_equations():
     # watching only the first coefficient for the stop: that one is converged as well
     first = irls(d, a, weight, np.zeros(2), pmean, pinv, sigma, kappa, 500, tolerance=1e-3, converged_on=1)
     assert abs(first[0] - c[0]) < 5e-3
+    # over-relaxed steps reach the same fixed point
+    np.testing.assert_allclose(irls(d, a, weight, np.zeros(2), pmean, pinv, sigma, kappa, 500, relaxation=1.6), c,
+                               atol=5e-4)
 
 
 def _lens_field(k1=-0.55, k2=0.05, center=None):
@@ -381,7 +384,7 @@ def test_colour_weights_leave_out_shading_that_changes_colour():
     for seed in range(3):
         img = coloured_scene(H, W, seed=seed) * np.exp(truth)[..., None] * np.exp(chromatic_glow(H, W, 1.0))
         lum = vigproc.core.pixels.luminance(img)
-        s = FamilySettings(min_snr=0.0)
+        s = FamilySettings(min_snr=0.0, grey_min_snr=0.0)
         for errs, colour in ((lum_errs, None), (colour_errs, img)):
             m = estimate_family(lum, s, colour=colour)
             errs.append(np.std(m.log_field((H, W)) - truth) / math.log(2))
@@ -603,6 +606,23 @@ def test_a_grey_fit_states_its_sigma_on_the_grey_scale():
         b = fit_family(lum, replace(s, grey_sigma_scale=2 * s.grey_sigma_scale), colour=col).model
         ratio = b.quality.field_sigma_ev / a.quality.field_sigma_ev
         assert (1.6 < ratio < 2.01) if follows else ratio == 1.0
+
+
+def test_a_grey_fit_falls_back_on_its_own_threshold():
+    """The do-no-harm threshold (field / σ) is ``grey_min_snr`` for a fit whose pairs are
+    not weighted by colour and ``min_snr`` for one whose are: each reads its own σ scale."""
+    from dataclasses import replace
+
+    grey = textured(H, W, seed=4, contrast=0.05) * _lens_field()
+    colour = _colour_texture(seed=4) * _lens_field()[..., None]
+    s = FamilySettings()
+    for frame, col, own in ((grey, None, "grey_min_snr"), (colour, colour, "min_snr")):
+        lum = frame if frame.ndim == 2 else vigproc.core.pixels.luminance(frame)
+        snr = (fit_family(lum, s, colour=col).model.candidate or fit_family(lum, s, colour=col).model).quality.snr
+        other = "min_snr" if own == "grey_min_snr" else "grey_min_snr"
+        # above its own threshold: falls back; the other threshold is not read
+        assert fit_family(lum, replace(s, **{own: snr * 1.01}), colour=col).model.quality.fallback
+        assert not fit_family(lum, replace(s, **{own: snr * 0.99, other: snr * 2}), colour=col).model.quality.fallback
 
 
 def test_a_frame_whose_centred_fit_sees_little_is_not_fitted_off_centre(monkeypatch):

@@ -299,7 +299,7 @@ def calibrate_sigma(bases: Sequence[np.ndarray], fields: Sequence[Field], family
     from vigproc.core.family_fit import FamilySettings, colour_of, estimate_family
     from vigproc.core.pixels import luminance
 
-    raw = FamilySettings(sigma_scale=1.0, sigma_floor=0.0, min_snr=0.0)
+    raw = FamilySettings(sigma_scale=1.0, sigma_floor=0.0, min_snr=0.0, grey_min_snr=0.0)
     rows = []
     for f in list(fields) + [Field("none", np.zeros((HEIGHT, WIDTH)))]:
         true_log = f.log_field

@@ -171,7 +171,7 @@ def crop_statistic(lum: np.ndarray, family=None,
     from vigproc.core.lensfamily import default_family
 
     # the jackknife its shipped null was made with; the test decides on its own evidence below
-    s = replace(EVIDENCE_SETTINGS, min_snr=0.0)
+    s = replace(EVIDENCE_SETTINGS, min_snr=0.0, grey_min_snr=0.0)
     family = family or default_family()  # the components its shipped null was made in
     model, coef, _ = fit_family(lum, s, family=family, colour=colour)
     snr = float(model.quality.snr) if model.quality is not None and model.quality.snr is not None else 0.0
