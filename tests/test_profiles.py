@@ -902,12 +902,12 @@ def test_lookup_interpolates_between_a_lenss_bins(tmp_path):
         assert store.lookup(lk, w, h, trusted_only=True) is None
 
 
-@pytest.mark.parametrize("old", [5, 6, 7])
-def test_migrations_6_to_8_refit_the_frames_from_their_evidence(tmp_path, old):
+@pytest.mark.parametrize("old", [5, 6, 7, 8])
+def test_migrations_6_to_9_refit_the_frames_from_their_evidence(tmp_path, old):
     """A v5 store's frame fits were made before the colour weights, a v6 store's with the
-    single-frame Cauchy scale, a v7 store's with the earlier chroma scale: v6, v7 and v8
-    drop them, and the next pooling fits each frame again from its evidence, so a profile
-    never pools fits of two kinds."""
+    single-frame Cauchy scale, a v7 store's with the earlier chroma scale, a v8 store's
+    without the chroma covariates: v6 to v9 drop them, and the next pooling fits each frame
+    again from its evidence, so a profile never pools fits of two kinds."""
     from conftest import photo_like
 
     from vigproc.core.estimate import estimate, frame_evidence
@@ -931,7 +931,7 @@ def test_migrations_6_to_8_refit_the_frames_from_their_evidence(tmp_path, old):
     con.commit()
     con.close()
     with ProfileStore(db) as store:
-        assert store.schema_version == SCHEMA_VERSION >= 8
+        assert store.schema_version == SCHEMA_VERSION >= 9
         m = estimate(frames[2], "robust", channel_axis=None)
         p = store.learn(key, m.candidate or m, frame_id="f2", evidence=frame_evidence(frames[2], channel_axis=None))
     expected = pool_family([frame_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)

@@ -560,6 +560,26 @@ def _solve(d, a, wt, c0, pmean, pinv, s: FamilySettings, iterations: int, conver
                 converged_on=converged_on, relaxation=relaxation)
 
 
+def _fit_with_chroma(d, a, index: PairIndex, wt, pmean, pinv, s: FamilySettings,
+                     iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """The field's coefficients (K = a's columns) fitted with the pairs' chroma changes as
+    covariates (module doc, step 3; ``s.chroma_covariate`` the s.d. of their centred prior),
+    and the pairs' data with the covariates' part taken out: a jackknife refits the field
+    on it with the covariates held (a third of the cost of refitting them too; σ is
+    calibrated on fits made so). Without covariates (``chroma_covariate`` 0, a grey frame,
+    or one whose channels are proportional and so change no chroma): the plain fit and
+    ``d`` itself."""
+    K = a.shape[1]
+    if s.chroma_covariate <= 0 or not index.chroma.size or float(np.max(np.abs(index.chroma))) <= 1e-9:
+        return _solve(d, a, wt, pmean, pmean, pinv, s, iterations), d
+    pm = np.concatenate([pmean, np.zeros(2)])
+    prec = np.block([[pinv, np.zeros((K, 2))], [np.zeros((2, K)), np.eye(2) / s.chroma_covariate**2]])
+    # rows stacked, then seen as columns: irls reads the rows without a copy
+    c_all = _solve(d, np.vstack([a.T, index.chroma]).T, wt, pm, pm, prec, s, iterations,
+                   converged_on=K, relaxation=COVARIATE_RELAXATION)
+    return c_all[:K], d - c_all[K:] @ index.chroma
+
+
 def _jackknife(d, a, labels, wt, c, pmean, pinv, s: FamilySettings) -> np.ndarray:
     """The delete-one-block refits (``s.jackknife_blocks``² of them, each started from
     the full fit's coefficients ``c``), as rows."""
@@ -1040,14 +1060,14 @@ def frame_coefficients(L: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.
     if int(valid.sum()) < MIN_VALID_BINS:
         return None
     M, B = fam.profiles(_rho(xs, ys, half_diagonal(width, height)))
-    steps = _pair_steps(settings, L.shape)
-    d, a, labels, wt = family_pairs(L, valid, M, B, steps, _block_labels(L.shape, settings.jackknife_blocks),
-                                    C, settings.chroma_tau)
+    index = _settings_index(L, valid, C, settings)
+    d, a = pairs_at(index, M, B)
+    labels, wt = index.labels, index.weight
     if d.size < MIN_VALID_BINS:
         return None
     pmean, pcov = fam.prior()
     pinv = np.linalg.inv(pcov) * LIKELIHOOD_RIDGE
-    c = _solve(d, a, wt, pmean, pmean, pinv, settings, LIKELIHOOD_ITERATIONS)
+    c, d = _fit_with_chroma(d, a, index, wt, pmean, pinv, settings, LIKELIHOOD_ITERATIONS)
     jk = replace(settings, jackknife_iterations=max(settings.jackknife_iterations, 30))
     cov = _jackknife_cov(d, a, labels, wt, c, pmean, pinv, jk) * settings.sigma_scale**2
     return FrameCoefficients(c, 0.5 * (cov + cov.T), int(d.size))
@@ -1141,21 +1161,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
     pinv = np.linalg.inv(pcov)
     n = d.size
-    # a frame whose channels are proportional (a grey frame stored as R, G, B) has no
-    # chroma change to read: it is fitted as its luminance
-    if settings.chroma_covariate > 0 and index.chroma.size and float(np.max(np.abs(index.chroma))) > 1e-9:
-        # the chroma covariates γ (step 3): no lens moves them, so their prior is centred
-        g_inv = np.eye(2) / settings.chroma_covariate**2
-        # rows stacked, then seen as columns: irls reads the rows without a copy
-        c_all = _solve(d, np.vstack([a.T, index.chroma]).T, wt, np.concatenate([pmean, np.zeros(2)]),
-                       np.concatenate([pmean, np.zeros(2)]), np.block([[pinv, np.zeros((K, 2))], [np.zeros((2, K)), g_inv]]),
-                       settings, settings.iterations, converged_on=K, relaxation=COVARIATE_RELAXATION)
-        # the jackknife refits the field with γ held: a third of the cost of refitting
-        # all five (σ is calibrated on fits made so)
-        d = d - c_all[K:] @ index.chroma
-        c = c_all[:K]
-    else:
-        c = _solve(d, a, wt, pmean, pmean, pinv, settings, settings.iterations)
+    c, d = _fit_with_chroma(d, a, index, wt, pmean, pinv, settings, settings.iterations)
     cov_jk = _jackknife_cov(d, a, labels, wt, c, pmean, pinv, settings)
     grid = frame_rho_grid(w, h)
     sigma_jk = field_sigma_ev(fam, cov_jk, w, h)

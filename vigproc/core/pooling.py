@@ -23,8 +23,8 @@ so a profile pools its frames' evidence:
    frames' stored fits, 20 lenses × 10 orders, scatter measured on the other half of
    the bases): 0.020 / 0.012 / 0.008 EV after 5 / 20 / 50 frames, against the
    coordinate-wise median's 0.027 / 0.013 / 0.008 (the single-frame fit's Cauchy scale;
-   with :data:`FRAME_SETTINGS` ``vigproc bench profile-clean`` gives 0.018 / 0.009 /
-   0.007), which had beaten the mean, trimmed
+   with :data:`FRAME_SETTINGS` ``vigproc bench profile-clean`` gives 0.015 / 0.007 /
+   0.006), which had beaten the mean, trimmed
    means, Hodges-Lehmann, the spatial median and Huber weights. The median is the
    fall-back when no scatter is known.
 3. **Nothing subtracted, no prior**: the scenes' median effect on vignetting-free
@@ -91,8 +91,11 @@ _LN2 = math.log(2.0)
 #: 0.012 / 0.012 / 0.014 / 0.014 after 20). The chroma scale τ is the single-frame fit's
 #: (0.002 since session 15; ``vigproc bench profile-clean`` with the scene scatter
 #: re-measured: 0.0188 / 0.0088 / 0.0069 → 0.0178 / 0.0086 / 0.0070 EV after 5 / 20 / 50
-#: frames against τ = 0.003).
-FRAME_SETTINGS = replace(EVIDENCE_SETTINGS, sigma=0.005, chroma_tau=0.002)
+#: frames against τ = 0.003). Since session 18 each pair's chroma change enters as a
+#: covariate, as in the single-frame fit (``vigproc bench profile-clean --orders 2``, scene
+#: scatter re-measured: 0.0178 / 0.0086 / 0.0070 → 0.0150 / 0.0074 / 0.0062 EV after 5 /
+#: 20 / 50 frames; one frame 0.0387 → 0.0392, p90 0.200 → 0.191).
+FRAME_SETTINGS = replace(EVIDENCE_SETTINGS, sigma=0.005, chroma_tau=0.002, chroma_covariate=0.3)
 
 
 def frame_fit(wc: WorkingCopy, family: LensFamily | None = None,

@@ -997,11 +997,18 @@ def _migration_8(con: sqlite3.Connection) -> None:
     con.execute("UPDATE pooled_frames SET family = NULL")
 
 
+def _migration_9(con: sqlite3.Connection) -> None:
+    """v9: the same again: a frame's fit for pooling reads each pair's chroma change as
+    covariates since session 18 (:data:`vigproc.core.pooling.FRAME_SETTINGS`), and the
+    shipped scene scatter was measured for such fits."""
+    con.execute("UPDATE pooled_frames SET family = NULL")
+
+
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
 #: Append a function for the next version; never edit a released one.
 MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3,
                                                                  _migration_4, _migration_5, _migration_6,
-                                                                 _migration_7, _migration_8)
+                                                                 _migration_7, _migration_8, _migration_9)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
