@@ -365,10 +365,10 @@ def pair_index(L: np.ndarray, valid: np.ndarray, steps: np.ndarray, block: np.nd
         none = np.empty(0, dtype=np.int64)
         return PairIndex(none, none, np.empty(0), np.empty(0), none, np.empty(0),
                          np.empty((2 if C is not None else 0, 0)))
+    wt = np.concatenate(wt)
+    chroma = np.stack([np.concatenate(d_rg), np.concatenate(d_bg)]) if d_rg else np.empty((0, wt.size))
     return PairIndex(np.concatenate(first), np.concatenate(second), np.concatenate(inv), np.concatenate(dl),
-                     np.concatenate(lab).astype(np.int64), np.concatenate(wt),
-                     np.stack([np.concatenate(d_rg), np.concatenate(d_bg)]) if d_rg
-                     else np.empty((0, sum(f.size for f in first))))
+                     np.concatenate(lab).astype(np.int64), wt, chroma)
 
 
 def _settings_index(L: np.ndarray, valid: np.ndarray, C: np.ndarray | None, settings: FamilySettings) -> PairIndex:
@@ -559,6 +559,12 @@ def _solve(d, a, wt, c0, pmean, pinv, s: FamilySettings, iterations: int, conver
     return irls(d, a, wt, c0, pmean, pinv, s.sigma, s.kappa, iterations, tolerance=s.tolerance,
                 converged_on=converged_on, relaxation=relaxation)
 
+
+#: Over-relaxation of the colour fit with chroma covariates (:func:`irls`): its five
+#: coefficients took 19 plain steps on the clean protocol's frames (a script), 13.5 at
+#: ω = 1.6, and ended nearer the converged fit (median largest coefficient difference
+#: 0.0008 against 0.0011).
+COVARIATE_RELAXATION = 1.6
 
 def _fit_with_chroma(d, a, index: PairIndex, wt, pmean, pinv, s: FamilySettings,
                      iterations: int) -> tuple[np.ndarray, np.ndarray]:
@@ -1011,12 +1017,6 @@ class FrameCoefficients:
     pairs: int
 
 
-#: Over-relaxation of the colour fit with chroma covariates (:func:`irls`): its five
-#: coefficients took 19 plain steps on the clean protocol's frames (a script), 13.5 at
-#: ω = 1.6, and ended nearer the converged fit (median largest coefficient difference
-#: 0.0008 against 0.0011).
-COVARIATE_RELAXATION = 1.6
-
 #: The likelihood fit's ridge: the prior's precision times this (it only keeps a
 #: frame without structure from a singular system).
 LIKELIHOOD_RIDGE = 1e-6
@@ -1146,8 +1146,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
         return FamilyFit(VignettingModel.identity(w, h, method=METHOD, quality=q), None)
     radius = half_diagonal(w, h)
     M, B = fam.profiles(_rho(xs, ys, radius))
-    steps = _pair_steps(settings, L.shape)
-    index = pair_index(L, valid, steps, _block_labels(L.shape, settings.jackknife_blocks), C, settings.chroma_tau)
+    index = _settings_index(L, valid, C, settings)
     d, a = pairs_at(index, M, B)
     labels, wt = index.labels, index.weight
     # components nest: the first k columns of a are the k-component family's
