@@ -371,7 +371,7 @@ def pair_index(L: np.ndarray, valid: np.ndarray, steps: np.ndarray, block: np.nd
                      np.concatenate(lab).astype(np.int64), wt, chroma)
 
 
-def _settings_index(L: np.ndarray, valid: np.ndarray, C: np.ndarray | None, settings: FamilySettings) -> PairIndex:
+def settings_index(L: np.ndarray, valid: np.ndarray, C: np.ndarray | None, settings: FamilySettings) -> PairIndex:
     """The :class:`PairIndex` of a working copy with ``settings``' pair steps, jackknife
     blocks and chroma scale."""
     return pair_index(L, valid, _pair_steps(settings, L.shape), _block_labels(L.shape, settings.jackknife_blocks),
@@ -549,7 +549,9 @@ def half_diagonal(width: int, height: int) -> float:
     return math.hypot((width - 1) / 2.0, (height - 1) / 2.0)
 
 
-def _rho(xs: np.ndarray, ys: np.ndarray, radius: float) -> np.ndarray:
+def bin_rho(xs: np.ndarray, ys: np.ndarray, radius: float) -> np.ndarray:
+    """ρ (h, w) of bins centred at ``xs`` (w,), ``ys`` (h,) px from the frame centre, in
+    units of ``radius`` (the half-diagonal: ρ = 1 at the frame's corner)."""
     return np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2) / radius
 
 
@@ -631,7 +633,7 @@ def _frame_corners(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
 def frame_rho_grid(width: int, height: int, n: int = 16) -> np.ndarray:
     """ρ (half-diagonals from the frame centre) on the :func:`_frame_grid`: where a
     family fit's field and its uncertainty are summarised."""
-    return _rho(*_frame_grid(width, height, n), half_diagonal(width, height))
+    return bin_rho(*_frame_grid(width, height, n), half_diagonal(width, height))
 
 
 def field_sigma_ev(family: LensFamily, cov: np.ndarray, width: int, height: int) -> float:
@@ -877,7 +879,7 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     # the centre within about half a half-diagonal
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 2, 0.5)
     # the pairs and their weights stay; only the field divided out moves with the centre
-    index = _settings_index(L, valid, C, settings)
+    index = settings_index(L, valid, C, settings)
     K = fam.n_components
     _, u, d, a, sol, pm_it, _ = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv,
                                               settings, False, iterations)
@@ -932,7 +934,7 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
         return None
     radius = half_diagonal(w, h)
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 4, OFF_CENTRE_SPREAD)
-    index = _settings_index(L, valid, C, settings)
+    index = settings_index(L, valid, C, settings)
     coef, geo, d, a, sol, pm_it, steps = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c,
                                                        pm, pinv, settings, True, OFF_CENTRE_ITERATIONS)
     if d is None or d.size < MIN_VALID_BINS or not np.all(np.isfinite(geo)) \
@@ -1059,8 +1061,8 @@ def frame_coefficients(L: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.
     valid, C = _with_chroma(valid, channels, settings)
     if int(valid.sum()) < MIN_VALID_BINS:
         return None
-    M, B = fam.profiles(_rho(xs, ys, half_diagonal(width, height)))
-    index = _settings_index(L, valid, C, settings)
+    M, B = fam.profiles(bin_rho(xs, ys, half_diagonal(width, height)))
+    index = settings_index(L, valid, C, settings)
     d, a = pairs_at(index, M, B)
     labels, wt = index.labels, index.weight
     if d.size < MIN_VALID_BINS:
@@ -1110,7 +1112,7 @@ class FamilyFit(NamedTuple):
 def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
                mask: np.ndarray | None = None, family: LensFamily | None = None,
                hint: LensHint | None = None,
-               colour: np.ndarray | None = None) -> FamilyFit:
+               colour: np.ndarray | None = None, copy: WorkingCopy | None = None) -> FamilyFit:
     """Estimate a centred lens fall-off from an H×W linear luminance image.
 
     Parameters
@@ -1130,6 +1132,10 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     colour : ndarray, H×W×3, linear, optional
         The frame's R, G, B (:func:`colour_of`): pairs are weighted by how alike their
         channels change (module doc, step 2).
+    copy : WorkingCopy, optional
+        The frame's working copy at ``settings.work_size`` (:func:`luminance_copy`, and
+        :func:`with_colour` for ``colour``), when the caller has it; ``mask`` and
+        ``colour`` are then not read.
 
     Returns
     -------
@@ -1138,15 +1144,15 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     """
     t0 = time.perf_counter()
     h, w = lum.shape
-    L, valid, xs, ys, C, _ = _working_copy(lum, settings, mask, colour)
+    L, valid, xs, ys, C, _ = _working_copy(lum, settings, mask, colour) if copy is None else copy
     fam = family or profile_family()
     if int(valid.sum()) < MIN_VALID_BINS:
         log.debug("too few usable pixels (%d bins); no correction", int(valid.sum()))
         q = FitQuality(confidence=0.0, fallback=True, seconds=time.perf_counter() - t0)
         return FamilyFit(VignettingModel.identity(w, h, method=METHOD, quality=q), None)
     radius = half_diagonal(w, h)
-    M, B = fam.profiles(_rho(xs, ys, radius))
-    index = _settings_index(L, valid, C, settings)
+    M, B = fam.profiles(bin_rho(xs, ys, radius))
+    index = settings_index(L, valid, C, settings)
     d, a = pairs_at(index, M, B)
     labels, wt = index.labels, index.weight
     # components nest: the first k columns of a are the k-component family's
