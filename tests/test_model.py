@@ -119,6 +119,7 @@ def test_from_dict_refuses_parameters_that_are_not_lists_of_numbers(key, value, 
     ({"iterations": 2.5}, "iterations"),
     ({"iterations": "3"}, "iterations"),
     ({"iterations": -1}, "iterations"),
+    ({"reason": 3}, "reason"),
     ({"conf": 1.0}, "unknown quality field"),  # was TypeError from FitQuality(**q)
     ([["confidence", 1.0]], "quality"),         # was accepted through dict(q)
 ])
@@ -132,10 +133,14 @@ def test_quality_round_trip_keeps_types_and_null_figures():
 
     from vigproc.core.model import FitQuality
 
-    q = FitQuality(confidence=0.25, snr=math.inf, fallback=True, objective=math.nan, iterations=12, seconds=0.5)
+    q = FitQuality(confidence=0.25, snr=math.inf, fallback=True, objective=math.nan, iterations=12, seconds=0.5,
+                   reason="a glow")
     m = replace(table2(), quality=q)
     back = VignettingModel.from_json(m.to_json(allow_nan=False)).quality
     assert back.fallback is True and back.iterations == 12 and back.snr == math.inf and math.isnan(back.objective)
+    assert back.reason == "a glow"
+    # a model written before quality had a reason reads as none given
+    assert VignettingModel.from_dict(_with(quality={"fallback": True})).quality.reason == ""
     # an integral float (how some JSON writers put counts) is a count
     d = _with(quality={"iterations": 12.0})
     assert VignettingModel.from_dict(d).quality.iterations == 12

@@ -174,6 +174,9 @@ class FitQuality:
         Final value of the estimator's objective.
     iterations : int
     seconds : float
+    reason : str
+        Why the fit was not applied, when ``fallback`` and the evidence was not merely
+        weak (e.g. a fall-off shaped like a light source's glow, :mod:`vigproc.core.glow`).
     """
 
     confidence: float = 1.0
@@ -184,6 +187,7 @@ class FitQuality:
     objective: float = math.nan
     iterations: int = 0
     seconds: float = 0.0
+    reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -623,6 +627,9 @@ def _quality_from(q: Any) -> FitQuality:
                 raise ModelError(f"quality.fallback must be true or false, got {_show(v)}")
         elif k == "iterations":
             v = _integer("quality.iterations", v, minimum=0)
+        elif k == "reason":
+            if not isinstance(v, str):
+                raise ModelError(f"quality.reason must be a string, got {_show(v)}")
         elif v is None:
             # to_dict's null for a non-finite figure: snr infinite, the others unknown
             v = math.inf if k == "snr" else math.nan

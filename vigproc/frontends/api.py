@@ -201,7 +201,8 @@ class Result:
         if self.fallback:
             from vigproc.pipeline.processor import WEAK_EVIDENCE
 
-            return f"not corrected: {WEAK_EVIDENCE}{conf}"
+            q = getattr(self.model, "quality", None)
+            return f"not corrected: {q.reason if q is not None and q.reason else WEAK_EVIDENCE}{conf}"
         ev = self.falloff_ev or 0.0
         if self.mode == "correct":
             return f"{self.removed_ev or 0.0:.2f} EV fall-off removed ({self.source}{conf})" if self.applied else \

@@ -124,7 +124,7 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
         else:
             print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame")
         if q is not None and m.method in ("robust", "real-lens", "flat-field", "lens-family", "lens-family-off-centre"):
-            why = "weak evidence or not a real lens's shape" if m.method == "real-lens" else "weak evidence"
+            why = q.reason or ("weak evidence or not a real lens's shape" if m.method == "real-lens" else "weak evidence")
             state = f"NOT applied ({why})" if q.fallback else "applied"
             print(f"  confidence  {q.confidence:.2f} (SNR {q.snr:.1f}, ±{q.field_sigma_ev:.3f} EV): {state}")
     return doc

@@ -924,7 +924,8 @@ class Processor:
                                 keep_colour=keep_colour)
             res.output = str(dst)
         if out is not None and not res.applied:  # said whatever was written
-            res.extra["not_applied"] = "strength 0" if s.strength == 0 else WEAK_EVIDENCE
+            q = getattr(res.model, "quality", None)
+            res.extra["not_applied"] = "strength 0" if s.strength == 0 else (q.reason if q and q.reason else WEAK_EVIDENCE)
             if kept is not None and policy in ("copy", "link"):
                 keep_original(path, kept, link=policy == "link")
                 res.output = str(kept)
