@@ -11,6 +11,7 @@ import numpy as np
 
 from vigproc.errors import InvalidImageError, ModelError
 from vigproc.core.family_fit import EVIDENCE_FIT, FamilySettings, LensHint, colour_of
+from vigproc.core.glow import GlowTest
 from vigproc.core.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
 from vigproc.core.pixels import bin_mean, check_image, log_image, luminance, require_size
 from vigproc.core.model import VignettingModel
@@ -101,6 +102,7 @@ class OffCentreRule:
     free_min_ev: float = 0.8
     keep_min_ev: float = 1.5
     settings: FamilySettings = FamilySettings(**EVIDENCE_FIT)
+    glow: GlowTest = GlowTest()
     free_settings: RobustSettings = RobustSettings(sigma_center=0.5, sigma_ellipticity=1.0, scene_prior=False,
                                                    n_eff=1600.0, sigma_scale=0.1)
 
@@ -332,15 +334,47 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     else the free off-centre, elliptical Kang-Weiss fit
     (:func:`vigproc.core.robust.estimate_robust`), kept only when what it finds is strong.
     A frame whose centred fit rules out a fall-off, or a fit not weighted by colour whose
-    fall-off is weak, is not fitted off-centre at all.
+    fall-off is weak, is not fitted off-centre at all. A centred fall-off shaped like the
+    light around a source in the scene rather than like a lens's (:mod:`vigproc.core.glow`:
+    a sunset with the sun in the middle) is not applied.
     ``colour`` (H×W×3, the frame's R, G, B): the lens-family fit weighs each pair by
     how alike its channels change; the centre must move for the luminance and for the
     colour-weighted pairs; the choice between the fits reads the luminance.
     """
+    from vigproc.core.family_fit import fit_family, luminance_copy, with_colour
+    from vigproc.core.glow import glow_advantage
+    from vigproc.core.lensfamily import profile_family
+
+    fs = FamilySettings()
+    # one binning of the luminance for the fit (its colour copies added) and the glow test
+    work = luminance_copy(lum, fs, mask)
+    fit = fit_family(lum, fs, mask, family, hint, colour,
+                     copy=with_colour(work, colour, fs) if colour is not None else work)
+    model = _off_centre_choice(lum, mask, hint, family, colour, rule, fit)
+    q = model.quality
+    # the glow test is asked of a centred fit that would be applied, and strongly enough to harm
+    if model is not fit.model or q.fallback or q.snr * q.field_sigma_ev < rule.glow.min_ev:
+        return model
+    h, w = lum.shape
+    advantage = glow_advantage(work, w, h, family or profile_family(), fit.coefficients, fs, rule.glow)
+    if not advantage > rule.glow.margin:
+        return model
+    why = "the fall-off is shaped like the light around a source in the scene, not like a lens's"
+    log.info("no correction: %s (%.2f EV about the mean; loss advantage of a glow %.3f > %.3f)", why,
+             q.snr * q.field_sigma_ev, advantage, rule.glow.margin)
+    return VignettingModel.identity(w, h, method=model.method, candidate=model,
+                                    quality=replace(q, fallback=True, confidence=0.0, reason=why))
+
+
+def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint | None, family,
+                       colour: np.ndarray | None, rule: OffCentreRule, fit) -> VignettingModel:
+    """:func:`estimate_default`'s choice between the centred lens-family fit ``fit``
+    (:class:`vigproc.core.family_fit.FamilyFit`) and an off-centre fit: ``fit.model`` itself
+    when the centred fit is kept."""
     from vigproc.core.family_fit import CENTRE_WORK_SIZE, fit_centre, fit_family, fit_off_centre, luminance_copy, \
         pair_losses, with_colour
 
-    model, coef, weighted = fit_family(lum, FamilySettings(), mask, family, hint, colour)
+    model, coef, weighted = fit
     q = (model.candidate or model).quality
     if coef is None or q.field_ev_rms + 2.0 * q.field_sigma_ev < rule.any_min_ev:
         return model
