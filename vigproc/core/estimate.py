@@ -82,6 +82,10 @@ class OffCentreRule:
         centred fits (with the retuned ones here too, Table 1 setting 3 went 0.34 -> 0.52
         EV). The off-centre fit's σ reads their jackknife with the single-frame scale and
         floor.
+    glow : GlowTest
+        When the centred fit the default would apply is asked whether its fall-off is a
+        light source's glow rather than a lens's (:mod:`vigproc.core.glow`): a sunset with
+        the sun in the middle is not corrected.
     free_settings : RobustSettings
         The free fit of a strong fall-off. The centre tests have already put it off-centre,
         so the free estimator's priors ("robust": a real lens's centred, round fall-off, and
