@@ -555,6 +555,15 @@ def bin_rho(xs: np.ndarray, ys: np.ndarray, radius: float) -> np.ndarray:
     return np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2) / radius
 
 
+def mean_cauchy_loss(e: np.ndarray, sigma: float, weight: np.ndarray | None = None) -> float:
+    """Mean Cauchy loss log(1 + (e/σ)²) over residuals ``e`` (weighted by ``weight`` when
+    given): how well a field explains a frame's pairs. inf when there is nothing to weigh."""
+    if e.size == 0 or (weight is not None and not float(np.sum(weight)) > 0):
+        return math.inf
+    loss = np.log1p((e / sigma) ** 2)
+    return float(np.mean(loss) if weight is None else np.average(loss, weights=weight))
+
+
 def _solve(d, a, wt, c0, pmean, pinv, s: FamilySettings, iterations: int, converged_on: int | None = None,
            relaxation: float = 1.0) -> np.ndarray:
     """One :func:`irls` fit of the Cauchy loss with a Gaussian prior, from ``c0``."""
@@ -567,6 +576,7 @@ def _solve(d, a, wt, c0, pmean, pinv, s: FamilySettings, iterations: int, conver
 #: ω = 1.6, and ended nearer the converged fit (median largest coefficient difference
 #: 0.0008 against 0.0011).
 COVARIATE_RELAXATION = 1.6
+
 
 def _fit_with_chroma(d, a, index: PairIndex, wt, pmean, pinv, s: FamilySettings,
                      iterations: int) -> tuple[np.ndarray, np.ndarray]:
@@ -986,7 +996,7 @@ def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: Fa
     for model in models:
         F = model.log_field_at(X, Y)
         d, _, _, _ = family_pairs(L, valid, F, none, steps, one_block, None, settings.chroma_tau)
-        out.append(float(np.mean(np.log1p((d / settings.sigma) ** 2))) if d.size else math.inf)
+        out.append(mean_cauchy_loss(d, settings.sigma))
     return out
 
 
@@ -1182,8 +1192,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     residual = d - np.einsum("ij,j->i", a, c)  # einsum: no BLAS threads, the same bits in every process
     q = FitQuality(confidence=confidence, field_ev_rms=math.nan, field_sigma_ev=sigma, snr=snr,
                    fallback=not accept,
-                   objective=float(np.average(np.log1p((residual / settings.sigma) ** 2), weights=wt))
-                   if wt.sum() > 0 else math.inf,
+                   objective=mean_cauchy_loss(residual, settings.sigma, wt),
                    iterations=settings.iterations,
                    seconds=time.perf_counter() - t0)
     try:

@@ -41,7 +41,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from vigproc.core.family_fit import (FamilySettings, WorkingCopy, bin_rho, family_for, half_diagonal, irls,
-                                     pairs_at, settings_index)
+                                     mean_cauchy_loss, pairs_at, settings_index)
 from vigproc.core.lensfamily import LensFamily
 
 
@@ -79,11 +79,6 @@ class GlowTest:
     min_ev: float = 0.25
     steps: tuple[int, ...] = (2,)
     iterations: int = 6
-
-
-def _mean_loss(e: np.ndarray, weight: np.ndarray, sigma: float) -> float:
-    total = float(np.sum(weight))
-    return float(np.sum(weight * np.log1p((e / sigma) ** 2)) / total) if total > 0 else math.inf
 
 
 def glow_advantage(copy: WorkingCopy, width: int, height: int, family: LensFamily,
@@ -127,7 +122,7 @@ def glow_advantage(copy: WorkingCopy, width: int, height: int, family: LensFamil
     c0 = pmean if start is None else np.asarray(start, dtype=np.float64)[:fam.n_components]
     c = irls(d, a, index.weight, c0, pmean, np.linalg.inv(pcov), s.sigma, s.kappa, s.iterations,
              tolerance=s.tolerance, relaxation=1.6)
-    lens = _mean_loss(d - a @ c, index.weight, s.sigma)
+    lens = mean_cauchy_loss(d - a @ c, s.sigma, index.weight)
     glows = np.stack([np.log(rho * rho + r0 * r0) for r0 in test.radii], axis=-1)
     dg, ag = pairs_at(index, np.zeros(L.shape), glows)
     best = math.inf
@@ -135,5 +130,5 @@ def glow_advantage(copy: WorkingCopy, width: int, height: int, family: LensFamil
         # a glow brightens towards its source: k ≤ 0 (k > 0 is a dark hole, read as flat)
         k = irls(dg, ag[:, j:j + 1], index.weight, np.array([-1.0]), np.zeros(1), np.full((1, 1), 1e-6),
                  s.sigma, s.kappa, s.iterations, tolerance=s.tolerance, relaxation=1.6)
-        best = min(best, _mean_loss(dg - ag[:, j] * min(float(k[0]), 0.0), index.weight, s.sigma))
+        best = min(best, mean_cauchy_loss(dg - ag[:, j] * min(float(k[0]), 0.0), s.sigma, index.weight))
     return lens - best

@@ -199,10 +199,9 @@ class Result:
             v = self.verdict or {}
             return f"check: {v.get('verdict', 'no verdict')}"
         if self.fallback:
-            from vigproc.pipeline.processor import WEAK_EVIDENCE
+            from vigproc.pipeline.processor import not_applied_reason
 
-            q = getattr(self.model, "quality", None)
-            return f"not corrected: {q.reason if q is not None and q.reason else WEAK_EVIDENCE}{conf}"
+            return f"not corrected: {not_applied_reason(self.model)}{conf}"
         ev = self.falloff_ev or 0.0
         if self.mode == "correct":
             return f"{self.removed_ev or 0.0:.2f} EV fall-off removed ({self.source}{conf})" if self.applied else \

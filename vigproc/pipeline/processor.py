@@ -144,6 +144,13 @@ IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".
 #: Why nothing was applied to a frame whose estimate is weak: one wording for every front end.
 WEAK_EVIDENCE = "weak evidence: the estimate is not clearly above its uncertainty"
 
+
+def not_applied_reason(model) -> str:
+    """Why an estimate that fell back was not applied: its quality's own reason (a
+    glow-shaped fall-off, say), else :data:`WEAK_EVIDENCE`."""
+    q = getattr(model, "quality", None)
+    return q.reason if q is not None and q.reason else WEAK_EVIDENCE
+
 #: Sidecar suffix: the sidecar is written last, so its presence means the frame is done.
 SIDECAR_SUFFIX = ".vigproc.json"
 
@@ -924,8 +931,7 @@ class Processor:
                                 keep_colour=keep_colour)
             res.output = str(dst)
         if out is not None and not res.applied:  # said whatever was written
-            q = getattr(res.model, "quality", None)
-            res.extra["not_applied"] = "strength 0" if s.strength == 0 else (q.reason if q and q.reason else WEAK_EVIDENCE)
+            res.extra["not_applied"] = "strength 0" if s.strength == 0 else not_applied_reason(res.model)
             if kept is not None and policy in ("copy", "link"):
                 keep_original(path, kept, link=policy == "link")
                 res.output = str(kept)
