@@ -461,7 +461,7 @@ def test_export_import_round_trip(tmp_path):
         store.put(q)
         r = store.learn(KEY, synthetic_model(99))
     assert r.n_frames == 6
-    assert json.loads(path.read_text())["schema"] == "vigproc.profile/1"
+    assert json.loads(path.read_text())["schema"] == "vigproc.profile/2"
 
 
 def test_example_profiles_import_and_match_lensfun(tmp_path):

@@ -89,6 +89,7 @@ __all__ = [
     "ANY",
     "DB_ENV",
     "FILE_SCHEMA",
+    "FILE_SCHEMAS",
     "N_PARAMS",
     "PROVENANCES",
     "SCHEMA_VERSION",
@@ -104,6 +105,7 @@ __all__ = [
     "default_db_path",
     "denormalise",
     "export_profile",
+    "fixed_indices",
     "fit_model_to_field",
     "focal_bin",
     "frame_information",
@@ -128,8 +130,12 @@ class ProfileStoreError(VigprocError):
 
 #: Environment variable overriding the default database location.
 DB_ENV = "VIGPROC_PROFILE_DB"
-#: Schema tag of human-readable profile files.
-FILE_SCHEMA = "vigproc.profile/1"
+#: Schema tag of the human-readable profile files vigproc writes (``/2``: a parameter a
+#: fit held fixed is listed in ``fixed`` and left out of the covariance).
+FILE_SCHEMA = "vigproc.profile/2"
+#: Schema tags vigproc reads (``/1``: a 12×12 covariance; an all-zero row and column
+#: there is a fixed parameter, as learned profiles exported before ``/2`` wrote it).
+FILE_SCHEMAS = ("vigproc.profile/1", FILE_SCHEMA)
 #: Where a profile came from.
 PROVENANCES = ("learned", "lensfun", "user")
 #: Bin label for a focal length / aperture the metadata does not give.
@@ -454,25 +460,55 @@ def _canonical_aspect(value: Any, where: str) -> str:
 # --------------------------------------------------------------------------- #
 
 
-def _scaled_pinv(m: np.ndarray, what: str) -> np.ndarray:
+def fixed_indices(cov: np.ndarray) -> tuple[int, ...]:
+    """The parameters a covariance holds fixed: those whose row and column are all zero
+    (the lens-family fit fixes the centre and the shape, so its σ is exactly 0 there).
+
+    Parameters
+    ----------
+    cov : ndarray (n, n)
+
+    Returns
+    -------
+    tuple of int
+        Indices into :data:`vigproc.core.model.PARAM_NAMES`, ascending.
+    """
+    cov = np.asarray(cov, dtype=np.float64)
+    return tuple(i for i in range(cov.shape[0]) if not np.any(cov[i]) and not np.any(cov[:, i]))
+
+
+def _scaled_pinv(m: np.ndarray, what: str, *, allow_fixed: bool = False) -> np.ndarray:
     """Pseudo-inverse of a symmetric PSD matrix, computed on its correlation form with
-    a tiny ridge (parameters differ in scale by orders of magnitude)."""
+    a tiny ridge (parameters differ in scale by orders of magnitude).  With
+    ``allow_fixed``, parameters held fixed (:func:`fixed_indices`) get zero rows and
+    columns: a value known by construction adds no information to pool."""
     m = 0.5 * (m + m.T)
-    d = np.sqrt(np.diag(m))
-    if not (np.all(np.isfinite(m)) and np.all(d > 0)):
-        bad = [PARAM_NAMES[i] for i in np.flatnonzero(~(d > 0))]
+    keep = np.arange(m.shape[0])
+    if allow_fixed:
+        fixed = fixed_indices(m)
+        keep = np.array([i for i in keep if i not in fixed], dtype=int)
+        if keep.size == 0:
+            raise ProfileStoreError(f"{what} holds every parameter fixed")
+    sub = m[np.ix_(keep, keep)]
+    d = np.sqrt(np.diag(sub))
+    if not (np.all(np.isfinite(sub)) and np.all(d > 0)):
+        bad = [PARAM_NAMES[keep[i]] for i in np.flatnonzero(~(d > 0))]
         raise ProfileStoreError(f"{what} has zero or invalid variance for {bad or 'some parameters'}")
-    c = m / np.outer(d, d)
-    inv = np.linalg.pinv(c + RIDGE * np.eye(c.shape[0]), hermitian=True)
-    out = inv / np.outer(d, d)
-    return 0.5 * (out + out.T)
+    c = sub / np.outer(d, d)
+    inv = np.linalg.pinv(c + RIDGE * np.eye(c.shape[0]), hermitian=True) / np.outer(d, d)
+    out = np.zeros_like(m)
+    out[np.ix_(keep, keep)] = 0.5 * (inv + inv.T)
+    return out
 
 
 #: Largest variance a profile file may give a (normalised) parameter.
 MAX_FILE_VARIANCE = 1e8
 
 
-def _check_covariance(cov: np.ndarray, what: str) -> np.ndarray:
+def _check_covariance(cov: np.ndarray, what: str, *, allow_fixed: bool = False) -> np.ndarray:
+    """``cov`` symmetrised, or :class:`ProfileStoreError` unless it is a finite symmetric
+    PSD 12×12 matrix with positive variances; with ``allow_fixed`` an all-zero row and
+    column (a parameter held fixed, :func:`fixed_indices`) is allowed too."""
     cov = np.asarray(cov, dtype=np.float64)
     if cov.shape != (N_PARAMS, N_PARAMS):
         raise ProfileStoreError(f"{what}: covariance must be {N_PARAMS}x{N_PARAMS}, got shape {cov.shape}")
@@ -481,10 +517,15 @@ def _check_covariance(cov: np.ndarray, what: str) -> np.ndarray:
     scale = float(np.max(np.abs(cov))) or 1.0
     if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-9 * scale):
         raise ProfileStoreError(f"{what}: covariance is not symmetric")
-    if np.any(np.diag(cov) <= 0):
+    fixed = fixed_indices(cov) if allow_fixed else ()
+    free = [i for i in range(N_PARAMS) if i not in fixed]
+    if not free:
+        raise ProfileStoreError(f"{what}: covariance holds every parameter fixed (use null for an unknown uncertainty)")
+    sub = cov[np.ix_(free, free)]
+    if np.any(np.diag(sub) <= 0):
         raise ProfileStoreError(f"{what}: covariance has a non-positive variance")
-    d = np.sqrt(np.diag(cov))
-    w = np.linalg.eigvalsh(0.5 * (cov + cov.T) / np.outer(d, d))
+    d = np.sqrt(np.diag(sub))
+    w = np.linalg.eigvalsh(0.5 * (sub + sub.T) / np.outer(d, d))
     if w[0] < -1e-6:
         raise ProfileStoreError(f"{what}: covariance is not positive semi-definite (eigenvalue {w[0]:.3g} of its correlation)")
     return 0.5 * (cov + cov.T)
@@ -1354,7 +1395,7 @@ class ProfileStore(SQLiteFile):
                 f"profile {profile.key}: θ is not a valid model (P not positive semi-definite or G <= 0 in the frame)"
             )
         if profile.covariance is not None:
-            _check_covariance(profile.covariance, f"profile {profile.key}")
+            _check_covariance(profile.covariance, f"profile {profile.key}", allow_fixed=True)
 
         def body(con: sqlite3.Connection) -> None:
             row_id = self._upsert(con, profile)
@@ -1488,7 +1529,8 @@ class ProfileStore(SQLiteFile):
             welford = welford.add(theta_i, field_i)
             lam = exact[0].to_array().reshape(N_PARAMS, N_PARAMS)
             eta = exact[1].to_array()
-            cov = _scaled_pinv(lam, f"pooled information of {key}")
+            # an import's fixed parameters carry no information: the frames decide them
+            cov = _scaled_pinv(lam, f"pooled information of {key}", allow_fixed=True)
             theta = cov @ eta
             if not _valid_theta(theta, aspect):
                 # with evidence the pooled refit below usually replaces θ: no need to alarm anyone
@@ -1663,7 +1705,8 @@ _UNITS = {
     "center": "frame half-diagonals R = hypot(W, H)/2, from the frame centre; x right, y down",
     "p": "R^-2 (P = [[p1, p2], [p2, p3]], r^2 = (v - c)^T P (v - c) with v in units of R)",
     "alpha": "dimensionless (G = 1 - sum_i alpha_i r^i)",
-    "covariance": "of (cx, cy, p1, p2, p3, alpha1..alpha7) in the units above",
+    "covariance": "of the free parameters: (cx, cy, p1, p2, p3, alpha1..alpha7) in that order and the units "
+                  "above, without those listed in 'fixed'",
 }
 
 
@@ -1679,8 +1722,11 @@ def _split_lens_id(lens_id: str) -> dict[str, str | None]:
 
 
 def profile_to_dict(profile: Profile) -> dict[str, Any]:
-    """The ``vigproc.profile/1`` JSON object of ``profile``."""
+    """The ``vigproc.profile/2`` JSON object of ``profile``."""
     th = [float(v) for v in profile.theta]
+    cov = profile.covariance
+    fixed = fixed_indices(cov) if cov is not None else ()
+    free = [i for i in range(N_PARAMS) if i not in fixed]
     d: dict[str, Any] = {
         "schema": FILE_SCHEMA,
         "lens": {**_split_lens_id(profile.key.lens_id), "lens_id": profile.key.lens_id},
@@ -1697,7 +1743,10 @@ def profile_to_dict(profile: Profile) -> dict[str, Any]:
             "p": th[2:5],
             "alpha": th[5:],
         },
-        "covariance": None if profile.covariance is None else [[float(v) for v in r] for r in profile.covariance],
+        # a parameter the fit held fixed is named, not written as a zero variance (which no reader
+        # can tell from a broken covariance)
+        "fixed": [PARAM_NAMES[i] for i in fixed],
+        "covariance": None if cov is None else [[float(cov[i, j]) for j in free] for i in free],
         "field_sigma_ev": profile.field_sigma_ev,
         "scatter_sigma_ev": profile.scatter_sigma_ev,
         "created": profile.created,
@@ -1708,7 +1757,7 @@ def profile_to_dict(profile: Profile) -> dict[str, Any]:
 
 
 def export_profile(profile: Profile, path: str | os.PathLike[str]) -> None:
-    """Write ``profile`` as a ``vigproc.profile/1`` JSON file, atomically.
+    """Write ``profile`` as a ``vigproc.profile/2`` JSON file, atomically.
 
     Raises
     ------
@@ -1773,8 +1822,9 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
     """
     if not isinstance(d, dict):
         raise ProfileStoreError(f"{where}: a profile must be a JSON object")
-    if d.get("schema") != FILE_SCHEMA:
-        raise ProfileStoreError(f"{where}: schema must be {FILE_SCHEMA!r}, got {d.get('schema')!r}")
+    schema = d.get("schema")
+    if schema not in FILE_SCHEMAS:
+        raise ProfileStoreError(f"{where}: schema must be one of {', '.join(map(repr, FILE_SCHEMAS))}, got {schema!r}")
     for req in ("lens", "focal_bin", "aperture_bin", "aspect", "provenance", "model"):
         if req not in d:
             raise ProfileStoreError(f"{where}: missing field {req!r}")
@@ -1866,26 +1916,25 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
             f"(absurd: allowed -{MAX_FALLOFF_EV:g}..+{MAX_GAIN_EV:g} EV)"
         )
 
-    cov = d.get("covariance")
-    cov_a = None
-    if cov is not None:
-        if not (isinstance(cov, list) and len(cov) == N_PARAMS and all(isinstance(r, list) and len(r) == N_PARAMS for r in cov)):
-            raise ProfileStoreError(f"{where}: covariance must be a {N_PARAMS}x{N_PARAMS} list of lists or null")
-        rows = [_numbers(r, N_PARAMS, where, "covariance") for r in cov]
-        cov_a = _check_covariance(np.asarray(rows), f"{where}: covariance")
-        if float(np.max(np.diag(cov_a))) > MAX_FILE_VARIANCE:  # a standard deviation of 10⁴ says nothing
-            raise ProfileStoreError(f"{where}: covariance has a variance of {float(np.max(np.diag(cov_a))):.3g}, "
-                                    f"above {MAX_FILE_VARIANCE:g} (use null for an unknown uncertainty)")
+    cov_a = _file_covariance(d, schema, where)
+    sigma = d.get("field_sigma_ev")
+    if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))
+                              or not (math.isfinite(sigma) and 0 <= sigma <= MAX_FALLOFF_EV)):
+        raise ProfileStoreError(f"{where}: field_sigma_ev must be a number of EV in 0..{MAX_FALLOFF_EV:g} or null")
     created = _timestamp(d, "created", where)
     updated = _timestamp(d, "updated", where)
 
     exact = None
     lam = eta = None
     if cov_a is not None:
-        lam = _scaled_pinv(cov_a, f"{where}: covariance")
+        lam = _scaled_pinv(cov_a, f"{where}: covariance", allow_fixed=True)
         eta = lam @ theta
         exact = (_Exact.from_array(lam), _Exact.from_array(eta))
     pooled, cov_sigma, _ = _profile_stats(theta, cov_a, asp, None)
+    if sigma is not None and cov_a is not None:
+        # the σ the profile was trusted on (a learned one's is its frames' median's, which its
+        # covariance alone does not give): the file travels with the same trust
+        pooled = float(sigma)
     trusted = trusted_claim if trusted_claim is not None else _is_trusted(n_frames, pooled)
     return Profile(
         key=key, theta=theta, covariance=cov_a, info_matrix=lam, info_vector=eta, n_frames=n_frames,
@@ -1894,8 +1943,45 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
     )
 
 
+def _file_covariance(d: dict[str, Any], schema: str, where: str) -> np.ndarray | None:
+    """The 12×12 covariance of a profile file (zero rows and columns for its fixed
+    parameters), or None.  ``/1``: a 12×12 matrix; ``/2``: ``fixed`` names the
+    parameters held fixed and the matrix covers the others, in :data:`PARAM_NAMES` order."""
+    cov = d.get("covariance")
+    fixed_names = d.get("fixed", [])
+    if schema == "vigproc.profile/1":
+        fixed_names = []
+    if not (isinstance(fixed_names, list) and all(isinstance(v, str) for v in fixed_names)):
+        raise ProfileStoreError(f"{where}: fixed must be a list of parameter names")
+    unknown = [v for v in fixed_names if v not in PARAM_NAMES]
+    if unknown or len(set(fixed_names)) != len(fixed_names):
+        raise ProfileStoreError(f"{where}: fixed {fixed_names!r} must name distinct parameters of "
+                                f"{', '.join(PARAM_NAMES)}")
+    if cov is None:
+        return None
+    free = [i for i, name in enumerate(PARAM_NAMES) if name not in fixed_names]
+    n = len(free)
+    if not free:
+        raise ProfileStoreError(f"{where}: fixed names every parameter; the covariance must be null")
+    if not (isinstance(cov, list) and len(cov) == n and all(isinstance(r, list) and len(r) == n for r in cov)):
+        raise ProfileStoreError(f"{where}: covariance must be a {n}x{n} list of lists (the parameters not "
+                                "in 'fixed') or null")
+    sub = np.asarray([_numbers(r, n, where, "covariance") for r in cov])
+    full = np.zeros((N_PARAMS, N_PARAMS))
+    full[np.ix_(free, free)] = sub
+    if fixed_names and not np.all(np.diag(sub) > 0):
+        raise ProfileStoreError(f"{where}: covariance has a non-positive variance (a parameter held fixed "
+                                "belongs in 'fixed')")
+    # /1 files of learned profiles wrote a fixed parameter as an all-zero row: read it as fixed
+    cov_a = _check_covariance(full, f"{where}: covariance", allow_fixed=True)
+    if float(np.max(np.diag(cov_a))) > MAX_FILE_VARIANCE:  # a standard deviation of 10⁴ says nothing
+        raise ProfileStoreError(f"{where}: covariance has a variance of {float(np.max(np.diag(cov_a))):.3g}, "
+                                f"above {MAX_FILE_VARIANCE:g} (use null for an unknown uncertainty)")
+    return cov_a
+
+
 def import_profile(path: str | os.PathLike[str]) -> Profile:
-    """Read and validate a ``vigproc.profile/1`` file (does not touch any store).
+    """Read and validate a ``vigproc.profile/2`` (or ``/1``) file (does not touch any store).
 
     Checks: size, JSON syntax (NaN/Infinity and duplicate fields rejected), schema,
     required fields and their types, bin labels, provenance, finite parameters

@@ -1,0 +1,122 @@
+"""Profiles that travel (issue 36): a learned profile exported through the command line is
+used as it is by ``correct --profile FILE`` and by ``profile import`` into another store."""
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from vigproc.core.model import PARAM_NAMES, VignettingModel
+from vigproc.stores.profiles import ProfileStore, import_profile
+
+from conftest import photo_like
+
+VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
+#: What a Nikon D70 with its kit zoom writes at 70 mm (the issue's camera), spelt as the camera spells it.
+D70_EXIF = {"Make": "NIKON CORPORATION", "Model": "NIKON D70", "LensMake": "Nikon",
+            "LensModel": "AF-S DX Zoom-Nikkor 18-70mm f/3.5-4.5G IF-ED",
+            "FocalLength": 70, "FNumber": 4.5, "FocalLengthIn35mmFormat": 105}
+H, W = 256, 384
+
+
+def run(*args):
+    return subprocess.run([*VIGPROC, *map(str, args)], capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def learned(tmp_path_factory):
+    """Four DNG frames of one lens carrying a lensfun calibration's fall-off, learned into a
+    store through the command line: (folder, store, frames, the field's pa coefficients)."""
+    from dngfixture import make_dng
+
+    from vigproc.stores.lensfun import bench_lenses, pa_field
+
+    _, pa = bench_lenses(1)[0]
+    d = tmp_path_factory.mktemp("travel")
+    frames = []
+    for i in range(4):
+        p = d / f"d70_{i}.dng"
+        make_dng(p, width=W, height=H, field=pa_field((H, W), pa.k1, pa.k2, pa.k3),
+                 scene=photo_like(H, W, seed=20 + i), exif=D70_EXIF)
+        frames.append(p)
+    store = d / "learned.sqlite"
+    r = run("profile", "--profile-db", store, "learn", *frames)
+    assert r.returncode == 0, r.stderr
+    return d, store, frames, pa
+
+
+def _field(model: VignettingModel) -> np.ndarray:
+    return model.log_field((model.height, model.width)) / math.log(2.0)
+
+
+def test_an_exported_learned_profile_is_used_elsewhere_with_the_same_field_and_trust(learned, tmp_path):
+    d, store, frames, _ = learned
+    with ProfileStore(store) as st:
+        [orig] = st.list()
+    # the lens-family fit holds the centre and the shape fixed: the case that failed
+    assert orig.covariance is not None and not np.all(np.diag(orig.covariance) > 0)
+    out = tmp_path / "lens.json"
+    r = run("profile", "--profile-db", store, "export", "0", out)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(out.read_text())
+    assert doc["schema"] == "vigproc.profile/2"
+    assert doc["fixed"] == ["cx", "cy", "p1", "p2", "p3"]
+    n_free = len(PARAM_NAMES) - len(doc["fixed"])
+    assert len(doc["covariance"]) == n_free and all(v > 0 for v in np.diag(doc["covariance"]))
+
+    # the very file corrects a frame, with the stored profile's field
+    r = run("correct", "--profile", out, frames[0], "-o", tmp_path / "out", "--json")
+    assert r.returncode == 0, r.stderr
+    rec = json.loads(r.stdout)["results"][0]
+    assert rec["source"] == "profile-file"
+    used = VignettingModel.from_dict(rec["model"])
+    np.testing.assert_allclose(_field(used), _field(orig.model(W, H)), atol=1e-9)
+
+    # ... and imports into another store with the same field, σ and trust
+    other = tmp_path / "other.sqlite"
+    r = run("profile", "--profile-db", other, "import", out)
+    assert r.returncode == 0, r.stderr
+    with ProfileStore(other) as st:
+        [moved] = st.list()
+    assert moved.key == orig.key and moved.n_frames == orig.n_frames
+    assert moved.trusted == orig.trusted
+    np.testing.assert_array_equal(moved.theta, orig.theta)
+    assert moved.field_sigma_ev == pytest.approx(orig.field_sigma_ev, rel=1e-12)
+    np.testing.assert_allclose(moved.covariance, orig.covariance, rtol=1e-12, atol=0)
+    # and travels on: exported again from there, the same file content
+    again = tmp_path / "again.json"
+    assert run("profile", "--profile-db", other, "export", "0", again).returncode == 0
+    a, b = json.loads(out.read_text()), json.loads(again.read_text())
+    for k in ("model", "fixed", "covariance", "trusted", "field_sigma_ev", "n_frames"):
+        assert a[k] == b[k], k
+
+
+def test_a_learned_profile_exported_as_schema_1_still_loads(learned, tmp_path):
+    """Files written before schema /2 wrote a fixed parameter as an all-zero row and
+    column of a 12×12 covariance: read as fixed, not refused."""
+    d, store, _, _ = learned
+    with ProfileStore(store) as st:
+        [orig] = st.list()
+    out = tmp_path / "v2.json"
+    assert run("profile", "--profile-db", store, "export", "0", out).returncode == 0
+    doc = json.loads(out.read_text())
+    doc["schema"] = "vigproc.profile/1"
+    del doc["fixed"]
+    doc["covariance"] = orig.covariance.tolist()
+    old = tmp_path / "v1.json"
+    old.write_text(json.dumps(doc))
+    p = import_profile(old)
+    assert p.trusted == orig.trusted
+    np.testing.assert_array_equal(p.theta, orig.theta)
+    # a fixed parameter given a zero variance in a /2 file is refused: /2 names it in 'fixed'
+    doc2 = json.loads(out.read_text())
+    doc2["fixed"] = doc2["fixed"][:-1]
+    doc2["covariance"] = [[0.0] + r for r in doc2["covariance"]]
+    doc2["covariance"].insert(0, [0.0] * len(doc2["covariance"][0]))
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc2))
+    r = run("profile", "--profile-db", tmp_path / "x.sqlite", "import", bad)
+    assert r.returncode == 8 and "belongs in 'fixed'" in r.stderr and "Traceback" not in r.stderr, r.stderr
