@@ -120,3 +120,46 @@ def test_a_learned_profile_exported_as_schema_1_still_loads(learned, tmp_path):
     bad.write_text(json.dumps(doc2))
     r = run("profile", "--profile-db", tmp_path / "x.sqlite", "import", bad)
     assert r.returncode == 8 and "belongs in 'fixed'" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_export_lensfun_is_applied_by_lensfun_at_the_cameras_crop_factor_as_vigproc_applies_it(learned, tmp_path):
+    """The issue: crop factor 1.0, mount "Generic", lowercase names, the bin label as focal
+    length; a host applying it at the D70's crop factor (1.525) got a third of the fall-off."""
+    import xml.etree.ElementTree as ET
+
+    lensfunpy = pytest.importorskip("lensfunpy")
+    d, store, _, _ = learned
+    out = tmp_path / "lens.xml"
+    r = run("profile", "--profile-db", store, "export-lensfun", out)
+    assert r.returncode == 0, r.stderr
+    [el] = ET.parse(out).getroot().iter("lens")
+    assert el.findtext("maker") == "Nikon"  # EXIF LensMake, as spelt
+    assert el.findtext("model") == D70_EXIF["LensModel"]
+    assert el.findtext("mount") == "Nikon F AF"  # lensfun's D70
+    crop = float(el.findtext("cropfactor"))
+    assert crop == pytest.approx(1.525)
+    [cal] = el.iter("vignetting")
+    assert float(cal.get("focal")) == 70.0 and float(cal.get("aperture")) == 4.5  # not the bin's 66.8 mm
+
+    with ProfileStore(store) as st:
+        [p] = st.list()
+    w, h = 600, 400
+    ours = _field(p.model(w, h))
+    db = lensfunpy.Database(paths=[str(out)], load_common=False, load_bundled=False)
+    [lens] = db.lenses
+    mod = lensfunpy.Modifier(lens, 1.525, w, h)  # a host's view: the D70's real crop factor
+    mod.initialize(70.0, 4.5, 1000.0, pixel_format=np.float64, flags=lensfunpy.ModifyFlags.VIGNETTING,
+                   reverse=True)
+    img = np.ones((h, w, 3))
+    assert mod.apply_color_modification(img)
+    theirs = np.log2(img[..., 1])
+    corners = [(0, 0), (0, -1), (-1, 0), (-1, -1)]
+    print(f"corner fall-off: vigproc {ours[0, 0]:.3f} EV, lensfun at crop 1.525 {theirs[0, 0]:.3f} EV")
+    assert ours[0, 0] < -0.3  # a fall-off worth comparing
+    for c in corners:
+        assert abs(theirs[c] - ours[c]) < 0.02, c
+    assert np.sqrt(np.mean((theirs - ours) ** 2)) < 0.01
+
+    # profile list names the focal length the frames were shot at, not the bin
+    r = run("profile", "--profile-db", store, "list")
+    assert r.returncode == 0 and "@ 70 mm N=4.5 3:2" in r.stdout and "66.8" not in r.stdout, r.stdout

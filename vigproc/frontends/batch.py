@@ -337,7 +337,7 @@ class Outcome:
     status: str
     fingerprint: Any = None
     record: dict[str, Any] | None = None
-    evidence: list[tuple[Any, Any, Any]] = field(default_factory=list)  # (ProfileKey, VignettingModel, bytes|None)
+    evidence: list[tuple[Any, ...]] = field(default_factory=list)  # (ProfileKey, VignettingModel, bytes|None, LensKey|None)
     error: str | None = None
     error_type: str | None = None
     transient: bool = False
@@ -352,12 +352,12 @@ class _Evidence:
     each frame's (key, model) for the client to pool; workers never write the store."""
 
     def __init__(self) -> None:
-        self.items: list[tuple[Any, Any]] = []
+        self.items: list[tuple[Any, ...]] = []
 
     def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
-              evidence: bytes | None = None):
+              evidence: bytes | None = None, lens_key=None):
         # the client pools under the fingerprint it journals (same content id)
-        self.items.append((key, model, evidence))
+        self.items.append((key, model, evidence, lens_key))
         return _Learned(key)
 
     def close(self) -> None:
@@ -863,9 +863,9 @@ class _Run:
             s.skipped += 1  # same content done meanwhile (e.g. listed twice)
             return
         if self.store is not None:  # learn: pool here, the one writer of the store
-            for key, model, evidence in res.evidence:
+            for key, model, evidence, lens_key in res.evidence:
                 # keyed by content: a frame pooled before a crash, then redone, is not pooled twice
-                p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence)
+                p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key)
                 s.profiles[str(p.key)] = {"n_frames": p.n_frames, "trusted": p.trusted,
                                           "field_sigma_ev": p.field_sigma_ev}
         self.journal.done(task.path, fp, result)

@@ -857,7 +857,10 @@ def cmd_bench_io(args: argparse.Namespace) -> int:
 def _profile_line(i: int, p) -> str:
     t = "trusted" if p.trusted else "learning"
     sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
-    return f"[{i}] {p.key}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
+    # the focal lengths the frames were shot at, not the bin's label, once the store knows them
+    focal = p.shots.describe_focal() if p.shots is not None else None
+    key = str(p.key) if focal is None else f"{p.key.lens_id} @ {focal} {p.key.aperture_bin} {p.key.aspect}"
+    return f"[{i}] {key}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
 
 
 def _pick_profile(store, ident: str):
@@ -869,7 +872,7 @@ def _pick_profile(store, ident: str):
     if ident.isdigit() and int(ident) < len(profiles):
         return profiles[int(ident)]
     for p in profiles:
-        if str(p.key) == ident:
+        if ident in (str(p.key), _profile_line(0, p).split("] ", 1)[1].split("  ", 1)[0]):
             return p
     of_lens = [p for p in profiles if p.key.lens_id == ident]
     if len(of_lens) == 1:
@@ -1014,24 +1017,11 @@ def cmd_profile(args: argparse.Namespace) -> int:
         elif args.profile_command == "import-lcp":
             return _import_lcp(args, store)
         elif args.profile_command == "export-lensfun":
-            from vigproc.io.exif import unescape_key_part
-            from vigproc.stores.lensfun_io import export_lensfun_xml, pa_from_model
+            from vigproc.stores.lensfun_io import export_lensfun_xml, lensfun_entries
 
-            entries = []
-            for p in store.list():
-                if p.provenance != "learned" or p.key.focal_bin == "any" or p.key.aperture_bin == "any":
-                    continue
-                # a frame of the profile's own aspect: lensfun's pa radius is 1 at the corner
-                # of any frame, so the coefficients do not depend on which one
-                a = p.key.aspect_ratio
-                size = (3000, max(1, round(3000 / a))) if a >= 1 else (max(1, round(3000 * a)), 3000)
-                k1, k2, k3, rms = pa_from_model(p.model(*size))
-                # the id is make|camera model|lens (a compact's lens is "?": its camera names it)
-                make, camera, lens = ([unescape_key_part(v) for v in p.key.lens_id.split("|")] + [None] * 3)[:3]
-                model = next((v for v in (lens, camera, make) if v), p.key.lens_id)
-                entries.append((make or "unknown", model, args.mount,
-                                args.crop_factor, float(p.key.focal_bin[2:-2]), float(p.key.aperture_bin[2:]),
-                                1000.0, k1, k2, k3))
+            entries, skipped = lensfun_entries(store.list(), crop_factor=args.crop_factor, mount=args.mount)
+            for why in skipped:
+                print(one_line(f"vigproc: not exported: {why}"), file=sys.stderr)
             n = export_lensfun_xml(entries, args.file)
             print(f"{len(entries)} calibrations of {n} lenses -> {args.file}")
     return 0
@@ -1153,9 +1143,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("export-lensfun", help="write learned profiles as a lensfun XML database")
     q.add_argument("file", help="lensfun XML file to write")
-    q.add_argument("--mount", default="Generic", help="lensfun mount name written for the lenses (default %(default)s)")
-    q.add_argument("--crop-factor", type=number(0.0, 100.0, open_lo=True), default=1.0,
-                   help="crop factor written for the lenses (default %(default)s)")
+    q.add_argument("--mount", help="lensfun mount written for cameras lensfun does not know (default Generic)")
+    q.add_argument("--crop-factor", type=number(0.0, 100.0, open_lo=True),
+                   help="crop factor for cameras neither lensfun nor the frames' EXIF give one for")
     q.set_defaults(fn=cmd_profile)
 
     sp = sub.add_parser("prior", help="natural-image prior of the paper's method")

@@ -123,7 +123,7 @@ _MAX_FNUMBER = 1000.0
 _TAGS: tuple[str, ...] = (
     "-File:FileType", "-File:MIMEType", "-ExifTool:Error", "-ExifTool:Warning",
     "-Make", "-Model",
-    "-Composite:LensID", "-LensModel", "-Lens", "-LensType", "-LensSerialNumber",
+    "-Composite:LensID", "-LensModel", "-Lens", "-LensType", "-LensSerialNumber", "-LensMake",
     "-FocalLength#", "-FocalLengthIn35mmFormat#", "-Composite:FocalLength35efl#",
     "-FNumber#", "-ApertureValue#", "-Composite:Aperture#",
     "-Composite:FocusDistance#", "-FocusDistance#", "-FocusDistanceUpper#",
@@ -189,8 +189,8 @@ _SPEC_ONLY = re.compile(
 )
 
 
-def _clean(value: Any) -> tuple[str | None, str | None]:
-    """Normalise one metadata text value.
+def _clean(value: Any, casefold: bool = True) -> tuple[str | None, str | None]:
+    """Normalise one metadata text value (``casefold=False``: the same, case kept).
 
     Returns
     -------
@@ -219,14 +219,30 @@ def _clean(value: Any) -> tuple[str | None, str | None]:
         else:
             out.append(ch)
     text = " ".join("".join(out).split())
-    text = unicodedata.normalize("NFKC", text.casefold())
-    if text.startswith("(binary data"):
+    text = unicodedata.normalize("NFKC", text.casefold() if casefold else text)
+    if text.casefold().startswith("(binary data"):
         return None, None
     if len(text) > MAX_TEXT_LEN:
         return None, f"implausibly long text ({len(text)} characters)"
-    if text in _JUNK or _ONLY_PUNCT_OR_ZERO.match(text):
+    if text.casefold() in _JUNK or _ONLY_PUNCT_OR_ZERO.match(text):
         return None, None
     return text, None
+
+
+def _spelt(meta: Mapping[str, Any], tags: Sequence[str], value: str | None) -> str | None:
+    """How the metadata spelt ``value`` (a normalised text): the first of ``tags``
+    (``"Make"``: any group; ``"EXIF:LensModel"``: that one) whose value normalises to
+    it, cleaned but with its case kept; also one alternative of an "A or B" LensID."""
+    if value is None:
+        return None
+    for tag in tags:
+        raws = [raw for _, raw in _sources(meta, tag)] if ":" not in tag else [meta.get(tag)]
+        for raw in raws:
+            text, _ = _clean(raw, casefold=False)
+            for part in [text] + (_OR_SPLIT.split(text) if text else []):
+                if part and _clean(part)[0] == value:
+                    return part
+    return None
 
 
 def normalise_text(value: Any) -> str | None:
@@ -361,6 +377,9 @@ class LensKey:
         absurd values); not compared.
     source : str or None
         The file the key was read from; not compared.
+    spelling : (make, model, lens, lens make), each str or None
+        The names as the metadata spelt them (case kept, control characters removed),
+        for what is written for other programs (a lensfun database); not compared.
     """
 
     make: str | None
@@ -378,6 +397,8 @@ class LensKey:
     lens_source: str | None = field(default=None, compare=False)
     problems: tuple[str, ...] = field(default=(), compare=False)
     source: str | None = field(default=None, compare=False)
+    spelling: tuple[str | None, str | None, str | None, str | None] = field(
+        default=(None, None, None, None), compare=False)
 
     def __post_init__(self) -> None:
         # `missing` is derived, so a hand-built or deserialised key cannot lie about it.
@@ -466,6 +487,7 @@ class LensKey:
             "width": self.width, "height": self.height,
             "lens_source": self.lens_source, "problems": list(self.problems),
             "source": self.source,
+            "spelling": list(self.spelling),
         }
         return d
 
@@ -528,6 +550,10 @@ class LensKey:
                 raise bad(f"{name} must be a list of strings")
             return tuple(v)
 
+        spelling = d.get("spelling", [None] * 4)
+        if not (isinstance(spelling, (list, tuple)) and len(spelling) == 4
+                and all(v is None or (isinstance(v, str) and _clean(v, casefold=False)[0] == v) for v in spelling)):
+            raise bad("spelling must be 4 cleaned strings or nulls")
         key = cls(
             make=text("make"), model=text("model"), lens=text("lens"),
             lens_serial=text("lens_serial"),
@@ -540,6 +566,7 @@ class LensKey:
             lens_source=d.get("lens_source") if isinstance(d.get("lens_source"), str) else None,
             problems=strlist("problems"),
             source=d.get("source") if isinstance(d.get("source"), str) else None,
+            spelling=tuple(spelling),
         )
         stored_missing = d.get("missing")
         if stored_missing is not None and tuple(stored_missing) != key.missing:
@@ -551,6 +578,7 @@ _DICT_FIELDS = frozenset(
     {
         "make", "model", "lens", "lens_serial", "focal_mm", "fnumber", "focus_distance_m",
         "missing", "lens_candidates", "focal_35mm", "width", "height", "lens_source", "problems", "source",
+        "spelling",
     }
 )
 
@@ -674,13 +702,17 @@ class _Builder:
         return round(primary, 6)
 
 
+#: The lens tags read after Composite:LensID, in order.
+_LENS_TAGS = ("EXIF:LensModel", "MakerNotes:LensModel", "XMP:LensModel", "XMP:Lens", "MakerNotes:Lens",
+              "MakerNotes:LensType")
+
+
 def _choose_lens(
     meta: Mapping[str, Any], b: _Builder
 ) -> tuple[str | None, tuple[str, ...], str | None]:
     """Pick the lens name.  Returns ``(lens, candidates, source_tag)``."""
     fallbacks: list[tuple[str, str]] = []
-    for tag_key in ("EXIF:LensModel", "MakerNotes:LensModel", "XMP:LensModel", "XMP:Lens",
-                    "MakerNotes:Lens", "MakerNotes:LensType"):
+    for tag_key in _LENS_TAGS:
         if tag_key in meta:
             text, prob = _lens_text(meta[tag_key])
             if prob:
@@ -855,11 +887,18 @@ def lens_key_from_metadata(meta: Mapping[str, Any], source: str | None = None) -
         f35 = round(x, 6)
         break
     w, h = _image_size(meta)
+    spelt_model = _spelt(meta, ("Model",), model)
+    if spelt_model is None and model is not None:  # a repeated make was dropped from the model
+        whole = _spelt(meta, ("Model",), b.text_field(meta, "Model", "model"))
+        spelt_model = whole[len(whole) - len(model):] if whole and len(whole.casefold()) == len(whole) else None
+    spelling = (_spelt(meta, ("Make",), make), spelt_model,
+                _spelt(meta, ("Composite:LensID",) + _LENS_TAGS + ("LensType",), lens),
+                _clean(next((raw for _, raw in _sources(meta, "LensMake")), None), casefold=False)[0])
     return LensKey(
         make=make, model=model, lens=lens, lens_serial=serial, focal_mm=focal,
         fnumber=fnum, focus_distance_m=dist, lens_candidates=candidates,
         focal_35mm=f35, width=w, height=h, lens_source=lens_source, problems=tuple(b.problems),
-        source=source,
+        source=source, spelling=spelling,
     )
 
 

@@ -858,7 +858,7 @@ class Processor:
         fit = m.candidate if m.candidate is not None else m
         if fit.covariance is None:
             raise ModelError("no usable fit to learn from (no uncertainty)")
-        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence)
+        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key)
         return fit, "estimate", str(p.key)
 
     # -- files ------------------------------------------------------------

@@ -74,10 +74,12 @@ from vigproc.core.lensfamily import N_COMPONENTS, N_RADII, PLAUSIBLE, LensFamily
 from vigproc.errors import InvalidImageError, ModelError
 
 __all__ = [
+    "LensfunCamera",
     "LensfunLens",
     "PaVignetting",
     "bench_lenses",
     "bundled_db_dir",
+    "find_camera",
     "interpolate_pa",
     "load_lenses",
     "pa_corner",
@@ -291,6 +293,74 @@ def _parse_file(file: str) -> list[LensfunLens]:
         if lens is not None:
             lenses.append(lens)
     return lenses
+
+
+@dataclass(frozen=True)
+class LensfunCamera:
+    """A camera body of the lensfun database: what a lens profile written for it needs.
+
+    Parameters
+    ----------
+    maker, model : str
+        As lensfun spells them (untranslated).
+    mount : str
+        The body's lens mount (``"Nikon F AF"``; a compact's own, ``"canonA70"``).
+    crop_factor : float
+        ``<cropfactor>``: the 35-mm diagonal over the sensor's.
+    """
+
+    maker: str
+    model: str
+    mount: str
+    crop_factor: float
+
+    @property
+    def fixed_lens(self) -> bool:
+        """A compact's body: lensfun names a fixed lens's mount in lower camel case
+        (``"canonA70"``), an interchangeable one's capitalised (``"Nikon F AF"``)."""
+        return self.mount[:1].islower()
+
+
+def _name_key(text: str | None) -> str:
+    # lensfun compares names ignoring case and spacing ("NIKON CORPORATION" is "Nikon Corporation")
+    return "".join((text or "").casefold().split())
+
+
+@functools.lru_cache(maxsize=8)
+def _load_cameras_cached(stamps: tuple[tuple[str, int, int], ...]) -> dict[tuple[str, str], LensfunCamera]:
+    cameras: dict[tuple[str, str], LensfunCamera] = {}
+    for file, _, _ in stamps:
+        try:
+            root = ET.parse(file).getroot()
+        except (ET.ParseError, OSError) as exc:
+            raise ModelError(f"cannot parse lensfun database file {file}: {exc}") from exc
+        for el in root.findall("camera"):
+            maker, model = _untranslated_text(el, "maker"), _untranslated_text(el, "model")
+            mount, crop = _untranslated_text(el, "mount"), _positive_float(_untranslated_text(el, "cropfactor"))
+            if maker and model and mount and crop:
+                cam = LensfunCamera(maker, model, mount, crop)
+                # every spelling lensfun gives (a translated "Nikon" / "D70" too) finds the body
+                for mk in {maker, *(c.text.strip() for c in el.findall("maker") if c.text)}:
+                    for md in {model, *(c.text.strip() for c in el.findall("model") if c.text)}:
+                        cameras.setdefault((_name_key(mk), _name_key(md)), cam)
+    return cameras
+
+
+def find_camera(maker: str | None, model: str | None,
+                db_paths: Iterable[str | Path] | None = None) -> LensfunCamera | None:
+    """The lensfun database's camera body ``maker`` ``model`` (as EXIF names it, any case
+    or spacing), or None when lensfun does not know it.
+
+    Raises
+    ------
+    ModelError
+        The database cannot be found or parsed.
+    """
+    if not maker or not model:
+        return None
+    files = _resolve_xml_files(db_paths)
+    stamps = tuple((f, os.stat(f).st_mtime_ns, os.stat(f).st_size) for f in files)
+    return _load_cameras_cached(stamps).get((_name_key(maker), _name_key(model)))
 
 
 def _untranslated_text(element: ET.Element, tag: str) -> str | None:

@@ -100,6 +100,7 @@ __all__ = [
     "ProfileKey",
     "ProfileStore",
     "ProfileStoreError",
+    "Shots",
     "aperture_bin",
     "aspect_label",
     "default_db_path",
@@ -715,6 +716,138 @@ class _Welford:
 # --------------------------------------------------------------------------- #
 
 
+#: Distinct focal lengths (and crop factors) a profile's :class:`Shots` keeps at most.
+MAX_SHOT_VALUES = 1000
+#: Crop factors outside this range are an EXIF mistake (a 35-mm focal length of 11113 mm).
+CROP_RANGE = (0.2, 15.0)
+_MAX_NAME = 200
+
+
+def _histogram_add(hist: tuple[tuple[float, int], ...], value: float, n: int = 1) -> tuple[tuple[float, int], ...]:
+    d = dict(hist)
+    if value in d or len(d) < MAX_SHOT_VALUES:
+        d[value] = d.get(value, 0) + n
+    return tuple(sorted(d.items()))
+
+
+def _histogram_median(hist: tuple[tuple[float, int], ...]) -> float | None:
+    total = sum(n for _, n in hist)
+    if not total:
+        return None
+    seen = 0
+    for v, n in hist:  # the lower median: a focal length a frame was really shot at
+        seen += n
+        if 2 * seen >= total:
+            return v
+    return hist[-1][0]
+
+
+@dataclass(frozen=True)
+class Shots:
+    """How a profile's frames were shot, as their EXIF said: what a profile written for
+    another program needs and its key does not keep (the key's names are casefolded and
+    its focal length is a bin).
+
+    Attributes
+    ----------
+    names : (make, model, lens, lens make)
+        As the metadata spelt them (:attr:`vigproc.io.exif.LensKey.spelling`), of the
+        latest frame that gave them; None when unknown.
+    focal_mm : tuple of (focal length in mm, frames)
+        The frames' real focal lengths (0.01 mm), ascending.
+    crop : tuple of (crop factor, frames)
+        The frames' 35-mm focal length over their focal length (0.001), ascending.
+    """
+
+    names: tuple[str | None, str | None, str | None, str | None] = (None, None, None, None)
+    focal_mm: tuple[tuple[float, int], ...] = ()
+    crop: tuple[tuple[float, int], ...] = ()
+
+    @classmethod
+    def of_frame(cls, lens_key: LensKey) -> Shots:
+        """One frame's :class:`Shots` from its EXIF lens key."""
+        names = tuple(getattr(lens_key, "spelling", None) or (None,) * 4)
+        focal = lens_key.focal_mm
+        focal_mm = ((round(float(focal), 2), 1),) if focal is not None and focal > 0 else ()
+        crop: tuple[tuple[float, int], ...] = ()
+        f35 = lens_key.focal_35mm
+        if focal_mm and f35 is not None:
+            c = round(float(f35) / float(focal), 3)
+            crop = ((c, 1),) if CROP_RANGE[0] <= c <= CROP_RANGE[1] else ()
+        return cls(names, focal_mm, crop)  # type: ignore[arg-type]
+
+    def add(self, other: Shots) -> Shots:
+        """These frames and ``other``'s; names from ``other`` where it has them."""
+        focal, crop = self.focal_mm, self.crop
+        for v, n in other.focal_mm:
+            focal = _histogram_add(focal, v, n)
+        for v, n in other.crop:
+            crop = _histogram_add(crop, v, n)
+        names = tuple(b if b is not None else a for a, b in zip(self.names, other.names))
+        return Shots(names, focal, crop)  # type: ignore[arg-type]
+
+    @property
+    def focal_median(self) -> float | None:
+        """The median focal length the frames were shot at (mm), or None."""
+        return _histogram_median(self.focal_mm)
+
+    @property
+    def crop_factor(self) -> float | None:
+        """The median crop factor the frames' EXIF gave, or None."""
+        return _histogram_median(self.crop)
+
+    def describe_focal(self) -> str | None:
+        """``"70 mm"``, or ``"67-70 mm (median 70)"`` for frames shot at several; None
+        when no frame gave its focal length."""
+        med = self.focal_median
+        if med is None:
+            return None
+        lo, hi = self.focal_mm[0][0], self.focal_mm[-1][0]
+        if lo == hi:
+            return f"{lo:g} mm"
+        return f"{lo:g}-{hi:g} mm (median {med:g})"
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON object stored in the profile store and in profile files."""
+        return {"make": self.names[0], "model": self.names[1], "lens": self.names[2], "lens_make": self.names[3],
+                "focal_mm": [[v, n] for v, n in self.focal_mm], "crop": [[v, n] for v, n in self.crop]}
+
+    @classmethod
+    def from_json(cls, d: Any, where: str) -> Shots:
+        """Validate :meth:`to_json`'s object (from a file or the store).
+
+        Raises
+        ------
+        ProfileStoreError
+            Naming ``where`` and the field.
+        """
+        if not isinstance(d, dict):
+            raise ProfileStoreError(f"{where}: shots must be an object")
+        names = []
+        for k in ("make", "model", "lens", "lens_make"):
+            v = d.get(k)
+            if v is not None and not (isinstance(v, str) and 0 < len(v) <= _MAX_NAME and v.strip() == v
+                                      and not any(unicodedata.category(ch) in ("Cc", "Cs") for ch in v)):
+                raise ProfileStoreError(f"{where}: shots.{k} must be a one-line name of at most {_MAX_NAME} "
+                                        "characters or null")
+            names.append(v)
+
+        def hist(k: str, lo: float, hi: float) -> tuple[tuple[float, int], ...]:
+            v = d.get(k, [])
+            ok = isinstance(v, list) and len(v) <= MAX_SHOT_VALUES and all(
+                isinstance(e, list) and len(e) == 2 and isinstance(e[0], (int, float))
+                and not isinstance(e[0], bool) and math.isfinite(e[0]) and lo <= e[0] <= hi
+                and type(e[1]) is int and 1 <= e[1] <= MAX_FRAMES for e in v)
+            if not ok:
+                raise ProfileStoreError(f"{where}: shots.{k} must be a list of [value in {lo:g}..{hi:g}, frames]")
+            out: tuple[tuple[float, int], ...] = ()
+            for val, n in v:
+                out = _histogram_add(out, float(val), n)
+            return out
+
+        return cls(tuple(names), hist("focal_mm", 0.01, 10_000.0), hist("crop", *CROP_RANGE))  # type: ignore[arg-type]
+
+
 def _is_trusted(n_frames: int, sigma_ev: float | None) -> bool:
     return n_frames >= TRUSTED_MIN_FRAMES and sigma_ev is not None and sigma_ev < TRUSTED_SIGMA_EV
 
@@ -748,6 +881,9 @@ class Profile:
     scatter_sigma_ev : float or None
         Frame-to-frame RMS spread of log2 φ across the learned frames, EV (≥ 2 frames).
     notes : str
+    shots : Shots or None
+        How the frames were shot (their real focal lengths, crop factor and names as
+        EXIF spelt them); None when unknown (a store or file from before schema v10/2).
     """
 
     key: ProfileKey
@@ -764,6 +900,7 @@ class Profile:
     cov_sigma_ev: float | None = None
     scatter_sigma_ev: float | None = None
     notes: str = ""
+    shots: Shots | None = None
     _exact: tuple[_Exact, _Exact] | None = field(default=None, repr=False)
     _welford: _Welford | None = field(default=None, repr=False)
 
@@ -940,7 +1077,7 @@ _COLUMNS = (
     "lens_id", "focal_bin", "aperture_bin", "aspect", "theta", "covariance", "info_exact",
     "info_matrix", "info_vector", "n_frames", "n_scatter", "theta_mean", "theta_m2",
     "field_mean", "field_m2", "provenance", "created", "updated", "trusted",
-    "field_sigma_ev", "cov_sigma_ev", "scatter_sigma_ev", "notes",
+    "field_sigma_ev", "cov_sigma_ev", "scatter_sigma_ev", "notes", "shots",
 )
 
 
@@ -1045,11 +1182,19 @@ def _migration_9(con: sqlite3.Connection) -> None:
     con.execute("UPDATE pooled_frames SET family = NULL")
 
 
+def _migration_10(con: sqlite3.Connection) -> None:
+    """v10: how each profile's frames were shot (:class:`Shots`: their real focal
+    lengths, crop factor and names as EXIF spelt them), for ``profile list`` and a
+    lensfun export; profiles learned before have none until their next frame."""
+    con.execute("ALTER TABLE profiles ADD COLUMN shots TEXT")
+
+
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
 #: Append a function for the next version; never edit a released one.
 MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3,
                                                                  _migration_4, _migration_5, _migration_6,
-                                                                 _migration_7, _migration_8, _migration_9)
+                                                                 _migration_7, _migration_8, _migration_9,
+                                                                 _migration_10)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
@@ -1245,6 +1390,7 @@ class ProfileStore(SQLiteFile):
                 cov_sigma_ev=None if d["cov_sigma_ev"] is None else float(d["cov_sigma_ev"]),
                 scatter_sigma_ev=None if d["scatter_sigma_ev"] is None else float(d["scatter_sigma_ev"]),
                 notes=str(d["notes"]),
+                shots=None if d["shots"] is None else Shots.from_json(json.loads(d["shots"]), "shots"),
                 _exact=exact,
                 _welford=welford,
             )
@@ -1269,6 +1415,7 @@ class ProfileStore(SQLiteFile):
             _blob(w.field_mean) if w else None, _blob(w.field_m2) if w else None,
             p.provenance, p.created, p.updated, int(bool(p.trusted)),
             p.field_sigma_ev, p.cov_sigma_ev, p.scatter_sigma_ev, p.notes,
+            None if p.shots is None else json.dumps(p.shots.to_json(), ensure_ascii=False, separators=(",", ":")),
         )
 
     def _select(self, where: str, args: tuple) -> builtins.list[Profile]:
@@ -1411,7 +1558,8 @@ class ProfileStore(SQLiteFile):
         return p
 
     def learn(self, key: ProfileKey, model: VignettingModel, *, notes: str | None = None,
-              frame_id: str | None = None, evidence: bytes | None = None) -> Profile:
+              frame_id: str | None = None, evidence: bytes | None = None,
+              lens_key: LensKey | None = None) -> Profile:
         """Pool one frame's estimate into the profile under ``key``; returns the new profile.
 
         The frame adds Λ_i = Σ_i⁻¹ and η_i = Λ_i θ_i (normalised units) to the
@@ -1446,6 +1594,9 @@ class ProfileStore(SQLiteFile):
             Kang-Weiss fits pooled until session 10 (``vigproc bench profile --clean``).
             The information sums are still kept.
             Needs ``frame_id`` (default: the SHA-256 of the evidence).
+        lens_key : LensKey, optional
+            The frame's EXIF: its focal length, crop factor and names as spelt are
+            added to the profile's :attr:`Profile.shots`.
 
         Raises
         ------
@@ -1477,6 +1628,9 @@ class ProfileStore(SQLiteFile):
                 raise ProfileStoreError(f"unusable frame evidence: {exc}") from None
             if frame_id is None:
                 frame_id = "evidence:" + hashlib.sha256(evidence).hexdigest()
+        if lens_key is not None and not isinstance(lens_key, LensKey):
+            raise ProfileStoreError(f"lens_key must be a LensKey, got {type(lens_key).__name__}")
+        frame_shots = Shots.of_frame(lens_key) if lens_key is not None else None
         if frame_id is not None and (not isinstance(frame_id, str) or not frame_id or len(frame_id) > 256):
             raise ProfileStoreError(f"frame_id must be a non-empty string of at most 256 characters, got {frame_id!r}")
         if aspect_label(model.width / model.height) != key.aspect:
@@ -1545,12 +1699,15 @@ class ProfileStore(SQLiteFile):
                 else:
                     theta = theta_i
             pooled, cov_sigma, scatter = _profile_stats(theta, cov, aspect, welford)
+            shots = old.shots if old is not None and old._exact is not None else None
+            if frame_shots is not None:
+                shots = frame_shots if shots is None else shots.add(frame_shots)
             note_parts = [s for s in (old_notes, extra if extra and extra not in old_notes else "", notes or "") if s]
             profile = Profile(
                 key=key, theta=theta, covariance=cov, info_matrix=lam, info_vector=eta,
                 n_frames=n_frames, provenance="learned", created=created, updated=now,
                 trusted=_is_trusted(n_frames, pooled), field_sigma_ev=pooled, cov_sigma_ev=cov_sigma,
-                scatter_sigma_ev=scatter, notes="\n".join(note_parts)[:MAX_NOTES],
+                scatter_sigma_ev=scatter, notes="\n".join(note_parts)[:MAX_NOTES], shots=shots,
                 _exact=exact, _welford=welford,
             )
             row_id = self._upsert(con, profile)
@@ -1752,6 +1909,7 @@ def profile_to_dict(profile: Profile) -> dict[str, Any]:
         "created": profile.created,
         "updated": profile.updated,
         "notes": profile.notes,
+        "shots": None if profile.shots is None else profile.shots.to_json(),
     }
     return d
 
@@ -1921,6 +2079,7 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
     if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))
                               or not (math.isfinite(sigma) and 0 <= sigma <= MAX_FALLOFF_EV)):
         raise ProfileStoreError(f"{where}: field_sigma_ev must be a number of EV in 0..{MAX_FALLOFF_EV:g} or null")
+    shots = None if d.get("shots") is None else Shots.from_json(d["shots"], where)
     created = _timestamp(d, "created", where)
     updated = _timestamp(d, "updated", where)
 
@@ -1939,7 +2098,8 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
     return Profile(
         key=key, theta=theta, covariance=cov_a, info_matrix=lam, info_vector=eta, n_frames=n_frames,
         provenance=prov, created=created, updated=updated or created, trusted=trusted,
-        field_sigma_ev=pooled, cov_sigma_ev=cov_sigma, scatter_sigma_ev=None, notes=notes, _exact=exact,
+        field_sigma_ev=pooled, cov_sigma_ev=cov_sigma, scatter_sigma_ev=None, notes=notes, shots=shots,
+        _exact=exact,
     )
 
 
