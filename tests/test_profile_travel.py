@@ -163,3 +163,27 @@ def test_export_lensfun_is_applied_by_lensfun_at_the_cameras_crop_factor_as_vigp
     # profile list names the focal length the frames were shot at, not the bin
     r = run("profile", "--profile-db", store, "list")
     assert r.returncode == 0 and "@ 70 mm N=4.5 3:2" in r.stdout and "66.8" not in r.stdout, r.stdout
+
+
+def test_a_profile_file_of_another_lens_is_applied_with_a_warning_naming_both(learned, tmp_path):
+    from dngfixture import make_dng
+
+    d, store, frames, _ = learned
+    out = tmp_path / "lens.json"
+    assert run("profile", "--profile-db", store, "export", "0", out).returncode == 0
+    other = tmp_path / "canon.dng"
+    make_dng(other, width=W, height=H, scene=photo_like(H, W, seed=3),
+             exif={"Make": "Canon", "Model": "Canon EOS 5D", "LensModel": "EF24-105mm f/4L IS USM",
+                   "FocalLength": 70, "FNumber": 4.5})
+    r = run("correct", "--profile", out, other, "-o", tmp_path / "o1", "--json")
+    assert r.returncode == 0, r.stderr
+    mine, theirs = "nikon corporation|nikon d70|af-s dx zoom-nikkor", "canon|canon eos 5d|ef24-105mm f/4l is usm"
+    assert mine in r.stderr and theirs in r.stderr, r.stderr
+    rec = json.loads(r.stdout)["results"][0]
+    assert rec["source"] == "profile-file" and len(rec["warnings"]) == 1
+    assert mine in rec["warnings"][0] and theirs in rec["warnings"][0]
+    sidecar = json.loads((tmp_path / "o1" / "canon.dng.vigproc.json").read_text())
+    assert sidecar["warnings"] == rec["warnings"]
+    # the lens's own frame: no warning
+    r = run("correct", "--profile", out, frames[1], "-o", tmp_path / "o2", "--json")
+    assert r.returncode == 0 and "warnings" not in json.loads(r.stdout)["results"][0] and mine not in r.stderr

@@ -646,7 +646,7 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
 
 
 def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where: str = "frame",
-                 sources=None, embedded=None):
+                 sources=None, embedded=None, warnings: list[str] | None = None):
     """Model to apply and where it came from: ``profile-file``, ``lensfun``,
     ``stored-profile`` (a trusted profile of the lens: no estimation), ``embedded``
     (the DNG's own vignetting opcodes), ``source:NAME`` (a profile-source plugin) or
@@ -656,7 +656,8 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
     consulted by ``profile="auto"`` (default: none); ``embedded`` the frame's DNG
     calibration (its opcodes, else its maker's calibration:
     :func:`vigproc.io.makernotes.calibration_for`), used by ``embedded`` and,
-    after a trusted stored profile, by ``auto``.
+    after a trusted stored profile, by ``auto``.  ``warnings``, when given, gets what
+    the record should say (a profile file of another lens than the frame's EXIF names).
 
     ``img`` is the frame as the pipeline's door accepted it
     (:func:`vigproc.core.pixels.check_image`'s result): it is not validated again."""
@@ -680,7 +681,13 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
     if settings.profile_is_file:
         from vigproc.stores.profiles import import_profile
 
-        return import_profile(profile).model(w, h), "profile-file"
+        prof = import_profile(profile)
+        other = prof.mismatch(lens_key)
+        if other is not None:  # applied as asked, but not silently
+            log.warning("%s: profile %s: %s", where, profile, other)
+            if warnings is not None:
+                warnings.append(f"profile {profile}: {other}")
+        return prof.model(w, h), "profile-file"
     if profile == "lensfun":
         from vigproc.stores.lensfun_io import lensfun_model
 
@@ -817,9 +824,12 @@ class Processor:
         elif s.mode == "learn":
             res.model, res.source, res.profile = self._learn(checked, lens_key, frame_id)
         else:
+            warnings: list[str] = []
             m, res.source = choose_model(checked, lens_key, s, self.store if s.profile == "auto" else None,
                                          where=where, sources=self.sources if s.profile == "auto" else None,
-                                         embedded=embedded)
+                                         embedded=embedded, warnings=warnings)
+            if warnings:
+                res.extra["warnings"] = warnings
             res.model = m
             if s.mode == "correct":
                 from vigproc.core.correct import correct

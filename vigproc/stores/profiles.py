@@ -924,6 +924,24 @@ class Profile:
         """Plain mean of the per-frame θ̃ (Welford), or None."""
         return self._welford.theta_mean.copy() if self._welford is not None and self._welford.n else None
 
+    def mismatch(self, lens_key: LensKey | None) -> str | None:
+        """Why this profile is not of the camera and lens a frame's EXIF names (``None``
+        when it is, or when the EXIF names neither): a profile file given by hand may be
+        of any lens, and applying another lens's fall-off is a silent miscorrection.
+
+        Returns
+        -------
+        str or None
+            A sentence naming both.
+        """
+        if not isinstance(lens_key, LensKey) or (lens_key.model is None and lens_key.lens is None):
+            return None
+        frame = lens_key.lens_id()
+        mine = "|".join(self.key.lens_id.split("|")[:3])  # a lens unit's serial aside
+        if mine == frame:
+            return None
+        return f"the profile is of {mine!r}, the frame's EXIF names {frame!r} (another camera or lens)"
+
     def model(self, width: int, height: int) -> VignettingModel:
         """The profile as a :class:`VignettingModel` for a ``width``×``height`` frame.
 
