@@ -784,7 +784,11 @@ def lensfun_entries(profiles: Iterable[Profile], *, crop_factor: float | None = 
         # frame of the written crop factor, so the coefficients do not depend on which one
         a = p.key.aspect_ratio
         size = (3000, max(1, round(3000 / a))) if a >= 1 else (max(1, round(3000 * a)), 3000)
-        k1, k2, k3, rms = pa_from_model(p.model(*size))
+        try:
+            k1, k2, k3, rms = pa_from_model(p.model(*size))
+        except ModelError as exc:  # one profile lensfun's model cannot hold does not stop the others
+            skipped.append(f"{p.key}: {exc}")
+            continue
         focal = p.shots.focal_median if p.shots is not None else None
         entries.append(LensfunEntry(
             # the lens's maker as EXIF spelt it, else the camera's (lensfun's spelling before a casefolded id)
