@@ -187,3 +187,23 @@ def test_a_profile_file_of_another_lens_is_applied_with_a_warning_naming_both(le
     # the lens's own frame: no warning
     r = run("correct", "--profile", out, frames[1], "-o", tmp_path / "o2", "--json")
     assert r.returncode == 0 and "warnings" not in json.loads(r.stdout)["results"][0] and mine not in r.stderr
+
+
+def test_shots_keep_real_focal_lengths_and_refuse_hostile_values(tmp_path):
+    from vigproc.io.exif import LensKey
+    from vigproc.stores.profiles import ProfileStoreError, Shots
+
+    k = LensKey(make="nikon", model="nikon d70", lens="x", focal_mm=67.0, focal_35mm=100.5,
+                spelling=("NIKON", "NIKON D70", "X", None))
+    s = Shots.of_frame(k)
+    for f in (70.0, 70.0):
+        s = s.add(Shots.of_frame(LensKey(make="nikon", model="nikon d70", lens="x", focal_mm=f, focal_35mm=105.0)))
+    assert s.focal_mm == ((67.0, 1), (70.0, 2)) and s.focal_median == 70.0 and s.crop_factor == 1.5
+    assert s.describe_focal() == "67-70 mm (median 70)" and s.names[:2] == ("NIKON", "NIKON D70")
+    assert Shots.from_json(s.to_json(), "f") == s
+    # an absurd 35-mm focal length (an EXIF mistake seen in real files) gives no crop factor
+    assert Shots.of_frame(LensKey(make="a", model="b", lens=None, focal_mm=23.1, focal_35mm=11113.0)).crop == ()
+    for bad in ({"make": "a\nb"}, {"lens": "x" * 300}, {"focal_mm": [[-1, 1]]}, {"focal_mm": [[50, 0]]},
+                {"crop": [[99.0, 1]]}, {"focal_mm": "70"}, {"model": 5}):
+        with pytest.raises(ProfileStoreError, match="shots"):
+            Shots.from_json({**s.to_json(), **bad}, "f")
