@@ -207,3 +207,74 @@ def test_shots_keep_real_focal_lengths_and_refuse_hostile_values(tmp_path):
                 {"crop": [[99.0, 1]]}, {"focal_mm": "70"}, {"model": 5}):
         with pytest.raises(ProfileStoreError, match="shots"):
             Shots.from_json({**s.to_json(), **bad}, "f")
+
+
+def _darktable_lens_xmp(camera: bytes, lens: bytes, flags: int) -> str:
+    """An XMP sidecar whose history enables darktable 4.2's lens module (params v6) in
+    lensfun mode for ``camera`` and ``lens`` at 70 mm f/4.5, crop 1.525; ``flags`` 2:
+    vignetting, 0: nothing (the reference export)."""
+    import struct
+
+    params = struct.pack("<iiifffffi128s128siffffi", 1, flags, 0, 1.0, 1.525, 70.0, 4.5, 1000.0, 1,
+                         camera, lens, 0, 1.0, 1.0, 1.0, 1.0, 1)
+    return f"""<?xml version="1.0" encoding="UTF-8"?>
+<x:xmpmeta xmlns:x="adobe:ns:meta/" x:xmptk="XMP Core 4.4.0-Exiv2">
+ <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">
+  <rdf:Description rdf:about="" xmlns:darktable="http://darktable.sf.net/"
+   darktable:xmp_version="4" darktable:history_end="1">
+   <darktable:history>
+    <rdf:Seq>
+     <rdf:li darktable:num="0" darktable:operation="lens" darktable:enabled="1" darktable:modversion="6"
+      darktable:params="{params.hex()}" darktable:multi_name="" darktable:multi_priority="0"/>
+    </rdf:Seq>
+   </darktable:history>
+  </rdf:Description>
+ </rdf:RDF>
+</x:xmpmeta>
+"""
+
+
+def test_darktable_applies_the_exported_lensfun_profile_as_vigproc_does(learned, tmp_path):
+    """darktable 4.2's lens module, in lensfun mode, given the exported database in the
+    user's lensfun folder: the gain it applies (its export with vignetting correction over
+    one without) is vigproc's profile, corners included."""
+    import os
+    import shutil
+
+    from vigproc.io.images import read_image
+
+    exe = shutil.which("darktable-cli")
+    if exe is None:
+        pytest.skip("darktable-cli is not installed (scripts/test.sh installs it unless VIGPROC_NO_DARKTABLE=1)")
+    d, store, frames, _ = learned
+    home = tmp_path / "home"
+    lensfun_dir = home / ".local" / "share" / "lensfun"  # where lensfun looks for a user's own profiles
+    lensfun_dir.mkdir(parents=True)
+    r = run("profile", "--profile-db", store, "export-lensfun", lensfun_dir / "vigproc.xml")
+    assert r.returncode == 0, r.stderr
+    env = dict(os.environ, HOME=str(home), XDG_DATA_HOME=str(home / ".local" / "share"))
+
+    def export(name: str, flags: int) -> np.ndarray:
+        xmp, out, cfg = tmp_path / f"{name}.xmp", tmp_path / f"{name}.tif", tmp_path / f"cfg-{name}"
+        xmp.write_text(_darktable_lens_xmp(b"Nikon D70", D70_EXIF["LensModel"].encode(), flags))
+        res = subprocess.run([exe, str(frames[0]), str(xmp), str(out), "--icc-type", "LIN_REC2020", "--core",
+                              "--configdir", str(cfg), "--library", ":memory:",
+                              "--conf", "plugins/imageio/format/tiff/bpp=32",
+                              "--conf", "plugins/darkroom/workflow=none", "-d", "perf"],
+                             capture_output=True, text=True, env=env, timeout=600)
+        assert res.returncode == 0 and out.exists(), res.stdout[-500:] + res.stderr[-500:]
+        assert "lens correction" in res.stdout + res.stderr  # the module ran
+        img, _ = read_image(out, transfer="linear")
+        return np.asarray(img, dtype=np.float64)[..., :3].mean(axis=-1)
+
+    gain = np.log2(export("on", 2) / export("off", 0))
+    with ProfileStore(store) as st:
+        [p] = st.list()
+    ours = -_field(p.model(gain.shape[1], gain.shape[0]))
+    diff = gain - ours
+    print(f"darktable corner gain {gain[0, 0]:.3f} EV, vigproc {ours[0, 0]:.3f} EV; "
+          f"RMS difference {np.sqrt(np.mean(diff ** 2)):.4f} EV")
+    assert ours[0, 0] > 0.3
+    for c in [(0, 0), (0, -1), (-1, 0), (-1, -1)]:
+        assert abs(diff[c]) < 0.02, c
+    assert np.sqrt(np.mean(diff ** 2)) < 0.01
