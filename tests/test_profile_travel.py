@@ -278,3 +278,30 @@ def test_darktable_applies_the_exported_lensfun_profile_as_vigproc_does(learned,
     for c in [(0, 0), (0, -1), (-1, 0), (-1, -1)]:
         assert abs(diff[c]) < 0.02, c
     assert np.sqrt(np.mean(diff ** 2)) < 0.01
+
+
+def test_a_v9_store_migrates_and_learns_how_its_frames_were_shot(tmp_path):
+    import sqlite3
+
+    from vigproc.io.exif import LensKey
+    from vigproc.stores.profiles import SCHEMA_VERSION, ProfileKey
+
+    lens = LensKey(make="nikon corporation", model="nikon d70", lens="x", focal_mm=70.0, fnumber=4.5,
+                   focal_35mm=105.0, spelling=("NIKON CORPORATION", "NIKON D70", "X", None))
+    key = ProfileKey.from_lens(lens, 300, 200)
+    m = VignettingModel(300, 200, p=(1 / 250.0**2, 0.0, 1 / 250.0**2),
+                        covariance=tuple(map(tuple, (np.eye(12) * 1e-6).tolist())))
+    db = tmp_path / "p.sqlite"
+    with ProfileStore(db) as st:
+        st.learn(key, m, frame_id="a")
+    con = sqlite3.connect(db)  # as vigproc before schema v10 left it
+    con.execute("ALTER TABLE profiles DROP COLUMN shots")
+    con.execute("DELETE FROM schema_version WHERE version > 9")
+    con.commit()
+    con.close()
+    with ProfileStore(db) as st:
+        assert st.schema_version == SCHEMA_VERSION == 10
+        assert st.get(key).shots is None  # learned before: unknown until its next frame
+        p = st.learn(key, m, frame_id="b", lens_key=lens)
+        assert p.shots.focal_mm == ((70.0, 1),) and p.shots.names[1] == "NIKON D70"
+        assert st.get(key).shots == p.shots and st.check() == []
