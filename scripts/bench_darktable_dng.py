@@ -56,14 +56,17 @@ SONY_VALUES = [round(6000 * (i / 15) ** 2.5) for i in range(16)]
 CLIP = 0.95
 
 
-def lens_xmp() -> str:
-    """An XMP sidecar whose history enables darktable 4.2's lens module (params v6) in
-    "embedded metadata" mode, correcting vignetting only."""
+def lens_xmp(method: int = 0, flags: int = 2, *, crop: float = 1.0, focal: float = 0.0, aperture: float = 0.0,
+             camera: bytes = b"", lens: bytes = b"") -> str:
+    """An XMP sidecar whose history enables darktable 4.2's lens module (params v6), by
+    default in "embedded metadata" mode (``method`` 0; 1: lensfun, for ``camera`` and
+    ``lens`` at ``crop``, ``focal``, ``aperture``), correcting vignetting only (``flags``
+    2; 0: nothing)."""
     params = struct.pack("<iiifffffi128s128siffffi",
-                         0,  # method: DT_IOP_LENS_METHOD_EMBEDDED_METADATA
-                         2,  # modify_flags: DT_IOP_LENS_MODIFY_FLAG_VIGNETTING
-                         0, 1.0, 1.0, 0.0, 0.0, 1000.0, 1,  # lensfun: inverse, scale, crop, focal, f, dist, geom
-                         b"", b"", 0, 1.0, 1.0,  # camera, lens, tca_override, tca_r, tca_b
+                         method,  # 0: DT_IOP_LENS_METHOD_EMBEDDED_METADATA, 1: lensfun
+                         flags,  # 2: DT_IOP_LENS_MODIFY_FLAG_VIGNETTING
+                         0, 1.0, crop, focal, aperture, 1000.0, 1,  # lensfun: inverse, scale, crop, focal, f, dist, geom
+                         camera, lens, 0, 1.0, 1.0,  # camera, lens, tca_override, tca_r, tca_b
                          1.0, 1.0,  # cor_dist_ft, cor_vig_ft
                          1)  # modified: use these params, not the module's defaults
     return f"""<?xml version="1.0" encoding="UTF-8"?>

@@ -210,28 +210,17 @@ def test_shots_keep_real_focal_lengths_and_refuse_hostile_values(tmp_path):
 
 
 def _darktable_lens_xmp(camera: bytes, lens: bytes, flags: int) -> str:
-    """An XMP sidecar whose history enables darktable 4.2's lens module (params v6) in
-    lensfun mode for ``camera`` and ``lens`` at 70 mm f/4.5, crop 1.525; ``flags`` 2:
-    vignetting, 0: nothing (the reference export)."""
-    import struct
+    """The XMP of darktable's lens module in lensfun mode for ``camera`` and ``lens`` at
+    70 mm f/4.5, crop 1.525 (scripts/bench_darktable_dng.py's); ``flags`` 2: vignetting,
+    0: nothing (the reference export)."""
+    import importlib.util
+    from pathlib import Path
 
-    params = struct.pack("<iiifffffi128s128siffffi", 1, flags, 0, 1.0, 1.525, 70.0, 4.5, 1000.0, 1,
-                         camera, lens, 0, 1.0, 1.0, 1.0, 1.0, 1)
-    return f"""<?xml version="1.0" encoding="UTF-8"?>
-<x:xmpmeta xmlns:x="adobe:ns:meta/" x:xmptk="XMP Core 4.4.0-Exiv2">
- <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">
-  <rdf:Description rdf:about="" xmlns:darktable="http://darktable.sf.net/"
-   darktable:xmp_version="4" darktable:history_end="1">
-   <darktable:history>
-    <rdf:Seq>
-     <rdf:li darktable:num="0" darktable:operation="lens" darktable:enabled="1" darktable:modversion="6"
-      darktable:params="{params.hex()}" darktable:multi_name="" darktable:multi_priority="0"/>
-    </rdf:Seq>
-   </darktable:history>
-  </rdf:Description>
- </rdf:RDF>
-</x:xmpmeta>
-"""
+    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_darktable_dng.py"
+    spec = importlib.util.spec_from_file_location("bench_darktable_dng", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    return bench.lens_xmp(1, flags, crop=1.525, focal=70.0, aperture=4.5, camera=camera, lens=lens)
 
 
 def test_darktable_applies_the_exported_lensfun_profile_as_vigproc_does(learned, tmp_path):
