@@ -608,6 +608,9 @@ def find_reference(lens_key, width: int, height: int, *, store=None, frame_id: s
 
     if lens_key is None:
         return None
+    if getattr(lens_key, "lens_problem", None):  # a lens the frame cannot be from: nothing to compare with
+        log.info("lens identity problem, no reference: %s", lens_key.lens_problem)
+        return None
     if store is not None:
         try:
             p = store.lookup(lens_key, width, height)
@@ -631,7 +634,10 @@ def find_reference(lens_key, width: int, height: int, *, store=None, frame_id: s
     except VigprocError as exc:  # unknown, ambiguous or uncalibrated lens: no expectation
         log.debug("no lensfun calibration: %s", exc)
         return None
-    return Reference(m, "lensfun", f"{lens_key.lens} @ {lens_key.focal_mm:g} mm f/{lens_key.fnumber:g}")
+    from vigproc.stores.lensfun_match import match_lens
+
+    name = match_lens(lens_key).name or lens_key.lens  # lensfun's name of the lens compared with
+    return Reference(m, "lensfun", f"{name} @ {lens_key.focal_mm:g} mm f/{lens_key.fnumber:g}")
 
 
 def expected_for(lens_key, width: int, height: int, *, store=None, calibration: Calibration,
@@ -1179,7 +1185,7 @@ def check_image(
                                  f"--calibration a ring calibration made with 'vigproc forensics calibrate "
                                  f"--method {method}')")
         v = check_family(img, lens_key, store=store, calibration=calibration, alpha=alpha, frame_id=frame_id)
-        return _say_own_frame(v, lens_key, img.shape[1], img.shape[0], store, frame_id)
+        return _say_lens_problem(_say_own_frame(v, lens_key, img.shape[1], img.shape[0], store, frame_id), lens_key)
     cal = calibration if calibration is not None else default_calibration()
     method = forensic_method(method)
     if cal.method != method:
@@ -1191,7 +1197,26 @@ def check_image(
     exp = expected_for(lens_key, w, h, store=store, calibration=cal, frame_id=frame_id)
     v = check_model(m, exp, calibration=cal, lens_id=lens_key.lens_id() if lens_key is not None else None,
                     alpha=alpha)
-    return _say_own_frame(v, lens_key, w, h, store, frame_id)
+    return _say_lens_problem(_say_own_frame(v, lens_key, w, h, store, frame_id), lens_key)
+
+
+def _say_lens_problem(v: Verdict, lens_key) -> Verdict:
+    """An unknown-lens verdict says why lensfun had nothing: a lens the frame cannot have
+    been shot with (never "consistent" with it), a lens EXIF only describes, a name
+    lensfun does not hold."""
+    if v.verdict != "unknown-lens" or lens_key is None or lens_key.lens is None:
+        return v
+    import dataclasses
+
+    problem = getattr(lens_key, "lens_problem", None)
+    if problem:
+        return dataclasses.replace(v, reason=f"the metadata's lens identity is contradictory ({problem}): the frame "
+                                             "is compared with no reference")
+    if v.reason.startswith("no stored profile and no lensfun calibration"):
+        from vigproc.stores.lensfun_match import match_lens
+
+        return dataclasses.replace(v, reason=f"{v.reason} ({match_lens(lens_key).reason})")
+    return v
 
 
 def _say_own_frame(v: Verdict, lens_key, width: int, height: int, store, frame_id: str | None) -> Verdict:

@@ -976,7 +976,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
                             raise VigprocError(f"cannot learn, lens unknown ({lens['error']})")
                         # keyed by content: learning a file again does not pool it twice
                         fid = file_sha256(f)
-                        key = ProfileKey.from_lens(lens_key, img.shape[1], img.shape[0])
+                        key = store.key_for(lens_key, img.shape[1], img.shape[0])
                         known = store.holds_frame(key, fid)
                         proc.process_image(img, lens_key, where=str(f), frame_id=fid)
                         p = store.get(key)
