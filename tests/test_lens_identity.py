@@ -243,7 +243,7 @@ def test_no_lensfun_calibration_for_a_lens_the_shot_cannot_be_from(frames) -> No
     img, _ = read_image(frames["out_of_range"])
     v = check_image(img, key)
     assert v.verdict == "unknown-lens" and "contradictory" in v.reason and "31 mm" in v.reason
-    assert v.expected_source is None
+    assert v.expected_source is None and "31 mm" in v.to_dict()["lens_problem"]
 
 
 def test_check_of_the_canon_251_frame_is_not_consistent(canon_251: Path) -> None:

@@ -779,6 +779,10 @@ class Verdict:
         data-only family coefficients against the lens's, 2 degrees of freedom) or
         ``rings`` (fall-off on four rings and the centre, 6 degrees of freedom, with a
         calibration of :func:`fit_calibration`).
+    lens_problem : str or None
+        Why the lens the EXIF names cannot be the frame's (``LensKey.lens_problem``: a
+        focal length or f-number outside its range); the verdict is then ``unknown-lens``,
+        compared with no reference.
     """
 
     verdict: str
@@ -796,6 +800,7 @@ class Verdict:
     expected: VignettingModel | None = field(default=None, repr=False)
     whitened: tuple[float, ...] | None = field(default=None, repr=False)
     test: str = "rings"
+    lens_problem: str | None = None  # why the EXIF's lens cannot be the frame's (LensKey.lens_problem)
 
     def __post_init__(self) -> None:
         if self.verdict not in VERDICTS:
@@ -818,7 +823,7 @@ class Verdict:
             "estimate": self.estimate.to_dict() if self.estimate is not None else None,
             "expected": self.expected.to_dict() if self.expected is not None else None,
             "whitened": list(self.whitened) if self.whitened is not None else None,
-            "test": self.test,
+            "test": self.test, "lens_problem": self.lens_problem,
         }
         return d
 
@@ -837,6 +842,7 @@ class Verdict:
                 expected=VignettingModel.from_dict(d["expected"]) if d.get("expected") else None,
                 whitened=tuple(float(v) for v in d["whitened"]) if d.get("whitened") else None,
                 test=str(d.get("test", "rings")),
+                lens_problem=d.get("lens_problem") if isinstance(d.get("lens_problem"), str) else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ForensicsError(f"invalid verdict record: {exc!r}") from None
@@ -1210,8 +1216,8 @@ def _say_lens_problem(v: Verdict, lens_key) -> Verdict:
 
     problem = getattr(lens_key, "lens_problem", None)
     if problem:
-        return dataclasses.replace(v, reason=f"the metadata's lens identity is contradictory ({problem}): the frame "
-                                             "is compared with no reference")
+        return dataclasses.replace(v, lens_problem=problem, reason=f"the metadata's lens identity is contradictory "
+                                                                   f"({problem}): the frame is compared with no reference")
     if v.reason.startswith("no stored profile and no lensfun calibration"):
         from vigproc.stores.lensfun_match import match_lens
 

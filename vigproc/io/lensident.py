@@ -188,12 +188,9 @@ def strip_make_prefix(make: str | None, lens: str | None) -> str | None:
 def display_lens_id(lens_id: str | None) -> str:
     """A lens id (``make|model|lens``, escaped for storage) as people read it: the parts
     unescaped, a missing one as ``?``.  Never a key: ``|`` inside a part is ambiguous here."""
+    from vigproc.io.exif import unescape_key_part  # exif imports this module: at call time
+
     if lens_id is None:
         return "unknown"
-    out = []
-    for part in lens_id.split("|"):
-        if part == "?":
-            out.append("?")
-        else:
-            out.append(part.replace("%7C", "|").replace("%3F", "?").replace("%25", "%"))
-    return "|".join(out)
+    parts = (unescape_key_part(p) for p in lens_id.split("|"))
+    return "|".join("?" if p is None else p for p in parts)
