@@ -334,3 +334,13 @@ def test_bench_lens_match_on_the_shared_frames(shared_data: Path, capsys) -> Non
     assert mod.main(["--data", str(shared_data)]) == 0
     out = capsys.readouterr().out
     assert "5 with a lens lensfun calibrated; 5 matched (100 %), 0 false matches" in out
+
+
+def test_max_aperture_brighter_than_the_name_is_a_lens_problem() -> None:
+    body = {"EXIF:Make": "Canon", "EXIF:Model": "Canon EOS 5D", "EXIF:LensModel": "EF70-200mm f/4L USM",
+            "EXIF:FocalLength": 100, "EXIF:FNumber": 5.6}
+    assert lens_key_from_metadata({**body, "EXIF:MaxApertureValue": 4.0}).lens_problem is None
+    # a macro lens focused close reports a darker effective aperture: no problem
+    assert lens_key_from_metadata({**body, "EXIF:MaxApertureValue": 5.0}).lens_problem is None
+    problem = lens_key_from_metadata({**body, "EXIF:MaxApertureValue": 2.8}).lens_problem
+    assert problem is not None and "f/2.8" in problem and "f/4" in problem

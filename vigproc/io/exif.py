@@ -122,7 +122,7 @@ _MAX_FNUMBER = 1000.0
 # Tags requested from ExifTool.  "#" = numeric value (per-tag -n); text tags keep
 # their print conversion because Composite:LensID is only a name when printed.
 # The focal range the camera reports for the mounted lens (lens identity checks, lensident.py).
-_LENS_RANGE_TAGS: tuple[str, ...] = ("-MinFocalLength#", "-MaxFocalLength#")
+_LENS_RANGE_TAGS: tuple[str, ...] = ("-MinFocalLength#", "-MaxFocalLength#", "-MaxApertureValue#")
 _TAGS: tuple[str, ...] = _LENS_RANGE_TAGS + (
     "-File:FileType", "-File:MIMEType", "-ExifTool:Error", "-ExifTool:Warning",
     "-Make", "-Model",
@@ -836,7 +836,9 @@ def _lens_identity(make: str | None, model: str | None, lens: str | None, lens_s
         problem = shot_problem(lens, LensSpec(*reported), focal, None,
                                spec_from="the focal range the camera reports")
     if problem is None and spec is not None:
-        problem = shot_problem(lens, spec, focal, fnum, spec_from="its name")
+        max_ap = next((x for _, raw in _sources(meta, "MaxApertureValue") if (x := _as_float(raw))), None)
+        problem = shot_problem(lens, spec, focal, fnum, spec_from="its name",
+                               max_aperture=max_ap if max_ap is not None and _valid_fnumber(max_ap) else None)
     if candidates and keyed not in candidates:
         problem = None  # an unresolved choice between lenses: no one name to hold the shot against
     if problem is not None:

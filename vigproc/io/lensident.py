@@ -54,11 +54,14 @@ class LensSpec:
         Focal range in mm (equal for a prime).
     aperture_min : float or None
         The widest f-number at the wide end (``f/3.5-5.6`` -> 3.5), None when not stated.
+    aperture_max : float or None
+        The widest f-number at the long end (``f/3.5-5.6`` -> 5.6; ``f/2.8`` -> 2.8).
     """
 
     focal_min: float
     focal_max: float
     aperture_min: float | None = None
+    aperture_max: float | None = None
 
 
 def _fmt(x: float) -> str:
@@ -125,11 +128,14 @@ def lens_spec(name: str | None) -> LensSpec | None:
         return None
     a = _APERTURE_IN_NAME.search(name, m.end())
     ap = float(a.group(1)) if a else None
-    return LensSpec(lo, hi, ap if ap and ap > 0 else None)
+    if not ap or ap <= 0:
+        return LensSpec(lo, hi)
+    ap_hi = float(a.group(2)) if a.group(2) else ap
+    return LensSpec(lo, hi, ap, max(ap, ap_hi))
 
 
 def shot_problem(lens: str, spec: LensSpec, focal_mm: float | None, fnumber: float | None,
-                 *, spec_from: str = "its name") -> str | None:
+                 *, spec_from: str = "its name", max_aperture: float | None = None) -> str | None:
     """Why a frame cannot have been shot with ``lens`` (None when it can).
 
     Parameters
@@ -142,6 +148,9 @@ def shot_problem(lens: str, spec: LensSpec, focal_mm: float | None, fnumber: flo
         The shot's focal length (real, not 35-mm equivalent) and f-number.
     spec_from : str
         Where ``spec`` comes from, for the message.
+    max_aperture : float or None
+        The widest f-number the camera reports for the lens at the shot's focal length
+        (EXIF MaxApertureValue): brighter than the name's widest, it is another lens.
 
     Returns
     -------
@@ -158,6 +167,12 @@ def shot_problem(lens: str, spec: LensSpec, focal_mm: float | None, fnumber: flo
             return f"shot at {_fmt(focal_mm)} mm, outside the {rng} of {lens} ({spec_from})"
     if fnumber is not None and spec.aperture_min is not None and fnumber < spec.aperture_min * (1 - APERTURE_TOLERANCE):
         return f"shot at f/{_fmt(fnumber)}, wider open than the f/{_fmt(spec.aperture_min)} of {lens} ({spec_from})"
+    # only brighter than the name says: a macro lens focused close reports a darker effective
+    # aperture (a Nikon D70's 100mm f/2.8 reports f/3.1), a lens never a brighter one
+    if max_aperture is not None and spec.aperture_min is not None and \
+            max_aperture < spec.aperture_min * (1 - APERTURE_TOLERANCE):
+        return (f"the camera reports a widest aperture of f/{_fmt(max_aperture)}, wider than the "
+                f"f/{_fmt(spec.aperture_min)} of {lens} ({spec_from})")
     return None
 
 
