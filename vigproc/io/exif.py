@@ -83,7 +83,9 @@ from typing import Any, Iterable, Mapping, Sequence, Union
 import exiftool
 
 from vigproc.errors import FileNameError, ImageReadError, MetadataError, UnsupportedFormatError, VigprocError
-from vigproc.io.lensident import LensSpec, generic_description, lens_spec, make_brand, shot_problem, strip_make_prefix
+from vigproc.io.lensident import (  # noqa: F401  (unescape_key_part: re-exported)
+    LensSpec, generic_description, lens_spec, make_brand, shot_problem, strip_make_prefix, unescape_key_part,
+)
 
 __all__ = [
     "ExifReader",
@@ -291,14 +293,6 @@ def escape_key_part(part: str | None) -> str:
     if part is None:
         return "?"
     return part.replace("%", "%25").replace("|", "%7C").replace("?", "%3F")
-
-
-def unescape_key_part(part: str) -> str | None:
-    """The inverse of :func:`escape_key_part`: the text a key component holds ("?", a
-    missing one, is None), for people and exports; never to build a key from."""
-    if part == "?":
-        return None
-    return part.replace("%7C", "|").replace("%3F", "?").replace("%25", "%")
 
 
 def casefold_lens_id(lens_id: str) -> str:

@@ -24,7 +24,7 @@ import re
 from dataclasses import dataclass
 
 __all__ = ["LensSpec", "display_lens_id", "generic_description", "lens_spec", "make_brand", "shot_problem",
-           "strip_make_prefix"]
+           "strip_make_prefix", "unescape_key_part"]
 
 _NUM = r"\d+(?:\.\d+)?"
 # "unknown (251) 16-35mm", "unknown 18-55mm": ExifTool's LensID for a code it cannot match
@@ -200,11 +200,17 @@ def strip_make_prefix(make: str | None, lens: str | None) -> str | None:
     return rest if any(c.isdigit() for c in rest) else lens
 
 
+def unescape_key_part(part: str) -> str | None:
+    """The inverse of :func:`vigproc.io.exif.escape_key_part`: the text a key component
+    holds ("?", a missing one, is None), for people and exports; never to build a key from."""
+    if part == "?":
+        return None
+    return part.replace("%7C", "|").replace("%3F", "?").replace("%25", "%")
+
+
 def display_lens_id(lens_id: str | None) -> str:
     """A lens id (``make|model|lens``, escaped for storage) as people read it: the parts
     unescaped, a missing one as ``?``.  Never a key: ``|`` inside a part is ambiguous here."""
-    from vigproc.io.exif import unescape_key_part  # exif imports this module: at call time
-
     if lens_id is None:
         return "unknown"
     parts = (unescape_key_part(p) for p in lens_id.split("|"))
