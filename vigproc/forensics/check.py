@@ -1221,7 +1221,14 @@ def _say_lens_problem(v: Verdict, lens_key) -> Verdict:
     if v.reason.startswith("no stored profile and no lensfun calibration"):
         from vigproc.stores.lensfun_match import match_lens
 
-        return dataclasses.replace(v, reason=f"{v.reason} ({match_lens(lens_key).reason})")
+        found = match_lens(lens_key)
+        if found.lens is None:
+            why = found.reason
+        elif lens_key.focal_mm is None or lens_key.fnumber is None:
+            why = f"lensfun has {found.name}, but the EXIF lacks the focal length or f-number"
+        else:
+            why = f"lensfun's {found.name} has no calibration usable at these settings"
+        return dataclasses.replace(v, reason=f"{v.reason} ({why})")
     return v
 
 
