@@ -21,9 +21,10 @@ describes (``18-55mm``) or names ambiguously is never matched.  Where lensfun ho
 calibrated on several sensors, the frame's crop factor (from its 35-mm equivalent focal
 length, else lensfunpy's ``Database.find_cameras`` for the camera) picks the calibration.
 
-lensfunpy's own ``Database.find_lenses`` scores names loosely (it found ``Sigma 60-600mm
-... +1.4x extender`` for ``Unknown 18-55mm`` on a Canon 350D); here it is used only for the
-camera's crop factor.
+lensfunpy's own ``Database.find_lenses`` scores names too loosely to be trusted alone: on a
+Canon 350D, with ``loose_search``, its best for ``18-55mm`` is ``Super-Takumar 55mm f/1.8``
+and for ``EF 70-200mm f/2.8L IS III USM`` (a lens lensfun does not hold) ``Canon EF 70-200mm
+f/2.8L IS USM``, another lens.  Here lensfunpy is used only for the camera's crop factor.
 """
 
 from __future__ import annotations
