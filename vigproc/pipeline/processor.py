@@ -853,7 +853,12 @@ class Processor:
         if lens_key is None:
             raise VigprocError("cannot learn: the frame's lens is unknown (no usable EXIF)")
         h, w = img.shape[:2]
-        key = self.store.key_for(lens_key, w, h)  # a lens learned under an earlier id keeps its profiles
+        from vigproc.stores.profiles import ProfileKey
+
+        # a lens learned under an earlier id keeps its profiles; a batch worker's stand-in
+        # store (no database to ask) keys by the current rule
+        key_for = getattr(self.store, "key_for", None)
+        key = key_for(lens_key, w, h) if key_for is not None else ProfileKey.from_lens(lens_key, w, h)
         evidence = None
         if self.settings.method in EVIDENCE_METHODS:
             # with the frame's data, so the store can pool the lens's profile from all its frames
