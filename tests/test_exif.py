@@ -271,8 +271,9 @@ BODY = {"EXIF:Make": "Canon", "EXIF:Model": "Canon EOS 5D"}
 
 def test_ambiguous_lens_id_without_tiebreak() -> None:
     key = lens_key_from_metadata({**BODY, "Composite:LensID": "Canon EF 17-40mm f/4L USM or Sigma 17-40mm f/4 EX"})
-    assert key.lens_candidates == ("canon ef 17-40mm f/4l usm", "sigma 17-40mm f/4 ex")
-    assert key.lens == "canon ef 17-40mm f/4l usm or sigma 17-40mm f/4 ex"
+    # on a Canon, "canon ef ..." is keyed "ef ..." (the camera's brand is dropped)
+    assert key.lens_candidates == ("ef 17-40mm f/4l usm", "sigma 17-40mm f/4 ex")
+    assert key.lens == "ef 17-40mm f/4l usm or sigma 17-40mm f/4 ex"
     assert key.ambiguous
     assert any("ambiguous" in p for p in key.problems)
     # Order of alternatives does not change the key.
@@ -284,10 +285,11 @@ def test_ambiguous_lens_id_resolved_by_lens_model() -> None:
     meta = {**BODY, "Composite:LensID": "Sigma 17-40mm f/4 EX or Canon EF 17-40mm f/4L USM",
             "EXIF:LensModel": "EF17-40mm f/4L USM"}
     key = lens_key_from_metadata(meta)
-    assert key.lens == "canon ef 17-40mm f/4l usm"
-    assert key.lens_candidates == ("canon ef 17-40mm f/4l usm", "sigma 17-40mm f/4 ex")
+    assert key.lens == "ef 17-40mm f/4l usm"
+    assert key.lens_candidates == ("ef 17-40mm f/4l usm", "sigma 17-40mm f/4 ex")
     assert not key.ambiguous
-    assert key.lens_id() == "canon|canon eos 5d|canon ef 17-40mm f/4l usm"
+    assert key.lens_id() == "canon|canon eos 5d|ef 17-40mm f/4l usm"
+    assert key.legacy_ids == ("canon|canon eos 5d|canon ef 17-40mm f/4l usm",)
 
 
 def test_three_way_ambiguity_keeps_nameless_alternatives() -> None:
@@ -296,13 +298,16 @@ def test_three_way_ambiguity_keeps_nameless_alternatives() -> None:
     assert len(key.lens_candidates) == 3 and key.ambiguous
 
 
-@pytest.mark.parametrize("lens_id", ["65535", "7A 02 3C 8E 24 24 02 02", "Unknown 18-55mm", "Unknown ( )",
-                                     "18.0-55.0 mm", "100.0mm f/2.8", "n/a", ""])
-def test_unresolved_lens_ids_fall_back(lens_id: str) -> None:
+@pytest.mark.parametrize("lens_id, described", [
+    ("65535", None), ("7A 02 3C 8E 24 24 02 02", None), ("Unknown 50mm", "50mm"), ("Unknown ( )", None),
+    ("50.0 mm", "50mm"), ("50.0mm f/1.8", "50mm f/1.8"), ("n/a", None), ("", None)])
+def test_unresolved_lens_ids_fall_back(lens_id: str, described: str | None) -> None:
     key = lens_key_from_metadata({**BODY, "Composite:LensID": lens_id, "EXIF:LensModel": "EF50mm f/1.8 II"})
     assert key.lens == "ef50mm f/1.8 ii" and key.lens_source == "EXIF:LensModel"
+    # nothing names the lens: a description is its key (with the camera), else it is missing
     key = lens_key_from_metadata({**BODY, "Composite:LensID": lens_id, "MakerNotes:LensType": "G"})
-    assert key.lens is None and "lens" in key.missing
+    assert key.lens == described
+    assert ("lens" in key.missing) == (described is None)
 
 
 def test_numbers_from_metadata_dict() -> None:

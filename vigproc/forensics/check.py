@@ -608,6 +608,9 @@ def find_reference(lens_key, width: int, height: int, *, store=None, frame_id: s
 
     if lens_key is None:
         return None
+    if getattr(lens_key, "lens_problem", None):  # a lens the frame cannot be from: nothing to compare with
+        log.info("lens identity problem, no reference: %s", lens_key.lens_problem)
+        return None
     if store is not None:
         try:
             p = store.lookup(lens_key, width, height)
@@ -631,7 +634,10 @@ def find_reference(lens_key, width: int, height: int, *, store=None, frame_id: s
     except VigprocError as exc:  # unknown, ambiguous or uncalibrated lens: no expectation
         log.debug("no lensfun calibration: %s", exc)
         return None
-    return Reference(m, "lensfun", f"{lens_key.lens} @ {lens_key.focal_mm:g} mm f/{lens_key.fnumber:g}")
+    from vigproc.stores.lensfun_match import match_lens
+
+    name = match_lens(lens_key).name or lens_key.lens  # lensfun's name of the lens compared with
+    return Reference(m, "lensfun", f"{name} @ {lens_key.focal_mm:g} mm f/{lens_key.fnumber:g}")
 
 
 def expected_for(lens_key, width: int, height: int, *, store=None, calibration: Calibration,
@@ -773,6 +779,10 @@ class Verdict:
         data-only family coefficients against the lens's, 2 degrees of freedom) or
         ``rings`` (fall-off on four rings and the centre, 6 degrees of freedom, with a
         calibration of :func:`fit_calibration`).
+    lens_problem : str or None
+        Why the lens the EXIF names cannot be the frame's (``LensKey.lens_problem``: a
+        focal length or f-number outside its range); the verdict is then ``unknown-lens``,
+        compared with no reference.
     """
 
     verdict: str
@@ -790,6 +800,7 @@ class Verdict:
     expected: VignettingModel | None = field(default=None, repr=False)
     whitened: tuple[float, ...] | None = field(default=None, repr=False)
     test: str = "rings"
+    lens_problem: str | None = None  # why the EXIF's lens cannot be the frame's (LensKey.lens_problem)
 
     def __post_init__(self) -> None:
         if self.verdict not in VERDICTS:
@@ -812,7 +823,7 @@ class Verdict:
             "estimate": self.estimate.to_dict() if self.estimate is not None else None,
             "expected": self.expected.to_dict() if self.expected is not None else None,
             "whitened": list(self.whitened) if self.whitened is not None else None,
-            "test": self.test,
+            "test": self.test, "lens_problem": self.lens_problem,
         }
         return d
 
@@ -831,6 +842,7 @@ class Verdict:
                 expected=VignettingModel.from_dict(d["expected"]) if d.get("expected") else None,
                 whitened=tuple(float(v) for v in d["whitened"]) if d.get("whitened") else None,
                 test=str(d.get("test", "rings")),
+                lens_problem=d.get("lens_problem") if isinstance(d.get("lens_problem"), str) else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ForensicsError(f"invalid verdict record: {exc!r}") from None
@@ -1179,7 +1191,7 @@ def check_image(
                                  f"--calibration a ring calibration made with 'vigproc forensics calibrate "
                                  f"--method {method}')")
         v = check_family(img, lens_key, store=store, calibration=calibration, alpha=alpha, frame_id=frame_id)
-        return _say_own_frame(v, lens_key, img.shape[1], img.shape[0], store, frame_id)
+        return _say_lens_problem(_say_own_frame(v, lens_key, img.shape[1], img.shape[0], store, frame_id), lens_key)
     cal = calibration if calibration is not None else default_calibration()
     method = forensic_method(method)
     if cal.method != method:
@@ -1191,7 +1203,33 @@ def check_image(
     exp = expected_for(lens_key, w, h, store=store, calibration=cal, frame_id=frame_id)
     v = check_model(m, exp, calibration=cal, lens_id=lens_key.lens_id() if lens_key is not None else None,
                     alpha=alpha)
-    return _say_own_frame(v, lens_key, w, h, store, frame_id)
+    return _say_lens_problem(_say_own_frame(v, lens_key, w, h, store, frame_id), lens_key)
+
+
+def _say_lens_problem(v: Verdict, lens_key) -> Verdict:
+    """An unknown-lens verdict says why lensfun had nothing: a lens the frame cannot have
+    been shot with (never "consistent" with it), a lens EXIF only describes, a name
+    lensfun does not hold."""
+    if v.verdict != "unknown-lens" or lens_key is None or lens_key.lens is None:
+        return v
+    import dataclasses
+
+    problem = getattr(lens_key, "lens_problem", None)
+    if problem:
+        return dataclasses.replace(v, lens_problem=problem, reason=f"the metadata's lens identity is contradictory "
+                                                                   f"({problem}): the frame is compared with no reference")
+    if v.reason.startswith("no stored profile and no lensfun calibration"):
+        from vigproc.stores.lensfun_match import match_lens
+
+        found = match_lens(lens_key)
+        if found.lens is None:
+            why = found.reason
+        elif lens_key.focal_mm is None or lens_key.fnumber is None:
+            why = f"lensfun has {found.name}, but the EXIF lacks the focal length or f-number"
+        else:
+            why = f"lensfun's {found.name} has no calibration usable at these settings"
+        return dataclasses.replace(v, reason=f"{v.reason} ({why})")
+    return v
 
 
 def _say_own_frame(v: Verdict, lens_key, width: int, height: int, store, frame_id: str | None) -> Verdict:

@@ -23,6 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from vigproc.errors import ImageWriteError
+from vigproc.io.lensident import display_lens_id
 from vigproc.forensics.check import RING_RADII, Verdict, ring_falloff
 
 __all__ = ["ReportItem", "jpeg_bytes", "png_bytes", "report_figure", "thumbnail", "write_report"]
@@ -289,7 +290,7 @@ def _fmt(x, spec: str = ".3g") -> str:
 
 
 def _summary_lines(v: Verdict) -> list[str]:
-    lines = [v.reason, f"lens (EXIF): {v.lens_id or 'unknown'};  compared with: "
+    lines = [v.reason, f"lens (EXIF): {display_lens_id(v.lens_id)};  compared with: "
              f"{(v.expected_source or '-') + ' ' + (v.profile or '')}"]
     lines.append(f"D² = {_fmt(v.score)}, false-alarm probability = {_fmt(v.p_false_alarm)} "
                  f"(inconsistent below {v.alpha:g}); frames: {v.n_frames}; estimator confidence {_fmt(v.confidence, '.2f')}")
@@ -336,7 +337,7 @@ def _row(name: str, value) -> str:
 def _html_section(item: ReportItem) -> str:
     v = item.verdict
     fig = base64.b64encode(jpeg_bytes(report_figure(item, numbers=False))).decode("ascii")
-    rows = [_row("verdict", v.verdict), _row("why", v.reason), _row("lens (EXIF)", v.lens_id or "unknown"),
+    rows = [_row("verdict", v.verdict), _row("why", v.reason), _row("lens (EXIF)", display_lens_id(v.lens_id)),
             _row("compared with", f"{v.expected_source or '–'} {v.profile or ''}"),
             _row(f"D² ({len(v.whitened) if v.whitened else '-'} d.o.f., {v.test} test)", _fmt(v.score)), _row("false-alarm probability", _fmt(v.p_false_alarm)),
             _row("threshold", f"inconsistent when below {v.alpha:g}"), _row("frames", v.n_frames),

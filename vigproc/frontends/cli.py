@@ -20,6 +20,7 @@ from typing import Sequence
 
 from vigproc.frontends.commands._options import JSON_HELP, failure_record, files_exit_code, print_json_results, write_json_result
 from vigproc.errors import EXIT_CODES, DiskFullError, PriorError, VigprocError, one_line
+from vigproc.io.lensident import display_lens_id
 
 log = logging.getLogger("vigproc")
 
@@ -112,7 +113,7 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
         # the frame the model is for: a RAW's full frame, though estimated at half size
         half = f", estimated on its {info.width}x{info.height} half-size development" if info.format == "raw" else ""
         print(one_line(f"{file}: {m.width}x{m.height} {info.format} ({info.transfer}{half})"))
-        print(f"  lens        {lens['lens_id'] or 'unknown (' + lens['error'] + ')'}")
+        print(f"  lens        {display_lens_id(lens['lens_id']) if lens['lens_id'] else 'unknown (' + lens['error'] + ')'}")
         print(f"  method      {m.method}")
         print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
         print(f"  P (px^-2)   p1={m.p[0]:.4g} p2={m.p[1]:.4g} p3={m.p[2]:.4g}")
@@ -175,7 +176,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
                     results.append(rec)
                     unapplied += not rec.get("applied")
                     if not args.json:
-                        lens = rec["lens"]["lens_id"] or "unknown"
+                        lens = display_lens_id(rec["lens"]["lens_id"])
                         if rec.get("applied"):
                             tag = f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed"
                         else:
@@ -859,7 +860,8 @@ def _profile_line(i: int, p) -> str:
     sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
     # the focal lengths the frames were shot at, not the bin's label, once the store knows them
     focal = p.shots.describe_focal() if p.shots is not None else None
-    key = str(p.key) if focal is None else f"{p.key.lens_id} @ {focal} {p.key.aperture_bin} {p.key.aspect}"
+    lens = display_lens_id(p.key.lens_id)  # escapes are for storage
+    key = str(p.key).replace(p.key.lens_id, lens, 1) if focal is None else f"{lens} @ {focal} {p.key.aperture_bin} {p.key.aspect}"
     return f"[{i}] {key}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
 
 
@@ -874,7 +876,7 @@ def _pick_profile(store, ident: str):
     for p in profiles:
         if ident in (str(p.key), _profile_line(0, p).split("] ", 1)[1].split("  ", 1)[0]):
             return p
-    of_lens = [p for p in profiles if p.key.lens_id == ident]
+    of_lens = [p for p in profiles if ident in (p.key.lens_id, display_lens_id(p.key.lens_id))]
     if len(of_lens) == 1:
         return of_lens[0]
     if of_lens:
@@ -979,7 +981,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
                             raise VigprocError(f"cannot learn, lens unknown ({lens['error']})")
                         # keyed by content: learning a file again does not pool it twice
                         fid = file_sha256(f)
-                        key = ProfileKey.from_lens(lens_key, img.shape[1], img.shape[0])
+                        key = store.key_for(lens_key, img.shape[1], img.shape[0])
                         known = store.holds_frame(key, fid)
                         proc.process_image(img, lens_key, where=str(f), frame_id=fid)
                         p = store.get(key)

@@ -83,6 +83,9 @@ from typing import Any, Iterable, Mapping, Sequence, Union
 import exiftool
 
 from vigproc.errors import FileNameError, ImageReadError, MetadataError, UnsupportedFormatError, VigprocError
+from vigproc.io.lensident import (  # noqa: F401  (unescape_key_part: re-exported)
+    LensSpec, generic_description, lens_spec, make_brand, shot_problem, strip_make_prefix, unescape_key_part,
+)
 
 __all__ = [
     "ExifReader",
@@ -120,7 +123,9 @@ _MAX_FNUMBER = 1000.0
 
 # Tags requested from ExifTool.  "#" = numeric value (per-tag -n); text tags keep
 # their print conversion because Composite:LensID is only a name when printed.
-_TAGS: tuple[str, ...] = (
+# The focal range the camera reports for the mounted lens (lens identity checks, lensident.py).
+_LENS_RANGE_TAGS: tuple[str, ...] = ("-MinFocalLength#", "-MaxFocalLength#", "-MaxApertureValue#")
+_TAGS: tuple[str, ...] = _LENS_RANGE_TAGS + (
     "-File:FileType", "-File:MIMEType", "-ExifTool:Error", "-ExifTool:Warning",
     "-Make", "-Model",
     "-Composite:LensID", "-LensModel", "-Lens", "-LensType", "-LensSerialNumber", "-LensMake",
@@ -306,14 +311,6 @@ def escape_key_part(part: str | None) -> str:
     return part.replace("%", "%25").replace("|", "%7C").replace("?", "%3F")
 
 
-def unescape_key_part(part: str) -> str | None:
-    """The inverse of :func:`escape_key_part`: the text a key component holds ("?", a
-    missing one, is None), for people and exports; never to build a key from."""
-    if part == "?":
-        return None
-    return part.replace("%7C", "|").replace("%3F", "?").replace("%25", "%")
-
-
 def casefold_lens_id(lens_id: str) -> str:
     """A typed lens id in the form :meth:`LensKey.lens_id` gives: casefolded, except its
     ``%XX`` escapes, which stay as :func:`escape_key_part` writes them (``%7C``)."""
@@ -380,6 +377,18 @@ class LensKey:
     spelling : (make, model, lens, lens make), each str or None
         The names as the metadata spelt them (case kept, control characters removed),
         for what is written for other programs (a lensfun database); not compared.
+    lens_problem : str or None
+        Why the named lens cannot be the one the frame was shot with (a focal length
+        or f-number outside the lens's range, the camera's reported focal range
+        contradicting the name); not compared.  Such a lens is never looked up in
+        lensfun, and a forensic check never calls the frame consistent with it.
+    lens_range : tuple of float or None
+        The lens's focal range in mm (the camera's MinFocalLength/MaxFocalLength, else
+        what the lens's name states); not compared.
+    legacy_ids : tuple of str
+        Lens ids earlier versions gave this lens (with the camera's brand in the lens
+        name, or ``?`` for a lens now keyed by its description), so that profiles stored
+        under them stay findable; not compared.
     """
 
     make: str | None
@@ -399,6 +408,9 @@ class LensKey:
     source: str | None = field(default=None, compare=False)
     spelling: tuple[str | None, str | None, str | None, str | None] = field(
         default=(None, None, None, None), compare=False)
+    lens_problem: str | None = field(default=None, compare=False)
+    lens_range: tuple[float, float] | None = field(default=None, compare=False)
+    legacy_ids: tuple[str, ...] = field(default=(), compare=False)
 
     def __post_init__(self) -> None:
         # `missing` is derived, so a hand-built or deserialised key cannot lie about it.
@@ -486,7 +498,9 @@ class LensKey:
             "lens_candidates": list(self.lens_candidates),
             "width": self.width, "height": self.height,
             "lens_source": self.lens_source, "problems": list(self.problems),
-            "source": self.source,
+            "source": self.source, "lens_problem": self.lens_problem,
+            "lens_range": list(self.lens_range) if self.lens_range is not None else None,
+            "legacy_ids": list(self.legacy_ids),
             "spelling": list(self.spelling),
         }
         return d
@@ -567,6 +581,9 @@ class LensKey:
             problems=strlist("problems"),
             source=d.get("source") if isinstance(d.get("source"), str) else None,
             spelling=tuple(spelling),
+            lens_problem=d.get("lens_problem") if isinstance(d.get("lens_problem"), str) else None,
+            lens_range=_stored_range(d.get("lens_range")),
+            legacy_ids=strlist("legacy_ids"),
         )
         stored_missing = d.get("missing")
         if stored_missing is not None and tuple(stored_missing) != key.missing:
@@ -578,9 +595,18 @@ _DICT_FIELDS = frozenset(
     {
         "make", "model", "lens", "lens_serial", "focal_mm", "fnumber", "focus_distance_m",
         "missing", "lens_candidates", "focal_35mm", "width", "height", "lens_source", "problems", "source",
-        "spelling",
+        "spelling", "lens_problem", "lens_range", "legacy_ids",
     }
 )
+
+
+def _stored_range(v: Any) -> tuple[float, float] | None:
+    """A stored ``lens_range`` (two positive finite numbers, low first), else None."""
+    if (isinstance(v, (list, tuple)) and len(v) == 2
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0 for x in v)
+            and v[0] <= v[1]):
+        return (float(v[0]), float(v[1]))
+    return None
 
 
 # --------------------------------------------------------------------------- #
@@ -707,31 +733,69 @@ _LENS_TAGS = ("EXIF:LensModel", "MakerNotes:LensModel", "XMP:LensModel", "XMP:Le
               "MakerNotes:LensType")
 
 
+# A maker's own lens line as a name's first word (af-s, ef-m, dt, smc, nikkor...): the
+# name exiv2 hosts gave such a lens carried the camera's brand first.
+_LENS_LINE = re.compile(r"^(?:[a-z]{1,3}(?:-[a-z]{1,2})?|[a-z]*nikkor|m?\.?zuiko)\s")
+
+
+def _reported_range(meta: Mapping[str, Any]) -> tuple[float, float] | None:
+    """The focal range the camera reports for the mounted lens (MinFocalLength /
+    MaxFocalLength, maker notes), None when absent or absurd."""
+    lo = next((x for _, raw in _sources(meta, "MinFocalLength") if (x := _as_float(raw))), None)
+    hi = next((x for _, raw in _sources(meta, "MaxFocalLength") if (x := _as_float(raw))), None)
+    if lo is None or hi is None or not (0 < lo <= hi <= _MAX_FOCAL) or math.isinf(hi):
+        return None
+    return (lo, hi)
+
+
+def _fits_range(spec: LensSpec | None, rng: tuple[float, float] | None) -> bool:
+    """Whether a lens name's focal range agrees with a reported one (unknown: agrees)."""
+    if spec is None or rng is None:
+        return True
+    return shot_problem("", spec, rng[0], None) is None and shot_problem("", spec, rng[1], None) is None
+
+
 def _choose_lens(
     meta: Mapping[str, Any], b: _Builder
 ) -> tuple[str | None, tuple[str, ...], str | None]:
-    """Pick the lens name.  Returns ``(lens, candidates, source_tag)``."""
-    fallbacks: list[tuple[str, str]] = []
-    for tag_key in _LENS_TAGS:
-        if tag_key in meta:
-            text, prob = _lens_text(meta[tag_key])
-            if prob:
-                b.problem(f"lens: {tag_key} rejected: {prob}")
-            if text is not None:
-                fallbacks.append((tag_key, text))
-    # Any other group's LensType (e.g. SigmaRaw) after the named ones.
-    for group, raw in _sources(meta, "LensType"):
-        key = f"{group}:LensType"
-        if key != "MakerNotes:LensType":
-            text, _ = _lens_text(raw)
-            if text is not None:
-                fallbacks.append((key, text))
+    """Pick the lens name.  Returns ``(lens, candidates, source_tag)``.
 
+    ExifTool's Composite:LensID wins: it resolves a maker note's LensType code, which
+    several lenses share, with the focal range the camera reports.  When it cannot
+    (``Unknown (251) 16-35mm``), a lens tag whose name states another range is not the
+    lens (a problem is recorded) and the lens is keyed by its description (``16-35mm``);
+    so is a lens that only a bare spec describes (``18.0-55.0mm f/3.5-5.6``).
+    """
+    reported = _reported_range(meta)
     raw_id = meta.get("Composite:LensID")
     lens_id_text, prob = _clean(raw_id)
     if prob:
         b.problem(f"lens: Composite:LensID rejected: {prob}")
-    if lens_id_text is not None:
+    generic = generic_description(lens_id_text)
+    generic_source = "Composite:LensID" if generic else None
+    if generic and reported is None:
+        spec = lens_spec(generic)
+        reported = (spec.focal_min, spec.focal_max) if spec is not None else None
+    fallbacks: list[tuple[str, str]] = []
+    named = [k for k in _LENS_TAGS if k in meta]
+    # Any other group's LensType (e.g. SigmaRaw) after the named ones.
+    named += [f"{g}:LensType" for g, _ in _sources(meta, "LensType") if g != "MakerNotes"]
+    for tag_key in named:
+        text, prob = _lens_text(meta[tag_key])
+        if prob:
+            b.problem(f"lens: {tag_key} rejected: {prob}")
+        if text is None:
+            desc = generic_description(_clean(meta[tag_key])[0])
+            if desc and generic is None:
+                generic, generic_source = desc, tag_key
+            continue
+        if not _fits_range(lens_spec(text), reported):
+            lo, hi = reported  # type: ignore[misc]  # _fits_range is only False with a range
+            b.problem(f"lens: {tag_key}={text!r} is not the mounted lens: the camera reports a {lo:g}-{hi:g} mm lens")
+            continue
+        fallbacks.append((tag_key, text))
+
+    if lens_id_text is not None and generic_source != "Composite:LensID":
         parts = [p.strip() for p in _OR_SPLIT.split(lens_id_text) if p.strip()]
         if len(parts) > 1:
             # Alternatives are kept even without a digit ("... or tamron lens"):
@@ -757,7 +821,55 @@ def _choose_lens(
     if fallbacks:
         tag_key, text = fallbacks[0]
         return text, (), tag_key
+    if generic:
+        return generic, (), f"{generic_source} (description)"
     return None, (), None
+
+
+def _lens_identity(make: str | None, model: str | None, lens: str | None, lens_source: str | None,
+                   candidates: tuple[str, ...], focal: float | None, fnum: float | None, meta: Mapping[str, Any],
+                   b: _Builder) -> tuple[str | None, tuple[str, ...], str | None, tuple[float, float] | None,
+                                     tuple[str, ...]]:
+    """The lens as keyed (a brand equal to the camera's make dropped, also from the
+    alternatives of an ambiguous LensID), why the shot cannot be with it (None: it
+    can), its focal range, and the ids earlier versions gave it.  Returns ``(lens,
+    candidates, lens_problem, lens_range, legacy_ids)``."""
+    if lens is None:
+        return None, candidates, None, None, ()
+    keyed = strip_make_prefix(make, lens)
+    if candidates:
+        stripped = tuple(sorted({strip_make_prefix(make, c) or c for c in candidates}))
+        keyed = keyed if lens in candidates else " or ".join(stripped)
+        candidates = stripped
+    described = bool(lens_source and lens_source.endswith("(description)"))
+    old: list[str | None] = []
+    if described:
+        old.append(None)  # earlier versions keyed an undescribed lens "?"
+    elif keyed != lens:
+        old.append(lens)
+    elif (brand := make_brand(make)) and _LENS_LINE.match(lens):
+        old.append(f"{brand} {lens}")  # what an exiv2 host sent for the maker's own lens
+    legacy = tuple(dict.fromkeys(
+        "|".join(escape_key_part(p) for p in (make, model, o)) for o in old if o != keyed))
+    spec = lens_spec(lens)
+    reported = _reported_range(meta)
+    problem = None
+    if spec is not None and reported is not None and not _fits_range(spec, reported):
+        problem = (f"the camera reports a {reported[0]:g}-{reported[1]:g} mm lens, not {lens} "
+                   f"({spec.focal_min:g}-{spec.focal_max:g} mm)")
+    if problem is None and reported is not None:
+        problem = shot_problem(lens, LensSpec(*reported), focal, None,
+                               spec_from="the focal range the camera reports")
+    if problem is None and spec is not None:
+        max_ap = next((x for _, raw in _sources(meta, "MaxApertureValue") if (x := _as_float(raw))), None)
+        problem = shot_problem(lens, spec, focal, fnum, spec_from="its name",
+                               max_aperture=max_ap if max_ap is not None and _valid_fnumber(max_ap) else None)
+    if candidates and keyed not in candidates:
+        problem = None  # an unresolved choice between lenses: no one name to hold the shot against
+    if problem is not None:
+        b.problem(f"lens: {problem}")
+    rng = reported if reported is not None else ((spec.focal_min, spec.focal_max) if spec is not None else None)
+    return keyed, candidates, problem, rng, legacy
 
 
 def _valid_focal(x: float) -> bool:
@@ -887,6 +999,8 @@ def lens_key_from_metadata(meta: Mapping[str, Any], source: str | None = None) -
         f35 = round(x, 6)
         break
     w, h = _image_size(meta)
+    lens, candidates, lens_problem, lens_range, legacy = _lens_identity(
+        make, model, lens, lens_source, candidates, focal, fnum, meta, b)
     spelt_model = _spelt(meta, ("Model",), model)
     if spelt_model is None and model is not None:  # a repeated make was dropped from the model
         whole = _spelt(meta, ("Model",), b.text_field(meta, "Model", "model"))
@@ -898,7 +1012,8 @@ def lens_key_from_metadata(meta: Mapping[str, Any], source: str | None = None) -
         make=make, model=model, lens=lens, lens_serial=serial, focal_mm=focal,
         fnumber=fnum, focus_distance_m=dist, lens_candidates=candidates,
         focal_35mm=f35, width=w, height=h, lens_source=lens_source, problems=tuple(b.problems),
-        source=source, spelling=spelling,
+        source=source, lens_problem=lens_problem, lens_range=lens_range, legacy_ids=legacy,
+        spelling=spelling,
     )
 
 

@@ -688,7 +688,12 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
             if warnings is not None:
                 warnings.append(f"profile {profile}: {other}")
         return prof.model(w, h), "profile-file"
-    if profile == "lensfun":
+    if profile == "lensfun" and getattr(lens_key, "lens_problem", None):
+        # the EXIF names a lens the frame cannot have been shot with: its calibration
+        # would be a wrong lens's, so the frame's own vignetting is estimated
+        log.warning("%s: lensfun's calibration is not applied, the vignetting is estimated instead: %s",
+                    where, lens_key.lens_problem)
+    elif profile == "lensfun":
         from vigproc.stores.lensfun_io import lensfun_model
 
         return lensfun_model(lens_key, w, h), "lensfun"
@@ -831,6 +836,8 @@ class Processor:
             if warnings:
                 res.extra["warnings"] = warnings
             res.model = m
+            if s.profile == "lensfun" and res.source == "estimate":
+                res.extra["lensfun_not_applied"] = f"lens identity: {lens_key.lens_problem}"
             if s.mode == "correct":
                 from vigproc.core.correct import correct
 
@@ -850,14 +857,18 @@ class Processor:
 
     def _learn(self, img: np.ndarray, lens_key, frame_id: str | None):
         from vigproc.core.estimate import EVIDENCE_METHODS, estimate_checked, estimate_with_evidence
-        from vigproc.stores.profiles import ProfileKey
 
         if self.store is None:
             raise VigprocError("learn mode needs a profile store")
         if lens_key is None:
             raise VigprocError("cannot learn: the frame's lens is unknown (no usable EXIF)")
         h, w = img.shape[:2]
-        key = ProfileKey.from_lens(lens_key, w, h)
+        from vigproc.stores.profiles import ProfileKey
+
+        # a lens learned under an earlier id keeps its profiles; a batch worker's stand-in
+        # store (no database to ask) keys by the current rule
+        key_for = getattr(self.store, "key_for", None)
+        key = key_for(lens_key, w, h) if key_for is not None else ProfileKey.from_lens(lens_key, w, h)
         evidence = None
         if self.settings.method in EVIDENCE_METHODS:
             # with the frame's data, so the store can pool the lens's profile from all its frames

@@ -607,16 +607,26 @@ def lensfun_model(lens_key: LensKey | None, width: int, height: int) -> Vignetti
     """The lensfun calibration of a frame's lens at its focal length, aperture and focus
     distance (infinity when the EXIF gives none), for a ``width`` x ``height`` frame.
 
+    The lens is found by :func:`vigproc.stores.lensfun_match.match_lens` (names compared
+    by their tokens, the match verified against the shot's focal length); a lens whose
+    EXIF identity has a problem (``LensKey.lens_problem``) is never looked up.
+
     Raises
     ------
     ModelError
-        The EXIF lacks the lens, focal length or f-number, or lensfun has no usable
-        calibration (:func:`import_lensfun`).
+        The EXIF lacks the lens, focal length or f-number, its lens identity has a
+        problem, or lensfun has no usable calibration (:func:`import_lensfun`); the
+        message says which.
     """
+    from vigproc.stores.lensfun_match import match_lens
+
     if lens_key is None or lens_key.lens is None or lens_key.focal_mm is None or lens_key.fnumber is None:
         raise ModelError("lensfun needs the lens, focal length and f-number from EXIF")
+    found = match_lens(lens_key)
+    if found.lens is None:
+        raise ModelError(f"no lensfun calibration for this lens: {found.reason}")
     distance = lens_key.focus_distance_m if lens_key.focus_distance_m not in (None, float("inf")) else 1000.0
-    return import_lensfun(None, lens_key.lens, lens_key.focal_mm, lens_key.fnumber, distance,
+    return import_lensfun(found.lens, None, lens_key.focal_mm, lens_key.fnumber, distance,
                           width=width, height=height)
 
 

@@ -1500,7 +1500,40 @@ class ProfileStore(SQLiteFile):
             return self.con.execute("SELECT 1 FROM pooled_frames WHERE frame = ? AND profile_id = ?",
                                     (str(frame_id), row_id)).fetchone() is not None
 
+    def key_for(self, lens_key: LensKey, width: int, height: int) -> ProfileKey:
+        """The key a photograph's frames pool under: :meth:`ProfileKey.from_lens`, or, while
+        only a lens id an earlier version gave this lens (``LensKey.legacy_ids``) has
+        profiles, that id, so that a lens learned before keeps learning into its profiles.
+
+        Raises
+        ------
+        ProfileStoreError
+            As :meth:`ProfileKey.from_lens`, or the store cannot be read.
+        """
+        key = ProfileKey.from_lens(lens_key, width, height)
+        legacy = getattr(lens_key, "legacy_ids", ())
+        if not legacy:
+            return key
+        with self._errors(f"looking up {key}"):
+            for lens_id in (key.lens_id, *legacy):
+                if self.con.execute("SELECT 1 FROM profiles WHERE lens_id = ? LIMIT 1", (lens_id,)).fetchone():
+                    return replace(key, lens_id=lens_id)
+        return key
+
     def lookup(self, lens_key: LensKey, width: int, height: int, *, trusted_only: bool = False) -> Profile | None:
+        """The profile to use for a photograph: :meth:`_lookup` of its lens id, else of the
+        ids earlier versions gave the lens (``LensKey.legacy_ids``: stored profiles stay
+        findable after a change of the lens-identity rule)."""
+        hit = self._lookup(lens_key, width, height, trusted_only=trusted_only)
+        for lens_id in getattr(lens_key, "legacy_ids", ()):
+            if hit is not None:
+                break
+            make, model, lens = (unescape_key_part(p) for p in lens_id.split("|"))
+            hit = self._lookup(replace(lens_key, make=make, model=model, lens=lens, legacy_ids=()), width, height,
+                               trusted_only=trusted_only)
+        return hit
+
+    def _lookup(self, lens_key: LensKey, width: int, height: int, *, trusted_only: bool = False) -> Profile | None:
         """The profile to use for a photograph.
 
         1. The exact key (lens, focal bin, aperture bin, aspect).

@@ -29,6 +29,7 @@ import sys
 from pathlib import Path
 
 from vigproc.errors import EXIT_CODES, VigprocError, one_line
+from vigproc.io.lensident import display_lens_id
 from vigproc.frontends.commands._options import JSON_HELP, failure_record, files_exit_code, print_json_results
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,8 @@ def _line(name: str, v: dict, crop=None) -> str:
     p = v.get("p_false_alarm")
     tail = "" if p is None else f"  p={p:.3g}  D²={v['score']:.2f}"
     crop_tail = f"; crop test: {crop.verdict}, {crop.reason()}" if crop is not None else ""
-    return one_line(f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}{crop_tail}")
+    lens = display_lens_id(v["lens_id"]) if v.get("lens_id") else "no lens"
+    return one_line(f"{name}: {v['verdict']}{tail}  [{lens}] {v['reason']}{crop_tail}")
 
 
 def _embedded_verdict(path: Path, v, calibration, alpha, reader=None):
