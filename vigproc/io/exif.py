@@ -234,10 +234,12 @@ def _clean(value: Any, casefold: bool = True) -> tuple[str | None, str | None]:
     return text, None
 
 
-def _spelt(meta: Mapping[str, Any], tags: Sequence[str], value: str | None) -> str | None:
+def _spelt(meta: Mapping[str, Any], tags: Sequence[str], value: str | None, tail: bool = False) -> str | None:
     """How the metadata spelt ``value`` (a normalised text): the first of ``tags``
     (``"Make"``: any group; ``"EXIF:LensModel"``: that one) whose value normalises to
-    it, cleaned but with its case kept; also one alternative of an "A or B" LensID."""
+    it, cleaned but with its case kept; also one alternative of an "A or B" LensID.
+    ``tail=True`` also takes a value whose last words normalise to it (a name from
+    which the key dropped a leading brand)."""
     if value is None:
         return None
     for tag in tags:
@@ -247,6 +249,9 @@ def _spelt(meta: Mapping[str, Any], tags: Sequence[str], value: str | None) -> s
             for part in [text] + (_OR_SPLIT.split(text) if text else []):
                 if part and _clean(part)[0] == value:
                     return part
+                if tail and part and len(part.casefold()) == len(part) and len(part) > len(value) \
+                        and _clean(part[-len(value):])[0] == value and part[-len(value) - 1] == " ":
+                    return part[-len(value):]
     return None
 
 
@@ -1005,8 +1010,11 @@ def lens_key_from_metadata(meta: Mapping[str, Any], source: str | None = None) -
     if spelt_model is None and model is not None:  # a repeated make was dropped from the model
         whole = _spelt(meta, ("Model",), b.text_field(meta, "Model", "model"))
         spelt_model = whole[len(whole) - len(model):] if whole and len(whole.casefold()) == len(whole) else None
-    spelling = (_spelt(meta, ("Make",), make), spelt_model,
-                _spelt(meta, ("Composite:LensID",) + _LENS_TAGS + ("LensType",), lens),
+    lens_tags = ("Composite:LensID",) + _LENS_TAGS + ("LensType",)
+    spelt_lens = _spelt(meta, lens_tags, lens)
+    if spelt_lens is None and lens is not None:  # the camera's brand was dropped from the lens's name
+        spelt_lens = _spelt(meta, lens_tags, lens, tail=True)
+    spelling = (_spelt(meta, ("Make",), make), spelt_model, spelt_lens,
                 _clean(next((raw for _, raw in _sources(meta, "LensMake")), None), casefold=False)[0])
     return LensKey(
         make=make, model=model, lens=lens, lens_serial=serial, focal_mm=focal,
