@@ -7,8 +7,8 @@ line in the text output); its verdict counts like the others in the exit code.
 
 Every frame also gets the crop test (:mod:`vigproc.forensics.crops`: is the vignetting centred on
 the frame?), as ``crop`` in the JSON and at the end of the frame's line (``crop test:
-centred | off-centre | insufficient-signal``, with the centre, its distance and its
-calibrated false-alarm probability). It is reported, not counted in the exit code: its power on
+not-shown-off-centre | off-centre | insufficient-signal``, with the centre, its distance and
+its calibrated false-alarm probability; it never says "centred": its power on one frame is low). It is reported, not counted in the exit code: its power on
 single natural frames is low (``vigproc bench crops``, docs/benchmarks/forensics.md).
 
 Exit codes (documented in ``vigproc check --help``):
@@ -85,7 +85,7 @@ def _line(name: str, v: dict, crop=None) -> str:
     a name must not start a line of its own); the crop test's answer at its end."""
     p = v.get("p_false_alarm")
     tail = "" if p is None else f"  p={p:.3g}  D²={v['score']:.2f}"
-    crop_tail = f"; crop test: {crop.verdict}, {crop.reason()}" if crop is not None else ""
+    crop_tail = f"; crop test: {crop.verdict}: {crop.reason()}" if crop is not None else ""
     return one_line(f"{name}: {v['verdict']}{tail}  [{v.get('lens_id') or 'no lens'}] {v['reason']}{crop_tail}")
 
 
