@@ -97,8 +97,10 @@ def forensic_method(method: str) -> str:
     return FORENSICS_METHOD if method == "default" else method
 
 
-#: The verdicts :func:`check_image` gives.
-VERDICTS = ("consistent", "inconsistent", "unknown-lens", "insufficient-signal")
+#: The verdicts :func:`check_image` gives. ``unlike-any-lens`` (the lens-family test): the
+#: frame's fall-off is unlike any lens's, so no lens claim is judged; it is not
+#: ``inconsistent``, whose false-alarm rate is calibrated on the frames it decides.
+VERDICTS = ("consistent", "inconsistent", "unknown-lens", "insufficient-signal", "unlike-any-lens")
 #: The statistics a verdict can come from (:attr:`Verdict.test`).
 TESTS = ("lens-family", "rings")
 #: Ring radii, in half-diagonals from the frame centre, of the fall-off features.
@@ -1050,12 +1052,15 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
         # the frame's own light (or an edit) shaped its fit: comparing it with the lens
         # would judge the scene (lensmatch, step 4b); its numbers stay, for pooling and
         # for people, and the reason says an edit is one cause
+        # (a label of its own: 'insufficient-signal' read as "no fall-off" beside a strong one)
         share = ("" if calibration.scene_share is None else
                  f", as {100 * calibration.scene_share:.1f} % of the calibration's genuine frames are")
-        return Verdict("insufficient-signal", f"the frame's shading is unlike any lens's fall-off (scene D² "
+        return Verdict("unlike-any-lens", f"the frame's shading is unlike any lens's fall-off (scene D² "
                        f"{scene:.1f} > {calibration.scene_limit:.1f}{share}): its own light or an edit (an added "
-                       f"vignette, say), not a lens, shaped the estimate, so it is not compared {against} "
-                       f"(false-alarm probability {p:.3g} if it were)", **common)
+                       f"vignette, say), not a lens, shaped the estimate, so the claim is not judged {against} "
+                       f"(false-alarm probability {p:.3g} if it were: a figure that holds for frames some lens explains, "
+                       f"not for this one)",
+                       **common)
     if p < alpha:
         d = float(diff[-1])
         return Verdict("inconsistent", f"false-alarm probability {p:.3g} < {alpha:g} {against}: {abs(d):.2f} EV "
@@ -1162,7 +1167,8 @@ def check_image(
     Returns
     -------
     Verdict
-        ``consistent``, ``inconsistent``, ``unknown-lens`` or ``insufficient-signal``.
+        ``consistent``, ``inconsistent``, ``unknown-lens``, ``insufficient-signal`` or
+        ``unlike-any-lens``.
 
     Raises
     ------
@@ -1228,7 +1234,7 @@ def pool_verdicts(verdicts: Sequence[Verdict], *,
     ForensicsError
         No frame with an expected model, or frames compared with different profiles.
     """
-    from vigproc.forensics.lensmatch import beyond_scene_limit, default_match_calibration, pooled_d2
+    from vigproc.forensics.lensmatch import default_match_calibration, pooled_d2
 
     usable = [v for v in verdicts if v.whitened is not None]
     if not usable:
@@ -1259,9 +1265,7 @@ def pool_verdicts(verdicts: Sequence[Verdict], *,
                   expected=first.expected, test=first.test)
     # frames the lens-family test left undecided because no lens explains their fit
     # (lensmatch, step 4b) are pooled by their median like any other and decide with them
-    if all(v.verdict == "insufficient-signal"
-           and not (v.evidence is not None and beyond_scene_limit(v.evidence.scene_d2, v.evidence.scene_limit))
-           for v in usable):
+    if all(v.verdict == "insufficient-signal" for v in usable):
         return Verdict("insufficient-signal", f"all {n} frames have weak vignetting estimates", **common)
     if p < alpha:
         return Verdict("inconsistent", f"{n} frames: false-alarm probability {p:.3g} < {alpha:g}", **common)

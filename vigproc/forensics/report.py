@@ -36,7 +36,8 @@ _EST = (1.0, 0.25, 0.2)
 _EXP = (0.2, 0.9, 0.3)
 _BIAS = (0.55, 0.75, 0.55)
 _VERDICT_COLOURS = {"consistent": (0.3, 0.85, 0.35), "inconsistent": (1.0, 0.3, 0.25),
-                    "unknown-lens": (0.7, 0.7, 0.7), "insufficient-signal": (1.0, 0.8, 0.2)}
+                    "unknown-lens": (0.7, 0.7, 0.7), "insufficient-signal": (1.0, 0.8, 0.2),
+                    "unlike-any-lens": (1.0, 0.55, 0.2)}
 
 
 @dataclass(frozen=True)
@@ -326,7 +327,7 @@ section{border-top:1px solid #444;padding:1em 0}img{max-width:100%}
 table{border-collapse:collapse}td,th{padding:2px 10px;text-align:left;vertical-align:top}
 th{color:#aaa;font-weight:normal}.v{font-weight:bold;padding:2px 8px;border-radius:4px;color:#111}
 .consistent{background:#5c5}.inconsistent{background:#f54}.unknown-lens{background:#aaa}
-.insufficient-signal{background:#fc3}"""
+.insufficient-signal{background:#fc3}.unlike-any-lens{background:#f93}"""
 
 
 def _row(name: str, value) -> str:

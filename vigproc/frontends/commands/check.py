@@ -18,7 +18,8 @@ Exit codes (documented in ``vigproc check --help``):
 * 1 -- some files could not be checked (and none was inconsistent); when *every* file
   failed with the same error, that error's code (3-12), as ``estimate`` says it;
 * :data:`EXIT_UNDECIDED` (21) -- no inconsistency and no error, but some frames got
-  "unknown-lens" or "insufficient-signal".
+  "unknown-lens", "insufficient-signal" or "unlike-any-lens" (a fall-off no lens makes:
+  the claimed lens is not judged).
 """
 
 from __future__ import annotations
@@ -41,16 +42,16 @@ EXIT_UNDECIDED = EXIT_CODES["undecided"]
 _EPILOG = f"""exit codes:
   0   every frame consistent
   {EXIT_INCONSISTENT}  at least one frame (or pooled group) inconsistent
-  {EXIT_UNDECIDED}  some frames undecided (unknown lens or insufficient signal), none
-      inconsistent, no failures
+  {EXIT_UNDECIDED}  some frames undecided (unknown lens, insufficient signal, or a fall-off
+      unlike any lens's), none inconsistent, no failures
   1   some files failed, none inconsistent (when every file failed alike: that
       error's code, 3-12)"""
 
 _DESCRIPTION = """Estimate each frame's vignetting and compare it with the profile of the lens its
 metadata claims (a stored profile, else lensfun) and, for a DNG that carries one, with
 its own embedded calibration (FixVignetteRadial/GainMap opcodes): consistent,
-inconsistent, unknown-lens or insufficient-signal, with a calibrated false-alarm
-probability."""
+inconsistent, unknown-lens, insufficient-signal or unlike-any-lens, with a calibrated
+false-alarm probability."""
 
 
 def register(subparsers) -> None:
@@ -192,7 +193,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         code = EXIT_INCONSISTENT
     elif failed:  # every file failed alike: that error's code, as estimate, correct and hook say it; else 1
         code = files_exit_code([r.get("exit_code") for r in results])
-    elif counts.get("unknown-lens") or counts.get("insufficient-signal"):
+    elif counts.get("unknown-lens") or counts.get("insufficient-signal") or counts.get("unlike-any-lens"):
         code = EXIT_UNDECIDED
     else:
         code = 0
