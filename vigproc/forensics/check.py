@@ -195,6 +195,43 @@ def _fit_of(m: VignettingModel) -> VignettingModel:
     return m.candidate if m.candidate is not None else m
 
 
+def frame_quality(img: np.ndarray, lens_key, method: str = "default"):
+    """The fit quality of vigproc's estimate of ``img`` as ``vigproc estimate``, ``correct``
+    and the hook make it: ``method`` with the EXIF's focal length and f-number as its hint
+    (:func:`vigproc.core.estimate.exif_hint`). A verdict states its confidence, whatever
+    fit the test itself compares, so that a frame has one confidence in every command.
+
+    Parameters
+    ----------
+    img : ndarray
+        H×W or H×W×C (channels last) linear image.
+    lens_key : LensKey or None
+    method : str
+
+    Returns
+    -------
+    FitQuality or None
+        None when the estimator states none or cannot estimate this frame (said in the log:
+        the check itself still runs).
+    """
+    from vigproc.core.estimate import estimate, exif_hint
+
+    try:
+        m = estimate(img, method, channel_axis=-1 if np.ndim(img) == 3 else None, hint=exif_hint(lens_key, method))
+    except VigprocError as exc:
+        log.info("no confidence for this frame: %s", exc)
+        return None
+    return m.quality
+
+
+def _stated(q) -> dict[str, float | None]:
+    """A fit quality's confidence and SNR as a verdict states them (JSON: no NaN or Inf)."""
+    if q is None:
+        return {"confidence": None, "snr": None}
+    return {k: (float(v) if math.isfinite(float(v)) else None) for k, v in (("confidence", q.confidence),
+                                                                               ("snr", q.snr))}
+
+
 def _is_weak(m: VignettingModel) -> bool:
     q = m.quality
     if q is None:
@@ -761,8 +798,11 @@ class Verdict:
         The false-alarm probability below which the verdict is "inconsistent".
     n_frames : int
         Frames the evidence comes from.
-    confidence : float or None
-        The estimator's confidence in the frame's fit.
+    confidence, snr : float or None
+        The confidence and SNR of vigproc's estimate of the frame with the same method
+        and the EXIF's focal length and f-number as its hint: the figures ``vigproc
+        estimate`` prints and ``correct`` decides by (:func:`frame_quality`), whatever
+        the test compared. None when not measured (a verdict made from a model alone).
     evidence : Evidence or None
     estimate : VignettingModel or None
         The frame's estimate (its rejected fit is ``estimate.candidate`` when weak).
@@ -792,6 +832,7 @@ class Verdict:
     expected: VignettingModel | None = field(default=None, repr=False)
     whitened: tuple[float, ...] | None = field(default=None, repr=False)
     test: str = "rings"
+    snr: float | None = None
 
     def __post_init__(self) -> None:
         if self.verdict not in VERDICTS:
@@ -809,7 +850,7 @@ class Verdict:
             "verdict": self.verdict, "reason": self.reason, "lens_id": self.lens_id,
             "expected_source": self.expected_source, "profile": self.profile,
             "score": self.score, "p_false_alarm": self.p_false_alarm, "alpha": self.alpha,
-            "n_frames": self.n_frames, "confidence": self.confidence,
+            "n_frames": self.n_frames, "confidence": self.confidence, "snr": self.snr,
             "evidence": self.evidence.to_dict() if self.evidence is not None else None,
             "estimate": self.estimate.to_dict() if self.estimate is not None else None,
             "expected": self.expected.to_dict() if self.expected is not None else None,
@@ -832,7 +873,7 @@ class Verdict:
                 estimate=VignettingModel.from_dict(d["estimate"]) if d.get("estimate") else None,
                 expected=VignettingModel.from_dict(d["expected"]) if d.get("expected") else None,
                 whitened=tuple(float(v) for v in d["whitened"]) if d.get("whitened") else None,
-                test=str(d.get("test", "rings")),
+                test=str(d.get("test", "rings")), snr=d.get("snr"),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ForensicsError(f"invalid verdict record: {exc!r}") from None
@@ -892,7 +933,7 @@ def is_weak(estimate: VignettingModel) -> bool:
 
 def check_model(
     estimate: VignettingModel, expected: Expected | None, *, calibration: Calibration,
-    lens_id: str | None = None, alpha: float | None = None,
+    lens_id: str | None = None, alpha: float | None = None, quality=None,
 ) -> Verdict:
     """Verdict for an estimate against an expected model (no image: benchmarks, tests).
 
@@ -907,6 +948,9 @@ def check_model(
     lens_id : str, optional
     alpha : float, optional
         False-alarm probability threshold (default: the calibration's).
+    quality : FitQuality, optional
+        What the verdict states as the frame's confidence (:func:`frame_quality`);
+        default the estimate's own.
 
     Returns
     -------
@@ -917,7 +961,8 @@ def check_model(
     f_est = frame_features(fit)
     ev = _evidence(fit, f_est, expected)
     conf = estimate.quality.confidence if estimate.quality is not None else None
-    common = dict(lens_id=lens_id, alpha=alpha, confidence=conf, evidence=ev, estimate=estimate)
+    stated = _stated(quality if quality is not None else estimate.quality)
+    common = dict(lens_id=lens_id, alpha=alpha, evidence=ev, estimate=estimate, **stated)
     if expected is None:
         why = "the metadata names no lens" if lens_id is None else \
             "no stored profile and no lensfun calibration for this lens"
@@ -928,8 +973,9 @@ def check_model(
     common.update(expected_source=expected.source, profile=expected.profile, score=d2, p_false_alarm=p,
                   expected=expected.model, whitened=tuple(float(v) for v in z))
     if weak:
-        return Verdict("insufficient-signal", f"the frame's vignetting estimate is too weak to decide "
-                       f"(confidence {conf if conf is not None else 0:.2f}); the numbers are of its rejected fit",
+        return Verdict("insufficient-signal", f"the test's own fit of the frame ({estimate.method}) is too weak "
+                       f"to decide (its confidence {conf if conf is not None else 0:.2f}); the numbers are of its "
+                       f"rejected fit",
                        **common)
     if p < alpha:
         return Verdict("inconsistent", f"false-alarm probability {p:.3g} < {alpha:g}: " + _describe(ev), **common)
@@ -988,16 +1034,22 @@ def _family_model(c: np.ndarray, width: int, height: int, family, calibration) -
     _, basis = family.profiles(gx)
     sigma = field_spread_ev(basis, calibration.covariance_matrix)
     ev = m.field_ev_rms()
-    q = FitQuality(confidence=1.0, field_ev_rms=ev, field_sigma_ev=sigma, snr=ev / sigma if sigma > 0 else math.inf)
+    # no confidence of its own (NaN, null in JSON): it is no correction; the verdict states
+    # the frame's estimate's (frame_quality), the one figure every command gives
+    q = FitQuality(confidence=math.nan, field_ev_rms=ev, field_sigma_ev=sigma,
+                   snr=ev / sigma if sigma > 0 else math.inf)
     return VignettingModel(width, height, center=m.center, p=m.p, alpha=m.alpha, method=FAMILY_TEST_METHOD, quality=q)
 
 
 def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Reference | None, *, calibration,
-                    family, lens_id: str | None, alpha: float | None, grey: bool = False) -> Verdict:
+                    family, lens_id: str | None, alpha: float | None, grey: bool = False,
+                    quality=None) -> Verdict:
     """The lens-family test's verdict (:mod:`vigproc.forensics.lensmatch`) for a frame's data-only
     coefficients ``c`` (None: too few usable pixels) against a reference; ``grey``: a
     frame without colour, whose fit the scenes scatter more
-    (:attr:`~vigproc.forensics.lensmatch.MatchCalibration.grey_inflate`)."""
+    (:attr:`~vigproc.forensics.lensmatch.MatchCalibration.grey_inflate`); ``quality``: the
+    frame's confidence as the verdict states it (:func:`frame_quality`; the data-only fit
+    has none)."""
     from vigproc.forensics.lensmatch import beyond_scene_limit, reference_coefficients, scene_d2, whiten
 
     alpha = calibration.alpha if alpha is None else float(alpha)
@@ -1006,8 +1058,8 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     big_r = _half_diagonal(fit.width, fit.height)
     ev = Evidence(ring_radii=RING_RADII, falloff_ev=tuple(float(v) for v in rings),
                   centre_px=(float(fit.center[0]), float(fit.center[1])), shape_ratio=_shape_ratio(fit))
-    conf = estimate.quality.confidence if estimate.quality is not None else None
-    common: dict[str, Any] = dict(lens_id=lens_id, alpha=alpha, confidence=conf, estimate=estimate, test="lens-family")
+    common: dict[str, Any] = dict(lens_id=lens_id, alpha=alpha, estimate=estimate, test="lens-family",
+                                  **_stated(quality))
     if ref is None:
         why = "the metadata names no lens" if lens_id is None else \
             "no stored profile and no lensfun calibration for this lens"
@@ -1071,7 +1123,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
 
 
 def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alpha: float | None = None,
-                 frame_id: str | None = None, family=None) -> Verdict:
+                 frame_id: str | None = None, family=None, quality=None) -> Verdict:
     """The lens-family test (:mod:`vigproc.forensics.lensmatch`) of a frame against the lens its
     metadata names: the default check of :func:`check_image`.
 
@@ -1089,6 +1141,9 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
         The frame's content id: a stored profile that pooled it is not its reference.
     family : LensFamily, optional
         Default: the shipped family; the calibration must have been made in it.
+    quality : FitQuality, optional
+        The frame's confidence as the verdict states it (:func:`frame_quality`, which
+        :func:`check_image` passes); None: none stated.
 
     Returns
     -------
@@ -1134,7 +1189,7 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
     ref = find_reference(lens_key, w, h, store=store, frame_id=frame_id)
     return _family_verdict(est, c, ref, calibration=cal, family=fam,
                            lens_id=lens_key.lens_id() if lens_key is not None else None, alpha=alpha,
-                           grey=colour is None)
+                           grey=colour is None, quality=quality)
 
 
 def check_image(
@@ -1177,17 +1232,18 @@ def check_image(
     ForensicsError
         No calibration for ``method``.
     """
-    from vigproc.core.estimate import estimate
+    from vigproc.core.estimate import estimate, exif_hint
 
     if isinstance(calibration, MatchCalibration) or (calibration is None and method == "default"):
         if method != "default":
             raise ForensicsError(f"the lens-family test runs its own fit, not the {method!r} estimator (give "
                                  f"--calibration a ring calibration made with 'vigproc forensics calibrate "
                                  f"--method {method}')")
-        v = check_family(img, lens_key, store=store, calibration=calibration, alpha=alpha, frame_id=frame_id)
+        v = check_family(img, lens_key, store=store, calibration=calibration, alpha=alpha, frame_id=frame_id,
+                         quality=frame_quality(img, lens_key))
         return _say_own_frame(v, lens_key, img.shape[1], img.shape[0], store, frame_id)
     cal = calibration if calibration is not None else default_calibration()
-    method = forensic_method(method)
+    asked, method = method, forensic_method(method)
     if cal.method != method:
         raise ForensicsError(f"the forensics calibration is for the {cal.method!r} estimator, not {method!r} "
                              f"(make one: vigproc forensics calibrate --method {method})")
@@ -1195,8 +1251,11 @@ def check_image(
     m = estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)
     h, w = img.shape[:2]
     exp = expected_for(lens_key, w, h, store=store, calibration=cal, frame_id=frame_id)
+    # the confidence stated is the frame's estimate with the user's method and hint; the
+    # ring test's own estimate (no hint: a check is not told what it checks) when they agree
+    same = method == asked and exif_hint(lens_key, asked) is None
     v = check_model(m, exp, calibration=cal, lens_id=lens_key.lens_id() if lens_key is not None else None,
-                    alpha=alpha)
+                    alpha=alpha, quality=m.quality if same else frame_quality(img, lens_key, asked))
     return _say_own_frame(v, lens_key, w, h, store, frame_id)
 
 

@@ -293,7 +293,7 @@ def _summary_lines(v: Verdict) -> list[str]:
     lines = [v.reason, f"lens (EXIF): {v.lens_id or 'unknown'};  compared with: "
              f"{(v.expected_source or '-') + ' ' + (v.profile or '')}"]
     lines.append(f"D² = {_fmt(v.score)}, false-alarm probability = {_fmt(v.p_false_alarm)} "
-                 f"(inconsistent below {v.alpha:g}); frames: {v.n_frames}; estimator confidence {_fmt(v.confidence, '.2f')}")
+                 f"(inconsistent below {v.alpha:g}); frames: {v.n_frames}; confidence {_confidence(v)}")
     e = v.evidence
     if e is not None:
         lines.append("fall-off (EV) at ρ = " + ", ".join(f"{r:g}" for r in e.ring_radii) + ":  estimated "
@@ -313,6 +313,13 @@ def _summary_lines(v: Verdict) -> list[str]:
         if e.scene_d2 is not None:
             lines.append(f"unlike any lens (scene D²): {_scene_value(e)}")
     return lines
+
+
+def _confidence(v: Verdict) -> str:
+    """The frame's one confidence figure (its estimate's, :func:`~vigproc.forensics.check.frame_quality`)."""
+    if v.confidence is None:
+        return "–"
+    return f"{v.confidence:.2f}" + ("" if v.snr is None else f" (SNR {v.snr:.1f})")
 
 
 def _scene_value(e) -> str:
@@ -341,7 +348,7 @@ def _html_section(item: ReportItem) -> str:
             _row("compared with", f"{v.expected_source or '–'} {v.profile or ''}"),
             _row(f"D² ({len(v.whitened) if v.whitened else '-'} d.o.f., {v.test} test)", _fmt(v.score)), _row("false-alarm probability", _fmt(v.p_false_alarm)),
             _row("threshold", f"inconsistent when below {v.alpha:g}"), _row("frames", v.n_frames),
-            _row("estimator confidence", _fmt(v.confidence, ".2f"))]
+            _row("confidence (of the frame's estimate, as 'vigproc estimate' gives it)", _confidence(v))]
     e = v.evidence
     if e is not None:
         radii = ", ".join(f"{r:g}" for r in e.ring_radii)

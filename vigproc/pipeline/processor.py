@@ -713,12 +713,9 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
 def lens_hint(lens_key, method: str):
     """What the frame's EXIF says of its lens for the lens-family prior (35-mm focal
     length and f-number, never the lens's identity), for the estimators that use it."""
-    if method not in ("default", "lens-family") or lens_key is None:
-        return None
-    from vigproc.core.family_fit import LensHint
+    from vigproc.core.estimate import exif_hint  # one rule for every command and the check
 
-    f35, fno = getattr(lens_key, "focal_35mm", None), getattr(lens_key, "fnumber", None)
-    return LensHint(f35, fno) if f35 and fno else None
+    return exif_hint(lens_key, method)
 
 
 # ------------------------------------------------------------------ processor

@@ -25,6 +25,7 @@ Exit codes (documented in ``vigproc check --help``):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -105,8 +106,9 @@ def _embedded_verdict(path: Path, v, calibration, alpha, reader=None):
     except VigprocError as exc:
         log.warning("%s: its embedded calibration is not compared: %s", path, exc)
         return None
-    return check_embedded(v.estimate, model, calibration=calibration, lens_id=v.lens_id, alpha=alpha,
-                          profile=cal.label, grey=bool(v.evidence is not None and v.evidence.grey))
+    ve = check_embedded(v.estimate, model, calibration=calibration, lens_id=v.lens_id, alpha=alpha,
+                        profile=cal.label, grey=bool(v.evidence is not None and v.evidence.grey))
+    return dataclasses.replace(ve, confidence=v.confidence, snr=v.snr)  # the frame's one confidence
 
 
 def cmd_check(args: argparse.Namespace) -> int:
