@@ -74,12 +74,14 @@ __all__ = [
     "expected_for",
     "expected_from_field",
     "find_reference",
+    "frame_quality",
     "load_calibration",
     "fit_calibration",
     "frame_features",
     "is_weak",
     "pool_verdicts",
     "score",
+    "unknown_lens_reason",
 ]
 
 #: The estimator a check uses when asked for "default": the shipped calibration was
@@ -636,6 +638,37 @@ class Reference:
         return f"the stored profile {self.profile} ({what}, {'trusted' if self.trusted else 'untrusted'})"
 
 
+#: The lens key's fields a reference is looked up by (lensfun needs all three).
+_LOOKUP_FIELDS = {"lens": "lens", "focal_mm": "focal length", "fnumber": "f-number"}
+
+
+def unknown_lens_reason(lens_key) -> str | None:
+    """Why a lens has no reference when its metadata is the cause: a field the lookup needs
+    is missing, and what the metadata reading found about it (two sources that contradict
+    each other, a rejected value; :attr:`vigproc.io.exif.LensKey.problems`). None when
+    the metadata gives them all (then nothing knows the lens).
+
+    Parameters
+    ----------
+    lens_key : LensKey or None
+
+    Returns
+    -------
+    str or None
+    """
+    if lens_key is None:
+        return None
+    missing = [f for f in _LOOKUP_FIELDS if getattr(lens_key, f, None) is None]
+    if not missing:
+        return None
+    # problems are "field: what" (vigproc.io.exif); those of the missing fields say why
+    why = [p for p in getattr(lens_key, "problems", ()) if p.split(":", 1)[0] in missing]
+    names = " and ".join(_LOOKUP_FIELDS[f] for f in missing)
+    if why:
+        return f"the metadata gives no usable {names}: {'; '.join(why)}"
+    return f"the metadata gives no {names}, so no profile or calibration can be looked up"
+
+
 def find_reference(lens_key, width: int, height: int, *, store=None, frame_id: str | None = None) -> Reference | None:
     """The vignetting of the lens ``lens_key`` names, for a ``width``×``height`` frame: a
     stored profile (trusted or not), else lensfun's calibration, else None.
@@ -933,7 +966,7 @@ def is_weak(estimate: VignettingModel) -> bool:
 
 def check_model(
     estimate: VignettingModel, expected: Expected | None, *, calibration: Calibration,
-    lens_id: str | None = None, alpha: float | None = None, quality=None,
+    lens_id: str | None = None, alpha: float | None = None, quality=None, why_unknown: str | None = None,
 ) -> Verdict:
     """Verdict for an estimate against an expected model (no image: benchmarks, tests).
 
@@ -951,6 +984,9 @@ def check_model(
     quality : FitQuality, optional
         What the verdict states as the frame's confidence (:func:`frame_quality`);
         default the estimate's own.
+    why_unknown : str, optional
+        Why the lens is unknown when the metadata says more than "no lens"
+        (:func:`unknown_lens_reason`).
 
     Returns
     -------
@@ -964,8 +1000,8 @@ def check_model(
     stated = _stated(quality if quality is not None else estimate.quality)
     common = dict(lens_id=lens_id, alpha=alpha, evidence=ev, estimate=estimate, **stated)
     if expected is None:
-        why = "the metadata names no lens" if lens_id is None else \
-            "no stored profile and no lensfun calibration for this lens"
+        why = why_unknown or ("the metadata names no lens" if lens_id is None else
+                              "no stored profile and no lensfun calibration for this lens")
         return Verdict("unknown-lens", why, **common)
     d2, z = score(f_est, expected)
     weak = is_weak(estimate)
@@ -1043,7 +1079,7 @@ def _family_model(c: np.ndarray, width: int, height: int, family, calibration) -
 
 def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Reference | None, *, calibration,
                     family, lens_id: str | None, alpha: float | None, grey: bool = False,
-                    quality=None) -> Verdict:
+                    quality=None, why_unknown: str | None = None) -> Verdict:
     """The lens-family test's verdict (:mod:`vigproc.forensics.lensmatch`) for a frame's data-only
     coefficients ``c`` (None: too few usable pixels) against a reference; ``grey``: a
     frame without colour, whose fit the scenes scatter more
@@ -1061,8 +1097,8 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     common: dict[str, Any] = dict(lens_id=lens_id, alpha=alpha, estimate=estimate, test="lens-family",
                                   **_stated(quality))
     if ref is None:
-        why = "the metadata names no lens" if lens_id is None else \
-            "no stored profile and no lensfun calibration for this lens"
+        why = why_unknown or ("the metadata names no lens" if lens_id is None else
+                              "no stored profile and no lensfun calibration for this lens")
         return Verdict("unknown-lens", why, evidence=ev, **common)
     if c is None:
         return Verdict("insufficient-signal", "too few usable pixels for a fit of the frame's vignetting",
@@ -1189,7 +1225,7 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
     ref = find_reference(lens_key, w, h, store=store, frame_id=frame_id)
     return _family_verdict(est, c, ref, calibration=cal, family=fam,
                            lens_id=lens_key.lens_id() if lens_key is not None else None, alpha=alpha,
-                           grey=colour is None, quality=quality)
+                           grey=colour is None, quality=quality, why_unknown=unknown_lens_reason(lens_key))
 
 
 def check_image(
@@ -1255,7 +1291,8 @@ def check_image(
     # ring test's own estimate (no hint: a check is not told what it checks) when they agree
     same = method == asked and exif_hint(lens_key, asked) is None
     v = check_model(m, exp, calibration=cal, lens_id=lens_key.lens_id() if lens_key is not None else None,
-                    alpha=alpha, quality=m.quality if same else frame_quality(img, lens_key, asked))
+                    alpha=alpha, quality=m.quality if same else frame_quality(img, lens_key, asked),
+                    why_unknown=unknown_lens_reason(lens_key))
     return _say_own_frame(v, lens_key, w, h, store, frame_id)
 
 

@@ -1387,6 +1387,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     args, extra = parser.parse_known_args(argv)
+    args.argv = argv  # as run: a report an examiner files states its command line
     if extra:  # said by the command's own parser (its usage line), not the top level's
         _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(extra)}")
     handler = logging.StreamHandler()  # the current sys.stderr (the hook server swaps it per call)

@@ -627,22 +627,7 @@ def read_lens(reader, path: Path):
     return key, {"lens_id": key.lens_id(), "key": key.to_dict()}
 
 
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """Hex SHA-256 of a file's content, streamed (a frame's content id).
-
-    Raises
-    ------
-    ImageReadError
-        The file cannot be read.
-    """
-    h = hashlib.sha256()
-    try:
-        with open(path, "rb") as f:
-            while chunk := f.read(1 << 20):
-                h.update(chunk)
-    except OSError as exc:
-        raise ImageReadError(f"cannot read {os.fspath(path)!r}: {exc.strerror or exc}") from None
-    return h.hexdigest()
+from vigproc.io.provenance import file_sha256  # noqa: E402  (re-exported: a frame's content id)
 
 
 def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where: str = "frame",

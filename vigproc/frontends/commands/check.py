@@ -111,11 +111,45 @@ def _embedded_verdict(path: Path, v, calibration, alpha, reader=None):
     return dataclasses.replace(ve, confidence=v.confidence, snr=v.snr)  # the frame's one confidence
 
 
+def run_record(args: argparse.Namespace, calibration, store) -> dict:
+    """What an examiner files about the run itself: when (UTC), which vigproc, the command
+    line as run, its settings and the references the frames were compared with."""
+    import datetime
+
+    from vigproc._version import __version__
+    from vigproc.forensics.lensmatch import MatchCalibration
+
+    argv = list(getattr(args, "argv", None) or sys.argv[1:])
+    alpha = args.alpha if args.alpha is not None else calibration.alpha
+    return {
+        "analysed_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "vigproc": __version__, "argv": ["vigproc", *argv],
+        "settings": {"method": args.method, "input_transfer": args.input_transfer, "alpha": alpha,
+                     "pool": bool(args.pool)},
+        "references": {
+            "calibration": {"file": args.calibration or "shipped",
+                            "test": "lens-family" if isinstance(calibration, MatchCalibration) else "rings",
+                            "source": calibration.source, "frames": calibration.n_frames},
+            "profile_store": None if store is None else str(store.path),
+            "lensfun": _version_of("lensfunpy")},
+    }
+
+
+def _version_of(package: str) -> str | None:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"{package} {version(package)}"
+    except PackageNotFoundError:
+        return None
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     from vigproc.forensics.crops import check_crop
     from vigproc.forensics.check import check_image, default_calibration, load_calibration, pool_verdicts
     from vigproc.forensics.lensmatch import default_match_calibration
     from vigproc.io.images import read_image
+    from vigproc.io.provenance import read_provenance
     from vigproc.pipeline.processor import InputFiles, Processor, Settings, file_sha256, output_file, read_lens, refuse_input
 
     files = [Path(f) for f in args.files]
@@ -130,6 +164,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         from vigproc.stores.profiles import ProfileStore
 
         store = ProfileStore(args.profile_db)
+    run = run_record(args, calibration, store)
     results, items, verdicts = [], [], []
     failed = 0
     try:
@@ -140,15 +175,17 @@ def cmd_check(args: argparse.Namespace) -> int:
                     lens_key, lens = read_lens(proc.reader, f)
                     # the pipeline's check step, with this run's calibration and threshold
                     # the frame's content id: a stored profile that pooled it is no reference
-                    fid = file_sha256(f) if proc.store is not None else None
+                    fid = file_sha256(f)
                     v = check_image(img, lens_key, store=proc.store, method=settings.method,
-                                    calibration=calibration, alpha=args.alpha, frame_id=fid)
+                                    calibration=calibration, alpha=args.alpha,
+                                    frame_id=fid if proc.store is not None else None)
+                    prov = read_provenance(f, proc.reader, getattr(lens_key, "problems", ()), sha256=fid)
                 except VigprocError as exc:
                     failed += 1
                     results.append(failure_record(f, exc))
                     print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
                     continue
-                rec = {"file": str(f), "lens": lens, **v.to_dict()}
+                rec = {"file": str(f), "lens": lens, "provenance": prov.to_dict(), **v.to_dict()}
                 # is the vignetting centred on the frame? (a crop, a shift, a stitch; Lyu 2010 §5)
                 crop = check_crop(img, channel_axis=-1 if img.ndim == 3 else None)
                 rec["crop"] = crop.to_dict()
@@ -160,7 +197,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                 if args.report:
                     from vigproc.forensics.report import ReportItem, thumbnail
 
-                    items.append(ReportItem(f.name, v, thumbnail(img)))
+                    items.append(ReportItem(f.name, v, thumbnail(img), prov, crop))
                 del img
                 if not args.json:
                     print(_line(str(f), rec, crop))
@@ -202,11 +239,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     if args.report and items:
         from vigproc.forensics.report import write_report
 
-        out = write_report(args.report, items)
+        out = write_report(args.report, items, run=run)
         if not args.json:
             print(f"report -> {out}")
     if args.json:
-        print_json_results(results, code, pooled=pooled, counts=counts)
+        print_json_results(results, code, pooled=pooled, counts=counts, run=run)
     else:
         summary = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
         print(f"{summary}; {failed} failed" if summary else f"{failed} failed")
