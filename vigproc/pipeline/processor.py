@@ -960,6 +960,11 @@ class Processor:
         out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
                                       embedded=embedded)
         res.lens = lens
+        if s.mode == "check":  # what an examiner files beside the verdict (vigproc.io.provenance)
+            from vigproc.io.provenance import read_provenance
+
+            res.extra["provenance"] = read_provenance(path, getattr(self.reader, "exif", self.reader), getattr(
+                lens_key, "problems", ()), sha256=frame_id).to_dict()
         if embedded is not None:
             res.extra["embedded"] = embedded.to_dict(*img.shape[1::-1]) if res.source == "embedded" else \
                 embedded.to_dict()
