@@ -153,6 +153,7 @@ def _as_given(path: str, outdir: Path) -> str:
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
+    from vigproc.frontends.commands._options import open_read_store
     from vigproc.pipeline.faults import DISK_FULL, classify_error
     from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 
@@ -166,7 +167,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     failed = unapplied = 0
     results = []
     full = None  # the fault of the last failure (vigproc.pipeline.faults)
-    store = _open_store(args) if settings.needs_store else None
+    store = open_read_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
             for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):

@@ -161,9 +161,9 @@ def cmd_check(args: argparse.Namespace) -> int:
         default_match_calibration() if args.method == "default" else default_calibration()
     store = None
     if not args.no_store:
-        from vigproc.stores.profiles import ProfileStore
+        from vigproc.frontends.commands._options import open_read_store
 
-        store = ProfileStore(args.profile_db)
+        store = open_read_store(args.profile_db)  # a store that cannot exist holds no reference
     run = run_record(args, calibration, store)
     results, items, verdicts = [], [], []
     failed = 0

@@ -308,10 +308,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     inputs = InputFiles(j["path"] for j in jobs if "failed" not in j)  # no output may replace one
 
     store = None
-    if settings.needs_store:
-        from vigproc.stores.profiles import ProfileStore
+    if settings.needs_store:  # the hook's modes only read it
+        from vigproc.frontends.commands._options import open_read_store
 
-        store = ProfileStore(opt["profile_db"])
+        store = open_read_store(opt["profile_db"])
     reader = _HostLens(given)
     results = []
     try:
