@@ -13,6 +13,7 @@ import logging
 import math
 import sys
 import time
+import warnings
 from dataclasses import asdict
 from importlib import resources
 from pathlib import Path
@@ -153,7 +154,7 @@ def _as_given(path: str, outdir: Path) -> str:
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from vigproc.frontends.commands._options import open_read_store
+    from vigproc.frontends.commands._options import interrupted, open_read_store
     from vigproc.pipeline.faults import DISK_FULL, classify_error
     from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 
@@ -191,6 +192,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
                     full = classify_error(exc, outdir)
                     if full.kind == DISK_FULL:  # the machine's fault: every further file would fail the same way
                         break
+    except KeyboardInterrupt:  # Ctrl-C (SIGTERM alike): what was done, in one line; exit 130 (143)
+        return interrupted("correct", f"{len(results) - failed - unapplied} corrected, {unapplied} not corrected, "
+                           f"{failed} failed, {len(files) - len(results)} not started; outputs in {outdir}")
     finally:
         if store is not None:
             store.close()
@@ -1395,6 +1399,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     handler.setFormatter(_OneLineFormatter("%(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), handlers=[handler], force=True)
     logging.captureWarnings(True)  # libraries' warnings as one log line each, not raw stderr text
+    # Ctrl-C reaches the exiftool child too; the reader restarts it when needed, and the
+    # "died" warning it gave on closing was noise (with a virtualenv path)
+    warnings.filterwarnings("ignore", "ExifTool process was previously running but died", UserWarning)
     if getattr(args, "hook_call", False):
         from vigproc.frontends import hookserver
 

@@ -181,3 +181,27 @@ def open_read_store(path=None):
             raise
         logging.getLogger(__name__).warning("no profile store (%s); going on without stored profiles", exc)
         return None
+
+
+def interrupted(command: str, done: str) -> int:
+    """What an interrupted command (Ctrl-C, or SIGTERM handled alike) says: one line on
+    stderr of what it had done, and exit code 130 (the front end turns it into 143 for
+    SIGTERM).
+
+    Parameters
+    ----------
+    command : str
+    done : str
+        What was done so far, e.g. ``3 corrected, 0 failed, 27 not started``.
+
+    Returns
+    -------
+    int
+        :data:`vigproc.errors.EXIT_CODES` ``["interrupted"]``.
+    """
+    import sys
+
+    from vigproc.errors import EXIT_CODES, one_line
+
+    print(one_line(f"vigproc {command}: interrupted: {done}"), file=sys.stderr, flush=True)
+    return EXIT_CODES["interrupted"]

@@ -203,6 +203,15 @@ def cmd_check(args: argparse.Namespace) -> int:
                     print(_line(str(f), rec, crop))
                     if "embedded" in rec:
                         print(_line(f"{f} (against its embedded calibration)", rec["embedded"]))
+    except KeyboardInterrupt:  # Ctrl-C: what was checked, in one line; exit 130 (no report of a part)
+        from vigproc.frontends.commands._options import interrupted
+
+        found = {}
+        for v in (r.get("verdict") for r in results):
+            if v is not None:
+                found[v] = found.get(v, 0) + 1
+        return interrupted("check", ", ".join([f"{n} {k}" for k, n in sorted(found.items())]
+                                              + [f"{failed} failed", f"{len(files) - len(results)} not started"]))
     finally:
         if store is not None:
             store.close()
