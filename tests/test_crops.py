@@ -45,7 +45,18 @@ def test_a_shifted_centre_is_found_and_placed():
 
 def test_a_centred_fall_off_is_not_flagged():
     ev = check_crop(_frame(0.0), channel_axis=None, calibration=_cal())
-    assert ev.verdict == "centred" and ev.shift < 0.1 and ev.p_false_alarm > 0.01, ev
+    assert ev.verdict == "not-shown-off-centre" and ev.shift < 0.1 and ev.p_false_alarm > 0.01, ev
+
+
+def test_a_far_centre_the_test_cannot_flag_is_not_called_centred():
+    """A user's frame was called "centred" with its centre 0.86 half-diagonals off: a
+    loose null (scenes that move the centre far) leaves the shift unflagged, and the
+    answer then says only that, with the offset."""
+    loose = CropCalibration(np.linspace(0.0, 1.2, 200), "loose")
+    ev = check_crop(_frame(0.4), channel_axis=None, calibration=loose)
+    assert ev.shift > 0.25 and ev.p_false_alarm > 0.01, ev
+    assert ev.verdict == "not-shown-off-centre", ev
+    assert f"{ev.shift:.2f} half-diagonals" in ev.reason() and "centred fall-off" in ev.reason()
 
 
 def test_no_fall_off_is_insufficient_signal():
@@ -86,7 +97,7 @@ def test_check_reports_the_crop_test(tmp_path):
                        capture_output=True, text=True, timeout=300)
     doc = json.loads(r.stdout)
     crop = doc["results"][0]["crop"]
-    assert crop["verdict"] in ("off-centre", "centred") and crop["shift"] > 0.2, crop
+    assert crop["verdict"] in ("off-centre", "not-shown-off-centre") and crop["shift"] > 0.2, crop
     assert len(crop["offset_px"]) == 2 and len(crop["covariance_px"]) == 2
     r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "check", "--no-store", str(p)],
                        capture_output=True, text=True, timeout=300)

@@ -267,6 +267,27 @@ def estimate(
     return estimate_checked(a, method, prior=prior, settings=settings, seed=seed, hint=hint)
 
 
+def exif_hint(lens_key, method: str) -> LensHint | None:
+    """What a frame's EXIF says of its lens for the lens-family prior (35-mm focal length
+    and f-number, never the lens's identity), for the estimators that use it: the hint
+    every command gives :func:`estimate` (so a frame's confidence is one figure).
+
+    Parameters
+    ----------
+    lens_key : LensKey or None
+        Anything with ``focal_35mm`` and ``fnumber`` attributes.
+    method : str
+
+    Returns
+    -------
+    LensHint or None
+    """
+    if method not in ("default", "lens-family") or lens_key is None:
+        return None
+    f35, fno = getattr(lens_key, "focal_35mm", None), getattr(lens_key, "fnumber", None)
+    return LensHint(f35, fno) if f35 and fno else None
+
+
 def estimate_checked(
     a: np.ndarray, method: str = "default", *, prior: NaturalPrior | None = None,
     settings: RobustSettings | None = None, seed: int | None = None, hint: LensHint | None = None,

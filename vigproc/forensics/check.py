@@ -74,12 +74,14 @@ __all__ = [
     "expected_for",
     "expected_from_field",
     "find_reference",
+    "frame_quality",
     "load_calibration",
     "fit_calibration",
     "frame_features",
     "is_weak",
     "pool_verdicts",
     "score",
+    "unknown_lens_reason",
 ]
 
 #: The estimator a check uses when asked for "default": the shipped calibration was
@@ -97,8 +99,10 @@ def forensic_method(method: str) -> str:
     return FORENSICS_METHOD if method == "default" else method
 
 
-#: The verdicts :func:`check_image` gives.
-VERDICTS = ("consistent", "inconsistent", "unknown-lens", "insufficient-signal")
+#: The verdicts :func:`check_image` gives. ``unlike-any-lens`` (the lens-family test): the
+#: frame's fall-off is unlike any lens's, so no lens claim is judged; it is not
+#: ``inconsistent``, whose false-alarm rate is calibrated on the frames it decides.
+VERDICTS = ("consistent", "inconsistent", "unknown-lens", "insufficient-signal", "unlike-any-lens")
 #: The statistics a verdict can come from (:attr:`Verdict.test`).
 TESTS = ("lens-family", "rings")
 #: Ring radii, in half-diagonals from the frame centre, of the fall-off features.
@@ -191,6 +195,43 @@ def _shape_ratio(model: VignettingModel) -> float:
 
 def _fit_of(m: VignettingModel) -> VignettingModel:
     return m.candidate if m.candidate is not None else m
+
+
+def frame_quality(img: np.ndarray, lens_key, method: str = "default"):
+    """The fit quality of vigproc's estimate of ``img`` as ``vigproc estimate``, ``correct``
+    and the hook make it: ``method`` with the EXIF's focal length and f-number as its hint
+    (:func:`vigproc.core.estimate.exif_hint`). A verdict states its confidence, whatever
+    fit the test itself compares, so that a frame has one confidence in every command.
+
+    Parameters
+    ----------
+    img : ndarray
+        H×W or H×W×C (channels last) linear image.
+    lens_key : LensKey or None
+    method : str
+
+    Returns
+    -------
+    FitQuality or None
+        None when the estimator states none or cannot estimate this frame (said in the log:
+        the check itself still runs).
+    """
+    from vigproc.core.estimate import estimate, exif_hint
+
+    try:
+        m = estimate(img, method, channel_axis=-1 if np.ndim(img) == 3 else None, hint=exif_hint(lens_key, method))
+    except VigprocError as exc:
+        log.info("no confidence for this frame: %s", exc)
+        return None
+    return m.quality
+
+
+def _stated(q) -> dict[str, float | None]:
+    """A fit quality's confidence and SNR as a verdict states them (JSON: no NaN or Inf)."""
+    if q is None:
+        return {"confidence": None, "snr": None}
+    return {k: (float(v) if math.isfinite(float(v)) else None) for k, v in (("confidence", q.confidence),
+                                                                               ("snr", q.snr))}
 
 
 def _is_weak(m: VignettingModel) -> bool:
@@ -597,6 +638,37 @@ class Reference:
         return f"the stored profile {self.profile} ({what}, {'trusted' if self.trusted else 'untrusted'})"
 
 
+#: The lens key's fields a reference is looked up by (lensfun needs all three).
+_LOOKUP_FIELDS = {"lens": "lens", "focal_mm": "focal length", "fnumber": "f-number"}
+
+
+def unknown_lens_reason(lens_key) -> str | None:
+    """Why a lens has no reference when its metadata is the cause: a field the lookup needs
+    is missing, and what the metadata reading found about it (two sources that contradict
+    each other, a rejected value; :attr:`vigproc.io.exif.LensKey.problems`). None when
+    the metadata gives them all (then nothing knows the lens).
+
+    Parameters
+    ----------
+    lens_key : LensKey or None
+
+    Returns
+    -------
+    str or None
+    """
+    if lens_key is None:
+        return None
+    missing = [f for f in _LOOKUP_FIELDS if getattr(lens_key, f, None) is None]
+    if not missing:
+        return None
+    # problems are "field: what" (vigproc.io.exif); those of the missing fields say why
+    why = [p for p in getattr(lens_key, "problems", ()) if p.split(":", 1)[0] in missing]
+    names = " and ".join(_LOOKUP_FIELDS[f] for f in missing)
+    if why:
+        return f"the metadata gives no usable {names}: {'; '.join(why)}"
+    return f"the metadata gives no {names}, so no profile or calibration can be looked up"
+
+
 def find_reference(lens_key, width: int, height: int, *, store=None, frame_id: str | None = None) -> Reference | None:
     """The vignetting of the lens ``lens_key`` names, for a ``width``×``height`` frame: a
     stored profile (trusted or not), else lensfun's calibration, else None.
@@ -765,8 +837,11 @@ class Verdict:
         The false-alarm probability below which the verdict is "inconsistent".
     n_frames : int
         Frames the evidence comes from.
-    confidence : float or None
-        The estimator's confidence in the frame's fit.
+    confidence, snr : float or None
+        The confidence and SNR of vigproc's estimate of the frame with the same method
+        and the EXIF's focal length and f-number as its hint: the figures ``vigproc
+        estimate`` prints and ``correct`` decides by (:func:`frame_quality`), whatever
+        the test compared. None when not measured (a verdict made from a model alone).
     evidence : Evidence or None
     estimate : VignettingModel or None
         The frame's estimate (its rejected fit is ``estimate.candidate`` when weak).
@@ -801,6 +876,7 @@ class Verdict:
     whitened: tuple[float, ...] | None = field(default=None, repr=False)
     test: str = "rings"
     lens_problem: str | None = None  # why the EXIF's lens cannot be the frame's (LensKey.lens_problem)
+    snr: float | None = None
 
     def __post_init__(self) -> None:
         if self.verdict not in VERDICTS:
@@ -818,7 +894,7 @@ class Verdict:
             "verdict": self.verdict, "reason": self.reason, "lens_id": self.lens_id,
             "expected_source": self.expected_source, "profile": self.profile,
             "score": self.score, "p_false_alarm": self.p_false_alarm, "alpha": self.alpha,
-            "n_frames": self.n_frames, "confidence": self.confidence,
+            "n_frames": self.n_frames, "confidence": self.confidence, "snr": self.snr,
             "evidence": self.evidence.to_dict() if self.evidence is not None else None,
             "estimate": self.estimate.to_dict() if self.estimate is not None else None,
             "expected": self.expected.to_dict() if self.expected is not None else None,
@@ -841,7 +917,7 @@ class Verdict:
                 estimate=VignettingModel.from_dict(d["estimate"]) if d.get("estimate") else None,
                 expected=VignettingModel.from_dict(d["expected"]) if d.get("expected") else None,
                 whitened=tuple(float(v) for v in d["whitened"]) if d.get("whitened") else None,
-                test=str(d.get("test", "rings")),
+                test=str(d.get("test", "rings")), snr=d.get("snr"),
                 lens_problem=d.get("lens_problem") if isinstance(d.get("lens_problem"), str) else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
@@ -902,7 +978,7 @@ def is_weak(estimate: VignettingModel) -> bool:
 
 def check_model(
     estimate: VignettingModel, expected: Expected | None, *, calibration: Calibration,
-    lens_id: str | None = None, alpha: float | None = None,
+    lens_id: str | None = None, alpha: float | None = None, quality=None, why_unknown: str | None = None,
 ) -> Verdict:
     """Verdict for an estimate against an expected model (no image: benchmarks, tests).
 
@@ -917,6 +993,12 @@ def check_model(
     lens_id : str, optional
     alpha : float, optional
         False-alarm probability threshold (default: the calibration's).
+    quality : FitQuality, optional
+        What the verdict states as the frame's confidence (:func:`frame_quality`);
+        default the estimate's own.
+    why_unknown : str, optional
+        Why the lens is unknown when the metadata says more than "no lens"
+        (:func:`unknown_lens_reason`).
 
     Returns
     -------
@@ -927,10 +1009,11 @@ def check_model(
     f_est = frame_features(fit)
     ev = _evidence(fit, f_est, expected)
     conf = estimate.quality.confidence if estimate.quality is not None else None
-    common = dict(lens_id=lens_id, alpha=alpha, confidence=conf, evidence=ev, estimate=estimate)
+    stated = _stated(quality if quality is not None else estimate.quality)
+    common = dict(lens_id=lens_id, alpha=alpha, evidence=ev, estimate=estimate, **stated)
     if expected is None:
-        why = "the metadata names no lens" if lens_id is None else \
-            "no stored profile and no lensfun calibration for this lens"
+        why = why_unknown or ("the metadata names no lens" if lens_id is None else
+                              "no stored profile and no lensfun calibration for this lens")
         return Verdict("unknown-lens", why, **common)
     d2, z = score(f_est, expected)
     weak = is_weak(estimate)
@@ -938,8 +1021,9 @@ def check_model(
     common.update(expected_source=expected.source, profile=expected.profile, score=d2, p_false_alarm=p,
                   expected=expected.model, whitened=tuple(float(v) for v in z))
     if weak:
-        return Verdict("insufficient-signal", f"the frame's vignetting estimate is too weak to decide "
-                       f"(confidence {conf if conf is not None else 0:.2f}); the numbers are of its rejected fit",
+        return Verdict("insufficient-signal", f"the test's own fit of the frame ({estimate.method}) is too weak "
+                       f"to decide (its confidence {conf if conf is not None else 0:.2f}); the numbers are of its "
+                       f"rejected fit",
                        **common)
     if p < alpha:
         return Verdict("inconsistent", f"false-alarm probability {p:.3g} < {alpha:g}: " + _describe(ev), **common)
@@ -998,16 +1082,22 @@ def _family_model(c: np.ndarray, width: int, height: int, family, calibration) -
     _, basis = family.profiles(gx)
     sigma = field_spread_ev(basis, calibration.covariance_matrix)
     ev = m.field_ev_rms()
-    q = FitQuality(confidence=1.0, field_ev_rms=ev, field_sigma_ev=sigma, snr=ev / sigma if sigma > 0 else math.inf)
+    # no confidence of its own (NaN, null in JSON): it is no correction; the verdict states
+    # the frame's estimate's (frame_quality), the one figure every command gives
+    q = FitQuality(confidence=math.nan, field_ev_rms=ev, field_sigma_ev=sigma,
+                   snr=ev / sigma if sigma > 0 else math.inf)
     return VignettingModel(width, height, center=m.center, p=m.p, alpha=m.alpha, method=FAMILY_TEST_METHOD, quality=q)
 
 
 def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Reference | None, *, calibration,
-                    family, lens_id: str | None, alpha: float | None, grey: bool = False) -> Verdict:
+                    family, lens_id: str | None, alpha: float | None, grey: bool = False,
+                    quality=None, why_unknown: str | None = None) -> Verdict:
     """The lens-family test's verdict (:mod:`vigproc.forensics.lensmatch`) for a frame's data-only
     coefficients ``c`` (None: too few usable pixels) against a reference; ``grey``: a
     frame without colour, whose fit the scenes scatter more
-    (:attr:`~vigproc.forensics.lensmatch.MatchCalibration.grey_inflate`)."""
+    (:attr:`~vigproc.forensics.lensmatch.MatchCalibration.grey_inflate`); ``quality``: the
+    frame's confidence as the verdict states it (:func:`frame_quality`; the data-only fit
+    has none)."""
     from vigproc.forensics.lensmatch import beyond_scene_limit, reference_coefficients, scene_d2, whiten
 
     alpha = calibration.alpha if alpha is None else float(alpha)
@@ -1016,11 +1106,11 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     big_r = _half_diagonal(fit.width, fit.height)
     ev = Evidence(ring_radii=RING_RADII, falloff_ev=tuple(float(v) for v in rings),
                   centre_px=(float(fit.center[0]), float(fit.center[1])), shape_ratio=_shape_ratio(fit))
-    conf = estimate.quality.confidence if estimate.quality is not None else None
-    common: dict[str, Any] = dict(lens_id=lens_id, alpha=alpha, confidence=conf, estimate=estimate, test="lens-family")
+    common: dict[str, Any] = dict(lens_id=lens_id, alpha=alpha, estimate=estimate, test="lens-family",
+                                  **_stated(quality))
     if ref is None:
-        why = "the metadata names no lens" if lens_id is None else \
-            "no stored profile and no lensfun calibration for this lens"
+        why = why_unknown or ("the metadata names no lens" if lens_id is None else
+                              "no stored profile and no lensfun calibration for this lens")
         return Verdict("unknown-lens", why, evidence=ev, **common)
     if c is None:
         return Verdict("insufficient-signal", "too few usable pixels for a fit of the frame's vignetting",
@@ -1062,12 +1152,15 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
         # the frame's own light (or an edit) shaped its fit: comparing it with the lens
         # would judge the scene (lensmatch, step 4b); its numbers stay, for pooling and
         # for people, and the reason says an edit is one cause
+        # (a label of its own: 'insufficient-signal' read as "no fall-off" beside a strong one)
         share = ("" if calibration.scene_share is None else
                  f", as {100 * calibration.scene_share:.1f} % of the calibration's genuine frames are")
-        return Verdict("insufficient-signal", f"the frame's shading is unlike any lens's fall-off (scene D² "
+        return Verdict("unlike-any-lens", f"the frame's shading is unlike any lens's fall-off (scene D² "
                        f"{scene:.1f} > {calibration.scene_limit:.1f}{share}): its own light or an edit (an added "
-                       f"vignette, say), not a lens, shaped the estimate, so it is not compared {against} "
-                       f"(false-alarm probability {p:.3g} if it were)", **common)
+                       f"vignette, say), not a lens, shaped the estimate, so the claim is not judged {against} "
+                       f"(false-alarm probability {p:.3g} if it were: a figure that holds for frames some lens explains, "
+                       f"not for this one)",
+                       **common)
     if p < alpha:
         d = float(diff[-1])
         return Verdict("inconsistent", f"false-alarm probability {p:.3g} < {alpha:g} {against}: {abs(d):.2f} EV "
@@ -1078,7 +1171,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
 
 
 def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alpha: float | None = None,
-                 frame_id: str | None = None, family=None) -> Verdict:
+                 frame_id: str | None = None, family=None, quality=None) -> Verdict:
     """The lens-family test (:mod:`vigproc.forensics.lensmatch`) of a frame against the lens its
     metadata names: the default check of :func:`check_image`.
 
@@ -1096,6 +1189,9 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
         The frame's content id: a stored profile that pooled it is not its reference.
     family : LensFamily, optional
         Default: the shipped family; the calibration must have been made in it.
+    quality : FitQuality, optional
+        The frame's confidence as the verdict states it (:func:`frame_quality`, which
+        :func:`check_image` passes); None: none stated.
 
     Returns
     -------
@@ -1141,7 +1237,7 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
     ref = find_reference(lens_key, w, h, store=store, frame_id=frame_id)
     return _family_verdict(est, c, ref, calibration=cal, family=fam,
                            lens_id=lens_key.lens_id() if lens_key is not None else None, alpha=alpha,
-                           grey=colour is None)
+                           grey=colour is None, quality=quality, why_unknown=unknown_lens_reason(lens_key))
 
 
 def check_image(
@@ -1174,7 +1270,8 @@ def check_image(
     Returns
     -------
     Verdict
-        ``consistent``, ``inconsistent``, ``unknown-lens`` or ``insufficient-signal``.
+        ``consistent``, ``inconsistent``, ``unknown-lens``, ``insufficient-signal`` or
+        ``unlike-any-lens``.
 
     Raises
     ------
@@ -1183,17 +1280,18 @@ def check_image(
     ForensicsError
         No calibration for ``method``.
     """
-    from vigproc.core.estimate import estimate
+    from vigproc.core.estimate import estimate, exif_hint
 
     if isinstance(calibration, MatchCalibration) or (calibration is None and method == "default"):
         if method != "default":
             raise ForensicsError(f"the lens-family test runs its own fit, not the {method!r} estimator (give "
                                  f"--calibration a ring calibration made with 'vigproc forensics calibrate "
                                  f"--method {method}')")
-        v = check_family(img, lens_key, store=store, calibration=calibration, alpha=alpha, frame_id=frame_id)
+        v = check_family(img, lens_key, store=store, calibration=calibration, alpha=alpha, frame_id=frame_id,
+                         quality=frame_quality(img, lens_key))
         return _say_lens_problem(_say_own_frame(v, lens_key, img.shape[1], img.shape[0], store, frame_id), lens_key)
     cal = calibration if calibration is not None else default_calibration()
-    method = forensic_method(method)
+    asked, method = method, forensic_method(method)
     if cal.method != method:
         raise ForensicsError(f"the forensics calibration is for the {cal.method!r} estimator, not {method!r} "
                              f"(make one: vigproc forensics calibrate --method {method})")
@@ -1201,8 +1299,12 @@ def check_image(
     m = estimate(img, method, channel_axis=-1 if img.ndim == 3 else None)
     h, w = img.shape[:2]
     exp = expected_for(lens_key, w, h, store=store, calibration=cal, frame_id=frame_id)
+    # the confidence stated is the frame's estimate with the user's method and hint; the
+    # ring test's own estimate (no hint: a check is not told what it checks) when they agree
+    same = method == asked and exif_hint(lens_key, asked) is None
     v = check_model(m, exp, calibration=cal, lens_id=lens_key.lens_id() if lens_key is not None else None,
-                    alpha=alpha)
+                    alpha=alpha, quality=m.quality if same else frame_quality(img, lens_key, asked),
+                    why_unknown=unknown_lens_reason(lens_key))
     return _say_lens_problem(_say_own_frame(v, lens_key, w, h, store, frame_id), lens_key)
 
 
@@ -1266,7 +1368,7 @@ def pool_verdicts(verdicts: Sequence[Verdict], *,
     ForensicsError
         No frame with an expected model, or frames compared with different profiles.
     """
-    from vigproc.forensics.lensmatch import beyond_scene_limit, default_match_calibration, pooled_d2
+    from vigproc.forensics.lensmatch import default_match_calibration, pooled_d2
 
     usable = [v for v in verdicts if v.whitened is not None]
     if not usable:
@@ -1297,9 +1399,7 @@ def pool_verdicts(verdicts: Sequence[Verdict], *,
                   expected=first.expected, test=first.test)
     # frames the lens-family test left undecided because no lens explains their fit
     # (lensmatch, step 4b) are pooled by their median like any other and decide with them
-    if all(v.verdict == "insufficient-signal"
-           and not (v.evidence is not None and beyond_scene_limit(v.evidence.scene_d2, v.evidence.scene_limit))
-           for v in usable):
+    if all(v.verdict == "insufficient-signal" for v in usable):
         return Verdict("insufficient-signal", f"all {n} frames have weak vignetting estimates", **common)
     if p < alpha:
         return Verdict("inconsistent", f"{n} frames: false-alarm probability {p:.3g} < {alpha:g}", **common)

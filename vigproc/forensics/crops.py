@@ -42,8 +42,10 @@ DEFAULT_ALPHA = 0.01
 MIN_SNR = 1.0
 #: Long side of the free-centre fit's working copy (the default estimator's trigger uses 60).
 CENTRE_WORK_SIZE = 60
-#: What the test can answer.
-CROP_VERDICTS = ("centred", "off-centre", "insufficient-signal")
+#: What the test can answer. It never says "centred": a fall-off whose centre the test
+#: cannot tell from the frame's may still be far from it (its power on one frame is low,
+#: ``vigproc bench crops``), so the answer is "not-shown-off-centre", with the offset.
+CROP_VERDICTS = ("not-shown-off-centre", "off-centre", "insufficient-signal")
 
 
 class CropCalibrationError(VigprocError):
@@ -97,9 +99,9 @@ class CropEvidence:
         p = f"p = {self.p_false_alarm:.3g}" if self.p_false_alarm is not None else "uncalibrated"
         if self.verdict == "off-centre":
             return f"vignetting centre off the frame's ({where}, {p}): a crop, a shift or a stitch"
-        # "centred" means only that the test cannot tell it from a centred fall-off: a
-        # far centre with p above the threshold is a loosely placed one, not a crop
-        return f"not shown off-centre at p < {self.alpha:g} ({where}, {p})"
+        # not shown off-centre is not "centred": a far centre with p above the threshold
+        # is a loosely placed one, which the test cannot tell from a crop either
+        return f"the test cannot tell it from a centred fall-off at p < {self.alpha:g} ({where}, {p})"
 
 
 @dataclass(frozen=True)
@@ -213,7 +215,7 @@ def check_crop(img: np.ndarray, *, channel_axis: int | None = -1, calibration: C
     elif (p is not None and p < alpha) or (p is None and z >= 3.0):
         verdict = "off-centre"
     else:
-        verdict = "centred"
+        verdict = "not-shown-off-centre"
     return CropEvidence(verdict, (float(off[0]), float(off[1])),
                         ((float(cov[0, 0]), float(cov[0, 1])), (float(cov[1, 0]), float(cov[1, 1]))),
                         float(shift), float(z), p, float(alpha), float(snr))

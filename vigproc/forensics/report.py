@@ -18,7 +18,7 @@ import struct
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -37,7 +37,8 @@ _EST = (1.0, 0.25, 0.2)
 _EXP = (0.2, 0.9, 0.3)
 _BIAS = (0.55, 0.75, 0.55)
 _VERDICT_COLOURS = {"consistent": (0.3, 0.85, 0.35), "inconsistent": (1.0, 0.3, 0.25),
-                    "unknown-lens": (0.7, 0.7, 0.7), "insufficient-signal": (1.0, 0.8, 0.2)}
+                    "unknown-lens": (0.7, 0.7, 0.7), "insufficient-signal": (1.0, 0.8, 0.2),
+                    "unlike-any-lens": (1.0, 0.55, 0.2)}
 
 
 @dataclass(frozen=True)
@@ -51,11 +52,18 @@ class ReportItem:
     verdict : Verdict
     thumb : ndarray or None
         H×W×3 linear thumbnail (:func:`thumbnail`); None for pooled verdicts.
+    provenance : Provenance or None
+        The file's hash, capture date, camera, lens as read and metadata conflicts
+        (:func:`vigproc.io.provenance.read_provenance`); None for pooled verdicts.
+    crop : CropEvidence or None
+        The crop test's answer (:func:`vigproc.forensics.crops.check_crop`).
     """
 
     name: str
     verdict: Verdict
     thumb: np.ndarray | None = None
+    provenance: Any = None
+    crop: Any = None
 
 
 # ------------------------------------------------------------------ pixels
@@ -206,7 +214,8 @@ def report_figure(item: ReportItem, *, numbers: bool = True) -> np.ndarray:
     top = 44
     width = pad + t_w + 90 + plot_w + pad
     chars = int((width - 2 * pad) / 7.6)  # the built-in font at size 14
-    lines = [piece for line in _summary_lines(v) for piece in _wrap(line.translate(_PLAIN), chars)] if numbers else []
+    text = _summary_lines(v) + _provenance_lines(item.provenance) + _crop_lines(item.crop)
+    lines = [piece for line in text for piece in _wrap(line.translate(_PLAIN), chars)] if numbers else []
     height = top + max(t_h + 40, plot_h + 60) + 30 + 19 * len(lines)
     fig = np.full((height, width, 3), 0.1, dtype=np.float32)
     fig[top : top + t_h, pad : pad + t_w] = th
@@ -293,7 +302,7 @@ def _summary_lines(v: Verdict) -> list[str]:
     lines = [v.reason, f"lens (EXIF): {display_lens_id(v.lens_id)};  compared with: "
              f"{(v.expected_source or '-') + ' ' + (v.profile or '')}"]
     lines.append(f"D² = {_fmt(v.score)}, false-alarm probability = {_fmt(v.p_false_alarm)} "
-                 f"(inconsistent below {v.alpha:g}); frames: {v.n_frames}; estimator confidence {_fmt(v.confidence, '.2f')}")
+                 f"(inconsistent below {v.alpha:g}); frames: {v.n_frames}; confidence {_confidence(v)}")
     e = v.evidence
     if e is not None:
         lines.append("fall-off (EV) at ρ = " + ", ".join(f"{r:g}" for r in e.ring_radii) + ":  estimated "
@@ -315,6 +324,39 @@ def _summary_lines(v: Verdict) -> list[str]:
     return lines
 
 
+def _provenance_lines(p) -> list[str]:
+    """The file as its metadata states it, for the PNG figure (the HTML has rows)."""
+    if p is None:
+        return []
+    return [f"{name}: {value}" for name, value in _provenance_rows(p)]
+
+
+def _provenance_rows(p) -> list[tuple[str, str]]:
+    """(name, value) of a file's provenance (:class:`vigproc.io.provenance.Provenance`)."""
+    rows = [("file SHA-256", p.sha256), ("file size", f"{p.size_bytes} bytes"),
+            ("captured (DateTimeOriginal)", (p.captured or "not stated")
+             + (f" {p.captured_offset}" if p.captured_offset else " (no time zone stated)" if p.captured else "")),
+            ("camera", " ".join(x for x in (p.make, p.model) if x) or "not stated"),
+            ("camera serial", p.serial or "not stated"),
+            ("lens (as written)", (p.lens or "not stated") + (f", serial {p.lens_serial}" if p.lens_serial else ""))]
+    found = list(p.conflicts) + list(p.problems)
+    rows.append(("metadata conflicts", "; ".join(found) if found else "none found"))
+    if p.unread:
+        rows.append(("metadata not read", p.unread))
+    return rows
+
+
+def _crop_lines(crop) -> list[str]:
+    return [] if crop is None else [f"crop test: {crop.verdict}: {crop.reason()}"]
+
+
+def _confidence(v: Verdict) -> str:
+    """The frame's one confidence figure (its estimate's, :func:`~vigproc.forensics.check.frame_quality`)."""
+    if v.confidence is None:
+        return "–"
+    return f"{v.confidence:.2f}" + ("" if v.snr is None else f" (SNR {v.snr:.1f})")
+
+
 def _scene_value(e) -> str:
     """How unlike any lens's the frame's fit is (the lens-family test's scene gate)."""
     limit = "no limit" if e.scene_limit is None else f"undecided above {e.scene_limit:.1f}"
@@ -327,7 +369,7 @@ section{border-top:1px solid #444;padding:1em 0}img{max-width:100%}
 table{border-collapse:collapse}td,th{padding:2px 10px;text-align:left;vertical-align:top}
 th{color:#aaa;font-weight:normal}.v{font-weight:bold;padding:2px 8px;border-radius:4px;color:#111}
 .consistent{background:#5c5}.inconsistent{background:#f54}.unknown-lens{background:#aaa}
-.insufficient-signal{background:#fc3}"""
+.insufficient-signal{background:#fc3}.unlike-any-lens{background:#f93}"""
 
 
 def _row(name: str, value) -> str:
@@ -341,7 +383,7 @@ def _html_section(item: ReportItem) -> str:
             _row("compared with", f"{v.expected_source or '–'} {v.profile or ''}"),
             _row(f"D² ({len(v.whitened) if v.whitened else '-'} d.o.f., {v.test} test)", _fmt(v.score)), _row("false-alarm probability", _fmt(v.p_false_alarm)),
             _row("threshold", f"inconsistent when below {v.alpha:g}"), _row("frames", v.n_frames),
-            _row("estimator confidence", _fmt(v.confidence, ".2f"))]
+            _row("confidence (of the frame's estimate, as 'vigproc estimate' gives it)", _confidence(v))]
     e = v.evidence
     if e is not None:
         radii = ", ".join(f"{r:g}" for r in e.ring_radii)
@@ -361,14 +403,34 @@ def _html_section(item: ReportItem) -> str:
             rows.append(_row("field difference (EV RMS, raw)", _fmt(e.field_diff_ev, ".3f")))
         if e.scene_d2 is not None:
             rows.append(_row("unlike any lens (scene D²)", _scene_value(e)))
+    if item.crop is not None:
+        rows.append(_row("crop test", f"{item.crop.verdict}: {item.crop.reason()}"))
+    if item.provenance is not None:
+        rows += [_row(name, value) for name, value in _provenance_rows(item.provenance)]
     return (f'<section><h2>{html.escape(item.name)} <span class="v {html.escape(v.verdict)}">'
             f"{html.escape(v.verdict)}</span></h2>"
             f'<img alt="vignetting of {html.escape(item.name, quote=True)}" src="data:image/jpeg;base64,{fig}">'
             f"<table>{''.join(rows)}</table></section>")
 
 
-def report_html(items: Sequence[ReportItem], *, title: str = "vigproc forensic check", notes: str = "") -> str:
-    """The whole report as one self-contained HTML document."""
+def _run_rows(run: dict[str, Any]) -> list[tuple[str, str]]:
+    """(name, value) of a run record (``vigproc check``'s :func:`run_record`)."""
+    import json
+    import shlex
+
+    rows = [("analysed (UTC)", str(run.get("analysed_utc", "–"))), ("vigproc", str(run.get("vigproc", "–")))]
+    if run.get("argv") is not None:
+        rows.append(("command line", shlex.join(str(a) for a in run["argv"])))
+    for key, label in (("settings", "settings"), ("references", "references")):
+        if run.get(key) is not None:
+            rows.append((label, json.dumps(run[key], ensure_ascii=False, sort_keys=True)))
+    return rows
+
+
+def report_html(items: Sequence[ReportItem], *, title: str = "vigproc forensic check", notes: str = "",
+                run: dict[str, Any] | None = None) -> str:
+    """The whole report as one self-contained HTML document; ``run``: when, which vigproc,
+    the command line and settings (a table at its head; every value escaped)."""
     from vigproc._version import __version__
 
     counts: dict[str, int] = {}
@@ -387,10 +449,23 @@ def report_html(items: Sequence[ReportItem], *, title: str = "vigproc forensic c
             "figures).</p>")
     if notes:
         head += f"<p>{html.escape(notes)}</p>"
+    if run:
+        head += "<table>" + "".join(_row(n, v) for n, v in _run_rows(run)) + "</table>"
     return head + "".join(_html_section(it) for it in items) + "</body></html>\n"
 
 
-def write_report(path: str | Path, items: Sequence[ReportItem], *, notes: str = "") -> Path:
+def _run_figure(run: dict[str, Any], width: int) -> np.ndarray:
+    """The run record as lines of text, the head of a PNG report."""
+    chars = int((width - 32) / 7.6)
+    lines = [piece for n, v in _run_rows(run) for piece in _wrap(f"{n}: {v}".translate(_PLAIN), chars)]
+    fig = np.full((30 + 19 * len(lines), width, 3), 0.1, dtype=np.float32)
+    for i, line in enumerate(lines):
+        _text(fig, 16, 24 + 19 * i, line, 14)
+    return fig
+
+
+def write_report(path: str | Path, items: Sequence[ReportItem], *, notes: str = "",
+                 run: dict[str, Any] | None = None) -> Path:
     """Write a report atomically: ``.html``/``.htm`` (self-contained) or ``.png``
     (the frames' figures stacked).
 
@@ -406,9 +481,11 @@ def write_report(path: str | Path, items: Sequence[ReportItem], *, notes: str = 
     if not items:
         raise ImageWriteError("nothing to report")
     if suffix in (".html", ".htm"):
-        data = report_html(items, notes=notes).encode("utf-8")
+        data = report_html(items, notes=notes, run=run).encode("utf-8")
     elif suffix == ".png":
         figs = [report_figure(it) for it in items]
+        if run:
+            figs.insert(0, _run_figure(run, max(f.shape[1] for f in figs)))
         width = max(f.shape[1] for f in figs)
         figs = [np.pad(f, ((0, 4), (0, width - f.shape[1]), (0, 0)), constant_values=0.05) for f in figs]
         data = png_bytes(np.concatenate(figs, axis=0))

@@ -150,7 +150,9 @@ class Result:
         Correct mode: the part of it divided out of the returned image, in EV
         (``falloff_ev`` × strength when applied, else 0); None in other modes.
     confidence, snr : float or None
-        The estimate's support in the image (estimates of the default method).
+        The estimate's support in the image (estimates of the default method); in check
+        mode the verdict's, i.e. the frame's estimate with these settings
+        (:func:`vigproc.forensics.check.frame_quality`), not the test's own fit.
     fallback : bool
         The estimate was too weak to apply: the image is returned uncorrected.
     verdict : dict or None
@@ -182,11 +184,16 @@ class Result:
         removed = None
         if res.mode == "correct":
             removed = round(falloff * res.strength, 4) if res.applied and falloff is not None else 0.0
+        conf = None if q is None else _finite(q.confidence)
+        snr = None if q is None else _finite(q.snr)
+        if res.mode == "check" and res.verdict is not None:
+            # the verdict states the frame's estimate's (the model is the test's own fit):
+            # the figures `vigproc estimate` and `check` give
+            conf, snr = (None if res.verdict.get(k) is None else _finite(res.verdict[k]) for k in ("confidence", "snr"))
         return cls(
             mode=res.mode, applied=bool(res.applied), source=res.source, model=m,
             falloff_ev=None if falloff is None else round(falloff, 4), removed_ev=removed,
-            confidence=None if q is None else _finite(q.confidence),
-            snr=None if q is None else _finite(q.snr),
+            confidence=conf, snr=snr,
             fallback=bool(q is not None and q.fallback),
             verdict=res.verdict, lens=res.lens, seconds=res.seconds,
         )

@@ -13,6 +13,7 @@ import logging
 import math
 import sys
 import time
+import warnings
 from dataclasses import asdict
 from importlib import resources
 from pathlib import Path
@@ -154,6 +155,7 @@ def _as_given(path: str, outdir: Path) -> str:
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
+    from vigproc.frontends.commands._options import interrupted, open_read_store
     from vigproc.pipeline.faults import DISK_FULL, classify_error
     from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 
@@ -167,7 +169,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     failed = unapplied = 0
     results = []
     full = None  # the fault of the last failure (vigproc.pipeline.faults)
-    store = _open_store(args) if settings.needs_store else None
+    store = open_read_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
             for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
@@ -191,6 +193,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
                     full = classify_error(exc, outdir)
                     if full.kind == DISK_FULL:  # the machine's fault: every further file would fail the same way
                         break
+    except KeyboardInterrupt:  # Ctrl-C (SIGTERM alike): what was done, in one line; exit 130 (143)
+        return interrupted("correct", f"{len(results) - failed - unapplied} corrected, {unapplied} not corrected, "
+                           f"{failed} failed, {len(files) - len(results)} not started; outputs in {outdir}")
     finally:
         if store is not None:
             store.close()
@@ -1379,12 +1384,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     args, extra = parser.parse_known_args(argv)
+    args.argv = argv  # as run: a report an examiner files states its command line
     if extra:  # said by the command's own parser (its usage line), not the top level's
         _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(extra)}")
     handler = logging.StreamHandler()  # the current sys.stderr (the hook server swaps it per call)
     handler.setFormatter(_OneLineFormatter("%(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), handlers=[handler], force=True)
     logging.captureWarnings(True)  # libraries' warnings as one log line each, not raw stderr text
+    # Ctrl-C reaches the exiftool child too; the reader restarts it when needed, and the
+    # "died" warning it gave on closing was noise (with a virtualenv path)
+    warnings.filterwarnings("ignore", "ExifTool process was previously running but died", UserWarning)
     if getattr(args, "hook_call", False):
         from vigproc.frontends import hookserver
 

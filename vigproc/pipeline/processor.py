@@ -627,22 +627,7 @@ def read_lens(reader, path: Path):
     return key, {"lens_id": key.lens_id(), "key": key.to_dict()}
 
 
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """Hex SHA-256 of a file's content, streamed (a frame's content id).
-
-    Raises
-    ------
-    ImageReadError
-        The file cannot be read.
-    """
-    h = hashlib.sha256()
-    try:
-        with open(path, "rb") as f:
-            while chunk := f.read(1 << 20):
-                h.update(chunk)
-    except OSError as exc:
-        raise ImageReadError(f"cannot read {os.fspath(path)!r}: {exc.strerror or exc}") from None
-    return h.hexdigest()
+from vigproc.io.provenance import file_sha256  # noqa: E402  (re-exported: a frame's content id)
 
 
 def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where: str = "frame",
@@ -725,12 +710,9 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
 def lens_hint(lens_key, method: str):
     """What the frame's EXIF says of its lens for the lens-family prior (35-mm focal
     length and f-number, never the lens's identity), for the estimators that use it."""
-    if method not in ("default", "lens-family") or lens_key is None:
-        return None
-    from vigproc.core.family_fit import LensHint
+    from vigproc.core.estimate import exif_hint  # one rule for every command and the check
 
-    f35, fno = getattr(lens_key, "focal_35mm", None), getattr(lens_key, "fnumber", None)
-    return LensHint(f35, fno) if f35 and fno else None
+    return exif_hint(lens_key, method)
 
 
 # ------------------------------------------------------------------ processor
@@ -999,6 +981,11 @@ class Processor:
         out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
                                       embedded=embedded)
         res.lens = lens
+        if s.mode == "check":  # what an examiner files beside the verdict (vigproc.io.provenance)
+            from vigproc.io.provenance import read_provenance
+
+            res.extra["provenance"] = read_provenance(path, getattr(self.reader, "exif", self.reader), getattr(
+                lens_key, "problems", ()), sha256=frame_id).to_dict()
         if embedded is not None:
             res.extra["embedded"] = embedded.to_dict(*img.shape[1::-1]) if res.source == "embedded" else \
                 embedded.to_dict()

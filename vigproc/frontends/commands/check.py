@@ -7,8 +7,8 @@ line in the text output); its verdict counts like the others in the exit code.
 
 Every frame also gets the crop test (:mod:`vigproc.forensics.crops`: is the vignetting centred on
 the frame?), as ``crop`` in the JSON and at the end of the frame's line (``crop test:
-centred | off-centre | insufficient-signal``, with the centre, its distance and its
-calibrated false-alarm probability). It is reported, not counted in the exit code: its power on
+not-shown-off-centre | off-centre | insufficient-signal``, with the centre, its distance and
+its calibrated false-alarm probability; it never says "centred": its power on one frame is low). It is reported, not counted in the exit code: its power on
 single natural frames is low (``vigproc bench crops``, docs/benchmarks/forensics.md).
 
 Exit codes (documented in ``vigproc check --help``):
@@ -18,12 +18,14 @@ Exit codes (documented in ``vigproc check --help``):
 * 1 -- some files could not be checked (and none was inconsistent); when *every* file
   failed with the same error, that error's code (3-12), as ``estimate`` says it;
 * :data:`EXIT_UNDECIDED` (21) -- no inconsistency and no error, but some frames got
-  "unknown-lens" or "insufficient-signal".
+  "unknown-lens", "insufficient-signal" or "unlike-any-lens" (a fall-off no lens makes:
+  the claimed lens is not judged).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -42,16 +44,16 @@ EXIT_UNDECIDED = EXIT_CODES["undecided"]
 _EPILOG = f"""exit codes:
   0   every frame consistent
   {EXIT_INCONSISTENT}  at least one frame (or pooled group) inconsistent
-  {EXIT_UNDECIDED}  some frames undecided (unknown lens or insufficient signal), none
-      inconsistent, no failures
+  {EXIT_UNDECIDED}  some frames undecided (unknown lens, insufficient signal, or a fall-off
+      unlike any lens's), none inconsistent, no failures
   1   some files failed, none inconsistent (when every file failed alike: that
       error's code, 3-12)"""
 
 _DESCRIPTION = """Estimate each frame's vignetting and compare it with the profile of the lens its
 metadata claims (a stored profile, else lensfun) and, for a DNG that carries one, with
 its own embedded calibration (FixVignetteRadial/GainMap opcodes): consistent,
-inconsistent, unknown-lens or insufficient-signal, with a calibrated false-alarm
-probability."""
+inconsistent, unknown-lens, insufficient-signal or unlike-any-lens, with a calibrated
+false-alarm probability."""
 
 
 def register(subparsers) -> None:
@@ -86,7 +88,7 @@ def _line(name: str, v: dict, crop=None) -> str:
     a name must not start a line of its own); the crop test's answer at its end."""
     p = v.get("p_false_alarm")
     tail = "" if p is None else f"  p={p:.3g}  D²={v['score']:.2f}"
-    crop_tail = f"; crop test: {crop.verdict}, {crop.reason()}" if crop is not None else ""
+    crop_tail = f"; crop test: {crop.verdict}: {crop.reason()}" if crop is not None else ""
     lens = display_lens_id(v["lens_id"]) if v.get("lens_id") else "no lens"
     return one_line(f"{name}: {v['verdict']}{tail}  [{lens}] {v['reason']}{crop_tail}")
 
@@ -106,8 +108,42 @@ def _embedded_verdict(path: Path, v, calibration, alpha, reader=None):
     except VigprocError as exc:
         log.warning("%s: its embedded calibration is not compared: %s", path, exc)
         return None
-    return check_embedded(v.estimate, model, calibration=calibration, lens_id=v.lens_id, alpha=alpha,
-                          profile=cal.label, grey=bool(v.evidence is not None and v.evidence.grey))
+    ve = check_embedded(v.estimate, model, calibration=calibration, lens_id=v.lens_id, alpha=alpha,
+                        profile=cal.label, grey=bool(v.evidence is not None and v.evidence.grey))
+    return dataclasses.replace(ve, confidence=v.confidence, snr=v.snr)  # the frame's one confidence
+
+
+def run_record(args: argparse.Namespace, calibration, store) -> dict:
+    """What an examiner files about the run itself: when (UTC), which vigproc, the command
+    line as run, its settings and the references the frames were compared with."""
+    import datetime
+
+    from vigproc._version import __version__
+    from vigproc.forensics.lensmatch import MatchCalibration
+
+    argv = list(getattr(args, "argv", None) or sys.argv[1:])
+    alpha = args.alpha if args.alpha is not None else calibration.alpha
+    return {
+        "analysed_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "vigproc": __version__, "argv": ["vigproc", *argv],
+        "settings": {"method": args.method, "input_transfer": args.input_transfer, "alpha": alpha,
+                     "pool": bool(args.pool)},
+        "references": {
+            "calibration": {"file": args.calibration or "shipped",
+                            "test": "lens-family" if isinstance(calibration, MatchCalibration) else "rings",
+                            "source": calibration.source, "frames": calibration.n_frames},
+            "profile_store": None if store is None else str(store.path),
+            "lensfun": _version_of("lensfunpy")},
+    }
+
+
+def _version_of(package: str) -> str | None:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"{package} {version(package)}"
+    except PackageNotFoundError:
+        return None
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -115,6 +151,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     from vigproc.forensics.check import check_image, default_calibration, load_calibration, pool_verdicts
     from vigproc.forensics.lensmatch import default_match_calibration
     from vigproc.io.images import read_image
+    from vigproc.io.provenance import read_provenance
     from vigproc.pipeline.processor import InputFiles, Processor, Settings, file_sha256, output_file, read_lens, refuse_input
 
     files = [Path(f) for f in args.files]
@@ -126,9 +163,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         default_match_calibration() if args.method == "default" else default_calibration()
     store = None
     if not args.no_store:
-        from vigproc.stores.profiles import ProfileStore
+        from vigproc.frontends.commands._options import open_read_store
 
-        store = ProfileStore(args.profile_db)
+        store = open_read_store(args.profile_db)  # a store that cannot exist holds no reference
+    run = run_record(args, calibration, store)
     results, items, verdicts = [], [], []
     failed = 0
     try:
@@ -139,15 +177,17 @@ def cmd_check(args: argparse.Namespace) -> int:
                     lens_key, lens = read_lens(proc.reader, f)
                     # the pipeline's check step, with this run's calibration and threshold
                     # the frame's content id: a stored profile that pooled it is no reference
-                    fid = file_sha256(f) if proc.store is not None else None
+                    fid = file_sha256(f)
                     v = check_image(img, lens_key, store=proc.store, method=settings.method,
-                                    calibration=calibration, alpha=args.alpha, frame_id=fid)
+                                    calibration=calibration, alpha=args.alpha,
+                                    frame_id=fid if proc.store is not None else None)
+                    prov = read_provenance(f, proc.reader, getattr(lens_key, "problems", ()), sha256=fid)
                 except VigprocError as exc:
                     failed += 1
                     results.append(failure_record(f, exc))
                     print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
                     continue
-                rec = {"file": str(f), "lens": lens, **v.to_dict()}
+                rec = {"file": str(f), "lens": lens, "provenance": prov.to_dict(), **v.to_dict()}
                 # is the vignetting centred on the frame? (a crop, a shift, a stitch; Lyu 2010 §5)
                 crop = check_crop(img, channel_axis=-1 if img.ndim == 3 else None)
                 rec["crop"] = crop.to_dict()
@@ -159,12 +199,21 @@ def cmd_check(args: argparse.Namespace) -> int:
                 if args.report:
                     from vigproc.forensics.report import ReportItem, thumbnail
 
-                    items.append(ReportItem(f.name, v, thumbnail(img)))
+                    items.append(ReportItem(f.name, v, thumbnail(img), prov, crop))
                 del img
                 if not args.json:
                     print(_line(str(f), rec, crop))
                     if "embedded" in rec:
                         print(_line(f"{f} (against its embedded calibration)", rec["embedded"]))
+    except KeyboardInterrupt:  # Ctrl-C: what was checked, in one line; exit 130 (no report of a part)
+        from vigproc.frontends.commands._options import interrupted
+
+        found = {}
+        for v in (r.get("verdict") for r in results):
+            if v is not None:
+                found[v] = found.get(v, 0) + 1
+        return interrupted("check", ", ".join([f"{n} {k}" for k, n in sorted(found.items())]
+                                              + [f"{failed} failed", f"{len(files) - len(results)} not started"]))
     finally:
         if store is not None:
             store.close()
@@ -194,18 +243,18 @@ def cmd_check(args: argparse.Namespace) -> int:
         code = EXIT_INCONSISTENT
     elif failed:  # every file failed alike: that error's code, as estimate, correct and hook say it; else 1
         code = files_exit_code([r.get("exit_code") for r in results])
-    elif counts.get("unknown-lens") or counts.get("insufficient-signal"):
+    elif counts.get("unknown-lens") or counts.get("insufficient-signal") or counts.get("unlike-any-lens"):
         code = EXIT_UNDECIDED
     else:
         code = 0
     if args.report and items:
         from vigproc.forensics.report import write_report
 
-        out = write_report(args.report, items)
+        out = write_report(args.report, items, run=run)
         if not args.json:
             print(f"report -> {out}")
     if args.json:
-        print_json_results(results, code, pooled=pooled, counts=counts)
+        print_json_results(results, code, pooled=pooled, counts=counts, run=run)
     else:
         summary = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
         print(f"{summary}; {failed} failed" if summary else f"{failed} failed")

@@ -168,15 +168,21 @@ class _HostLens:
         self.given = given  # str(path) -> LensKey
         self._reader = None
 
-    def read(self, path):
-        key = self.given.get(str(path))
-        if key is not None:
-            return key
+    @property
+    def exif(self):
+        """The ExifTool reader (started on first use): a check's provenance reads the file
+        whatever lens the host gave."""
         if self._reader is None:
             from vigproc.io.exif import ExifReader
 
             self._reader = ExifReader().start()
-        return self._reader.read(path)
+        return self._reader
+
+    def read(self, path):
+        key = self.given.get(str(path))
+        if key is not None:
+            return key
+        return self.exif.read(path)
 
     def close(self) -> None:
         if self._reader is not None:
@@ -220,13 +226,18 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) 
         res = proc.process_file(path, outdir, stem, protect=inputs)
         out.update(Result.from_frame(res).to_dict(), output=res.output,
                    sidecar=str(safe_output(outdir, stem, SIDECAR_SUFFIX)))
+        if "provenance" in res.extra:
+            out["provenance"] = res.extra["provenance"]
         if res.picture:
             out["picture"] = res.picture
         return out
     if s.mode == "correct":
         raise UsageError("correct mode needs an output folder (-o) or an output file per input")
     # check/estimate without an output folder: nothing is written, the answer is the result
-    out.update(Result.from_frame(proc.process_unwritten(path)).to_dict())
+    res = proc.process_unwritten(path)
+    out.update(Result.from_frame(res).to_dict())
+    if "provenance" in res.extra:  # check mode: the file's hash, capture date, camera, conflicts
+        out["provenance"] = res.extra["provenance"]
     return out
 
 
@@ -297,10 +308,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     inputs = InputFiles(j["path"] for j in jobs if "failed" not in j)  # no output may replace one
 
     store = None
-    if settings.needs_store:
-        from vigproc.stores.profiles import ProfileStore
+    if settings.needs_store:  # the hook's modes only read it
+        from vigproc.frontends.commands._options import open_read_store
 
-        store = ProfileStore(opt["profile_db"])
+        store = open_read_store(opt["profile_db"])
     reader = _HostLens(given)
     results = []
     try:
@@ -323,8 +334,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if store is not None:
             store.close()
     ok = sum(r["status"] == "ok" for r in results)
-    return {"protocol": PROTOCOL, "vigproc": __version__, "mode": settings.mode, "ok": ok,
-            "failed": len(results) - ok, "exit_code": overall_exit_code(results), "results": results}
+    answer = {"protocol": PROTOCOL, "vigproc": __version__, "mode": settings.mode, "ok": ok,
+              "failed": len(results) - ok, "exit_code": overall_exit_code(results), "results": results}
+    if settings.mode == "check":  # when the verdicts were made, for the host's record
+        import datetime
+
+        answer["analysed_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    return answer
 
 
 def cmd_hook(args: argparse.Namespace) -> int:
