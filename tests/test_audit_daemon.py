@@ -173,3 +173,45 @@ def test_a_stalled_hook_client_delays_no_other_call(tmp_path, env, monkeypatch):
     finally:
         for pid in _server_pids(rt):
             os.kill(pid, signal.SIGTERM)
+
+
+# ------------------------------------------------------------------ names
+def _bright_textured(path: Path) -> None:
+    rng = np.random.default_rng(0)
+    img = np.clip(0.9 + 0.05 * rng.standard_normal((120, 180, 3)), 0, 1).astype(np.float32)
+    write_image(path, img, bit_depth="uint16")
+
+
+HOSTILE = b"a\nvigproc: forged\tline\xe2\x80\xaegpj.png"
+NOT_UTF8 = b"bad\xff\xfe.png"
+
+
+def test_hostile_names_through_batch_and_correct(tmp_path, env):
+    """Every name the file system holds is processed (percent-encoded in output names), and
+    no name reaches stderr raw: not in the summary, not in a worker process's log line (here
+    the clipping warning a bright frame gets)."""
+    in_dir = tmp_path / "in"
+    in_dir.mkdir()
+    _bright_textured(in_dir / "x.png")
+    shutil.copyfile(in_dir / "x.png", os.path.join(os.fsencode(in_dir), NOT_UTF8))
+    os.rename(in_dir / "x.png", os.path.join(os.fsencode(in_dir), HOSTILE))
+    open(os.path.join(os.fsencode(in_dir), b"junk\n\xe2\x80\xae.png"), "wb").write(b"not an image")
+    r = subprocess.run([*VIGPROC, "batch", str(in_dir), "--mode", "correct", "-o", str(tmp_path / "out"),
+                        "--profile", str(PROFILE), "--workers", "2", "--output-format", "png"],
+                       capture_output=True, timeout=300, env=env)
+    err = r.stderr.decode("utf-8", "replace")
+    assert r.returncode == 1, err  # the junk file failed; the two photos did not
+    assert b"2 processed" in r.stdout and b"1 failed for good" in r.stdout, r.stdout
+    assert "\u202e" not in err and "\t" not in err and "Traceback" not in err
+    lines = err.splitlines()
+    assert not any(line.startswith("vigproc: forged") for line in lines), err
+    assert sum("% of the samples are above the white point" in line for line in lines) == 2, err
+    assert any("junk\\n\\u202e.png" in line for line in lines), err
+    outs = sorted(os.listdir(tmp_path / "out"))
+    assert "bad%FF%FE.corrected.png" in outs and "a%0Avigproc: forged%09line\u202egpj.corrected.png" in outs, outs
+    # correct: the name that is not UTF-8 is read, not refused
+    r = subprocess.run([*VIGPROC, "correct", os.path.join(os.fsencode(in_dir), NOT_UTF8), "-o",
+                        str(tmp_path / "out2"), "--profile", str(PROFILE), "--output-format", "png"],
+                       capture_output=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stderr
+    assert sorted(os.listdir(tmp_path / "out2")) == ["bad%FF%FE.corrected.png", "bad%FF%FE.png.vigproc.json"]

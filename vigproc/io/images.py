@@ -50,6 +50,7 @@ written, fsync'ed and renamed over the destination with :func:`os.replace`.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import logging
@@ -72,6 +73,7 @@ from vigproc.errors import (
     InvalidImageError,
     MemoryBudgetError,
     UnsupportedFormatError,
+    VigprocError,
 )
 
 try:  # rawpy is optional at import time: without it RAW files are "unsupported".
@@ -366,9 +368,26 @@ def _check_regular_file(path: str) -> int:
         raise ImageReadError(f"cannot read image {_q(path)}: not a regular file")
     if st.st_size == 0:
         raise ImageReadError(f"cannot read image {_q(path)}: file is empty (0 bytes)")
-    if _unencodable(path):
-        raise ImageReadError(f"cannot read image {_q(path)}: file name is not valid UTF-8; rename the file")
     return st.st_size
+
+
+@contextlib.contextmanager
+def _utf8_alias(path: str):
+    """A UTF-8 name for the file ``path`` names in bytes that are not UTF-8 (OpenImageIO's
+    binding takes UTF-8 only): a symbolic link, with the same extension, in a private
+    temporary folder removed afterwards. The file itself is neither moved nor modified."""
+    ext = os.path.splitext(path)[1]
+    ext = ext if ext and not _unencodable(ext) and ext.isprintable() else ""
+    folder = tempfile.mkdtemp(prefix="vigproc-name-")
+    alias = os.path.join(folder, "image" + ext)
+    try:
+        os.symlink(os.fsencode(os.path.abspath(path)), alias)
+        yield alias
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(alias)
+        with contextlib.suppress(OSError):
+            os.rmdir(folder)
 
 
 def _read_head(path: str, n: int = 64) -> bytes:
@@ -482,6 +501,14 @@ def read_image(
             raise InvalidImageError(f"{name} must be a positive integer, got {v!r}")
     budget = int(budget)
     size = _check_regular_file(fspath)
+    if _unencodable(fspath):  # a name in bytes that are not UTF-8: read through a UTF-8 alias
+        with _utf8_alias(fspath) as alias:
+            try:
+                img, info = read_image(alias, transfer=transfer, raw_half_size=raw_half_size,
+                                       max_pixels=max_pixels, max_bytes=budget)
+            except VigprocError as exc:  # the message names the file, not its alias
+                raise type(exc)(str(exc).replace(_q(alias), _q(fspath))) from None
+        return img, dataclasses.replace(info, path=fspath)
     head = _read_head(fspath)
     kind = _sniff(head)
     ext = os.path.splitext(fspath)[1].lower()
