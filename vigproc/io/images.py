@@ -237,6 +237,25 @@ def linear_to_srgb(x: np.ndarray | float) -> np.ndarray:
     return np.copysign(enc, a).astype(a.dtype, copy=False)
 
 
+def _quantise(data: np.ndarray, depth: str, srgb: bool) -> np.ndarray:
+    """Linear float32 ``data`` as ``depth`` integer codes (sRGB-encoded first when ``srgb``),
+    rounded half up and clipped here rather than by OpenImageIO's conversion.
+
+    A band of rows at a time: on the whole frame the curve and the scaling make about five
+    float temporaries the size of the frame, the largest part of a correction's peak memory
+    (the budget's multiple, ``DEFAULT_MEMORY_BUDGET``); per band they are a few MB.
+    """
+    top = np.float32(255.0 if depth == "uint8" else 65535.0)
+    out = np.empty(data.shape, depth)
+    step = max(1, (1 << 22) // max(1, data[:1].size))  # rows of about 4 M samples
+    for y in range(0, data.shape[0], step):
+        band = data[y:y + step]
+        if srgb:
+            band = linear_to_srgb(band)
+        out[y:y + step] = np.floor(np.clip(band, 0.0, 1.0) * top + np.float32(0.5))
+    return out
+
+
 def _gamma_to_linear(x: np.ndarray, gamma: float) -> np.ndarray:
     a = _as_float(x)
     return np.copysign(np.abs(a) ** gamma, a).astype(a.dtype, copy=False)
@@ -1121,11 +1140,7 @@ def write_image(
                 "%s: %.1f %% of the values are above 1.0 (up to %.4g) and are clipped to white in %s; "
                 "integer outputs take linear values in [0, 1], not integer codes",
                 q, 100.0 * above / data.size, float(data.max()), depth)
-        if tr == "srgb":
-            data = linear_to_srgb(data)
-        top = 255.0 if depth == "uint8" else 65535.0
-        # Quantise here (round half up, clipped) rather than trusting OIIO's conversion.
-        data = np.floor(np.clip(data, 0.0, 1.0) * np.float32(top) + np.float32(0.5)).astype(depth)
+        data = _quantise(data, depth, tr == "srgb")
     # Always HxWxC: OIIO's Python binding takes a 2-D array as (width, height)
     # or scanline-major depending on version, which silently transposes gray images.
     data = np.ascontiguousarray(data.reshape(h, w, nch))
