@@ -120,7 +120,7 @@ LINEAR_TIFF_MARKER = "vigproc:transfer=linear"
 #: 178-megapixel colour frame (a 150-MP medium-format RAW fits) and refuses a
 #: 196-MP colour PNG bomb of 572 KB.  Decoding an 8-bit file peaks at about 1.25x
 #: the decoded size (its integer buffer too; more for 16-bit files and RAW); a whole
-#: correction about 4-5x (0.77 GB for a 12-MP frame, 144 MB of float32).
+#: correction about 3.5x plus the process's 0.3 GB (7.65 GB for a 169-MP JPEG; docs/io.md).
 DEFAULT_MEMORY_BUDGET = 2 * 2**30
 #: Environment variable that sets the budget (bytes, or with a K/M/G/T suffix: powers of 1024).
 MEMORY_BUDGET_ENV = "VIGPROC_MEMORY_BUDGET"
