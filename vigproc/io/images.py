@@ -247,7 +247,7 @@ def _quantise(data: np.ndarray, depth: str, srgb: bool) -> np.ndarray:
     """
     top = np.float32(255.0 if depth == "uint8" else 65535.0)
     out = np.empty(data.shape, depth)
-    step = max(1, (1 << 22) // max(1, data[:1].size))  # rows of about 4 M samples
+    step = max(1, (1 << 20) // max(1, data[:1].size))  # rows of about 1 M samples
     for y in range(0, data.shape[0], step):
         band = data[y:y + step]
         if srgb:
