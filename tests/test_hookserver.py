@@ -95,6 +95,22 @@ def test_no_server_for_a_folder_others_can_enter(tmp_path, monkeypatch):
     assert hookserver.call(["hook", "--help"]) is None  # the caller does the work itself
 
 
+def test_a_runtime_folder_of_another_user_is_said_once(tmp_path, monkeypatch, caplog):
+    """A runtime folder that is not ours disabled the warm server silently: now one warning
+    says so and why, once per process."""
+    rt = tmp_path / "theirs"
+    rt.mkdir(mode=0o700)
+    os.chown(rt, 12345, 12345) if os.getuid() == 0 else rt.chmod(0o755)
+    monkeypatch.setenv(hookserver.ENV_DIR, str(rt))
+    hookserver._WARNED.clear()
+    with caplog.at_level("WARNING", logger=hookserver.__name__):
+        assert hookserver.call(["hook", "--help"]) is None
+        hookserver.start_in_background()
+        assert hookserver.call(["hook", "--help"]) is None
+    said = [r.getMessage() for r in caplog.records if "warm hook server is disabled" in r.getMessage()]
+    assert len(said) == 1 and str(rt) in said[0] and hookserver.ENV_DIR in said[0], said
+
+
 def test_off_switch(monkeypatch):
     monkeypatch.setenv(hookserver.ENV_SWITCH, "off")
     assert not hookserver.enabled()

@@ -936,3 +936,25 @@ def test_migrations_6_to_9_refit_the_frames_from_their_evidence(tmp_path, old):
         p = store.learn(key, m.candidate or m, frame_id="f2", evidence=frame_evidence(frames[2], channel_axis=None))
     expected = pool_family([frame_fit(evidence_copy(frame_evidence(f, channel_axis=None))) for f in frames], w, h)
     np.testing.assert_allclose(p.model(w, h).log_field((h, w)), expected.log_field((h, w)), atol=1e-6)
+
+
+def test_a_frame_with_too_few_usable_pixels_says_so(tmp_path):
+    """Issue 37: a real 16 MP frame of the full moon on a black sky (90 % of its pixels 0)
+    failed to learn with "evidence is not frame evidence": the too-few-pixels error is a
+    ValueError too and was caught as a decoding failure. It now says what is wrong."""
+    from conftest import photo_like
+
+    from vigproc.core.estimate import estimate, frame_evidence
+
+    h, w = 192, 288
+    frame = np.zeros((h, w))
+    yy, xx = np.mgrid[:h, :w]
+    moon = (yy - h / 2) ** 2 + (xx - w / 2) ** 2 < 14 ** 2
+    frame[moon] = 0.2 + 0.05 * photo_like(h, w, seed=3)[moon]
+    m = estimate(frame, "robust", channel_axis=None)
+    key = ProfileKey("vigproc|test|moon", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        with pytest.raises(ProfileStoreError, match=r"nothing to learn from this frame: too few usable pixels .* bins"):
+            store.learn(key, m.candidate or m, frame_id="moon", evidence=frame_evidence(frame, channel_axis=None))
+        with pytest.raises(ProfileStoreError, match="is not frame evidence"):  # garbage is still garbage
+            store.learn(key, m.candidate or m, frame_id="junk", evidence=b"\x93NUMPY junk")

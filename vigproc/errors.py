@@ -8,10 +8,12 @@ the command line turns these into a one-line message and a non-zero exit code
 from __future__ import annotations
 
 #: Escapes of the characters that would end or rewrite a line of text (C0 and C1
-#: controls, DEL, Unicode line and paragraph separators): applied to messages that
-#: carry file names, so a hostile name cannot forge lines on stderr or in a log.
+#: controls, DEL, Unicode line and paragraph separators, bidirectional controls such as
+#: RLO that reorder what follows): applied to messages that carry file names, so a
+#: hostile name cannot forge lines on stderr or in a log.
 CONTROL_ESCAPES = ({c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0))}
-                   | {10: "\\n", 13: "\\r", 9: "\\t", 0x2028: "\\u2028", 0x2029: "\\u2029"})
+                   | {10: "\\n", 13: "\\r", 9: "\\t", 0x2028: "\\u2028", 0x2029: "\\u2029"}
+                   | {c: f"\\u{c:04x}" for c in (0x61C, 0x200E, 0x200F, *range(0x202A, 0x202F), *range(0x2066, 0x206A))})
 
 
 def one_line(text: str) -> str:

@@ -113,7 +113,8 @@ def frame_fit(wc: WorkingCopy, family: LensFamily | None = None,
     channels = None if wc.channels is None else (wc.channels, wc.channels_valid)
     fit = frame_coefficients(wc.L, wc.valid, xs, ys, wc.width, wc.height, settings, fam, channels=channels)
     if fit is None:
-        raise InvalidImageError(f"too few usable pixels for a fit ({int(wc.valid.sum())} bins)")
+        raise InvalidImageError(f"too few usable pixels for a fit ({int(wc.valid.sum())} of {wc.valid.size} bins; "
+                                "the rest are black, clipped or too dark)")
     return fit
 
 

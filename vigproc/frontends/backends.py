@@ -101,7 +101,8 @@ class _Pool:
         from concurrent.futures import ProcessPoolExecutor
 
         return ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_pool_worker_init, initargs=(self.numba_threads, os.getpid()))
+                                   initializer=_pool_worker_init,
+                                   initargs=(self.numba_threads, os.getpid(), logging.getLogger().getEffectiveLevel()))
 
     def start(self, spec: JobSpec) -> None:
         self.spec = spec
@@ -159,8 +160,14 @@ class _Pool:
             self._pool = None
 
 
-def _pool_worker_init(numba_threads: int, client_pid: int) -> None:
+def _pool_worker_init(numba_threads: int, client_pid: int, log_level: int = logging.WARNING) -> None:
     import signal
+
+    from vigproc.frontends.daemon.logs import configure_logging
+
+    # the worker's log lines on the shared stderr, control and bidi characters of hostile
+    # file names escaped as the client's are (unconfigured, Python would print them raw)
+    configure_logging(False, log_level)
 
     # Ctrl-C is the client's to handle: it stops handing out files and lets the running
     # ones finish.  A process group of its own keeps the terminal's SIGINT from the worker

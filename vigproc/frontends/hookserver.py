@@ -18,7 +18,13 @@ Safety and correctness:
 - The socket's name carries a fingerprint of the Python and the vigproc code in
   use, so an upgraded vigproc never talks to a server of the old code.
 - Each call runs with the client's working folder and its ``VIGPROC_*``
-  environment; calls run one at a time.
+  environment; calls run one at a time, but every connection is read by its own
+  thread, with a :data:`READ_TIMEOUT` between bytes: a client that stalls mid-request
+  is dropped after a second of silence and never holds up another call.
+- While a call waits for its turn or runs, the server sends the client a heartbeat
+  every :data:`HEARTBEAT` seconds; a client that hears nothing for
+  :data:`CLIENT_SILENCE` seconds (a stopped or wedged server) gives up and does the
+  work itself, as when no server runs.
 - ``VIGPROC_HOOK_SERVER=off`` turns it off (every call in-process, nothing started).
 
 Only the standard library is imported here: the client side must stay cheap.
@@ -40,6 +46,7 @@ import stat
 import struct
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -55,6 +62,15 @@ IDLE_SECONDS = 600.0
 #: Largest message accepted (the hook's own request limit, 16 MiB, plus room).
 MAX_MESSAGE = 32 * 2**20
 _LEN = struct.Struct("!I")
+#: Seconds of silence from a client mid-request before the server drops it.
+READ_TIMEOUT = 1.0
+#: Seconds between the server's heartbeats to a client whose call waits or runs.
+HEARTBEAT = 1.0
+#: Seconds a client waits for any word of the server (connect, heartbeat, answer)
+#: before it does the call itself.
+CLIENT_SILENCE = 5.0
+#: Connections read at once; more are closed at once (the client then works in-process).
+MAX_CONNECTIONS = 64
 #: True inside the server: its calls run here, never handed on again.
 _SERVING = False
 
@@ -100,6 +116,18 @@ def socket_path() -> Path:
     return runtime_dir() / f"hook-{_fingerprint()}.sock"
 
 
+_WARNED: set[str] = set()
+
+
+def _warn_disabled(exc: OSError) -> None:
+    """Say once per process why there is no warm server (a runtime folder of another user,
+    or one anyone may enter, would otherwise disable it silently)."""
+    text = f"the warm hook server is disabled: {exc} (set {ENV_DIR} to a folder of your own)"
+    if text not in _WARNED:
+        _WARNED.add(text)
+        log.warning("%s", text)
+
+
 # ------------------------------------------------------------------ framing
 def _send(sock: socket.socket, doc: dict[str, Any]) -> None:
     data = json.dumps(doc, ensure_ascii=True).encode("ascii")
@@ -137,18 +165,31 @@ def call(argv: Sequence[str], stdin_bytes: bytes | None = None, timeout: float |
     then runs the call itself)."""
     try:
         path = socket_path()
+    except PermissionError as exc:
+        _warn_disabled(exc)
+        return None
     except OSError:
         return None
+    deadline = None if timeout is None else time.monotonic() + timeout
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
-        s.settimeout(2.0)
+        s.settimeout(min(2.0, CLIENT_SILENCE))
         s.connect(os.fspath(path))
-        s.settimeout(timeout)
+        s.settimeout(CLIENT_SILENCE)
         _send(s, {"argv": list(argv), "cwd": os.getcwd(), "env": _client_env(),
                   "stdin": base64.b64encode(stdin_bytes).decode("ascii") if stdin_bytes is not None else None})
-        answer = _recv(s)
-    except (OSError, ConnectionError, ValueError):
-        return None  # no server, a stale socket, or it died: do the call here
+        while True:  # heartbeats until the answer; silence or the caller's deadline: give up
+            if deadline is not None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError("no answer in time")
+                s.settimeout(min(CLIENT_SILENCE, left))
+            answer = _recv(s)
+            if "code" in answer:
+                break
+    except (OSError, ConnectionError, ValueError) as exc:
+        log.debug("no answer from the hook server (%s): the call runs here", exc)
+        return None  # no server, a stale socket, it died or is wedged: do the call here
     finally:
         s.close()
     sys.stderr.write(answer.get("stderr", ""))
@@ -163,6 +204,9 @@ def start_in_background() -> None:
     one started at the same time finds the socket taken and leaves."""
     try:
         path = socket_path()
+    except PermissionError as exc:
+        _warn_disabled(exc)
+        return
     except OSError as exc:
         log.debug("no hook server: %s", exc)
         return
@@ -198,24 +242,70 @@ def _as_client(doc: dict[str, Any]):
         os.chdir(old_cwd)
 
 
-def _handle(conn: socket.socket, run: Runner) -> None:
+class _Heartbeat:
+    """Sends the client a heartbeat every :data:`HEARTBEAT` seconds while its call waits
+    or runs, from a thread of its own (sends are serialised with the answer's)."""
+
+    def __init__(self, conn: socket.socket) -> None:
+        self.conn, self.lock = conn, threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, daemon=True, name="hook-heartbeat")
+
+    def _beat(self) -> None:
+        while not self._stop.wait(HEARTBEAT):
+            try:
+                self.send({"wait": 1})
+            except OSError:
+                return  # the client left; its answer's send fails too
+
+    def send(self, doc: dict[str, Any]) -> None:
+        with self.lock:
+            _send(self.conn, doc)
+
+    def __enter__(self) -> "_Heartbeat":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def _handle(conn: socket.socket, run: Runner, turn: threading.Lock) -> None:
+    """One connection: read its request (dropped after :data:`READ_TIMEOUT` of silence),
+    wait for ``turn`` (calls change the folder, environment and streams of this process, so
+    they run one at a time), run it and send the answer."""
     creds = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
     _pid, uid, _gid = struct.unpack("3i", creds)
     if uid != os.getuid():  # the folder is private; this is the second lock
         return
+    conn.settimeout(READ_TIMEOUT)  # per recv: a stalled client is dropped, no one else waits on it
     doc = _recv(conn)
     argv = doc.get("argv")
     if not (isinstance(argv, list) and all(isinstance(a, str) for a in argv) and isinstance(doc.get("cwd"), str)):
         return
+    conn.settimeout(max(READ_TIMEOUT, 10 * HEARTBEAT))  # a client that stops reading is dropped too
+    with _Heartbeat(conn) as beat:
+        with turn:
+            try:
+                with _as_client(doc) as (out, err):
+                    code = run(argv)
+            except SystemExit as exc:  # argparse's usage errors
+                code = exc.code if isinstance(exc.code, int) else 2
+            except Exception as exc:  # noqa: BLE001 - one bad call must not end the server
+                err = io.StringIO(f"vigproc: internal error in the hook server ({type(exc).__name__}: {exc})\n")
+                out, code = io.StringIO(), 70
+    beat.send({"stdout": out.getvalue(), "stderr": err.getvalue(), "code": int(code)})
+
+
+def _serve_connection(conn: socket.socket, run: Runner, turn: threading.Lock, active: threading.Semaphore) -> None:
     try:
-        with _as_client(doc) as (out, err):
-            code = run(argv)
-    except SystemExit as exc:  # argparse's usage errors
-        code = exc.code if isinstance(exc.code, int) else 2
-    except Exception as exc:  # noqa: BLE001 - one bad call must not end the server
-        err = io.StringIO(f"vigproc: internal error in the hook server ({type(exc).__name__}: {exc})\n")
-        out, code = io.StringIO(), 70
-    _send(conn, {"stdout": out.getvalue(), "stderr": err.getvalue(), "code": int(code)})
+        with conn:
+            _handle(conn, run, turn)
+    except (OSError, ConnectionError, ValueError) as exc:
+        log.debug("hook call dropped: %s", exc)
+    finally:
+        active.release()
 
 
 def serve(path: Path, run: Runner, idle: float = IDLE_SECONDS) -> int:
@@ -256,22 +346,28 @@ def serve(path: Path, run: Runner, idle: float = IDLE_SECONDS) -> int:
         # or the hook benchmark's clean-up leaves it, ends the server within a second, not 10)
         srv.settimeout(min(idle, 1.0))
         last = time.monotonic()
+        turn = threading.Lock()
+        active = threading.BoundedSemaphore(MAX_CONNECTIONS)
         while True:
             try:
                 conn, _ = srv.accept()
             except socket.timeout:
-                if time.monotonic() - last >= idle or not path.exists():
+                if turn.locked():  # a call running is not idleness
+                    last = time.monotonic()
+                elif time.monotonic() - last >= idle or not path.exists():
                     break
                 continue
             last = time.monotonic()
-            with conn:
-                conn.settimeout(None)
-                try:
-                    _handle(conn, run)
-                except (OSError, ConnectionError, ValueError) as exc:
-                    log.debug("hook call dropped: %s", exc)
+            if not active.acquire(blocking=False):
+                conn.close()  # too many at once: that client works in-process
+                continue
+            # a thread per connection: a client that stalls holds up only itself
+            threading.Thread(target=_serve_connection, args=(conn, run, turn, active), daemon=True,
+                             name="hook-call").start()
             if not path.exists():  # removed by someone: stop serving a name nobody finds
                 break
+        with turn:  # let a call that runs finish (those still queued fall back to in-process)
+            pass
     finally:
         srv.close()
         with contextlib.suppress(OSError):

@@ -50,6 +50,7 @@ written, fsync'ed and renamed over the destination with :func:`os.replace`.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import logging
@@ -72,6 +73,7 @@ from vigproc.errors import (
     InvalidImageError,
     MemoryBudgetError,
     UnsupportedFormatError,
+    VigprocError,
 )
 
 try:  # rawpy is optional at import time: without it RAW files are "unsupported".
@@ -118,7 +120,7 @@ LINEAR_TIFF_MARKER = "vigproc:transfer=linear"
 #: 178-megapixel colour frame (a 150-MP medium-format RAW fits) and refuses a
 #: 196-MP colour PNG bomb of 572 KB.  Decoding an 8-bit file peaks at about 1.25x
 #: the decoded size (its integer buffer too; more for 16-bit files and RAW); a whole
-#: correction about 4-5x (0.77 GB for a 12-MP frame, 144 MB of float32).
+#: correction about 3.5x plus the process's 0.3 GB (7.65 GB for a 169-MP JPEG; docs/io.md).
 DEFAULT_MEMORY_BUDGET = 2 * 2**30
 #: Environment variable that sets the budget (bytes, or with a K/M/G/T suffix: powers of 1024).
 MEMORY_BUDGET_ENV = "VIGPROC_MEMORY_BUDGET"
@@ -233,6 +235,25 @@ def linear_to_srgb(x: np.ndarray | float) -> np.ndarray:
     v = np.abs(a)
     enc = np.where(v <= 0.0031308, v * 12.92, 1.055 * v ** (1.0 / 2.4) - 0.055)
     return np.copysign(enc, a).astype(a.dtype, copy=False)
+
+
+def _quantise(data: np.ndarray, depth: str, srgb: bool) -> np.ndarray:
+    """Linear float32 ``data`` as ``depth`` integer codes (sRGB-encoded first when ``srgb``),
+    rounded half up and clipped here rather than by OpenImageIO's conversion.
+
+    A band of rows at a time: on the whole frame the curve and the scaling make about five
+    float temporaries the size of the frame, the largest part of a correction's peak memory
+    (the budget's multiple, ``DEFAULT_MEMORY_BUDGET``); per band they are a few MB.
+    """
+    top = np.float32(255.0 if depth == "uint8" else 65535.0)
+    out = np.empty(data.shape, depth)
+    step = max(1, (1 << 20) // max(1, data[:1].size))  # rows of about 1 M samples
+    for y in range(0, data.shape[0], step):
+        band = data[y:y + step]
+        if srgb:
+            band = linear_to_srgb(band)
+        out[y:y + step] = np.floor(np.clip(band, 0.0, 1.0) * top + np.float32(0.5))
+    return out
 
 
 def _gamma_to_linear(x: np.ndarray, gamma: float) -> np.ndarray:
@@ -366,9 +387,26 @@ def _check_regular_file(path: str) -> int:
         raise ImageReadError(f"cannot read image {_q(path)}: not a regular file")
     if st.st_size == 0:
         raise ImageReadError(f"cannot read image {_q(path)}: file is empty (0 bytes)")
-    if _unencodable(path):
-        raise ImageReadError(f"cannot read image {_q(path)}: file name is not valid UTF-8; rename the file")
     return st.st_size
+
+
+@contextlib.contextmanager
+def _utf8_alias(path: str):
+    """A UTF-8 name for the file ``path`` names in bytes that are not UTF-8 (OpenImageIO's
+    binding takes UTF-8 only): a symbolic link, with the same extension, in a private
+    temporary folder removed afterwards. The file itself is neither moved nor modified."""
+    ext = os.path.splitext(path)[1]
+    ext = ext if ext and not _unencodable(ext) and ext.isprintable() else ""
+    folder = tempfile.mkdtemp(prefix="vigproc-name-")
+    alias = os.path.join(folder, "image" + ext)
+    try:
+        os.symlink(os.fsencode(os.path.abspath(path)), alias)
+        yield alias
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(alias)
+        with contextlib.suppress(OSError):
+            os.rmdir(folder)
 
 
 def _read_head(path: str, n: int = 64) -> bytes:
@@ -482,6 +520,14 @@ def read_image(
             raise InvalidImageError(f"{name} must be a positive integer, got {v!r}")
     budget = int(budget)
     size = _check_regular_file(fspath)
+    if _unencodable(fspath):  # a name in bytes that are not UTF-8: read through a UTF-8 alias
+        with _utf8_alias(fspath) as alias:
+            try:
+                img, info = read_image(alias, transfer=transfer, raw_half_size=raw_half_size,
+                                       max_pixels=max_pixels, max_bytes=budget)
+            except VigprocError as exc:  # the message names the file, not its alias
+                raise type(exc)(str(exc).replace(_q(alias), _q(fspath))) from None
+        return img, dataclasses.replace(info, path=fspath)
     head = _read_head(fspath)
     kind = _sniff(head)
     ext = os.path.splitext(fspath)[1].lower()
@@ -1094,11 +1140,7 @@ def write_image(
                 "%s: %.1f %% of the values are above 1.0 (up to %.4g) and are clipped to white in %s; "
                 "integer outputs take linear values in [0, 1], not integer codes",
                 q, 100.0 * above / data.size, float(data.max()), depth)
-        if tr == "srgb":
-            data = linear_to_srgb(data)
-        top = 255.0 if depth == "uint8" else 65535.0
-        # Quantise here (round half up, clipped) rather than trusting OIIO's conversion.
-        data = np.floor(np.clip(data, 0.0, 1.0) * np.float32(top) + np.float32(0.5)).astype(depth)
+        data = _quantise(data, depth, tr == "srgb")
     # Always HxWxC: OIIO's Python binding takes a 2-D array as (width, height)
     # or scanline-major depending on version, which silently transposes gray images.
     data = np.ascontiguousarray(data.reshape(h, w, nch))

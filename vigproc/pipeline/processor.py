@@ -919,6 +919,7 @@ class Processor:
             refuse_input(target, (own,), protect)
         out, res, img, info, fmt = self._process_path(path, frame_id, lambda info: output_format_for(
             s.output_format, path, info, like=like))
+        del img  # not needed once processed: freed before the output is encoded (peak memory)
         if out is not None and (res.applied or policy == "write"):
             from vigproc.io.metadata import make_record, write_corrected
 

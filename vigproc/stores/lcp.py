@@ -57,7 +57,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import stat
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +65,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from vigproc.errors import ModelError, one_line
+from vigproc.stores.xmlsafe import parse_xml, read_capped
 
 __all__ = [
     "LcpError",
@@ -272,21 +272,6 @@ def _number(text: str | None, what: str, where: str, lo: float, hi: float) -> fl
     return v
 
 
-def _read_bytes(path: str | os.PathLike[str]) -> bytes:
-    where = os.fspath(path)
-    try:
-        st = os.stat(path)
-        if not stat.S_ISREG(st.st_mode):  # a FIFO or device would block or never end
-            raise LcpError(one_line(f"{where}: not a regular file"))
-        if st.st_size > MAX_FILE_BYTES:
-            raise LcpError(one_line(f"{where}: {st.st_size} bytes is too large for a lens profile "
-                                    f"(limit {MAX_FILE_BYTES})"))
-        with open(path, "rb") as fh:
-            return fh.read(MAX_FILE_BYTES + 1)
-    except OSError as exc:
-        raise LcpError(one_line(f"cannot read lens profile {where}: {exc.strerror or exc}")) from None
-
-
 def read_lcp(path: str | os.PathLike[str]) -> tuple[list[LcpVignette], list[str]]:
     """The vignetting calibrations of an Adobe LCP file.
 
@@ -314,16 +299,9 @@ def read_lcp(path: str | os.PathLike[str]) -> tuple[list[LcpVignette], list[str]
     ``lensfun-convert-lcp``; RawTherapee ``rtengine/lcp.cc``.
     """
     where = os.fspath(path)
-    raw = _read_bytes(path)
-    # an LCP has no DTD: refusing one refuses entity expansion and external entities
-    if b"<!DOCTYPE" in raw or b"<!ENTITY" in raw:
-        raise LcpError(one_line(f"{where}: a DTD or entity declaration is not allowed in a lens profile"))
-    try:
-        root = ET.fromstring(raw)
-    except ET.ParseError as exc:
-        raise LcpError(one_line(f"{where}: not an XML lens profile ({exc})")) from None
-    except RecursionError:
-        raise LcpError(one_line(f"{where}: absurdly nested XML")) from None
+    # decoded before the DTD check (a UTF-16 file spells <!DOCTYPE with zero bytes between)
+    raw = read_capped(path, MAX_FILE_BYTES, LcpError, "lens profile")
+    root = parse_xml(raw, LcpError, where, "lens profile")
     seqs = [s for cp in root.iter(f"{{{PHOTOSHOP_NS}}}CameraProfiles") for s in cp.iter(f"{_R}Seq")]
     items = [li for s in seqs for li in s.findall(f"{_R}li")]
     if not items:

@@ -72,6 +72,7 @@ import numpy as np
 
 from vigproc.core.lensfamily import N_COMPONENTS, N_RADII, PLAUSIBLE, LensFamily, build_family
 from vigproc.errors import InvalidImageError, ModelError
+from vigproc.stores.xmlsafe import parse_xml, read_capped
 
 __all__ = [
     "LensfunCamera",
@@ -90,6 +91,9 @@ logger = logging.getLogger(__name__)
 
 #: Inverse-distance-weighting power used by lensfun's InterpolateVignetting.
 IDW_POWER = 3.5
+#: Largest lensfun database file read (lensfun's own largest, slr-canon.xml, is 0.7 MB): a
+#: file is refused by its size before parsing, which bounds the parser's memory.
+MAX_DB_FILE_BYTES = 8 << 20
 #: Normalised distance below which lensfun returns a calibration point as is.
 EXACT_MATCH_DISTANCE = 1e-4
 #: Normalised distance beyond which lensfun refuses to interpolate.
@@ -283,10 +287,10 @@ def _lens_sort_key(lens: LensfunLens) -> tuple[str, str, float, tuple[str, ...]]
 
 
 def _parse_file(file: str) -> list[LensfunLens]:
-    try:
-        root = ET.parse(file).getroot()
-    except (ET.ParseError, OSError) as exc:
-        raise ModelError(f"cannot parse lensfun database file {file}: {exc}") from exc
+    # hostile input (``prior fit-lens-family --db``, ``profile import-lensfun``): refused by
+    # size before it is read, decoded before a DTD is looked for
+    raw = read_capped(file, MAX_DB_FILE_BYTES, ModelError, "lensfun database file")
+    root = parse_xml(raw, ModelError, file, "lensfun database file")
     lenses = []
     for element in root.findall("lens"):
         lens = _parse_lens(element, file)

@@ -1671,14 +1671,14 @@ class ProfileStore(SQLiteFile):
             try:
                 # fitted before the transaction: the refit below finds it in the cache
                 frame_fit, frame_size = self._frame_fit(evidence)
+            except VigprocError as exc:  # first: InvalidImageError (too few usable bins) is a ValueError too
+                raise ProfileStoreError(f"nothing to learn from this frame: {exc}") from None
             except ValueError as exc:
                 # the decoder's own wording (numpy's allow_pickle...) would only confuse
                 logger.debug("evidence rejected: %s", exc)
                 raise ProfileStoreError(
                     "evidence is not frame evidence (the bytes vigproc.core.estimate.frame_evidence returns)"
                 ) from None
-            except VigprocError as exc:
-                raise ProfileStoreError(f"unusable frame evidence: {exc}") from None
             if frame_id is None:
                 frame_id = "evidence:" + hashlib.sha256(evidence).hexdigest()
         if lens_key is not None and not isinstance(lens_key, LensKey):

@@ -109,6 +109,29 @@ def _signature(path: str) -> tuple[int, int, int] | None:
 
 
 # ------------------------------------------------------------------ config
+#: Environment: the folder of the daemons' per-folder locks (default: the user's state folder).
+ENV_LOCK_DIR = "VIGPROC_LOCK_DIR"
+
+
+def job_lock_dir() -> Path:
+    """Where the per-folder locks of ``vigproc watch`` live: ``$VIGPROC_LOCK_DIR``, else
+    ``<user state dir>/vigproc/locks`` (platformdirs): outside the output folder and beside
+    no journal, so neither ``--journal elsewhere`` nor deleting the output folder frees it."""
+    env = os.environ.get(ENV_LOCK_DIR)
+    if env:
+        return Path(env).expanduser().resolve()
+    import platformdirs
+
+    return Path(platformdirs.user_state_dir("vigproc", appauthor=False)).resolve() / "locks"
+
+
+def folders_lock_name(in_dir: Path, out_dir: Path) -> str:
+    """The lock file's name for a daemon on the resolved ``in_dir`` and ``out_dir``: one
+    daemon per pair, whatever its journal, job name or mode."""
+    key = os.fsencode(in_dir) + b"\0" + os.fsencode(out_dir)
+    return f"watch-{hashlib.sha256(key).hexdigest()[:24]}.lock"
+
+
 @dataclass
 class WatchConfig:
     """Everything ``vigproc watch`` was asked to do (see the command's help)."""
@@ -152,6 +175,7 @@ class WatchConfig:
             self.status_file = self.out_dir / f".vigproc-watch-{tag}.status.json"
         self.status_file = Path(self.status_file).expanduser().resolve()
         self.lock_file = self.journal.with_name(f"{self.journal.name}.{tag}.lock")
+        self.folders_lock_file = job_lock_dir() / folders_lock_name(self.in_dir, self.out_dir)
 
     def validate(self) -> None:
         """Check the folders and numbers; create the output folders.

@@ -28,6 +28,55 @@ from .watcher import Watcher
 __all__ = ["Daemon"]
 
 
+def _identity(path: Any) -> tuple[int, int] | None:
+    """(device, inode) of ``path``, None when it is gone."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _fd_identity(fd: int) -> tuple[int, int]:
+    st = os.fstat(fd)
+    return st.st_dev, st.st_ino
+
+
+def _flock(path: Any, cfg: WatchConfig) -> int:
+    """Open ``path`` (creating it and its folder), lock it exclusively and write our pid in
+    it; returns the descriptor, held for the daemon's life.
+
+    Raises
+    ------
+    WatchError
+        The lock is held by another daemon, or the file cannot be made.
+    """
+    import fcntl
+
+    for _ in range(5):  # a file replaced between our open and our lock is locked again
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise WatchError(f"cannot create the lock file {str(path)!r}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                other = os.read(fd, 64).decode("ascii", "replace").strip()
+            except OSError:
+                other = "?"
+            os.close(fd)
+            raise WatchError(f"another vigproc watch (pid {other or '?'}) is already running on {str(cfg.in_dir)!r} "
+                             f"-> {str(cfg.out_dir)!r} (lock {str(path)!r})") from None
+        if _identity(path) == _fd_identity(fd):
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+            return fd
+        os.close(fd)
+    raise WatchError(f"cannot hold the lock file {str(path)!r}: it keeps being replaced")
+
+
 class Daemon:
     """The watch-folder loop (see :mod:`vigproc.frontends.daemon`). ``Daemon(cfg).run()``
     returns an exit code: 0 after a drained SIGTERM/SIGINT, 1 after an abort (a second
@@ -59,7 +108,9 @@ class Daemon:
         self.recorder = Recorder(cfg)
         self.watcher = Watcher(cfg, self.recorder, busy=self._busy)
         self.scheduler = Scheduler(cfg, self.watcher, self.recorder, self.flags, on_status=self._write_status)
-        self._lock_fd: int | None = None
+        self._locks: list[tuple[Any, int]] = []
+        self._ground: dict[str, tuple[int, int] | None] = {}
+        self._lost: str | None = None
         self._wake_r: socket.socket | None = None
         self._wake_w: socket.socket | None = None
 
@@ -88,11 +139,15 @@ class Daemon:
         try:
             self.journal = Journal(cfg.journal, job=cfg.job, retry_base=cfg.retry_base, retry_cap=cfg.retry_cap)
             try:
-                return self._run()
+                self._remember_ground()
+                code = self._run()
             finally:
                 self.journal.close()
         finally:
             self._release_lock()
+        if self._lost:
+            raise WatchError(self._lost)
+        return code
 
     def _run(self) -> int:
         cfg, rec, flags = self.cfg, self.recorder, self.flags
@@ -125,6 +180,9 @@ class Daemon:
             self._restore_signals(old_handlers)
             self._write_status(state="stopped" if not flags.abort else "aborted")
             _sd_notify("STOPPING=1")
+        if self._lost:
+            log.error("%s", self._lost, extra=_ev("lost", reason=self._lost))
+            return 1
         if flags.abort:
             log.warning("aborted: files in progress were handed back for the next start", extra=_ev("aborted"))
             return 1
@@ -133,32 +191,42 @@ class Daemon:
         return 0
 
     def _take_lock(self) -> None:
-        import fcntl
-
+        """Lock the folders (a file in the user's state folder, named by the in and out
+        folders) and the journal (a file beside it): a second daemon on either is refused."""
         cfg = self.cfg
+        self._locks = []
         try:
-            cfg.lock_file.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(cfg.lock_file, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as exc:
-            raise WatchError(f"cannot create the lock file {str(cfg.lock_file)!r}: {exc.strerror or exc}") from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            try:
-                other = os.read(fd, 64).decode("ascii", "replace").strip()
-            except OSError:
-                other = "?"
-            os.close(fd)
-            raise WatchError(f"another vigproc watch (pid {other or '?'}) is already running on {str(cfg.in_dir)!r} "
-                             f"-> {str(cfg.out_dir)!r} (lock {str(cfg.lock_file)!r})") from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
-        self._lock_fd = fd
+            for path in (cfg.folders_lock_file, cfg.lock_file):
+                self._locks.append((path, _flock(path, cfg)))
+        except BaseException:
+            self._release_lock()
+            raise
 
     def _release_lock(self) -> None:
-        if self._lock_fd is not None:
-            os.close(self._lock_fd)
-            self._lock_fd = None
+        for _path, fd in getattr(self, "_locks", []):
+            os.close(fd)
+        self._locks = []
+
+    def _remember_ground(self) -> None:
+        """What the job stands on, to notice it vanishing: the output folder and the journal."""
+        self._ground = {str(p): _identity(p) for p in (self.cfg.out_dir, self.cfg.journal)}
+
+    def _ground_lost(self) -> str | None:
+        """Why this daemon cannot go on (its output folder or journal deleted or replaced, its
+        lock taken by another daemon), or None. A deleted lock file is made again, locked."""
+        for p, ident in getattr(self, "_ground", {}).items():
+            if _identity(p) != ident:
+                what = "journal" if p == str(self.cfg.journal) else "output folder"
+                return (f"the {what} {p!r} was deleted or replaced under the running daemon: stopping "
+                        f"(start it again to go on)")
+        for i, (path, fd) in enumerate(self._locks):
+            if _identity(path) != _fd_identity(fd):
+                try:
+                    self._locks[i] = (path, _flock(path, self.cfg))
+                except WatchError as exc:
+                    return f"the lock file was deleted and {exc}"
+                os.close(fd)
+        return None
 
     # ---------------------------------------------------------- signals
     def _install_signals(self) -> dict[Any, Any]:
@@ -231,6 +299,10 @@ class Daemon:
                 watcher.look(rescan, self._wake_w)
                 now = time.monotonic()
                 if now >= next_due:
+                    self._lost = self._ground_lost()
+                    if self._lost:  # go on writing nowhere? no: hand the files back and stop
+                        flags.abort = True
+                        continue
                     rec.flush_backlog()
                     scheduler.due_retries()
                     next_due = now + self.DUE_EVERY
