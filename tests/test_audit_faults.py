@@ -234,3 +234,32 @@ def test_a_corrupt_file_named_like_a_full_disk_is_the_files_fault(tmp_path):
                        env=_env(), timeout=120)
     assert r.returncode == 1 and "disk full" not in r.stderr, r.stderr
     assert "1 corrected" in r.stdout or "1 not corrected" in r.stdout, r.stdout
+
+
+def test_an_output_sub_folder_that_cannot_be_made_is_the_output_sides(tmp_path):
+    """Issue 37.4: a file where the output sub-folder should be (`echo x > out/sub1`) made
+    the worker die of an UnboundLocalError on its first task, and the photo was
+    quarantined after three deaths.  Now: an output failure with a clear reason, retried,
+    no worker death; done once the file is out of the way."""
+    from vigproc.bench.faults import FaultBenchError
+
+    in_dir, q, out = tmp_path / "in", tmp_path / "q", tmp_path / "out"
+    (in_dir / "sub1").mkdir(parents=True)
+    out.mkdir()
+    (out / "sub1").write_text("x\n")
+    (photo,) = _photos(tmp_path, 1)
+    w = _watch(in_dir, out, q, tmp_path, "--workers", "1")
+    try:
+        os.rename(photo, in_dir / "sub1" / photo.name)
+        w.wait_for("two output failures", lambda: sum(ev.get("event") == "retry" for ev in w.events()) >= 2, 120)
+        retries = [ev for ev in w.events() if ev.get("event") == "retry"]
+        assert all(ev["kind"] == "output" and "a file of that name is in the way" in ev["reason"] for ev in retries), \
+            retries
+        (out / "sub1").unlink()
+        w.wait_for("the photo done", lambda: (out / "sub1" / f"{photo.name}.vigproc.json").is_file(), 120)
+    except FaultBenchError as exc:
+        pytest.fail(f"{exc}: {w.log_file.read_text()[-3000:]}")
+    finally:
+        if w.proc is not None and w.proc.poll() is None:
+            w.stop()
+    assert w.count("worker-restart") == 0 and w.count("quarantined") == 0
