@@ -436,9 +436,10 @@ class Scheduler:
             if kind_ == DISK_FULL:  # the machine's fault, not the photo's: no attempt counted
                 self._disk_full(task, reason, payload.get("free_bytes"), payload.get("disk") or "output disk")
                 return
-            if self.flags.stop and "exiftool" in reason:
+            if self.flags.stop and kind_ == TRANSIENT:
                 # the stop signal may have reached exiftool too (systemd can signal every
-                # process): not the file's fault, so it goes back without an attempt
+                # process; vigproc.io.metadata marks that transient): not the file's fault, so
+                # it goes back without an attempt (judged by kind: the reason carries the name)
                 self.recorder.release(task)
                 log.warning("%s failed while stopping (%s); it will be tried again", task.rel, reason,
                             extra=_ev("released", file=task.path, reason=reason))
