@@ -235,6 +235,23 @@ def test_a_write_with_too_little_room_fails_before_any_native_code_writes(tmp_pa
     assert f.kind == DISK_FULL and f.reason.startswith("output disk full (0.2 MB free of 20.0 MB on ")
 
 
+def test_without_an_in_memory_file_the_room_is_estimated_from_the_pixels(tmp_path, monkeypatch):
+    """No memfd (not Linux): the native writer writes the file itself, after a look at
+    the free space against a generous bound (uncompressed samples, twice, plus 1 MiB)."""
+    from vigproc.io import images
+
+    monkeypatch.delattr(os, "memfd_create")
+    img = _img(120, 180)
+    images.write_image(tmp_path / "a.tif", img)
+    back, _ = images.read_image(tmp_path / "a.tif")
+    assert np.abs(back - img).max() < 1e-4
+    assert images.encoded_size(None, 180, 120, 3, "uint16") == 180 * 120 * 3 * 2 + 65536
+    _stub_disk(monkeypatch, free=2 * (180 * 120 * 6 + 65536) + (1 << 20) - 1)  # one byte short
+    with pytest.raises(DiskFullError):
+        images.write_image(tmp_path / "b.tif", img)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.tif"]
+
+
 @needs_tmpfs
 def test_a_full_tmpfs_gives_typed_errors_and_leaves_no_temporary(tmp_path, tmpfs, monkeypatch):
     """Real ENOSPC on a real tmpfs: from the byte copy (the room check bypassed), from an

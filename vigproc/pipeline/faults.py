@@ -16,19 +16,18 @@ Kinds
     limited number of times.
 :data:`DISK_FULL`
     The output file system is full (ENOSPC, EDQUOT, or a write failure while it is
-    low on space or inodes).  Every file would fail the same way until space is
+    low on space or inodes), or the disk of a store (:attr:`Fault.disk` says which).  Every file would fail the same way until space is
     freed: the daemon pauses, a batch run stops handing out files, ``correct``
     stops with :class:`~vigproc.errors.DiskFullError`.  Never the photo's fault.
 :data:`OUTPUT`
-    Any other failure to write an output (an I/O error, a read-only remount, a
-    writer that gave up: OpenImageIO's ``TIFFWriteScanline failed ... Write
-    error``, exiftool's ``Error writing image data``).  *A failure to write an
-    output is the output side's fault until proven otherwise*: retried with
-    backoff and never charged to the photo.
+    Any other failure of the output side (an I/O error, a read-only remount, an output
+    folder that is gone or cannot be made, a writer that gave up: exiftool's ``Error
+    writing output file``): retried with backoff and never charged to the photo.
 :data:`CRASH`
     Not a verdict of :func:`classify_error` (there is no exception to look at): the
     file killed or hung the worker process handling it.  Retried up to the daemon's
-    ``--max-crashes``.
+    ``--max-crashes`` -- unless the output side was failing then
+    (:func:`output_trouble`): native code may end its process on a write error.
 
 Classified by type, where the failure happened, never by the words of a message (which
 carry file names: a photo named "no space left on device.jpg" is no full disk):
