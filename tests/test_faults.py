@@ -219,22 +219,6 @@ def test_disk_space_reads_the_file_system_of_the_nearest_existing_folder(tmp_pat
 
 
 # ------------------------------------------------------------------ the write path
-def test_a_write_with_too_little_room_fails_before_any_native_code_writes(tmp_path, monkeypatch):
-    """The image is encoded in memory; with less room than it needs (twice: its metadata
-    step writes a copy) a DiskFullError, and no file appears."""
-    from vigproc.io import images
-
-    out = tmp_path / "out"
-    out.mkdir()
-    _stub_disk(monkeypatch, free=200_000)
-    with pytest.raises(DiskFullError) as e:
-        images.write_image(out / "IMG refusing to pose.jpg", _img(480, 720), bit_depth="uint8", transfer="srgb")
-    assert "MB needed" in str(e.value) and e.value.errno == errno.ENOSPC
-    assert list(out.iterdir()) == []
-    f = classify_error(e.value, str(out))
-    assert f.kind == DISK_FULL and f.reason.startswith("output disk full (0.2 MB free of 20.0 MB on ")
-
-
 def test_without_an_in_memory_file_the_room_is_estimated_from_the_pixels(tmp_path, monkeypatch):
     """No memfd (not Linux): the native writer writes the file itself, after a look at
     the free space against a generous bound (uncompressed samples, twice, plus 1 MiB)."""
@@ -245,23 +229,25 @@ def test_without_an_in_memory_file_the_room_is_estimated_from_the_pixels(tmp_pat
     images.write_image(tmp_path / "a.tif", img)
     back, _ = images.read_image(tmp_path / "a.tif")
     assert np.abs(back - img).max() < 1e-4
-    assert images.encoded_size(None, 180, 120, 3, "uint16") == 180 * 120 * 3 * 2 + 65536
+    assert images.size_bound(180, 120, 3, "uint16") == 180 * 120 * 3 * 2 + 65536
     _stub_disk(monkeypatch, free=2 * (180 * 120 * 6 + 65536) + (1 << 20) - 1)  # one byte short
-    with pytest.raises(DiskFullError):
-        images.write_image(tmp_path / "b.tif", img)
+    with pytest.raises(DiskFullError) as e:
+        images.write_image(tmp_path / "IMG refusing to pose.tif", img)
+    assert "MB needed" in str(e.value) and e.value.errno == errno.ENOSPC
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.tif"]
+    f = classify_error(e.value, str(tmp_path))
+    assert f.kind == DISK_FULL and f.reason.startswith("output disk full (1.4 MB free of 20.0 MB on ")
 
 
 @needs_tmpfs
 def test_a_full_tmpfs_gives_typed_errors_and_leaves_no_temporary(tmp_path, tmpfs, monkeypatch):
-    """Real ENOSPC on a real tmpfs: from the byte copy (the room check bypassed), from an
-    atomic text write, and from exiftool's metadata copy (no errno: judged by the room
-    left).  Never a process exit, never a temporary left."""
+    """Real ENOSPC on a real tmpfs: from the image's bytes (encoded in memory: libjpeg never
+    meets the full disk), from an atomic text write, and from exiftool's metadata copy
+    (no errno: judged by the room left).  Never a process exit, never a temporary left."""
     from vigproc.atomic import atomic_write_text
     from vigproc.io import images, metadata
 
     out = tmpfs("out", 64)
-    monkeypatch.setattr(images, "_check_room", lambda *a: None)  # as if the disk filled after the check
     with pytest.raises(DiskFullError) as e:
         images.write_image(out / "IMG no space left on device.jpg", _img(480, 720), bit_depth="uint8",
                            transfer="srgb", quality=100)
@@ -275,7 +261,6 @@ def test_a_full_tmpfs_gives_typed_errors_and_leaves_no_temporary(tmp_path, tmpfs
     src = tmp_path / "src.jpg"
     images.write_image(src, _img(240, 360), bit_depth="uint8", transfer="srgb")
     subprocess.run(["exiftool", "-q", "-overwrite_original", "-Comment=" + "x" * 60_000, str(src)], check=True)
-    monkeypatch.undo()
     with pytest.raises(ImageWriteError) as e:
         metadata.write_corrected(out / "refusing to pose.jpg", _img(240, 360), src, None, bit_depth="uint8",
                                  transfer="srgb")
@@ -419,6 +404,7 @@ def test_correct_on_a_full_disk_says_so_and_stops(tmp_path, monkeypatch, capsys)
     real = vigproc.io.metadata.write_corrected
     monkeypatch.setattr(vigproc.io.metadata, "write_corrected", lambda dst, *a, **kw: (calls.append(dst),
                                                                                         real(dst, *a, **kw)))
+    monkeypatch.delattr(os, "memfd_create")  # the write path that looks at the free space first
     _stub_disk(monkeypatch, free=200_000)
     rc = main(["correct", "-o", str(out), "--profile", str(PROFILE), "--output-format", "tiff16",
                *map(str, files)])
@@ -442,7 +428,8 @@ def test_batch_stops_handing_out_files_on_a_full_disk_and_charges_none(tmp_path,
     src.mkdir()
     for i in range(4):
         _photo(src / f"f{i}.png", i)
-    _stub_disk(monkeypatch, free=100_000)  # the real write path refuses the outputs
+    monkeypatch.delattr(os, "memfd_create")  # the write path that looks at the free space first
+    _stub_disk(monkeypatch, free=100_000)  # ... refuses the outputs
     items, _ = B.collect(src, out)
     out.mkdir()
     spec = B.JobSpec(settings=Settings(mode="correct", profile=str(PROFILE), output_format="tiff16"),

@@ -1139,9 +1139,11 @@ def write_image(
     # Encoded in memory first: a native writer that fails on a full disk may end the
     # process (libjpeg's "Output file write error --- out of disk space?" calls exit()),
     # and none gives an errno.  The bytes then go out by Python I/O, where a full disk is
-    # ENOSPC, after a look at the free space.
+    # ENOSPC.  No look at the free space then: it can say 0 where root may still write
+    # (reserved blocks), and the write itself says ENOSPC when it is full.
     encoded = _encode_in_memory(spec, data, fmt, q)
-    _check_room(directory, encoded_size(encoded, w, h, nch, depth), q)
+    if encoded is None:  # the native writer will write the file itself: only if it fits
+        _check_room(directory, size_bound(w, h, nch, depth), q)
     # Temp name keeps a format extension so OIIO picks the right writer; the
     # basename is shortened so prefix+suffix stay within NAME_MAX.
     try:
@@ -1179,11 +1181,9 @@ def write_image(
 ROOM_MARGIN = 1 << 20
 
 
-def encoded_size(encoded, w: int, h: int, nch: int, depth: str) -> int:
-    """Bytes an output takes: those encoded in memory, else (no in-memory file) a
-    generous bound from its pixels (uncompressed samples plus 64 KiB of headers)."""
-    if encoded is not None:
-        return os.fstat(encoded.fileno()).st_size
+def size_bound(w: int, h: int, nch: int, depth: str) -> int:
+    """A generous bound of an output's bytes, from its pixels: the uncompressed samples
+    plus 64 KiB of headers and metadata."""
     return w * h * nch * {"uint8": 1, "uint16": 2, "half": 2, "float": 4}[depth] + (64 << 10)
 
 

@@ -50,13 +50,13 @@ class _DiskPause:
 
     reason: str
     since: float  # epoch seconds
-    disk: str  # which disk is full: "output disk", "profile store disk"
     free_bytes: int | None  # the output file system's free bytes when it was found full
     delay: float  # seconds until the next probe; doubles after each failed probe
     probe_at: float  # monotonic
     next_look: float = 0.0  # monotonic: next look at the free space
     probing: bool = False  # a probe is in flight
     held: set[str] = field(default_factory=set)  # files given back for the disk, not charged
+    disk: str = "output disk"  # which disk is full: "output disk", "profile store disk"
 
 
 @dataclass
