@@ -257,7 +257,7 @@ def classify_error(exc: BaseException, out_dir: str | os.PathLike[str] | None = 
     -------
     Fault
         The input's fault (corrupt, unsupported, absurd) and the settings' are
-        permanent (the reason says the settings' when it is); a busy or locked file, a
+        permanent (a later attempt with the same settings cannot help); a busy or locked file, a
         locked store, a stale network handle are transient; a full disk or quota is
         :data:`DISK_FULL`; any other failure of the output side is :data:`OUTPUT`.  An
         unexpected exception is a bug: permanent, so that the file is quarantined
@@ -288,9 +288,7 @@ def classify_error(exc: BaseException, out_dir: str | os.PathLike[str] | None = 
             return Fault(DISK_FULL, f"output disk full ({found.describe()}{where}): {msg}", found)
         free = f"; {found.describe()}{where}" if found is not None else ""
         return Fault(OUTPUT, f"output write failed (not the photo's fault{free}): {msg}", found)
-    if getattr(exc, "blame", None) == SETTINGS:
-        return Fault(PERMANENT, f"the settings' fault, not the photo's: {msg}")
-    if isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNOS:
+    if isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNOS and getattr(exc, "blame", None) != SETTINGS:
         return Fault(TRANSIENT, msg)
     if isinstance(exc, (VigprocError, OSError)):
         return Fault(PERMANENT, msg)
