@@ -35,7 +35,8 @@ from vigproc.frontends.daemon import (
     is_temporary_name,
     output_stem,
 )
-from vigproc.errors import ImageReadError, ImageWriteError
+from vigproc.errors import ImageReadError, ImageWriteError, write_error
+from vigproc.pipeline.faults import OUTPUT
 from vigproc.stores.journal import Journal, fingerprint
 from vigproc.pipeline.processor import corrected_name, output_location
 from vigproc.stores.profiles import ProfileStoreError
@@ -76,11 +77,14 @@ def test_output_stems_are_distinct_stable_and_safe():
 def test_errors_are_classified():
     """The daemon's classifier is the shared policy (vigproc.pipeline.faults; more in test_faults)."""
     assert classify_error(ImageReadError("cannot read 'x.jpg': corrupt or truncated JPEG")).kind == PERMANENT
-    assert classify_error(ImageWriteError("cannot write 'x.tif': No space left on device")).kind == DISK_FULL
+    assert classify_error(write_error("cannot write 'x.tif'", OSError(28, "No space left on device"))).kind == DISK_FULL
     assert classify_error(OSError(28, "No space left on device")).kind == DISK_FULL
+    # the words alone (in a file name) are no full disk: an output failure, never the photo's
+    assert classify_error(ImageWriteError("cannot write 'No space left on device.tif'")).kind == OUTPUT
     assert classify_error(OSError(16, "Device or resource busy")).kind == TRANSIENT
-    assert classify_error(ProfileStoreError("store: learn failed: locked by another process for more than 30 s")).kind \
-        == TRANSIENT
+    locked = ProfileStoreError("store: learn failed: locked by another process for more than 30 s")
+    locked.transient = True  # as vigproc.stores.db marks SQLITE_BUSY (a real one: test_faults)
+    assert classify_error(locked).kind == TRANSIENT
     f = classify_error(ModuleNotFoundError("No module named 'vigproc.forensics.check'"))
     assert f.kind == PERMANENT and "vigproc.forensics.check" in f.reason
     f = classify_error(ZeroDivisionError("division by zero"))
@@ -545,8 +549,10 @@ def _patch(module):
             n = int(open(marker).read()) if os.path.exists(marker) else 0
             if n < 2:
                 open(marker, "w").write(str(n + 1))
-                from vigproc.errors import ImageWriteError
-                raise ImageWriteError(f"cannot write output of {name}: No space left on device")
+                import errno
+                from vigproc.errors import write_error
+                raise write_error(f"cannot write output of {name}: No space left on device",
+                                  OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)))
         return orig(self, path, *a, **kw)
 
     module.Processor.process_file = process_file

@@ -159,7 +159,7 @@ def test_outputs_never_replace_an_input_of_the_call(frame, tmp_path, capsys, mon
     code, answer = hook(capsys, monkeypatch, "-o", o, "--", first, second)
     assert code == 1 and answer["results"][0]["status"] == "ok"
     r = answer["results"][1]
-    assert r["exit_code"] == 5 and r["type"] == "ImageWriteError" and "input of this run" in r["error"]
+    assert r["exit_code"] == 5 and r["type"] == "OutputSettingsError" and "input of this run" in r["error"]
     assert sha(first) == before and os.stat(first).st_mtime == 1
     assert not (o / "a.tif.vigproc.json").exists()  # nothing written for the refused file
     # an exact output file onto another input of the call (relative: inside -o): refused as well

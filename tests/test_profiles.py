@@ -259,7 +259,7 @@ def test_corrupt_file_is_a_clear_error(tmp_path):
     assert "move it aside" in str(ei.value) and "--profile estimate" in str(ei.value)
 
 
-def test_damaged_store_is_detected(tmp_path):
+def test_damaged_store_is_detected(tmp_path, monkeypatch):
     db = tmp_path / "p.sqlite"
     with ProfileStore(db) as store:
         for i in range(200):  # enough rows to span several pages
@@ -269,7 +269,11 @@ def test_damaged_store_is_detected(tmp_path):
     assert len(raw) > 5 * 4096
     raw[2 * 4096 : 4 * 4096] = np.random.default_rng(1).bytes(2 * 4096)
     db.write_bytes(bytes(raw))
-    with ProfileStore(db) as store:  # the header is intact: opening works...
+    with pytest.raises(ProfileStoreError, match="corrupt") as ei:  # refused on open (PRAGMA quick_check)
+        ProfileStore(db)
+    assert str(db) in str(ei.value) and "move it aside" in str(ei.value)
+    monkeypatch.setattr(ProfileStore, "check_on_open", False)
+    with ProfileStore(db) as store:  # the header is intact: without the check opening works...
         assert store.check(), "check() must report the damage"
         with pytest.raises(ProfileStoreError, match="corrupt") as ei:  # ...reading the damage does not
             store.list()

@@ -12,7 +12,7 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
-from vigproc.errors import ImageWriteError
+from vigproc.errors import write_error
 
 
 #: Markers in the temporary names of vigproc's writers (this module, io, metadata, and
@@ -91,7 +91,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.stem[:40]}.", suffix=f".tmp{suffix}", dir=path.parent)
     except OSError as exc:
-        raise ImageWriteError(f"cannot create a temporary file next to {path}: {exc.strerror or exc}") from None
+        raise write_error(f"cannot create a temporary file next to {path}: {exc.strerror or exc}", exc) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -109,7 +109,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
         with atomic_path(path) as tmp:
             tmp.write_bytes(data)
     except OSError as exc:
-        raise ImageWriteError(f"cannot write {path}: {exc.strerror or exc}") from None
+        raise write_error(f"cannot write {path}: {exc.strerror or exc}", exc) from None
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:

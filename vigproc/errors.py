@@ -7,6 +7,14 @@ the command line turns these into a one-line message and a non-zero exit code
 
 from __future__ import annotations
 
+import errno as _errno
+
+#: Whose fault an error is, as every error class states in its ``blame``: the input
+#: being processed, the output side (the disk and folder outputs go to), or the settings
+#: (the options, a store or the installation).  :mod:`vigproc.pipeline.faults` decides by
+#: this and by ``errno``, never by the words of a message (which can carry file names).
+INPUT, OUTPUT_SIDE, SETTINGS = "input", "output", "settings"
+
 #: Escapes of the characters that would end or rewrite a line of text (C0 and C1
 #: controls, DEL, Unicode line and paragraph separators, bidirectional controls such as
 #: RLO that reorder what follows): applied to messages that carry file names, so a
@@ -29,6 +37,8 @@ class VigprocError(Exception):
     """Base class of all errors vigproc raises on purpose."""
 
     exit_code = 1
+    #: Whose fault: :data:`INPUT`, :data:`OUTPUT_SIDE` or :data:`SETTINGS`.
+    blame = INPUT
 
 
 class InvalidImageError(VigprocError, ValueError):
@@ -58,24 +68,67 @@ class MetadataError(ImageReadError):
 
 
 class ImageWriteError(VigprocError, OSError):
-    """An output could not be written."""
+    """An output could not be written: the output side's fault (its disk, its folder)
+    unless a subclass says otherwise.  ``errno`` is the failed call's, where there was one."""
 
     exit_code = 5
+    blame = OUTPUT_SIDE
 
 
-class OutputFormatError(ImageWriteError):
+class OutputSettingsError(ImageWriteError):
+    """What was asked cannot be written, whatever the disk: an unknown output format or
+    extension, a bit depth or transfer the format does not take, an output that would
+    replace an input, a folder named as output file, no exiftool (exit code 5)."""
+
+    blame = SETTINGS
+
+
+class OutputFormatError(OutputSettingsError):
     """The output format asked for cannot be made from this input (``--output-format
     dng`` of a JPEG): the settings' fault, not the output disk's, so a watch folder or a
     batch gives the file up rather than retry it (exit code 5, as for any output that
     could not be written)."""
 
-    output_side = False
+
+class OutputRefusedError(ImageWriteError):
+    """This input cannot be written as asked: values beyond the output format's range, a
+    name that would put its output outside the output folder, a source whose metadata
+    exiftool cannot read.  The input's fault, not the disk's (exit code 5)."""
+
+    blame = INPUT
 
 
 class DiskFullError(ImageWriteError):
-    """The output disk is full (or over quota): the machine's fault, not the photo's.
+    """A disk is full (or over quota): the machine's fault, not the photo's.
     Free space and run again; nothing was charged to the files (exit code 5, as
-    for any output that could not be written)."""
+    for any output that could not be written).  ``disk`` names which disk."""
+
+    disk = "output disk"
+
+
+#: errno values of a full disk or an exhausted quota.
+DISK_FULL_ERRNOS = frozenset(getattr(_errno, n) for n in ("ENOSPC", "EDQUOT") if hasattr(_errno, n))
+
+
+def write_error(message: str, exc: BaseException) -> ImageWriteError:
+    """The typed error of a write that failed with ``exc``.
+
+    Parameters
+    ----------
+    message : str
+        What failed, for the user.
+    exc : BaseException
+        The failed call's error: its ``errno`` (an OSError's) is kept on the result.
+
+    Returns
+    -------
+    ImageWriteError
+        :class:`DiskFullError` on ENOSPC/EDQUOT, else :class:`ImageWriteError`.
+    """
+    code = getattr(exc, "errno", None)
+    err = (DiskFullError if code in DISK_FULL_ERRNOS else ImageWriteError)(message)
+    err.errno = code
+    return err
 
 
 class MemoryBudgetError(InvalidImageError):
@@ -94,6 +147,7 @@ class PriorError(VigprocError, ValueError):
     """The natural-image prior could not be fitted or loaded."""
 
     exit_code = 7
+    blame = SETTINGS
 
 
 #: Every exit code of the ``vigproc`` command, stable across releases.  Errors

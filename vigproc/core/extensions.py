@@ -41,7 +41,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from vigproc.errors import EXIT_CODES, VigprocError
+from vigproc.errors import EXIT_CODES, SETTINGS, VigprocError
 
 log = logging.getLogger(__name__)
 
@@ -59,12 +59,14 @@ class ExtensionError(VigprocError):
     """An installed plugin is broken: it cannot be loaded, or misbehaved when called."""
 
     exit_code = EXIT_CODES["plugin"]
+    blame = SETTINGS
 
 
 class UnknownMethodError(VigprocError, ValueError):
     """No built-in or installed estimator has the requested name."""
 
     exit_code = 2
+    blame = SETTINGS
 
 
 @dataclass(frozen=True)

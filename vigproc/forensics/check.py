@@ -53,7 +53,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from vigproc.errors import EXIT_CODES, ModelError, VigprocError
+from vigproc.errors import EXIT_CODES, SETTINGS, ModelError, VigprocError
 from vigproc.forensics.lensmatch import MatchCalibration, empirical_p, held_out_whitened, pooled_null
 from vigproc.forensics.lensmatch import whitener as _whitener
 from vigproc.core.model import VignettingModel
@@ -134,6 +134,7 @@ class ForensicsError(VigprocError):
     """A forensics calibration or classifier is missing, invalid or does not fit the request."""
 
     exit_code = EXIT_CODES["forensics"]
+    blame = SETTINGS
 
 
 # ------------------------------------------------------------------ features

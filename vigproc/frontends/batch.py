@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, Callable, Iterable, Iterator
 
-from vigproc.errors import EXIT_CODES, ImageWriteError, VigprocError
+from vigproc.errors import EXIT_CODES, SETTINGS, ImageWriteError, VigprocError
 from vigproc.pipeline.faults import DISK_FULL, PERMANENT, attempt_limit, classify_error
 from vigproc.pipeline.processor import (IMAGE_SUFFIXES, SIDECAR_SUFFIX, Processor, Settings, output_location, safe_output,
                               sweep_temporaries)
@@ -80,6 +80,7 @@ class BatchError(VigprocError):
     unreachable or misconfigured."""
 
     exit_code = EXIT_CODES["batch"]
+    blame = SETTINGS
 
 
 # --------------------------------------------------------------------- inputs

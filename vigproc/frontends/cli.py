@@ -203,8 +203,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
     failed += not_started
     stop = None
     if full is not None and full.kind == DISK_FULL:
+        where = outdir if full.disk == "output disk" else f"the {full.disk}"  # a store's disk names its folder
         stop = DiskFullError(f"{full.reason}; stopped with {not_started} file(s) not started: free space on "
-                             f"{outdir} and run again")
+                             f"{where} and run again")
         results += [failure_record(f, DiskFullError("not started: the output disk is full")) for f in files[len(results):]]
     if made and failed == len(files):  # nothing written: leave no empty folder behind
         with contextlib.suppress(OSError):

@@ -68,7 +68,8 @@ from vigproc.io.dng_opcodes import (
     OpcodeList,
     parse_opcode_list,
 )
-from vigproc.errors import ImageReadError, ImageWriteError, InvalidImageError, ModelError, one_line
+from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputSettingsError,
+                            one_line, write_error)
 from vigproc.core.model import FitQuality, VignettingModel
 
 __all__ = [
@@ -719,7 +720,7 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
 
     src_s, dst_s = _abs(src), _abs(dst)
     if os.path.exists(dst_s) and os.path.samefile(src_s, dst_s):
-        raise ImageWriteError(f"refusing to write {dst_s!r}: it is the input")
+        raise OutputSettingsError(f"refusing to write {dst_s!r}: it is the input")
     groups, raw = _read_groups(src_s)
     if raw is None:
         raise ImageReadError(f"{src_s!r}: no raw image IFD found (SubfileType 0)")
@@ -740,7 +741,7 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
         fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(dst_s)[:60]}.tmp-", suffix=".dng", dir=directory)
         os.close(fd)
     except OSError as exc:
-        raise ImageWriteError(f"cannot write {dst_s!r}: {exc.strerror or exc}") from None
+        raise write_error(f"cannot write {dst_s!r}: {exc.strerror or exc}", exc) from None
     leftovers = (tmp, tmp + "_exiftool_tmp")
     done = False
     try:
@@ -766,8 +767,10 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
         done = True
     except (ImageReadError, DngOpcodeError) as exc:  # reading our own copy back failed
         raise ImageWriteError(str(exc).replace(tmp, dst_s)) from None
+    except ImageWriteError:
+        raise
     except OSError as exc:
-        raise ImageWriteError(f"cannot write {dst_s!r}: {exc.strerror or exc}") from None
+        raise write_error(f"cannot write {dst_s!r}: {exc.strerror or exc}", exc) from None
     finally:
         if not done:
             for p in leftovers:

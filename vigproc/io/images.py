@@ -51,12 +51,14 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import functools
 import math
 import logging
 import numbers
 import os
 import re
+import shutil
 import stat
 import tempfile
 import threading
@@ -68,12 +70,16 @@ import OpenImageIO as oiio
 
 from vigproc.atomic import publish
 from vigproc.errors import (
+    DiskFullError,
     ImageReadError,
     ImageWriteError,
     InvalidImageError,
     MemoryBudgetError,
+    OutputRefusedError,
+    OutputSettingsError,
     UnsupportedFormatError,
     VigprocError,
+    write_error,
 )
 
 try:  # rawpy is optional at import time: without it RAW files are "unsupported".
@@ -414,7 +420,9 @@ def _read_head(path: str, n: int = 64) -> bytes:
         with open(path, "rb") as fh:
             return fh.read(n)
     except OSError as exc:
-        raise ImageReadError(f"cannot read image {_q(path)}: {exc.strerror or exc}") from None
+        err = ImageReadError(f"cannot read image {_q(path)}: {exc.strerror or exc}")
+        err.errno = exc.errno  # EIO/ESTALE of a network share: a retry may help (vigproc.pipeline.faults)
+        raise err from None
 
 
 def _sniff(head: bytes) -> str | None:
@@ -1075,34 +1083,34 @@ def write_image(
     fspath = _fspath(path, ImageWriteError)
     q = _q(fspath)
     if _unencodable(fspath):
-        raise ImageWriteError(f"cannot write {q}: file name is not valid UTF-8")
+        raise OutputRefusedError(f"cannot write {q}: file name is not valid UTF-8")
     ext = os.path.splitext(fspath)[1].lower()
     if format is None:
         fmt = _EXT_FORMAT.get(ext)
         if fmt is None:
-            raise ImageWriteError(f"cannot write {q}: unknown extension {ext!r} (use .tif, .png, .exr or .jpg, "
+            raise OutputSettingsError(f"cannot write {q}: unknown extension {ext!r} (use .tif, .png, .exr or .jpg, "
                                   "or pass format=)")
     else:
         fmt = _FORMAT_ALIASES.get(str(format).lower())
         if fmt is None:
-            raise ImageWriteError(f"cannot write {q}: unsupported format {format!r} (tiff, png, openexr, jpeg)")
+            raise OutputSettingsError(f"cannot write {q}: unsupported format {format!r} (tiff, png, openexr, jpeg)")
     depth = bit_depth or _FORMAT_DEPTHS[fmt][0]
     if depth not in _FORMAT_DEPTHS[fmt]:
-        raise ImageWriteError(f"cannot write {q}: {fmt} does not take bit_depth={depth!r} (allowed: {_FORMAT_DEPTHS[fmt]})")
+        raise OutputSettingsError(f"cannot write {q}: {fmt} does not take bit_depth={depth!r} (allowed: {_FORMAT_DEPTHS[fmt]})")
     try:
         tr = _parse_transfer(transfer, allow_auto=False)
     except ValueError as exc:
-        raise ImageWriteError(f"cannot write {q}: {exc}") from None
+        raise OutputSettingsError(f"cannot write {q}: {exc}") from None
     if tr not in ("linear", "srgb"):  # no portable tag to read a pure gamma back
-        raise ImageWriteError(f"cannot write {q}: transfer must be 'linear' or 'srgb', got {transfer!r}")
+        raise OutputSettingsError(f"cannot write {q}: transfer must be 'linear' or 'srgb', got {transfer!r}")
     is_int = depth in ("uint8", "uint16")
     if tr == "srgb" and not is_int:
-        raise ImageWriteError(f"cannot write {q}: transfer='srgb' needs an integer bit_depth (float data is linear)")
+        raise OutputSettingsError(f"cannot write {q}: transfer='srgb' needs an integer bit_depth (float data is linear)")
     if fmt == "jpeg" and tr != "srgb":
-        raise ImageWriteError(f"cannot write {q}: JPEG stores sRGB-encoded values (pass transfer='srgb')")
+        raise OutputSettingsError(f"cannot write {q}: JPEG stores sRGB-encoded values (pass transfer='srgb')")
     if quality is not None and (fmt != "jpeg" or isinstance(quality, bool) or not isinstance(quality, (int, np.integer))
                                 or not 1 <= int(quality) <= 100):
-        raise ImageWriteError(f"cannot write {q}: quality must be an integer 1-100 and is for JPEG only, "
+        raise OutputSettingsError(f"cannot write {q}: quality must be an integer 1-100 and is for JPEG only, "
                               f"got {quality!r}")
 
     arr = np.asarray(img)
@@ -1129,7 +1137,7 @@ def write_image(
         if not peak <= limit:
             shown = "beyond 3.4e38" if np.isinf(peak) else f"{peak:.4g}"
             wider = " (bit_depth='float' holds 3.4e38)" if depth == "half" else ""
-            raise ImageWriteError(
+            raise OutputRefusedError(
                 f"cannot write {q}: values reach {shown}, beyond the {limit:.4g} that {fmt} {depth} "
                 f"holds; they would be stored as Inf: scale the image down{wider}")
     if is_int:
@@ -1170,23 +1178,38 @@ def write_image(
 
     directory = os.path.dirname(os.path.abspath(fspath))
     name = os.path.basename(fspath)
+    # Encoded in memory first: a native writer that fails on a full disk may end the
+    # process (libjpeg's "Output file write error --- out of disk space?" calls exit()),
+    # and none gives an errno.  The bytes then go out by Python I/O, where a full disk is
+    # ENOSPC.  No look at the free space then: it can say 0 where root may still write
+    # (reserved blocks), and the write itself says ENOSPC when it is full.
+    encoded = _encode_in_memory(spec, data, fmt, q)
+    if encoded is None:  # the native writer will write the file itself: only if it fits
+        _check_room(directory, size_bound(w, h, nch, depth), q)
     # Temp name keeps a format extension so OIIO picks the right writer; the
     # basename is shortened so prefix+suffix stay within NAME_MAX.
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{name[:100]}.tmp-", suffix=_FORMAT_EXT[fmt], dir=directory)
     except (OSError, ValueError) as exc:
-        raise ImageWriteError(f"cannot write {q}: cannot create a temporary file in {directory!r}: {exc}") from None
-    os.close(fd)
+        raise write_error(f"cannot write {q}: cannot create a temporary file in {directory!r}: {exc}", exc) from None
     done = False
     try:
-        _oiio_write(tmp, spec, data, q)
+        if encoded is not None:
+            with os.fdopen(fd, "wb") as fh, encoded:
+                encoded.seek(0)
+                shutil.copyfileobj(encoded, fh, 1 << 20)
+        else:  # no in-memory file here (not Linux): the native writer writes the file itself
+            os.close(fd)
+            _oiio_write(tmp, spec, data, q)
         publish(tmp, fspath)
         done = True
     except ImageWriteError:
         raise
     except OSError as exc:
-        raise ImageWriteError(f"cannot write {q}: {exc.strerror or exc}") from None
+        raise write_error(f"cannot write {q}: {exc.strerror or exc}", exc) from None
     finally:
+        if encoded is not None:
+            encoded.close()
         if not done:
             try:
                 os.unlink(tmp)
@@ -1195,9 +1218,55 @@ def write_image(
     logger.debug("wrote %s (%s, %s, %s, %dx%dx%d)", fspath, fmt, depth, tr, w, h, nch)
 
 
-def _oiio_write(tmp: str, spec: oiio.ImageSpec, data: np.ndarray, q: str) -> None:
+#: Bytes of the file system kept beyond an output and the copy exiftool makes of it
+#: (its metadata step writes a second file before renaming it onto the first).
+ROOM_MARGIN = 1 << 20
+
+
+def size_bound(w: int, h: int, nch: int, depth: str) -> int:
+    """A generous bound of an output's bytes, from its pixels: the uncompressed samples
+    plus 64 KiB of headers and metadata."""
+    return w * h * nch * {"uint8": 1, "uint16": 2, "half": 2, "float": 4}[depth] + (64 << 10)
+
+
+def _check_room(directory: str, size: int, q: str) -> None:
+    """Raise :class:`DiskFullError` when ``directory``'s file system has no room for an
+    output of ``size`` bytes, twice (the copy the metadata step writes), plus
+    :data:`ROOM_MARGIN`; no check where the free space cannot be asked."""
+    try:
+        free = shutil.disk_usage(directory).free
+    except OSError:
+        return
+    need = 2 * size + ROOM_MARGIN
+    if free < need:
+        err = DiskFullError(f"cannot write {q}: {free / 1e6:.1f} MB free on its disk, {need / 1e6:.1f} MB needed "
+                            "(the image, the copy its metadata step writes, and a margin)")
+        err.errno = errno.ENOSPC
+        raise err
+
+
+def _encode_in_memory(spec: oiio.ImageSpec, data: np.ndarray, fmt: str, q: str):
+    """The encoded file in an in-memory file (``memfd``), rewound, or None where there is
+    none (not Linux).  A native writer failing here fails on memory, never on a disk."""
+    if not hasattr(os, "memfd_create") or not os.path.isdir("/proc/self/fd"):
+        return None
+    try:
+        fd = os.memfd_create("vigproc-encode", os.MFD_CLOEXEC)
+    except OSError:
+        return None
+    mem = os.fdopen(fd, "w+b")
+    try:
+        # the writer is chosen by extension; it opens the memfd by its /proc name
+        _oiio_write(f"/proc/self/fd/{fd}", spec, data, q, kind=f"x{_FORMAT_EXT[fmt]}")
+    except BaseException:
+        mem.close()
+        raise
+    return mem
+
+
+def _oiio_write(tmp: str, spec: oiio.ImageSpec, data: np.ndarray, q: str, kind: str | None = None) -> None:
     oiio.geterror()
-    out = oiio.ImageOutput.create(tmp)
+    out = oiio.ImageOutput.create(kind or tmp)
     if out is None:
         raise ImageWriteError(f"cannot write {q}: {_one_line(oiio.geterror())}")
     ok = False

@@ -113,7 +113,8 @@ import OpenImageIO as oiio
 
 from vigproc._version import __version__
 from vigproc.atomic import publish
-from vigproc.errors import ImageReadError, ImageWriteError, InvalidImageError, ModelError
+from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputRefusedError,
+                            OutputSettingsError, write_error)
 from vigproc.io.images import WRITE_EXT_FORMAT as _EXT_FORMAT
 from vigproc.io.images import WRITE_FORMAT_ALIASES as _FORMAT_ALIASES
 from vigproc.io.images import WRITE_FORMAT_EXT as _FORMAT_EXT
@@ -237,7 +238,7 @@ def exiftool_path() -> str:
     env = os.environ.get("VIGPROC_EXIFTOOL")
     found = shutil.which(env) if env else shutil.which("exiftool")
     if not found:
-        raise ImageWriteError(
+        raise OutputSettingsError(
             f"exiftool program not found ({env!r})" if env else
             "exiftool program not found: install it (Debian/Ubuntu: libimage-exiftool-perl)"
         )
@@ -299,7 +300,7 @@ class _Exiftool:
         except subprocess.TimeoutExpired:
             raise ImageWriteError(f"{what}: exiftool did not finish within {_TIMEOUT:.0f} s") from None
         except OSError as exc:
-            raise ImageWriteError(f"{what}: cannot run exiftool {self.exe!r}: {exc.strerror or exc}") from None
+            raise OutputSettingsError(f"{what}: cannot run exiftool {self.exe!r}: {exc.strerror or exc}") from None
         err = res.stderr.decode("utf-8", "replace")
         errors = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("Warning:")]
         paths = [a for a in args if os.path.sep in a or os.path.exists(a)]
@@ -371,9 +372,9 @@ def _read_tags(et: _Exiftool, src: str, what: str) -> dict[str, Any]:
         info = _parse_json(res.stdout)
     except ValueError:
         msg = _one_line(res.stderr.decode("utf-8", "replace")) or f"exit status {res.returncode}"
-        raise ImageWriteError(f"{what}: exiftool cannot read the source {_q(src)}: {msg}") from None
+        raise OutputRefusedError(f"{what}: exiftool cannot read the source {_q(src)}: {msg}") from None
     if info.get("ExifTool:Error"):
-        raise ImageWriteError(f"{what}: source {_q(src)}: {info['ExifTool:Error']}")
+        raise OutputRefusedError(f"{what}: source {_q(src)}: {info['ExifTool:Error']}")
     warning = info.get("ExifTool:Warning")
     if warning:  # e.g. "JPEG format error": metadata may still copy
         # "[minor]" ones (a maker-note offset exiftool fixes) were already said, once, when
@@ -382,13 +383,13 @@ def _read_tags(et: _Exiftool, src: str, what: str) -> dict[str, Any]:
     mime = str(info.get("File:MIMEType", ""))
     if not mime.startswith("image/"):
         kind = info.get("File:FileType", "unknown")
-        raise ImageWriteError(f"{what}: source {_q(src)} is not an image (exiftool: file type {kind})")
+        raise OutputRefusedError(f"{what}: source {_q(src)} is not an image (exiftool: file type {kind})")
     out: dict[str, Any] = {}
     if _is_exr(src):
         try:
             attrs = _exr_attributes(src)
         except ImageReadError as exc:
-            raise ImageWriteError(f"{what}: {exc}") from None
+            raise OutputRefusedError(f"{what}: {exc}") from None
         for et_name, oiio_name, kind in EXR_TAGS:
             if oiio_name in attrs:
                 v = attrs[oiio_name]
@@ -564,9 +565,9 @@ def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *
     tags = _normalise_record(record) if record is not None else {}
     for p, role in ((s, "source"), (d, "destination")):
         if not os.path.isfile(p):
-            raise ImageWriteError(f"{what}: {role} {_q(p)} does not exist or is not a file")
+            raise OutputRefusedError(f"{what}: {role} {_q(p)} does not exist or is not a file")
     if os.path.samefile(s, d):
-        raise ImageWriteError(f"{what}: source and destination are the same file")
+        raise OutputSettingsError(f"{what}: source and destination are the same file")
     with _Exiftool() as et:
         src_tags = _read_tags(et, s, what)
         if _is_exr(d):
@@ -657,7 +658,7 @@ def _exr_write_metadata(path: str, src_tags: Mapping[str, Any], record: Mapping[
     except ImageWriteError:
         raise
     except OSError as exc:
-        raise ImageWriteError(f"{what}: {exc.strerror or exc}") from None
+        raise write_error(f"{what}: {exc.strerror or exc}", exc) from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -707,13 +708,13 @@ def _resolve_format(path: str, format: str | None) -> str:
     if format is None:
         fmt = _EXT_FORMAT.get(os.path.splitext(path)[1].lower())
         if fmt is None:
-            raise ImageWriteError(
+            raise OutputSettingsError(
                 f"cannot write {_q(path)}: unknown extension (use .tif, .png, .exr or .jpg, or pass format=)"
             )
         return fmt
     fmt = _FORMAT_ALIASES.get(str(format).lower())
     if fmt is None:
-        raise ImageWriteError(f"cannot write {_q(path)}: unsupported format {format!r} (tiff, png, openexr, jpeg)")
+        raise OutputSettingsError(f"cannot write {_q(path)}: unsupported format {format!r} (tiff, png, openexr, jpeg)")
     return fmt
 
 
@@ -767,7 +768,7 @@ def write_corrected(
         # short prefix: io.write_image nests its own temp name inside this one
         fd, tmp = tempfile.mkstemp(prefix=f".{_trim(name)}.tmp-", suffix=_FORMAT_EXT[fmt], dir=directory)
     except (OSError, ValueError) as exc:
-        raise ImageWriteError(f"cannot write {_q(d)}: cannot create a temporary file in {directory!r}: {exc}") from None
+        raise write_error(f"cannot write {_q(d)}: cannot create a temporary file in {directory!r}: {exc}", exc) from None
     os.close(fd)
     leftovers = (tmp, tmp + "_exiftool_tmp")  # the latter: exiftool's own, if it was killed
     done = False
@@ -778,13 +779,14 @@ def write_corrected(
         except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
             err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))
             err.__dict__.update(exc.__dict__)  # e.g. ``transient``
+            err.errno = getattr(exc, "errno", None)
             raise err from None
         publish(tmp, d)
         done = True
     except ImageWriteError:
         raise
     except OSError as exc:
-        raise ImageWriteError(f"cannot write {_q(d)}: {exc.strerror or exc}") from None
+        raise write_error(f"cannot write {_q(d)}: {exc.strerror or exc}", exc) from None
     finally:
         if not done:
             for p in leftovers:

@@ -16,29 +16,37 @@ Kinds
     limited number of times.
 :data:`DISK_FULL`
     The output file system is full (ENOSPC, EDQUOT, or a write failure while it is
-    low on space or inodes).  Every file would fail the same way until space is
+    low on space or inodes), or the disk of a store (:attr:`Fault.disk` says which).  Every file would fail the same way until space is
     freed: the daemon pauses, a batch run stops handing out files, ``correct``
     stops with :class:`~vigproc.errors.DiskFullError`.  Never the photo's fault.
 :data:`OUTPUT`
-    Any other failure to write an output (an I/O error, a read-only remount, a
-    writer that gave up: OpenImageIO's ``TIFFWriteScanline failed ... Write
-    error``, exiftool's ``Error writing image data``).  *A failure to write an
-    output is the output side's fault until proven otherwise*: retried with
-    backoff and never charged to the photo.
+    Any other failure of the output side (an I/O error, a read-only remount, an output
+    folder that is gone or cannot be made, a writer that gave up: exiftool's ``Error
+    writing output file``): retried with backoff and never charged to the photo.
 :data:`CRASH`
     Not a verdict of :func:`classify_error` (there is no exception to look at): the
     file killed or hung the worker process handling it.  Retried up to the daemon's
-    ``--max-crashes``.
+    ``--max-crashes`` -- unless the output side was failing then
+    (:func:`output_trouble`): native code may end its process on a write error.
 
-"Proven otherwise" means a write error that names what is wrong with the frame or
-the settings rather than with the disk (values beyond the output format's range,
-an unreadable source, a refused output name): those stay :data:`PERMANENT`.
+Classified by type, where the failure happened, never by the words of a message (which
+carry file names: a photo named "no space left on device.jpg" is no full disk):
 
-Writers lose the errno on the way (OpenImageIO and exiftool report text), and
-they remove their temporary file when they fail, which gives back the space it
-held: so a write failure is taken as a full disk when the output file system has
-less than ``min_free`` bytes (:data:`DEFAULT_MIN_FREE`) or no free inode left
-*after* the failure, as well as on ENOSPC/EDQUOT or their words in the message.
+* every vigproc error class states whose fault it is (``blame`` in
+  :mod:`vigproc.errors`: the input's, the output side's or the settings'); the
+  writers raise :class:`~vigproc.errors.DiskFullError` on ENOSPC/EDQUOT and keep the
+  ``errno`` of other failed calls (:func:`vigproc.errors.write_error`);
+* an :class:`OSError` (and a vigproc error carrying one) by its ``errno``: ENOSPC and
+  EDQUOT are a full disk; EAGAIN, EBUSY, ESTALE, EIO... on the input side are
+  transient; a plain OSError on a file of the output folder is the output side's;
+* a third-party error by its type's code (``sqlite_errorcode``: SQLITE_FULL, BUSY,
+  LOCKED).
+
+A writer that gives up without an errno (exiftool's "Error writing output file")
+raises a plain :class:`~vigproc.errors.ImageWriteError`: the output side's; it is a
+full disk when the output file system has less than ``min_free`` bytes
+(:data:`DEFAULT_MIN_FREE`) or no free inode left *after* the failure (the writer
+removed its temporary, giving back the space it held).
 """
 
 from __future__ import annotations
@@ -49,7 +57,7 @@ import shutil
 from dataclasses import dataclass
 from typing import Callable
 
-from vigproc.errors import ImageWriteError, VigprocError
+from vigproc.errors import DISK_FULL_ERRNOS, OUTPUT_SIDE, SETTINGS, DiskFullError, VigprocError
 
 __all__ = [
     "CRASH",
@@ -63,6 +71,7 @@ __all__ = [
     "attempt_limit",
     "classify_error",
     "disk_space",
+    "output_trouble",
 ]
 
 #: Kinds of failure (see the module docstring).
@@ -74,20 +83,10 @@ _OUTPUT_SIDE = frozenset({DISK_FULL, OUTPUT})
 #: (and above which a paused daemon resumes): room for a few 24-MP 16-bit TIFFs.
 DEFAULT_MIN_FREE = 256 * 2**20
 
-_TRANSIENT_TEXT = ("resource temporarily unavailable", "device or resource busy", "stale file handle",
-                   "locked by another process", "database is locked", "text file busy", "interrupted system call",
-                   "connection timed out", "input/output error")
-_DISK_FULL_TEXT = ("no space left on device", "disk quota exceeded", "disk is full", "not enough space")
 _TRANSIENT_ERRNOS = frozenset(getattr(errno, n) for n in ("EAGAIN", "EBUSY", "ESTALE", "ETXTBSY", "EINTR", "ETIMEDOUT",
                                                          "EIO", "ENOLCK") if hasattr(errno, n))
-_DISK_FULL_ERRNOS = frozenset(getattr(errno, n) for n in ("ENOSPC", "EDQUOT") if hasattr(errno, n))
-# write errors that name the frame, the source or the settings, not the disk: the
-# "proven otherwise" of an output failure (messages of vigproc.io.images, .metadata, .pipeline)
-_NOT_OUTPUT_SIDE_TEXT = ("cannot read the source", ": source ", "is not an image", "values reach", "refusing",
-                         "unknown extension", "unsupported format", "does not take bit_depth", "transfer must be",
-                         "transfer='srgb'", "not valid utf-8", "path must be", "is a folder",
-                         "does not exist or is not a file", "source and destination are the same file",
-                         "cannot run exiftool", "program not found")
+# SQLite's result codes (sqlite3 errors carry them as ``sqlite_errorcode``, Python 3.11+)
+_SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_FULL = 5, 6, 13
 
 
 @dataclass(frozen=True)
@@ -130,6 +129,45 @@ def disk_space(folder: str | os.PathLike[str]) -> DiskSpace | None:
     return DiskSpace(int(usage.free), int(usage.total), inodes)
 
 
+def output_trouble(out_dir: str | os.PathLike[str], min_free: int = DEFAULT_MIN_FREE, *,
+                   space: Callable[[str], DiskSpace | None] | None = None) -> Fault | None:
+    """What is wrong with the output side now, if anything.
+
+    Asked when a worker died or hung with no exception to classify: a death while the
+    output side fails (native code that ends its process on a write error) is not the
+    photo's fault.
+
+    Parameters
+    ----------
+    out_dir : path
+        The output folder.
+    min_free : int
+        Bytes: less free space than this is a full disk.
+    space : callable, optional
+        ``space(out_dir)`` -> :class:`DiskSpace` or None; default :func:`disk_space`.
+
+    Returns
+    -------
+    Fault or None
+        :data:`DISK_FULL` (low on space or inodes), :data:`OUTPUT` (the folder is gone,
+        on a read-only file system, or not writable), or None when it looks healthy.
+    """
+    folder = os.fspath(out_dir)
+    found = (space or disk_space)(folder)
+    if found is not None and found.low(min_free):
+        return Fault(DISK_FULL, f"output disk full ({found.describe()} on {folder})", found)
+    if not os.path.isdir(folder):
+        return Fault(OUTPUT, f"the output folder {folder} is gone", found)
+    try:
+        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):
+        read_only = False
+    if read_only or not os.access(folder, os.W_OK):
+        why = "on a read-only file system" if read_only else "not writable"
+        return Fault(OUTPUT, f"the output folder {folder} is {why}", found)
+    return None
+
+
 @dataclass(frozen=True)
 class Fault:
     """The verdict on one failure.
@@ -141,12 +179,15 @@ class Fault:
     reason : str
         One line: the error's message, with what was found about the output disk.
     space : DiskSpace or None
-        The output file system's free space when it was looked at.
+        The full disk's free space (the output file system's otherwise) when it was looked at.
+    disk : str
+        Which disk is full (:data:`DISK_FULL`): ``"output disk"``, ``"profile store disk"``...
     """
 
     kind: str
     reason: str
     space: DiskSpace | None = None
+    disk: str = "output disk"
 
     @property
     def photo_fault(self) -> bool:
@@ -169,24 +210,36 @@ def attempt_limit(kind: str, limit: int | None) -> int | None:
     return None if kind in _OUTPUT_SIDE else limit
 
 
-def _output_write(exc: BaseException, low: str, out_dir: str | None) -> bool:
-    """Whether ``exc`` is a failure to write an output (see the module docstring)."""
-    marked = getattr(exc, "output_side", None)
-    if marked is not None:
-        return bool(marked)
-    if isinstance(exc, ImageWriteError):
-        return not any(t in low for t in _NOT_OUTPUT_SIDE_TEXT)
-    if isinstance(exc, OSError) and not isinstance(exc, VigprocError) and out_dir:
+def _output_side(exc: BaseException, out_dir: str | None) -> bool:
+    """Whether ``exc`` is a failure of the output side: a vigproc error that says so, or
+    a plain OSError on a file of the output folder."""
+    blame = getattr(exc, "blame", None)
+    if blame is not None:
+        return blame == OUTPUT_SIDE
+    if isinstance(exc, OSError) and out_dir:
         name = exc.filename if isinstance(exc.filename, str) else None
         root = os.path.abspath(out_dir)
         return name is not None and (os.path.abspath(name) + os.sep).startswith(root.rstrip(os.sep) + os.sep)
     return False
 
 
+def _full_disk(exc: BaseException, out_dir: str | None) -> tuple[str, str | None] | None:
+    """``(which disk, its folder)`` when ``exc`` is a full disk (by type or errno), else None."""
+    if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS or isinstance(exc, DiskFullError) \
+            or getattr(exc, "sqlite_errorcode", None) == _SQLITE_FULL:
+        disk = getattr(exc, "disk", None)
+        if isinstance(disk, str) and disk != "output disk":  # a store's disk names its folder itself
+            return disk, getattr(exc, "folder", None)
+        if disk is not None or _output_side(exc, out_dir) or getattr(exc, "blame", None) is None:
+            return "output disk", out_dir
+        return "disk", None
+    return None
+
+
 def classify_error(exc: BaseException, out_dir: str | os.PathLike[str] | None = None, *,
                    min_free: int = DEFAULT_MIN_FREE,
                    space: Callable[[str], DiskSpace | None] | None = None) -> Fault:
-    """Whose fault ``exc``, raised while processing one file, is.
+    """Whose fault ``exc``, raised while processing one file, is (by its type and errno).
 
     Parameters
     ----------
@@ -194,47 +247,48 @@ def classify_error(exc: BaseException, out_dir: str | os.PathLike[str] | None = 
         What processing the file raised.
     out_dir : path, optional
         The output folder: its file system's free space decides whether a write
-        failure is a full disk.  Without it only errno and the message can tell.
+        failure without an errno is a full disk.
     min_free : int
-        Bytes: a write failure with less free space than this is a full disk.
+        Bytes: an output-side failure with less free space than this is a full disk.
     space : callable, optional
         ``space(out_dir)`` -> :class:`DiskSpace` or None; default :func:`disk_space`.
 
     Returns
     -------
     Fault
-        Bad input (corrupt, unsupported, absurd) is permanent; a busy or locked file,
-        a locked profile store, a stale network handle are transient; a full output
-        disk or quota is :data:`DISK_FULL`; any other failure to write an output is
-        :data:`OUTPUT`.  An unexpected exception is a bug: permanent, so that the file
-        is quarantined rather than retried forever.
+        The input's fault (corrupt, unsupported, absurd) and the settings' are
+        permanent (a later attempt with the same settings cannot help); a busy or locked file, a
+        locked store, a stale network handle are transient; a full disk or quota is
+        :data:`DISK_FULL`; any other failure of the output side is :data:`OUTPUT`.  An
+        unexpected exception is a bug: permanent, so that the file is quarantined
+        rather than retried forever.
     """
     msg = " ".join(str(exc).split()) or type(exc).__name__
-    low = msg.lower()
     if isinstance(exc, ImportError):
         return Fault(PERMANENT, f"this vigproc installation cannot do it: {msg}")
     if isinstance(exc, MemoryError):
         return Fault(TRANSIENT, "out of memory")
-    err_no = getattr(exc, "errno", None)
+    look = space or disk_space
     folder = os.fspath(out_dir) if out_dir is not None else None
-    said_full = err_no in _DISK_FULL_ERRNOS or any(t in low for t in _DISK_FULL_TEXT)
-    # marked transient by its raiser (a killed exiftool, a file still being written): a
-    # retry may help; limited, as such a failure can be the file's (exiftool dying on it)
-    if not said_full and getattr(exc, "transient", False):
+    full = _full_disk(exc, folder)
+    if full is not None:
+        disk, where = full
+        found = look(where) if where is not None else None
+        free = f" ({found.describe()} on {where})" if found is not None else ""
+        return Fault(DISK_FULL, f"{disk} full{free}: {msg}", found, disk)
+    code = getattr(exc, "sqlite_errorcode", None)
+    # marked transient by its raiser (a killed exiftool, a locked store, a file still being
+    # written): a retry may help; limited, as such a failure can be the file's
+    if getattr(exc, "transient", False) or code in (_SQLITE_BUSY, _SQLITE_LOCKED):
         return Fault(TRANSIENT, msg)
-    if said_full or _output_write(exc, low, folder):
-        found = (space or disk_space)(folder) if folder is not None else None
+    if _output_side(exc, folder):
+        found = look(folder) if folder is not None else None
         where = f" on {folder}" if folder is not None else ""
-        if said_full or (found is not None and found.low(min_free)):
-            free = f" ({found.describe()}{where})" if found is not None else ""
-            return Fault(DISK_FULL, f"output disk full{free}: {msg}", found)
+        if found is not None and found.low(min_free):
+            return Fault(DISK_FULL, f"output disk full ({found.describe()}{where}): {msg}", found)
         free = f"; {found.describe()}{where}" if found is not None else ""
         return Fault(OUTPUT, f"output write failed (not the photo's fault{free}): {msg}", found)
-    if "libraw" in low:
-        # LibRaw's own words about the file's data ("LibRawIOError: Input/output error" for
-        # a truncated RAW): the photo's fault, not the device's; retrying cannot help
-        return Fault(PERMANENT, msg)
-    if err_no in _TRANSIENT_ERRNOS or any(t in low for t in _TRANSIENT_TEXT):
+    if isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNOS and getattr(exc, "blame", None) != SETTINGS:
         return Fault(TRANSIENT, msg)
     if isinstance(exc, (VigprocError, OSError)):
         return Fault(PERMANENT, msg)

@@ -11,6 +11,7 @@ store; it is not shared between threads (make one per worker).
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
@@ -21,7 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Container, Iterable, Sequence
 
-from vigproc.errors import ImageReadError, ImageWriteError, ModelError, OutputFormatError, VigprocError
+from vigproc.errors import (ImageReadError, ImageWriteError, ModelError, OutputFormatError, OutputRefusedError,
+                            OutputSettingsError, VigprocError, write_error)
 
 log = logging.getLogger(__name__)
 
@@ -266,7 +268,7 @@ def safe_output(outdir: Path, stem: str, suffix: str) -> Path:
     name = stem.replace(os.sep, "_").replace("/", "_").replace("\x00", "_").lstrip(".") or "image"
     out = (outdir / f"{name}{suffix}").resolve()
     if out.parent != outdir.resolve():
-        raise ImageWriteError(f"refusing to write outside {outdir}: {out}")
+        raise OutputRefusedError(f"refusing to write outside {outdir}: {out}")
     return out
 
 
@@ -333,16 +335,18 @@ def output_location(root: str | os.PathLike[str], rel: str | os.PathLike[str], *
 
     parts = PurePath(rel).parts
     if not parts or PurePath(rel).is_absolute() or ".." in parts:
-        raise ImageWriteError(f"refusing output location {os.fspath(rel)!r}")
+        raise OutputRefusedError(f"refusing output location {os.fspath(rel)!r}")
     root = Path(root)
     folder = root.joinpath(*(output_name(p) for p in parts[:-1]))
     if create:
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise ImageWriteError(f"cannot create output folder {folder}: {exc.strerror or exc}") from None
+            # the output side's fault (a file in the way, a read-only or vanished disk): retried, never the photo's
+            in_way = " (a file of that name is in the way)" if exc.errno in (errno.EEXIST, errno.ENOTDIR) else ""
+            raise write_error(f"cannot create output folder {folder}: {exc.strerror or exc}{in_way}", exc) from None
         if not folder.resolve().is_relative_to(root.resolve()):
-            raise ImageWriteError(f"refusing to write outside {root}: {folder} resolves to {folder.resolve()}")
+            raise OutputRefusedError(f"refusing to write outside {root}: {folder} resolves to {folder.resolve()}")
     return folder, output_name(parts[-1])
 
 
@@ -511,7 +515,7 @@ def keep_original(src: Path, dst: Path, *, link: bool = False) -> None:
         with atomic_path(dst) as tmp_path:  # a copy is an output like the others (mode, fsync)
             shutil.copyfile(src, tmp_path)
     except OSError as exc:
-        raise ImageWriteError(f"cannot write {os.fspath(dst)!r}: {exc.strerror or exc}") from None
+        raise write_error(f"cannot write {os.fspath(dst)!r}: {exc.strerror or exc}", exc) from None
 
 
 def _format_label(fmt: OutputFormat) -> str:
@@ -533,7 +537,7 @@ def _check_range(out: np.ndarray, fmt: OutputFormat) -> None:
     hi, lo = float(out.max()), float(out.min())
     if not (hi <= limit and lo >= -limit):  # also NaN
         wider = " (tiff-float and exr-float hold 3.4e38)" if fmt.depth == "half" else ""
-        raise ImageWriteError(
+        raise OutputRefusedError(
             f"corrected values reach {max(abs(hi), abs(lo)):.4g}, beyond the {limit:.4g} that "
             f"{_format_label(fmt)} holds: scale the input down or choose a wider output format{wider}")
 
@@ -572,7 +576,7 @@ def output_folder(path: str | os.PathLike[str]) -> Path:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ImageWriteError(f"cannot create output folder {str(out)!r}: {exc.strerror or exc}") from None
+        raise write_error(f"cannot create output folder {str(out)!r}: {exc.strerror or exc}", exc) from None
     return out
 
 
@@ -590,7 +594,7 @@ def output_file(path: str | os.PathLike[str] | None) -> Path | None:
     out = Path(path)
     output_folder(out.parent)
     if out.is_dir():
-        raise ImageWriteError(f"cannot write {str(out)!r}: it is a folder")
+        raise OutputSettingsError(f"cannot write {str(out)!r}: it is a folder")
     return out
 
 
@@ -599,7 +603,7 @@ def refuse_input(output: str | os.PathLike[str] | None, *inputs: Container[Any])
     :class:`InputFiles`, or the paths themselves): no output of a run replaces one of
     its inputs.  Checked before any work is done."""
     if output is not None and any(output in c for c in inputs):
-        raise ImageWriteError(f"refusing to overwrite {str(output)!r}: it is an input of this run")
+        raise OutputSettingsError(f"refusing to overwrite {str(output)!r}: it is an input of this run")
 
 
 def images_in(folder: Path, limit: int | None = None) -> list[Path]:

@@ -33,10 +33,25 @@ from vigproc.errors import VigprocError
 log = logging.getLogger(__name__)
 
 
+#: SQLite's primary result codes that say whose fault a failure is (``sqlite_errorcode & 0xff``).
+SQLITE_BUSY, SQLITE_LOCKED, SQLITE_READONLY, SQLITE_CORRUPT, SQLITE_FULL, SQLITE_NOTADB = 5, 6, 8, 11, 13, 26
+
+
+def sqlite_code(exc: sqlite3.Error) -> int | None:
+    """The primary SQLite result code of ``exc`` (Python 3.11+), or None."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    return code & 0xFF if isinstance(code, int) else None
+
+
 def explain_sqlite_error(exc: sqlite3.Error, timeout: float) -> str:
-    """What an sqlite3 error means for the user, in words (the message kept)."""
+    """What an sqlite3 error means for the user, in words (the message kept).  By its
+    result code; SQLite's own fixed messages (no file name in them) where there is none."""
     msg = str(exc)
     low = msg.lower()
+    code = sqlite_code(exc)
+    if code is not None:  # the words below are SQLite's messages for these codes
+        low = {SQLITE_BUSY: "busy", SQLITE_LOCKED: "locked", SQLITE_CORRUPT: "malformed", SQLITE_NOTADB: "not a database",
+               SQLITE_READONLY: "readonly", SQLITE_FULL: "disk full"}.get(code, "")
     if "locked" in low or "busy" in low:
         return f"locked by another process for more than {timeout:g} s ({msg})"
     if "not a database" in low or "malformed" in low or "corrupt" in low:
@@ -72,6 +87,9 @@ class SQLiteFile:
     what: str = "database"
     #: What a user can do about a corrupt file (appended to that error's message).
     recovery: str = ""
+    #: Run ``PRAGMA quick_check`` when an existing file is opened: a corrupt store is
+    #: refused with a typed error rather than used (a small file: milliseconds).
+    check_on_open: bool = False
 
     def __init__(self, path: str | os.PathLike[str], *, timeout: float) -> None:
         self.path = Path(path).expanduser()
@@ -105,6 +123,12 @@ class SQLiteFile:
                             self.what, self.path, mode)
         con.execute("PRAGMA synchronous = FULL")
         con.execute("PRAGMA foreign_keys = ON")
+        if self.check_on_open:
+            rows = con.execute("PRAGMA quick_check(3)").fetchall()
+            if [tuple(r) for r in rows] != [("ok",)]:
+                found = "; ".join(str(r[0]) for r in rows)[:300]
+                # SQLITE_CORRUPT's own words, so that _errors names the recovery
+                raise sqlite3.DatabaseError(f"database disk image is malformed (quick_check: {found})")
         self._setup_schema()
 
     def _setup_schema(self) -> None:
@@ -141,7 +165,13 @@ class SQLiteFile:
             why = explain_sqlite_error(exc, self.timeout)
             if self.recovery and why.startswith("the file is corrupt"):
                 why += f"; {self.recovery}"
-            raise self.error(f"{self.what} {self.path}: {op} failed: {why}") from None
+            err = self.error(f"{self.what} {self.path}: {op} failed: {why}")
+            code = sqlite_code(exc)
+            if code in (SQLITE_BUSY, SQLITE_LOCKED):  # another process holds it: a retry may help
+                err.transient = True
+            elif code == SQLITE_FULL:  # the store's disk, not the output's (vigproc.pipeline.faults)
+                err.sqlite_errorcode, err.disk, err.folder = code, f"{self.what} disk", str(self.path.parent)
+            raise err from None
 
     @property
     def con(self) -> sqlite3.Connection:

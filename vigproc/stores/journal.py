@@ -68,7 +68,7 @@ from datetime import datetime, timezone
 from typing import Any, Callable
 
 from vigproc.stores.db import SQLiteFile
-from vigproc.errors import EXIT_CODES, ImageReadError, VigprocError
+from vigproc.errors import EXIT_CODES, SETTINGS, ImageReadError, VigprocError
 
 __all__ = [
     "COUNT_KEYS",
@@ -110,6 +110,7 @@ class JournalError(VigprocError):
     """The journal database cannot be used (corrupt, locked, not a journal) or was misused."""
 
     exit_code = EXIT_CODES["journal"]
+    blame = SETTINGS
 
 
 class FingerprintError(ImageReadError):

@@ -64,7 +64,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from vigproc.errors import ModelError, one_line
+from vigproc.errors import SETTINGS, ModelError, one_line
 from vigproc.stores.xmlsafe import parse_xml, read_capped
 
 __all__ = [
@@ -100,6 +100,8 @@ _IDENTITY = ("Make", "Model", "Lens", "LensPrettyName", "CameraPrettyName", "Cam
 class LcpError(ModelError):
     """An LCP file cannot be used (unreadable, not an LCP, hostile, no usable entry);
     the message names the file."""
+
+    blame = SETTINGS
 
 
 @dataclass(frozen=True)

@@ -72,7 +72,7 @@ import numpy as np
 
 from vigproc.atomic import atomic_write_text
 from vigproc.stores.db import SQLiteFile
-from vigproc.errors import EXIT_CODES, ModelError, VigprocError
+from vigproc.errors import EXIT_CODES, SETTINGS, ModelError, VigprocError
 from vigproc.io.exif import LensKey, normalise_text, unescape_key_part
 from vigproc.core.model import N_ALPHA, PARAM_NAMES, FitQuality, VignettingModel
 from vigproc.core.normalised import (  # noqa: F401  (normalise, denormalise, fit_model_to_field: re-exported)
@@ -123,6 +123,7 @@ class ProfileStoreError(VigprocError):
     """The profile store or a profile file cannot be used (corrupt, locked, invalid)."""
 
     exit_code = EXIT_CODES["profile_store"]
+    blame = SETTINGS
 
 
 # --------------------------------------------------------------------------- #
@@ -1298,6 +1299,7 @@ class ProfileStore(SQLiteFile):
 
     error = ProfileStoreError
     what = "profile store"
+    check_on_open = True
     recovery = ("move it aside (vigproc then starts an empty store there), restore a backup or re-import "
                 "exported profiles with 'vigproc profile import FILE'; meanwhile '--profile estimate' or "
                 "'--profile lensfun' correct without a store")

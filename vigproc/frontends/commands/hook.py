@@ -68,7 +68,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from vigproc.errors import EXIT_CODES, ImageWriteError, VigprocError, one_line
+from vigproc.errors import EXIT_CODES, OutputSettingsError, VigprocError, one_line, write_error
 
 log = logging.getLogger(__name__)
 
@@ -207,12 +207,12 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) 
             raise UsageError(f"output {job['output']!r}: format {s.output_format} writes "
                          f"{' or '.join(_SUFFIXES[s.output_format])} files")
         if target.exists() and (target.resolve() == path.resolve() or target in inputs):
-            raise ImageWriteError(f"refusing to overwrite the input {job['output']!r}")
+            raise OutputSettingsError(f"refusing to overwrite the input {job['output']!r}")
         # the pipeline writes into a private folder beside the target; one rename publishes it
         try:
             work = tempfile.mkdtemp(prefix=".vigproc-hook-", dir=target.parent)
         except OSError as exc:
-            raise ImageWriteError(f"cannot write beside {job['output']!r}: {exc.strerror or exc}") from None
+            raise write_error(f"cannot write beside {job['output']!r}: {exc.strerror or exc}", exc) from None
         try:
             # the host asked for this file: it is written even when nothing is applied
             res = proc.process_file(path, work, "out", unapplied="write", like=target)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from vigproc.errors import VigprocError
+from vigproc.errors import SETTINGS, VigprocError
 from vigproc.pipeline.faults import DEFAULT_MIN_FREE
 from vigproc.pipeline.processor import percent_encode, shorten_stem
 from vigproc.stores.journal import Fingerprint
@@ -38,6 +38,7 @@ class WatchError(VigprocError):
     """The watch folder cannot be run as asked (bad folders, another daemon on the job, ...)."""
 
     exit_code = 1
+    blame = SETTINGS
 
 
 # ------------------------------------------------------------------ names

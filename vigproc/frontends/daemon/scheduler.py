@@ -27,7 +27,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from vigproc.pipeline.faults import CRASH, DISK_FULL, PERMANENT, TRANSIENT, disk_space
+from vigproc.pipeline.faults import CRASH, DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, disk_space, output_trouble
 from vigproc.stores.journal import FileChangedError, FingerprintError, JournalError, fingerprint, runner_identity
 
 from .config import RunFlags, WatchConfig, WatchError, _signature, _Task
@@ -56,6 +56,7 @@ class _DiskPause:
     next_look: float = 0.0  # monotonic: next look at the free space
     probing: bool = False  # a probe is in flight
     held: set[str] = field(default_factory=set)  # files given back for the disk, not charged
+    disk: str = "output disk"  # which disk is full: "output disk", "profile store disk"
 
 
 @dataclass
@@ -129,7 +130,7 @@ class Scheduler:
         from datetime import datetime, timezone
 
         return {
-            "why": "output disk full", "reason": d.reason,
+            "why": f"{d.disk} full", "reason": d.reason,
             "since": datetime.fromtimestamp(d.since, timezone.utc).isoformat(timespec="seconds"),
             "free_bytes": d.free_bytes, "files_waiting": len(d.held),
             "next_try_s": round(max(d.probe_at - time.monotonic(), 0.0), 1) if not d.probing else 0.0,
@@ -179,9 +180,7 @@ class Scheduler:
             if t.probe and self.disk is not None:
                 self.disk.probing = False
             if t.started is not None:
-                # the worker died (or hung) on this file while the daemon lives: a crash the
-                # file caused, the only kind charged (a kill of the daemon is not: Journal.recover)
-                self.recorder.failure(t, CRASH, f"{why} (worker exit code {code})")
+                self._died_on(t, f"{why} (worker exit code {code})")
             else:
                 self.recorder.release(t)
         self.recorder.remove_temps([t.path for t in w.tasks], keep=self.inflight)
@@ -191,6 +190,20 @@ class Scheduler:
             self.start_worker(index)
         else:
             w.stopping = True
+
+    def _died_on(self, task: _Task, why: str) -> None:
+        """Its worker died (or hung) on ``task`` while the daemon lives: a crash the file
+        caused, the only kind charged (a kill of the daemon is not: Journal.recover) --
+        unless the output side was failing then (full, read-only, gone): native code may
+        end its process on a write error, which is the disk's fault, not the photo's."""
+        trouble = output_trouble(self.cfg.out_dir, self.cfg.min_free)
+        if self.disk is not None or (trouble is not None and trouble.kind == DISK_FULL):
+            reason = f"{why} while {trouble.reason if trouble is not None else self.disk.reason}"
+            self._disk_full(task, reason, trouble.space.free_bytes if trouble and trouble.space else None)
+        elif trouble is not None:
+            self.recorder.failure(task, OUTPUT, f"{why} while {trouble.reason}")
+        else:
+            self.recorder.failure(task, CRASH, why)
 
     def shutdown(self) -> None:
         """Stop the workers: drained ones are told to stop (and given the time to finish
@@ -421,11 +434,12 @@ class Scheduler:
         else:
             kind_, reason = payload["kind"], payload["reason"]
             if kind_ == DISK_FULL:  # the machine's fault, not the photo's: no attempt counted
-                self._disk_full(task, reason, payload.get("free_bytes"))
+                self._disk_full(task, reason, payload.get("free_bytes"), payload.get("disk") or "output disk")
                 return
-            if self.flags.stop and "exiftool" in reason:
+            if self.flags.stop and kind_ == TRANSIENT:
                 # the stop signal may have reached exiftool too (systemd can signal every
-                # process): not the file's fault, so it goes back without an attempt
+                # process; vigproc.io.metadata marks that transient): not the file's fault, so
+                # it goes back without an attempt (judged by kind: the reason carries the name)
                 self.recorder.release(task)
                 log.warning("%s failed while stopping (%s); it will be tried again", task.rel, reason,
                             extra=_ev("released", file=task.path, reason=reason))
@@ -466,7 +480,7 @@ class Scheduler:
         return True
 
     # ---------------------------------------------------------- full output disk
-    def _disk_full(self, task: _Task, reason: str, free_bytes: int | None) -> None:
+    def _disk_full(self, task: _Task, reason: str, free_bytes: int | None, disk: str = "output disk") -> None:
         """``task`` failed for want of space on the output disk: give it back uncharged,
         and pause (or stay paused, backing off if it was the probe)."""
         cfg = self.cfg
@@ -476,18 +490,18 @@ class Scheduler:
             free_bytes = sp.free_bytes if sp is not None else None
         d = self.disk
         if d is None:
-            d = self.disk = _DiskPause(reason=reason, since=time.time(), free_bytes=free_bytes,
+            d = self.disk = _DiskPause(reason=reason, since=time.time(), disk=disk, free_bytes=free_bytes,
                                        delay=max(cfg.retry_base, 0.1), probe_at=now + max(cfg.retry_base, 0.1))
             self.recorder.stats["disk_full"] += 1
-            log.warning("output disk full, paused: %s (%s); nothing is quarantined for it, the files are tried "
-                        "again when there is room", reason, task.rel,
+            log.warning("%s full, paused: %s (%s); nothing is quarantined for it, the files are tried "
+                        "again when there is room", disk, reason, task.rel,
                         extra=_ev("disk-full", file=task.path, reason=reason, free_bytes=free_bytes))
         else:
-            d.reason, d.free_bytes = reason, free_bytes  # the latest look: the growth that resumes is from here
+            d.reason, d.disk, d.free_bytes = reason, disk, free_bytes  # the latest look: the growth that resumes is from here
             if task.probe:
                 d.delay = min(d.delay * 2, max(cfg.retry_cap, cfg.retry_base))
                 d.probe_at = now + d.delay
-                log.warning("output disk still full (%s); next try in %.0f s", reason, d.delay,
+                log.warning("%s still full (%s); next try in %.0f s", disk, reason, d.delay,
                             extra=_ev("disk-still-full", file=task.path, reason=reason, retry_in=round(d.delay, 1)))
         d.held.add(task.path)
         self.disk_ready.discard(task.path)

@@ -8,7 +8,7 @@ SIGINT/SIGTERM (the daemon drains it), dies with the daemon and raises its OOM s
 The messages, daemon to worker: ``("task", id, path, out_root, rel, fingerprint, extra)``
 and ``("stop",)``; worker to daemon: ``("ready", None, pid)``, ``("fatal", None, why)``,
 ``("start", id, None)``, ``("ok", id, summary)``, ``("error", id, {kind, reason, type,
-free_bytes})``.
+disk, free_bytes})``.
 """
 
 from __future__ import annotations
@@ -110,6 +110,7 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
             _, task_id, path, out_root, rel, fpd, extra = msg
             conn.send(("start", task_id, None))
             fp = Fingerprint.from_dict(fpd)
+            outdir = Path(out_root)  # judged on the output root until its sub-folder is made
             try:
                 # the one output policy of every front end: sub-folders mirrored, the input's name
                 outdir, stem = output_location(out_root, rel)
@@ -128,8 +129,10 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
                 fault = classify_error(exc, outdir, min_free=min_free)
                 if fault.kind == PERMANENT and fault.reason.startswith("internal error"):
                     wlog.debug("internal error on %s", path, exc_info=True)
+                output_disk = fault.space is not None and fault.disk == "output disk"
                 conn.send(("error", task_id, {"kind": fault.kind, "reason": fault.reason, "type": type(exc).__name__,
-                                              "free_bytes": fault.space.free_bytes if fault.space else None}))
+                                              "disk": fault.disk,
+                                              "free_bytes": fault.space.free_bytes if output_disk else None}))
     except (BrokenPipeError, EOFError, OSError):
         pass  # the daemon is gone
     finally:
