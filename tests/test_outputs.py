@@ -192,3 +192,16 @@ def test_an_adobe_rgb_jpeg_stays_tagged_adobe_rgb(camera_jpeg, tmp_path):
     r = run("correct", camera_jpeg, "-o", tmp_path / "lin", "--profile", "estimate", "--output-format", "tiff16")
     assert r.returncode == 0, r.stderr
     assert colour(tmp_path / "lin" / "IMG_0001.jpg.corrected.tif")[1] is None
+
+
+def test_output_names_encode_bidi_and_c1_controls_one_to_one():
+    """A right-to-left override would show 'IMG_gpj.exe' as 'IMG_exe.jpg' in a file
+    manager: output names carry such controls as their UTF-8 bytes, percent-encoded."""
+    from vigproc.pipeline.processor import output_name
+
+    rlo = output_name("IMG_\u202egpj.exe")
+    assert "\u202e" not in rlo and rlo == "IMG_%E2%80%AEgpj.exe"
+    assert output_name("a\x85b.jpg") == "a%C2%85b.jpg"
+    assert output_name("été.jpg") == "été.jpg"  # letters of any script are kept
+    # one-to-one: the encoded form of a control differs from the literal text it encodes to
+    assert output_name("IMG_%E2%80%AEgpj.exe") != rlo

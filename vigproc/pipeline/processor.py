@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Container, Iterable, Sequence
 
-from vigproc.errors import (ImageReadError, ImageWriteError, ModelError, OutputFormatError, OutputRefusedError,
+from vigproc.errors import (CONTROL_ESCAPES, ImageReadError, ImageWriteError, ModelError, OutputFormatError, OutputRefusedError,
                             OutputSettingsError, VigprocError, write_error)
 
 log = logging.getLogger(__name__)
@@ -293,8 +293,8 @@ def shorten_stem(stem: str, identity: bytes) -> str:
 
 
 def percent_encode(name: str, *, also: str = "", leading: str = "") -> str:
-    """``name`` with control characters, separators, bytes that are not UTF-8 (surrogate
-    escapes), the characters in ``also`` anywhere and those in ``leading`` as the first
+    """``name`` with control characters (bidi controls too, as their UTF-8 bytes),
+    separators, bytes that are not UTF-8 (surrogate escapes), the characters in ``also`` anywhere and those in ``leading`` as the first
     character written as ``%XX``; everything else (spaces, letters of any script) kept."""
     out = []
     for i, ch in enumerate(name):
@@ -303,6 +303,8 @@ def percent_encode(name: str, *, also: str = "", leading: str = "") -> str:
             out.append(f"%{o:02X}")
         elif 0xDC80 <= o <= 0xDCFF:  # a byte that is not UTF-8 (surrogate escape)
             out.append(f"%{o - 0xDC00:02X}")
+        elif o > 0x7F and o in CONTROL_ESCAPES:  # C1 and bidi controls (an RLO turns a name around)
+            out.append("".join(f"%{b:02X}" for b in ch.encode("utf-8")))
         else:
             out.append(ch)
     return "".join(out)
