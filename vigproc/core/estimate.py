@@ -145,6 +145,67 @@ def _from_working(m: VignettingModel, k: int, width: int, height: int) -> Vignet
     )
 
 
+#: The estimators that read the frame only through binned working copies of about
+#: ``work_size`` px (96; the centre tests 60): a reduced copy of a large frame gives
+#: them the same data (:func:`estimate_reduced`).
+REDUCIBLE_METHODS = ("default", "lens-family", "robust", "real-lens", "flat-field")
+
+
+def reduction_factor(width: int, height: int, work_size: int = 96) -> int:
+    """The block size by which a width×height frame can be binned before
+    :func:`estimate_reduced` without changing what the estimators read.
+
+    The working copy bins the frame by k = round(long side / ``work_size``); a
+    reduction by a divisor of k keeps its bins exactly (the same pixels, means of
+    means), so the largest divisor that leaves at least 3 × ``work_size`` px on the long
+    side is taken when it reduces the frame at least 8-fold's worth; else long side /
+    (4 × ``work_size``) (bins a few pixels wider or narrower than the frame's own).
+    Returns 1 for frames under 10 × ``work_size`` px on the long side: their own
+    binning costs little.
+    """
+    n = max(int(width), int(height))
+    if n < 10 * work_size:  # a small frame's own binning costs little
+        return 1
+    k = max(1, round(n / work_size))
+    best = max((d for d in range(2, k + 1) if k % d == 0 and n / d >= 3 * work_size), default=1)
+    return best if best > 1 and best >= n // (8 * work_size) else max(1, n // (4 * work_size))
+
+
+def from_reduced(m: VignettingModel, k: int, width: int, height: int) -> VignettingModel:
+    """A model estimated on a frame binned k×k (remainder rows and columns dropped) as
+    the model of the full width×height frame (its candidate and covariance too)."""
+    if k == 1 and (m.width, m.height) == (width, height):
+        return m
+    big = m.rescale(m.width * k, m.height * k)
+    # the binned frame's centre sits (W_b·k − W)/2 px from the full frame's centre
+    ox, oy = (big.width - width) / 2.0, (big.height - height) / 2.0
+
+    def moved(x: VignettingModel, candidate=None) -> VignettingModel:
+        return replace(x, width=width, height=height, center=(x.center[0] + ox, x.center[1] + oy),
+                       candidate=candidate)
+
+    return moved(big, moved(big.candidate) if big.candidate is not None else None)
+
+
+def estimate_reduced(small: np.ndarray, k: int, width: int, height: int, method: str = "default", *,
+                     hint: LensHint | None = None) -> VignettingModel:
+    """:func:`estimate_checked` of a frame read as ``small``, its linear light binned k×k
+    (:func:`reduction_factor`; e.g. :func:`vigproc.core.pixels.reduce_codes`), for the
+    full width×height frame: the estimators of :data:`REDUCIBLE_METHODS` read binned
+    working copies only, and a full frame's own binning costs a float copy of every
+    pixel. ``small`` is validated here (:func:`check_image`).
+
+    Raises
+    ------
+    InvalidImageError
+        As :func:`estimate`; also a ``method`` not in :data:`REDUCIBLE_METHODS`.
+    """
+    if method not in REDUCIBLE_METHODS:
+        raise InvalidImageError(f"method {method!r} reads the full frame, not a reduced copy")
+    a = check_image(small, -1 if np.ndim(small) == 3 else None)
+    return from_reduced(estimate_checked(a, method, hint=hint), k, width, height)
+
+
 def _named(model: VignettingModel, method: str) -> VignettingModel:
     """A real-lens or flat-field estimate says so (the corrected file's record names
     the method)."""

@@ -202,3 +202,37 @@ def binned_log_channels(img: np.ndarray, k: int, valid: np.ndarray, dark_fractio
         if ok[i].any():
             ok[i] &= b[i] > dark_fraction * np.percentile(b[i][ok[i]], 99)
     return log_image(b), ok
+
+
+def reduce_codes(codes: np.ndarray, decode: np.ndarray, k: int) -> np.ndarray:
+    """A display-encoded frame binned ``k``×``k`` in linear light, straight from its code
+    values: the mean of ``decode[codes]`` over each block (the remainder rows and columns
+    dropped, as :func:`bin_mean`), without a full-frame float copy.
+
+    Parameters
+    ----------
+    codes : ndarray, H×W or H×W×C, uint8 or uint16
+    decode : ndarray, float
+        Linear value of every code.
+    k : int
+        Block size, at least 1 and at most the frame's shorter side.
+
+    Returns
+    -------
+    ndarray, float32, (H//k)×(W//k) or (H//k)×(W//k)×C
+    """
+    from vigproc.core._kernels.codes import reduce_codes as _reduce
+
+    a = np.asarray(codes)
+    if a.dtype not in (np.uint8, np.uint16) or a.ndim not in (2, 3):
+        raise InvalidImageError(f"codes must be an H×W(×C) uint8 or uint16 array, got {a.dtype} {a.shape}")
+    x = np.ascontiguousarray(a[..., None] if a.ndim == 2 else a)
+    h, w, c = x.shape
+    if not 1 <= int(k) <= min(h, w):
+        raise InvalidImageError(f"cannot bin a {w}x{h} frame by {k}")
+    lut = np.ascontiguousarray(decode, dtype=np.float32)
+    if lut.ndim != 1 or lut.shape[0] < int(x.max()) + 1:
+        raise InvalidImageError(f"the decode table has {lut.shape[0]} entries for codes up to {int(x.max())}")
+    out = np.empty((h // k, w // k, c), dtype=np.float32)
+    _reduce(x, lut, int(k), out)
+    return out[..., 0] if a.ndim == 2 else out

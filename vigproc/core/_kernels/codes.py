@@ -1,0 +1,80 @@
+"""Numba kernels over a display-encoded frame's integer code values (8- or 16-bit).
+
+A JPEG or PNG is stored as code values; decoding every sample to float linear light,
+dividing, and encoding back with a float power costs several passes over a frame of
+float32 temporaries. These kernels stay in the codes' own domain: a decode table
+(code → linear), the gain, and the encode as a search in the table of the linear
+values at which the output code steps up (exact round-half-up quantisation).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from vigproc.core._kernels.correct import _row_gains, _row_gains_interp
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def reduce_codes(codes, lut, k, out):
+    """out[j, i, c] = mean of lut[codes] over the k×k block (j, i) (remainder dropped).
+
+    ``codes``: h×w×C integers; ``lut``: float32 table code → linear; ``out``:
+    (h//k)×(w//k)×C float32. Means in linear light, as binning a decoded frame gives.
+    """
+    hb, wb, c = out.shape
+    inv = np.float32(1.0 / (k * k))
+    for j in prange(hb):
+        acc = np.zeros(wb * c, dtype=np.float64)
+        for y in range(j * k, j * k + k):
+            row = codes[y]
+            for i in range(wb):
+                for x in range(i * k, i * k + k):
+                    for ch in range(c):
+                        acc[i * c + ch] += lut[row[x, ch]]
+        for i in range(wb):
+            for ch in range(c):
+                out[j, i, ch] = np.float32(acc[i * c + ch]) * inv
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _encode(v, steps):
+    # the number of steps at or below v: the output code (a binary search in a sorted table)
+    lo = 0
+    hi = steps.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if steps[mid] <= v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def correct_codes(codes, out, lut, steps, row0, cx, cy, p1, p2, p3, alpha, strength, step=1, exact_radius=0.0):
+    """out = encode(lut[codes] / φ^strength) for the rows of ``codes`` (h×W×C).
+
+    ``steps[c]``: the linear value from which the output code is c + 1 (sorted); values
+    above the last step are the top code (clipped at the white point). The gain is the
+    float kernel's (:func:`vigproc.core._kernels.correct.correct_rows`: interpolated
+    between ``step`` columns, exact within ``exact_radius`` px of the centre).
+    """
+    h, w, c = codes.shape
+    xs = (np.arange(w) - ((w - 1) / 2.0 + cx)).astype(np.float32)
+    nk = (w - 1 + step - 1) // step + 1
+    for j in prange(h):
+        gains = np.empty(w, dtype=np.float32)
+        dy = (row0 + j) - cy
+        _row_gains_interp(xs, dy, p1, p2, p3, alpha, strength, step, np.empty(nk), gains)
+        if step > 1 and abs(dy) < exact_radius:
+            i0 = max(0, int(np.floor((w - 1) / 2.0 + cx - exact_radius)))
+            i1 = min(w, int(np.ceil((w - 1) / 2.0 + cx + exact_radius)) + 1)
+            if i1 > i0:
+                _row_gains(xs[i0:i1], dy, p1, p2, p3, alpha, strength, gains[i0:i1])
+        src = codes[j]
+        dst = out[j]
+        for i in range(w):
+            g = gains[i]
+            for ch in range(c):
+                dst[i, ch] = _encode(lut[src[i, ch]] * g, steps)
