@@ -65,8 +65,9 @@ def test_bad_codes_are_refused():
 def test_reduced_copy_is_the_binned_linear_frame(k):
     codes = _codes(101, 157, "uint16")
     enc = EncodedImage(codes, "srgb")
-    small = reduce_codes(codes, enc.decode_table(), k)
+    small, usable = reduce_codes(codes, enc.decode_table(), k)
     lin = enc.linear()
+    assert usable is None  # no black pixel, no clipped highlight
     assert small.shape == (101 // k, 157 // k, 3)
     for c in range(3):
         np.testing.assert_allclose(small[..., c], bin_mean(lin[..., c], k)[0], rtol=1e-5)
@@ -106,7 +107,7 @@ def test_the_estimate_from_a_reduced_copy_is_the_full_frames():
     k = reduction_factor(w, h)
     assert k > 1
     full = estimate_checked(check_image(enc.linear()))
-    reduced = estimate_reduced(enc.reduced(k), k, w, h)
+    reduced = estimate_reduced(*enc.reduced(k)[:1], k, w, h, usable=enc.reduced(k)[1])
     assert (reduced.width, reduced.height) == (w, h)
     assert abs(reduced.field_ev_rms() - full.field_ev_rms()) < 0.02
     assert abs(reduced.field_ev_rms() - lens.field_ev_rms()) < 0.1
@@ -155,3 +156,18 @@ def test_a_constant_or_black_frame_is_bad_input(tmp_path):
             write_image(tmp_path / name, np.full((40, 60), value, np.float32), bit_depth="uint8", transfer="srgb")
             with pytest.raises(InvalidImageError):
                 proc.process_file(tmp_path / name, tmp_path / "out")
+
+
+def test_the_reduced_copy_masks_the_blocks_the_full_frame_would():
+    from vigproc.core.estimate import clipped_mask
+
+    codes = _codes(90, 120)
+    codes[10:20, 30:50] = 255  # a clipped highlight (over 0.1 % of the pixels)
+    codes[70, 100] = 0  # one black pixel
+    enc = EncodedImage(codes, "srgb")
+    lin = enc.linear()
+    keep = clipped_mask(lin) & (lin.max(axis=2) > 0)
+    for k in (2, 5):
+        _, usable = reduce_codes(codes, enc.decode_table(), k)
+        np.testing.assert_array_equal(usable, bin_mean(lin[..., 0], k, keep)[1])
+        assert not usable.all() and usable.mean() > 0.9

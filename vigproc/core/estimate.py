@@ -188,12 +188,14 @@ def from_reduced(m: VignettingModel, k: int, width: int, height: int) -> Vignett
 
 
 def estimate_reduced(small: np.ndarray, k: int, width: int, height: int, method: str = "default", *,
-                     hint: LensHint | None = None) -> VignettingModel:
+                     hint: LensHint | None = None, usable: np.ndarray | None = None) -> VignettingModel:
     """:func:`estimate_checked` of a frame read as ``small``, its linear light binned k×k
     (:func:`reduction_factor`; e.g. :func:`vigproc.core.pixels.reduce_codes`), for the
     full width×height frame: the estimators of :data:`REDUCIBLE_METHODS` read binned
     working copies only, and a full frame's own binning costs a float copy of every
-    pixel. ``small`` is validated here (:func:`check_image`).
+    pixel. ``small`` is validated here (:func:`check_image`). ``usable``: its pixels
+    that hold no clipped highlight or black pixel of the full frame (None: all; the
+    second result of :func:`vigproc.core.pixels.reduce_codes`).
 
     Raises
     ------
@@ -203,7 +205,7 @@ def estimate_reduced(small: np.ndarray, k: int, width: int, height: int, method:
     if method not in REDUCIBLE_METHODS:
         raise InvalidImageError(f"method {method!r} reads the full frame, not a reduced copy")
     a = check_image(small, -1 if np.ndim(small) == 3 else None)
-    return from_reduced(estimate_checked(a, method, hint=hint), k, width, height)
+    return from_reduced(estimate_checked(a, method, hint=hint, usable=usable), k, width, height)
 
 
 def _named(model: VignettingModel, method: str) -> VignettingModel:
@@ -331,7 +333,7 @@ def estimate(
 def estimate_checked(
     a: np.ndarray, method: str = "default", *, prior: NaturalPrior | None = None,
     settings: RobustSettings | None = None, seed: int | None = None, hint: LensHint | None = None,
-    family=None,
+    family=None, usable: np.ndarray | None | object = ...,
 ) -> VignettingModel:
     """:func:`estimate` of a frame that :func:`~vigproc.core.pixels.check_image` has
     accepted: ``a`` is its result (H×W, or H×W×C with channels last, float). The
@@ -340,7 +342,9 @@ def estimate_checked(
     Parameters and errors as :func:`estimate` (``method`` may name a plugin), and
     ``family`` (:class:`~vigproc.core.lensfamily.LensFamily`, optional): the lens family
     of the "default" and "lens-family" fits (default: the shipped one; a benchmark
-    passes one without the lenses it scores).
+    passes one without the lenses it scores), and ``usable`` (H×W bool or None): the
+    pixels to fit, when the caller knows them better than the frame's own clipped
+    highlights (:func:`clipped_mask`) tell (a reduced copy's: :func:`estimate_reduced`).
     """
     require_size(a)  # the door may accept smaller frames (a correction by a profile)
     if method not in METHODS:
@@ -348,7 +352,7 @@ def estimate_checked(
 
         return estimator(method)(a, channel_axis=-1 if a.ndim == 3 else None, seed=seed)
     h, w = a.shape[:2]
-    keep = clipped_mask(a)
+    keep = clipped_mask(a) if usable is ... else usable
     lum = luminance(a)
     if method == "default" and settings is None:
         return estimate_default(lum, keep, hint, family, colour=colour_of(a))

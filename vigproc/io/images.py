@@ -230,8 +230,9 @@ class EncodedImage:
         """The frame as float32 linear light (what :func:`read_image` returns)."""
         return np.ascontiguousarray(self.decode_table()[self.codes])
 
-    def reduced(self, k: int) -> np.ndarray:
-        """The frame's linear light binned ``k``×``k`` (float32; :func:`vigproc.core.pixels.reduce_codes`)."""
+    def reduced(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """The frame's linear light binned ``k``×``k`` (float32) and its usable blocks
+        (:func:`vigproc.core.pixels.reduce_codes`)."""
         from vigproc.core.pixels import reduce_codes
 
         return reduce_codes(self.codes, self.decode_table(), k)

@@ -49,7 +49,8 @@ def estimate_encoded(enc: EncodedImage, method: str, *, hint=None):
     h, w = enc.shape[:2]
     k = reduction_factor(w, h)
     if method in REDUCIBLE_METHODS and k > 1:
-        return estimate_reduced(enc.reduced(k), k, w, h, method, hint=hint)
+        small, usable = enc.reduced(k)
+        return estimate_reduced(small, k, w, h, method, hint=hint, usable=usable)
     img = enc.linear()
     return estimate_checked(check_image(img, -1 if img.ndim == 3 else None), method, hint=hint)
 

@@ -16,11 +16,13 @@ from vigproc.core._kernels.correct import _row_gains, _row_gains_interp
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def reduce_codes(codes, lut, k, out):
+def reduce_codes(codes, lut, k, hot_code, out, hot, dark):
     """out[j, i, c] = mean of lut[codes] over the k×k block (j, i) (remainder dropped).
 
     ``codes``: h×w×C integers; ``lut``: float32 table code → linear; ``out``:
     (h//k)×(w//k)×C float32. Means in linear light, as binning a decoded frame gives.
+    Per block, ``hot`` counts the pixels with a channel at or above ``hot_code`` and
+    ``dark`` those whose channels are all code 0 (what the estimators mask per pixel).
     """
     hb, wb, c = out.shape
     inv = np.float32(1.0 / (k * k))
@@ -29,9 +31,20 @@ def reduce_codes(codes, lut, k, out):
         for y in range(j * k, j * k + k):
             row = codes[y]
             for i in range(wb):
+                nh = 0
+                nd = 0
                 for x in range(i * k, i * k + k):
+                    top = 0
                     for ch in range(c):
-                        acc[i * c + ch] += lut[row[x, ch]]
+                        v = row[x, ch]
+                        acc[i * c + ch] += lut[v]
+                        top = max(top, np.int64(v))
+                    if top >= hot_code:
+                        nh += 1
+                    if top == 0:
+                        nd += 1
+                hot[j, i] += nh
+                dark[j, i] += nd
         for i in range(wb):
             for ch in range(c):
                 out[j, i, ch] = np.float32(acc[i * c + ch]) * inv
