@@ -90,13 +90,15 @@ def test_a_model_of_the_reduced_frame_maps_to_the_full_frame():
         np.testing.assert_allclose(centres, small.field(), rtol=1e-9)
 
 
-def test_reduction_factor_divides_the_working_bins_when_it_can():
-    assert reduction_factor(4000, 3000) == 7  # the fit bins 42 px: 6 bins of the 571-px copy
-    assert reduction_factor(3264, 2448) == 8  # bins 34 px: a divisor would reduce too little
+def test_reduction_factor_keeps_the_working_bins():
+    assert reduction_factor(4000, 3000) == 21  # the fit bins 42 px: 2 bins of a 190-px copy
+    assert reduction_factor(3264, 2448) == 17  # 34 px
+    assert reduction_factor(2463, 1391) == 13  # 26 px
+    assert reduction_factor(2208, 1472) == 23  # 23 px, prime: a copy of one bin a pixel
     assert reduction_factor(768, 512) == 1
-    for w in range(1000, 12000, 317):
+    for w in range(1000, 12000, 37):
         k = reduction_factor(w, w * 2 // 3)
-        assert w // k >= 3 * 96
+        assert k > 1 and round((w // k) / 96) * k == round(w / 96)
 
 
 def test_the_estimate_from_a_reduced_copy_is_the_full_frames():

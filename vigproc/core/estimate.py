@@ -152,23 +152,26 @@ REDUCIBLE_METHODS = ("default", "lens-family", "robust", "real-lens", "flat-fiel
 
 
 def reduction_factor(width: int, height: int, work_size: int = 96) -> int:
-    """The block size by which a width×height frame can be binned before
-    :func:`estimate_reduced` without changing what the estimators read.
+    """The block size by which a width×height frame is binned before
+    :func:`estimate_reduced`, so that the estimators read the same working copy.
 
-    The working copy bins the frame by k = round(long side / ``work_size``); a
-    reduction by a divisor of k keeps its bins exactly (the same pixels, means of
-    means), so the largest divisor that leaves at least 3 × ``work_size`` px on the long
-    side is taken when it reduces the frame at least 8-fold's worth; else long side /
-    (4 × ``work_size``) (bins a few pixels wider or narrower than the frame's own).
-    Returns 1 for frames under 10 × ``work_size`` px on the long side: their own
-    binning costs little.
+    The working copy bins the frame by k = round(long side / ``work_size``). A reduction
+    by a divisor d of k keeps its bins exactly (the same pixels, means of means: the
+    reduced frame is binned by k / d), so the largest divisor leaving at least two
+    working bins per block is taken, or k itself when k is prime (a reduced frame of
+    ``work_size`` px). Only the centre test's coarser copy (60 px) then bins a little
+    differently (by 1.5-2 k rather than 1.6 k). Returns 1 for frames under
+    10 × ``work_size`` px on the long side: their own binning costs little.
     """
     n = max(int(width), int(height))
     if n < 10 * work_size:  # a small frame's own binning costs little
         return 1
     k = max(1, round(n / work_size))
-    best = max((d for d in range(2, k + 1) if k % d == 0 and n / d >= 3 * work_size), default=1)
-    return best if best > 1 and best >= n // (8 * work_size) else max(1, n // (4 * work_size))
+    for d in sorted((d for d in range(2, k + 1) if k % d == 0 and (k // d >= 2 or d == k)),
+                    key=lambda d: (d == k, -d)):
+        if round((n // d) / work_size) * d == k:  # the reduced frame's own binning is k / d
+            return d
+    return 1
 
 
 def from_reduced(m: VignettingModel, k: int, width: int, height: int) -> VignettingModel:
