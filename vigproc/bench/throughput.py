@@ -57,6 +57,8 @@ class ToolTiming:
     command: list[str]
     seconds: list[float] = field(default_factory=list)
     outputs: int = 0
+    #: another source tree whose vigproc runs (its folder on PYTHONPATH), or None
+    tree: str | None = None
 
     @property
     def median(self) -> float:
@@ -156,12 +158,16 @@ def floor_run(src: Path, dst: Path) -> int:
     return n
 
 
-def _commands(indir: Path, outdir: Path, inputs: Sequence[Path], darktable: str | None) -> dict[str, list[str]]:
+def _commands(indir: Path, outdir: Path, inputs: Sequence[Path], darktable: str | None,
+              baseline: str | None = None) -> dict[str, list[str]]:
     cmds = {
         "floor": [sys.executable, "-m", "vigproc.bench.throughput", "floor", str(indir), str(outdir / "floor")],
         "vigproc": [sys.executable, "-m", "vigproc.frontends.cli", "correct", "--unapplied", "copy",
                     "-o", str(outdir / "vigproc"), "--", *map(str, inputs)],
     }
+    if baseline:  # the same command from another source tree (before/after in one run)
+        cmds["vigproc-baseline"] = [*cmds["vigproc"][:-len(inputs) - 3], "-o", str(outdir / "vigproc-baseline"), "--",
+                                    *map(str, inputs)]
     if darktable:
         # its default processing of each frame, exported as JPEG; a private configuration
         cmds["darktable-cli"] = [darktable, str(indir), str(outdir / "darktable" / "$(FILE_NAME)"), "--out-ext", "jpg",
@@ -176,9 +182,11 @@ def _count_images(folder: Path) -> int:
 
 
 def run_throughput(photos: Sequence[Photo], *, rounds: int = 3, darktable: bool = True,
-                   workdir: Path | None = None, skipped: dict | None = None) -> ThroughputResult:
+                   workdir: Path | None = None, skipped: dict | None = None,
+                   baseline: str | os.PathLike[str] | None = None) -> ThroughputResult:
     """Time vigproc, the floor and darktable-cli (when installed and ``darktable``) on
-    copies of ``photos``, ``rounds`` times each, interleaved.
+    copies of ``photos``, ``rounds`` times each, interleaved; with ``baseline`` (a
+    source tree, e.g. another checkout's root) its ``vigproc correct`` too.
 
     Raises
     ------
@@ -189,8 +197,9 @@ def run_throughput(photos: Sequence[Photo], *, rounds: int = 3, darktable: bool 
     with tempfile.TemporaryDirectory(prefix="vigproc-throughput-", dir=workdir) as tmp:
         root = Path(tmp)
         inputs = stage(photos, root / "in")
-        tools = [ToolTiming(name, cmd) for name, cmd in _commands(root / "in", root / "out", inputs, dt).items()]
-        env = dict(os.environ)
+        base = os.fspath(Path(baseline).resolve()) if baseline else None
+        tools = [ToolTiming(name, cmd, tree=base if name == "vigproc-baseline" else None)
+                 for name, cmd in _commands(root / "in", root / "out", inputs, dt, base).items()]
         for r in range(max(1, rounds)):
             order = tools[r % len(tools):] + tools[:r % len(tools)]
             for t in order:
@@ -198,8 +207,11 @@ def run_throughput(photos: Sequence[Photo], *, rounds: int = 3, darktable: bool 
                 shutil.rmtree(out, ignore_errors=True)
                 shutil.rmtree(root / "out" / "darktable-config", ignore_errors=True)
                 t0 = time.perf_counter()
+                env = dict(os.environ)
+                if t.tree:
+                    env["PYTHONPATH"] = t.tree
                 res = subprocess.run(t.command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, env=env, timeout=TIMEOUT)
+                                     stderr=subprocess.PIPE, env=env, timeout=TIMEOUT, cwd=t.tree)
                 t.seconds.append(time.perf_counter() - t0)
                 t.outputs = _count_images(out)
                 if res.returncode != 0 or t.outputs < len(inputs):

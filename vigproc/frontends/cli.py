@@ -860,7 +860,8 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
     from vigproc.bench import throughput as T
 
     photos, skipped = T.select_photos(Path(args.images), args.min_mp, args.limit)
-    r = T.run_throughput(photos, rounds=args.rounds, darktable=not args.no_darktable, skipped=skipped)
+    r = T.run_throughput(photos, rounds=args.rounds, darktable=not args.no_darktable, skipped=skipped,
+                         baseline=args.baseline)
     print("\n".join(T.format_result(r)))
     write_json_result(args.json, asdict(r))
     return 0
@@ -1300,6 +1301,8 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--limit", type=int, help="use at most this many photographs")
     bp.add_argument("--rounds", type=int, default=3, help="timing rounds, interleaved (default %(default)s)")
     bp.add_argument("--no-darktable", action="store_true", help="leave darktable-cli out")
+    bp.add_argument("--baseline", metavar="TREE", help="also time vigproc correct from this source tree "
+                    "(another checkout's root): before and after in one run")
     bp.add_argument("--json", help="write the figures as JSON")
     bp.set_defaults(fn=cmd_bench_throughput)
     bp = bsub.add_parser("profile", help="profile accuracy versus number of frames (lensfun lenses)")
