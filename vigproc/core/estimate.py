@@ -472,7 +472,8 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
                                    copy=with_colour(centre_copy, colour, s))
         if not centre_colour.off_centre(s.off_centre_shift):
             return model
-    grey = fit_family(lum, s, mask, family, hint).model  # the luminance's, as the comparison reads
+    # the luminance's, as the comparison reads (its field alone: no jackknife)
+    grey = fit_family(lum, s, mask, family, hint, uncertainty=False).model
     shift = centre.shift if colour is None else min(centre.shift, centre_colour.shift)
     strong = q.field_ev_rms >= rule.family_min_ev
     alt = None
