@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from vigproc.core._kernels.correct import _row_gains, _row_gains_interp
+from vigproc.core._kernels.correct import row_gains
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -78,13 +78,7 @@ def correct_codes(codes, out, lut, steps, row0, cx, cy, p1, p2, p3, alpha, stren
     nk = (w - 1 + step - 1) // step + 1
     for j in prange(h):
         gains = np.empty(w, dtype=np.float32)
-        dy = (row0 + j) - cy
-        _row_gains_interp(xs, dy, p1, p2, p3, alpha, strength, step, np.empty(nk), gains)
-        if step > 1 and abs(dy) < exact_radius:
-            i0 = max(0, int(np.floor((w - 1) / 2.0 + cx - exact_radius)))
-            i1 = min(w, int(np.ceil((w - 1) / 2.0 + cx + exact_radius)) + 1)
-            if i1 > i0:
-                _row_gains(xs[i0:i1], dy, p1, p2, p3, alpha, strength, gains[i0:i1])
+        row_gains(xs, (row0 + j) - cy, cx, p1, p2, p3, alpha, strength, step, nk, exact_radius, gains)
         src = codes[j]
         dst = out[j]
         for i in range(w):
