@@ -31,6 +31,7 @@ def photos(tmp_path):
     _photo(src / "b b.JPG", 2, 97)
     (src / "broken.jpg").write_bytes((src / "a.jpg").read_bytes()[:300])  # truncated: no image
     (src / "notes.txt").write_text("not a photograph")
+    write_image(src / "flat.jpg", np.full((60, 90), 0.5, np.float32), transfer="srgb")  # vigproc refuses it
     return src
 
 
@@ -38,7 +39,8 @@ def test_photos_are_the_decodable_jpegs_large_enough(photos):
     chosen, skipped = T.select_photos(photos, min_megapixels=0.0)
     assert [p.path.name for p in chosen] == ["a.jpg", "b b.JPG"]
     assert chosen[0].megapixels == pytest.approx(180 * 120 / 1e6)
-    assert list(skipped) == [str(photos / "broken.jpg")]
+    assert sorted(skipped) == [str(photos / "broken.jpg"), str(photos / "flat.jpg")]
+    assert "constant" in skipped[str(photos / "flat.jpg")]
     with pytest.raises(VigprocError):
         T.select_photos(photos, min_megapixels=1.0)
 

@@ -100,7 +100,11 @@ def select_photos(folder: Path, min_megapixels: float = 0.75, limit: int | None 
         except VigprocError as exc:  # truncated and stub JPEGs: no image to time
             skipped[str(p)] = str(exc)
             continue
+        constant = float(img.max()) == float(img.min())
         del img
+        if constant:  # a stub whose pixels are all one value: vigproc refuses it, the floor would not
+            skipped[str(p)] = "constant frame (nothing to estimate vignetting from)"
+            continue
         photo = Photo(p, info.width, info.height)
         if photo.megapixels < min_megapixels:
             continue
