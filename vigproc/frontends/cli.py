@@ -95,15 +95,19 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     from vigproc.core.estimate import estimate
-    from vigproc.io.images import read_image
+    from vigproc.io.images import EncodedImage, read_encoded
+    from vigproc.pipeline.encoded import check_encoded, estimate_encoded
     from vigproc.pipeline.processor import lens_hint, read_lens
 
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
-    # model for the full frame; other formats are read as they are
-    img, info = read_image(file, transfer=args.input_transfer, raw_half_size=True)
+    # model for the full frame; a JPEG's or PNG's codes from a reduced copy; others as they are
+    img, info = read_encoded(file, transfer=args.input_transfer, raw_half_size=True)
     key, lens = read_lens(reader, Path(file))
-    m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
-                 hint=lens_hint(key, args.method))
+    if isinstance(img, EncodedImage):
+        m = estimate_encoded(check_encoded(img), args.method, hint=lens_hint(key, args.method), seed=args.seed)
+    else:
+        m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
+                     hint=lens_hint(key, args.method))
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
     doc = {"file": str(file), "lens": lens, "model": m.to_dict()}

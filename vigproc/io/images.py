@@ -498,12 +498,14 @@ def _check_budget(path: str, width: int, height: int, channels: int, budget: int
             "refused before decoding (possible decompression bomb)")
 
 
-def read_encoded(path: PathLike, *, transfer: str = "auto", max_pixels: int = 200_000_000,
+def read_encoded(path: PathLike, *, transfer: str = "auto", raw_half_size: bool = False,
+                 max_pixels: int = 200_000_000,
                  max_bytes: int | None = None) -> tuple[EncodedImage | np.ndarray, ImageInfo]:
     """:func:`read_image`, but an 8- or 16-bit file (JPEG, PNG, integer TIFF) comes back
     as its code values (:class:`EncodedImage`), not decoded to float; float files and
     RAW as :func:`read_image` returns them. Parameters and errors as :func:`read_image`."""
-    return read_image(path, transfer=transfer, max_pixels=max_pixels, max_bytes=max_bytes, _codes=True)
+    return read_image(path, transfer=transfer, raw_half_size=raw_half_size, max_pixels=max_pixels,
+                      max_bytes=max_bytes, _codes=True)
 
 
 def read_image(

@@ -33,10 +33,11 @@ def check_encoded(enc: EncodedImage) -> EncodedImage:
     return enc
 
 
-def estimate_encoded(enc: EncodedImage, method: str, *, hint=None):
+def estimate_encoded(enc: EncodedImage, method: str, *, hint=None, seed: int | None = None):
     """The frame's estimate by ``method``: from a copy binned in linear light straight
     from the codes (:func:`vigproc.core.estimate.estimate_reduced`) when the estimator
-    reads binned copies only, else from the decoded frame.
+    reads binned copies only, else from the decoded frame (``seed``: the random start
+    of ``lyu2010-rand``).
 
     Returns
     -------
@@ -52,7 +53,7 @@ def estimate_encoded(enc: EncodedImage, method: str, *, hint=None):
         small, usable = enc.reduced(k)
         return estimate_reduced(small, k, w, h, method, hint=hint, usable=usable)
     img = enc.linear()
-    return estimate_checked(check_image(img, -1 if img.ndim == 3 else None), method, hint=hint)
+    return estimate_checked(check_image(img, -1 if img.ndim == 3 else None), method, hint=hint, seed=seed)
 
 
 def correct_encoded(enc: EncodedImage, model, fmt, strength: float):
