@@ -275,6 +275,12 @@ def correct(
     return res
 
 
+#: Cells of [0, 1) in which :func:`correct_codes` looks up where an output code's search
+#: starts: 8-bit codes step at least 3e-4 apart in linear light, wider than a cell
+#: (1.5e-5), so the lookup is off by at most one step there.
+ENCODE_CELLS = 65536
+
+
 def correct_codes(codes: np.ndarray, model: VignettingModel, decode: np.ndarray, steps: np.ndarray, *,
                   strength: float = 1.0) -> np.ndarray:
     """Correct a display-encoded frame in its own domain: each code value decoded by the
@@ -316,6 +322,8 @@ def correct_codes(codes: np.ndarray, model: VignettingModel, decode: np.ndarray,
     m = _checked_model(model, fw, fh)
     out = np.empty(x.shape, dtype=np.uint8 if st.shape[0] <= 255 else np.uint16)
     step = gain_step(m, fw, fh)
-    correct_codes_rows(x, out, lut, st, 0, m.center[0], (fh - 1) / 2.0 + m.center[1], *m.p,
+    # where each code's search starts: the steps below each of 65536 cells of [0, 1)
+    start = np.searchsorted(st, np.arange(ENCODE_CELLS) / ENCODE_CELLS, side="left").astype(np.int32)
+    correct_codes_rows(x, out, lut, st, start, 0, m.center[0], (fh - 1) / 2.0 + m.center[1], *m.p,
                        np.asarray(m.alpha, dtype=np.float64), s, step, exact_radius(m, step))
     return out[..., 0] if a.ndim == 2 else out

@@ -51,25 +51,27 @@ def reduce_codes(codes, lut, k, hot_code, out, hot, dark):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _encode(v, steps):
-    # the number of steps at or below v: the output code (a binary search in a sorted table)
-    lo = 0
-    hi = steps.shape[0]
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if steps[mid] <= v:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
+def _encode(v, steps, start):
+    # the number of steps at or below v: the output code. ``start[i]`` counts the steps
+    # below i / n (n its length), a lower bound for any v in that cell; from it a short
+    # walk up (one or two steps for 8-bit output) finds the code exactly
+    n = start.shape[0]
+    i = int(v * n) - 1  # one cell lower: float32 rounding of v·n cannot overshoot
+    code = start[min(max(i, 0), n - 1)]
+    top = steps.shape[0]
+    while code < top and steps[code] <= v:
+        code += 1
+    return code
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def correct_codes(codes, out, lut, steps, row0, cx, cy, p1, p2, p3, alpha, strength, step=1, exact_radius=0.0):
+def correct_codes(codes, out, lut, steps, start, row0, cx, cy, p1, p2, p3, alpha, strength, step=1,
+                  exact_radius=0.0):
     """out = encode(lut[codes] / φ^strength) for the rows of ``codes`` (h×W×C).
 
     ``steps[c]``: the linear value from which the output code is c + 1 (sorted); values
-    above the last step are the top code (clipped at the white point). The gain is the
+    above the last step are the top code (clipped at the white point). ``start[i]``: the
+    number of steps below i / len(start) (where the search for a code starts). The gain is the
     float kernel's (:func:`vigproc.core._kernels.correct.correct_rows`: interpolated
     between ``step`` columns, exact within ``exact_radius`` px of the centre).
     """
@@ -84,4 +86,4 @@ def correct_codes(codes, out, lut, steps, row0, cx, cy, p1, p2, p3, alpha, stren
         for i in range(w):
             g = gains[i]
             for ch in range(c):
-                dst[i, ch] = _encode(lut[src[i, ch]] * g, steps)
+                dst[i, ch] = _encode(lut[src[i, ch]] * g, steps, start)
