@@ -173,3 +173,19 @@ def test_the_reduced_copy_masks_the_blocks_the_full_frame_would():
         _, usable = reduce_codes(codes, enc.decode_table(), k)
         np.testing.assert_array_equal(usable, bin_mean(lin[..., 0], k, keep)[1])
         assert not usable.all() and usable.mean() > 0.9
+
+
+def test_vigproc_estimate_of_a_large_jpeg_reads_the_reduced_copy(tmp_path, capsys):
+    from vigproc.frontends.cli import main
+
+    h, w = 1000, 1500
+    lens = vigproc.VignettingModel(w, h, p=(1 / 900**2, 0.0, 1 / 900**2))
+    src = tmp_path / "big.jpg"
+    write_image(src, np.clip(coloured_scene(h, w, seed=7) * lens.field()[..., None], 0, 1), transfer="srgb",
+                quality=95)
+    assert main(["estimate", "--json", str(src)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    got = vigproc.VignettingModel.from_dict(doc["results"][0]["model"])
+    full = estimate_checked(check_image(read_image(src)[0]))
+    assert (got.width, got.height) == (w, h)
+    assert abs(got.field_ev_rms() - full.field_ev_rms()) < 0.02
