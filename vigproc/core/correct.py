@@ -12,6 +12,7 @@ import operator
 
 import numpy as np
 
+from vigproc.core._kernels.codes import correct_codes as correct_codes_rows
 from vigproc.core._kernels.correct import correct_rows
 from vigproc.errors import InvalidImageError
 from vigproc.core.pixels import as_channels_last
@@ -138,6 +139,15 @@ def _sample_rows(m: VignettingModel, width: int, height: int, rows: np.ndarray) 
     return out
 
 
+def _checked_model(model: VignettingModel, width: int, height: int) -> VignettingModel:
+    """``model`` at ``width``×``height``; ModelError when its G reaches 0 in the frame."""
+    m = model if (model.width, model.height) == (width, height) else model.rescale(width, height)
+    gmin = _min_g(m, width, height)
+    if gmin <= 0.0:  # what field() refuses; the kernel's floor would multiply by ~1e9
+        raise blackout_error(gmin)
+    return m
+
+
 def correct_stripe(
     stripe: np.ndarray, model: VignettingModel, row0: int, frame_shape: tuple[int, int], *,
     strength: float = 1.0, clip: float | None = None, out: np.ndarray | None = None,
@@ -182,10 +192,7 @@ def correct_stripe(
         raise InvalidImageError(f"stripe of shape {stripe.shape} at row {row0} does not fit a {fw}x{fh} frame")
     if step is not None and step < 1:
         raise InvalidImageError(f"step must be at least 1 column, got {step}")
-    m = model if (model.width, model.height) == (fw, fh) else model.rescale(fw, fh)
-    gmin = _min_g(m, fw, fh)
-    if gmin <= 0.0:  # what field() refuses; the kernel's floor would multiply by ~1e9
-        raise blackout_error(gmin)
+    m = _checked_model(model, fw, fh)
     if out is None:
         out = np.empty(stripe.shape, dtype=np.float32)
     o = out[..., None] if out.ndim == 2 else out
@@ -266,3 +273,57 @@ def correct(
     if a.ndim == 3 and channel_axis is not None and channel_axis not in (-1, 2):
         res = np.moveaxis(res, -1, channel_axis)
     return res
+
+
+#: Cells of [0, 1) in which :func:`correct_codes` looks up where an output code's search
+#: starts: 8-bit codes step at least 3e-4 apart in linear light, wider than a cell
+#: (1.5e-5), so the lookup is off by at most one step there.
+ENCODE_CELLS = 65536
+
+
+def correct_codes(codes: np.ndarray, model: VignettingModel, decode: np.ndarray, steps: np.ndarray, *,
+                  strength: float = 1.0) -> np.ndarray:
+    """Correct a display-encoded frame in its own domain: each code value decoded by the
+    table ``decode``, multiplied by the gain 1/φ^strength, and encoded back by
+    ``steps`` (what :func:`correct` then an encode with round-half-up quantisation give,
+    without a float frame or a float power over every sample).
+
+    Parameters
+    ----------
+    codes : ndarray, H×W or H×W×C, uint8 or uint16
+        The frame's code values.
+    model : VignettingModel
+        Any resolution of the same frame.
+    decode : ndarray, float32
+        Linear value of every code (``decode[codes]`` is the linear frame).
+    steps : ndarray, float32, sorted
+        ``steps[c]``: the linear value from which the output code is ``c + 1``; its
+        length is the output's top code (255, 65535), which values above the white point
+        are clipped to.
+    strength : float
+        As :func:`correct`.
+
+    Returns
+    -------
+    ndarray, the shape of ``codes``, uint8 when ``steps`` has at most 255 entries, else uint16
+    """
+    s = _check_strength(strength)
+    if not isinstance(model, VignettingModel):
+        raise InvalidImageError(f"model must be a VignettingModel, got {type(model).__name__}")
+    a = np.asarray(codes)
+    if a.dtype not in (np.uint8, np.uint16) or a.ndim not in (2, 3):
+        raise InvalidImageError(f"codes must be an H×W(×C) uint8 or uint16 array, got {a.dtype} {a.shape}")
+    lut = np.ascontiguousarray(decode, dtype=np.float32)
+    if lut.ndim != 1 or lut.shape[0] < int(a.max()) + 1:
+        raise InvalidImageError(f"the decode table has {lut.shape[0]} entries for codes up to {int(a.max())}")
+    st = np.ascontiguousarray(steps, dtype=np.float32)
+    x = np.ascontiguousarray(a[..., None] if a.ndim == 2 else a)
+    fh, fw = x.shape[:2]
+    m = _checked_model(model, fw, fh)
+    out = np.empty(x.shape, dtype=np.uint8 if st.shape[0] <= 255 else np.uint16)
+    step = gain_step(m, fw, fh)
+    # where each code's search starts: the steps below each of 65536 cells of [0, 1)
+    start = np.searchsorted(st, np.arange(ENCODE_CELLS) / ENCODE_CELLS, side="left").astype(np.int32)
+    correct_codes_rows(x, out, lut, st, start, 0, m.center[0], (fh - 1) / 2.0 + m.center[1], *m.p,
+                       np.asarray(m.alpha, dtype=np.float64), s, step, exact_radius(m, step))
+    return out[..., 0] if a.ndim == 2 else out

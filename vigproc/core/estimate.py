@@ -145,6 +145,72 @@ def _from_working(m: VignettingModel, k: int, width: int, height: int) -> Vignet
     )
 
 
+#: The estimators that read the frame only through binned working copies of about
+#: ``work_size`` px (96; the centre tests 60): a reduced copy of a large frame gives
+#: them the same data (:func:`estimate_reduced`).
+REDUCIBLE_METHODS = ("default", "lens-family", "robust", "real-lens", "flat-field")
+
+
+def reduction_factor(width: int, height: int, work_size: int = 96) -> int:
+    """The block size by which a width×height frame is binned before
+    :func:`estimate_reduced`, so that the estimators read the same working copy.
+
+    The working copy bins the frame by k = round(long side / ``work_size``). A reduction
+    by a divisor d of k keeps its bins exactly (the same pixels, means of means: the
+    reduced frame is binned by k / d), so the largest divisor leaving at least two
+    working bins per block is taken, or k itself when k is prime (a reduced frame of
+    ``work_size`` px). Only the centre test's coarser copy (60 px) then bins a little
+    differently (by 1.5-2 k rather than 1.6 k). Returns 1 for frames under
+    10 × ``work_size`` px on the long side: their own binning costs little.
+    """
+    n = max(int(width), int(height))
+    if n < 10 * work_size:  # a small frame's own binning costs little
+        return 1
+    k = max(1, round(n / work_size))
+    for d in sorted((d for d in range(2, k + 1) if k % d == 0 and (k // d >= 2 or d == k)),
+                    key=lambda d: (d == k, -d)):
+        if round((n // d) / work_size) * d == k:  # the reduced frame's own binning is k / d
+            return d
+    return 1
+
+
+def from_reduced(m: VignettingModel, k: int, width: int, height: int) -> VignettingModel:
+    """A model estimated on a frame binned k×k (remainder rows and columns dropped) as
+    the model of the full width×height frame (its candidate and covariance too)."""
+    if k == 1 and (m.width, m.height) == (width, height):
+        return m
+    big = m.rescale(m.width * k, m.height * k)
+    # the binned frame's centre sits (W_b·k − W)/2 px from the full frame's centre
+    ox, oy = (big.width - width) / 2.0, (big.height - height) / 2.0
+
+    def moved(x: VignettingModel, candidate=None) -> VignettingModel:
+        return replace(x, width=width, height=height, center=(x.center[0] + ox, x.center[1] + oy),
+                       candidate=candidate)
+
+    return moved(big, moved(big.candidate) if big.candidate is not None else None)
+
+
+def estimate_reduced(small: np.ndarray, k: int, width: int, height: int, method: str = "default", *,
+                     hint: LensHint | None = None, usable: np.ndarray | None = None) -> VignettingModel:
+    """:func:`estimate_checked` of a frame read as ``small``, its linear light binned k×k
+    (:func:`reduction_factor`; e.g. :func:`vigproc.core.pixels.reduce_codes`), for the
+    full width×height frame: the estimators of :data:`REDUCIBLE_METHODS` read binned
+    working copies only, and a full frame's own binning costs a float copy of every
+    pixel. ``small`` is validated here (:func:`check_image`). ``usable``: its pixels
+    that hold no clipped highlight or black pixel of the full frame (None: all; the
+    second result of :func:`vigproc.core.pixels.reduce_codes`).
+
+    Raises
+    ------
+    InvalidImageError
+        As :func:`estimate`; also a ``method`` not in :data:`REDUCIBLE_METHODS`.
+    """
+    if method not in REDUCIBLE_METHODS:
+        raise InvalidImageError(f"method {method!r} reads the full frame, not a reduced copy")
+    a = check_image(small, -1 if np.ndim(small) == 3 else None)
+    return from_reduced(estimate_checked(a, method, hint=hint, usable=usable), k, width, height)
+
+
 def _named(model: VignettingModel, method: str) -> VignettingModel:
     """A real-lens or flat-field estimate says so (the corrected file's record names
     the method)."""
@@ -291,7 +357,7 @@ def exif_hint(lens_key, method: str) -> LensHint | None:
 def estimate_checked(
     a: np.ndarray, method: str = "default", *, prior: NaturalPrior | None = None,
     settings: RobustSettings | None = None, seed: int | None = None, hint: LensHint | None = None,
-    family=None,
+    family=None, usable: np.ndarray | None | object = ...,
 ) -> VignettingModel:
     """:func:`estimate` of a frame that :func:`~vigproc.core.pixels.check_image` has
     accepted: ``a`` is its result (H×W, or H×W×C with channels last, float). The
@@ -300,7 +366,9 @@ def estimate_checked(
     Parameters and errors as :func:`estimate` (``method`` may name a plugin), and
     ``family`` (:class:`~vigproc.core.lensfamily.LensFamily`, optional): the lens family
     of the "default" and "lens-family" fits (default: the shipped one; a benchmark
-    passes one without the lenses it scores).
+    passes one without the lenses it scores), and ``usable`` (H×W bool or None): the
+    pixels to fit, when the caller knows them better than the frame's own clipped
+    highlights (:func:`clipped_mask`) tell (a reduced copy's: :func:`estimate_reduced`).
     """
     require_size(a)  # the door may accept smaller frames (a correction by a profile)
     if method not in METHODS:
@@ -308,7 +376,7 @@ def estimate_checked(
 
         return estimator(method)(a, channel_axis=-1 if a.ndim == 3 else None, seed=seed)
     h, w = a.shape[:2]
-    keep = clipped_mask(a)
+    keep = clipped_mask(a) if usable is ... else usable
     lum = luminance(a)
     if method == "default" and settings is None:
         return estimate_default(lum, keep, hint, family, colour=colour_of(a))
@@ -425,7 +493,8 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
                                    copy=with_colour(centre_copy, colour, s))
         if not centre_colour.off_centre(s.off_centre_shift):
             return model
-    grey = fit_family(lum, s, mask, family, hint).model  # the luminance's, as the comparison reads
+    # the luminance's, as the comparison reads (its field alone: no jackknife)
+    grey = fit_family(lum, s, mask, family, hint, uncertainty=False).model
     shift = centre.shift if colour is None else min(centre.shift, centre_colour.shift)
     strong = q.field_ev_rms >= rule.family_min_ev
     alt = None

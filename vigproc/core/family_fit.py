@@ -1122,7 +1122,8 @@ class FamilyFit(NamedTuple):
 def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
                mask: np.ndarray | None = None, family: LensFamily | None = None,
                hint: LensHint | None = None,
-               colour: np.ndarray | None = None, copy: WorkingCopy | None = None) -> FamilyFit:
+               colour: np.ndarray | None = None, copy: WorkingCopy | None = None,
+               uncertainty: bool = True) -> FamilyFit:
     """Estimate a centred lens fall-off from an H×W linear luminance image.
 
     Parameters
@@ -1146,6 +1147,9 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
         The frame's working copy at ``settings.work_size`` (:func:`luminance_copy`, and
         :func:`with_colour` for ``colour``), when the caller has it; ``mask`` and
         ``colour`` are then not read.
+    uncertainty : bool
+        False: no jackknife (σ NaN) and no fall-back, for a fit that is only compared
+        with another (the default estimator's choice between fits reads its field alone).
 
     Returns
     -------
@@ -1177,9 +1181,10 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     pinv = np.linalg.inv(pcov)
     n = d.size
     c, d = _fit_with_chroma(d, a, index, wt, pmean, pinv, settings, settings.iterations)
-    cov_jk = _jackknife_cov(d, a, labels, wt, c, pmean, pinv, settings)
+    # without the uncertainty (a fit only compared with another): no jackknife, never a fall-back
+    cov_jk = _jackknife_cov(d, a, labels, wt, c, pmean, pinv, settings) if uncertainty else None
     grid = frame_rho_grid(w, h)
-    sigma_jk = field_sigma_ev(fam, cov_jk, w, h)
+    sigma_jk = field_sigma_ev(fam, cov_jk, w, h) if uncertainty else math.nan
     # a fit that does not weigh its pairs by colour is calibrated on its own
     scale = settings.sigma_scale if weighted else settings.grey_sigma_scale
     sigma = math.hypot(scale * sigma_jk, settings.sigma_floor)
@@ -1188,7 +1193,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     snr = spread / sigma if sigma > 0 else math.inf
     min_snr = settings.min_snr if weighted else settings.grey_min_snr
     confidence = _confidence(snr, min_snr)
-    accept = snr >= min_snr
+    accept = snr >= min_snr or not uncertainty
     residual = d - np.einsum("ij,j->i", a, c)  # einsum: no BLAS threads, the same bits in every process
     q = FitQuality(confidence=confidence, field_ev_rms=math.nan, field_sigma_ev=sigma, snr=snr,
                    fallback=not accept,

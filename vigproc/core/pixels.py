@@ -202,3 +202,55 @@ def binned_log_channels(img: np.ndarray, k: int, valid: np.ndarray, dark_fractio
         if ok[i].any():
             ok[i] &= b[i] > dark_fraction * np.percentile(b[i][ok[i]], 99)
     return log_image(b), ok
+
+
+def reduce_codes(codes: np.ndarray, decode: np.ndarray, k: int, clip_level: float = 0.995,
+                 clip_fraction: float = 1e-3) -> tuple[np.ndarray, np.ndarray | None]:
+    """A display-encoded frame binned ``k``×``k`` in linear light, straight from its code
+    values: the mean of ``decode[codes]`` over each block (the remainder rows and columns
+    dropped, as :func:`bin_mean`), without a full-frame float copy; and which blocks
+    hold only pixels the estimators would use.
+
+    Parameters
+    ----------
+    codes : ndarray, H×W or H×W×C, uint8 or uint16
+    decode : ndarray, float, increasing
+        Linear value of every code.
+    k : int
+        Block size, at least 1 and at most the frame's shorter side.
+    clip_level, clip_fraction : float
+        A pixel with a channel at or above ``clip_level`` × the frame's largest value is
+        a clipped highlight when at least ``clip_fraction`` of the pixels are
+        (:func:`vigproc.core.estimate.clipped_mask`'s rule).
+
+    Returns
+    -------
+    binned : ndarray, float32, (H//k)×(W//k) or (H//k)×(W//k)×C
+    usable : ndarray of bool, (H//k)×(W//k), or None
+        Blocks without a clipped highlight or a black pixel (None: all of them), as
+        the mask the estimators take: a working copy's bin is usable when every pixel
+        in it is.
+    """
+    from vigproc.core._kernels.codes import reduce_codes as _reduce
+
+    a = np.asarray(codes)
+    if a.dtype not in (np.uint8, np.uint16) or a.ndim not in (2, 3):
+        raise InvalidImageError(f"codes must be an H×W(×C) uint8 or uint16 array, got {a.dtype} {a.shape}")
+    x = np.ascontiguousarray(a[..., None] if a.ndim == 2 else a)
+    h, w, c = x.shape
+    if not 1 <= int(k) <= min(h, w):
+        raise InvalidImageError(f"cannot bin a {w}x{h} frame by {k}")
+    lut = np.ascontiguousarray(decode, dtype=np.float32)
+    peak = int(x.max())
+    if lut.ndim != 1 or lut.shape[0] < peak + 1:
+        raise InvalidImageError(f"the decode table has {lut.shape[0]} entries for codes up to {peak}")
+    # the smallest code at or above clip_level × the largest value (the table increases)
+    hot_code = int(np.searchsorted(lut[: peak + 1], clip_level * lut[peak], side="left"))
+    out = np.empty((h // k, w // k, c), dtype=np.float32)
+    hot = np.zeros((h // k, w // k), dtype=np.int64)
+    dark = np.zeros((h // k, w // k), dtype=np.int64)
+    _reduce(x, lut, int(k), hot_code, out, hot, dark)
+    usable = dark == 0
+    if hot.sum() >= clip_fraction * h * w:
+        usable &= hot == 0
+    return (out[..., 0] if a.ndim == 2 else out), (None if usable.all() else usable)

@@ -97,15 +97,19 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     from vigproc.core.estimate import estimate
-    from vigproc.io.images import read_image
+    from vigproc.io.images import EncodedImage, read_encoded
+    from vigproc.pipeline.encoded import check_encoded, estimate_encoded
     from vigproc.pipeline.processor import lens_hint, read_lens
 
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
-    # model for the full frame; other formats are read as they are
-    img, info = read_image(file, transfer=args.input_transfer, raw_half_size=True)
+    # model for the full frame; a JPEG's or PNG's codes from a reduced copy; others as they are
+    img, info = read_encoded(file, transfer=args.input_transfer, raw_half_size=True)
     key, lens = read_lens(reader, Path(file))
-    m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
-                 hint=lens_hint(key, args.method))
+    if isinstance(img, EncodedImage):
+        m = estimate_encoded(check_encoded(img), args.method, hint=lens_hint(key, args.method), seed=args.seed)
+    else:
+        m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
+                     hint=lens_hint(key, args.method))
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
     doc = {"file": str(file), "lens": lens, "model": m.to_dict()}
@@ -861,6 +865,19 @@ def cmd_bench_io(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_throughput(args: argparse.Namespace) -> int:
+    """``vigproc correct`` on full-size photographs beside the floor (decode + encode +
+    one exiftool batch) and darktable-cli, in one run (:mod:`vigproc.bench.throughput`)."""
+    from vigproc.bench import throughput as T
+
+    photos, skipped = T.select_photos(Path(args.images), args.min_mp, args.limit)
+    r = T.run_throughput(photos, rounds=args.rounds, darktable=not args.no_darktable, skipped=skipped,
+                         baseline=args.baseline)
+    print("\n".join(T.format_result(r)))
+    write_json_result(args.json, asdict(r))
+    return 0
+
+
 def _profile_line(i: int, p) -> str:
     t = "trusted" if p.trusted else "learning"
     sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
@@ -1279,6 +1296,17 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--raw", help="folder of RAW files to time (full and half size)")
     bp.add_argument("--exif", help="folder of images to time EXIF reading on")
     bp.set_defaults(fn=cmd_bench_io)
+    bp = bsub.add_parser("throughput", help="vigproc correct on full-size photographs beside the floor (decode, "
+                         "encode, EXIF copy) and darktable-cli, in one run")
+    bp.add_argument("--images", required=True, help="folder of JPEG photographs")
+    bp.add_argument("--min-mp", type=float, default=0.75, help="smallest photograph, megapixels (default %(default)s)")
+    bp.add_argument("--limit", type=int, help="use at most this many photographs")
+    bp.add_argument("--rounds", type=int, default=3, help="timing rounds, interleaved (default %(default)s)")
+    bp.add_argument("--no-darktable", action="store_true", help="leave darktable-cli out")
+    bp.add_argument("--baseline", metavar="TREE", help="also time vigproc correct from this source tree "
+                    "(another checkout's root): before and after in one run")
+    bp.add_argument("--json", help="write the figures as JSON")
+    bp.set_defaults(fn=cmd_bench_throughput)
     bp = bsub.add_parser("profile", help="profile accuracy versus number of frames (lensfun lenses)")
     bp.add_argument("--images", required=True, help="folder of images")
     bp.add_argument("--limit", type=int, help="use at most this many images")

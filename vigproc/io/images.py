@@ -189,6 +189,80 @@ class ImageInfo:
     bit_depth: str
     transfer: str
     colorspace: str | None
+    #: A JPEG's IJG quality (:func:`jpeg_quality`), read from the bytes already read.
+    quality: int | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class EncodedImage:
+    """A display-encoded frame as its file stores it: integer code values and the
+    transfer curve that decodes them to linear light (:func:`read_encoded`).
+
+    Correcting it in its own domain (:func:`vigproc.core.correct.correct_codes`) and
+    estimating from a reduced copy (:meth:`reduced`) spare a float frame; :meth:`linear`
+    is what :func:`read_image` returns. :func:`write_image` writes one whose depth and
+    transfer are those asked for as it is.
+
+    Attributes
+    ----------
+    codes : numpy.ndarray
+        ``HxW`` or ``HxWx3``, ``uint8`` or ``uint16``.
+    transfer : str
+        ``'srgb'``, ``'linear'`` or ``'gamma<g>'``.
+    """
+
+    codes: np.ndarray
+    transfer: str
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.codes.shape
+
+    @property
+    def ndim(self) -> int:
+        return self.codes.ndim
+
+    @property
+    def size(self) -> int:
+        return int(self.codes.size)
+
+    @property
+    def depth(self) -> str:
+        return str(self.codes.dtype)
+
+    def decode_table(self) -> np.ndarray:
+        """float32 linear value of every code."""
+        return _decode_lut(self.transfer, 256 if self.codes.dtype == np.uint8 else 65536)
+
+    def linear(self) -> np.ndarray:
+        """The frame as float32 linear light (what :func:`read_image` returns)."""
+        return np.ascontiguousarray(self.decode_table()[self.codes])
+
+    def reduced(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """The frame's linear light binned ``k``×``k`` (float32) and its usable blocks
+        (:func:`vigproc.core.pixels.reduce_codes`)."""
+        from vigproc.core.pixels import reduce_codes
+
+        return reduce_codes(self.codes, self.decode_table(), k)
+
+
+@functools.lru_cache(maxsize=8)
+def encode_steps(transfer: str, depth: str) -> np.ndarray:
+    """The linear values from which an output code steps up: entry c is where
+    ``depth``'s code c + 1 begins under ``transfer`` (round half up, as
+    :func:`write_image` quantises), float32, read-only.
+
+    Raises
+    ------
+    ImageWriteError
+        ``depth`` is not uint8 or uint16, or ``transfer`` not 'linear' or 'srgb'.
+    """
+    if depth not in ("uint8", "uint16") or transfer not in ("linear", "srgb"):
+        raise ImageWriteError(f"no code steps for {depth} {transfer}")
+    top = 255 if depth == "uint8" else 65535
+    steps = _decoder(transfer)((np.arange(top, dtype=np.float64) + 0.5) / top).astype(np.float32)
+    steps.setflags(write=False)
+    return steps
 
 
 # --------------------------------------------------------------------------- #
@@ -415,7 +489,12 @@ def _utf8_alias(path: str):
             os.rmdir(folder)
 
 
-def _read_head(path: str, n: int = 64) -> bytes:
+#: Bytes of a file read before decoding: enough for a JPEG's quantisation table after
+#: its EXIF segment (at most 64 KiB) in most camera files (:func:`jpeg_quality`).
+HEAD_BYTES = 1 << 17
+
+
+def _read_head(path: str, n: int = HEAD_BYTES) -> bytes:
     try:
         with open(path, "rb") as fh:
             return fh.read(n)
@@ -465,6 +544,16 @@ def _check_budget(path: str, width: int, height: int, channels: int, budget: int
             "refused before decoding (possible decompression bomb)")
 
 
+def read_encoded(path: PathLike, *, transfer: str = "auto", raw_half_size: bool = False,
+                 max_pixels: int = 200_000_000,
+                 max_bytes: int | None = None) -> tuple[EncodedImage | np.ndarray, ImageInfo]:
+    """:func:`read_image`, but an 8- or 16-bit file (JPEG, PNG, integer TIFF) comes back
+    as its code values (:class:`EncodedImage`), not decoded to float; float files and
+    RAW as :func:`read_image` returns them. Parameters and errors as :func:`read_image`."""
+    return read_image(path, transfer=transfer, raw_half_size=raw_half_size, max_pixels=max_pixels,
+                      max_bytes=max_bytes, _codes=True)
+
+
 def read_image(
     path: PathLike,
     *,
@@ -472,6 +561,7 @@ def read_image(
     raw_half_size: bool = False,
     max_pixels: int = 200_000_000,
     max_bytes: int | None = None,
+    _codes: bool = False,
 ) -> tuple[np.ndarray, ImageInfo]:
     """Read an image as float32 linear light.
 
@@ -532,7 +622,7 @@ def read_image(
         with _utf8_alias(fspath) as alias:
             try:
                 img, info = read_image(alias, transfer=transfer, raw_half_size=raw_half_size,
-                                       max_pixels=max_pixels, max_bytes=budget)
+                                       max_pixels=max_pixels, max_bytes=budget, _codes=_codes)
             except VigprocError as exc:  # the message names the file, not its alias
                 raise type(exc)(str(exc).replace(_q(alias), _q(fspath))) from None
         return img, dataclasses.replace(info, path=fspath)
@@ -557,16 +647,17 @@ def read_image(
         try:
             with _c_stderr_into(said):
                 return _read_through_oiio(fspath, size, kind, head, want, raw_first, raw_note, raw_half_size,
-                                          max_pixels, budget)
+                                          max_pixels, budget, _codes)
         finally:
             if said:
                 logger.debug("%s: libpng said: %s", fspath, "; ".join(said)[:500])
     return _read_through_oiio(fspath, size, kind, head, want, raw_first, raw_note, raw_half_size, max_pixels,
-                              budget)
+                              budget, _codes)
 
 
 def _read_through_oiio(fspath: str, size: int, kind: str | None, head: bytes, want: str, raw_first: bool,
-                       raw_note: str, raw_half_size: bool, max_pixels: int, budget: int) -> tuple[np.ndarray, ImageInfo]:
+                       raw_note: str, raw_half_size: bool, max_pixels: int, budget: int,
+                       codes: bool = False) -> tuple[np.ndarray, ImageInfo]:
     """The rest of :func:`read_image` once LibRaw did not take the file: OpenImageIO, or
     LibRaw after all for what turns out to be a TIFF-based RAW."""
     inp, err = _oiio_open(fspath)
@@ -627,7 +718,7 @@ def _read_through_oiio(fspath: str, size: int, kind: str | None, head: bytes, wa
                     f"cannot read image {_q(fspath)}: looks like a TIFF-based camera RAW "
                     f"but LibRaw cannot decode it ({exc})"
                 ) from None
-        return _read_oiio(inp, fspath, want, max_pixels, budget)
+        return _read_oiio(inp, fspath, want, max_pixels, budget, codes, head)
     finally:
         if inp is not None:
             inp.close()
@@ -718,7 +809,8 @@ def _select_channels(spec: oiio.ImageSpec, path: str) -> list[int]:
 
 
 def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
-               budget: int = DEFAULT_MEMORY_BUDGET) -> tuple[np.ndarray, ImageInfo]:
+               budget: int = DEFAULT_MEMORY_BUDGET, codes: bool = False,
+               head: bytes = b"") -> tuple[np.ndarray | EncodedImage, ImageInfo]:
     fmt = inp.format_name()
     spec = inp.spec()
     if fmt not in SUPPORTED_OIIO_FORMATS:
@@ -774,14 +866,16 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
     elif chans != list(range(spec.nchannels)):  # avoid a copy for plain RGB
         data = data[..., chans]
 
-    if read_as in ("uint8", "uint16"):
+    if codes and read_as in ("uint8", "uint16"):
+        pixels = EncodedImage(np.ascontiguousarray(data), tr)
+    elif read_as in ("uint8", "uint16"):
         levels = 256 if read_as == "uint8" else 65536
-        pixels = _decode_lut(tr, levels)[data]
+        pixels = np.ascontiguousarray(_decode_lut(tr, levels)[data], dtype=np.float32)
     else:
         pixels = np.ascontiguousarray(data, dtype=np.float32)
         if tr != "linear":
             pixels = _decoder(tr)(pixels).astype(np.float32, copy=False)
-    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
+        pixels = np.ascontiguousarray(pixels, dtype=np.float32)
 
     info = ImageInfo(
         path=path,
@@ -792,6 +886,7 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
         bit_depth=stored,
         transfer=tr,
         colorspace=colorspace,
+        quality=_jpeg_quality_of(head) if fmt == "jpeg" else None,
     )
     logger.debug("read %s: %s", path, info)
     return pixels, info
@@ -987,6 +1082,11 @@ def jpeg_quality(path: PathLike, max_bytes: int = 1 << 20) -> int | None:
             data = fh.read(max_bytes)
     except (OSError, TypeError, ValueError):
         return None
+    return _jpeg_quality_of(data)
+
+
+def _jpeg_quality_of(data: bytes) -> int | None:
+    """:func:`jpeg_quality` of a JPEG's first bytes (None: not a JPEG, or no table in them)."""
     if not data.startswith(b"\xff\xd8"):
         return None
     i = 2
@@ -1113,7 +1213,13 @@ def write_image(
         raise OutputSettingsError(f"cannot write {q}: quality must be an integer 1-100 and is for JPEG only, "
                               f"got {quality!r}")
 
-    arr = np.asarray(img)
+    if isinstance(img, EncodedImage):  # code values already in the output's encoding
+        if (img.depth, img.transfer) != (depth, tr):
+            raise ImageWriteError(f"cannot write {q}: its codes are {img.depth} {img.transfer}, "
+                                  f"not the {depth} {tr} asked for")
+        arr = img.codes
+    else:
+        arr = np.asarray(img)
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[..., 0]
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3) or arr.size == 0:
@@ -1122,33 +1228,7 @@ def write_image(
         raise InvalidImageError(f"cannot write {q}: unsupported array dtype {arr.dtype}")
     h, w = arr.shape[:2]
     nch = 1 if arr.ndim == 2 else 3
-    # NaN/Inf of the caller's own: checked before the float32 cast, whose overflow
-    # (float64 beyond 3.4e38) is reported below as out of range instead.  No mask:
-    # NaN propagates to both extremes and ±Inf shows in one of them.
-    if np.issubdtype(arr.dtype, np.floating) and not (np.isfinite(arr.max()) and np.isfinite(arr.min())):
-        raise InvalidImageError(f"cannot write {q}: the image holds NaN/Inf, which cannot be stored as {depth}")
-    with np.errstate(over="ignore"):  # overflow to Inf is detected right below
-        data = arr.astype(np.float32, copy=False)
-
-    if not is_int:
-        # OIIO would store out-of-range values as Inf without a word.
-        peak = max(float(data.max()), -float(data.min()))
-        limit = FLOAT_MAX[depth]
-        if not peak <= limit:
-            shown = "beyond 3.4e38" if np.isinf(peak) else f"{peak:.4g}"
-            wider = " (bit_depth='float' holds 3.4e38)" if depth == "half" else ""
-            raise OutputRefusedError(
-                f"cannot write {q}: values reach {shown}, beyond the {limit:.4g} that {fmt} {depth} "
-                f"holds; they would be stored as Inf: scale the image down{wider}")
-    if is_int:
-        above = int(np.count_nonzero(data > 1.0))
-        if above > 0.01 * data.size:
-            # Integer outputs take [0, 1]; raw integer codes (0..65535) would turn white.
-            logger.warning(
-                "%s: %.1f %% of the values are above 1.0 (up to %.4g) and are clipped to white in %s; "
-                "integer outputs take linear values in [0, 1], not integer codes",
-                q, 100.0 * above / data.size, float(data.max()), depth)
-        data = _quantise(data, depth, tr == "srgb")
+    data = arr if isinstance(img, EncodedImage) else _stored_values(arr, fmt, depth, tr, q)
     # Always HxWxC: OIIO's Python binding takes a 2-D array as (width, height)
     # or scanline-major depending on version, which silently transposes gray images.
     data = np.ascontiguousarray(data.reshape(h, w, nch))
@@ -1216,6 +1296,41 @@ def write_image(
             except OSError:
                 pass
     logger.debug("wrote %s (%s, %s, %s, %dx%dx%d)", fspath, fmt, depth, tr, w, h, nch)
+
+
+def _stored_values(arr: np.ndarray, fmt: str, depth: str, tr: str, q: str) -> np.ndarray:
+    """What :func:`write_image` stores of a linear array: float32 checked against the
+    format's range, or integer codes (``tr``-encoded, round half up, clipped)."""
+    is_int = depth in ("uint8", "uint16")
+    # NaN/Inf of the caller's own: checked before the float32 cast, whose overflow
+    # (float64 beyond 3.4e38) is reported below as out of range instead.  No mask:
+    # NaN propagates to both extremes and ±Inf shows in one of them.
+    if np.issubdtype(arr.dtype, np.floating) and not (np.isfinite(arr.max()) and np.isfinite(arr.min())):
+        raise InvalidImageError(f"cannot write {q}: the image holds NaN/Inf, which cannot be stored as {depth}")
+    with np.errstate(over="ignore"):  # overflow to Inf is detected right below
+        data = arr.astype(np.float32, copy=False)
+
+    if not is_int:
+        # OIIO would store out-of-range values as Inf without a word.
+        peak = max(float(data.max()), -float(data.min()))
+        limit = FLOAT_MAX[depth]
+        if not peak <= limit:
+            shown = "beyond 3.4e38" if np.isinf(peak) else f"{peak:.4g}"
+            wider = " (bit_depth='float' holds 3.4e38)" if depth == "half" else ""
+            raise OutputRefusedError(
+                f"cannot write {q}: values reach {shown}, beyond the {limit:.4g} that {fmt} {depth} "
+                f"holds; they would be stored as Inf: scale the image down{wider}")
+    if is_int:
+        above = int(np.count_nonzero(data > 1.0))
+        if above > 0.01 * data.size:
+            # Integer outputs take [0, 1]; raw integer codes (0..65535) would turn white.
+            logger.warning(
+                "%s: %.1f %% of the values are above 1.0 (up to %.4g) and are clipped to white in %s; "
+                "integer outputs take linear values in [0, 1], not integer codes",
+                q, 100.0 * above / data.size, float(data.max()), depth)
+        data = _quantise(data, depth, tr == "srgb")
+    return data
+
 
 
 #: Bytes of the file system kept beyond an output and the copy exiftool makes of it

@@ -125,7 +125,8 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
     depth = getattr(info, "bit_depth", None)
     transfer = getattr(info, "transfer", None)
     if kind == "jpeg":  # at the source's own quality when it is a JPEG
-        q = jpeg_quality(path) if getattr(info, "format", None) == "jpeg" else None
+        # the quality read with the pixels, else a look at the file's head
+        q = (getattr(info, "quality", None) or jpeg_quality(path)) if getattr(info, "format", None) == "jpeg" else None
         return OutputFormat(fixed.suffix if fixed is not None else src_suffix, "jpeg", "uint8", "srgb",
                             max(q or DEFAULT_JPEG_QUALITY, MIN_AUTO_JPEG_QUALITY))
     if kind == "png":
@@ -550,7 +551,9 @@ def _note_clipping(img: np.ndarray, out: np.ndarray, where: str, fmt: OutputForm
     own clipped highlights (exactly 1.0) are not counted."""
     import numpy as np
 
-    lost = int(np.count_nonzero(out >= 1.0)) - int(np.count_nonzero(np.asarray(img) == 1.0))
+    from vigproc.pipeline.encoded import white_samples
+
+    lost = white_samples(out) - white_samples(img, source=True)
     if lost > 1e-3 * out.size:
         # lifted corners of a bright frame clip a little in any display format: worth a
         # warning from 1 % of the samples on, below that only a note
@@ -710,6 +713,12 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
                 continue
             if m is not None:
                 return m, f"source:{name}"
+    from vigproc.io.images import EncodedImage
+
+    if isinstance(img, EncodedImage):  # from a copy binned straight from the codes
+        from vigproc.pipeline.encoded import estimate_encoded
+
+        return estimate_encoded(img, settings.method, hint=lens_hint(lens_key, settings.method)), "estimate"
     return estimate_checked(img, settings.method, hint=lens_hint(lens_key, settings.method)), "estimate"
 
 
@@ -797,12 +806,15 @@ class Processor:
         import numpy as np
 
         from vigproc.core.pixels import check_image as valid_image
+        from vigproc.io.images import EncodedImage
+        from vigproc.pipeline.encoded import check_encoded, correct_encoded
 
         s = self.settings
         t0 = time.perf_counter()
         # every mode, also a correction by a profile (which estimates nothing): NaN/Inf,
         # a constant frame or large negative values are bad input, not something to write
-        checked = valid_image(img, -1 if np.ndim(img) == 3 else None, min_size=1)
+        encoded = isinstance(img, EncodedImage)  # a JPEG's or PNG's codes (pipeline.encoded)
+        checked = check_encoded(img) if encoded else valid_image(img, -1 if np.ndim(img) == 3 else None, min_size=1)
         lens = ({"lens_id": lens_key.lens_id(), "key": lens_key.to_dict()} if lens_key is not None
                 else {"lens_id": None, "error": "no lens data given"})
         res = FrameResult(file=where, mode=s.mode, lens=lens)
@@ -834,7 +846,10 @@ class Processor:
                 how = dict(channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
                            clip=1.0 if fmt.integer else None)
                 # a DNG GainMap is divided out as its own field, not as its Kang-Weiss fit
-                out = m.correct_image(img, **how) if hasattr(m, "correct_image") else correct(img, m, **how)
+                if encoded:
+                    out = correct_encoded(img, m, fmt, s.strength)
+                else:
+                    out = m.correct_image(img, **how) if hasattr(m, "correct_image") else correct(img, m, **how)
                 _check_range(out, fmt)
                 if fmt.integer:
                     _note_clipping(img, out, where, fmt)
@@ -972,10 +987,11 @@ class Processor:
         """Read ``path`` and process it: (corrected image or None, FrameResult, image, its
         ImageInfo, output format). ``output_for(info)``: the output format (None: none
         written)."""
-        from vigproc.io.images import read_image
+        from vigproc.io.images import read_encoded, read_image
 
         s = self.settings
-        img, info = read_image(path, transfer=s.transfer)
+        # correct and estimate take a JPEG's or PNG's code values as they are (pipeline.encoded)
+        img, info = (read_encoded if s.mode in ("correct", "estimate") else read_image)(path, transfer=s.transfer)
         lens_key, lens = read_lens(self.reader, path)
         embedded = None
         if s.mode in ("correct", "estimate"):

@@ -68,6 +68,20 @@ def _row_gains_interp(xs, dy, p1, p2, p3, alpha, strength, step, knots, gains):
     gains[w - 1] = kg[nk - 1]
 
 
+@njit(cache=True, nogil=True)
+def row_gains(xs, dy, cx, p1, p2, p3, alpha, strength, step, nk, exact_radius, gains):
+    """The gains 1/φ^strength of one row ``dy`` px from the centre (``xs``: the columns'
+    offsets), interpolated between ``step`` columns (``nk`` knots) except within
+    ``exact_radius`` px of the centre, where α1·r makes the gain a cone."""
+    w = xs.shape[0]
+    _row_gains_interp(xs, dy, p1, p2, p3, alpha, strength, step, np.empty(nk), gains)
+    if step > 1 and abs(dy) < exact_radius:
+        i0 = max(0, int(np.floor((w - 1) / 2.0 + cx - exact_radius)))
+        i1 = min(w, int(np.ceil((w - 1) / 2.0 + cx + exact_radius)) + 1)
+        if i1 > i0:
+            _row_gains(xs[i0:i1], dy, p1, p2, p3, alpha, strength, gains[i0:i1])
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def correct_rows(img, out, row0, cx, cy, p1, p2, p3, alpha, strength, clip, step=1, exact_radius=0.0):
     """out[j, i, :] = img[j, i, :] / φ^strength for the rows of ``img`` (h×W×C).
@@ -87,13 +101,7 @@ def correct_rows(img, out, row0, cx, cy, p1, p2, p3, alpha, strength, clip, step
     nk = (w - 1 + step - 1) // step + 1  # knots at 0, step, 2·step, ..., and w−1
     for j in prange(h):
         gains = np.empty(w, dtype=np.float32)
-        dy = (row0 + j) - cy
-        _row_gains_interp(xs, dy, p1, p2, p3, alpha, strength, step, np.empty(nk), gains)
-        if step > 1 and abs(dy) < exact_radius:
-            i0 = max(0, int(np.floor((w - 1) / 2.0 + cx - exact_radius)))
-            i1 = min(w, int(np.ceil((w - 1) / 2.0 + cx + exact_radius)) + 1)
-            if i1 > i0:
-                _row_gains(xs[i0:i1], dy, p1, p2, p3, alpha, strength, gains[i0:i1])
+        row_gains(xs, (row0 + j) - cy, cx, p1, p2, p3, alpha, strength, step, nk, exact_radius, gains)
         if not _apply_row(img[j].reshape(w * c), out[j].reshape(w * c), gains, c, np.float32(clip)):
             bad[j] = 1
     return bad.sum()

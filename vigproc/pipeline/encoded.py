@@ -1,0 +1,85 @@
+"""A display-encoded frame (a JPEG's or PNG's code values) through the processor
+without a full-frame float copy: the estimate reads a reduced copy binned straight
+from the codes, and the correction stays in the codes' own domain.
+
+:class:`~vigproc.pipeline.processor.Processor` hands an
+:class:`~vigproc.io.images.EncodedImage` here; a float frame (EXR, float TIFF, RAW)
+keeps the float path.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vigproc.errors import InvalidImageError
+from vigproc.io.images import EncodedImage, encode_steps
+
+
+def check_encoded(enc: EncodedImage) -> EncodedImage:
+    """What :func:`vigproc.core.pixels.check_image` refuses of a linear frame that code
+    values can be: no positive pixel, or a constant frame (codes are finite and never
+    negative). Returns ``enc``.
+
+    Raises
+    ------
+    InvalidImageError
+    """
+    codes = enc.codes
+    hi, lo = int(codes.max()), int(codes.min())
+    if not enc.decode_table()[hi] > 0:
+        raise InvalidImageError("image has no positive pixel: linear intensities must be > 0")
+    if lo == hi:
+        raise InvalidImageError("image is constant: there is nothing to estimate vignetting from")
+    return enc
+
+
+def estimate_encoded(enc: EncodedImage, method: str, *, hint=None, seed: int | None = None):
+    """The frame's estimate by ``method``: from a copy binned in linear light straight
+    from the codes (:func:`vigproc.core.estimate.estimate_reduced`) when the estimator
+    reads binned copies only, else from the decoded frame (``seed``: the random start
+    of ``lyu2010-rand``).
+
+    Returns
+    -------
+    VignettingModel
+        For the full frame.
+    """
+    from vigproc.core.estimate import REDUCIBLE_METHODS, estimate_checked, estimate_reduced, reduction_factor
+    from vigproc.core.pixels import check_image
+
+    h, w = enc.shape[:2]
+    k = reduction_factor(w, h)
+    if method in REDUCIBLE_METHODS and k > 1:
+        small, usable = enc.reduced(k)
+        return estimate_reduced(small, k, w, h, method, hint=hint, usable=usable)
+    img = enc.linear()
+    return estimate_checked(check_image(img, -1 if img.ndim == 3 else None), method, hint=hint, seed=seed)
+
+
+def correct_encoded(enc: EncodedImage, model, fmt, strength: float):
+    """``enc`` corrected by ``model`` for the output format ``fmt``
+    (:class:`~vigproc.pipeline.processor.OutputFormat`): an :class:`EncodedImage` in the
+    output's depth and transfer, clipped at its white point, when ``fmt`` is an
+    integer format (:func:`vigproc.core.correct.correct_codes`); else the float32 linear
+    frame (:func:`vigproc.core.correct.correct`). A model that corrects with a field of
+    its own (a DNG GainMap) goes the float way too.
+    """
+    from vigproc.core.correct import correct, correct_codes
+
+    if not fmt.integer or hasattr(model, "correct_image"):
+        img = enc.linear()
+        how = dict(channel_axis=-1 if img.ndim == 3 else None, strength=strength, clip=1.0 if fmt.integer else None)
+        return model.correct_image(img, **how) if hasattr(model, "correct_image") else correct(img, model, **how)
+    if (model.is_identity or strength == 0) and (enc.depth, enc.transfer) == (fmt.depth, fmt.transfer):
+        return enc  # nothing divided out: the codes as read
+    steps = encode_steps(fmt.transfer, fmt.depth)
+    return EncodedImage(correct_codes(enc.codes, model, enc.decode_table(), steps, strength=strength), fmt.transfer)
+
+
+def white_samples(x, *, source: bool = False) -> int:
+    """Samples at the white point: of a corrected frame (at or above 1.0, or the top
+    code), or with ``source`` of the frame as read (exactly 1.0, or the top code)."""
+    if isinstance(x, EncodedImage):
+        return int(np.count_nonzero(x.codes == np.iinfo(x.codes.dtype).max))
+    a = np.asarray(x)
+    return int(np.count_nonzero(a == 1.0 if source else a >= 1.0))
