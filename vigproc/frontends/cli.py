@@ -162,7 +162,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     inputs = InputFiles(files)  # no output may replace an input of this run
     settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
                         output_format=args.output_format, picture=args.picture, strength=args.strength,
-                        unapplied=args.unapplied)
+                        unapplied=args.unapplied, in_camera=getattr(args, "in_camera", "respect"))
     failed = unapplied = 0
     results = []
     full = None  # the fault of the last failure (vigproc.pipeline.faults)
@@ -224,7 +224,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
                             input_transfer=args.input_transfer, picture=True, json=False,
                             output_format="auto", profile="estimate", profile_db=None,
-                            strength=1.0, unapplied="skip")
+                            strength=1.0, unapplied="skip", in_camera="respect")
     return cmd_correct(ns)
 
 
