@@ -14,7 +14,8 @@ over the fields that were applied:
 * the share of the frame's pixels newly pushed past white (on the whole frame as
   written: below 1.0 before, at 1.0 after the clipping of the 8-bit output);
 * on frames whose camera corrected the vignetting (:mod:`vigproc.io.incamera`), the
-  corner fall-off removed (0 when nothing was applied).
+  corner fall-off removed, in absolute value (a field with brighter corners darkens
+  them; 0 when nothing was applied).
 
 These frames carry no known truth: the counts say where a field is implausible,
 not how far from the truth a plausible one is (``vigproc bench clean`` measures that).
@@ -154,7 +155,7 @@ def run(files: Sequence[Path], *, rules_on: bool) -> Counts:
             except Exception as exc:  # noqa: BLE001 - a frame that fails is reported, not counted
                 log.warning("%s: %s", p, exc)
     applied = [r for r in rows if r.applied]
-    ic = [r.removed_ev for r in rows if r.in_camera]
+    ic = [abs(r.removed_ev) for r in rows if r.in_camera]  # corners darkened count as harm too
     white = [r.new_white for r in rows] or [0.0]
     return Counts(
         rules=rules_on, frames=len(rows), applied=len(applied),
