@@ -104,9 +104,16 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     key, lens = read_lens(reader, Path(file))
     m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
                  hint=lens_hint(key, args.method))
+    # "applied" says what correct would do: the same harm rules (vigproc.pipeline.guard)
+    from vigproc.io.incamera import read_in_camera
+    from vigproc.pipeline.guard import guard
+
+    m, refusal = guard(m, "estimate", img, key, clips=info.bit_depth not in ("half", "float", "double"),
+                       in_camera=read_in_camera(file, reader), where=str(file))
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
-    doc = {"file": str(file), "lens": lens, "model": m.to_dict()}
+    doc = {"file": str(file), "lens": lens, "model": m.to_dict(),
+           **({"not_applied_rule": refusal.rule} if refusal is not None else {})}
     if not args.json:
         q = m.quality
         # the frame the model is for: a RAW's full frame, though estimated at half size
