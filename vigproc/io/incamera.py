@@ -144,10 +144,11 @@ def read_in_camera(path: str | os.PathLike[str], reader) -> InCamera | None:
         None for any file that is not a JPEG (a RAW is never affected), a file whose
         metadata cannot be read (logged), or one whose metadata says nothing.
     """
-    if reader is None or Path(path).suffix.lower() not in JPEG_SUFFIXES:
+    read_tags = getattr(reader, "read_tags", None)  # a host's stand-in reader may have none
+    if read_tags is None or Path(path).suffix.lower() not in JPEG_SUFFIXES:
         return None
     try:
-        tags = reader.read_tags(path, TAGS)
+        tags = read_tags(path, TAGS)
     except VigprocError as exc:  # the lens read already reported it; the frame is estimated as before
         log.debug("%s: in-camera correction flags not read: %s", os.fspath(path), exc)
         return None

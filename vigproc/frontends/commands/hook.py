@@ -172,11 +172,18 @@ class _HostLens:
         key = self.given.get(str(path))
         if key is not None:
             return key
+        return self._exif().read(path)
+
+    def read_tags(self, path, tags):
+        """Other tags (in-camera correction flags) from the file itself."""
+        return self._exif().read_tags(path, tags)
+
+    def _exif(self):
         if self._reader is None:
             from vigproc.io.exif import ExifReader
 
             self._reader = ExifReader().start()
-        return self._reader.read(path)
+        return self._reader
 
     def close(self) -> None:
         if self._reader is not None:
