@@ -360,9 +360,9 @@ def test_unusable_output_folder_is_a_write_error(tmp_path, vignetted_tiff):
         assert r.returncode == 5 and "cannot create output folder" in r.stderr, r.stderr
 
 
-def test_values_beyond_the_output_format_fail_the_frame(tmp_path, vignetted_tiff):
+def test_values_beyond_the_output_format_fail_the_frame(tmp_path, lens_tiff):
     """An HDR frame whose corrected values exceed half-float range is not written as Inf."""
-    path, _ = vignetted_tiff
+    path, _ = lens_tiff
     img, _ = read_image(path)
     img[-1, -1] = img.max()  # a highlight in the corner the fall-off darkens most
     hdr = tmp_path / "hdr.tif"
