@@ -419,8 +419,8 @@ def test_tiff16_says_when_it_clips(tmp_path, vignetted_tiff):
     assert r.returncode == 0 and "white point" not in r.stderr, r.stderr
 
 
-def test_correct_reports_the_fall_off_its_strength_removed(tmp_path, vignetted_tiff):
-    path, _ = vignetted_tiff
+def test_correct_reports_the_fall_off_its_strength_removed(tmp_path, lens_tiff):
+    path, _ = lens_tiff
     full = run("correct", path, "-o", tmp_path / "full", "--profile", "estimate")
     half = run("correct", path, "-o", tmp_path / "half", "--profile", "estimate", "--strength", "0.5")
     assert full.returncode == 0 and half.returncode == 0, half.stderr
