@@ -1028,7 +1028,9 @@ class Processor:
 
         m = res.model
         shown = m if m.candidate is None else m.candidate
-        title = f"{path.name}: " + ("not applied (weak evidence), " if m.candidate is not None else "") + \
+        rule = res.extra.get("not_applied_rule")  # a harm rule, else the estimator's own fall-back
+        why = rule if rule not in (None, "estimator") else "weak evidence"
+        title = f"{path.name}: " + (f"not applied ({why}), " if m.candidate is not None else "") + \
             f"{shown.field_ev_rms():.2f} EV RMS"
         pic = safe_output(outdir, stem, ".vignetting.png")
         write_image(pic, falloff_figure(shown, title=title, rejected=m.candidate is not None), bit_depth="uint8",
