@@ -105,3 +105,21 @@ def test_settings_refuse_an_unknown_in_camera_policy():
 
     with pytest.raises(VigprocError, match="in-camera"):
         Settings(in_camera="maybe")
+
+
+@needs_exiftool
+def test_bench_real_frames_counts_what_the_rules_prevent(tmp_path):
+    from vigproc.bench.real_frames import full_frames, run
+
+    phone = _jpeg(tmp_path / "IMG_1.jpg", "Apple", "iPhone 5s")
+    _jpeg(tmp_path / "DSC_1.jpg", "NIKON CORPORATION", "NIKON D70")
+    write_image(tmp_path / "small.jpg", np.full((40, 60, 3), 0.3, np.float32), transfer="srgb")
+    files = full_frames([tmp_path], min_long_side=300)
+    assert [f.name for f in files] == ["DSC_1.jpg", "IMG_1.jpg"]  # the small frame is left out
+    off, on = run(files, rules_on=False), run(files, rules_on=True)
+    assert off.frames == on.frames == 2 and off.in_camera_frames == on.in_camera_frames == 1
+    row = {r.file: r for r in off.rows}[phone.name]
+    assert row.in_camera == "phone" and row.applied and row.removed_ev > 0.3  # the 0.73 EV field, removed again
+    assert off.in_camera_removed_max == row.removed_ev
+    assert on.in_camera_removed_max == 0.0 and {r.file: r for r in on.rows}[phone.name].rule == "in-camera"
+    assert on.applied == 1 and on.brighter_corners == on.beyond_population == on.below_confidence == 0
