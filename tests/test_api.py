@@ -37,8 +37,14 @@ def truth() -> VignettingModel:
     return table1_model(2).rescale(W, H)
 
 
-def vignetted(seed: int = 1, channels: int = 3) -> np.ndarray:
-    img = (textured(H, W, seed=seed, contrast=0.05) * truth().field()).astype(np.float32)
+def real_lens() -> VignettingModel:
+    """An off-centre fall-off as deep as real lenses' (1.1 EV at the far corner): Table 1
+    setting 2 is 6.7 EV deep there, beyond any lens, and the pipeline does not apply it."""
+    return VignettingModel(W, H, center=(-30.0, -20.0), p=(1 / 130**2, 0.0, 1 / 130**2))
+
+
+def vignetted(seed: int = 1, channels: int = 3, field: VignettingModel | None = None) -> np.ndarray:
+    img = (textured(H, W, seed=seed, contrast=0.05) * (field or truth()).field()).astype(np.float32)
     return np.repeat(img[..., None], channels, axis=2) if channels else img
 
 
@@ -75,7 +81,7 @@ def test_bad_lens_data_is_a_request_error(bad):
 def test_correct_is_estimate_then_correct_and_reports_it():
     from vigproc.core.correct import correct
 
-    img = vignetted()
+    img = vignetted(field=real_lens())
     before = img.copy()
     out, res = api.process(img, LENS, profile="estimate")
     assert np.array_equal(img, before)  # input untouched
@@ -86,12 +92,12 @@ def test_correct_is_estimate_then_correct_and_reports_it():
     assert res.model.as_vector().tolist() == m.as_vector().tolist()
     np.testing.assert_array_equal(out, correct(img, m))
     assert res.falloff_ev == pytest.approx(m.field_ev_rms(), abs=1e-3)
-    assert res.falloff_ev > 1.0  # the frame has ~2.4 EV RMS of fall-off
+    assert res.falloff_ev > 0.2  # the frame has 0.40 EV RMS of fall-off
     assert res.confidence == pytest.approx(m.quality.confidence, abs=1e-3)
     assert res.lens["lens_id"] == "canon|canon eos 5d mark ii|ef24-105mm f/4l is usm"
     # the far corner (the field's centre is up-left) brightened relative to the centre
     ratio = lambda a: a[-3, -3, 0] / a[H // 2, W // 2, 0]
-    assert ratio(out) > 3 * ratio(img)
+    assert ratio(out) > 1.4 * ratio(img)  # 2.2 for the true field
     d = res.to_dict()
     json.dumps(d)
     assert d["summary"] == res.summary and "EV fall-off removed" in res.summary
@@ -327,7 +333,7 @@ def test_profile_source_plugin(plugins):
 def test_a_partial_correction_reports_what_it_removed():
     """--strength 0.5 divides out half the fall-off (in EV), and says so: the summary
     and ``removed_ev`` follow the strength, ``falloff_ev`` stays the model's."""
-    rgb = vignetted()
+    rgb = vignetted(field=real_lens())
     _, full = api.Pipeline("correct", profile="estimate").process(rgb)
     _, half = api.Pipeline("correct", profile="estimate", strength=0.5).process(rgb)
     assert full.applied and half.applied

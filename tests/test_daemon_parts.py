@@ -125,3 +125,24 @@ def test_the_daemon_is_its_three_parts():
     assert d.scheduler.watcher is d.watcher and d.stats is d.recorder.stats
     d.scheduler.inflight["/p.png"] = None  # type: ignore[assignment]
     assert d.watcher.busy("/p.png") and not d.watcher.busy("/q.png")  # the watcher asks the scheduler
+
+
+def test_the_done_line_says_when_a_frame_was_not_corrected(make, caplog):
+    """A next step watching OUT must be able to tell the original from a correction (issue 38)."""
+    from vigproc.frontends.daemon.worker import _summary
+
+    d = make()
+    side = {"output": "/out/c.corrected.png", "applied": False, "source": "estimate",
+            "not_applied": "a phone's JPEG (Apple iPhone 5s): its image processor already corrected the lens shading"}
+    summary = _summary(side, Path("/out/c.png.vigproc.json"))
+    assert summary["not_applied"] == side["not_applied"]
+    task = _claimed(d, "c.png")
+    with caplog.at_level("INFO", logger="vigproc.watch"):
+        d.recorder.done(task, summary, "worker-0")
+    done = [r for r in caplog.records if r.getMessage().startswith("done ")]
+    assert done and done[-1].getMessage().endswith("not corrected: " + side["not_applied"] + ")")
+    assert done[-1].fields["not_applied"] == side["not_applied"]
+    task = _claimed(d, "d.png")
+    with caplog.at_level("INFO", logger="vigproc.watch"):
+        d.recorder.done(task, _summary({"output": "/out/d.corrected.png", "applied": True}, Path("/x.json")), "w")
+    assert "not corrected" not in [r for r in caplog.records if r.getMessage().startswith("done ")][-1].getMessage()

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vigproc.bench.synthetic import table1_model
+from vigproc.core.model import VignettingModel
 from vigproc.frontends.cli import main
 from vigproc.io.images import read_image, write_image
 
@@ -36,8 +36,9 @@ def private_store(tmp_path, monkeypatch):
 
 @pytest.fixture
 def frame(tmp_path) -> Path:
-    """A vignetted linear float TIFF with camera and lens EXIF."""
-    img = textured(160, 240, seed=1, contrast=0.05) * table1_model(2).rescale(240, 160).field()
+    """A vignetted linear float TIFF with camera and lens EXIF: 2.1 EV at the corners, within
+    what real 50 mm f/2.8 lenses show (Table 1 setting 2, 6.7 EV deep, is beyond them: issue 38)."""
+    img = textured(160, 240, seed=1, contrast=0.05) * VignettingModel(240, 160, p=(1 / 70**2, 0.0, 1 / 70**2)).field()
     path = tmp_path / "in" / "frame.tif"
     path.parent.mkdir()
     write_image(path, np.repeat(img[..., None], 3, axis=2).astype(np.float32), bit_depth="float")
@@ -76,13 +77,13 @@ def test_correct_answers_json_and_writes_outputs(frame, tmp_path):
     r = answer["results"][0]
     assert r["status"] == "ok" and r["applied"] and r["source"] == "estimate"
     assert r["lens"]["lens_id"] == "canon|canon eos 5d|ef50mm f/1.8 ii"
-    assert r["falloff_ev"] > 1 and "EV fall-off removed" in r["summary"]
+    assert r["falloff_ev"] > 0.6 and "EV fall-off removed" in r["summary"]  # 0.97 EV RMS in truth
     assert sorted(p.name for p in out.iterdir()) == ["frame.corrected.tif", "frame.tif.vigproc.json"]
     assert r["output"] == str(out / "frame.corrected.tif") and r["sidecar"] == str(out / "frame.tif.vigproc.json")
     assert sha(frame) == before
     corrected, _ = read_image(out / "frame.corrected.tif")
     src, _ = read_image(frame)
-    assert corrected[-3, -3, 0] / corrected[80, 120, 0] > 3 * src[-3, -3, 0] / src[80, 120, 0]
+    assert corrected[-3, -3, 0] / corrected[80, 120, 0] > 2.5 * src[-3, -3, 0] / src[80, 120, 0]  # 4.2 in truth
 
 
 def test_request_on_stdin_with_host_lens_and_exact_output(frame, tmp_path):

@@ -99,9 +99,34 @@ def test_png_in_png_out(tmp_path):
     assert info.format == "png" and info.bit_depth == "uint8" and info.transfer == "srgb"
 
 
-def test_nothing_applied_writes_no_image_by_default(camera_jpeg, tmp_path):
+def test_nothing_applied_puts_the_original_under_the_output_name_by_default(camera_jpeg, tmp_path):
+    """Every photo comes out: a next step watching OUT for images loses none (issue 38)."""
     out = tmp_path / "out"
+    before = camera_jpeg.read_bytes()
     r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate", "--strength", "0")
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["IMG_0001.corrected.jpg", "IMG_0001.jpg.vigproc.json"]
+    kept = out / "IMG_0001.corrected.jpg"
+    assert kept.read_bytes() == before and camera_jpeg.read_bytes() == before  # its bytes: no second lossy pass
+    side = json.loads((out / "IMG_0001.jpg.vigproc.json").read_text())
+    assert side["applied"] is False and side["not_applied"] == "strength 0" and side["output"] == str(kept)
+    assert side["not_applied_rule"] == "strength-0"
+    assert "0 corrected, 1 not corrected, 0 failed" in r.stdout and "not corrected: strength 0" in r.stdout
+
+
+def test_keep_writes_the_frame_as_read_when_the_format_changes(camera_jpeg, tmp_path):
+    out = tmp_path / "out"
+    r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate", "--strength", "0", "--output-format", "png")
+    assert r.returncode == 0, r.stderr
+    written = out / "IMG_0001.jpg.corrected.png"
+    got, info = read_image(written)
+    src, _ = read_image(camera_jpeg)
+    assert info.format == "png" and np.abs(got - src).max() < 2e-3  # the original's pixels, not a JPEG renamed
+
+
+def test_skip_writes_no_image(camera_jpeg, tmp_path):
+    out = tmp_path / "out"
+    r = run("correct", camera_jpeg, "-o", out, "--profile", "estimate", "--strength", "0", "--unapplied", "skip")
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in out.iterdir()) == ["IMG_0001.jpg.vigproc.json"]
     side = json.loads((out / "IMG_0001.jpg.vigproc.json").read_text())

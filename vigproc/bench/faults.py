@@ -226,7 +226,8 @@ def run_faults(images: list[Path], *, workers: int = 2, small_mb: int = 20, grow
         watch = _Watch([sys.executable, "-m", "vigproc.frontends.cli", "watch", str(in_dir), "-o", str(out_dir),
                         "--workers", str(workers), "--settle", "0.3", "--quarantine", str(qdir),
                         "--profile", "estimate", "--profile-db", str(base / "profiles.sqlite"),
-                        "--output-format", "tiff16", "--retry-base", "1", "--retry-cap", "8", "--log-json"],
+                        "--output-format", "tiff16", "--unapplied", "skip",  # the protocol as measured before issue 38
+                        "--retry-base", "1", "--retry-cap", "8", "--log-json"],
                        base / "daemon.log")
         watch.start()
         names = {}

@@ -110,9 +110,16 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     else:
         m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
                      hint=lens_hint(key, args.method))
+    # "applied" says what correct would do: the same harm rules (vigproc.pipeline.guard)
+    from vigproc.io.incamera import read_in_camera
+    from vigproc.pipeline.guard import guard
+
+    m, refusal = guard(m, "estimate", img, key, clips=info.bit_depth not in ("half", "float", "double"),
+                       in_camera=read_in_camera(file, reader), where=str(file))
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
-    doc = {"file": str(file), "lens": lens, "model": m.to_dict()}
+    doc = {"file": str(file), "lens": lens, "model": m.to_dict(),
+           **({"not_applied_rule": refusal.rule} if refusal is not None else {})}
     if not args.json:
         q = m.quality
         # the frame the model is for: a RAW's full frame, though estimated at half size
@@ -169,7 +176,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     inputs = InputFiles(files)  # no output may replace an input of this run
     settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
                         output_format=args.output_format, picture=args.picture, strength=args.strength,
-                        unapplied=args.unapplied)
+                        unapplied=args.unapplied, in_camera=getattr(args, "in_camera", "respect"))
     failed = unapplied = 0
     results = []
     full = None  # the fault of the last failure (vigproc.pipeline.faults)
@@ -235,7 +242,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
                             input_transfer=args.input_transfer, picture=True, json=False,
                             output_format="auto", profile="estimate", profile_db=None,
-                            strength=1.0, unapplied="skip")
+                            strength=1.0, unapplied="skip", in_camera="respect")
     return cmd_correct(ns)
 
 

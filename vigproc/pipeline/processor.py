@@ -90,12 +90,16 @@ OUTPUT_FORMATS: dict[str, OutputFormat | None] = {
 MIN_AUTO_JPEG_QUALITY = 90
 #: What ``auto`` writes for an input, by its suffix (RAW and anything else: tiff16).
 _AUTO_KIND = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png", ".tif": "tiff", ".tiff": "tiff", ".exr": "openexr"}
-#: When nothing is applied (weak evidence, strength 0), what a correct run writes:
-#: ``skip`` only the sidecar (saying why), ``copy`` the original's bytes as
+#: When nothing is applied (weak evidence, a refused field, strength 0), what a correct run
+#: writes: ``keep`` (the default: every photo comes out) the original under the output's
+#: name, its bytes when the output is the input's own kind (else the frame as read, in the
+#: output format); ``skip`` only the sidecar (saying why), ``copy`` the original's bytes as
 #: ``STEM.uncorrected.EXT``, ``link`` a hard link of the original under that name
 #: (a copy across file systems), ``write`` the frame as read, in the output format,
 #: under the output's name (an explicit output file a host asked for).
-UNAPPLIED_POLICIES = ("skip", "copy", "link", "write")
+UNAPPLIED_POLICIES = ("keep", "skip", "copy", "link", "write")
+#: ``in_camera``: leave a JPEG the camera already corrected alone (``respect``) or not.
+IN_CAMERA_POLICIES = ("respect", "ignore")
 
 
 def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
@@ -187,6 +191,9 @@ class Settings:
         Fraction of the fall-off removed (1 = all of it).
     picture : bool
         Also write a PNG of the fall-off.
+    in_camera : str
+        Correct mode: ``respect`` (a JPEG whose camera corrected its vignetting,
+        :mod:`vigproc.io.incamera`, is left alone) or ``ignore``.
     """
 
     mode: str = "correct"
@@ -196,7 +203,8 @@ class Settings:
     output_format: str = "auto"
     strength: float = 1.0
     picture: bool = False
-    unapplied: str = "skip"
+    unapplied: str = "keep"
+    in_camera: str = "respect"
 
     def __post_init__(self) -> None:
         from vigproc.core.methods import METHODS
@@ -213,6 +221,8 @@ class Settings:
         if self.unapplied not in UNAPPLIED_POLICIES:
             raise VigprocError(f"unknown policy for frames not corrected {self.unapplied!r} "
                                f"(choose from {', '.join(UNAPPLIED_POLICIES)})")
+        if self.in_camera not in IN_CAMERA_POLICIES:
+            raise VigprocError(f"unknown in-camera policy {self.in_camera!r} (choose from {', '.join(IN_CAMERA_POLICIES)})")
         if self.transfer not in ("auto", "linear", "srgb"):
             raise VigprocError(f"unknown input transfer {self.transfer!r}")
         if not (math.isfinite(self.strength) and 0.0 <= self.strength <= 2.0):
@@ -747,10 +757,15 @@ class Processor:
         Loaded profile-source plugins for ``profile="auto"``
         (:func:`vigproc.core.extensions.load_profile_sources`); discovered on first use
         if not given.
+    plausibility : bool
+        Refuse implausible fields (:mod:`vigproc.pipeline.guard`); off only to measure
+        what the rules prevent (``vigproc bench real-frames``).
     """
 
-    def __init__(self, settings: Settings, *, store=None, reader=None, sources=None) -> None:
+    def __init__(self, settings: Settings, *, store=None, reader=None, sources=None,
+                 plausibility: bool = True) -> None:
         self.settings = settings
+        self.plausibility = plausibility
         self.store = store
         self._reader = reader
         self._own_reader = reader is None
@@ -785,13 +800,16 @@ class Processor:
 
     # -- in memory --------------------------------------------------------
     def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image", frame_id: str | None = None,
-                      output: OutputFormat | None = None, embedded=None):
+                      output: OutputFormat | None = None, embedded=None, in_camera=None):
         """Process an in-memory linear image (H×W or H×W×C, channels last).
 
         ``output``: the format the corrected frame will be written in (integer formats
         clip at the white point); default the settings' fixed format, or float.
 
         ``embedded``: the frame's own DNG calibration (:func:`choose_model`).
+
+        ``in_camera``: the camera already corrected the frame
+        (:func:`vigproc.io.incamera.read_in_camera`): nothing is applied.
 
         ``frame_id``: the frame's content id. Learn mode: a frame already pooled into
         its lens's profile is not pooled again (:meth:`ProfileStore.learn`). Check mode:
@@ -842,6 +860,13 @@ class Processor:
                 from vigproc.core.correct import correct
 
                 fmt = output or OUTPUT_FORMATS[s.output_format] or OUTPUT_FORMATS["tiff-float"]
+                if self.plausibility or in_camera is not None:  # the one gate every field passes
+                    from vigproc.pipeline.guard import guard
+
+                    m, refusal = guard(m, res.source, img, lens_key, strength=s.strength, clips=fmt.integer,
+                                       in_camera=in_camera, where=where, check=self.plausibility)
+                    if refusal is not None:
+                        res.model, res.extra["not_applied_rule"] = m, refusal.rule
                 # integer outputs cannot hold values above the white point: clip those
                 how = dict(channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
                            clip=1.0 if fmt.integer else None)
@@ -896,8 +921,9 @@ class Processor:
         all atomic; the input is never modified): in correct mode the corrected image
         (:func:`corrected_name`: ``IMG_1.corrected.jpg``, or ``IMG_1.nef.corrected.tif``
         when the format changes; :func:`output_format_for`), or when nothing is applied
-        what ``unapplied`` (default the settings') says: nothing, or the original as
-        ``IMG_1.uncorrected.jpg`` (:data:`UNAPPLIED_POLICIES`); ``STEM.vignetting.png``
+        what ``unapplied`` (default the settings') says: the original under the output's
+        name (``keep``), nothing, or the original as ``IMG_1.uncorrected.jpg``
+        (:data:`UNAPPLIED_POLICIES`); ``STEM.vignetting.png``
         with ``picture``; and always the sidecar ``STEM.vigproc.json``, written last
         (``not_applied`` says why when nothing was). ``like``: an ``auto`` output
         format is resolved by this name's suffix.  No output may be ``path`` itself or
@@ -930,6 +956,9 @@ class Processor:
         kept = (safe_output(outdir, _image_base(stem, path), ".uncorrected" + path.suffix)
                 if s.mode == "correct" and policy in ("copy", "link") else None)
         sidecar = safe_output(outdir, stem, SIDECAR_SUFFIX)
+        # keep: the input's bytes when the output is its own kind (no second lossy pass)
+        as_is = policy == "keep" and fmt.suffix.lower() == path.suffix.lower() and (
+            s.output_format == "auto" or fmt.format in ("jpeg", "dng"))
         # checked before anything is written: a refused frame leaves no partial outputs
         try:
             own = path.resolve()
@@ -941,7 +970,7 @@ class Processor:
         out, res, img, info, fmt = self._process_path(path, frame_id, lambda info: output_format_for(
             s.output_format, path, info, like=like))
         del img  # not needed once processed: freed before the output is encoded (peak memory)
-        if out is not None and (res.applied or policy == "write"):
+        if out is not None and (res.applied or policy == "write" or (policy == "keep" and not as_is)):
             from vigproc.io.metadata import make_record, write_corrected
 
             if fmt.format == "dng":  # the raw pixels untouched, the correction as an opcode
@@ -957,6 +986,10 @@ class Processor:
             res.output = str(dst)
         if out is not None and not res.applied:  # said whatever was written
             res.extra["not_applied"] = "strength 0" if s.strength == 0 else not_applied_reason(res.model)
+            res.extra.setdefault("not_applied_rule", "strength-0" if s.strength == 0 else "estimator")
+            if as_is:
+                keep_original(path, dst)
+                res.output = str(dst)
             if kept is not None and policy in ("copy", "link"):
                 keep_original(path, kept, link=policy == "link")
                 res.output = str(kept)
@@ -998,11 +1031,16 @@ class Processor:
             from vigproc.io.makernotes import calibration_for
 
             embedded = calibration_for(path, s.profile, self.reader)
+        in_camera = None
+        if s.mode == "correct" and s.in_camera == "respect":
+            from vigproc.io.incamera import read_in_camera
+
+            in_camera = read_in_camera(path, self.reader)
         if s.mode in ("learn", "check") and frame_id is None and self.store is not None:
             frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
         fmt = output_for(info)
         out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
-                                      embedded=embedded)
+                                      embedded=embedded, in_camera=in_camera)
         res.lens = lens
         if s.mode == "check":  # what an examiner files beside the verdict (vigproc.io.provenance)
             from vigproc.io.provenance import read_provenance
@@ -1021,7 +1059,9 @@ class Processor:
 
         m = res.model
         shown = m if m.candidate is None else m.candidate
-        title = f"{path.name}: " + ("not applied (weak evidence), " if m.candidate is not None else "") + \
+        rule = res.extra.get("not_applied_rule")  # a harm rule, else the estimator's own fall-back
+        why = rule if rule not in (None, "estimator") else "weak evidence"
+        title = f"{path.name}: " + (f"not applied ({why}), " if m.candidate is not None else "") + \
             f"{shown.field_ev_rms():.2f} EV RMS"
         pic = safe_output(outdir, stem, ".vignetting.png")
         write_image(pic, falloff_figure(shown, title=title, rejected=m.candidate is not None), bit_depth="uint8",

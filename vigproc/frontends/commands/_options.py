@@ -62,7 +62,7 @@ def add_profile_db(sp: argparse.ArgumentParser) -> None:
 
 def add_output(sp: argparse.ArgumentParser, *, picture: bool = True) -> None:
     """Options of the corrected output: format, strength and (optionally) the picture."""
-    from vigproc.pipeline.processor import OUTPUT_FORMATS, UNAPPLIED_POLICIES
+    from vigproc.pipeline.processor import IN_CAMERA_POLICIES, OUTPUT_FORMATS, UNAPPLIED_POLICIES
 
     sp.add_argument("--output-format", choices=list(OUTPUT_FORMATS), default="auto",
                     help="auto (default): each input's own kind back (a JPEG as a JPEG at its quality, a PNG as "
@@ -70,10 +70,14 @@ def add_output(sp: argparse.ArgumentParser, *, picture: bool = True) -> None:
                          "sRGB; tiff16, tiff-float, exr-half, exr-float: linear, for further editing; dng (DNG "
                          "inputs): a copy with its pixels untouched and the correction as a FixVignetteRadial "
                          "opcode in OpcodeList3, for raw editors")
-    sp.add_argument("--unapplied", choices=list(UNAPPLIED_POLICIES), default="skip",
-                    help="when nothing is applied (weak evidence, strength 0): skip (default: only the JSON "
-                         "sidecar, saying why), copy or link the original as NAME.uncorrected.EXT, or write "
-                         "the frame as read under the corrected name")
+    sp.add_argument("--unapplied", choices=list(UNAPPLIED_POLICIES), default="keep",
+                    help="when nothing is applied (weak evidence, a refused field, in-camera correction, "
+                         "strength 0): keep (default: the original under the output's name, its bytes when the "
+                         "format is the input's own), skip (only the JSON sidecar, saying why), copy or link the "
+                         "original as NAME.uncorrected.EXT, or write the frame as read under the output's name")
+    sp.add_argument("--in-camera", choices=list(IN_CAMERA_POLICIES), default="respect",
+                    help="respect (default): a JPEG whose camera already corrected its vignetting (maker-note "
+                         "flag, or a phone's) is left alone; ignore: correct it anyway")
     sp.add_argument("--strength", type=number(0.0, 2.0), default=1.0,
                     help="fraction of the fall-off removed, 0 to 2 (default 1)")
     if picture:

@@ -76,7 +76,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     config = read_config(args.config) if args.config else {}
     settings = Settings(mode=args.mode, profile=args.profile, method=args.method, transfer=args.input_transfer,
                         output_format=args.output_format, strength=args.strength, picture=args.picture,
-                        unapplied=args.unapplied)
+                        unapplied=args.unapplied, in_camera=args.in_camera)
     outdir = Path(args.output).resolve()
     items, missing = B.collect(args.source, outdir)
 

@@ -34,7 +34,7 @@ With ``-o``, outputs are named as in every front end
 (:func:`vigproc.pipeline.processor.output_name`): ``a.tif`` gives ``a.corrected.tif`` (``a.tif.
 corrected.exr`` when ``output_format`` changes the format; ``auto``: the input's own
 kind) and ``a.tif.vigproc.json`` (when nothing is applied, ``unapplied`` says what is
-written: by default only the sidecar); control characters, ``%`` and a leading ``-``
+written: by default the original under the output's name); control characters, ``%`` and a leading ``-``
 or ``.`` are percent-encoded, and a later input of an earlier one's name gets
 ``a-2.tif``.  No output ever replaces an
 input of the same call: that file fails with exit code 5.
@@ -184,6 +184,10 @@ class _HostLens:
             return key
         return self.exif.read(path)
 
+    def read_tags(self, path, tags):
+        """Other tags (in-camera correction flags) from the file itself."""
+        return self.exif.read_tags(path, tags)
+
     def close(self) -> None:
         if self._reader is not None:
             self._reader.close()
@@ -273,7 +277,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
         settings = Settings(mode=opt["mode"], profile=opt["profile"], method=opt["method"],
                             transfer=opt["input_transfer"], output_format=opt["output_format"],
-                            strength=float(opt["strength"]), unapplied=opt["unapplied"])
+                            strength=float(opt["strength"]), unapplied=opt["unapplied"],
+                            in_camera=getattr(args, "in_camera", "respect"))
     except VigprocError as exc:
         raise UsageError(str(exc)) from None
     entries = [*req.get("files", []), *args.files]

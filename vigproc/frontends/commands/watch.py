@@ -37,7 +37,7 @@ def _config(args: argparse.Namespace):
         profile = str(Path(profile).expanduser().resolve())  # workers must find it whatever their cwd
     settings = {"mode": args.mode, "profile": profile, "method": args.method, "transfer": args.input_transfer,
                 "output_format": args.output_format, "picture": bool(args.picture), "strength": args.strength,
-                "unapplied": args.unapplied}
+                "unapplied": args.unapplied, "in_camera": args.in_camera}
     level = logging.DEBUG if args.verbose else logging.INFO
     return WatchConfig(
         in_dir=Path(args.in_dir), out_dir=Path(args.output), settings=settings, workers=args.workers, poll=args.poll,

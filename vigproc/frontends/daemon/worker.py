@@ -59,7 +59,8 @@ def _summary(d: dict[str, Any], sidecar: Path) -> dict[str, Any]:
     verdict = d.get("verdict")
     return {k: v for k, v in {
         "output": d.get("output"), "sidecar": str(sidecar), "picture": d.get("picture"), "source": d.get("source"),
-        "applied": d.get("applied"), "profile": d.get("profile"), "seconds": d.get("seconds"),
+        "applied": d.get("applied"), "not_applied": d.get("not_applied"), "profile": d.get("profile"),
+        "seconds": d.get("seconds"),
         "lens_id": (d.get("lens") or {}).get("lens_id"),
         "verdict": (verdict.get("verdict", verdict.get("label")) if isinstance(verdict, dict) else verdict),
     }.items() if v is not None}
