@@ -106,6 +106,7 @@ def full_frames(folders: Iterable[str | Path], min_long_side: int = 1000, limit:
 
 def _row(path: Path, proc, rules) -> FrameRow:
     from vigproc.core.plausible import corner_ev, population_max_ev
+    from vigproc.io.images import EncodedImage
     from vigproc.io.incamera import read_in_camera
     from vigproc.pipeline.processor import output_format_for
 
@@ -124,6 +125,8 @@ def _row(path: Path, proc, rules) -> FrameRow:
         brightest, removed = corner_ev(m)
         if m.quality is not None:
             conf = m.quality.confidence
+    # a JPEG's codes (vigproc.pipeline.encoded) as the light they decode to
+    img, out = (x.linear() if isinstance(x, EncodedImage) else x for x in (img, out))
     before = img.max(axis=-1) if img.ndim == 3 else img
     after = out.max(axis=-1) if out.ndim == 3 else out
     white = float(np.count_nonzero((before < 1.0) & (after >= 1.0))) / before.size
