@@ -257,8 +257,11 @@ class ExiftoolProcess:
         VigprocError
             exiftool cannot be started.
         ValueError
-            An argument holds a line break.
+            An argument holds a line break, or is ``--``.
         """
+        if "--" in args or b"--" in args:
+            # it would make the protocol's own closing options (-echo4, -execute) file names
+            raise ValueError("no '--' through a -stay_open exiftool: pass absolute paths instead")
         for a in args:
             if (b"\n" in a or b"\r" in a) if isinstance(a, bytes) else ("\n" in a or "\r" in a):
                 raise ValueError(f"exiftool argument with a line break: {a!r}")
