@@ -31,9 +31,11 @@ Tags that are *not* copied because they would be wrong for the output:
   ``OtherImage``; a preview inside maker notes is deleted too);
 * the description of the pixel encoding, which :func:`vigproc.io.images.write_image`
   sets for the data it wrote: EXIF ``ColorSpace``, ``Gamma``, the
-  interoperability IFD (``R98`` = sRGB...), PNG gamma/chromaticity/sRGB chunks,
-  and the IFD0 ``ImageDescription`` (it holds the linear-TIFF marker
-  :data:`vigproc.io.images.LINEAR_TIFF_MARKER`; an XMP ``dc:description`` is kept);
+  interoperability IFD (``R98`` = sRGB...), PNG gamma/chromaticity/sRGB chunks.
+  Captions stay: IFD0 ``ImageDescription`` (where ``write_image`` puts its linear-TIFF
+  marker :data:`vigproc.io.images.LINEAR_TIFF_MARKER`: the copy replaces it and the
+  transfer is recorded as ``XMP-vigproc:Transfer``), XMP ``dc:description``, IPTC
+  ``Caption-Abstract``;
 * the ICC profile.  A linear output's source profile describes the source's own
   tone curve, so keeping it would make colour-managed viewers decode the output
   wrongly (a linear RGB TIFF carries vigproc's own linear-sRGB profile instead,
@@ -45,7 +47,8 @@ Tags that are *not* copied because they would be wrong for the output:
   dimensions, their XMP ``tiff:``/``exif:`` copies) -- exiftool protects the
   TIFF ones; the others are excluded here;
 * ``Software`` and ``ModifyDate`` in every group, with its ``SubSecTime`` and
-  ``OffsetTime`` (the output is vigproc's, written now), and all composite
+  ``OffsetTime`` (the output is vigproc's, written now; so is the XMP ``CreateDate``
+  OpenImageIO stamps, removed unless the source has its own), and all composite
   tags (exiftool would otherwise write ``ModifyDate`` back through
   ``Composite:SubSecModifyDate``; the real tags behind composites are copied
   directly);
@@ -77,19 +80,26 @@ installed next to the package).  The record is written after the copy, and any
 record the *source* carried is excluded from the copy: it described an earlier
 correction, not this output.
 
-Cost: two exiftool runs per output (check/read the source, then write), about
-0.1 s each; an OpenEXR output is written twice (pixels, then with attributes).
+RAW formats that are not TIFF-based keep their camera tags in groups a TIFF has not
+(CRW's ``CanonRaw``, X3F's header): :data:`_CAMERA_TAGS` are also copied into EXIF by
+name, before the group-preserving copy (which wins where the source has them in EXIF).
+
+Cost: two commands per output (check/read the source, then write) through one persistent
+exiftool per process (:class:`vigproc.io.exiftool_process.ExiftoolProcess`, started on the
+first copy, restarted once if it dies or hangs during one); an OpenEXR output is written
+twice (pixels, then with attributes).
 
 File names
 ----------
-exiftool is always run as an argument list (no shell).  Paths are passed
-absolute, so a name starting with ``-`` (or equal to ``-`` or ``@``, which
-exiftool reads as stdin / "the target file") cannot be taken as an option;
-target files also follow ``--``.  Names may contain spaces, quotes, newlines
-and non-ASCII characters: argv carries them verbatim (an ``-@`` argument file
-could not, it is one argument per line, so none is used).  exiftool expands
-``%d``, ``%f``, ``%e``... in the ``-tagsFromFile`` name and has no escape for
-``%``; such a source is passed through a symbolic link with a plain name.
+exiftool is never run through a shell: the persistent process takes its arguments one per
+line on a pipe.  Paths are passed absolute, so a name starting with ``-`` (or equal to ``-``
+or ``@``) cannot be taken as an option, and no ``--`` is sent (it would turn the protocol's
+own closing options into file names).  A name the protocol cannot carry (a line break,
+bytes that are not UTF-8) is never sent: the source is read through a symbolic link with a
+plain name in a private folder, and the output is rewritten as a private copy there and put
+back atomically.  exiftool expands ``%d``, ``%f``, ``%e``... in the ``-tagsFromFile`` name
+and has no escape for ``%``; such a source takes the same link.  Warnings and errors name
+the caller's files, not the aliases.
 
 The program is ``$VIGPROC_EXIFTOOL`` if set, else ``exiftool`` on ``PATH``.
 """
