@@ -180,3 +180,28 @@ def test_arguments_the_protocol_cannot_carry_are_refused() -> None:
         with pytest.raises(ValueError):
             proc.execute(bad)
     assert proc.launches == 0
+
+
+def test_a_forked_worker_starts_its_own_process(tmp_path: Path) -> None:
+    """A process forked after the start never writes into its parent's exiftool's pipes."""
+    with ExiftoolProcess() as proc:
+        version = proc.execute(["-ver"]).stdout
+        parent = proc.pid
+        r, w = os.pipe()
+        child = os.fork()
+        if child == 0:  # the worker: only the exiftool process, no other library after a fork
+            code = 1
+            try:
+                res = proc.execute(["-ver"])
+                os.write(w, f"{proc.pid} {proc.launches} {res.stdout.decode()}".encode())
+                proc.close()
+                code = 0
+            finally:
+                os._exit(code)
+        os.close(w)
+        with os.fdopen(r) as fh:
+            pid, launches, ver = fh.read().split()
+        assert os.waitpid(child, 0)[1] == 0
+        assert int(pid) != parent and int(launches) == 2 and ver.encode() == version
+        assert proc.pid == parent and proc.execute(["-ver"]).stdout == version  # the parent's still answers
+        assert proc.launches == 1
