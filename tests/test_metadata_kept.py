@@ -205,3 +205,20 @@ def test_a_forked_worker_starts_its_own_process(tmp_path: Path) -> None:
         assert int(pid) != parent and int(launches) == 2 and ver.encode() == version
         assert proc.pid == parent and proc.execute(["-ver"]).stdout == version  # the parent's still answers
         assert proc.launches == 1
+
+
+def test_an_exiftool_that_cannot_start_is_a_typed_error(dng: Path, tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    from vigproc.errors import ImageWriteError
+    from vigproc.pipeline.faults import PERMANENT, classify_error
+
+    fake = tmp_path / "not-exiftool"
+    fake.write_text("#!/bin/sh\nexit 3\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("VIGPROC_EXIFTOOL", str(fake))
+    dst = tmp_path / "out" / "x.tif"
+    dst.parent.mkdir()
+    with pytest.raises(ImageWriteError, match=r"x\.tif.*cannot run exiftool") as info:
+        write_corrected(dst, np.full((16, 16, 3), 0.5, np.float32), dng, record(), bit_depth="uint16")
+    assert classify_error(info.value, dst.parent).kind == PERMANENT  # the set-up's fault, not the disk's
+    assert os.listdir(dst.parent) == []

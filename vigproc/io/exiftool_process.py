@@ -181,7 +181,7 @@ class ExiftoolProcess:
                 et = exiftool.ExifToolHelper(check_execute=False, auto_start=False, **kwargs)
                 et.run()
             except (OSError, RuntimeError, ValueError, exiftool.exceptions.ExifToolException) as exc:
-                raise VigprocError(f"cannot start exiftool {self.executable or 'exiftool'!r}: {exc}") from exc
+                raise VigprocError(f"cannot run exiftool {self.executable or 'exiftool'!r}: {exc}") from exc
             self._et, self._owner = et, os.getpid()
             self.launches += 1
             logger.debug("exiftool %s started (pid %s)", et.version, self.pid)
