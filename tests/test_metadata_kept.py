@@ -222,3 +222,22 @@ def test_an_exiftool_that_cannot_start_is_a_typed_error(dng: Path, tmp_path: Pat
         write_corrected(dst, np.full((16, 16, 3), 0.5, np.float32), dng, record(), bit_depth="uint16")
     assert classify_error(info.value, dst.parent).kind == PERMANENT  # the set-up's fault, not the disk's
     assert os.listdir(dst.parent) == []
+
+
+def test_warnings_name_the_users_file_not_our_temporary(dng: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                        caplog: pytest.LogCaptureFixture) -> None:
+    real = ExiftoolProcess.execute
+
+    def warning_about_the_target(self, args, **kwargs):
+        res = real(self, args, **kwargs)
+        if "-overwrite_original" in args:  # what exiftool says of a file it writes
+            warn = f"Warning: Odd maker notes offset - {args[-1]}\n".encode()
+            return type(res)(res.stdout, warn + res.stderr, res.status)
+        return res
+
+    monkeypatch.setattr(ExiftoolProcess, "execute", warning_about_the_target)
+    dst = tmp_path / "named by the user.tif"
+    with caplog.at_level("WARNING", logger="vigproc.io.metadata"):
+        write_corrected(dst, np.full((16, 16, 3), 0.5, np.float32), dng, record(), bit_depth="uint16")
+    said = [r.getMessage() for r in caplog.records if "Odd maker notes offset" in r.getMessage()]
+    assert said and all(".tmp" not in m and "named by the user.tif" in m for m in said), said

@@ -38,7 +38,9 @@ space is missing or sRGB are sRGB-encoded; a gamma (``oiio:Gamma`` or a
 space (``lin_*``, ``linear``, ACES...) means linear.  A TIFF written by
 :func:`write_image` with ``transfer="linear"`` carries the marker
 :data:`LINEAR_TIFF_MARKER` in its ``ImageDescription`` (TIFF has no standard tag
-OpenImageIO maps to "linear") and is read back as linear.
+OpenImageIO maps to "linear"); once the source's metadata is copied in, the description is
+the source's caption and the XMP property ``vigproc:Transfer`` says ``linear``
+(:func:`recorded_transfer`).  Either is read back as linear.
 
 Writing
 -------

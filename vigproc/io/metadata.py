@@ -630,7 +630,7 @@ _COLOUR_TAGS = ("ColorSpace", "InteropIFD:all", "ICC_Profile:all")
 
 
 def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *,
-                  keep_colour: bool = False) -> None:
+                  keep_colour: bool = False, shown_as: Any = None) -> None:
     """Copy ``src``'s metadata into the image ``dst`` and add the vigproc record.
 
     ``dst`` is modified in place (exiftool rewrites it to a temporary file and
@@ -653,6 +653,9 @@ def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *
         For a display-encoded output of a display-encoded source: vigproc divides a
         gain out and never converts primaries, so an Adobe RGB or Display P3 JPEG is still
         one (tagged sRGB, its colours would be shown wrong).
+    shown_as : str or os.PathLike, optional
+        The name exiftool's warnings are logged under (default ``dst``):
+        :func:`write_corrected` gives the output's name, not its temporary's.
 
     Raises
     ------
@@ -695,12 +698,13 @@ def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *
         for tag, value in tags.items():
             if isinstance(value, bool):
                 value = "True" if value else "False"
-            args.append(f"-XMP-vigproc:{tag}={value}")
+            # one line: the argument protocol is line-based (a plugin's method name is free text)
+            args.append(f"-XMP-vigproc:{tag}=" + " ".join(str(value).splitlines()))
         target = et.target_name(d)
         # a half-written target of a killed exiftool would make the retry fail
         leftover = target + "_exiftool_tmp"
         args += ["-overwrite_original", target]
-        et.run(args, what, name=d, before_retry=lambda: os.path.exists(leftover) and os.unlink(leftover))
+        et.run(args, what, name=_fspath(shown_as) if shown_as is not None else d, before_retry=lambda: os.path.exists(leftover) and os.unlink(leftover))
         et.put_back(target, d)
     logger.debug("copied metadata %s -> %s (record: %s)", s, d, sorted(tags))
 
@@ -890,7 +894,7 @@ def write_corrected(
     try:
         try:
             write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer, quality=quality)
-            copy_metadata(src, tmp, record, keep_colour=keep_colour)
+            copy_metadata(src, tmp, record, keep_colour=keep_colour, shown_as=d)
         except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
             err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))
             err.__dict__.update(exc.__dict__)  # e.g. ``transient``
