@@ -211,6 +211,9 @@ _CAMERA_TAGS = (
     "Flash", "FocalLength", "FocalLengthIn35mmFormat", "MaxApertureValue",
     "LensMake", "LensModel", "LensSerialNumber", "LensInfo",
 )
+#: exiftool's warnings when a value of the copy by name has no EXIF form (Canon's MeteringMode
+#: "Evaluative", an XMP Flash structure, an empty date): that tag is left out, as meant.
+_UNMAPPED = ("Can't convert ", "Can't write a structure to ", "Invalid date/time")
 #: Deleted after the copy: images inside copied maker-note blocks (not excludable).
 _DELETE_AFTER = ("PreviewImage", "ThumbnailImage", "JpgFromRaw", "OtherImage")
 
@@ -378,6 +381,8 @@ class _Exiftool:
                 continue
             self._said.add((name, text))
             if "[minor]" in ln:  # harmless, said once when the source's EXIF was read
+                logger.debug("%s: exiftool: %s", name, text)
+            elif any(w in ln for w in _UNMAPPED):  # a value EXIF has no place for: not copied, as meant
                 logger.debug("%s: exiftool: %s", name, text)
             elif "No writable tags set from" in ln:  # the source just has no metadata
                 logger.info("%s: exiftool: %s", name, text)
