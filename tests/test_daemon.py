@@ -854,7 +854,8 @@ def test_ctrl_c_to_the_process_group_drains_without_quarantining(tmp_path):
     # The persistent one is sent its commands on stdin: this one logs them to its mark, takes
     # 3 s over each write, and hands them on to the real exiftool
     slow = ("exec perl -e '$SIG{INT} = sub { exit 1 }; open(my $log, \">>\", shift) or die; "
-            "open(my $et, \"|-\", @ARGV) or die; select((select($et), $| = 1)[0]); "
+            "my $pid = open(my $et, \"|-\", @ARGV) or die; $SIG{TERM} = sub { kill 9, $pid; exit 1 }; "
+            "select((select($et), $| = 1)[0]); "
             "select((select($log), $| = 1)[0]); while (my $l = <STDIN>) { print $log $l; "
             "sleep 3 if $l =~ /^-overwrite_original/; print $et $l } close $et' "
             f"\"{tmp_path}/marks/$$\" exiftool \"$@\"")

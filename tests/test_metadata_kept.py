@@ -241,3 +241,11 @@ def test_warnings_name_the_users_file_not_our_temporary(dng: Path, tmp_path: Pat
         write_corrected(dst, np.full((16, 16, 3), 0.5, np.float32), dng, record(), bit_depth="uint16")
     said = [r.getMessage() for r in caplog.records if "Odd maker notes offset" in r.getMessage()]
     assert said and all(".tmp" not in m and "named by the user.tif" in m for m in said), said
+
+
+def test_a_death_is_seen_while_a_child_of_it_holds_the_pipe(tmp_path: Path) -> None:
+    # exiftool dies, but a process it started keeps its output pipe open: no end of file comes
+    proc = ExiftoolProcess(config_file=_config(tmp_path, "system(q{sleep 20 &}); exit 9"), timeout=120)
+    with proc, pytest.raises(ExiftoolDied, match="died during a command"):
+        proc.execute(["-j", "-Trap", str(_blank(tmp_path))])
+    assert proc.launches == 2

@@ -315,6 +315,9 @@ class ExiftoolProcess:
                 raise ExiftoolDied(f"did not answer within {self.timeout:.0f} s and was killed")
             ready, _, _ = select.select([fd], [], [], min(left, 1.0))
             if not ready:
+                if proc.poll() is not None:  # type: ignore[attr-defined]
+                    # dead, while something it started still holds the pipe open
+                    raise ExiftoolDied(f"died during a command ({_exit_reason(proc)})")
                 continue
             chunk = os.read(fd, 65536)
             if not chunk:  # end of file: the process is gone
