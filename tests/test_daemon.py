@@ -852,11 +852,19 @@ def test_kill9_charges_no_file_and_leaves_no_process(tmp_path):
 def test_ctrl_c_to_the_process_group_drains_without_quarantining(tmp_path):
     """Ctrl-C in a terminal signals the daemon's whole process group: the files in progress
     are finished (their exiftool is not in that group), and one whose exiftool a stop
-    signal killed anyway (systemd may signal every process) goes back without an attempt."""
+    signal killed anyway (systemd may signal every process) is finished too: the worker's
+    persistent exiftool is restarted and the copy retried once, without an attempt charged."""
     in_dir, out_dir, stage = tmp_path / "in", tmp_path / "out", tmp_path / "stage"
     in_dir.mkdir()
-    # a slow exiftool: like the real one, it exits on SIGINT even though the worker ignores it
-    slow = "exec perl -e '$SIG{INT} = sub { exit 1 }; sleep 3; exec @ARGV' exiftool \"$@\""
+    # a slow exiftool: like the real one, it exits on SIGINT even though the worker ignores it.
+    # The persistent one is sent its commands on stdin: this one logs them to its mark, takes
+    # 3 s over each write, and hands them on to the real exiftool
+    slow = ("exec perl -e '$SIG{INT} = sub { exit 1 }; open(my $log, \">>\", shift) or die; "
+            "my $pid = open(my $et, \"|-\", @ARGV) or die; $SIG{TERM} = sub { kill 9, $pid; exit 1 }; "
+            "select((select($et), $| = 1)[0]); "
+            "select((select($log), $| = 1)[0]); while (my $l = <STDIN>) { print $log $l; "
+            "sleep 3 if $l =~ /^-overwrite_original/; print $et $l } close $et' "
+            f"\"{tmp_path}/marks/$$\" exiftool \"$@\"")
     env, marks = _exiftool_env(tmp_path, slow)
     d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.2", env=env).start(new_session=True)
     d.wait_for("both workers", lambda: sum(ev.get("event") == "worker-ready" for ev in d.events()) == 2, timeout=60)
@@ -873,8 +881,9 @@ def test_ctrl_c_to_the_process_group_drains_without_quarantining(tmp_path):
     assert d.wait() == 0
     e = {Path(p).name: x for p, x in journal_entries(out_dir).items()}
     assert e["a.png"].state == "done", e["a.png"].reason
-    assert e["b.png"].state == "pending" and e["b.png"].attempts == 0, (e["b.png"].state, e["b.png"].reason)
+    assert e["b.png"].state == "done" and e["b.png"].attempts == 0, (e["b.png"].state, e["b.png"].reason)
     assert not [ev for ev in d.events() if ev.get("event") == "quarantined"]
+    assert len(list(marks.iterdir())) == 3  # one exiftool per worker, and b.png's restarted once
 
 
 def test_temporaries_of_killed_writers_are_removed(tmp_path):

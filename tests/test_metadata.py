@@ -118,7 +118,9 @@ def test_tiff_round_trip(src: Path, outdir: Path, depth: str) -> None:
     # dropped or re-stated: thumbnail, encoding, structure, software
     assert "ThumbnailImage" not in t and "ExifImageWidth" not in t
     assert t["ColorSpace"] == "Uncalibrated"
-    assert t["ImageDescription"] == LINEAR_TIFF_MARKER
+    assert t["ImageDescription"] == "Holiday"  # the source's caption; the transfer is in XMP
+    assert tags(dst, "XMP-vigproc:Transfer")["Transfer"] == "linear"
+    assert read_image(dst)[1].transfer == "linear"
     assert t["Software"] == "vigproc"
     assert t["BitsPerSample"] == ("16 16 16" if depth == "uint16" else "32 32 32")
 
@@ -213,21 +215,22 @@ def test_failure_keeps_existing_output(src: Path, outdir: Path, tmp_path: Path) 
     assert os.listdir(outdir) == ["photo.tif"]
 
 
-def test_exiftool_write_error_is_reported(src: Path, outdir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    # a wrapper that reads like exiftool but fails every write
-    fake = tmp_path / "fake-exiftool"
-    fake.write_text(
-        "#!/bin/sh\n"
-        'for a in "$@"; do\n'
-        '  if [ "$a" = -overwrite_original ]; then echo "Error: simulated disk full - $0" >&2; exit 1; fi\n'
-        "done\n"
-        f'exec {shutil.which("exiftool")} "$@"\n'
-    )
-    fake.chmod(0o755)
-    monkeypatch.setenv("VIGPROC_EXIFTOOL", str(fake))
+def test_exiftool_write_error_is_reported(src: Path, outdir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the persistent exiftool reads as usual but fails every write, naming our temporary
+    from vigproc.io.exiftool_process import ExiftoolProcess, ExiftoolResult
+
+    real = ExiftoolProcess.execute
+
+    def failing(self, args, **kwargs):
+        if "-overwrite_original" in args:
+            return ExiftoolResult(b"", f"Error: simulated disk full - {args[-1]}".encode(), 1)
+        return real(self, args, **kwargs)
+
+    monkeypatch.setattr(ExiftoolProcess, "execute", failing)
     dst = outdir / "photo.tif"
-    with pytest.raises(ImageWriteError, match=r"photo\.tif.*simulated disk full"):
+    with pytest.raises(ImageWriteError, match=r"photo\.tif.*simulated disk full") as info:
         write_corrected(dst, image(), src, make_record(rich_model()))
+    assert ".tmp" not in str(info.value)  # the user's file is named, not our temporary
     assert os.listdir(outdir) == []
 
 

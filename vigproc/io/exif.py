@@ -8,7 +8,7 @@ fields, read with ExifTool.
 Reading
 -------
 :class:`ExifReader` wraps **one** persistent ``exiftool -stay_open`` process
-(PyExifTool's :class:`exiftool.ExifToolHelper`).  Measured on the 92 shared
+(:class:`vigproc.io.exiftool_process.ExiftoolProcess`, over PyExifTool).  Measured on the 92 shared
 camera JPEGs (:func:`bench_exif`): ~7 ms per file through the open process (plus
 ~60 ms start-up once) against ~90 ms per file with a process per file, so a batch
 is read with one process and, per chunk of files, one ExifTool command.
@@ -73,16 +73,14 @@ import math
 import os
 import re
 import stat
-import threading
 import time
 import unicodedata
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence, Union
 
-import exiftool
-
 from vigproc.errors import FileNameError, ImageReadError, MetadataError, UnsupportedFormatError, VigprocError
+from vigproc.io.exiftool_process import ExiftoolProcess
 from vigproc.io.lensident import (  # noqa: F401  (unescape_key_part: re-exported)
     LensSpec, generic_description, lens_spec, make_brand, shot_problem, strip_make_prefix, unescape_key_part,
 )
@@ -1150,11 +1148,9 @@ class ExifReader:
         if chunk_size < 1:
             raise ValueError("chunk_size must be >= 1")
         self.chunk_size = int(chunk_size)
-        self._executable = executable
-        self._et: exiftool.ExifToolHelper | None = None
-        self._lock = threading.Lock()
-        #: Number of ExifTool processes this reader has launched (1 unless one died).
-        self.launches = 0
+        # check_execute is off there: a batch with one bad file exits with status 1,
+        # which is per-file information, not a failure of the command
+        self._proc = ExiftoolProcess(executable, common_args=_COMMON_ARGS)
 
     # ---- process lifetime ------------------------------------------------- #
 
@@ -1166,31 +1162,12 @@ class ExifReader:
         VigprocError
             If ExifTool cannot be started.
         """
-        if self._et is not None and self._et.running:
-            return self
-        kwargs: dict[str, Any] = {"common_args": list(_COMMON_ARGS), "encoding": "utf-8"}
-        if self._executable:
-            kwargs["executable"] = self._executable
-        # check_execute=False: a batch with one bad file exits with status 1,
-        # which is per-file information, not a failure of the command.
-        et = exiftool.ExifToolHelper(check_execute=False, auto_start=False, **kwargs)
-        try:
-            et.run()
-        except (OSError, RuntimeError, exiftool.exceptions.ExifToolException) as exc:
-            raise VigprocError(f"cannot start exiftool: {exc}") from exc
-        self._et = et
-        self.launches += 1
-        logger.debug("exiftool %s started (pid %s)", et.version, self.pid)
+        self._proc.start()
         return self
 
     def close(self) -> None:
         """Stop the ExifTool process."""
-        et, self._et = self._et, None
-        if et is not None and et.running:
-            try:
-                et.terminate()
-            except Exception:  # noqa: BLE001 - shutting down: nothing useful to do
-                logger.debug("exiftool terminate failed", exc_info=True)
+        self._proc.close()
 
     def __enter__(self) -> "ExifReader":
         return self.start()
@@ -1205,15 +1182,19 @@ class ExifReader:
             pass
 
     @property
+    def launches(self) -> int:
+        """Number of ExifTool processes this reader has launched (1 unless one died)."""
+        return self._proc.launches
+
+    @property
     def pid(self) -> int | None:
         """Process id of the running ExifTool, or None."""
-        proc = getattr(self._et, "_process", None)
-        return proc.pid if proc is not None else None
+        return self._proc.pid
 
     @property
     def version(self) -> str | None:
         """ExifTool version string, or None when not running."""
-        return self._et.version if self._et is not None and self._et.running else None
+        return self._proc.version
 
     # ---- reading ---------------------------------------------------------- #
 
@@ -1307,16 +1288,12 @@ class ExifReader:
 
     def _execute(self, args: list[Union[str, bytes]], tags: Sequence[str] = _TAGS) -> tuple[list[Any], str]:
         """One ExifTool command (``tags`` then ``args``); returns (JSON records, stderr)."""
-        with self._lock:
-            self.start()
-            assert self._et is not None
-            out = self._et.execute("-j", *tags, *args, raw_bytes=True)
-            err = self._et.last_stderr or b""
-        text = out.decode("utf-8", errors="replace").strip()
+        res = self._proc.execute(["-j", *tags, *args])
+        text = res.stdout.decode("utf-8", errors="replace").strip()
         records = json.loads(text) if text else []
         if not isinstance(records, list):
             raise ValueError("exiftool JSON output is not a list")
-        return records, err.decode("utf-8", errors="replace")
+        return records, res.stderr.decode("utf-8", errors="replace")
 
     def _run_jobs(self, jobs: list[_Job], tags: Sequence[str] = _TAGS
                   ) -> list[tuple[str, dict[str, Any]] | VigprocError]:
@@ -1352,9 +1329,7 @@ class ExifReader:
         return out
 
     def _restart(self) -> None:
-        with self._lock:
-            self.close()
-        # start() happens lazily on the next command
+        self.close()  # start() happens lazily on the next command
 
     @staticmethod
     def _check_record(display: str, rec: dict[str, Any]) -> tuple[str, dict[str, Any]] | VigprocError:

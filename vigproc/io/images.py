@@ -38,7 +38,9 @@ space is missing or sRGB are sRGB-encoded; a gamma (``oiio:Gamma`` or a
 space (``lin_*``, ``linear``, ACES...) means linear.  A TIFF written by
 :func:`write_image` with ``transfer="linear"`` carries the marker
 :data:`LINEAR_TIFF_MARKER` in its ``ImageDescription`` (TIFF has no standard tag
-OpenImageIO maps to "linear") and is read back as linear.
+OpenImageIO maps to "linear"); once the source's metadata is copied in, the description is
+the source's caption and the XMP property ``vigproc:Transfer`` says ``linear``
+(:func:`recorded_transfer`).  Either is read back as linear.
 
 Writing
 -------
@@ -90,6 +92,7 @@ except ImportError:  # pragma: no cover - rawpy is installed in the project venv
 __all__ = [
     "ImageInfo",
     "LINEAR_TIFF_MARKER",
+    "recorded_transfer",
     "RAW_EXTENSIONS",
     "SUPPORTED_OIIO_FORMATS",
     "DEFAULT_MEMORY_BUDGET",
@@ -388,8 +391,35 @@ def _decode_lut(transfer: str, levels: int) -> np.ndarray:
     return lut
 
 
+def recorded_transfer(spec: oiio.ImageSpec) -> str | None:
+    """The transfer vigproc recorded in a TIFF it wrote, or None.
+
+    :func:`write_image` puts :data:`LINEAR_TIFF_MARKER` in ``ImageDescription``;
+    :func:`vigproc.io.metadata.copy_metadata` moves it to the XMP property
+    ``vigproc:Transfer`` (the description is the source's caption then).  Files written
+    before that carry only the marker, and both are read.
+
+    Parameters
+    ----------
+    spec : OpenImageIO.ImageSpec
+        The file's header (OpenImageIO decodes its XMP into ``vigproc:*`` attributes).
+
+    Returns
+    -------
+    str or None
+        ``"linear"`` when recorded.
+    """
+    recorded = spec.get_string_attribute("vigproc:Transfer", "").strip().lower()
+    if recorded == "linear" or LINEAR_TIFF_MARKER in spec.get_string_attribute("ImageDescription", ""):
+        return "linear"
+    return None
+
+
 def _auto_transfer(is_float: bool, colorspace: str | None, gamma: float, description: str) -> str:
-    """Decide the transfer curve from file metadata (rules in the module docstring)."""
+    """Decide the transfer curve from file metadata (rules in the module docstring).
+
+    ``description``: the ImageDescription, or :data:`LINEAR_TIFF_MARKER` when
+    :func:`recorded_transfer` says linear."""
     if is_float:
         if colorspace and not _is_linear_name(colorspace.lower()):
             logger.warning(
@@ -840,7 +870,7 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
     is_float = stored in _FLOAT_FORMATS
     colorspace = spec.get_string_attribute("oiio:ColorSpace", "") or None
     gamma = float(spec.get_float_attribute("oiio:Gamma", 0.0))
-    description = spec.get_string_attribute("ImageDescription", "")
+    description = LINEAR_TIFF_MARKER if recorded_transfer(spec) else spec.get_string_attribute("ImageDescription", "")
     tr = _auto_transfer(is_float, colorspace, gamma, description) if want == "auto" else want
 
     # 8/16-bit are read as integers and decoded through an exact float64 LUT.

@@ -31,9 +31,11 @@ Tags that are *not* copied because they would be wrong for the output:
   ``OtherImage``; a preview inside maker notes is deleted too);
 * the description of the pixel encoding, which :func:`vigproc.io.images.write_image`
   sets for the data it wrote: EXIF ``ColorSpace``, ``Gamma``, the
-  interoperability IFD (``R98`` = sRGB...), PNG gamma/chromaticity/sRGB chunks,
-  and the IFD0 ``ImageDescription`` (it holds the linear-TIFF marker
-  :data:`vigproc.io.images.LINEAR_TIFF_MARKER`; an XMP ``dc:description`` is kept);
+  interoperability IFD (``R98`` = sRGB...), PNG gamma/chromaticity/sRGB chunks.
+  Captions stay: IFD0 ``ImageDescription`` (where ``write_image`` puts its linear-TIFF
+  marker :data:`vigproc.io.images.LINEAR_TIFF_MARKER`: the copy replaces it and the
+  transfer is recorded as ``XMP-vigproc:Transfer``), XMP ``dc:description``, IPTC
+  ``Caption-Abstract``;
 * the ICC profile.  A linear output's source profile describes the source's own
   tone curve, so keeping it would make colour-managed viewers decode the output
   wrongly (a linear RGB TIFF carries vigproc's own linear-sRGB profile instead,
@@ -45,7 +47,8 @@ Tags that are *not* copied because they would be wrong for the output:
   dimensions, their XMP ``tiff:``/``exif:`` copies) -- exiftool protects the
   TIFF ones; the others are excluded here;
 * ``Software`` and ``ModifyDate`` in every group, with its ``SubSecTime`` and
-  ``OffsetTime`` (the output is vigproc's, written now), and all composite
+  ``OffsetTime`` (the output is vigproc's, written now; so is the XMP ``CreateDate``
+  OpenImageIO stamps, removed unless the source has its own), and all composite
   tags (exiftool would otherwise write ``ModifyDate`` back through
   ``Composite:SubSecModifyDate``; the real tags behind composites are copied
   directly);
@@ -77,35 +80,42 @@ installed next to the package).  The record is written after the copy, and any
 record the *source* carried is excluded from the copy: it described an earlier
 correction, not this output.
 
-Cost: two exiftool runs per output (check/read the source, then write), about
-0.1 s each; an OpenEXR output is written twice (pixels, then with attributes).
+RAW formats that are not TIFF-based keep their camera tags in groups a TIFF has not
+(CRW's ``CanonRaw``, X3F's header): :data:`_CAMERA_TAGS` are also copied into EXIF by
+name, before the group-preserving copy (which wins where the source has them in EXIF).
+
+Cost: two commands per output (check/read the source, then write) through one persistent
+exiftool per process (:class:`vigproc.io.exiftool_process.ExiftoolProcess`, started on the
+first copy, restarted once if it dies or hangs during one); an OpenEXR output is written
+twice (pixels, then with attributes).
 
 File names
 ----------
-exiftool is always run as an argument list (no shell).  Paths are passed
-absolute, so a name starting with ``-`` (or equal to ``-`` or ``@``, which
-exiftool reads as stdin / "the target file") cannot be taken as an option;
-target files also follow ``--``.  Names may contain spaces, quotes, newlines
-and non-ASCII characters: argv carries them verbatim (an ``-@`` argument file
-could not, it is one argument per line, so none is used).  exiftool expands
-``%d``, ``%f``, ``%e``... in the ``-tagsFromFile`` name and has no escape for
-``%``; such a source is passed through a symbolic link with a plain name.
+exiftool is never run through a shell: the persistent process takes its arguments one per
+line on a pipe.  Paths are passed absolute, so a name starting with ``-`` (or equal to ``-``
+or ``@``) cannot be taken as an option, and no ``--`` is sent (it would turn the protocol's
+own closing options into file names).  A name the protocol cannot carry (a line break,
+bytes that are not UTF-8) is never sent: the source is read through a symbolic link with a
+plain name in a private folder, and the output is rewritten as a private copy there and put
+back atomically.  exiftool expands ``%d``, ``%f``, ``%e``... in the ``-tagsFromFile`` name
+and has no escape for ``%``; such a source takes the same link.  Warnings and errors name
+the caller's files, not the aliases.
 
 The program is ``$VIGPROC_EXIFTOOL`` if set, else ``exiftool`` on ``PATH``.
 """
 
 from __future__ import annotations
 
+import atexit
 import json
 import logging
 import math
 import os
 import re
 import shutil
-import signal
 import stat
-import subprocess
 import tempfile
+import threading
 from typing import Any, Mapping
 
 import numpy as np
@@ -114,13 +124,13 @@ import OpenImageIO as oiio
 from vigproc._version import __version__
 from vigproc.atomic import publish
 from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputRefusedError,
-                            OutputSettingsError, write_error)
+                            OutputSettingsError, VigprocError, write_error)
+from vigproc.io.exiftool_process import ExiftoolDied, ExiftoolProcess, ExiftoolResult, line_safe
 from vigproc.io.images import WRITE_EXT_FORMAT as _EXT_FORMAT
 from vigproc.io.images import WRITE_FORMAT_ALIASES as _FORMAT_ALIASES
 from vigproc.io.images import WRITE_FORMAT_EXT as _FORMAT_EXT
-from vigproc.io.images import write_image
+from vigproc.io.images import recorded_transfer, write_image
 from vigproc.core.model import VignettingModel
-from vigproc.processes import AVAILABLE as DIES_WITH_PARENT, die_with_parent
 
 __all__ = [
     "EXR_TAGS",
@@ -163,6 +173,7 @@ _CONFIG = f"""\
     Version => {{ }},
     Applied => {{ Writable => 'boolean' }},
     Strength => {{ Writable => 'real' }},
+    Transfer => {{ }},
 );
 1;
 """
@@ -172,7 +183,7 @@ _EXCLUDE = (
     # thumbnails / previews
     "IFD1:all", "*Thumbnail*", "*Preview*", "JpgFromRaw", "OtherImage",
     # pixel encoding: write_image describes the data it wrote
-    "ColorSpace", "Gamma", "InteropIFD:all", "ICC_Profile:all", "IFD0:ImageDescription",
+    "ColorSpace", "Gamma", "InteropIFD:all", "ICC_Profile:all",
     "SRGBRendering", "WhitePointX", "WhitePointY", "RedX", "RedY", "GreenX", "GreenY",
     "BlueX", "BlueY",
     # image structure
@@ -190,6 +201,20 @@ _EXCLUDE = (
     # Camera Raw develop settings; an older vigproc record
     "XMP-crs:all", "XMP-vigproc:all",
 )
+#: Camera tags copied into EXIF by name (``-EXIF:TAG<TAG``) besides the group-preserving copy:
+#: RAW formats that are not TIFF-based keep them in groups a TIFF has not (a CRW's
+#: ``CanonRaw``, an X3F's header), where ``-all:all`` alone would copy nothing.
+_CAMERA_TAGS = (
+    "Make", "Model", "SerialNumber", "OwnerName", "Artist", "Copyright", "ImageDescription",
+    "DateTimeOriginal", "CreateDate", "SubSecTimeOriginal", "SubSecTimeDigitized",
+    "OffsetTimeOriginal", "OffsetTimeDigitized",
+    "ExposureTime", "FNumber", "ISO", "ExposureProgram", "ExposureCompensation", "MeteringMode",
+    "Flash", "FocalLength", "FocalLengthIn35mmFormat", "MaxApertureValue",
+    "LensMake", "LensModel", "LensSerialNumber", "LensInfo",
+)
+#: exiftool's warnings when a value of the copy by name has no EXIF form (Canon's MeteringMode
+#: "Evaluative", an XMP Flash structure, an empty date): that tag is left out, as meant.
+_UNMAPPED = ("Can't convert ", "Can't write a structure to ", "Invalid date/time")
 #: Deleted after the copy: images inside copied maker-note blocks (not excludable).
 _DELETE_AFTER = ("PreviewImage", "ThumbnailImage", "JpgFromRaw", "OtherImage")
 
@@ -258,52 +283,93 @@ def _trim(name: str, nbytes: int = 60) -> str:
     return name.encode("utf-8", "surrogateescape")[:nbytes].decode("utf-8", "ignore")
 
 
-def _signal_name(signum: int) -> str:
-    try:
-        return signal.Signals(signum).name
-    except ValueError:
-        return f"signal {signum}"
-
-
 def _one_line(text: str) -> str:
     return " / ".join(s.strip() for s in text.splitlines() if s.strip())
 
 
+#: The process-wide persistent exiftool per program path, and its config file.
+_PROCESSES: dict[str, ExiftoolProcess] = {}
+_PROCESSES_LOCK = threading.Lock()
+_CONFIG_FILE: dict[int, str] = {}  # os.getpid() -> the config file that process wrote
+
+
+def _config_file() -> str:
+    """This process's copy of the namespace config, in a private folder removed at exit."""
+    pid = os.getpid()
+    path = _CONFIG_FILE.get(pid)
+    if path is None or not os.path.isfile(path):
+        folder = tempfile.mkdtemp(prefix="vigproc-exiftool-")
+        path = os.path.join(folder, "vigproc.config")
+        with open(path, "w", encoding="utf-8") as fh:
+            fh.write(_CONFIG)
+        _CONFIG_FILE[pid] = path
+        # a forked child inherits this handler: only the writer removes its folder
+        atexit.register(lambda: os.getpid() == pid and shutil.rmtree(folder, ignore_errors=True))
+    return path
+
+
+def _process() -> ExiftoolProcess:
+    """The persistent exiftool that copies metadata in this process (one per program path).
+
+    Raises
+    ------
+    ImageWriteError
+        exiftool is not installed.
+    """
+    exe = exiftool_path()
+    with _PROCESSES_LOCK:
+        proc = _PROCESSES.get(exe)
+        if proc is None or not os.path.isfile(proc.config_file or ""):
+            proc = _PROCESSES[exe] = ExiftoolProcess(exe, config_file=_config_file(), timeout=_TIMEOUT)
+    return proc
+
+
+@atexit.register
+def _close_processes() -> None:
+    for proc in list(_PROCESSES.values()):
+        proc.close()  # a forked child's inherited ones are only forgotten
+
+
 class _Exiftool:
-    """A private temp folder with the namespace config; runs exiftool with it."""
+    """One call's use of the persistent exiftool: safe names for the argument protocol
+    (aliases in a private folder, made on demand), warnings said once per file."""
 
     def __enter__(self) -> _Exiftool:
-        self.exe = exiftool_path()
-        self.dir = tempfile.mkdtemp(prefix="vigproc-exiftool-")
-        self.config = os.path.join(self.dir, "vigproc.config")
+        self.proc = _process()
+        self._dir: str | None = None
+        self.aliases: dict[str, str] = {}  # alias -> the caller's path, for messages
         self._said: set[tuple[str, str]] = set()
-        with open(self.config, "w", encoding="utf-8") as fh:
-            fh.write(_CONFIG)
         return self
 
     def __exit__(self, *exc: object) -> None:
-        shutil.rmtree(self.dir, ignore_errors=True)
+        if self._dir is not None:
+            shutil.rmtree(self._dir, ignore_errors=True)
 
-    def run(
-        self, args: list[str], what: str, *, check: bool = True, name: str = ""
-    ) -> subprocess.CompletedProcess[bytes]:
-        """Run exiftool; log its warnings (about ``name``); raise ImageWriteError(``what``...) on failure.
+    @property
+    def dir(self) -> str:
+        if self._dir is None:
+            self._dir = tempfile.mkdtemp(prefix="vigproc-exiftool-")
+        return self._dir
 
-        With ``check=False`` a non-zero exit status is left to the caller.  An exiftool
-        killed by a signal always raises, with ``transient`` set (a retry may succeed).
+    def run(self, args: list[str], what: str, *, check: bool = True, name: str = "",
+            before_retry: Any = None) -> ExiftoolResult:
+        """Run one exiftool command; log its warnings (about ``name``); raise ImageWriteError(``what``...) on failure.
+
+        With ``check=False`` a non-zero exit status is left to the caller.  A process that
+        died or hung is restarted and the command run once more (``before_retry`` first);
+        a second failure raises with ``transient`` set (a later retry may succeed).
         """
-        # -config must come first; it also stops a user's ~/.ExifTool_config loading.
-        cmd = [self.exe, "-config", self.config, *args]
         try:
-            res = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, timeout=_TIMEOUT,
-                                 preexec_fn=die_with_parent if DIES_WITH_PARENT else None)
-        except subprocess.TimeoutExpired:
-            raise ImageWriteError(f"{what}: exiftool did not finish within {_TIMEOUT:.0f} s") from None
-        except OSError as exc:
-            raise OutputSettingsError(f"{what}: cannot run exiftool {self.exe!r}: {exc.strerror or exc}") from None
+            res = self.proc.execute(args, before_retry=before_retry)
+        except ExiftoolDied as exc:
+            err = ImageWriteError(f"{what}: exiftool {exc}")
+            err.transient = True
+            raise err from None
+        except VigprocError as exc:  # cannot start it: the set-up's fault
+            raise OutputSettingsError(f"{what}: {exc}") from None
         err = res.stderr.decode("utf-8", "replace")
         errors = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("Warning:")]
-        paths = [a for a in args if os.path.sep in a or os.path.exists(a)]
+        paths = [a for a in args if os.path.sep in a]
         for ln in err.splitlines():
             if not ln.startswith("Warning:"):
                 continue
@@ -317,30 +383,61 @@ class _Exiftool:
             self._said.add((name, text))
             if "[minor]" in ln:  # harmless, said once when the source's EXIF was read
                 logger.debug("%s: exiftool: %s", name, text)
+            elif any(w in ln for w in _UNMAPPED):  # a value EXIF has no place for: not copied, as meant
+                logger.debug("%s: exiftool: %s", name, text)
             elif "No writable tags set from" in ln:  # the source just has no metadata
                 logger.info("%s: exiftool: %s", name, text)
             else:
                 logger.warning("%s: exiftool: %s", name, text)
-        if res.returncode < 0:  # killed (e.g. a stop signal to every process): not the file's fault
-            exc = ImageWriteError(f"{what}: exiftool was killed by {_signal_name(-res.returncode)}")
-            exc.transient = True
-            raise exc
-        if check and (res.returncode != 0 or any(ln.startswith("Error") for ln in errors)):
-            msg = _one_line("\n".join(errors) or err) or f"exit status {res.returncode}"
+        if check and (res.status != 0 or any(ln.startswith("Error") for ln in errors)):
+            msg = _one_line("\n".join(errors) or err) or f"exit status {res.status}"
+            for alias, real in self.aliases.items():
+                msg = msg.replace(alias, real)
             raise ImageWriteError(f"{what}: exiftool failed: {msg}")
         return res
 
+    def _alias(self, path: str, stem: str) -> str:
+        ext = re.sub(r"[^A-Za-z0-9.]", "", os.path.splitext(path)[1])[:10]
+        alias = os.path.join(self.dir, stem + ext)
+        self.aliases[alias] = path
+        return alias
+
     def source_name(self, src: str) -> str:
-        """A name for ``-tagsFromFile`` that exiftool takes literally."""
-        if not _EXIFTOOL_FMT.search(src):
+        """A name for ``-tagsFromFile`` that exiftool takes literally and the protocol carries."""
+        if line_safe(src) and not _EXIFTOOL_FMT.search(src):
             return src
-        ext = re.sub(r"[^A-Za-z0-9.]", "", os.path.splitext(src)[1])[:10]
-        alias = os.path.join(self.dir, "source" + ext)
+        for alias, real in self.aliases.items():
+            if real == src and os.path.basename(alias).startswith("source"):
+                return alias  # made by an earlier command of this call
+        alias = self._alias(src, "source")
         try:
             os.symlink(src, alias)
         except OSError:  # no symlinks here: a private copy (the source stays untouched)
             shutil.copyfile(src, alias)
         return alias
+
+    def target_name(self, dst: str) -> str:
+        """A name for the file exiftool rewrites: ``dst`` itself, or a private copy of it
+        when the protocol cannot carry its name (see :meth:`put_back`)."""
+        if line_safe(dst):
+            return dst
+        alias = self._alias(dst, "target")
+        shutil.copyfile(dst, alias)
+        return alias
+
+    def put_back(self, target: str, dst: str) -> None:
+        """Replace ``dst`` by the rewritten private copy ``target``, atomically."""
+        if target == dst:
+            return
+        fd, tmp = tempfile.mkstemp(prefix=f".{_trim(os.path.basename(dst))}.meta-", dir=os.path.dirname(dst))
+        os.close(fd)
+        try:
+            shutil.copyfile(target, tmp)
+            os.chmod(tmp, stat.S_IMODE(os.stat(dst).st_mode))
+            os.replace(tmp, dst)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
 
 
 def _parse_json(stdout: bytes) -> dict[str, Any]:
@@ -367,11 +464,11 @@ def _read_tags(et: _Exiftool, src: str, what: str) -> dict[str, Any]:
     """
     tags = ["-FileType", "-MIMEType", "-Error", "-Warning"] + [f"-{t}" for t, _, _ in EXR_TAGS]
     # exit status 1 with JSON output: the file's problem is in its "Error" field
-    res = et.run(["-j", "-n", "-G0", *tags, "--", src], what, check=False, name=src)
+    res = et.run(["-j", "-n", "-G0", *tags, et.source_name(src)], what, check=False, name=src)
     try:
         info = _parse_json(res.stdout)
     except ValueError:
-        msg = _one_line(res.stderr.decode("utf-8", "replace")) or f"exit status {res.returncode}"
+        msg = _one_line(res.stderr.decode("utf-8", "replace")) or f"exit status {res.status}"
         raise OutputRefusedError(f"{what}: exiftool cannot read the source {_q(src)}: {msg}") from None
     if info.get("ExifTool:Error"):
         raise OutputRefusedError(f"{what}: source {_q(src)}: {info['ExifTool:Error']}")
@@ -514,6 +611,18 @@ def _fspath(path: Any) -> str:
     return os.path.abspath(os.fsdecode(p) if isinstance(p, bytes) else p)
 
 
+def _linear_tiff(path: str) -> str | None:
+    """``"linear"`` if ``path`` is a TIFF :func:`vigproc.io.images.write_image` marked linear, else None."""
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        oiio.geterror()
+        return None
+    try:
+        return "linear" if inp.format_name() == "tiff" and recorded_transfer(inp.spec()) == "linear" else None
+    finally:
+        inp.close()
+
+
 def _is_exr(path: str) -> bool:
     try:
         with open(path, "rb") as fh:
@@ -527,7 +636,7 @@ _COLOUR_TAGS = ("ColorSpace", "InteropIFD:all", "ICC_Profile:all")
 
 
 def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *,
-                  keep_colour: bool = False) -> None:
+                  keep_colour: bool = False, shown_as: Any = None) -> None:
     """Copy ``src``'s metadata into the image ``dst`` and add the vigproc record.
 
     ``dst`` is modified in place (exiftool rewrites it to a temporary file and
@@ -550,6 +659,9 @@ def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *
         For a display-encoded output of a display-encoded source: vigproc divides a
         gain out and never converts primaries, so an Adobe RGB or Display P3 JPEG is still
         one (tagged sRGB, its colours would be shown wrong).
+    shown_as : str or os.PathLike, optional
+        The name exiftool's warnings are logged under (default ``dst``):
+        :func:`write_corrected` gives the output's name, not its temporary's.
 
     Raises
     ------
@@ -568,25 +680,38 @@ def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *
             raise OutputRefusedError(f"{what}: {role} {_q(p)} does not exist or is not a file")
     if os.path.samefile(s, d):
         raise OutputSettingsError(f"{what}: source and destination are the same file")
+    linear = _linear_tiff(d)  # before the copy replaces the marker with the source's caption
     with _Exiftool() as et:
         src_tags = _read_tags(et, s, what)
         if _is_exr(d):
             _exr_write_metadata(d, src_tags, tags, what)
             return
-        args = ["-tagsFromFile", et.source_name(s), "-all:all"]
+        # what write_image set and only the source may say: deleted first, then copied if it has them
+        args = ["-IFD0:ImageDescription=", "-XMP-xmp:CreateDate="]
+        # EXIF's camera tags by name, for RAW formats that keep them elsewhere (a CRW's
+        # CanonRaw, an X3F's header); -all:all, later, wins for those already in EXIF
+        args += ["-tagsFromFile", et.source_name(s), *(f"-EXIF:{t}<{t}" for t in _CAMERA_TAGS), "-all:all"]
         args += [f"--{t}" for t in _EXCLUDE if not (keep_colour and t in _COLOUR_TAGS)]
         if keep_colour:  # -all:all copies neither the ICC profile nor the interop index: name them
             args += ["-ICC_Profile", "-InteropIndex", "-InteropVersion"]
         if _is_exr(s):
             # an EXR holds no EXIF exiftool can copy: assign the key fields read above
-            args += [f"-{k}={v}" for k, v in src_tags.items()]
+            # (on one line each: the argument protocol is line-based)
+            args += [f"-{k}=" + " ".join(str(v).splitlines()) for k, v in src_tags.items()]
         args += [f"-{t}=" for t in _DELETE_AFTER]
+        if linear:
+            args.append(f"-XMP-vigproc:Transfer={linear}")
         for tag, value in tags.items():
             if isinstance(value, bool):
                 value = "True" if value else "False"
-            args.append(f"-XMP-vigproc:{tag}={value}")
-        args += ["-overwrite_original", "--", d]
-        et.run(args, what, name=d)
+            # one line: the argument protocol is line-based (a plugin's method name is free text)
+            args.append(f"-XMP-vigproc:{tag}=" + " ".join(str(value).splitlines()))
+        target = et.target_name(d)
+        # a half-written target of a killed exiftool would make the retry fail
+        leftover = target + "_exiftool_tmp"
+        args += ["-overwrite_original", target]
+        et.run(args, what, name=_fspath(shown_as) if shown_as is not None else d, before_retry=lambda: os.path.exists(leftover) and os.unlink(leftover))
+        et.put_back(target, d)
     logger.debug("copied metadata %s -> %s (record: %s)", s, d, sorted(tags))
 
 
@@ -693,7 +818,7 @@ def read_record(path: Any) -> dict[str, Any] | None:
         return _record_from_tags(tags, p)
     try:
         with _Exiftool() as et:
-            res = et.run(["-j", "-n", "-XMP-vigproc:all", "--", p], f"cannot read {_q(p)}", name=p)
+            res = et.run(["-j", "-n", "-XMP-vigproc:all", et.source_name(p)], f"cannot read {_q(p)}", name=p)
     except ImageWriteError as exc:  # same failure, reading side
         raise ImageReadError(str(exc)) from None
     try:
@@ -775,7 +900,7 @@ def write_corrected(
     try:
         try:
             write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer, quality=quality)
-            copy_metadata(src, tmp, record, keep_colour=keep_colour)
+            copy_metadata(src, tmp, record, keep_colour=keep_colour, shown_as=d)
         except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
             err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))
             err.__dict__.update(exc.__dict__)  # e.g. ``transient``
