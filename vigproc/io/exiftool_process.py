@@ -28,6 +28,7 @@ import logging
 import os
 import select
 import signal
+import subprocess
 import threading
 import time
 import warnings
@@ -178,6 +179,7 @@ class ExiftoolProcess:
             if self.config_file is not None:
                 kwargs["config_file"] = self.config_file
             try:
+                _check_executable(self.executable or "exiftool")
                 et = exiftool.ExifToolHelper(check_execute=False, auto_start=False, **kwargs)
                 et.run()
             except (OSError, RuntimeError, ValueError, exiftool.exceptions.ExifToolException) as exc:
@@ -333,3 +335,27 @@ class ExiftoolProcess:
             proc.wait(timeout=5)  # type: ignore[attr-defined]
         except Exception:  # noqa: BLE001 - its return code is only for the message
             pass
+
+
+#: Executables seen to answer ``-ver`` as exiftool does, by path and modification time.
+_ANSWERED: set[tuple[str, float]] = set()
+
+
+def _check_executable(exe: str) -> None:
+    """Raise OSError unless ``exe -ver`` prints a version and exits 0 (once per
+    executable and process).  PyExifTool's own start-up reads the version through the
+    stay-open pipe and spins for ever on a program that exits at once instead."""
+    try:
+        key = (exe, os.stat(exe).st_mtime) if os.sep in exe else (exe, 0.0)
+    except OSError as exc:
+        raise OSError(exc.errno, f"{exe}: {exc.strerror}") from None
+    if key in _ANSWERED:
+        return
+    try:
+        res = subprocess.run([exe, "-ver"], stdin=subprocess.DEVNULL, capture_output=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        raise OSError(f"{exe} -ver did not answer within 60 s") from None
+    words = res.stdout.split()
+    if res.returncode != 0 or len(words) != 1 or not words[0].replace(b".", b"").isdigit():
+        raise OSError(f"{exe} does not answer -ver as exiftool does (exit status {res.returncode})")
+    _ANSWERED.add(key)
