@@ -208,7 +208,7 @@ def test_hostile_names_through_batch_and_correct(tmp_path, env):
     assert sum("% of the samples are above the white point" in line for line in lines) == 2, err
     assert any("junk\\n\\u202e.png" in line for line in lines), err
     outs = sorted(os.listdir(tmp_path / "out"))
-    assert "bad%FF%FE.corrected.png" in outs and "a%0Avigproc: forged%09line\u202egpj.corrected.png" in outs, outs
+    assert "bad%FF%FE.corrected.png" in outs and "a%0Avigproc: forged%09line%E2%80%AEgpj.corrected.png" in outs, outs
     # correct: the name that is not UTF-8 is read, not refused
     r = subprocess.run([*VIGPROC, "correct", os.path.join(os.fsencode(in_dir), NOT_UTF8), "-o",
                         str(tmp_path / "out2"), "--profile", str(PROFILE), "--output-format", "png"],

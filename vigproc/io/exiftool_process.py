@@ -28,7 +28,6 @@ import logging
 import os
 import select
 import signal
-import subprocess
 import threading
 import time
 import warnings
@@ -178,11 +177,14 @@ class ExiftoolProcess:
                 kwargs["executable"] = self.executable
             if self.config_file is not None:
                 kwargs["config_file"] = self.config_file
+            et = None
             try:
-                _check_executable(self.executable or "exiftool")
-                et = exiftool.ExifToolHelper(check_execute=False, auto_start=False, **kwargs)
+                et = _Helper(check_execute=False, auto_start=False, **kwargs)
+                et.probe = self._probe
                 et.run()
             except (OSError, RuntimeError, ValueError, exiftool.exceptions.ExifToolException) as exc:
+                if et is not None:  # dead already: PyExifTool would warn of it when collected
+                    et._running, et._process = False, None
                 raise VigprocError(f"cannot run exiftool {self.executable or 'exiftool'!r}: {exc}") from exc
             self._et, self._owner = et, os.getpid()
             self.launches += 1
@@ -281,7 +283,18 @@ class ExiftoolProcess:
         self.start()
         et = self._et
         assert et is not None
-        proc = et._process
+        return self._command(et._process, args)
+
+    def _probe(self, et: "exiftool.ExifToolHelper") -> str:
+        """exiftool's version, asked of a process PyExifTool just started (its own probe
+        reads an empty pipe for ever when the program exits at once)."""
+        try:
+            return self._command(et._process, ["-ver"]).stdout.decode("utf-8", "replace").strip()
+        except ExiftoolDied as exc:
+            raise RuntimeError(f"it {exc}") from None
+
+    def _command(self, proc, args: Sequence[Arg]) -> ExiftoolResult:
+        """One command through the stay-open protocol of ``proc``."""
         # PyExifTool's own protocol (ExifTool.execute), read here with end-of-file and a deadline
         tag = int.from_bytes(os.urandom(3), "big") % 900000 + 100000
         ready, post = f"{{ready{tag}}}".encode(), f"post{tag}".encode()
@@ -337,25 +350,11 @@ class ExiftoolProcess:
             pass
 
 
-#: Executables seen to answer ``-ver`` as exiftool does, by path and modification time.
-_ANSWERED: set[tuple[str, float]] = set()
+class _Helper(exiftool.ExifToolHelper):
+    """PyExifTool's helper whose start-up version probe is :meth:`ExiftoolProcess._probe`
+    (read with end of file and a deadline)."""
 
+    probe: Callable[["_Helper"], str]
 
-def _check_executable(exe: str) -> None:
-    """Raise OSError unless ``exe -ver`` prints a version and exits 0 (once per
-    executable and process).  PyExifTool's own start-up reads the version through the
-    stay-open pipe and spins for ever on a program that exits at once instead."""
-    try:
-        key = (exe, os.stat(exe).st_mtime) if os.sep in exe else (exe, 0.0)
-    except OSError as exc:
-        raise OSError(exc.errno, f"{exe}: {exc.strerror}") from None
-    if key in _ANSWERED:
-        return
-    try:
-        res = subprocess.run([exe, "-ver"], stdin=subprocess.DEVNULL, capture_output=True, timeout=60)
-    except subprocess.TimeoutExpired:
-        raise OSError(f"{exe} -ver did not answer within 60 s") from None
-    words = res.stdout.split()
-    if res.returncode != 0 or len(words) != 1 or not words[0].replace(b".", b"").isdigit():
-        raise OSError(f"{exe} does not answer -ver as exiftool does (exit status {res.returncode})")
-    _ANSWERED.add(key)
+    def _parse_ver(self) -> str:
+        return self.probe(self)
