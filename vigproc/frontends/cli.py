@@ -242,7 +242,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
                             input_transfer=args.input_transfer, picture=True, json=False,
                             output_format="auto", profile="estimate", profile_db=None,
-                            strength=1.0, unapplied="skip", in_camera="respect")
+                            strength=1.0, unapplied="keep", in_camera="respect")
     return cmd_correct(ns)
 
 
