@@ -57,6 +57,7 @@ class _DiskPause:
     probing: bool = False  # a probe is in flight
     held: set[str] = field(default_factory=set)  # files given back for the disk, not charged
     disk: str = "output disk"  # which disk is full: "output disk", "profile store disk"
+    crashed: set[str] = field(default_factory=set)  # held files whose worker died on them in this pause
 
 
 @dataclass
@@ -197,7 +198,15 @@ class Scheduler:
         unless the output side was failing then (full, read-only, gone): native code may
         end its process on a write error, which is the disk's fault, not the photo's."""
         trouble = output_trouble(self.cfg.out_dir, self.cfg.min_free)
-        if self.disk is not None or (trouble is not None and trouble.kind == DISK_FULL):
+        d = self.disk
+        if d is not None and trouble is None and (task.probe or task.path in d.crashed):
+            # the disk shows no trouble and the file crashed alone as the probe, or crashed
+            # twice in this pause: the file's fault -- else a crashing file, probed again and
+            # again, would hold the daemon paused for ever (nothing else ends a fake "full")
+            self.recorder.failure(task, CRASH, why)
+        elif d is not None or (trouble is not None and trouble.kind == DISK_FULL):
+            if d is not None:
+                d.crashed.add(task.path)
             reason = f"{why} while {trouble.reason if trouble is not None else self.disk.reason}"
             self._disk_full(task, reason, trouble.space.free_bytes if trouble and trouble.space else None)
         elif trouble is not None:
@@ -271,7 +280,8 @@ class Scheduler:
                 return
             if probe and self.disk is not None:
                 # the probe: one file, preferably not the one that failed last
-                path = next((p for p in ready if p not in self.disk.held), next(iter(ready)))
+                path = next((p for p in ready if p not in self.disk.held),
+                            next((p for p in ready if p not in self.disk.crashed), next(iter(ready))))
             else:
                 path = next(iter(ready))
             del ready[path]
@@ -529,7 +539,7 @@ class Scheduler:
         if d.probing or now < d.probe_at:
             return None
         if not ready:  # nothing new to try: one of the files given back
-            for p in sorted(d.held):
+            for p in sorted(d.held, key=lambda p: (p in d.crashed, p)):  # one that crashed comes last
                 if p not in self.inflight and os.path.lexists(p):
                     ready[p] = None
                     self.disk_ready.add(p)
