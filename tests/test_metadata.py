@@ -418,3 +418,33 @@ def test_long_non_ascii_name(src: Path, outdir: Path) -> None:
     name = "日本語" * 27 + ".tif"  # 243 bytes: temp names must be shortened
     write_corrected(outdir / name, image(), src, None)
     assert os.listdir(outdir) == [name]
+
+
+def test_source_read_skips_only_the_source_check(src: Path, outdir: Path, monkeypatch) -> None:
+    """The pipeline has decoded the source and read its EXIF: the copy asks exiftool once
+    (the write), not twice, and copies the same tags; a caller that has not still gets
+    the source check (a non-image source refused)."""
+    from vigproc.io import metadata as md
+
+    calls: list[list[str]] = []
+    orig = md._Exiftool.run
+
+    def run(self, args, *a, **kw):
+        calls.append(list(args))
+        return orig(self, args, *a, **kw)
+
+    monkeypatch.setattr(md._Exiftool, "run", run)
+    for source_read, expected in ((False, 2), (True, 1)):
+        calls.clear()
+        dst = outdir / f"read-{source_read}.tif"
+        write_image(dst, image())
+        copy_metadata(src, dst, make_record(rich_model()), source_read=source_read)
+        assert len(calls) == expected
+        assert tags(dst, "Model", "LensModel") == {"Model": EXIF["Model"], "LensModel": EXIF["LensModel"]}
+        assert read_record(dst) is not None
+    bad = outdir / "notes.jpg"
+    bad.write_bytes(b"%PDF-1.4 not an image")
+    dst = outdir / "after-bad.tif"
+    write_image(dst, image())
+    with pytest.raises(ImageWriteError, match="not an image"):
+        copy_metadata(bad, dst, None)

@@ -636,7 +636,7 @@ _COLOUR_TAGS = ("ColorSpace", "InteropIFD:all", "ICC_Profile:all")
 
 
 def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *,
-                  keep_colour: bool = False, shown_as: Any = None) -> None:
+                  keep_colour: bool = False, shown_as: Any = None, source_read: bool = False) -> None:
     """Copy ``src``'s metadata into the image ``dst`` and add the vigproc record.
 
     ``dst`` is modified in place (exiftool rewrites it to a temporary file and
@@ -662,6 +662,10 @@ def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *
     shown_as : str or os.PathLike, optional
         The name exiftool's warnings are logged under (default ``dst``):
         :func:`write_corrected` gives the output's name, not its temporary's.
+    source_read : bool
+        The caller has already decoded ``src`` and read its EXIF (the pipeline): the
+        check that it is an image exiftool can read is skipped, one exiftool round trip
+        fewer per output (an OpenEXR source or output still reads its fields).
 
     Raises
     ------
@@ -682,7 +686,8 @@ def copy_metadata(src: Any, dst: Any, record: Mapping[str, Any] | None = None, *
         raise OutputSettingsError(f"{what}: source and destination are the same file")
     linear = _linear_tiff(d)  # before the copy replaces the marker with the source's caption
     with _Exiftool() as et:
-        src_tags = _read_tags(et, s, what)
+        exr = _is_exr(s) or _is_exr(d)
+        src_tags = _read_tags(et, s, what) if exr or not source_read else {}
         if _is_exr(d):
             _exr_write_metadata(d, src_tags, tags, what)
             return
@@ -854,6 +859,7 @@ def write_corrected(
     transfer: str = "linear",
     quality: int | None = None,
     keep_colour: bool = False,
+    source_read: bool = False,
 ) -> None:
     """Write a corrected image with the source's metadata and the record, atomically.
 
@@ -874,7 +880,7 @@ def write_corrected(
         Correction record (:func:`make_record`); ``None`` for metadata only.
     bit_depth, format, transfer, quality
         As for :func:`vigproc.io.images.write_image`.
-    keep_colour : bool
+    keep_colour, source_read : bool
         As for :func:`copy_metadata`.
 
     Raises
@@ -900,7 +906,7 @@ def write_corrected(
     try:
         try:
             write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer, quality=quality)
-            copy_metadata(src, tmp, record, keep_colour=keep_colour, shown_as=d)
+            copy_metadata(src, tmp, record, keep_colour=keep_colour, shown_as=d, source_read=source_read)
         except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
             err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))
             err.__dict__.update(exc.__dict__)  # e.g. ``transient``

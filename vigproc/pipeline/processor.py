@@ -982,7 +982,7 @@ class Processor:
                 keep_colour = fmt.transfer == "srgb" and getattr(info, "transfer", None) == "srgb"
                 write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=fmt.depth,
                                 format=fmt.format, transfer=fmt.transfer, quality=fmt.quality,
-                                keep_colour=keep_colour)
+                                keep_colour=keep_colour, source_read=True)  # decoded above, its EXIF read
             res.output = str(dst)
         if out is not None and not res.applied:  # said whatever was written
             res.extra["not_applied"] = "strength 0" if s.strength == 0 else not_applied_reason(res.model)
