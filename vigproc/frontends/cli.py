@@ -104,6 +104,7 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
     # model for the full frame; a JPEG's or PNG's codes from a reduced copy; others as they are
     img, info = read_encoded(file, transfer=args.input_transfer, raw_half_size=True)
+    reader = reader.read_file(Path(file))  # one exiftool read: the lens and the in-camera flags
     key, lens = read_lens(reader, Path(file))
     if isinstance(img, EncodedImage):
         m = estimate_encoded(check_encoded(img), args.method, hint=lens_hint(key, args.method), seed=args.seed)
@@ -115,7 +116,7 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     from vigproc.pipeline.guard import guard
 
     m, refusal = guard(m, "estimate", img, key, clips=info.bit_depth not in ("half", "float", "double"),
-                       in_camera=read_in_camera(file, reader), where=str(file))
+                       in_camera=read_in_camera(Path(file), reader), where=str(file))
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
     doc = {"file": str(file), "lens": lens, "model": m.to_dict(),
