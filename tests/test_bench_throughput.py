@@ -68,3 +68,20 @@ def test_a_run_times_every_tool_and_checks_their_outputs(photos, tmp_path):
     lines = T.format_result(r)
     assert lines[2].startswith("floor") and lines[3].startswith("vigproc")
     assert json.loads(json.dumps(asdict(r)))["photos"] == [str(p.path) for p in chosen]
+
+
+def test_with_a_baseline_each_vigproc_has_a_store_of_its_own(tmp_path):
+    tools = [T.ToolTiming("floor", []), T.ToolTiming("vigproc", []), T.ToolTiming("vigproc-baseline", [], tree="/x")]
+    envs = [T._env(t, tmp_path) for t in tools]
+    stores = [e.get("VIGPROC_PROFILE_DB") for e in envs[1:]]
+    assert stores[0] != stores[1] and all(s.startswith(str(tmp_path)) for s in stores)
+    assert envs[2]["PYTHONPATH"] == "/x"
+    assert T._env(tools[1])["VIGPROC_PROFILE_DB"] == __import__("os").environ.get("VIGPROC_PROFILE_DB")
+
+
+def test_the_cli_needs_a_folder(tmp_path):
+    import sys
+
+    res = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "bench", "throughput"], capture_output=True,
+                         text=True)
+    assert res.returncode != 0 and "--images DIR or --raw DIR" in res.stderr and "Traceback" not in res.stderr

@@ -8,7 +8,15 @@ batch call; and ``darktable-cli`` exporting the same folder when it is installed
 Every timing is a whole new process on the same copied folder; rounds interleave the
 tools so a busy machine weighs on all of them alike.
 
-``python -m vigproc.bench.throughput floor IN OUT`` runs the floor on its own.
+With ``raw=True`` (``vigproc bench throughput --raw DIR``) the photographs are camera
+RAW files: vigproc's ``correct`` writes each as its linear 16-bit TIFF (``--unapplied
+write``: a frame not corrected is written too, as developed), and the floor is rawpy's
+own development with vigproc's settings (:data:`vigproc.io.images.RAW_DEVELOP`), the
+same 16-bit TIFF written by OpenImageIO, and the sources' EXIF copied by one exiftool
+batch call.
+
+``python -m vigproc.bench.throughput floor IN OUT`` runs the floor on its own
+(``rawfloor IN OUT``: the RAW floor).
 """
 
 from __future__ import annotations
@@ -116,6 +124,41 @@ def select_photos(folder: Path, min_megapixels: float = 0.75, limit: int | None 
     return photos, skipped
 
 
+def select_raws(folder: Path, limit: int | None = None) -> tuple[list[Photo], dict]:
+    """The camera RAW files under ``folder`` LibRaw develops (by path).
+
+    Returns
+    -------
+    (photos, skipped)
+        The RAW files (sorted by path, their developed size) and ``{path: reason}`` for
+        RAW-named files left out.
+    """
+    from vigproc.io.images import RAW_EXTENSIONS, read_image
+
+    if not folder.is_dir():
+        raise VigprocError(f"not a folder: {folder}")
+    photos, skipped = [], {}
+    for p in sorted(q for q in folder.rglob("*") if q.is_file() and q.suffix.lower() in RAW_EXTENSIONS):
+        try:
+            img, info = read_image(p, raw_half_size=True)  # is it a RAW LibRaw develops?
+        except VigprocError as exc:  # stubs whose image data was stripped
+            skipped[str(p)] = str(exc)
+            continue
+        del img
+        if info.format != "raw":
+            skipped[str(p)] = f"not developed by LibRaw (read as {info.format})"
+            continue
+        import rawpy
+
+        with rawpy.imread(str(p)) as raw:  # the full development's size (never rotated)
+            photos.append(Photo(p, int(raw.sizes.width), int(raw.sizes.height)))
+        if limit and len(photos) >= limit:
+            break
+    if not photos:
+        raise VigprocError(f"no RAW file LibRaw develops under {folder}")
+    return photos, skipped
+
+
 def stage(photos: Sequence[Photo], into: Path) -> list[Path]:
     """Copy the photographs into ``into`` under plain distinct names (``000_NAME.jpg``),
     so every tool reads the same bytes and no name is taken for an option."""
@@ -162,11 +205,44 @@ def floor_run(src: Path, dst: Path) -> int:
     return n
 
 
+def raw_floor_run(src: Path, dst: Path) -> int:
+    """The RAW floor: every RAW in ``src`` developed by rawpy with vigproc's settings
+    (:data:`vigproc.io.images.RAW_DEVELOP`) and written by OpenImageIO as the linear
+    16-bit TIFF ``vigproc correct`` writes (``NAME.EXT.tif``), then the sources' EXIF
+    copied into them by one exiftool call. Returns the number of images written."""
+    import OpenImageIO as oiio
+    import rawpy
+
+    from vigproc.io.images import RAW_DEVELOP, RAW_EXTENSIONS
+    from vigproc.io.metadata import exiftool_path
+
+    dst.mkdir(parents=True, exist_ok=True)
+    n = 0
+    for p in sorted(src.iterdir()):
+        if p.suffix.lower() not in RAW_EXTENSIONS:
+            continue
+        with rawpy.imread(str(p)) as raw:
+            rgb = raw.postprocess(**RAW_DEVELOP)
+        h, w, c = rgb.shape
+        target = dst / (p.name + ".tif")
+        out = oiio.ImageOutput.create(str(target))
+        if out is None or not out.open(str(target), oiio.ImageSpec(w, h, c, "uint16")) or not out.write_image(rgb):
+            raise VigprocError(f"raw floor: cannot write {target}: {oiio.geterror()}")
+        out.close()
+        n += 1
+    # one batch call: NAME.EXT.tif takes the tags of NAME.EXT
+    subprocess.run([exiftool_path(), "-q", "-q", "-overwrite_original", "-tagsFromFile", f"{src}/%f",
+                    "-all:all", "--", str(dst)], check=True, stdin=subprocess.DEVNULL)
+    return n
+
+
 def _commands(indir: Path, outdir: Path, inputs: Sequence[Path], darktable: str | None,
-              baseline: str | None = None) -> dict[str, list[str]]:
+              baseline: str | None = None, raw: bool = False) -> dict[str, list[str]]:
     cmds = {
-        "floor": [sys.executable, "-m", "vigproc.bench.throughput", "floor", str(indir), str(outdir / "floor")],
-        "vigproc": [sys.executable, "-m", "vigproc.frontends.cli", "correct", "--unapplied", "copy",
+        "floor": [sys.executable, "-m", "vigproc.bench.throughput", "rawfloor" if raw else "floor", str(indir),
+                  str(outdir / "floor")],
+        # a RAW not corrected is still developed and written (what the floor does)
+        "vigproc": [sys.executable, "-m", "vigproc.frontends.cli", "correct", "--unapplied", "write" if raw else "copy",
                     "-o", str(outdir / "vigproc"), "--", *map(str, inputs)],
     }
     if baseline:  # the same command from another source tree (before/after in one run)
@@ -179,44 +255,53 @@ def _commands(indir: Path, outdir: Path, inputs: Sequence[Path], darktable: str 
     return cmds
 
 
-def _count_images(folder: Path) -> int:
+def _count_images(folder: Path, suffixes: Sequence[str] = JPEG_SUFFIXES) -> int:
     if not folder.is_dir():
         return 0
-    return sum(1 for p in folder.iterdir() if p.suffix.lower() in JPEG_SUFFIXES and not p.name.startswith("."))
+    return sum(1 for p in folder.iterdir() if p.suffix.lower() in suffixes and not p.name.startswith("."))
 
 
-def _env(t: ToolTiming) -> dict[str, str]:
-    """The environment a tool runs in: this one, with its own source tree first."""
+def _env(t: ToolTiming, root: Path | None = None) -> dict[str, str]:
+    """The environment a tool runs in: this one, with its own source tree first; with a
+    baseline in the run, each vigproc has a profile store of its own under ``root`` (an
+    older checkout may not open a newer store's schema)."""
     env = dict(os.environ)
     if t.tree:
         env["PYTHONPATH"] = t.tree
+    if root is not None and t.name.startswith("vigproc"):
+        env["VIGPROC_PROFILE_DB"] = str(root / f"profiles-{t.name}.sqlite")
     return env
 
 
 def run_throughput(photos: Sequence[Photo], *, rounds: int = 3, darktable: bool = True,
                    workdir: Path | None = None, skipped: dict | None = None,
-                   baseline: str | os.PathLike[str] | None = None) -> ThroughputResult:
+                   baseline: str | os.PathLike[str] | None = None, raw: bool = False) -> ThroughputResult:
     """Time vigproc, the floor and darktable-cli (when installed and ``darktable``) on
     copies of ``photos``, ``rounds`` times each, interleaved; with ``baseline`` (a
-    source tree, e.g. another checkout's root) its ``vigproc correct`` too.
+    source tree, e.g. another checkout's root) its ``vigproc correct`` too, each
+    vigproc then with an empty profile store of its own. ``raw``: the photographs are
+    camera RAW files (:func:`select_raws`, :func:`raw_floor_run`; darktable-cli is
+    left out).
 
     Raises
     ------
     VigprocError
         A tool failed, or did not make one image per input.
     """
-    dt = shutil.which("darktable-cli") if darktable else None
+    dt = shutil.which("darktable-cli") if darktable and not raw else None
+    made = (".tif",) if raw else JPEG_SUFFIXES
     with tempfile.TemporaryDirectory(prefix="vigproc-throughput-", dir=workdir) as tmp:
         root = Path(tmp)
         inputs = stage(photos, root / "in")
         base = os.fspath(Path(baseline).resolve()) if baseline else None
         tools = [ToolTiming(name, cmd, tree=base if name == "vigproc-baseline" else None)
-                 for name, cmd in _commands(root / "in", root / "out", inputs, dt, base).items()]
+                 for name, cmd in _commands(root / "in", root / "out", inputs, dt, base, raw).items()]
+        stores = root if base else None
         for t in tools:  # untimed, on one photo: caches (Numba's compiled kernels) filled
             if t.name.startswith("vigproc"):
                 warm = [*t.command[:t.command.index("-o")], "-o", str(root / "warm"), "--", str(inputs[0])]
                 subprocess.run(warm, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                               env=_env(t), timeout=TIMEOUT, cwd=t.tree)
+                               env=_env(t, stores), timeout=TIMEOUT, cwd=t.tree)
         for r in range(max(1, rounds)):
             order = tools[r % len(tools):] + tools[:r % len(tools)]
             for t in order:
@@ -225,9 +310,9 @@ def run_throughput(photos: Sequence[Photo], *, rounds: int = 3, darktable: bool 
                 shutil.rmtree(root / "out" / "darktable-config", ignore_errors=True)
                 t0 = time.perf_counter()
                 res = subprocess.run(t.command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, env=_env(t), timeout=TIMEOUT, cwd=t.tree)
+                                     stderr=subprocess.PIPE, env=_env(t, stores), timeout=TIMEOUT, cwd=t.tree)
                 t.seconds.append(time.perf_counter() - t0)
-                t.outputs = _count_images(out)
+                t.outputs = _count_images(out, made)
                 if res.returncode != 0 or t.outputs < len(inputs):
                     tail = res.stderr.decode("utf-8", "replace").strip().splitlines()[-3:]
                     raise VigprocError(f"bench throughput: {t.name} exited {res.returncode} with {t.outputs} of "
@@ -247,12 +332,12 @@ def format_result(r: ThroughputResult) -> list[str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m vigproc.bench.throughput floor IN OUT``: the floor on its own."""
+    """``python -m vigproc.bench.throughput floor|rawfloor IN OUT``: the floor on its own."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if len(args) != 3 or args[0] != "floor":
-        print("usage: python -m vigproc.bench.throughput floor IN OUT", file=sys.stderr)
+    if len(args) != 3 or args[0] not in ("floor", "rawfloor"):
+        print("usage: python -m vigproc.bench.throughput floor|rawfloor IN OUT", file=sys.stderr)
         return 2
-    floor_run(Path(args[1]), Path(args[2]))
+    (raw_floor_run if args[0] == "rawfloor" else floor_run)(Path(args[1]), Path(args[2]))
     return 0
 
 

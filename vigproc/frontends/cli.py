@@ -104,6 +104,7 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
     # model for the full frame; a JPEG's or PNG's codes from a reduced copy; others as they are
     img, info = read_encoded(file, transfer=args.input_transfer, raw_half_size=True)
+    reader = reader.read_file(Path(file))  # one exiftool read: the lens and the in-camera flags
     key, lens = read_lens(reader, Path(file))
     if isinstance(img, EncodedImage):
         m = estimate_encoded(check_encoded(img), args.method, hint=lens_hint(key, args.method), seed=args.seed)
@@ -115,7 +116,7 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     from vigproc.pipeline.guard import guard
 
     m, refusal = guard(m, "estimate", img, key, clips=info.bit_depth not in ("half", "float", "double"),
-                       in_camera=read_in_camera(file, reader), where=str(file))
+                       in_camera=read_in_camera(Path(file), reader), where=str(file))
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
     doc = {"file": str(file), "lens": lens, "model": m.to_dict(),
@@ -877,11 +878,17 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
     one exiftool batch) and darktable-cli, in one run (:mod:`vigproc.bench.throughput`)."""
     from vigproc.bench import throughput as T
 
-    photos, skipped = T.select_photos(Path(args.images), args.min_mp, args.limit)
-    r = T.run_throughput(photos, rounds=args.rounds, darktable=not args.no_darktable, skipped=skipped,
-                         baseline=args.baseline)
-    print("\n".join(T.format_result(r)))
-    write_json_result(args.json, asdict(r))
+    if not (args.images or args.raw):
+        raise VigprocError("bench throughput needs --images DIR or --raw DIR")
+    for raw, folder in ((False, args.images), (True, args.raw)):
+        if folder is None:
+            continue
+        photos, skipped = (T.select_raws(Path(folder), args.limit) if raw else
+                           T.select_photos(Path(folder), args.min_mp, args.limit))
+        r = T.run_throughput(photos, rounds=args.rounds, darktable=not args.no_darktable, skipped=skipped,
+                             baseline=args.baseline, raw=raw)
+        print(("RAW: " if raw else "") + "\n".join(T.format_result(r)))
+        write_json_result(args.json if not raw else (args.json and args.json + ".raw.json"), asdict(r))
     return 0
 
 
@@ -1305,7 +1312,9 @@ def build_parser() -> argparse.ArgumentParser:
     bp.set_defaults(fn=cmd_bench_io)
     bp = bsub.add_parser("throughput", help="vigproc correct on full-size photographs beside the floor (decode, "
                          "encode, EXIF copy) and darktable-cli, in one run")
-    bp.add_argument("--images", required=True, help="folder of JPEG photographs")
+    bp.add_argument("--images", help="folder of JPEG photographs")
+    bp.add_argument("--raw", metavar="DIR", help="folder of camera RAW files: vigproc correct beside rawpy's "
+                    "development and the same TIFF written")
     bp.add_argument("--min-mp", type=float, default=0.75, help="smallest photograph, megapixels (default %(default)s)")
     bp.add_argument("--limit", type=int, help="use at most this many photographs")
     bp.add_argument("--rounds", type=int, default=3, help="timing rounds, interleaved (default %(default)s)")

@@ -88,7 +88,9 @@ from vigproc.io.lensident import (  # noqa: F401  (unescape_key_part: re-exporte
 __all__ = [
     "ExifReader",
     "FileNameError",
+    "FileTags",
     "KEY_FIELDS",
+    "RECORD_TAGS",
     "LensKey",
     "MetadataError",
     "bench_exif",
@@ -135,7 +137,30 @@ _TAGS: tuple[str, ...] = _LENS_RANGE_TAGS + (
     # vigproc's own correction record (metadata.py) has a Model tag, the model JSON:
     # it is not the camera's Model
     "--XMP-vigproc:all",
+) + (
+    # Read in the same command so that each file is read once (FileTags): the capture date
+    # and serials of a check's provenance (provenance.py), the in-camera correction flags
+    # (incamera.py), a raw file's maker calibration (makernotes.py). Numeric values, as
+    # read_tags asks for them (a Canon serial's print conversion pads it with zeros).
+    "-DateTimeOriginal#", "-OffsetTimeOriginal#", "-SerialNumber#", "-InternalSerialNumber#",
+    "-PeripheralIlluminationCorr#", "-PeripheralLighting#", "-PeripheralLightingSetting#",
+    "-VignetteControl#", "-VignettingCorrection#", "-ShadingCompensation#",
+    "-SubIFD:VignettingCorrParams#", "-FujiIFD:VignettingParams#", "-FujiFilm:CropMode#",
 )
+#: What :meth:`FileTags.read_tags` answers from the one command's record, as the callers
+#: spell it (``GROUP:Name`` with a family-0 group: that group's value; a family-1 group the
+#: command itself names, or no group: the value of that name in any group). Text tags here
+#: have no print conversion in these groups: their text is their numeric value.
+RECORD_TAGS: frozenset[str] = frozenset({
+    "Make", "Model", "PeripheralIlluminationCorr", "PeripheralLighting", "PeripheralLightingSetting",
+    "VignetteControl", "VignettingCorrection", "ShadingCompensation",
+    "SubIFD:VignettingCorrParams", "FujiIFD:VignettingParams", "FujiFilm:CropMode",
+    "EXIF:DateTimeOriginal", "EXIF:OffsetTimeOriginal", "EXIF:Make", "EXIF:Model", "EXIF:SerialNumber",
+    "EXIF:LensModel", "EXIF:LensSerialNumber",
+    "XMP:DateTimeOriginal", "XMP:SerialNumber", "XMP:LensModel", "XMP:Lens", "XMP:LensSerialNumber",
+    "MakerNotes:SerialNumber", "MakerNotes:InternalSerialNumber",
+})
+_FAMILY0 = frozenset({"EXIF", "XMP", "MakerNotes", "File", "Composite", "IPTC", "ICC_Profile", "QuickTime"})
 # What every record needs for _check_record (file type, exiftool's own error and warning).
 _CHECK_TAGS: tuple[str, ...] = ("-File:FileType", "-File:MIMEType", "-ExifTool:Error", "-ExifTool:Warning")
 # -G: family-0 group names ("EXIF:Make", "MakerNotes:LensType", "XMP:Lens", ...).
@@ -1211,6 +1236,15 @@ class ExifReader:
             raise result
         return result
 
+    def read_file(self, path: PathLike) -> FileTags:
+        """Read one file once: its :class:`LensKey` and the tags of :data:`RECORD_TAGS`
+        (:class:`FileTags`). Never raises for the file: a failed read is kept in
+        :attr:`FileTags.error` and raised by what asks it."""
+        res = self.read_metadata_many([path])[0]
+        if isinstance(res, VigprocError):
+            return FileTags(self, path, None, res)
+        return FileTags(self, path, res[1])
+
     def read_many(self, paths: Iterable[PathLike]) -> list[LensKey | VigprocError]:
         """Read many files with one ExifTool command per chunk (one process).
 
@@ -1363,6 +1397,92 @@ class ExifReader:
                 f"required EXIF field(s) missing: {', '.join(lacking)}" + (f" ({'; '.join(why)})" if why else ""),
             )
         return key
+
+
+class FileTags:
+    """One file's metadata as one ExifTool command read it (:meth:`ExifReader.read_file`):
+    its :class:`LensKey` and the other tags the pipeline reads (:data:`RECORD_TAGS`), so
+    that each file is read once. Quacks like the reader (``read``, ``read_tags``), so it
+    can be handed to :func:`vigproc.io.incamera.read_in_camera`,
+    :func:`vigproc.io.makernotes.calibration_for` and
+    :func:`vigproc.io.provenance.read_provenance`; another file, or a tag the record does
+    not hold, is asked of the reader.
+
+    Parameters
+    ----------
+    reader : ExifReader
+    path : path-like
+        The file as the caller named it.
+    record : dict or None
+        ExifTool's record (``-G`` keys); None when the read failed.
+    error : VigprocError or None
+        Why the read failed: raised by ``read`` and ``read_tags`` (no second attempt).
+    """
+
+    def __init__(self, reader: "ExifReader", path: PathLike, record: dict[str, Any] | None,
+                 error: VigprocError | None = None) -> None:
+        self.reader = reader
+        self.path = os.fspath(path)
+        self.record = record
+        self.error = error
+        self._key: LensKey | VigprocError | None = None
+
+    def _own(self, path: PathLike) -> bool:
+        try:
+            return os.fspath(path) == self.path
+        except TypeError:
+            return False
+
+    def read(self, path: PathLike | None = None) -> LensKey:
+        """The file's :class:`LensKey` (``path``: another file is read by the reader).
+
+        Raises
+        ------
+        ImageReadError, UnsupportedFormatError, FileNameError, MetadataError
+        """
+        if path is not None and not self._own(path):
+            return self.reader.read(path)
+        if self.error is not None:
+            raise self.error
+        if self._key is None:
+            self._key = self.reader._to_key(_display(self.path), self.record or {})
+        if isinstance(self._key, BaseException):
+            raise self._key
+        return self._key
+
+    def read_tags(self, path: PathLike, tags: Sequence[str]) -> dict[str, Any]:
+        """:meth:`ExifReader.read_tags` from the record when it holds every tag asked for.
+
+        Raises
+        ------
+        ImageReadError, UnsupportedFormatError, FileNameError
+            The file's one read failed (that error), or the reader's.
+        ValueError
+            Two requested tags share a name.
+        """
+        if not self._own(path) or not all(t in RECORD_TAGS for t in tags):
+            return self.reader.read_tags(path, tags)
+        if self.error is not None:
+            raise self.error
+        wanted = {t.rsplit(":", 1)[-1]: t for t in tags}
+        if len(wanted) != len(tags):
+            raise ValueError(f"tag names must differ: {list(tags)}")
+        out: dict[str, Any] = {}
+        for key, value in (self.record or {}).items():
+            group, _, name = key.rpartition(":")
+            tag = wanted.get(name)
+            if tag is None:
+                continue
+            asked = tag.rpartition(":")[0]
+            # a family-0 group asked for is matched; a family-1 one the command itself named
+            if asked in _FAMILY0 and asked != group:
+                continue
+            out[tag] = value  # the last one wins, as in ExifReader.read_tags
+        return out
+
+
+def _display(path: Union[str, bytes]) -> str:
+    return os.fsdecode(path) if isinstance(path, bytes) else path
 
 
 def read_lens_key(path: PathLike, **kwargs: Any) -> LensKey:

@@ -65,7 +65,7 @@ import stat
 import tempfile
 import threading
 from dataclasses import dataclass
-from typing import Callable, Union
+from typing import Any, Callable, Union
 
 import numpy as np
 import OpenImageIO as oiio
@@ -664,7 +664,7 @@ def read_image(
     raw_note = ""
     if raw_first:
         try:
-            return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget)
+            return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget, codes=_codes)
         except _RawUnsupported as exc:
             raw_note = str(exc)
             logger.debug("%s: LibRaw does not recognise it (%s); trying OpenImageIO", fspath, exc)
@@ -706,7 +706,8 @@ def _read_through_oiio(fspath: str, size: int, kind: str | None, head: bytes, wa
             try:
                 # Content unknown and the name does not claim RAW: any LibRaw
                 # failure to open means "not a RAW", not "broken RAW".
-                return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget, probing=True)
+                return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget, probing=True,
+                                 codes=codes)
             except _RawUnsupported as exc:
                 raw_note = str(exc)
         if kind is not None:
@@ -742,7 +743,7 @@ def _read_through_oiio(fspath: str, size: int, kind: str | None, head: bytes, wa
                     + (f" ({raw_note})" if raw_note else "")
                 )
             try:
-                return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget)
+                return _read_raw(fspath, size, want, raw_half_size, max_pixels, budget, codes=codes)
             except _RawUnsupported as exc:
                 raise UnsupportedFormatError(
                     f"cannot read image {_q(fspath)}: looks like a TIFF-based camera RAW "
@@ -957,6 +958,19 @@ def _c_stderr_into(lines: list[str]):
             os.close(saved)
 
 
+#: LibRaw's development of a RAW (rawpy ``postprocess``), also what ``vigproc bench
+#: throughput --raw`` times as the floor.
+RAW_DEVELOP: dict[str, Any] = dict(
+    gamma=(1.0, 1.0),  # linear output
+    no_auto_bright=True,  # no data-dependent exposure scaling
+    adjust_maximum_thr=0.0,  # keep the white level fixed (default lowers it per image)
+    use_camera_wb=True,
+    output_bps=16,
+    # 0 = never rotate: sensor order, as OIIO does (it ignores EXIF Orientation).
+    user_flip=0,
+)
+
+
 def _read_raw(path: str, *args, **kwargs) -> tuple[np.ndarray, ImageInfo]:
     """Develop a RAW linearly with LibRaw (:func:`_read_raw_libraw`); LibRaw's own
     messages go into the error when it fails and to the log (info) when it does not."""
@@ -978,9 +992,10 @@ def _read_raw(path: str, *args, **kwargs) -> tuple[np.ndarray, ImageInfo]:
 
 def _read_raw_libraw(
     path: str, size: int, want: str, half_size: bool, max_pixels: int, budget: int = DEFAULT_MEMORY_BUDGET, *,
-    probing: bool = False
-) -> tuple[np.ndarray, ImageInfo]:
-    """Develop a RAW linearly with LibRaw.
+    probing: bool = False, codes: bool = False
+) -> tuple[np.ndarray | EncodedImage, ImageInfo]:
+    """Develop a RAW linearly with LibRaw; ``codes``: LibRaw's linear 16-bit values as
+    they are (:class:`EncodedImage`, :func:`read_encoded`), not a float32 copy.
 
     Raises ``_RawUnsupported`` if LibRaw does not recognise the file (with
     ``probing=True``: if LibRaw fails to open it for any reason).
@@ -1020,16 +1035,7 @@ def _read_raw_libraw(
         if half_size:
             ow, oh = (ow + 1) // 2, (oh + 1) // 2
         _check_budget(path, ow, oh, 3, budget)
-        rgb = raw.postprocess(
-            gamma=(1.0, 1.0),  # linear output
-            no_auto_bright=True,  # no data-dependent exposure scaling
-            adjust_maximum_thr=0.0,  # keep the white level fixed (default lowers it per image)
-            use_camera_wb=True,
-            output_bps=16,
-            half_size=half_size,
-            # 0 = never rotate: sensor order, as OIIO does (it ignores EXIF Orientation).
-            user_flip=0,
-        )
+        rgb = raw.postprocess(**RAW_DEVELOP, half_size=half_size)
     except (InvalidImageError, ImageReadError):
         raise
     except rawpy.LibRawTooBigError as exc:
@@ -1039,8 +1045,11 @@ def _read_raw_libraw(
     finally:
         raw.close()
 
-    pixels = np.asarray(rgb, dtype=np.float32)
-    pixels *= np.float32(1.0 / 65535.0)
+    if codes:
+        pixels = np.asarray(rgb)
+    else:
+        pixels = np.asarray(rgb, dtype=np.float32)
+        pixels *= np.float32(1.0 / 65535.0)
     if pixels.ndim == 3 and pixels.shape[2] == 1:
         pixels = pixels[..., 0]
     h, w = pixels.shape[:2]
@@ -1055,6 +1064,8 @@ def _read_raw_libraw(
         colorspace=None,
     )
     logger.debug("read RAW %s: %s", path, info)
+    if codes:  # linear codes: the estimate bins them, the correction stays in them (pipeline.encoded)
+        return EncodedImage(np.ascontiguousarray(pixels, dtype=np.uint16), "linear"), info
     return pixels, info
 
 

@@ -2,8 +2,8 @@
 date, the camera and lens its metadata names, and where that metadata contradicts itself.
 
 :func:`read_provenance` reads them through the check's one ExifTool process
-(:meth:`vigproc.io.exif.ExifReader.read_tags`, three short commands: EXIF, XMP, maker
-notes) and compares what EXIF and XMP say of the capture date, the lens and the serial
+(:meth:`vigproc.io.exif.ExifReader.read_tags`: EXIF, XMP, maker notes; answered from the
+file's one metadata read when given its :class:`vigproc.io.exif.FileTags`) and compares what EXIF and XMP say of the capture date, the lens and the serial
 numbers: an editor that rewrote one and not the other leaves them disagreeing, which is
 evidence too (:attr:`Provenance.conflicts`). The contradictions the lens reading itself
 found (:attr:`vigproc.io.exif.LensKey.problems`: a focal length or a camera model that two

@@ -1025,17 +1025,22 @@ class Processor:
         s = self.settings
         # correct and estimate take a JPEG's or PNG's code values as they are (pipeline.encoded)
         img, info = (read_encoded if s.mode in ("correct", "estimate") else read_image)(path, transfer=s.transfer)
-        lens_key, lens = read_lens(self.reader, path)
+        # one exiftool read of the file answers the lens, the maker's calibration, the
+        # in-camera flags and the provenance (io.exif.FileTags); a host's stand-in reader
+        # may not offer it
+        read_file = getattr(self.reader, "read_file", None)
+        tags = read_file(path) if read_file is not None else self.reader
+        lens_key, lens = read_lens(tags, path)
         embedded = None
         if s.mode in ("correct", "estimate"):
             from vigproc.io.makernotes import calibration_for
 
-            embedded = calibration_for(path, s.profile, self.reader)
+            embedded = calibration_for(path, s.profile, tags)
         in_camera = None
         if s.mode == "correct" and s.in_camera == "respect":
             from vigproc.io.incamera import read_in_camera
 
-            in_camera = read_in_camera(path, self.reader)
+            in_camera = read_in_camera(path, tags)
         if s.mode in ("learn", "check") and frame_id is None and self.store is not None:
             frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
         fmt = output_for(info)
@@ -1045,7 +1050,8 @@ class Processor:
         if s.mode == "check":  # what an examiner files beside the verdict (vigproc.io.provenance)
             from vigproc.io.provenance import read_provenance
 
-            res.extra["provenance"] = read_provenance(path, getattr(self.reader, "exif", self.reader), getattr(
+            res.extra["provenance"] = read_provenance(path, tags if read_file is not None else getattr(
+                self.reader, "exif", self.reader), getattr(
                 lens_key, "problems", ()), sha256=frame_id).to_dict()
         if embedded is not None:
             res.extra["embedded"] = embedded.to_dict(*img.shape[1::-1]) if res.source == "embedded" else \

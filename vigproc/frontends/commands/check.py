@@ -174,14 +174,15 @@ def cmd_check(args: argparse.Namespace) -> int:
             for f in files:
                 try:
                     img, _ = read_image(f, transfer=args.input_transfer)
-                    lens_key, lens = read_lens(proc.reader, f)
+                    tags = proc.reader.read_file(f)  # one exiftool read: lens, provenance, calibration
+                    lens_key, lens = read_lens(tags, f)
                     # the pipeline's check step, with this run's calibration and threshold
                     # the frame's content id: a stored profile that pooled it is no reference
                     fid = file_sha256(f)
                     v = check_image(img, lens_key, store=proc.store, method=settings.method,
                                     calibration=calibration, alpha=args.alpha,
                                     frame_id=fid if proc.store is not None else None)
-                    prov = read_provenance(f, proc.reader, getattr(lens_key, "problems", ()), sha256=fid)
+                    prov = read_provenance(f, tags, getattr(lens_key, "problems", ()), sha256=fid)
                 except VigprocError as exc:
                     failed += 1
                     results.append(failure_record(f, exc))
@@ -191,7 +192,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                 # is the vignetting centred on the frame? (a crop, a shift, a stitch; Lyu 2010 §5)
                 crop = check_crop(img, channel_axis=-1 if img.ndim == 3 else None)
                 rec["crop"] = crop.to_dict()
-                ve = _embedded_verdict(f, v, calibration, args.alpha, proc.reader)
+                ve = _embedded_verdict(f, v, calibration, args.alpha, tags)
                 if ve is not None:  # disagreeing with its own calibration is evidence too
                     rec["embedded"] = {k: x for k, x in ve.to_dict().items() if k != "estimate"}
                 results.append(rec)
