@@ -56,6 +56,12 @@ MAX_SPREAD_EV = 6.0
 _LN2 = math.log(2.0)
 
 
+def frame_coords(n: int) -> np.ndarray:
+    """Pixel-centre coordinates of ``n`` samples from the frame centre (as
+    :func:`vigproc.core.model.frame_coords`, which imports this module)."""
+    return np.arange(n, dtype=np.float64) - (n - 1) / 2.0
+
+
 def _floats(name: str, v: Any, shape: tuple[int, ...]) -> np.ndarray:
     try:
         a = np.asarray(v, dtype=np.float64)
@@ -158,8 +164,6 @@ class ColourField:
                    rows: np.ndarray | None = None) -> np.ndarray:
         """ln ρ_c on the pixel grid of a ``width``×``height`` resolution of the frame
         (default its own), H×W×3; ``rows``: only these rows (len(rows)×W×3)."""
-        from vigproc.core.model import frame_coords
-
         w = self.width if width is None else int(width)
         h = self.height if height is None else int(height)
         ys = frame_coords(h) if rows is None else frame_coords(h)[np.asarray(rows)]
@@ -182,8 +186,6 @@ class ColourField:
         the coefficients' σ (treated as independent); NaN when unknown."""
         if self.sigma is None:
             return math.nan
-        from vigproc.core.model import frame_coords
-
         s = n / max(self.width, self.height)
         w, h = max(2, round(self.width * s)), max(2, round(self.height * s))
         r2 = self._rho2(frame_coords(w)[None, :], frame_coords(h)[:, None], w / self.width, h / self.height)
@@ -239,26 +241,66 @@ class ColourField:
 # --------------------------------------------------------------------------- #
 
 
+def _solve_ratios(lr: np.ndarray, x: np.ndarray, y: np.ndarray, width: int, height: int,
+                  center: tuple[float, float], wts: np.ndarray, tilt: bool):
+    """Weighted linear least squares of d_R − d_G and d_B − d_G about ``center``:
+    (coeffs, sigma, residuals (n, 2), residual rms (3,))."""
+    cf0 = ColourField(width, height, center)
+    r2 = cf0._rho2(x, y, 1.0, 1.0)
+    hd = 0.5 * math.hypot(width, height)
+    cols = [np.ones_like(r2)] + [r2 ** (p // 2) for p in POWERS]
+    if tilt:
+        cols += [x / hd, y / hd]
+    A = np.stack(cols, axis=1)
+    sw = np.sqrt(wts)
+    Aw = A * sw[:, None]
+    ata_inv = np.linalg.pinv(Aw.T @ Aw)
+    coeffs = np.zeros((3, len(POWERS)))
+    sigma = np.zeros((3, len(POWERS)))
+    rms = np.zeros(3)
+    res_all = []
+    for c in (0, 2):
+        t = lr[:, c] - lr[:, 1]
+        sol = ata_inv @ (Aw.T @ (t * sw))
+        res = t - A @ sol
+        dof = max(t.size - A.shape[1], 1)
+        s2 = float(np.sum(wts * res * res) / dof)
+        coeffs[c] = sol[1:1 + len(POWERS)]
+        sigma[c] = np.sqrt(np.maximum(np.diag(ata_inv)[1:1 + len(POWERS)] * s2, 0.0))
+        rms[c] = float(np.sqrt(np.mean(res * res)))
+        res_all.append(res * sw)
+    return coeffs, sigma, np.stack(res_all, axis=1), rms
+
+
+#: Prior spread of a colour field's centre about the luminance centre, in half-diagonals:
+#: it only matters where the tint is too weak to place its own centre.
+CENTER_PRIOR = 0.25
+
+
 def fit_log_ratios(log_ratio: np.ndarray, x: np.ndarray, y: np.ndarray, width: int, height: int,
                    center: tuple[float, float], *, weights: np.ndarray | None = None,
-                   tilt: bool = True, source: str = "") -> tuple[ColourField, np.ndarray]:
+                   free_center: bool = False, tilt: bool = False,
+                   source: str = "") -> tuple[ColourField, np.ndarray]:
     """The :class:`ColourField` whose d_R − d_G and d_B − d_G best fit measured log
-    ratios, by weighted linear least squares.
+    ratios, by weighted least squares (linear in the coefficients).
 
     Parameters
     ----------
     log_ratio : ndarray (n, 3)
-        ln of each channel over a common reference at the points (any per-channel
-        constant: white balance, absorbed by a free constant per channel).
+        ln of each channel at the points over any common reference (a per-channel
+        constant, white balance, is absorbed by a free constant per channel).
     x, y : ndarray (n,)
         Points, px from the frame centre of the ``width``×``height`` frame.
     center : (float, float)
-        The radius's centre (the luminance model's).
+        The radius's centre (the luminance model's), or the start of its search.
     weights : ndarray (n,), optional
         Inverse variances of the points (default equal).
+    free_center : bool
+        Fit the centre too (shared by R and B, variable projection), held near
+        ``center`` by a weak prior (:data:`CENTER_PRIOR`): a lens's tint need not be
+        centred where an unevenly lit flat frame puts its luminance centre.
     tilt : bool
-        Fit a linear tilt per channel as a nuisance (dropped from the field): a colour
-        gradient of the light cannot be told from an off-centre colour field.
+        Also fit a linear tilt per channel, as a nuisance dropped from the field.
     source : str
 
     Returns
@@ -269,30 +311,24 @@ def fit_log_ratios(log_ratio: np.ndarray, x: np.ndarray, y: np.ndarray, width: i
     x = np.asarray(x, dtype=np.float64).ravel()
     y = np.asarray(y, dtype=np.float64).ravel()
     lr = np.asarray(log_ratio, dtype=np.float64).reshape(-1, 3)
-    cf0 = ColourField(width, height, center)
-    r2 = cf0._rho2(x, y, 1.0, 1.0)
-    hd = 0.5 * math.hypot(width, height)
-    cols = [np.ones_like(r2)] + [r2 ** (p // 2) for p in POWERS]
-    if tilt:
-        cols += [x / hd, y / hd]
-    A = np.stack(cols, axis=1)
-    wts = np.ones_like(r2) if weights is None else np.asarray(weights, dtype=np.float64).ravel()
-    sw = np.sqrt(wts)
-    coeffs = np.zeros((3, len(POWERS)))
-    sigma = np.zeros((3, len(POWERS)))
-    rms = np.zeros(3)
-    Aw = A * sw[:, None]
-    ata_inv = np.linalg.pinv(Aw.T @ Aw)
-    for c in (0, 2):
-        t = lr[:, c] - lr[:, 1]
-        sol, *_ = np.linalg.lstsq(Aw, t * sw, rcond=None)
-        res = t - A @ sol
-        dof = max(t.size - A.shape[1], 1)
-        s2 = float(np.sum(wts * res * res) / dof)
-        coeffs[c] = sol[1:1 + len(POWERS)]
-        sigma[c] = np.sqrt(np.maximum(np.diag(ata_inv)[1:1 + len(POWERS)] * s2, 0.0))
-        rms[c] = float(np.sqrt(np.mean(res * res)))
-    return ColourField(width, height, center, coeffs, sigma, source), rms
+    wts = np.ones_like(x) if weights is None else np.asarray(weights, dtype=np.float64).ravel()
+    c0 = (float(center[0]), float(center[1]))
+    if free_center:
+        from scipy.optimize import least_squares
+
+        hd = 0.5 * math.hypot(width, height)
+
+        def resid(u: np.ndarray) -> np.ndarray:
+            c = (c0[0] + u[0] * hd, c0[1] + u[1] * hd)
+            r = _solve_ratios(lr, x, y, width, height, c, wts, tilt)[2].ravel()
+            # the prior in the data's own units: as strong as one point's noise per 1/CENTER_PRIOR
+            noise = max(float(np.sqrt(np.mean(r * r))), 1e-6)
+            return np.concatenate([r, noise * u / CENTER_PRIOR])
+
+        sol = least_squares(resid, np.zeros(2), method="lm", x_scale=0.05)
+        c0 = (c0[0] + float(sol.x[0]) * hd, c0[1] + float(sol.x[1]) * hd)
+    coeffs, sigma, _, rms = _solve_ratios(lr, x, y, width, height, c0, wts, tilt)
+    return ColourField(width, height, c0, coeffs, sigma, source), rms
 
 
 def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), *, block: int | None = None,
@@ -347,8 +383,53 @@ def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), 
     xs = (np.arange(wb) * k + (k - 1) / 2.0) - (w - 1) / 2.0
     ys = (np.arange(hb) * k + (k - 1) / 2.0) - (h - 1) / 2.0
     X, Y = np.meshgrid(xs, ys)
-    cf, _ = fit_log_ratios(acc[ok], X[ok], Y[ok], w, h, center, source=source)
+    cf, _ = fit_log_ratios(acc[ok], X[ok], Y[ok], w, h, center, free_center=True, source=source)
     return cf
+
+
+def planar_gradient(lum: np.ndarray, center: tuple[float, float], block: int | None = None) -> np.ndarray:
+    """The planar illumination gradient (g_x, g_y) of a flat frame, ln per px, from its
+    part that is odd about ``center`` (px from the frame centre).
+
+    A lens's fall-off is even about its optical centre (radially symmetric, or an
+    ellipse centred there); ln of a wall's light falling off linearly is odd about any
+    point. So ln L(c + v) − ln L(c − v) = 2 g·v, fitted by least squares over the block
+    pairs that both lie in the frame. This needs the optical centre from elsewhere: a
+    colour field's centre (:func:`fit_colour_field`), which no brightness gradient
+    moves. Without it a gradient is indistinguishable from an off-centre fall-off.
+
+    Parameters
+    ----------
+    lum : ndarray, H×W linear luminance
+    center : (float, float)
+    block : int, optional
+        Block size (default about 64 blocks on the long side).
+
+    Returns
+    -------
+    ndarray (2,)
+    """
+    a = np.asarray(lum, dtype=np.float64)
+    h, w = a.shape
+    k = block or max(1, max(h, w) // 64)
+    hb, wb = h // k, w // k
+    m = a[: hb * k, : wb * k].reshape(hb, k, wb, k).mean(axis=(1, 3))
+    xs = (np.arange(wb) * k + (k - 1) / 2.0) - (w - 1) / 2.0
+    ys = (np.arange(hb) * k + (k - 1) / 2.0) - (h - 1) / 2.0
+    X, Y = np.meshgrid(xs, ys)
+    # mirror of each block about the centre, as a (fractional) block index
+    mi = ((2 * center[0] - X) + (w - 1) / 2.0 - (k - 1) / 2.0) / k
+    mj = ((2 * center[1] - Y) + (h - 1) / 2.0 - (k - 1) / 2.0) / k
+    ok = (mi >= 0) & (mi <= wb - 1) & (mj >= 0) & (mj <= hb - 1) & (m > 0)
+    if np.count_nonzero(ok) < 16:
+        return np.zeros(2)
+    from scipy.ndimage import map_coordinates
+
+    lm = np.log(np.maximum(m, 1e-12))
+    mirrored = map_coordinates(lm, [mj[ok], mi[ok]], order=1)
+    odd = lm[ok] - mirrored
+    A = np.stack([2 * (X[ok] - center[0]), 2 * (Y[ok] - center[1])], axis=1)
+    return np.linalg.lstsq(A, odd, rcond=None)[0]
 
 
 def fit_gain_planes(log_gains: np.ndarray, x: np.ndarray, y: np.ndarray, width: int, height: int,
@@ -361,8 +442,8 @@ def fit_gain_planes(log_gains: np.ndarray, x: np.ndarray, y: np.ndarray, width: 
     (ColourField, residual_rms_ev)
         The fit and its residual per channel, EV.
     """
-    cf, rms = fit_log_ratios(-np.asarray(log_gains).reshape(-1, 3), x, y, width, height, center, tilt=False,
-                             source=source)
+    cf, rms = fit_log_ratios(-np.asarray(log_gains).reshape(-1, 3), x, y, width, height, center,
+                             free_center=True, source=source)
     return cf, rms / _LN2
 
 
