@@ -502,3 +502,102 @@ def ciede2000(lab1: np.ndarray, lab2: np.ndarray, kL: float = 1.0, kC: float = 1
     Rt = -np.sin(np.radians(2 * dtheta)) * Rc
     tl, tc, th = dLp / (kL * Sl), dCp / (kC * Sc), dHp / (kH * Sh)
     return np.sqrt(tl * tl + tc * tc + th * th + Rt * tc * th)
+
+
+# --------------------------------------------------------------------------- #
+# pooling (profiles)
+# --------------------------------------------------------------------------- #
+
+#: Smallest σ of a coefficient pooled (a frame stating none, or zero, gets this).
+POOL_SIGMA_FLOOR = 1e-4
+
+
+@dataclass(frozen=True, eq=False)
+class ColourPool:
+    """Colour fields of several frames of one lens setting, pooled: the coefficients'
+    inverse-variance weighted mean (information form, as a profile pools its θ), the
+    centre's plain mean, in half-diagonals (any resolution of the frame).
+
+    Attributes
+    ----------
+    info : ndarray (3, 3)
+        Σ 1/σ² per coefficient.
+    weighted : ndarray (3, 3)
+        Σ a/σ².
+    center_sum : (float, float)
+        Σ centre / half-diagonal.
+    n : int
+        Frames pooled.
+    source : str
+    """
+
+    info: Any
+    weighted: Any
+    center_sum: tuple[float, float] = (0.0, 0.0)
+    n: int = 0
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        shape = (len(CHANNELS), len(POWERS))
+        info = _floats("pool info", self.info, shape)
+        if np.any(info < 0):
+            raise ModelError("colour pool info must be >= 0")
+        object.__setattr__(self, "info", info)
+        object.__setattr__(self, "weighted", _floats("pool weighted", self.weighted, shape))
+        c = _floats("pool center", self.center_sum, (2,))
+        object.__setattr__(self, "center_sum", (float(c[0]), float(c[1])))
+        if isinstance(self.n, bool) or not isinstance(self.n, (int, np.integer)) or self.n < 1:
+            raise ModelError(f"colour pool n must be a positive integer, got {self.n!r}")
+        object.__setattr__(self, "n", int(self.n))
+
+    @classmethod
+    def of(cls, cf: ColourField) -> ColourPool:
+        """One frame's field as a pool."""
+        s = np.maximum(cf.sigma if cf.sigma is not None else 0.0, POOL_SIGMA_FLOOR)
+        s = np.broadcast_to(s, cf.coeffs.shape)
+        info = 1.0 / (s * s)
+        info[1] = 1.0 / POOL_SIGMA_FLOOR ** 2  # G is the reference: its zeros are exact
+        hd = 0.5 * math.hypot(cf.width, cf.height)
+        return cls(info, info * cf.coeffs, (cf.center[0] / hd, cf.center[1] / hd), 1, cf.source)
+
+    def add(self, other: ColourPool) -> ColourPool:
+        src = self.source if self.source == other.source else "pooled"
+        return ColourPool(self.info + other.info, self.weighted + other.weighted,
+                          (self.center_sum[0] + other.center_sum[0], self.center_sum[1] + other.center_sum[1]),
+                          self.n + other.n, src)
+
+    def field(self, width: int, height: int) -> ColourField:
+        """The pooled field on a ``width``×``height`` frame."""
+        hd = 0.5 * math.hypot(width, height)
+        info = np.maximum(self.info, 1e-300)
+        return ColourField(width, height, (self.center_sum[0] / self.n * hd, self.center_sum[1] / self.n * hd),
+                           self.weighted / info, 1.0 / np.sqrt(info), self.source)
+
+    @staticmethod
+    def blend(parts: list[tuple[ColourPool | None, float]]) -> ColourPool | None:
+        """Linear interpolation of pools (a profile between focal lengths and apertures):
+        the weighted mean of their coefficients and centres; None unless all have one."""
+        if not parts or any(p is None for p, _ in parts):
+            return None
+        shape = (len(CHANNELS), len(POWERS))
+        mean = np.zeros(shape)
+        var = np.zeros(shape)
+        cen = np.zeros(2)
+        for p, w in parts:
+            info = np.maximum(p.info, 1e-300)
+            mean += w * p.weighted / info
+            var += w / info
+            cen += w * np.asarray(p.center_sum) / p.n
+        info = 1.0 / var
+        n = sum(p.n for p, _ in parts)
+        return ColourPool(info, info * mean, (float(cen[0] * n), float(cen[1] * n)), n, "interpolated")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"info": self.info.tolist(), "weighted": self.weighted.tolist(),
+                "center_sum": list(self.center_sum), "n": self.n, "source": self.source}
+
+    @classmethod
+    def from_json(cls, d: Any) -> ColourPool:
+        if not isinstance(d, dict) or any(k not in d for k in ("info", "weighted", "n")):
+            raise ModelError("a colour pool must be an object with info, weighted and n")
+        return cls(d["info"], d["weighted"], tuple(d.get("center_sum", (0.0, 0.0))), d["n"], str(d.get("source", "")))

@@ -1049,11 +1049,13 @@ def cmd_profile(args: argparse.Namespace) -> int:
         elif args.profile_command == "import-lcp":
             return _import_lcp(args, store)
         elif args.profile_command == "export-lensfun":
-            from vigproc.stores.lensfun_io import export_lensfun_xml, lensfun_entries
+            from vigproc.stores.lensfun_io import colour_notes, export_lensfun_xml, lensfun_entries
 
             entries, skipped = lensfun_entries(store.list(), crop_factor=args.crop_factor, mount=args.mount)
             for why in skipped:
                 print(one_line(f"vigproc: not exported: {why}"), file=sys.stderr)
+            for note in colour_notes(store.list()):
+                print(one_line(f"vigproc: note: {note}"), file=sys.stderr)
             n = export_lensfun_xml(entries, args.file)
             print(f"{len(entries)} calibrations of {n} lenses -> {args.file}")
     return 0
