@@ -175,3 +175,35 @@ def test_lab_of_white_and_grey():
     np.testing.assert_allclose(linear_rgb_to_lab(np.ones(3)), [100, 0, 0], atol=0.01)
     lab = linear_rgb_to_lab(np.full(3, 0.18))
     assert abs(lab[0] - 49.5) < 0.1 and abs(lab[1]) < 0.01 and abs(lab[2]) < 0.01
+
+
+def test_cfa_planes_measure_the_tint_before_demosaicing():
+    from vigproc.core.colour import cfa_rgb, fit_colour_field
+
+    m = lens(center=(0.0, 0.0))
+    truth = np.exp(m.channel_log_fields())  # H×W×3 at the mosaic's full resolution
+    pattern = np.array([[0, 1], [3, 2]])  # rawpy's RGBG: R G / G2 B
+    mosaic = np.empty((H, W))
+    for r in range(2):
+        for c in range(2):
+            ch = {0: 0, 1: 1, 3: 1, 2: 2}[pattern[r, c]]
+            mosaic[r::2, c::2] = 1000 + 8000 * [0.7, 1.0, 0.6][ch] * truth[r::2, c::2, ch]
+    planes = cfa_rgb(mosaic, pattern, "RGBG", black=[1000] * 4, white=16383)
+    assert planes.shape == (H // 2, W // 2, 3)
+    cf = fit_colour_field(planes)
+    d = (cf.log_ratios(W, H) - m.colour.log_ratios()) / math.log(2)
+    assert np.sqrt(np.mean(d * d)) < 0.002
+    with pytest.raises(Exception):
+        cfa_rgb(mosaic, np.array([[0, 1], [1, 0]]), "RGBG")  # no blue phase
+
+
+def test_read_cfa_planes_of_a_real_dng():
+    from pathlib import Path
+
+    from vigproc.io.images import read_cfa_planes
+
+    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "raw" / "tinydng" / "colorchart.dng"
+    if not path.exists():
+        pytest.skip(f"{path} is absent (the shared data set)")
+    a = read_cfa_planes(path)
+    assert a.shape == (578, 867, 3) and 0.0 < float(a.mean()) < 1.0

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -385,6 +385,57 @@ def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), 
     X, Y = np.meshgrid(xs, ys)
     cf, _ = fit_log_ratios(acc[ok], X[ok], Y[ok], w, h, center, free_center=True, source=source)
     return cf
+
+
+def cfa_rgb(raw: np.ndarray, pattern: np.ndarray, colours: Sequence[str], black: Sequence[float] | float = 0.0,
+            white: float = 1.0) -> np.ndarray:
+    """A Bayer mosaic's colour planes before demosaicing, one pixel per 2×2 cell:
+    (H/2)×(W/2)×3 linear R, G (the mean of the two green phases), B.
+
+    Parameters
+    ----------
+    raw : ndarray H×W
+        The mosaic as stored (rawpy's ``raw_image_visible``).
+    pattern : ndarray 2×2 of int
+        Colour index of each phase of the cell (rawpy's ``raw_pattern``).
+    colours : sequence of str
+        Name of each colour index (rawpy's ``color_desc``, e.g. "RGBG").
+    black : float or sequence of float
+        Black level, per colour index (rawpy's ``black_level_per_channel``) or one.
+    white : float
+        White level.
+
+    Returns
+    -------
+    ndarray float64, (H // 2) × (W // 2) × 3
+
+    Raises
+    ------
+    InvalidImageError
+        Not a 2×2 pattern of R, G and B phases (an X-Trans or a four-colour sensor).
+    """
+    from vigproc.errors import InvalidImageError
+
+    pat = np.asarray(pattern)
+    names = [str(c).upper() for c in colours]
+    if pat.shape != (2, 2) or any(not (0 <= int(i) < len(names)) for i in pat.ravel()):
+        raise InvalidImageError(f"colour planes need a 2x2 Bayer pattern, got {pat.tolist()}")
+    phases = [names[int(i)] for i in pat.ravel()]
+    if sorted(phases) != ["B", "G", "G", "R"]:
+        raise InvalidImageError(f"colour planes need one R, two G and one B phase, got {''.join(phases)}")
+    a = np.asarray(raw, dtype=np.float64)
+    h2, w2 = a.shape[0] // 2, a.shape[1] // 2
+    cells = a[: 2 * h2, : 2 * w2].reshape(h2, 2, w2, 2)
+    bl = np.broadcast_to(np.asarray(black, dtype=np.float64), (len(names),)) if np.ndim(black) else \
+        np.full(len(names), float(black))
+    out = np.zeros((h2, w2, 3))
+    for r in range(2):
+        for c in range(2):
+            idx = int(pat[r, c])
+            plane = (cells[:, r, :, c] - bl[idx]) / max(float(white) - bl[idx], 1e-12)
+            k = "RGB".index(names[idx])
+            out[..., k] += plane / (2.0 if k == 1 else 1.0)
+    return out
 
 
 def planar_gradient(lum: np.ndarray, center: tuple[float, float], block: int | None = None) -> np.ndarray:

@@ -451,7 +451,9 @@ def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings
         if not m2.quality.fallback or m.quality.fallback:
             m = m2
         log.debug("flat field: wall gradient (%.2e, %.2e) ln/px removed about the tint's centre %s", *g, cf.center)
-    return replace(m, colour=cf)
+    # a fit too weak to apply alone (the candidate) is still learned from: it keeps the tint too
+    cand = replace(m.candidate, colour=cf) if m.candidate is not None else None
+    return replace(m, colour=cf, candidate=cand)
 
 
 def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
