@@ -81,3 +81,24 @@ def test_lensfun_export_warns_that_colour_is_not_expressed(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="vigproc.stores.lensfun_io"):
         lensfun_io.warn_colour(profiles)
     assert any("colour" in r.getMessage() for r in caplog.records)
+
+
+def test_a_v10_store_migrates_and_pools_colour(tmp_path):
+    import sqlite3
+
+    from vigproc.stores.profiles import SCHEMA_VERSION
+
+    rng = np.random.default_rng(3)
+    db = tmp_path / "p.sqlite"
+    with ProfileStore(db) as st:
+        st.learn(_key(), _frame(rng, colour=False), frame_id="a")
+    con = sqlite3.connect(db)  # as vigproc before schema v11 left it
+    con.execute("ALTER TABLE profiles DROP COLUMN colour")
+    con.execute("DELETE FROM schema_version WHERE version > 10")
+    con.commit()
+    con.close()
+    with ProfileStore(db) as st:
+        assert st.schema_version == SCHEMA_VERSION == 11
+        assert st.get(_key()).colour is None
+        p = st.learn(_key(), _frame(rng), frame_id="b")
+        assert p.colour is not None and p.colour.n == 1 and st.get(_key()).colour.n == 1

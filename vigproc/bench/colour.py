@@ -319,6 +319,7 @@ def report_flat(rows: Sequence[FlatRow], dng: Sequence[DngRow], n_bases: int, fr
         lines.append("DNG per-plane GainMap: vigproc's correction vs the spec's interpolation (RMS, max EV per "
                      "channel); the fitted model written as per-plane GainMaps, read back (max EV)")
         for d in dng:
-            lines.append(f"  {d.name} at {d.size[0]}x{d.size[1]}: spec RMS {ev(d.spec_rms_ev)} max "
-                         f"{ev(d.spec_max_ev)}; written max {ev(d.written_max_ev)}; colour fit {d.fit_rms_ev:.4f} EV")
+            lines.append(f"  {d.name} at {d.size[0]}x{d.size[1]}: spec RMS {' '.join(f'{x:.1e}' for x in d.spec_rms_ev)}"
+                         f" max {' '.join(f'{x:.1e}' for x in d.spec_max_ev)}; written max {ev(d.written_max_ev)}; "
+                         f"colour fit {d.fit_rms_ev:.4f} EV")
     return "\n".join(lines)
