@@ -13,15 +13,17 @@ field never changes the luminance fall-off, only how it splits between the chann
 
 Form of d_c
 -----------
-d_c is an even polynomial of the radius about the vignetting centre,
-d_c(ρ) = a_c1 ρ² + a_c2 ρ⁴ + a_c3 ρ⁶, ρ = |v − c| / (half-diagonal of the frame) -- the
-same centre as the luminance model, and a radius independent of its shape matrix (an
-identity luminance model still has a colour field). No constant term: a channel's
-overall level is white balance, not shading. No tilt: a linear colour tilt across a
-flat frame cannot be told from a colour gradient of the light on the wall, so the flat-
-field fit (:func:`fit_colour_field`) estimates a tilt as a nuisance and drops it. Three
-even terms follow the cos^k(θ) fall-off of a chief-ray angle θ = atan(r/f) to well
-under 0.005 EV over a frame (``vigproc bench colour``).
+d_c is an even polynomial of the radius about the field's own centre c,
+d_c(ρ) = a_c1 ρ² + a_c2 ρ⁴ + a_c3 ρ⁶, ρ = |v − c| / (half-diagonal of the frame) -- a
+radius independent of the luminance model's shape matrix (an identity luminance model
+still has a colour field). No constant term: a channel's overall level is white
+balance, not shading. No tilt: a linear colour tilt across a flat frame cannot be told
+from a colour gradient of the light on the wall. The centre is fitted
+(:func:`fit_log_ratios`, held near the luminance centre where the tint is too weak to
+place it): no brightness gradient of a wall moves a channel ratio, so it locates the
+optical axis, about which :func:`planar_gradient` then finds the wall's gradient. Three
+even terms follow the cos^k(θ) fall-off of a chief-ray angle θ = atan(r/f) to
+≤ 0.001 EV over a frame (``vigproc bench colour``).
 
 References
 ----------
