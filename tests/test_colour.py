@@ -207,3 +207,12 @@ def test_read_cfa_planes_of_a_real_dng():
         pytest.skip(f"{path} is absent (the shared data set)")
     a = read_cfa_planes(path)
     assert a.shape == (578, 867, 3) and 0.0 < float(a.mean()) < 1.0
+
+
+def test_flat_field_on_a_scene_reads_no_tint():
+    """A photograph's colours are not a lens's tint: flat-field estimates it without a
+    colour field (and without failing on absurd ratios)."""
+    from conftest import coloured_scene
+
+    est = estimate(coloured_scene(H, W, seed=5), "flat-field")
+    assert est.colour is None

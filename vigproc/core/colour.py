@@ -42,9 +42,13 @@ import math
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+import logging
+
 import numpy as np
 
 from vigproc.errors import ModelError
+
+logger = logging.getLogger(__name__)
 
 #: Rec. 709 luminance weights of R, G, B (as :func:`vigproc.core.pixels.luminance`).
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -334,7 +338,7 @@ def fit_log_ratios(log_ratio: np.ndarray, x: np.ndarray, y: np.ndarray, width: i
 
 
 def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), *, block: int | None = None,
-                     source: str = "flat-field") -> ColourField:
+                     source: str = "flat-field", max_residual: float | None = None) -> ColourField | None:
     """The colour field of a flat frame (a white wall, a diffuser over the lens).
 
     The ratio of each channel to green is taken in blocks and fitted in log
@@ -350,10 +354,16 @@ def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), 
         The luminance model's centre, px from the frame centre.
     block : int, optional
         Block size in px (default: about 64 blocks on the long side).
+    max_residual : float, optional
+        Largest RMS (natural log, per block) of the ratios about the fitted field for a
+        flat frame: above it the frame has colours of its own (a scene, a stained wall)
+        and None is returned.
 
     Returns
     -------
-    ColourField
+    ColourField or None
+        None when ``max_residual`` is exceeded, or the ratios are no lens's (channels
+        more than :data:`MAX_SPREAD_EV` apart in the corners).
 
     Raises
     ------
@@ -385,7 +395,15 @@ def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), 
     xs = (np.arange(wb) * k + (k - 1) / 2.0) - (w - 1) / 2.0
     ys = (np.arange(hb) * k + (k - 1) / 2.0) - (h - 1) / 2.0
     X, Y = np.meshgrid(xs, ys)
-    cf, _ = fit_log_ratios(acc[ok], X[ok], Y[ok], w, h, center, free_center=True, source=source)
+    try:
+        cf, rms = fit_log_ratios(acc[ok], X[ok], Y[ok], w, h, center, free_center=True, source=source)
+    except ModelError as exc:  # absurd coefficients: colours of a scene, not of a lens
+        logger.debug("no colour field: %s", exc)
+        return None
+    if max_residual is not None and float(np.max(rms)) > max_residual:
+        logger.debug("no colour field: the frame's colours vary by %.3f (ln RMS) about any lens's field",
+                     float(np.max(rms)))
+        return None
     return cf
 
 

@@ -417,6 +417,10 @@ def estimate_checked(
     return replace(m, quality=replace(m.quality, field_ev_rms=ev, field_sigma_ev=math.nan, snr=math.nan))
 
 
+#: Largest RMS (ln, per block) of a flat frame's channel ratios about its fitted colour
+#: field: a white wall's blocks differ by their noise (well under 1 %); a scene's colours
+#: by far more, and no tint is read from them.
+FLAT_MAX_RESIDUAL = 0.03
 #: A flat frame's colour field is kept when some channel's tint (RMS over the frame)
 #: exceeds both this (EV) and 3 σ of its fit: below, the channels are taken as alike.
 COLOUR_MIN_EV = 0.002
@@ -431,7 +435,9 @@ def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings
     from vigproc.core.colour import planar_gradient
 
     ref = m.candidate if m.candidate is not None else m
-    cf = fit_colour_field(a, ref.center)
+    cf = fit_colour_field(a, ref.center, max_residual=FLAT_MAX_RESIDUAL)
+    if cf is None:  # a frame with colours of its own (a scene): no tint is read from it
+        return m
     strong = float(np.max(cf.rms_ev()))
     if strong < max(COLOUR_MIN_EV, 3.0 * cf.sigma_ev()):
         log.debug("flat field: colour shading %.4f EV RMS is not measurable (sigma %.4f EV): none kept",
