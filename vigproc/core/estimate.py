@@ -256,7 +256,9 @@ def estimate(
         :data:`vigproc.core.robust.REAL_LENS_SHAPE_RATIO`). "flat-field": the same without
         the scene prior, for frames of no scene (a white wall, a diffuser over the
         lens, an evenly lit sky), whose fall-off is all the lens's; on a photograph
-        of a scene it reads the scene's own darker edges as vignetting.
+        of a scene it reads the scene's own darker edges as vignetting. On a colour
+        frame it also measures the lens's colour shading (``model.colour``,
+        :func:`with_flat_colour`, docs/colour.md).
         "lens-family": a centred fall-off in the two- or three-parameter family
         (three for a colour frame) that lensfun's calibrations of real lenses span (:mod:`vigproc.core.family_fit`), with
         a calibrated uncertainty; for uncropped frames of real lenses.
