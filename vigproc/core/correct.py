@@ -148,6 +148,22 @@ def _checked_model(model: VignettingModel, width: int, height: int) -> Vignettin
     return m
 
 
+#: Rows per block when the colour ratios are applied (bounds the H×W×3 float64 temporaries).
+COLOUR_ROWS = 256
+
+
+def _apply_colour(o: np.ndarray, m: VignettingModel, row0: int, fh: int, fw: int, s: float, c: float) -> None:
+    """Divide channels 0..2 of the luminance-corrected ``o`` (rows ``row0``.. of the
+    frame) by their colour ratios ρ_c^s, in place, then clip at ``c`` (> 0)."""
+    for i in range(0, o.shape[0], COLOUR_ROWS):
+        rows = np.arange(row0 + i, row0 + min(i + COLOUR_ROWS, o.shape[0]))
+        gain = np.exp(-s * m.colour.log_ratios(fw, fh, rows=rows)).astype(np.float32)
+        blk = o[i:i + rows.size, :, :3]
+        np.multiply(blk, gain, out=blk)
+        if c > 0:  # every channel (an alpha too), as the kernel would have
+            np.minimum(o[i:i + rows.size], np.float32(c), out=o[i:i + rows.size])
+
+
 def correct_stripe(
     stripe: np.ndarray, model: VignettingModel, row0: int, frame_shape: tuple[int, int], *,
     strength: float = 1.0, clip: float | None = None, out: np.ndarray | None = None,
@@ -210,10 +226,15 @@ def correct_stripe(
     dst = o if direct else np.empty(x.shape, dtype=np.float32)
     cy = (fh - 1) / 2.0 + m.center[1]
     step = gain_step(m, fw, fh) if step is None else step
+    colour = m.colour is not None and s != 0.0 and x.shape[2] >= 3
+    # with a colour field the white point clips after the channel's own gain, not before
     bad = correct_rows(x, dst, row0, m.center[0], cy, *m.p, np.asarray(m.alpha, dtype=np.float64),
-                       s, c, step, exact_radius(m, step))
+                       s, -1.0 if colour else c, step, exact_radius(m, step))
     if not direct:
         o[...] = dst
+    if colour:
+        _apply_colour(o, m, row0, fh, fw, s, c)
+        bad = bad or int(np.count_nonzero(~np.all(np.isfinite(o[..., :3]), axis=(1, 2))))
     if bad:
         raise InvalidImageError(f"the corrected image has NaN or Inf values in {bad} rows: the input holds "
                                 "NaN/Inf, or its values are too large for float32 once corrected")
@@ -224,7 +245,9 @@ def correct(
     img: np.ndarray, model: VignettingModel, *, channel_axis: int | None = -1,
     strength: float = 1.0, clip: float | None = None, out: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Remove vignetting from a linear image: I = I_v / φ^strength (Lyu 2010, Eq. 1).
+    """Remove vignetting from a linear image: I = I_v / φ^strength (Lyu 2010, Eq. 1);
+    with a colour field (``model.colour``) each of R, G, B by its own field,
+    I_c = I_v,c / (φ·ρ_c)^strength (a 2-D frame, or fewer than 3 channels: φ alone).
 
     Parameters
     ----------
@@ -275,6 +298,23 @@ def correct(
     return res
 
 
+def _codes_colour(x: np.ndarray, out: np.ndarray, m: VignettingModel, lut: np.ndarray, st: np.ndarray,
+                  s: float) -> None:
+    """:func:`correct_codes` for a model with a colour field: per channel gains
+    1/(φ·ρ_c)^s, block by block of rows (decode table, gains, then the code of each
+    value found in ``st`` by binary search: the same round-half-up quantisation)."""
+    fh, fw, ch = x.shape
+    top = st.shape[0]
+    for i in range(0, fh, COLOUR_ROWS):
+        rows = np.arange(i, min(i + COLOUR_ROWS, fh))
+        lg = -s * _sample_rows(m, fw, fh, rows)  # ln of the luminance gain
+        gain = np.empty((rows.size, fw, ch), dtype=np.float32)
+        gain[...] = np.exp(lg)[..., None]
+        gain[..., :3] *= np.exp(-s * m.colour.log_ratios(fw, fh, rows=rows))
+        codes = np.searchsorted(st, lut[x[rows[0]:rows[-1] + 1]] * gain, side="right")
+        out[rows[0]:rows[-1] + 1] = np.minimum(codes, top)
+
+
 #: Cells of [0, 1) in which :func:`correct_codes` looks up where an output code's search
 #: starts: 8-bit codes step at least 3e-4 apart in linear light, wider than a cell
 #: (1.5e-5), so the lookup is off by at most one step there.
@@ -321,6 +361,9 @@ def correct_codes(codes: np.ndarray, model: VignettingModel, decode: np.ndarray,
     fh, fw = x.shape[:2]
     m = _checked_model(model, fw, fh)
     out = np.empty(x.shape, dtype=np.uint8 if st.shape[0] <= 255 else np.uint16)
+    if m.colour is not None and x.shape[2] >= 3 and s != 0.0:
+        _codes_colour(x, out, m, lut, st, s)
+        return out[..., 0] if a.ndim == 2 else out
     step = gain_step(m, fw, fh)
     # where each code's search starts: the steps below each of 65536 cells of [0, 1)
     start = np.searchsorted(st, np.arange(ENCODE_CELLS) / ENCODE_CELLS, side="left").astype(np.int32)

@@ -184,8 +184,11 @@ def from_reduced(m: VignettingModel, k: int, width: int, height: int) -> Vignett
     ox, oy = (big.width - width) / 2.0, (big.height - height) / 2.0
 
     def moved(x: VignettingModel, candidate=None) -> VignettingModel:
+        col = x.colour
+        if col is not None:
+            col = replace(col, width=width, height=height, center=(col.center[0] + ox, col.center[1] + oy))
         return replace(x, width=width, height=height, center=(x.center[0] + ox, x.center[1] + oy),
-                       candidate=candidate)
+                       candidate=candidate, colour=col)
 
     return moved(big, moved(big.candidate) if big.candidate is not None else None)
 
@@ -253,7 +256,9 @@ def estimate(
         :data:`vigproc.core.robust.REAL_LENS_SHAPE_RATIO`). "flat-field": the same without
         the scene prior, for frames of no scene (a white wall, a diffuser over the
         lens, an evenly lit sky), whose fall-off is all the lens's; on a photograph
-        of a scene it reads the scene's own darker edges as vignetting.
+        of a scene it reads the scene's own darker edges as vignetting. On a colour
+        frame it also measures the lens's colour shading (``model.colour``,
+        :func:`with_flat_colour`, docs/colour.md).
         "lens-family": a centred fall-off in the two- or three-parameter family
         (three for a colour frame) that lensfun's calibrations of real lenses span (:mod:`vigproc.core.family_fit`), with
         a calibrated uncertainty; for uncropped frames of real lenses.
@@ -381,7 +386,10 @@ def estimate_checked(
     if method == "default" and settings is None:
         return estimate_default(lum, keep, hint, family, colour=colour_of(a))
     if method in ROBUST_METHODS:
-        return _named(estimate_robust(lum, _robust_settings(method, settings), keep), method)
+        m = _named(estimate_robust(lum, _robust_settings(method, settings), keep), method)
+        if method == "flat-field" and a.ndim == 3 and a.shape[2] >= 3:
+            m = with_flat_colour(m, a, settings)
+        return m
     if method == "lens-family":
         from vigproc.core.family_fit import estimate_family
 
@@ -409,6 +417,51 @@ def estimate_checked(
     except ModelError:  # a fit that blacks out part of the frame has no fall-off to state
         ev = math.nan
     return replace(m, quality=replace(m.quality, field_ev_rms=ev, field_sigma_ev=math.nan, snr=math.nan))
+
+
+#: Largest RMS (ln, per block) of a flat frame's channel ratios about its fitted colour
+#: field: a white wall's blocks differ by their noise (well under 1 %); a scene's colours
+#: by far more, and no tint is read from them.
+FLAT_MAX_RESIDUAL = 0.03
+#: A flat frame's colour field is kept when some channel's tint (RMS over the frame)
+#: exceeds both this (EV) and 3 σ of its fit: below, the channels are taken as alike.
+COLOUR_MIN_EV = 0.002
+
+
+def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings | None = None) -> VignettingModel:
+    """The flat-field estimate ``m`` of the H×W×C frame ``a`` with the frame's colour
+    field (:func:`vigproc.core.colour.fit_colour_field`, centred on ``m``'s centre, or
+    its candidate's when it fell back), when the tint is measurable."""
+    from vigproc.core.colour import fit_colour_field
+
+    from vigproc.core.colour import planar_gradient
+
+    ref = m.candidate if m.candidate is not None else m
+    cf = fit_colour_field(a, ref.center, max_residual=FLAT_MAX_RESIDUAL)
+    if cf is None:  # a frame with colours of its own (a scene): no tint is read from it
+        return m
+    strong = float(np.max(cf.rms_ev()))
+    if strong < max(COLOUR_MIN_EV, 3.0 * cf.sigma_ev()):
+        log.debug("flat field: colour shading %.4f EV RMS is not measurable (sigma %.4f EV): none kept",
+                  strong, cf.sigma_ev())
+        return m
+    # the tint's centre is the optical centre, which no brightness gradient of the wall
+    # moves: the wall's planar gradient is the luminance's part odd about it, removed
+    # before the luminance is fitted again
+    lum = luminance(a)
+    g = planar_gradient(lum, cf.center)
+    if np.any(g != 0):
+        h, w = lum.shape
+        from vigproc.core.model import frame_coords
+
+        tilt = np.exp(-(g[0] * frame_coords(w)[None, :] + g[1] * frame_coords(h)[:, None]))
+        m2 = _named(estimate_robust(lum * tilt, _robust_settings("flat-field", settings), clipped_mask(a)), "flat-field")
+        if not m2.quality.fallback or m.quality.fallback:
+            m = m2
+        log.debug("flat field: wall gradient (%.2e, %.2e) ln/px removed about the tint's centre %s", *g, cf.center)
+    # a fit too weak to apply alone (the candidate) is still learned from: it keeps the tint too
+    cand = replace(m.candidate, colour=cf) if m.candidate is not None else None
+    return replace(m, colour=cf, candidate=cand)
 
 
 def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,

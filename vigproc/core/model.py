@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from vigproc.core._kernels.field import log_field_grid, log_field_grid_parallel
+from vigproc.core.colour import ColourField
 from vigproc.errors import ModelError
 
 #: Degree of the geometric polynomial G (Lyu 2010 fixes k = 7).
@@ -26,6 +27,10 @@ N_ALPHA = 7
 #: Order of the parameter vector used for covariances: (cx, cy, p1, p2, p3, α1..α7).
 PARAM_NAMES = ("cx", "cy", "p1", "p2", "p3") + tuple(f"alpha{i}" for i in range(1, N_ALPHA + 1))
 SCHEMA = "vigproc.model/1"
+#: Schema of a model with a colour field (:mod:`vigproc.core.colour`); a colourless
+#: model is still written as :data:`SCHEMA`, which every vigproc reads.
+SCHEMA_COLOUR = "vigproc.model/2"
+SCHEMAS = (SCHEMA, SCHEMA_COLOUR)
 
 
 def _show(v: Any) -> str:
@@ -213,6 +218,9 @@ class VignettingModel:
     quality : FitQuality or None
     candidate : VignettingModel or None
         When the default estimator fell back to the identity model, the rejected fit.
+    colour : ColourField or None
+        Per-channel ratios of the fall-off (:class:`vigproc.core.colour.ColourField`):
+        channel c's field is φ·ρ_c. None: the channels share φ (colourless).
 
     Examples
     --------
@@ -235,6 +243,7 @@ class VignettingModel:
     covariance: tuple[tuple[float, ...], ...] | None = None
     quality: FitQuality | None = None
     candidate: VignettingModel | None = field(default=None, repr=False)
+    colour: ColourField | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         width, height = _integer("width", self.width), _integer("height", self.height)
@@ -258,6 +267,16 @@ class VignettingModel:
                 raise ModelError(
                     f"candidate is for a {cand.width}x{cand.height} frame, the model for {width}x{height}"
                 )
+        col = self.colour
+        if col is not None:
+            if not isinstance(col, ColourField):
+                raise ModelError(f"colour must be a ColourField, got {_show(col)}")
+            if col.size != (width, height):
+                if abs((col.width / col.height) / (width / height) - 1.0) > 0.02:
+                    raise ModelError(f"colour field is for a {col.width}x{col.height} frame, the model for "
+                                     f"{width}x{height}")
+                col = col.rescale(width, height)
+            object.__setattr__(self, "colour", None if col.is_neutral else col)
         object.__setattr__(self, "width", width)
         object.__setattr__(self, "height", height)
         object.__setattr__(self, "center", center)
@@ -278,7 +297,8 @@ class VignettingModel:
 
     @property
     def is_identity(self) -> bool:
-        return self.p == (0.0, 0.0, 0.0) and not any(self.alpha)
+        """No fall-off and no colour shading: correcting changes nothing."""
+        return self.p == (0.0, 0.0, 0.0) and not any(self.alpha) and self.colour is None
 
     @property
     def size(self) -> tuple[int, int]:
@@ -461,12 +481,21 @@ class VignettingModel:
             p=(p1 / sx**2, p2 / (sx * sy), p3 / sy**2),
             covariance=cov,
             candidate=self.candidate.rescale(width, height) if self.candidate else None,
+            colour=self.colour.rescale(width, height) if self.colour is not None else None,
         )
+
+    def channel_log_fields(self, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """ln φ_c = ln φ + ln ρ_c per channel on an H×W grid (H×W×3); the three
+        channels alike (ln φ) for a colourless model."""
+        lf = self.log_field(shape)
+        if self.colour is None:
+            return np.repeat(lf[..., None], 3, axis=2)
+        return lf[..., None] + self.colour.log_ratios(lf.shape[1], lf.shape[0])
 
     # ---------------------------------------------------------- serialising
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {
-            "schema": SCHEMA,
+            "schema": SCHEMA if self.colour is None else SCHEMA_COLOUR,
             "width": self.width,
             "height": self.height,
             "center": list(self.center),
@@ -483,6 +512,8 @@ class VignettingModel:
             d["quality"] = q
         if self.candidate is not None:
             d["candidate"] = self.candidate.to_dict()
+        if self.colour is not None:
+            d["colour"] = self.colour.to_dict()
         return d
 
     def to_json(self, **kw: Any) -> str:
@@ -517,8 +548,11 @@ class VignettingModel:
         if not isinstance(d, dict):
             raise ModelError("a vignetting model must be a JSON object")
         schema = d.get("schema", SCHEMA)
-        if schema != SCHEMA:
-            raise ModelError(f"unknown model schema {schema!r} (expected {SCHEMA!r})")
+        if schema not in SCHEMAS:
+            raise ModelError(f"unknown model schema {schema!r} (expected one of {', '.join(map(repr, SCHEMAS))})")
+        col = d.get("colour")
+        if col is not None and schema == SCHEMA:
+            raise ModelError(f"a colour field needs schema {SCHEMA_COLOUR!r}, the model says {schema!r}")
         # a bad size is named before missing fields ({"width": 1e999} is about width)
         for k in ("width", "height"):
             if k in d:
@@ -551,6 +585,7 @@ class VignettingModel:
                 covariance=None if cov is None else _covariance_from(cov),
                 quality=None if q is None else _quality_from(q),
                 candidate=None if cand is None else cls.from_dict(cand),
+                colour=None if col is None else ColourField.from_dict(col),
             )
         except ModelError:
             raise

@@ -822,6 +822,35 @@ def cmd_bench_profile_interp(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_colour(args: argparse.Namespace) -> int:
+    """Colour shading: ``--part flat`` (flat frames and DNG gain maps, vigproc.bench.colour),
+    ``detect`` (one photograph's cast, vigproc.bench.colour_detect), or ``all``."""
+    import importlib
+
+    output_file(args.json)
+    data: dict = {}
+    if args.part in ("flat", "all"):
+        from vigproc.bench import colour as B
+        from vigproc.bench.clean import load_clean_bases
+
+        bases, _ = load_clean_bases(args.images, args.min_long_side, args.limit, colour=True)
+        rows = B.run_flat(B.physical_fields() + B.gainmap_fields(), bases, frames=args.frames, seed=args.seed)
+        dng = B.run_dng()
+        print(B.report_flat(rows, dng, len(bases), args.frames))
+        data["flat"] = [asdict(r) for r in rows]
+        data["dng"] = [asdict(r) for r in dng]
+    if args.part in ("detect", "all"):
+        try:
+            detect = importlib.import_module("vigproc.bench.colour_detect")
+        except ImportError:
+            print("vigproc: bench colour: the detect part is not available in this build", file=sys.stderr)
+            return EXIT_CODES["usage"]
+        text, data["detect"] = detect.run(args)
+        print(text)
+    write_json_result(args.json, data)
+    return 0
+
+
 def cmd_bench_profile_flat(args: argparse.Namespace) -> int:
     """Profiles learned from three shots of a flat field (Zheng et al.'s white pairs)."""
     from vigproc.bench import profile as B
@@ -1056,11 +1085,13 @@ def cmd_profile(args: argparse.Namespace) -> int:
         elif args.profile_command == "import-lcp":
             return _import_lcp(args, store)
         elif args.profile_command == "export-lensfun":
-            from vigproc.stores.lensfun_io import export_lensfun_xml, lensfun_entries
+            from vigproc.stores.lensfun_io import colour_notes, export_lensfun_xml, lensfun_entries
 
             entries, skipped = lensfun_entries(store.list(), crop_factor=args.crop_factor, mount=args.mount)
             for why in skipped:
                 print(one_line(f"vigproc: not exported: {why}"), file=sys.stderr)
+            for note in colour_notes(store.list()):
+                print(one_line(f"vigproc: note: {note}"), file=sys.stderr)
             n = export_lensfun_xml(entries, args.file)
             print(f"{len(entries)} calibrations of {n} lenses -> {args.file}")
     return 0
@@ -1361,6 +1392,16 @@ def build_parser() -> argparse.ArgumentParser:
     add_transfer(bp)
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_profile_flat)
+    bp = bsub.add_parser("colour", help="colour shading: per-channel fields from flat frames and DNG gain maps "
+                         "(flat), a single photograph's corner cast (detect)")
+    bp.add_argument("--part", choices=["flat", "detect", "all"], default="flat",
+                    help="which part to run (default %(default)s)")
+    _add_clean_bases(bp)
+    bp.add_argument("--frames", type=number(1, 100, integer=True), default=3,
+                    help="flat frames per lens (default %(default)s)")
+    bp.add_argument("--seed", type=number(0, 2**31, integer=True), default=0, help="random seed (default %(default)s)")
+    bp.add_argument("--json", help="write the figures to this file")
+    bp.set_defaults(fn=cmd_bench_colour)
     bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")
     bp.add_argument("--width", type=int, default=6000, help="frame width in px (default %(default)s)")
     bp.add_argument("--height", type=int, default=4000, help="frame height in px (default %(default)s)")

@@ -70,6 +70,7 @@ from vigproc.io.dng_opcodes import (
 )
 from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputSettingsError,
                             one_line, write_error)
+from vigproc.core.colour import ColourField, fit_gain_planes
 from vigproc.core.model import FitQuality, VignettingModel
 
 __all__ = [
@@ -77,6 +78,7 @@ __all__ = [
     "EmbeddedCalibration",
     "GainFieldModel",
     "RadialFit",
+    "model_to_gain_maps",
     "model_to_radial",
     "opcode_to_model",
     "read_embedded",
@@ -237,11 +239,15 @@ class EmbeddedCalibration:
     source: str
     opcodes: tuple[EmbeddedOpcode, ...]
     _fits: dict = field(default_factory=dict, repr=False)
+    #: Colour (0 R, 1 G, 2 B) of each phase of the raw image's CFA, rows of the
+    #: repeat pattern (``CFAPattern2``); None when unknown or not a CFA image.
+    cfa_pattern: tuple[tuple[int, ...], ...] | None = None
 
     @classmethod
-    def from_lists(cls, lists: Sequence[tuple[str, OpcodeList]], source: str) -> EmbeddedCalibration | None:
+    def from_lists(cls, lists: Sequence[tuple[str, OpcodeList]], source: str,
+                   cfa_pattern: tuple[tuple[int, ...], ...] | None = None) -> EmbeddedCalibration | None:
         """The vignetting opcodes of ``lists`` (``(name, list)`` in application order),
-        or None when there is none.
+        or None when there is none; ``cfa_pattern``: see the attribute.
 
         Raises
         ------
@@ -254,7 +260,7 @@ class EmbeddedCalibration:
                 if isinstance(op, FixVignetteRadial) and op.is_identity:
                     continue  # a no-op (the SDK's IsNOP): nothing calibrated
                 ops.append(EmbeddedOpcode(name, i, op))
-        return cls(source, tuple(ops)) if ops else None
+        return cls(source, tuple(ops), cfa_pattern=cfa_pattern) if ops else None
 
     @property
     def kind(self) -> str:
@@ -289,8 +295,9 @@ class EmbeddedCalibration:
             centres here with the full frame's size.
 
         The opcodes multiply: their log gains add.  CFA GainMaps (pitch > 1, one per
-        Bayer phase) are averaged into one field for every channel (which colour a
-        phase samples is not known here); an RGB GainMap gives each channel its plane.
+        Bayer phase) give each channel the mean of the phases of its colour (two
+        greens in a Bayer pattern) when the CFA pattern is known, else the mean of all
+        phases; an RGB GainMap gives each channel its plane.
 
         Raises
         ------
@@ -309,7 +316,9 @@ class EmbeddedCalibration:
             if isinstance(op, FixVignetteRadial):
                 out += lg(eo, 0)
             elif op.cfa:
-                cfa.append(eo)
+                colour = self.phase_colour(op)
+                if channel is None or colour is None or channel == colour:
+                    cfa.append(eo)
             elif channel is not None:
                 out += lg(eo, channel)
             else:
@@ -320,6 +329,59 @@ class EmbeddedCalibration:
         for eo in cfa:
             out += lg(eo, eo.opcode.area.plane) / len(cfa)
         return out
+
+    def phase_colour(self, op: GainMap) -> int | None:
+        """The colour (0 R, 1 G, 2 B) of the CFA phase a pitch > 1 GainMap covers, by
+        :attr:`cfa_pattern`; None when unknown (no pattern, or pitches that are not
+        the pattern's)."""
+        pat = self.cfa_pattern
+        a = op.area
+        if not pat or (a.row_pitch, a.col_pitch) != (len(pat), len(pat[0])):
+            return None
+        c = pat[a.top % a.row_pitch][a.left % a.col_pitch]
+        return c if 0 <= c <= 2 else None
+
+    @property
+    def per_plane(self) -> bool:
+        """The opcodes give the colour planes fields of their own (an RGB GainMap of
+        several map planes, or CFA GainMaps whose phases' colours are known)."""
+        for eo in self.opcodes:
+            op = eo.opcode
+            if isinstance(op, GainMap):
+                if not op.cfa and op.map_planes > 1 and op.area.planes > 1:
+                    return True
+                if op.cfa and self.phase_colour(op) is not None:
+                    return True
+        return False
+
+    def colour(self, width: int, height: int, center: tuple[float, float]) -> tuple[ColourField | None, float]:
+        """The per-plane maps as a :class:`~vigproc.core.colour.ColourField` about
+        ``center`` (the luminance fit's), with its fit error (EV, RMS over the frame
+        and channels); (None, 0) when the planes share one field (within 1e-3 EV).
+
+        The correction of a frame (:class:`GainFieldModel`) divides out the maps
+        themselves; this field is what a model carries into records, profiles and a
+        written DNG or lensfun file.
+        """
+        if not self.per_plane:
+            return None, 0.0
+        key = ("colour", width, height)
+        hit = self._fits.get(key)
+        if hit is None:
+            gh, gw = _grid_shape(width, height, FIT_GRID)
+            rv, rh = (np.arange(gh) + 0.5) / gh, (np.arange(gw) + 0.5) / gw
+            lg = np.stack([self.log_gain(width, height, c, rel=(rv, rh)) for c in range(3)], axis=-1)
+            spread = float(np.abs(lg - lg[..., 1:2]).max()) / _LN2
+            if spread < 1e-3:
+                hit = (None, 0.0)
+            else:
+                X, Y = np.meshgrid(rh * width - width / 2.0, rv * height - height / 2.0)
+                cf, rms = fit_gain_planes(lg, X, Y, width, height, center, f"dng:{self.kind}")
+                hit = (cf, float(np.sqrt(np.mean(rms[[0, 2]] ** 2))))
+                (logger.warning if hit[1] > WARN_RMS_EV else logger.info)(
+                    "%s: per-plane %s as a colour field: %.2e EV RMS", self.source, self.kind, hit[1])
+            self._fits[key] = hit
+        return hit
 
     @staticmethod
     def _checked(g: np.ndarray, eo: EmbeddedOpcode) -> np.ndarray:
@@ -351,14 +413,16 @@ class EmbeddedCalibration:
 
         A FixVignetteRadial alone: its Kang-Weiss fit (``method`` ``dng:FixVignetteRadial``,
         ``quality.objective`` = the fit's RMS error in EV).  With a GainMap: a
-        :class:`GainFieldModel` whose parameters are that fit but whose correction
-        divides out the map itself.
+        :class:`GainFieldModel` whose parameters are that fit (and, for maps of
+        their own per colour plane, a colour field fitted to them: :meth:`colour`) but
+        whose correction divides out the maps themselves, each plane its own.
         """
         m, _, _ = self.fit(width, height)
         if not self.has_gain_map:
             return m
+        colour, _ = self.colour(width, height, m.center)
         return GainFieldModel(m.width, m.height, m.center, m.p, m.alpha, method=m.method, quality=m.quality,
-                              calibration=self)
+                              colour=colour, calibration=self)
 
     def to_dict(self, width: int | None = None, height: int | None = None) -> dict[str, Any]:
         """JSON-able summary (the fit's error when a frame size is given)."""
@@ -549,6 +613,53 @@ def model_to_radial(model: VignettingModel, *, strength: float = 1.0) -> RadialF
     return RadialFit(fvr, rms, mx, strength)
 
 
+#: Map points along each axis of a written per-plane GainMap (spacing 1/(n − 1)).
+WRITE_MAP_POINTS = 65
+
+
+def model_to_gain_maps(model: VignettingModel, *, strength: float = 1.0,
+                       cfa_pattern: tuple[tuple[int, ...], ...] | None = None,
+                       points: int = WRITE_MAP_POINTS) -> list[GainMap]:
+    """Per-plane DNG GainMaps that remove ``model``'s fall-off, each colour plane by its
+    own field 1/(φ·ρ_c)^strength (:attr:`VignettingModel.colour`).
+
+    With ``cfa_pattern`` (a CFA DNG): one map per phase of the pattern (pitch = the
+    pattern's size), of its colour, for OpcodeList2 (before demosaicing, as phones
+    write them). Without: one map of three planes over planes 0-2, for OpcodeList3
+    (after demosaicing). Map points sit at relative positions i/(points − 1), the
+    frame's pixel centres at ((row + ½)/H, (col + ½)/W) (the SDK's interpolation).
+
+    Raises
+    ------
+    ModelError
+        The model blacks out part of the frame, or a gain is outside :data:`GAIN_RANGE`.
+    """
+    from vigproc.io.dng_opcodes import AreaSpec
+
+    strength = float(strength)
+    if not (math.isfinite(strength) and 0.0 <= strength <= 2.0):
+        raise ModelError(f"strength must be within [0, 2], got {strength!r}")
+    w, h = model.width, model.height
+    rel = np.linspace(0.0, 1.0, points)
+    X, Y = np.meshgrid(rel * w - w / 2.0, rel * h - h / 2.0)
+    lf = model.log_field_at(X, Y)
+    lr = model.colour.log_ratios_at(X, Y) if model.colour is not None else np.zeros(X.shape + (3,))
+    gains = np.exp(-strength * (lf[..., None] + lr))  # points × points × 3
+    if gains.min() < GAIN_RANGE[0] or gains.max() > GAIN_RANGE[1]:
+        raise ModelError(f"gains {gains.min():.3g}..{gains.max():.3g} are outside {GAIN_RANGE}")
+    sp = 1.0 / (points - 1)
+    if cfa_pattern:
+        rp, cp = len(cfa_pattern), len(cfa_pattern[0])
+        out = []
+        for r in range(rp):
+            for c in range(cp):
+                colour = cfa_pattern[r][c]
+                plane = gains[..., colour if 0 <= colour <= 2 else 1]
+                out.append(GainMap(AreaSpec(r, c, h, w, 0, 1, rp, cp), plane, sp, sp))
+        return out
+    return [GainMap(AreaSpec(0, 0, h, w, 0, 3, 1, 1), gains, sp, sp)]
+
+
 # --------------------------------------------------------------------------- #
 # reading and writing DNG files (exiftool)
 # --------------------------------------------------------------------------- #
@@ -587,7 +698,8 @@ def _read_groups(path: str | os.PathLike[str]) -> tuple[dict[str, dict[str, Any]
     markers; and the group of the raw image."""
     p = _abs(path)
     what = f"cannot read the opcode lists of {p!r}"
-    res = _run(["-j", "-b", "-a", "-G1", *(f"-{t}#" for t in _LISTS), "-SubfileType#",
+    res = _run(["-j", "-b", "-a", "-G1", *(f"-{t}#" for t in _LISTS), "-SubfileType#", "-CFAPattern2#",
+                "-CFARepeatPatternDim#",
                 "-PhotometricInterpretation#", "-File:FileType", "--", p], what, ImageReadError)
     try:
         recs = json.loads(res.stdout.decode("utf-8", "replace") or "[]")
@@ -639,6 +751,12 @@ def read_opcode_lists(path: str | os.PathLike[str], *, all_groups: bool = False)
         A list is malformed (the message names the file, the IFD and the list).
     """
     groups, raw = _read_groups(path)
+    return _lists_of(groups, raw, path, all_groups)
+
+
+def _lists_of(groups: dict[str, dict[str, Any]], raw: str | None, path: str | os.PathLike[str],
+              all_groups: bool = False) -> list[tuple[str, OpcodeList]]:
+    """:func:`read_opcode_lists` of what :func:`_read_groups` read."""
     out = []
     for group, tags in groups.items():
         if not all_groups and group != raw:
@@ -670,7 +788,22 @@ def read_embedded(path: str | os.PathLike[str]) -> EmbeddedCalibration | None:
     DngOpcodeError
         An opcode list or a vignetting opcode in it is malformed.
     """
-    return EmbeddedCalibration.from_lists(read_opcode_lists(path), _abs(path))
+    groups, raw = _read_groups(path)
+    pattern = _cfa_pattern(groups.get(raw, {})) if raw is not None else None
+    return EmbeddedCalibration.from_lists(_lists_of(groups, raw, path), _abs(path), pattern)
+
+
+def _cfa_pattern(tags: dict[str, Any]) -> tuple[tuple[int, ...], ...] | None:
+    """The raw IFD's CFA pattern (``CFARepeatPatternDim`` rows × columns of colour
+    indices 0 R, 1 G, 2 B from ``CFAPattern2``), or None when absent or malformed."""
+    try:
+        dims = [int(v) for v in str(tags.get("CFARepeatPatternDim", "")).split()]
+        cols = [int(v) for v in str(tags.get("CFAPattern2", "")).split()]
+    except ValueError:
+        return None
+    if len(dims) != 2 or not (1 <= dims[0] <= 8 and 1 <= dims[1] <= 8) or len(cols) != dims[0] * dims[1]:
+        return None
+    return tuple(tuple(cols[r * dims[1]:(r + 1) * dims[1]]) for r in range(dims[0]))
 
 
 def _version_tuple(text: Any) -> tuple[int, ...]:
@@ -684,6 +817,9 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
                          strength: float = 1.0) -> dict[str, Any]:
     """Write a copy of the DNG ``src`` to ``dst`` whose OpcodeList3 carries ``model``'s
     correction as a FixVignetteRadial; the pixels and every other tag are untouched.
+    A model with a colour field is written as per-plane GainMaps instead
+    (:func:`model_to_gain_maps`): one per CFA phase in OpcodeList2 of a CFA DNG, one of
+    three planes in OpcodeList3 otherwise.
 
     The opcode is appended to the raw IFD's existing OpcodeList3 (a raw converter
     applies it after the camera's own opcodes).  A model that *is* the DNG's own
@@ -731,6 +867,16 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
         info["opcode"] = None
         info["note"] = "the correction is the file's own calibration: nothing added"
         new = existing
+    elif model.colour is not None:
+        # a colour field: per-plane GainMaps (a FixVignetteRadial has one gain for all planes)
+        pattern = _cfa_pattern(groups.get(raw, {}))
+        name = "OpcodeList2" if pattern else "OpcodeList3"
+        existing = lists.get(name, OpcodeList())
+        maps = model_to_gain_maps(model, strength=strength, cfa_pattern=pattern)
+        new = existing.appended(*(g.to_opcode() for g in maps))
+        info["list"] = name
+        info["opcode"] = {"kind": "GainMap", "maps": len(maps), "points": WRITE_MAP_POINTS,
+                          "cfa_pattern": [list(r) for r in pattern] if pattern else None, "strength": strength}
     else:
         fit = model_to_radial(model, strength=strength)
         new = existing.appended(fit.opcode.to_opcode())
@@ -748,10 +894,10 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
         shutil.copyfile(src_s, tmp)
         if new is not existing:
             with tempfile.TemporaryDirectory(prefix="vigproc-dng-") as td:
-                blob = os.path.join(td, "opcodelist3.bin")
+                blob = os.path.join(td, "opcodelist.bin")
                 with open(blob, "wb") as fh:
                     fh.write(new.to_bytes())
-                args = ["-q", "-q", "-m", "-overwrite_original", f"-{raw}:OpcodeList3#<={blob}"]
+                args = ["-q", "-q", "-m", "-overwrite_original", f"-{raw}:{info['list']}#<={blob}"]
                 backward = groups.get("IFD0", {}).get("DNGBackwardVersion")
                 if _version_tuple(backward) < (1, 3):
                     args.append("-IFD0:DNGBackwardVersion=1.3.0.0")
@@ -760,9 +906,9 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
                 if res.returncode != 0:
                     err = one_line(res.stderr.decode("utf-8", "replace").strip())[:300]
                     raise ImageWriteError(f"cannot write {dst_s!r}: exiftool failed: {err or res.returncode}")
-            back = dict(read_opcode_lists(tmp)).get("OpcodeList3")
+            back = dict(read_opcode_lists(tmp)).get(info["list"])
             if back is None or back.to_bytes() != new.to_bytes():
-                raise ImageWriteError(f"cannot write {dst_s!r}: its OpcodeList3 does not read back as written")
+                raise ImageWriteError(f"cannot write {dst_s!r}: its {info['list']} does not read back as written")
         publish(tmp, dst_s)
         done = True
     except (ImageReadError, DngOpcodeError) as exc:  # reading our own copy back failed

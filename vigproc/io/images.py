@@ -990,6 +990,35 @@ def _read_raw(path: str, *args, **kwargs) -> tuple[np.ndarray, ImageInfo]:
             logger.info("%s: LibRaw said: %s", path, "; ".join(said)[:500])
 
 
+def read_cfa_planes(path: str | os.PathLike[str]) -> np.ndarray:
+    """A Bayer RAW's colour planes before demosaicing (no white balance, no colour
+    matrix): (H/2)×(W/2)×3 linear R, G, B of the visible area, black-subtracted and
+    scaled by the white level (:func:`vigproc.core.colour.cfa_rgb`), for measuring a
+    flat frame's colour shading per CFA plane.
+
+    Raises
+    ------
+    ImageReadError
+        The file cannot be read as a RAW.
+    InvalidImageError
+        Not a Bayer sensor (X-Trans, four colours, a linear DNG).
+    """
+    from vigproc.core.colour import cfa_rgb
+
+    p = os.fspath(path)
+    if rawpy is None:  # pragma: no cover
+        raise ImageReadError(f"cannot read image {_q(p)}: rawpy is not installed")
+    try:
+        with rawpy.imread(p) as raw:
+            pattern = raw.raw_pattern
+            if pattern is None:
+                raise InvalidImageError(f"{_q(p)} has no colour filter array (a linear or monochrome raw)")
+            return cfa_rgb(raw.raw_image_visible, pattern, raw.color_desc.decode("ascii", "replace"),
+                           raw.black_level_per_channel, float(raw.white_level))
+    except (rawpy.LibRawError, OSError, ValueError, MemoryError) as exc:
+        raise ImageReadError(f"cannot read image {_q(p)}: {_libraw_msg(exc) if isinstance(exc, rawpy.LibRawError) else exc}") from None
+
+
 def _read_raw_libraw(
     path: str, size: int, want: str, half_size: bool, max_pixels: int, budget: int = DEFAULT_MEMORY_BUDGET, *,
     probing: bool = False, codes: bool = False

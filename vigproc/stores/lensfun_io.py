@@ -742,6 +742,22 @@ def _profile_names(profile: Profile) -> tuple[tuple[str | None, ...], tuple[str 
     return parts, tuple(spelt)
 
 
+def colour_notes(profiles: Iterable[Profile]) -> list[str]:
+    """One sentence per profile with a colour field: lensfun's vignetting model is one
+    field for all channels, so only its luminance part is exported."""
+    return [f"{p.key}: its colour shading (per-channel field, {p.colour.n} frames) cannot be expressed in "
+            "lensfun's vignetting model: only the luminance fall-off is exported" for p in profiles
+            if getattr(p, "colour", None) is not None]
+
+
+def warn_colour(profiles: Iterable[Profile]) -> list[str]:
+    """:func:`colour_notes`, each logged as a warning; returns them."""
+    notes = colour_notes(profiles)
+    for n in notes:
+        logger.warning("%s", n)
+    return notes
+
+
 def lensfun_entries(profiles: Iterable[Profile], *, crop_factor: float | None = None,
                     mount: str | None = None) -> tuple[list[LensfunEntry], list[str]]:
     """The lensfun calibration entries of learned profiles, for :func:`export_lensfun_xml`.
@@ -756,7 +772,9 @@ def lensfun_entries(profiles: Iterable[Profile], *, crop_factor: float | None = 
     * the focal length the frames were shot at (their median), not the profile's bin;
     * pa coefficients fitted with rho = 1 at the frame's corner: lensfun's rho is 1 at
       the corner of an image of the calibration's crop factor (:mod:`vigproc.stores.lensfun`),
-      which is the crop factor written.
+      which is the crop factor written;
+    * of a profile with a colour field, the luminance part only (a warning is logged:
+      lensfun's vignetting model has no per-channel terms).
 
     Parameters
     ----------
@@ -807,6 +825,7 @@ def lensfun_entries(profiles: Iterable[Profile], *, crop_factor: float | None = 
             mount=camera.mount if camera is not None else mount or "Generic",
             crop_factor=float(crop), focal=float(focal if focal is not None else p.key.focal_bin[2:-2]),
             aperture=float(p.key.aperture_bin[2:]), distance=1000.0, k1=k1, k2=k2, k3=k3))
+        warn_colour([p])  # the luminance part only: lensfun has no per-channel vignetting
         logger.info("%s -> lensfun %s / %s, crop %.3f (%s), %g mm, pa misfit %.1e EV", p.key, entries[-1].maker,
                     entries[-1].model, crop, "lensfun's camera" if camera is not None else
                     "EXIF" if shots_crop else "--crop-factor", entries[-1].focal, rms)

@@ -74,6 +74,7 @@ from vigproc.atomic import atomic_write_text
 from vigproc.stores.db import SQLiteFile
 from vigproc.errors import EXIT_CODES, SETTINGS, ModelError, VigprocError
 from vigproc.io.exif import LensKey, normalise_text, unescape_key_part
+from vigproc.core.colour import ColourPool
 from vigproc.core.model import N_ALPHA, PARAM_NAMES, FitQuality, VignettingModel
 from vigproc.core.normalised import (  # noqa: F401  (normalise, denormalise, fit_model_to_field: re-exported)
     FIELD_GRID,
@@ -89,6 +90,7 @@ __all__ = [
     "ANY",
     "DB_ENV",
     "FILE_SCHEMA",
+    "FILE_SCHEMA_COLOUR",
     "FILE_SCHEMAS",
     "N_PARAMS",
     "PROVENANCES",
@@ -135,9 +137,12 @@ DB_ENV = "VIGPROC_PROFILE_DB"
 #: Schema tag of the human-readable profile files vigproc writes (``/2``: a parameter a
 #: fit held fixed is listed in ``fixed`` and left out of the covariance).
 FILE_SCHEMA = "vigproc.profile/2"
+#: Schema of a profile file with a colour field (``colour``: a pooled
+#: :class:`vigproc.core.colour.ColourPool`); a colourless profile is still written ``/2``.
+FILE_SCHEMA_COLOUR = "vigproc.profile/3"
 #: Schema tags vigproc reads (``/1``: a 12×12 covariance; an all-zero row and column
 #: there is a fixed parameter, as learned profiles exported before ``/2`` wrote it).
-FILE_SCHEMAS = ("vigproc.profile/1", FILE_SCHEMA)
+FILE_SCHEMAS = ("vigproc.profile/1", FILE_SCHEMA, FILE_SCHEMA_COLOUR)
 #: Where a profile came from.
 PROVENANCES = ("learned", "lensfun", "user")
 #: Bin label for a focal length / aperture the metadata does not give.
@@ -882,6 +887,10 @@ class Profile:
     scatter_sigma_ev : float or None
         Frame-to-frame RMS spread of log2 φ across the learned frames, EV (≥ 2 frames).
     notes : str
+    colour : ColourPool or None
+        The frames' colour fields pooled (:class:`vigproc.core.colour.ColourPool`):
+        per-channel shading a flat-field or a DNG's per-plane maps measured; None:
+        colourless.
     shots : Shots or None
         How the frames were shot (their real focal lengths, crop factor and names as
         EXIF spelt them); None when unknown (a store or file from before schema v10/2).
@@ -902,6 +911,7 @@ class Profile:
     scatter_sigma_ev: float | None = None
     notes: str = ""
     shots: Shots | None = None
+    colour: ColourPool | None = None
     _exact: tuple[_Exact, _Exact] | None = field(default=None, repr=False)
     _welford: _Welford | None = field(default=None, repr=False)
 
@@ -966,7 +976,8 @@ class Profile:
             field_sigma_ev=sigma if sigma is not None else math.nan,
             snr=ev_rms / sigma if sigma else math.inf,
         )
-        return denormalise(self.theta, self.covariance, width, height, method=f"profile:{self.provenance}", quality=q)
+        m = denormalise(self.theta, self.covariance, width, height, method=f"profile:{self.provenance}", quality=q)
+        return m if self.colour is None else replace(m, colour=self.colour.field(width, height))
 
 
 def _profile_stats(theta: np.ndarray, cov: np.ndarray | None, aspect: float,
@@ -1074,6 +1085,7 @@ def interpolate_profiles(profiles: Sequence[Profile], key: ProfileKey, focal_mm:
         provenance=provenances.pop() if len(provenances) == 1 else "user",
         trusted=all(p.trusted for p, _ in weights) and sigma is not None and sigma < TRUSTED_SIGMA_EV,
         field_sigma_ev=sigma, notes=f"interpolated from {parts}",
+        colour=ColourPool.blend([(p.colour, wt) for p, wt in weights]),
     )
 
 
@@ -1096,7 +1108,7 @@ _COLUMNS = (
     "lens_id", "focal_bin", "aperture_bin", "aspect", "theta", "covariance", "info_exact",
     "info_matrix", "info_vector", "n_frames", "n_scatter", "theta_mean", "theta_m2",
     "field_mean", "field_m2", "provenance", "created", "updated", "trusted",
-    "field_sigma_ev", "cov_sigma_ev", "scatter_sigma_ev", "notes", "shots",
+    "field_sigma_ev", "cov_sigma_ev", "scatter_sigma_ev", "notes", "shots", "colour",
 )
 
 
@@ -1210,12 +1222,19 @@ def _migration_10(con: sqlite3.Connection) -> None:
         con.execute("ALTER TABLE profiles ADD COLUMN shots TEXT")
 
 
+def _migration_11(con: sqlite3.Connection) -> None:
+    """v11: each profile's pooled colour field (:class:`vigproc.core.colour.ColourPool`,
+    JSON), NULL for the colourless."""
+    if "colour" not in {r[1] for r in con.execute("PRAGMA table_info(profiles)")}:
+        con.execute("ALTER TABLE profiles ADD COLUMN colour TEXT")
+
+
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
 #: Append a function for the next version; never edit a released one.
 MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3,
                                                                  _migration_4, _migration_5, _migration_6,
                                                                  _migration_7, _migration_8, _migration_9,
-                                                                 _migration_10)
+                                                                 _migration_10, _migration_11)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
@@ -1413,10 +1432,11 @@ class ProfileStore(SQLiteFile):
                 scatter_sigma_ev=None if d["scatter_sigma_ev"] is None else float(d["scatter_sigma_ev"]),
                 notes=str(d["notes"]),
                 shots=None if d["shots"] is None else Shots.from_json(json.loads(d["shots"]), "shots"),
+                colour=None if d["colour"] is None else ColourPool.from_json(json.loads(d["colour"])),
                 _exact=exact,
                 _welford=welford,
             )
-        except ProfileStoreError as exc:
+        except (ProfileStoreError, ModelError) as exc:
             raise ProfileStoreError(f"profile store {self.path}: corrupt profile row: {exc}") from None
         except (ValueError, TypeError, KeyError, json.JSONDecodeError) as exc:
             raise ProfileStoreError(
@@ -1438,6 +1458,7 @@ class ProfileStore(SQLiteFile):
             p.provenance, p.created, p.updated, int(bool(p.trusted)),
             p.field_sigma_ev, p.cov_sigma_ev, p.scatter_sigma_ev, p.notes,
             None if p.shots is None else json.dumps(p.shots.to_json(), ensure_ascii=False, separators=(",", ":")),
+            None if p.colour is None else json.dumps(p.colour.to_json(), separators=(",", ":")),
         )
 
     def _select(self, where: str, args: tuple) -> builtins.list[Profile]:
@@ -1758,11 +1779,15 @@ class ProfileStore(SQLiteFile):
             if frame_shots is not None:
                 shots = frame_shots if shots is None else shots.add(frame_shots)
             note_parts = [s for s in (old_notes, extra if extra and extra not in old_notes else "", notes or "") if s]
+            colour = old.colour if old is not None else None
+            if model.colour is not None:
+                mine = ColourPool.of(model.colour)
+                colour = mine if colour is None else colour.add(mine)
             profile = Profile(
                 key=key, theta=theta, covariance=cov, info_matrix=lam, info_vector=eta,
                 n_frames=n_frames, provenance="learned", created=created, updated=now,
                 trusted=_is_trusted(n_frames, pooled), field_sigma_ev=pooled, cov_sigma_ev=cov_sigma,
-                scatter_sigma_ev=scatter, notes="\n".join(note_parts)[:MAX_NOTES], shots=shots,
+                scatter_sigma_ev=scatter, notes="\n".join(note_parts)[:MAX_NOTES], shots=shots, colour=colour,
                 _exact=exact, _welford=welford,
             )
             row_id = self._upsert(con, profile)
@@ -1966,6 +1991,10 @@ def profile_to_dict(profile: Profile) -> dict[str, Any]:
         "notes": profile.notes,
         "shots": None if profile.shots is None else profile.shots.to_json(),
     }
+    if profile.colour is not None:
+        # a colour field needs a reader that knows it: /3 (a colourless profile stays /2)
+        d["schema"] = FILE_SCHEMA_COLOUR
+        d["colour"] = profile.colour.to_json()
     return d
 
 
@@ -2135,6 +2164,14 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
                               or not (math.isfinite(sigma) and 0 <= sigma <= MAX_FALLOFF_EV)):
         raise ProfileStoreError(f"{where}: field_sigma_ev must be a number of EV in 0..{MAX_FALLOFF_EV:g} or null")
     shots = None if d.get("shots") is None else Shots.from_json(d["shots"], where)
+    colour = None
+    if d.get("colour") is not None:
+        if schema != FILE_SCHEMA_COLOUR:
+            raise ProfileStoreError(f"{where}: a colour field needs schema {FILE_SCHEMA_COLOUR!r}, got {schema!r}")
+        try:
+            colour = ColourPool.from_json(d["colour"])
+        except ModelError as exc:
+            raise ProfileStoreError(f"{where}: colour: {exc}") from None
     created = _timestamp(d, "created", where)
     updated = _timestamp(d, "updated", where)
 
@@ -2154,7 +2191,7 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
         key=key, theta=theta, covariance=cov_a, info_matrix=lam, info_vector=eta, n_frames=n_frames,
         provenance=prov, created=created, updated=updated or created, trusted=trusted,
         field_sigma_ev=pooled, cov_sigma_ev=cov_sigma, scatter_sigma_ev=None, notes=notes, shots=shots,
-        _exact=exact,
+        colour=colour, _exact=exact,
     )
 
 

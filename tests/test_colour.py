@@ -1,0 +1,218 @@
+"""Colour shading (issue 41): the colour field, its files, correction per channel, flat frames."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from vigproc.core.colour import ColourField, ciede2000, linear_rgb_to_lab, planar_gradient
+from vigproc.core.correct import correct, correct_codes
+from vigproc.core.estimate import estimate
+from vigproc.core.model import VignettingModel
+from vigproc.errors import ModelError
+from vigproc.io.images import encode_steps, srgb_to_linear
+
+W, H = 300, 200
+TINT = [[0.12, 0.05, 0.0], [0.0, 0.0, 0.0], [-0.15, 0.0, 0.02]]
+
+
+def lens(center=(6.0, -4.0)) -> VignettingModel:
+    cf = ColourField(W, H, center, TINT, source="test")
+    return VignettingModel(W, H, center=center, p=(1 / 250**2, 0.0, 1 / 250**2), method="flat-field", colour=cf)
+
+
+def test_ratios_have_luminance_weighted_mean_one():
+    r = lens().colour.ratios()
+    assert r.shape == (H, W, 3)
+    np.testing.assert_allclose(r @ np.array([0.2126, 0.7152, 0.0722]), 1.0, atol=1e-12)
+    # corners: R up, B down (the TINT's signs); the centre neutral
+    assert r[0, 0, 0] > 1.05 and r[0, 0, 2] < 0.95
+    np.testing.assert_allclose(r[H // 2 - 4, W // 2 + 6], 1.0, atol=1e-4)
+
+
+def test_model_round_trips_and_old_files_load_colourless():
+    m = lens()
+    d = json.loads(m.to_json())
+    assert d["schema"] == "vigproc.model/2" and "colour" in d
+    back = VignettingModel.from_json(json.dumps(d))
+    assert back == m and back.colour == m.colour
+    np.testing.assert_array_equal(back.channel_log_fields((50, 75)), m.channel_log_fields((50, 75)))
+    old = VignettingModel(W, H, p=(1 / 250**2, 0.0, 1 / 250**2))
+    od = old.to_dict()
+    assert od["schema"] == "vigproc.model/1" and "colour" not in od
+    assert VignettingModel.from_dict(od).colour is None
+    # a /1 file cannot smuggle in a colour field; a malformed one is a ModelError
+    with pytest.raises(ModelError):
+        VignettingModel.from_dict({**od, "colour": d["colour"]})
+    with pytest.raises(ModelError):
+        VignettingModel.from_dict({**d, "colour": {**d["colour"], "coeffs": [[1, 2]]}})
+    with pytest.raises(ModelError):
+        VignettingModel.from_dict({**d, "colour": {**d["colour"], "coeffs": [[9, 9, 9], [0, 0, 0], [0, 0, 0]]}})
+
+
+def test_rescale_keeps_the_colour_field():
+    m = lens()
+    big = m.rescale(3 * W, 3 * H)
+    assert big.colour.size == (3 * W, 3 * H)
+    np.testing.assert_allclose(big.channel_log_fields((H, W)), m.channel_log_fields(), atol=1e-9)
+
+
+def test_correct_divides_each_channel_by_its_own_field():
+    m = lens()
+    img = 0.4 * np.exp(m.channel_log_fields())
+    out = correct(img, m)
+    np.testing.assert_allclose(out, 0.4, rtol=2e-5)  # the gain's interpolation tolerance
+    # the luminance model alone leaves the tint in
+    plain = correct(img, VignettingModel(W, H, m.center, m.p, m.alpha))
+    assert np.abs(plain[0, 0] - 0.4).max() > 0.02
+    half = correct(img, m, strength=0.5)
+    np.testing.assert_allclose(half, 0.4 * np.exp(0.5 * m.channel_log_fields()), rtol=2e-5)
+    # a grey frame: the luminance field only
+    np.testing.assert_allclose(correct(img[..., 1], m), img[..., 1] / np.exp(m.log_field()), rtol=2e-5)
+
+
+@pytest.mark.parametrize("depth", ["uint8", "uint16"])
+def test_encoded_path_agrees_with_float_within_one_code(depth):
+    m = lens()
+    top = 255 if depth == "uint8" else 65535
+    rng = np.random.default_rng(3)
+    codes = rng.integers(0, top + 1, (H, W, 3)).astype(np.uint8 if depth == "uint8" else np.uint16)
+    decode = srgb_to_linear(np.arange(top + 1) / top).astype(np.float32)
+    steps = encode_steps("srgb", depth)
+    got = correct_codes(codes, m, decode, steps).astype(np.int64)
+    ref = np.searchsorted(steps, correct(decode[codes], m, clip=1.0), side="right")
+    assert np.abs(got - ref).max() <= 1
+    # the colour field does move codes (not a test that cannot fail)
+    plain = correct_codes(codes, VignettingModel(W, H, m.center, m.p, m.alpha), decode, steps).astype(np.int64)
+    assert np.abs(plain - got).max() > 1
+
+
+def _flat(m, rng, gradient, grey=(0.9, 1.0, 0.8)):
+    yy, xx = np.mgrid[0:H, 0:W]
+    a = rng.uniform(0, 2 * math.pi)
+    ramp = np.exp(gradient * ((xx / W - 0.5) * math.cos(a) + (yy / H - 0.5) * math.sin(a)))
+    return 0.5 * np.exp(m.channel_log_fields()) * ramp[..., None] * np.array(grey) * (
+        1 + 0.01 * rng.standard_normal((H, W, 3)))
+
+
+def test_flat_field_recovers_the_per_channel_field_with_a_gradient_present():
+    m = lens()
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        est = estimate(_flat(m, rng, 0.08), "flat-field")
+        assert est.colour is not None and est.colour.source == "flat-field"
+        d = (est.channel_log_fields() - m.channel_log_fields()) / math.log(2)
+        d -= d.mean(axis=(0, 1))
+        assert np.sqrt(np.mean(d * d, axis=(0, 1))).max() < 0.01
+        assert math.hypot(est.colour.center[0] - 6.0, est.colour.center[1] + 4.0) < 5.0
+
+
+def test_planar_gradient_is_found_about_the_optical_centre():
+    m = VignettingModel(W, H, center=(6.0, -4.0), p=(1 / 250**2, 0.0, 1 / 250**2))
+    yy, xx = np.mgrid[0:H, 0:W]
+    g = np.array([3e-4, -2e-4])
+    lum = np.exp(m.log_field() + g[0] * (xx - (W - 1) / 2) + g[1] * (yy - (H - 1) / 2))
+    np.testing.assert_allclose(planar_gradient(lum, (6.0, -4.0), block=4), g, rtol=0.02)
+
+
+def test_a_neutral_flat_frame_has_no_colour_field():
+    m = VignettingModel(W, H, p=(1 / 250**2, 0.0, 1 / 250**2))
+    est = estimate(_flat(m, np.random.default_rng(1), 0.05), "flat-field")
+    assert est.colour is None
+
+
+#: Sharma, Wu and Dalal (2005), Table 1: (L1, a1, b1, L2, a2, b2, ΔE00).
+SHARMA = [
+    (50.0000, 2.6772, -79.7751, 50.0000, 0.0000, -82.7485, 2.0425),
+    (50.0000, 3.1571, -77.2803, 50.0000, 0.0000, -82.7485, 2.8615),
+    (50.0000, 2.8361, -74.0200, 50.0000, 0.0000, -82.7485, 3.4412),
+    (50.0000, -1.3802, -84.2814, 50.0000, 0.0000, -82.7485, 1.0000),
+    (50.0000, -1.1848, -84.8006, 50.0000, 0.0000, -82.7485, 1.0000),
+    (50.0000, -0.9009, -85.5211, 50.0000, 0.0000, -82.7485, 1.0000),
+    (50.0000, 0.0000, 0.0000, 50.0000, -1.0000, 2.0000, 2.3669),
+    (50.0000, -1.0000, 2.0000, 50.0000, 0.0000, 0.0000, 2.3669),
+    (50.0000, 2.4900, -0.0010, 50.0000, -2.4900, 0.0009, 7.1792),
+    (50.0000, 2.4900, -0.0010, 50.0000, -2.4900, 0.0010, 7.1792),
+    (50.0000, 2.4900, -0.0010, 50.0000, -2.4900, 0.0011, 7.2195),
+    (50.0000, 2.4900, -0.0010, 50.0000, -2.4900, 0.0012, 7.2195),
+    (50.0000, -0.0010, 2.4900, 50.0000, 0.0009, -2.4900, 4.8045),
+    (50.0000, -0.0010, 2.4900, 50.0000, 0.0010, -2.4900, 4.8045),
+    (50.0000, -0.0010, 2.4900, 50.0000, 0.0011, -2.4900, 4.7461),
+    (50.0000, 2.5000, 0.0000, 50.0000, 0.0000, -2.5000, 4.3065),
+    (50.0000, 2.5000, 0.0000, 73.0000, 25.0000, -18.0000, 27.1492),
+    (50.0000, 2.5000, 0.0000, 61.0000, -5.0000, 29.0000, 22.8977),
+    (50.0000, 2.5000, 0.0000, 56.0000, -27.0000, -3.0000, 31.9030),
+    (50.0000, 2.5000, 0.0000, 58.0000, 24.0000, 15.0000, 19.4535),
+    (50.0000, 2.5000, 0.0000, 50.0000, 3.1736, 0.5854, 1.0000),
+    (50.0000, 2.5000, 0.0000, 50.0000, 3.2972, 0.0000, 1.0000),
+    (50.0000, 2.5000, 0.0000, 50.0000, 1.8634, 0.5757, 1.0000),
+    (50.0000, 2.5000, 0.0000, 50.0000, 3.2592, 0.3350, 1.0000),
+    (60.2574, -34.0099, 36.2677, 60.4626, -34.1751, 39.4387, 1.2644),
+    (63.0109, -31.0961, -5.8663, 62.8187, -29.7946, -4.0864, 1.2630),
+    (61.2901, 3.7196, -5.3901, 61.4292, 2.2480, -4.9620, 1.8731),
+    (35.0831, -44.1164, 3.7933, 35.0232, -40.0716, 1.5901, 1.8645),
+    (22.7233, 20.0904, -46.6940, 23.0331, 14.9730, -42.5619, 2.0373),
+    (36.4612, 47.8580, 18.3852, 36.2715, 50.5065, 21.2231, 1.4146),
+    (90.8027, -2.0831, 1.4410, 91.1528, -1.6435, 0.0447, 1.4441),
+    (90.9257, -0.5406, -0.9208, 88.6381, -0.8985, -0.7239, 1.5381),
+    (6.7747, -0.2908, -2.4247, 5.8714, -0.0985, -2.2286, 0.6377),
+    (2.0776, 0.0795, -1.1350, 0.9033, -0.0636, -0.5514, 0.9082),
+]
+
+
+def test_ciede2000_matches_sharma_2005():
+    t = np.array(SHARMA)
+    got = ciede2000(t[:, 0:3], t[:, 3:6])
+    np.testing.assert_allclose(got, t[:, 6], atol=5e-5)
+    # symmetric
+    np.testing.assert_allclose(ciede2000(t[:, 3:6], t[:, 0:3]), t[:, 6], atol=5e-5)
+
+
+def test_lab_of_white_and_grey():
+    np.testing.assert_allclose(linear_rgb_to_lab(np.ones(3)), [100, 0, 0], atol=0.01)
+    lab = linear_rgb_to_lab(np.full(3, 0.18))
+    assert abs(lab[0] - 49.5) < 0.1 and abs(lab[1]) < 0.01 and abs(lab[2]) < 0.01
+
+
+def test_cfa_planes_measure_the_tint_before_demosaicing():
+    from vigproc.core.colour import cfa_rgb, fit_colour_field
+
+    m = lens(center=(0.0, 0.0))
+    truth = np.exp(m.channel_log_fields())  # H×W×3 at the mosaic's full resolution
+    pattern = np.array([[0, 1], [3, 2]])  # rawpy's RGBG: R G / G2 B
+    mosaic = np.empty((H, W))
+    for r in range(2):
+        for c in range(2):
+            ch = {0: 0, 1: 1, 3: 1, 2: 2}[pattern[r, c]]
+            mosaic[r::2, c::2] = 1000 + 8000 * [0.7, 1.0, 0.6][ch] * truth[r::2, c::2, ch]
+    planes = cfa_rgb(mosaic, pattern, "RGBG", black=[1000] * 4, white=16383)
+    assert planes.shape == (H // 2, W // 2, 3)
+    cf = fit_colour_field(planes)
+    d = (cf.log_ratios(W, H) - m.colour.log_ratios()) / math.log(2)
+    assert np.sqrt(np.mean(d * d)) < 0.002
+    with pytest.raises(Exception):
+        cfa_rgb(mosaic, np.array([[0, 1], [1, 0]]), "RGBG")  # no blue phase
+
+
+def test_read_cfa_planes_of_a_real_dng():
+    from pathlib import Path
+
+    from vigproc.io.images import read_cfa_planes
+
+    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "raw" / "tinydng" / "colorchart.dng"
+    if not path.exists():
+        pytest.skip(f"{path} is absent (the shared data set)")
+    a = read_cfa_planes(path)
+    assert a.shape == (578, 867, 3) and 0.0 < float(a.mean()) < 1.0
+
+
+def test_flat_field_on_a_scene_reads_no_tint():
+    """A photograph's colours are not a lens's tint: flat-field estimates it without a
+    colour field (and without failing on absurd ratios)."""
+    from conftest import coloured_scene
+
+    est = estimate(coloured_scene(H, W, seed=5), "flat-field")
+    assert est.colour is None
