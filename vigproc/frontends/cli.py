@@ -116,9 +116,10 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
 
     m, refusal = guard(m, "estimate", img, key, clips=info.bit_depth not in ("half", "float", "double"),
                        in_camera=read_in_camera(file, reader), where=str(file))
+    cast = _colour_cast(img, m)  # a report only: never applied (colour fields come from flat frames/profiles/DNGs)
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
-    doc = {"file": str(file), "lens": lens, "model": m.to_dict(),
+    doc = {"file": str(file), "lens": lens, "model": m.to_dict(), "colour_cast": cast,
            **({"not_applied_rule": refusal.rule} if refusal is not None else {})}
     if not args.json:
         q = m.quality
@@ -140,7 +141,23 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
             why = q.reason or ("weak evidence or not a real lens's shape" if m.method == "real-lens" else "weak evidence")
             state = f"NOT applied ({why})" if q.fallback else "applied"
             print(f"  confidence  {q.confidence:.2f} (SNR {q.snr:.1f}, ±{q.field_sigma_ev:.3f} EV): {state}")
+        if "delta_e" in cast:
+            print(f"  colour cast {'detected' if cast['detected'] else 'not detected'} (corner dE2000 "
+                  f"{cast['delta_e']:.1f}, confidence {cast['confidence']:.2f}; reported, not corrected)")
     return doc
+
+
+def _colour_cast(img, m) -> dict:
+    """The frame's colour-cast report (:func:`vigproc.core.colour_cast.detect_colour_cast`)."""
+    from vigproc.core.colour_cast import detect_colour_cast
+    from vigproc.io.images import EncodedImage
+
+    if img.ndim != 3 or img.shape[2] < 3:
+        return {"detected": False, "reason": "a grey frame has no colour"}
+    usable = None
+    if isinstance(img, EncodedImage):
+        img, usable = img.reduced(max(1, max(img.shape[:2]) // 480))  # the detector works at 240 px
+    return detect_colour_cast(img, luminance_model=m, usable=usable).to_dict()
 
 
 def _applied_ev(rec: dict) -> float:
