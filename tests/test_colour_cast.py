@@ -145,3 +145,26 @@ def test_bench_cli_on_two_real_frames(tmp_path):
     assert code == 0
     doc = json.loads(out.read_text())
     assert doc["n_bases"] == 2 and doc["by_target"][0]["n"] == 4 and doc["luminance_only"]["n"] == 2
+
+
+def test_estimate_json_reports_the_cast_and_does_not_correct_it(tmp_path, capsys):
+    from vigproc.frontends.cli import main
+    from vigproc.io.images import write_image
+
+    c = cast_for(10.0, 135.0, 40.0)
+    frame = scene(1) * np.exp(c.log_transmission((H, W)))
+    write_image(tmp_path / "cast.jpg", np.clip(frame / frame.max(), 0, 1).astype(np.float32), bit_depth="uint8",
+                transfer="srgb", quality=95)
+    write_image(tmp_path / "clean.jpg", np.clip(scene(1) / scene(1).max(), 0, 1).astype(np.float32),
+                bit_depth="uint8", transfer="srgb", quality=95)
+    write_image(tmp_path / "grey.png", scene(1)[..., 1] / scene(1)[..., 1].max(), bit_depth="uint16")
+    capsys.readouterr()
+    assert main(["estimate", "--json", str(tmp_path / "cast.jpg"), str(tmp_path / "clean.jpg"),
+                 str(tmp_path / "grey.png")]) == 0
+    recs = json.loads(capsys.readouterr().out)["results"]
+    cast, clean, grey = (r["colour_cast"] for r in recs)
+    assert cast["detected"] is True and cast["delta_e"] > 5 and 0.5 < cast["confidence"] <= 1
+    assert clean["detected"] is False
+    assert grey == {"detected": False, "reason": "a grey frame has no colour"}
+    # the model stays a luminance field: nothing about colour is applied
+    assert "colour" not in json.dumps(recs[0]["model"])

@@ -149,15 +149,24 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
 
 def _colour_cast(img, m) -> dict:
     """The frame's colour-cast report (:func:`vigproc.core.colour_cast.detect_colour_cast`)."""
+    import numpy as np
+
     from vigproc.core.colour_cast import detect_colour_cast
     from vigproc.io.images import EncodedImage
 
     if img.ndim != 3 or img.shape[2] < 3:
         return {"detected": False, "reason": "a grey frame has no colour"}
-    usable = None
+    from vigproc.core.colour_cast import CastSettings
+
+    usable, settings = None, CastSettings()
     if isinstance(img, EncodedImage):
-        img, usable = img.reduced(max(1, max(img.shape[:2]) // 480))  # the detector works at 240 px
-    return detect_colour_cast(img, luminance_model=m, usable=usable).to_dict()
+        long_side = max(img.shape[:2])
+        if img.codes.dtype == np.uint8:
+            # 8-bit codes quantise the chroma of dark pixels, which pulls the fit towards no
+            # cast: each working pixel averages at least 5x5 of them
+            settings = CastSettings(work_long_side=int(max(48, min(settings.work_long_side, long_side / 5))))
+        img, usable = img.reduced(max(1, long_side // 480))
+    return detect_colour_cast(img, luminance_model=m, usable=usable, settings=settings).to_dict()
 
 
 def _applied_ev(rec: dict) -> float:
