@@ -117,9 +117,10 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
 
     m, refusal = guard(m, "estimate", img, key, clips=info.bit_depth not in ("half", "float", "double"),
                        in_camera=read_in_camera(Path(file), reader), where=str(file))
+    cast = _colour_cast(img, m)  # a report only: never applied (colour fields come from flat frames/profiles/DNGs)
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
-    doc = {"file": str(file), "lens": lens, "model": m.to_dict(),
+    doc = {"file": str(file), "lens": lens, "model": m.to_dict(), "colour_cast": cast,
            **({"not_applied_rule": refusal.rule} if refusal is not None else {})}
     if not args.json:
         q = m.quality
@@ -141,7 +142,32 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
             why = q.reason or ("weak evidence or not a real lens's shape" if m.method == "real-lens" else "weak evidence")
             state = f"NOT applied ({why})" if q.fallback else "applied"
             print(f"  confidence  {q.confidence:.2f} (SNR {q.snr:.1f}, ±{q.field_sigma_ev:.3f} EV): {state}")
+        if "delta_e" in cast:
+            print(f"  colour cast {'detected' if cast['detected'] else 'not detected'} (corner dE2000 "
+                  f"{cast['delta_e']:.1f}, confidence {cast['confidence']:.2f}; reported, not corrected)")
     return doc
+
+
+def _colour_cast(img, m) -> dict:
+    """The frame's colour-cast report (:func:`vigproc.core.colour_cast.detect_colour_cast`)."""
+    import numpy as np
+
+    from vigproc.core.colour_cast import detect_colour_cast
+    from vigproc.io.images import EncodedImage
+
+    if img.ndim != 3 or img.shape[2] < 3:
+        return {"detected": False, "reason": "a grey frame has no colour"}
+    from vigproc.core.colour_cast import CastSettings
+
+    usable, settings = None, CastSettings()
+    if isinstance(img, EncodedImage):
+        long_side = max(img.shape[:2])
+        if img.codes.dtype == np.uint8:
+            # 8-bit codes quantise the chroma of dark pixels, which pulls the fit towards no
+            # cast: each working pixel averages at least 5x5 of them
+            settings = CastSettings(work_long_side=int(max(48, min(settings.work_long_side, long_side / 5))))
+        img, usable = img.reduced(max(1, long_side // 480))
+    return detect_colour_cast(img, luminance_model=m, usable=usable, settings=settings).to_dict()
 
 
 def _applied_ev(rec: dict) -> float:
@@ -825,8 +851,6 @@ def cmd_bench_profile_interp(args: argparse.Namespace) -> int:
 def cmd_bench_colour(args: argparse.Namespace) -> int:
     """Colour shading: ``--part flat`` (flat frames and DNG gain maps, vigproc.bench.colour),
     ``detect`` (one photograph's cast, vigproc.bench.colour_detect), or ``all``."""
-    import importlib
-
     output_file(args.json)
     data: dict = {}
     if args.part in ("flat", "all"):
@@ -840,13 +864,11 @@ def cmd_bench_colour(args: argparse.Namespace) -> int:
         data["flat"] = [asdict(r) for r in rows]
         data["dng"] = [asdict(r) for r in dng]
     if args.part in ("detect", "all"):
-        try:
-            detect = importlib.import_module("vigproc.bench.colour_detect")
-        except ImportError:
-            print("vigproc: bench colour: the detect part is not available in this build", file=sys.stderr)
-            return EXIT_CODES["usage"]
-        text, data["detect"] = detect.run(args)
-        print(text)
+        from vigproc.frontends.commands.colourdetect import detect_report
+
+        code, data["detect"] = detect_report(args)  # its options at their defaults (see bench colour-detect)
+        if code:
+            return code
     write_json_result(args.json, data)
     return 0
 

@@ -1,0 +1,177 @@
+"""How often one photograph's colour-cast report is right, and how often a scene's
+colour is mistaken for a cast (:func:`vigproc.core.colour_cast.detect_colour_cast`).
+
+Bases: the clean protocol's vignetting-free central crops of camera frames
+(:func:`vigproc.bench.clean.load_clean_bases`, in colour). Casts: a physical model of
+angle-dependent sensor response, channel c transmitting
+
+    T_c(θ) = cos^{k_c}(θ),  θ = atan(r·d/f),
+
+r the radius in half-diagonals, d/f = tan(θ_max) (the chief ray's angle at the corner),
+k_G the luminance fall-off's exponent and k_R, k_B chosen so that the corner's
+(log R/G, log B/G) shift points in one of ``directions`` hues at a given ΔE00 on a mid
+grey (equal luminance). Each base is rendered through each cast; the detection rate is
+the share of those frames reported as cast. False detections: the bases as they are
+(no cast) and the bases under luminance-only fall-offs (lensfun's ``pa`` fields of real
+lenses), which must not be called casts.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from vigproc.core.colour_cast import CastSettings, detect_colour_cast
+from vigproc.core.colour_difference import grey_cast_de
+
+log = logging.getLogger(__name__)
+
+#: corner ΔE00 of the rendered casts (the target is stated at 5)
+TARGETS_DE = (1.0, 2.0, 3.0, 4.0, 5.0, 7.0, 10.0)
+#: chief-ray angles at the corner (degrees): a normal lens, a wide angle, an adapted rangefinder wide
+THETA_MAX = (25.0, 40.0)
+#: the luminance fall-off's exponent (the cos⁴ law)
+K_GREEN = 4.0
+
+
+@dataclass(frozen=True)
+class Cast:
+    """A per-channel angle-dependent transmission: T_c = cos^{k_c}(atan(r·tan θ_max))."""
+
+    name: str
+    target_de: float
+    theta_max: float
+    k: tuple[float, float, float]
+
+    def log_transmission(self, shape: tuple[int, int]) -> np.ndarray:
+        """H×W×3 natural-log transmission on a frame of ``shape`` (1 at the centre)."""
+        h, w = shape
+        y, x = np.mgrid[0:h, 0:w]
+        r = np.hypot(x - (w - 1) / 2, y - (h - 1) / 2) / (0.5 * math.hypot(w, h))
+        lc = np.log(np.cos(np.arctan(r * math.tan(math.radians(self.theta_max)))))
+        return lc[..., None] * np.asarray(self.k)[None, None, :]
+
+    def corner_shift(self) -> tuple[float, float]:
+        """(log R/G, log B/G) at the corner versus the centre."""
+        lcm = math.log(math.cos(math.radians(self.theta_max)))
+        return (self.k[0] - self.k[1]) * lcm, (self.k[2] - self.k[1]) * lcm
+
+
+def cast_for(target_de: float, hue_deg: float, theta_max: float, k_green: float = K_GREEN) -> Cast:
+    """The cast whose corner shift points at ``hue_deg`` in the (log R/G, log B/G)
+    plane with ΔE00 = ``target_de`` on a mid grey."""
+    u, v = math.cos(math.radians(hue_deg)), math.sin(math.radians(hue_deg))
+    lo, hi = 0.0, 2.0
+    for _ in range(50):  # ΔE grows monotonically with the shift's length
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if grey_cast_de(mid * u, mid * v) < target_de else (lo, mid)
+    s = 0.5 * (lo + hi)
+    lcm = math.log(math.cos(math.radians(theta_max)))
+    k = (k_green + s * u / lcm, k_green, k_green + s * v / lcm)
+    return Cast(f"dE{target_de:g}/hue{hue_deg:g}/{theta_max:g}deg", float(target_de), float(theta_max), k)
+
+
+def physical_casts(targets: Sequence[float] = TARGETS_DE, directions: int = 8,
+                   theta_max: Sequence[float] = THETA_MAX) -> list[Cast]:
+    """Every target ΔE × ``directions`` hues (equally spaced, starting at +R/G) × corner angle."""
+    return [cast_for(t, 360.0 * i / directions, th) for t in targets for i in range(directions) for th in theta_max]
+
+
+@dataclass
+class RateRow:
+    """Detections among frames of one kind."""
+
+    label: str
+    n: int
+    detected: int
+    rate: float
+    median_de_est: float = math.nan
+    #: which frames were reported as cast (names of bases; fields for the luminance row)
+    hits: list[str] = field(default_factory=list)
+
+
+@dataclass
+class DetectionResult:
+    n_bases: int
+    by_target: list[RateRow]
+    clean: RateRow
+    luminance_only: RateRow
+    #: detection rate over every cast of ΔE ≥ 5
+    rate_at_5: float
+    ms_per_frame: float
+    settings: dict = field(default_factory=dict)
+
+
+def _row(label: str, flags: list[bool], des: list[float], names: list[str]) -> RateRow:
+    n, k = len(flags), int(sum(flags))
+    return RateRow(label, n, k, k / n if n else math.nan, float(np.median(des)) if des else math.nan,
+                   sorted({nm for nm, f in zip(names, flags) if f}))
+
+
+def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
+                    names: Sequence[str] | None = None,
+                    luminance_fields: Sequence[tuple[str, np.ndarray]] = (),
+                    settings: CastSettings = CastSettings()) -> DetectionResult:
+    """Detection rates of casts rendered on ``bases`` and false detections without one.
+
+    Parameters
+    ----------
+    bases : sequence of numpy.ndarray
+        Vignetting-free linear RGB frames (H×W×3).
+    casts : sequence of Cast
+        Rendered on every base; rates are grouped by their ``target_de``.
+    names : sequence of str, optional
+        The bases' names (for the false detections' list).
+    luminance_fields : sequence of (name, H×W natural-log field)
+        Luminance-only fall-offs, each applied to every base (all channels alike).
+    settings : CastSettings
+        The detector's.
+
+    Returns
+    -------
+    DetectionResult
+        Per-target rates (with the median estimated ΔE), the clean and luminance-only
+        false-detection rates with the frames that were called cast.
+    """
+    names = list(names) if names is not None else [f"base{i}" for i in range(len(bases))]
+    secs: list[float] = []
+
+    def run(frame: np.ndarray):
+        t0 = time.perf_counter()
+        ev = detect_colour_cast(frame, settings=settings)
+        secs.append(time.perf_counter() - t0)
+        return ev
+
+    clean = [run(b) for b in bases]
+    clean_row = _row("clean", [e.detected for e in clean], [e.delta_e for e in clean], names)
+    lf, ld, ln = [], [], []
+    for fname, lfield in luminance_fields:
+        for b, nm in zip(bases, names):
+            e = run(b * np.exp(lfield)[..., None])
+            lf.append(e.detected)
+            ld.append(e.delta_e)
+            ln.append(f"{nm} x {fname}")
+    lum_row = _row("luminance only", lf, ld, ln)
+    groups: dict[float, tuple[list[bool], list[float], list[str]]] = {}
+    cache: dict[tuple[tuple[int, int], Cast], np.ndarray] = {}
+    for c in casts:
+        g = groups.setdefault(c.target_de, ([], [], []))
+        for b, nm in zip(bases, names):
+            key = (b.shape[:2], c)
+            if key not in cache:
+                cache[key] = np.exp(c.log_transmission(b.shape[:2]))
+            e = run(b * cache[key])
+            g[0].append(e.detected)
+            g[1].append(e.delta_e)
+            g[2].append(f"{nm} x {c.name}")
+        cache.clear()
+    rows = [_row(f"dE {t:g}", *groups[t]) for t in sorted(groups)]
+    big = [f for t in groups if t >= 5 for f in groups[t][0]]
+    return DetectionResult(len(bases), rows, clean_row, lum_row, float(np.mean(big)) if big else math.nan,
+                           1000 * float(np.median(secs)) if secs else math.nan,
+                           {k: getattr(settings, k) for k in settings.__dataclass_fields__})

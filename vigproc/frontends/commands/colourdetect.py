@@ -1,0 +1,89 @@
+"""``vigproc bench colour-detect``: how often one photograph's colour-cast report is
+right, and how often a scene's colour is mistaken for a cast
+(:mod:`vigproc.bench.colour_detect`)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+
+def register(subparsers) -> None:
+    """No command of its own: a benchmark only (:func:`register_bench`)."""
+
+
+def register_bench(bsub) -> None:
+    from vigproc.frontends.commands._options import add_clean_bases, number
+
+    bp = bsub.add_parser("colour-detect", help="colour-cast detection from one photograph: physical casts "
+                         "(cos^k_c of the chief ray's angle) rendered on the clean bases; detection rate by "
+                         "corner dE2000, false detections on the bases and under luminance-only fall-offs")
+    add_clean_bases(bp)
+    bp.add_argument("--targets", type=number(0.1, 100), nargs="+", default=None,
+                    help="corner dE2000 of the rendered casts (default 1 2 3 4 5 7 10)")
+    bp.add_argument("--directions", type=number(1, 64, integer=True), default=8,
+                    help="hues of the casts, equally spaced in (log R/G, log B/G) (default %(default)s)")
+    bp.add_argument("--theta-max", type=number(1, 70), nargs="+", default=None,
+                    help="chief-ray angles at the corner, degrees (default 25 40)")
+    bp.add_argument("--lenses", type=number(0, 100, integer=True), default=10,
+                    help="lensfun lenses whose luminance-only fall-off must not be called a cast "
+                         "(default %(default)s)")
+    bp.add_argument("--json", help="write the figures as JSON")
+    bp.set_defaults(fn=cmd_bench_colour_detect)
+
+
+def _pct(x: float) -> str:
+    return "-" if not math.isfinite(x) else f"{100 * x:.1f} %"
+
+
+def cmd_bench_colour_detect(args: argparse.Namespace) -> int:
+    from vigproc.frontends.commands._options import write_json_result
+    from vigproc.pipeline.processor import output_file
+
+    output_file(args.json)
+    code, data = detect_report(args)
+    if data is not None:
+        write_json_result(args.json, data)
+    return code
+
+
+def detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
+    """Run the detection benchmark and print its table: ``(exit code, figures)``; also
+    ``vigproc bench colour --part detect`` (its options at their defaults there)."""
+    from dataclasses import asdict
+
+    import numpy as np
+
+    from vigproc.bench import clean as C
+    from vigproc.bench import colour_detect as D
+
+    targets, directions = getattr(args, "targets", None), getattr(args, "directions", 8)
+    theta_max, lenses = getattr(args, "theta_max", None), getattr(args, "lenses", 10)
+    bases, names = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=True)
+    colour = [(b, n) for b, n in zip(bases, names) if np.ptp(b[..., 0] - b[..., 1]) > 1e-6
+              or np.ptp(b[..., 2] - b[..., 1]) > 1e-6]
+    if len(colour) < 2:
+        print(f"vigproc: bench colour-detect: {len(colour)} usable colour frames under {' '.join(args.images)}; "
+              "need 2", file=sys.stderr)
+        return 2, None
+    bases, names = [b for b, _ in colour], [n for _, n in colour]
+    casts = D.physical_casts(targets or D.TARGETS_DE, directions, theta_max or D.THETA_MAX)
+    fields = []
+    if lenses:
+        lf, _ = C.lens_fields(lenses)
+        fields = [(f.name, f.log_field) for f in lf]
+    r = D.detection_rates(bases, casts, names=names, luminance_fields=fields)
+    print(f"colour-cast detection on {r.n_bases} clean colour bases (480x320, linear), casts cos^k_c(theta) at "
+          f"{', '.join(f'{t:g}' for t in (theta_max or D.THETA_MAX))} deg corner angles x {directions} "
+          f"hues; {r.ms_per_frame:.0f} ms/frame")
+    print(f"{'frames':<22}{'n':>7}{'called cast':>13}{'rate':>10}{'median dE est':>15}")
+    for row in r.by_target + [r.clean, r.luminance_only]:
+        label = f"cast {row.label}" if row.label.startswith("dE") else row.label
+        med = "-" if not math.isfinite(row.median_de_est) else f"{row.median_de_est:.2f}"
+        print(f"{label:<22}{row.n:>7}{row.detected:>13}{_pct(row.rate):>10}{med:>15}")
+    print(f"detected at dE >= 5: {_pct(r.rate_at_5)} (target >= 80 %); false detections: clean "
+          f"{_pct(r.clean.rate)}, luminance only {_pct(r.luminance_only.rate)} (target <= 5 %)")
+    if r.clean.hits:
+        print("clean bases called cast: " + ", ".join(r.clean.hits))
+    return 0, asdict(r)
