@@ -55,7 +55,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vigproc.core.colour import ciede2000, linear_rgb_to_lab
+from vigproc.core.colour_difference import ciede2000, linear_rgb_to_lab
 from vigproc.core.model import VignettingModel, frame_coords
 
 log = logging.getLogger(__name__)

@@ -519,63 +519,6 @@ def fit_gain_planes(log_gains: np.ndarray, x: np.ndarray, y: np.ndarray, width: 
 
 
 # --------------------------------------------------------------------------- #
-# CIEDE2000
-# --------------------------------------------------------------------------- #
-
-#: D65 reference white (XYZ, Y = 1).
-D65 = np.array([0.95047, 1.0, 1.08883])
-_RGB709_TO_XYZ = np.array([[0.4124564, 0.3575761, 0.1804375],
-                           [0.2126729, 0.7151522, 0.0721750],
-                           [0.0193339, 0.1191920, 0.9503041]])
-
-
-def linear_rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
-    """CIELAB (D65) of linear Rec. 709 / sRGB-primaries RGB (…×3)."""
-    xyz = np.asarray(rgb, dtype=np.float64) @ _RGB709_TO_XYZ.T / D65
-    e = 216 / 24389
-    f = np.where(xyz > e, np.cbrt(np.maximum(xyz, e)), (24389 / 27 * xyz + 16) / 116)
-    return np.stack([116 * f[..., 1] - 16, 500 * (f[..., 0] - f[..., 1]), 200 * (f[..., 1] - f[..., 2])], axis=-1)
-
-
-def ciede2000(lab1: np.ndarray, lab2: np.ndarray, kL: float = 1.0, kC: float = 1.0, kH: float = 1.0) -> np.ndarray:
-    """CIEDE2000 colour difference ΔE00 of CIELAB colours (…×3, broadcast).
-
-    Follows Sharma, Wu and Dalal (2005) [2]_ exactly, including their notes on the
-    hue mean and difference when a chroma is zero (tested against their Table 1).
-    """
-    L1, a1, b1 = np.moveaxis(np.asarray(lab1, dtype=np.float64), -1, 0)
-    L2, a2, b2 = np.moveaxis(np.asarray(lab2, dtype=np.float64), -1, 0)
-    C1, C2 = np.hypot(a1, b1), np.hypot(a2, b2)
-    Cm = (C1 + C2) / 2
-    G = 0.5 * (1 - np.sqrt(Cm ** 7 / (Cm ** 7 + 25.0 ** 7)))
-    a1p, a2p = (1 + G) * a1, (1 + G) * a2
-    C1p, C2p = np.hypot(a1p, b1), np.hypot(a2p, b2)
-    h1p = np.where((a1p == 0) & (b1 == 0), 0.0, np.degrees(np.arctan2(b1, a1p)) % 360)
-    h2p = np.where((a2p == 0) & (b2 == 0), 0.0, np.degrees(np.arctan2(b2, a2p)) % 360)
-    dLp = L2 - L1
-    dCp = C2p - C1p
-    dh = h2p - h1p
-    zero = (C1p * C2p) == 0
-    dhp = np.where(zero, 0.0, np.where(dh > 180, dh - 360, np.where(dh < -180, dh + 360, dh)))
-    dHp = 2 * np.sqrt(C1p * C2p) * np.sin(np.radians(dhp) / 2)
-    Lpm = (L1 + L2) / 2
-    Cpm = (C1p + C2p) / 2
-    hs = h1p + h2p
-    hpm = np.where(zero, hs, np.where(np.abs(h1p - h2p) <= 180, hs / 2,
-                                      np.where(hs < 360, (hs + 360) / 2, (hs - 360) / 2)))
-    T = (1 - 0.17 * np.cos(np.radians(hpm - 30)) + 0.24 * np.cos(np.radians(2 * hpm))
-         + 0.32 * np.cos(np.radians(3 * hpm + 6)) - 0.20 * np.cos(np.radians(4 * hpm - 63)))
-    dtheta = 30 * np.exp(-(((hpm - 275) / 25) ** 2))
-    Rc = 2 * np.sqrt(Cpm ** 7 / (Cpm ** 7 + 25.0 ** 7))
-    Sl = 1 + 0.015 * (Lpm - 50) ** 2 / np.sqrt(20 + (Lpm - 50) ** 2)
-    Sc = 1 + 0.045 * Cpm
-    Sh = 1 + 0.015 * Cpm * T
-    Rt = -np.sin(np.radians(2 * dtheta)) * Rc
-    tl, tc, th = dLp / (kL * Sl), dCp / (kC * Sc), dHp / (kH * Sh)
-    return np.sqrt(tl * tl + tc * tc + th * th + Rt * tc * th)
-
-
-# --------------------------------------------------------------------------- #
 # pooling (profiles)
 # --------------------------------------------------------------------------- #
 

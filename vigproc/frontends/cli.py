@@ -864,9 +864,9 @@ def cmd_bench_colour(args: argparse.Namespace) -> int:
         data["flat"] = [asdict(r) for r in rows]
         data["dng"] = [asdict(r) for r in dng]
     if args.part in ("detect", "all"):
-        from vigproc.frontends.commands.colourdetect import detect_report
+        from vigproc.frontends.commands.colourdetect import bench_detect_report
 
-        code, data["detect"] = detect_report(args)  # its options at their defaults (see bench colour-detect)
+        code, data["detect"] = bench_detect_report(args)  # its options at their defaults (see bench colour-detect)
         if code:
             return code
     write_json_result(args.json, data)

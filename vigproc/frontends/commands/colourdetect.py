@@ -42,13 +42,13 @@ def cmd_bench_colour_detect(args: argparse.Namespace) -> int:
     from vigproc.pipeline.processor import output_file
 
     output_file(args.json)
-    code, data = detect_report(args)
+    code, data = bench_detect_report(args)
     if data is not None:
         write_json_result(args.json, data)
     return code
 
 
-def detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
+def bench_detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
     """Run the detection benchmark and print its table: ``(exit code, figures)``; also
     ``vigproc bench colour --part detect`` (its options at their defaults there)."""
     from dataclasses import asdict
