@@ -166,7 +166,7 @@ def _as_given(path: str, outdir: Path) -> str:
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from vigproc.frontends.commands._options import interrupted, open_read_store
+    from vigproc.frontends.commands._options import interrupted, learn_setting, open_read_store
     from vigproc.pipeline.faults import DISK_FULL, classify_error
     from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 
@@ -176,11 +176,18 @@ def cmd_correct(args: argparse.Namespace) -> int:
     inputs = InputFiles(files)  # no output may replace an input of this run
     settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
                         output_format=args.output_format, picture=args.picture, strength=args.strength,
-                        unapplied=args.unapplied, in_camera=getattr(args, "in_camera", "respect"))
+                        unapplied=args.unapplied, in_camera=getattr(args, "in_camera", "respect"),
+                        # a one-off correct learns only into a store it was given (or with --learn)
+                        learn=learn_setting(args, default=args.profile_db is not None))
     failed = unapplied = 0
     results = []
     full = None  # the fault of the last failure (vigproc.pipeline.faults)
-    store = open_read_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
+    if settings.learn:  # it writes: a store that cannot be opened is an error now, not per file
+        from vigproc.stores.profiles import ProfileStore
+
+        store = ProfileStore(args.profile_db)
+    else:
+        store = open_read_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
             for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
@@ -1080,7 +1087,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="more log output (-v: info, -vv: debug and tracebacks)")
     sub = p.add_subparsers(dest="command", required=True)
 
-    from vigproc.frontends.commands._options import add_method, add_processing, add_transfer, number
+    from vigproc.frontends.commands._options import add_learn, add_method, add_processing, add_transfer, number
 
     sp = sub.add_parser("estimate", help="estimate the vignetting of images (nothing is written)")
     sp.add_argument("files", nargs="+", metavar="FILE", help="images to estimate")
@@ -1096,6 +1103,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, metavar="OUT_DIR",
                     help="folder for the corrected images and their JSON records")
     add_processing(sp)
+    add_learn(sp, "on when --profile-db is given and --profile is auto")
     sp.add_argument("--json", action="store_true", help=JSON_HELP)
     sp.set_defaults(fn=cmd_correct)
 
