@@ -222,3 +222,47 @@ def test_correct_learns_into_a_store_it_is_given_only(series, tmp_path):
     r = _run("correct", *paths[:2], "-o", tmp_path / "b", "--profile-db", db, "--json", env=env)
     assert r.returncode == 0, r.stderr
     assert [x["learned"]["frames"] for x in json.loads(r.stdout)["results"]] == [1, 2]
+
+
+@pytest.mark.skipif(shutil.which("exiftool") is None, reason="the DNG fixture needs exiftool for its EXIF")
+def test_watch_learns_by_default_and_a_frame_pooled_before_a_crash_is_not_pooled_again(series, tmp_path):
+    """A frame pooled by a worker that died before its outputs and journal entry were
+    written (simulated: pooled here first) is retried by the daemon: corrected, and said to
+    be pooled already; two workers pool the others concurrently, each once."""
+    import signal
+    import time
+
+    paths, _ = series
+    in_dir, out_dir, db = tmp_path / "in", tmp_path / "out", tmp_path / "p.sqlite"
+    in_dir.mkdir()
+    n = 5
+    for p in paths[:n]:
+        shutil.copyfile(p, in_dir / p.name)
+    with ProfileStore(db) as store, Processor(Settings(learn=True), store=store) as proc:
+        proc.process_file(in_dir / paths[0].name, _out(tmp_path / "crashed"))
+    log = tmp_path / "watch.log"
+    with open(log, "wb") as fh:
+        d = subprocess.Popen([*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--workers", "2", "--settle", "0.2",
+                              "--log-json", "--profile-db", str(db), "--output-format", "tiff16"],
+                             stdout=subprocess.DEVNULL, stderr=fh)
+        try:
+            deadline = time.monotonic() + 600
+            while len(list(out_dir.glob("*.vigproc.json"))) < n and time.monotonic() < deadline and d.poll() is None:
+                time.sleep(0.2)
+            time.sleep(0.5)  # the journal entry of the last one
+        finally:
+            d.send_signal(signal.SIGTERM)
+            assert d.wait(timeout=120) == 0
+    recs = {p.name: json.loads(p.read_text()) for p in out_dir.glob("*.vigproc.json")}
+    assert len(recs) == n, log.read_text()[-3000:]
+    with ProfileStore(db) as store:
+        assert [p.n_frames for p in store.list()] == [n]  # each content pooled once
+    first = recs[f"{paths[0].name}.vigproc.json"]
+    assert first["learned"]["pooled"] is False and "already pooled" in first["learned"]["reason"]
+    pooled = sorted(r["learned"]["frames"] for r in recs.values() if r["learned"]["pooled"])
+    assert pooled == list(range(2, n + 1))  # two workers, one store: no frame lost, none twice
+    events = [json.loads(x) for x in log.read_text().splitlines() if x.startswith("{")]
+    done = [e for e in events if e.get("event") == "done"]
+    assert len(done) == n and all(e.get("learned") for e in done)
+    assert sum("learned into profile" in e["msg"] for e in done) == n - 1
+    assert any("already pooled" in e["msg"] for e in done)
