@@ -201,6 +201,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
                             tag = f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed"
                         else:
                             tag = f"not corrected: {rec.get('not_applied', 'nothing applied')}"
+                        if rec.get("learned"):  # learning as you go: where the frame went
+                            tag += f"; {rec['learned']['summary']}"
                         where = _as_given(rec["output"], outdir) if rec.get("output") else \
                             "no image written (see its .vigproc.json)"
                         print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))

@@ -891,7 +891,7 @@ class Processor:
                 res.applied = m.candidate is None and s.strength > 0
                 res.strength = s.strength
                 used = steady.last if steady is not None and res.source == "stored-profile" else None
-                if used is not None:  # which revision corrected it: one per series (pipeline.learning)
+                if used is not None and res.applied:  # which revision corrected it: one per series
                     res.extra["profile_applied"] = {"profile": str(used.key), "frames": used.n_frames,
                                                     "updated": used.updated}
                 if s.learn:
