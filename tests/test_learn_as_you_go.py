@@ -131,6 +131,20 @@ def test_a_series_is_pooled_once_and_corrected_by_one_field_after_trust(series, 
         "summary"]
 
 
+def test_a_settled_profile_corrects_without_pooling(series, tmp_path, monkeypatch):
+    import vigproc.pipeline.learning as learning
+
+    monkeypatch.setattr(learning, "SETTLED_FRAMES", 5)
+    paths, _ = series
+    with ProfileStore(tmp_path / "p.sqlite") as store, Processor(Settings(learn=True), store=store) as proc:
+        recs = [proc.process_file(p, _out(tmp_path / "out")).to_dict() for p in paths]
+        [prof] = store.list()
+    assert prof.n_frames == 5
+    settled = [r for r in recs if not r["learned"]["pooled"]]
+    assert len(settled) == len(paths) - 5
+    assert all(r["source"] == "stored-profile" and "settled (5 frames)" in r["learned"]["reason"] for r in settled)
+
+
 def test_a_profile_that_moved_is_applied_anew(series, tmp_path):
     """SteadyProfiles holds a revision until the stored field moves more than REFRESH_EV."""
     paths, _ = series

@@ -178,17 +178,19 @@ class SteadyProfiles:
     ----------
     last : Profile or None
         The profile the last :meth:`lookup` returned (None: none).
+    latest : Profile or None
+        The stored profile as that lookup found it (``last`` may be an earlier revision).
     """
 
     def __init__(self, store, refresh_ev: float = REFRESH_EV) -> None:
         self.store = store
         self.refresh_ev = refresh_ev
         self._held: dict[str, Any] = {}
-        self.last = None
+        self.last = self.latest = None
 
     def lookup(self, lens_key, width: int, height: int, *, trusted_only: bool = False):
         self.last = None
-        hit = self.store.lookup(lens_key, width, height, trusted_only=trusted_only)
+        hit = self.latest = self.store.lookup(lens_key, width, height, trusted_only=trusted_only)
         if hit is None or not hit.trusted:
             return hit
         name = str(hit.key)

@@ -895,7 +895,8 @@ class Processor:
                     res.extra["profile_applied"] = {"profile": str(used.key), "frames": used.n_frames,
                                                     "updated": used.updated}
                 if s.learn:
-                    learned = self._learn_as_you_go(checked, lens_key, frame_id, in_camera, used, where)
+                    learned = self._learn_as_you_go(checked, lens_key, frame_id, in_camera,
+                                                    steady.latest if used is not None else None, where)
                     res.extra["learned"] = learned.to_dict()
                     res.profile = learned.profile if learned.pooled else res.profile
         res.seconds = round(time.perf_counter() - t0, 4)
@@ -951,8 +952,8 @@ class Processor:
 
     def _learn_as_you_go(self, img, lens_key, frame_id: str | None, in_camera, used, where: str):
         """Pool a frame correct mode handles into its lens's profile, exactly once
-        (:mod:`vigproc.pipeline.learning`); ``used``: the trusted profile that corrected it
-        (None: none). Returns a :class:`~vigproc.pipeline.learning.Learned`.
+        (:mod:`vigproc.pipeline.learning`); ``used``: the trusted profile that corrected it,
+        as stored now (None: none). Returns a :class:`~vigproc.pipeline.learning.Learned`.
 
         A frame the store cannot pool (too few usable bins, an invalid fit) is recorded as
         not pooled; a locked store, or a full disk under it, raises (the frame is tried
