@@ -159,8 +159,8 @@ def test_a_profile_that_moved_is_applied_anew(series, tmp_path):
             def __init__(self, p):
                 self.p = p
 
-            def lookup(self, *a, **k):
-                return self.p
+            def lookup(self, *a, trusted_only=False):
+                return None if trusted_only and not self.p.trusted else self.p
 
         steady.store = Stub(prof)
         assert steady.lookup(key, W, H, trusted_only=True) is prof
@@ -171,6 +171,12 @@ def test_a_profile_that_moved_is_applied_anew(series, tmp_path):
         assert field_change_ev(prof, moved) > REFRESH_EV
         steady.store = Stub(moved)
         assert steady.lookup(key, W, H, trusted_only=True) is moved
+        # frames that disagree took the stored profile's trust away: the series keeps its field
+        steady.store = Stub(replace(prof, trusted=False))
+        assert steady.lookup(key, W, H, trusted_only=True) is moved
+        # a bin never applied here that is not trusted: no profile, as the store says
+        fresh = SteadyProfiles(Stub(replace(prof, trusted=False)))
+        assert fresh.lookup(key, W, H, trusted_only=True) is None
 
 
 def test_frames_of_an_unnamed_lens_on_an_interchangeable_body_are_corrected_not_pooled(tmp_path):

@@ -26,7 +26,9 @@ Three rules of this module:
   meanwhile. Within one worker the frames after trust are corrected with one
   identical field (until such a move); two workers may hold revisions a frame or two
   apart, fields within :data:`REFRESH_EV` of the store's and so of each other's
-  (within twice that).
+  (within twice that). A revision held is kept while the stored profile has lost its
+  trust (later frames that disagree can raise its σ above the bound for a while): the
+  series keeps its field instead of going back to single-frame estimates.
 * **Fast once settled**: a frame corrected by its own lens setting's trusted profile
   that already pooled :data:`SETTLED_FRAMES` frames is not estimated nor pooled.
 """
@@ -189,12 +191,25 @@ class SteadyProfiles:
         self.last = self.latest = None
 
     def lookup(self, lens_key, width: int, height: int, *, trusted_only: bool = False):
+        """:meth:`ProfileStore.lookup`, but a lens setting whose profile this processor
+        applied keeps that revision while the stored one stays within ``refresh_ev`` of it,
+        and also while the stored one has lost its trust (frames that disagree raised its
+        σ): the series keeps its field rather than going back to single-frame estimates."""
         self.last = None
-        hit = self.latest = self.store.lookup(lens_key, width, height, trusted_only=trusted_only)
-        if hit is None or not hit.trusted:
-            return hit
+        hit = self.latest = self.store.lookup(lens_key, width, height, trusted_only=False)
+        if hit is None:
+            return None
         name = str(hit.key)
         held = self._held.get(name)
+        if not hit.trusted:
+            if held is not None:
+                self.last = held
+                return held
+            # nothing held for this bin: a trusted neighbour or interpolation, as the store gives it
+            hit = self.latest = self.store.lookup(lens_key, width, height, trusted_only=True) if trusted_only else hit
+            if hit is None or not hit.trusted:
+                return hit
+            name, held = str(hit.key), self._held.get(str(hit.key))
         if held is not None and field_change_ev(held, hit) <= self.refresh_ev:
             hit = held
         else:
