@@ -143,6 +143,8 @@ def test_a_settled_profile_corrects_without_pooling(series, tmp_path, monkeypatc
     settled = [r for r in recs if not r["learned"]["pooled"]]
     assert len(settled) == len(paths) - 5
     assert all(r["source"] == "stored-profile" and "settled (5 frames)" in r["learned"]["reason"] for r in settled)
+    # the settled profile as stored corrects them all: one revision, the 5-frame one
+    assert {r["profile_applied"]["frames"] for r in settled} == {5}
 
 
 def test_a_profile_that_moved_is_applied_anew(series, tmp_path):

@@ -30,7 +30,9 @@ Three rules of this module:
   trust (later frames that disagree can raise its σ above the bound for a while): the
   series keeps its field instead of going back to single-frame estimates.
 * **Fast once settled**: a frame corrected by its own lens setting's trusted profile
-  that already pooled :data:`SETTLED_FRAMES` frames is not estimated nor pooled.
+  that already pooled :data:`SETTLED_FRAMES` frames is not estimated nor pooled. The
+  settled profile no longer moves, and every worker applies it as stored: from there on
+  the frames of all workers share one field.
 """
 
 from __future__ import annotations
@@ -210,7 +212,9 @@ class SteadyProfiles:
             if hit is None or not hit.trusted:
                 return hit
             name, held = str(hit.key), self._held.get(str(hit.key))
-        if held is not None and field_change_ev(held, hit) <= self.refresh_ev:
+        # once settled the stored profile stops moving (its frames are no longer pooled): every
+        # worker then applies that very revision
+        if held is not None and hit.n_frames < SETTLED_FRAMES and field_change_ev(held, hit) <= self.refresh_ev:
             hit = held
         else:
             if held is not None:
