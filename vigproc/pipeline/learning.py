@@ -99,7 +99,7 @@ class Learned:
             return f"not learned: {self.reason}"
         state = "trusted" if self.trusted else "not yet trusted"
         head = "learned into" if self.pooled else f"not learned ({self.reason}):"
-        return f"{head} profile {self.profile} ({self.frames} frames, {state})"
+        return f"{head} profile {self.profile} ({self.frames} frame{'' if self.frames == 1 else 's'}, {state})"
 
     def to_dict(self) -> dict[str, Any]:
         d = {"pooled": self.pooled, "profile": self.profile, "frames": self.frames, "trusted": self.trusted,
