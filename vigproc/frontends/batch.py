@@ -30,6 +30,12 @@ shipped to every worker, which opens it from a private local temporary file: no
 SQLite file is ever shared over the network, and every frame of the job sees the
 same profiles.
 
+Correct mode that learns as it goes (``Settings.learn``, :mod:`vigproc.pipeline.learning`)
+runs on local workers only: each opens the client's own store (``JobSpec.store_path``,
+on this machine), pools its frames there keyed by their content (``BEGIN IMMEDIATE``
+serialises the workers; a frame pooled before a crash is not pooled again) and reads
+the profiles as they become trusted.
+
 References
 ----------
 dask.distributed: "Futures" (``Client.submit``, ``as_completed``, retries) and
@@ -287,6 +293,9 @@ class JobSpec:
         Content of ``--profile PATH``.
     store_snapshot : Shipped or None
         Snapshot of the profile store (``correct --profile auto``, ``check``).
+    store_path : str or None
+        The live profile store, for correct mode that learns as it goes (local
+        workers only: the file is on the client's machine).
     """
 
     settings: Settings
@@ -294,11 +303,13 @@ class JobSpec:
     numba_threads: int = 1
     profile_file: Shipped | None = None
     store_snapshot: Shipped | None = None
+    store_path: str | None = None
 
     @property
     def token(self) -> str:
         """Identity of the spec: worker state is cached per token."""
-        h = hashlib.sha256(json.dumps([self.settings.to_dict(), self.outdir], sort_keys=True).encode())
+        h = hashlib.sha256(json.dumps([self.settings.to_dict(), self.outdir]
+                                      + ([self.store_path] if self.store_path else []), sort_keys=True).encode())
         for s in (self.profile_file, self.store_snapshot):
             h.update((s.digest if s is not None else "-").encode())
         return h.hexdigest()[:16]
@@ -416,6 +427,10 @@ def _worker_state(spec: JobSpec) -> _WorkerState:
     store = evidence = None
     if settings.mode == "learn":
         store = evidence = _Evidence()
+    elif spec.store_path is not None:  # learning as you go: the live store, pooled into here
+        from vigproc.stores.profiles import ProfileStore
+
+        store = ProfileStore(spec.store_path)
     elif spec.store_snapshot is not None:
         from vigproc.stores.profiles import ProfileStore
 
@@ -499,7 +514,8 @@ def run_task(task: Task, spec: JobSpec) -> Outcome:
         folder, stem = _out_folder(spec, task.rel)
         if st.evidence is not None:
             st.evidence.items.clear()
-        res = st.processor.process_file(task.path, folder, stem)
+        res = st.processor.process_file(task.path, folder, stem,
+                                        frame_id=fp.sha256 if spec.settings.learn else None)
         after = os.stat(task.path)
         if (after.st_size, after.st_mtime_ns) != (fp.size, fp.mtime_ns):
             raise FileChangedError(f"{task.path} changed while it was being processed")
@@ -869,6 +885,12 @@ class _Run:
                 p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key)
                 s.profiles[str(p.key)] = {"n_frames": p.n_frames, "trusted": p.trusted,
                                           "field_sigma_ev": p.field_sigma_ev}
+        learned = (res.record or {}).get("learned") or {}
+        if learned.get("profile"):  # learning as you go: the workers pooled it; the latest state is shown
+            old = s.profiles.get(learned["profile"])
+            if old is None or learned["frames"] >= old["n_frames"]:
+                s.profiles[learned["profile"]] = {"n_frames": learned["frames"], "trusted": learned["trusted"],
+                                                  "field_sigma_ev": learned.get("field_sigma_ev")}
         self.journal.done(task.path, fp, result)
         s.processed += 1
         _count_source(s, res.record)

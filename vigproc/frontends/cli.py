@@ -193,7 +193,7 @@ def _as_given(path: str, outdir: Path) -> str:
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from vigproc.frontends.commands._options import interrupted, open_read_store
+    from vigproc.frontends.commands._options import interrupted, learn_setting, open_read_store
     from vigproc.pipeline.faults import DISK_FULL, classify_error
     from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 
@@ -203,11 +203,18 @@ def cmd_correct(args: argparse.Namespace) -> int:
     inputs = InputFiles(files)  # no output may replace an input of this run
     settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
                         output_format=args.output_format, picture=args.picture, strength=args.strength,
-                        unapplied=args.unapplied, in_camera=getattr(args, "in_camera", "respect"))
+                        unapplied=args.unapplied, in_camera=getattr(args, "in_camera", "respect"),
+                        # a one-off correct learns only into a store it was given (or with --learn)
+                        learn=learn_setting(args, default=args.profile_db is not None))
     failed = unapplied = 0
     results = []
     full = None  # the fault of the last failure (vigproc.pipeline.faults)
-    store = open_read_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
+    if settings.learn:  # it writes: a store that cannot be opened is an error now, not per file
+        from vigproc.stores.profiles import ProfileStore
+
+        store = ProfileStore(args.profile_db)
+    else:
+        store = open_read_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
             for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
@@ -221,6 +228,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
                             tag = f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed"
                         else:
                             tag = f"not corrected: {rec.get('not_applied', 'nothing applied')}"
+                        if rec.get("learned"):  # learning as you go: where the frame went
+                            tag += f"; {rec['learned']['summary']}"
                         where = _as_given(rec["output"], outdir) if rec.get("output") else \
                             "no image written (see its .vigproc.json)"
                         print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))
@@ -1140,7 +1149,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="more log output (-v: info, -vv: debug and tracebacks)")
     sub = p.add_subparsers(dest="command", required=True)
 
-    from vigproc.frontends.commands._options import add_method, add_processing, add_transfer, number
+    from vigproc.frontends.commands._options import add_learn, add_method, add_processing, add_transfer, number
 
     sp = sub.add_parser("estimate", help="estimate the vignetting of images (nothing is written)")
     sp.add_argument("files", nargs="+", metavar="FILE", help="images to estimate")
@@ -1156,6 +1165,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, metavar="OUT_DIR",
                     help="folder for the corrected images and their JSON records")
     add_processing(sp)
+    add_learn(sp, "on when --profile-db is given and --profile is auto")
     sp.add_argument("--json", action="store_true", help=JSON_HELP)
     sp.set_defaults(fn=cmd_correct)
 

@@ -194,6 +194,9 @@ class Settings:
     in_camera : str
         Correct mode: ``respect`` (a JPEG whose camera corrected its vignetting,
         :mod:`vigproc.io.incamera`, is left alone) or ``ignore``.
+    learn : bool
+        Correct mode: also pool each frame into its lens's stored profile, as learn
+        mode does (learn as you go, :mod:`vigproc.pipeline.learning`); needs a store.
     """
 
     mode: str = "correct"
@@ -205,6 +208,7 @@ class Settings:
     picture: bool = False
     unapplied: str = "keep"
     in_camera: str = "respect"
+    learn: bool = False
 
     def __post_init__(self) -> None:
         from vigproc.core.methods import METHODS
@@ -223,6 +227,8 @@ class Settings:
                                f"(choose from {', '.join(UNAPPLIED_POLICIES)})")
         if self.in_camera not in IN_CAMERA_POLICIES:
             raise VigprocError(f"unknown in-camera policy {self.in_camera!r} (choose from {', '.join(IN_CAMERA_POLICIES)})")
+        if self.learn and self.mode != "correct":
+            raise VigprocError(f"learning as you go is for correct mode, not {self.mode!r} (learn mode pools anyway)")
         if self.transfer not in ("auto", "linear", "srgb"):
             raise VigprocError(f"unknown input transfer {self.transfer!r}")
         if not (math.isfinite(self.strength) and 0.0 <= self.strength <= 2.0):
@@ -237,10 +243,11 @@ class Settings:
     def needs_store(self) -> bool:
         """Whether processing uses the profile store: learn mode pools into it, check mode
         takes its reference from it and ``profile="auto"`` looks there first."""
-        return self.mode in ("learn", "check") or self.profile == "auto"
+        return self.mode in ("learn", "check") or self.profile == "auto" or self.learn
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        # learn only when set: the settings of runs that do not learn keep their job ids and sidecars
+        return {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "learn" or self.learn}
 
 
 @dataclass
@@ -770,6 +777,7 @@ class Processor:
         self._reader = reader
         self._own_reader = reader is None
         self._sources = sources
+        self._steady = None  # learning as you go: the trusted profiles this processor applies
 
     @property
     def sources(self) -> dict:
@@ -811,8 +819,9 @@ class Processor:
         ``in_camera``: the camera already corrected the frame
         (:func:`vigproc.io.incamera.read_in_camera`): nothing is applied.
 
-        ``frame_id``: the frame's content id. Learn mode: a frame already pooled into
-        its lens's profile is not pooled again (:meth:`ProfileStore.learn`). Check mode:
+        ``frame_id``: the frame's content id. Learn mode, and correct mode with
+        ``settings.learn``: a frame already pooled into its lens's profile is not pooled
+        again (:meth:`ProfileStore.learn`). Check mode:
         a stored profile that pooled the frame is not its reference.
 
         Returns
@@ -848,7 +857,8 @@ class Processor:
             res.model, res.source, res.profile = self._learn(checked, lens_key, frame_id)
         else:
             warnings: list[str] = []
-            m, res.source = choose_model(checked, lens_key, s, self.store if s.profile == "auto" else None,
+            steady = self._steady_profiles() if s.learn and s.profile == "auto" else None
+            m, res.source = choose_model(checked, lens_key, s, steady or (self.store if s.profile == "auto" else None),
                                          where=where, sources=self.sources if s.profile == "auto" else None,
                                          embedded=embedded, warnings=warnings)
             if warnings:
@@ -880,6 +890,15 @@ class Processor:
                     _note_clipping(img, out, where, fmt)
                 res.applied = m.candidate is None and s.strength > 0
                 res.strength = s.strength
+                used = steady.last if steady is not None and res.source == "stored-profile" else None
+                if used is not None and res.applied:  # which revision corrected it: one per series
+                    res.extra["profile_applied"] = {"profile": str(used.key), "frames": used.n_frames,
+                                                    "updated": used.updated}
+                if s.learn:
+                    learned = self._learn_as_you_go(checked, lens_key, frame_id, in_camera,
+                                                    steady.latest if used is not None else None, where)
+                    res.extra["learned"] = learned.to_dict()
+                    res.profile = learned.profile if learned.pooled else res.profile
         res.seconds = round(time.perf_counter() - t0, 4)
         return out, res
 
@@ -897,18 +916,82 @@ class Processor:
         # store (no database to ask) keys by the current rule
         key_for = getattr(self.store, "key_for", None)
         key = key_for(lens_key, w, h) if key_for is not None else ProfileKey.from_lens(lens_key, w, h)
+        fit, evidence = self._pool_fit(img, checked=True)
+        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key)
+        return fit, "estimate", str(p.key)
+
+    def _pool_fit(self, img, *, checked: bool):
+        """What learn mode pools of a linear frame: its estimate (the candidate of one too
+        weak to apply alone: it still carries evidence for the lens) and, for the methods
+        that give it, the frame's evidence (None otherwise)."""
+        from vigproc.core.estimate import EVIDENCE_METHODS, estimate, estimate_checked, estimate_with_evidence
+
         evidence = None
         if self.settings.method in EVIDENCE_METHODS:
             # with the frame's data, so the store can pool the lens's profile from all its frames
-            m, evidence = estimate_with_evidence(img, method=self.settings.method, checked=True)
+            m, evidence = estimate_with_evidence(img, -1 if img.ndim == 3 else None, method=self.settings.method,
+                                                 checked=checked)
         else:
-            m = estimate_checked(img, self.settings.method)
-        # a fit too weak to apply to this frame alone still carries evidence for the lens
+            m = estimate_checked(img, self.settings.method) if checked else estimate(
+                img, self.settings.method, channel_axis=-1 if img.ndim == 3 else None)
         fit = m.candidate if m.candidate is not None else m
         if fit.covariance is None:
             raise ModelError("no usable fit to learn from (no uncertainty)")
-        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key)
-        return fit, "estimate", str(p.key)
+        return fit, evidence
+
+    def _steady_profiles(self):
+        """The store as correct mode reads it while learning: one revision of a trusted
+        profile per series (:class:`vigproc.pipeline.learning.SteadyProfiles`)."""
+        from vigproc.pipeline.learning import SteadyProfiles
+
+        if self.store is None:
+            raise VigprocError("learning as you go needs a profile store")
+        if self._steady is None or self._steady.store is not self.store:
+            self._steady = SteadyProfiles(self.store)
+        return self._steady
+
+    def _learn_as_you_go(self, img, lens_key, frame_id: str | None, in_camera, used, where: str):
+        """Pool a frame correct mode handles into its lens's profile, exactly once
+        (:mod:`vigproc.pipeline.learning`); ``used``: the trusted profile that corrected it,
+        as stored now (None: none). Returns a :class:`~vigproc.pipeline.learning.Learned`.
+
+        A frame the store cannot pool (too few usable bins, an invalid fit) is recorded as
+        not pooled; a locked store, or a full disk under it, raises (the frame is tried
+        again, and a frame pooled before is not pooled twice: ``frame_id``)."""
+        from vigproc.io.images import EncodedImage
+        from vigproc.pipeline.learning import SETTLED_FRAMES, Learned, pooling_refusal
+        from vigproc.stores.profiles import ProfileStoreError
+
+        if self.store is None:
+            raise VigprocError("learning as you go needs a profile store")
+        why = pooling_refusal(lens_key, in_camera)
+        if why is not None:
+            log.info("%s: not learned: %s", where, why)
+            return Learned(False, reason=why)
+        h, w = img.shape[:2]
+        try:
+            key = self.store.key_for(lens_key, w, h)
+            if used is not None and used.key == key and used.n_frames >= SETTLED_FRAMES:
+                return Learned.of(used, pooled=False, reason=f"the profile is settled ({used.n_frames} frames)")
+            if frame_id is not None and self.store.holds_frame(key, frame_id):  # a rerun, a copy, a retry
+                done = Learned.of(self.store.get(key), pooled=False, reason="this content is already pooled")
+                log.info("%s: %s", where, done.describe())
+                return done
+            linear = img.linear() if isinstance(img, EncodedImage) else img
+            try:
+                fit, evidence = self._pool_fit(linear, checked=not isinstance(img, EncodedImage))
+            except (ModelError, VigprocError) as exc:  # nothing to pool; the correction stands
+                log.info("%s: not learned: %s", where, exc)
+                return Learned(False, reason=f"no fit to pool: {exc}")
+            p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key)
+        except ProfileStoreError as exc:
+            if getattr(exc, "transient", False) or getattr(exc, "sqlite_errorcode", None) is not None:
+                raise  # a locked store or its full disk: the frame is tried again
+            log.warning("%s: not learned: %s", where, exc)
+            return Learned(False, reason=str(exc))
+        done = Learned.of(p, pooled=True)
+        log.info("%s: %s", where, done.describe())
+        return done
 
     # -- files ------------------------------------------------------------
     def process_file(self, path: str | os.PathLike[str], outdir: str | os.PathLike[str], stem: str | None = None,
@@ -1041,7 +1124,7 @@ class Processor:
             from vigproc.io.incamera import read_in_camera
 
             in_camera = read_in_camera(path, tags)
-        if s.mode in ("learn", "check") and frame_id is None and self.store is not None:
+        if (s.mode in ("learn", "check") or s.learn) and frame_id is None and self.store is not None:
             frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
         fmt = output_for(info)
         out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,

@@ -60,6 +60,28 @@ def add_profile_db(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--profile-db", help="profile store (default: $VIGPROC_PROFILE_DB or the user data folder)")
 
 
+def add_learn(sp: argparse.ArgumentParser, default: str) -> None:
+    """``--learn`` / ``--no-learn``: whether correct mode also pools each frame into its
+    lens's stored profile (:mod:`vigproc.pipeline.learning`); ``default`` says when it
+    does without either."""
+    g = sp.add_mutually_exclusive_group()
+    g.add_argument("--learn", dest="learn", action="store_const", const=True, default=None,
+                   help="correct mode: also pool each frame into its lens's stored profile (once per file "
+                        f"content); once the profile is trusted it corrects that lens setting (default: {default})")
+    g.add_argument("--no-learn", dest="learn", action="store_const", const=False,
+                   help="correct mode: do not pool frames into the profile store (it is still read)")
+
+
+def learn_setting(args: argparse.Namespace, *, default: bool) -> bool:
+    """What ``--learn``/``--no-learn`` (:func:`add_learn`) decide for a run: without
+    either, ``default`` in correct mode with ``--profile auto``; ``--learn`` in another
+    mode is refused by :class:`~vigproc.pipeline.processor.Settings`."""
+    chosen = getattr(args, "learn", None)
+    if chosen is not None:
+        return chosen
+    return default and getattr(args, "mode", "correct") == "correct" and args.profile == "auto"
+
+
 def add_output(sp: argparse.ArgumentParser, *, picture: bool = True) -> None:
     """Options of the corrected output: format, strength and (optionally) the picture."""
     from vigproc.pipeline.processor import IN_CAMERA_POLICIES, OUTPUT_FORMATS, UNAPPLIED_POLICIES

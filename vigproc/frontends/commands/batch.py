@@ -9,6 +9,7 @@ optional TOML config file, prints the summary and the benchmark table.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import json
 import logging
@@ -71,12 +72,20 @@ def _option(args: argparse.Namespace, config: dict[str, Any], name: str, default
 def cmd_batch(args: argparse.Namespace) -> int:
     from vigproc.frontends import backends as BK
     from vigproc.frontends import batch as B
+    from vigproc.frontends.commands._options import learn_setting
     from vigproc.pipeline.processor import Settings
 
     config = read_config(args.config) if args.config else {}
+    learn = learn_setting(args, default=True)
+    if learn and _option(args, config, "scheduler"):
+        if args.learn:
+            raise B.BatchError("--learn needs local workers (a cluster's workers cannot share the profile store): "
+                               "run 'vigproc batch --mode learn' first, then correct on the cluster")
+        log.info("not learning as it goes on a cluster (workers cannot share the profile store)")
+        learn = False
     settings = Settings(mode=args.mode, profile=args.profile, method=args.method, transfer=args.input_transfer,
                         output_format=args.output_format, strength=args.strength, picture=args.picture,
-                        unapplied=args.unapplied, in_camera=args.in_camera)
+                        unapplied=args.unapplied, in_camera=args.in_camera, learn=learn)
     outdir = Path(args.output).resolve()
     items, missing = B.collect(args.source, outdir)
 
@@ -112,14 +121,25 @@ def cmd_batch(args: argparse.Namespace) -> int:
     else:
         backend = BK.local_backend(_option(args, config, "workers"))
 
-    store = snapshot = None
+    store = snapshot = store_path = None
     profile_db = _option(args, config, "profile_db")
     try:
         if settings.needs_store:
             from vigproc.stores.profiles import ProfileStore
 
             store = ProfileStore(profile_db)
-            if settings.mode != "learn":  # workers read a snapshot; only learn mode writes, here
+            fs = B.filesystem_type(store.path) if settings.learn else None
+            if fs in B.NETWORK_FS:  # every worker would write it: SQLite's locks need a local disk
+                why = f"profile store {store.path} is on a {fs} network filesystem; learning as it goes needs a local disk"
+                if args.learn:
+                    raise B.BatchError(f"{why} (--profile-db, or --no-learn)")
+                log.warning("%s: not learning (pass --profile-db on a local disk)", why)
+                settings = dataclasses.replace(settings, learn=False)
+            if settings.learn:  # local workers pool into the store itself, and read it as profiles become trusted
+                store_path = str(store.path.resolve())
+                store.close()
+                store = None
+            elif settings.mode != "learn":  # workers read a snapshot; only learn mode writes, here
                 snapshot = B.Shipped.of("profiles.sqlite", B.snapshot_store(store))
                 store.close()
                 store = None
@@ -134,7 +154,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise B.BatchError(f"cannot create output folder {outdir}: {exc.strerror or exc}") from None
         spec = B.JobSpec(settings=settings, outdir=str(outdir), numba_threads=getattr(backend, "numba_threads", 1),
-                         profile_file=profile_file, store_snapshot=snapshot)
+                         profile_file=profile_file, store_snapshot=snapshot, store_path=store_path)
         summary = B.run_batch(items, spec, backend, journal_path=journal, job=job, store=store, retries=retries,
                               missing=missing, progress=None if not args.no_progress else False,
                               retry_quarantined=args.retry_quarantined)
@@ -197,7 +217,7 @@ def print_summary(summary, outdir: Path, *, as_json: bool = False) -> None:
 
 
 def register(subparsers) -> None:
-    from vigproc.frontends.commands._options import add_processing, number
+    from vigproc.frontends.commands._options import add_learn, add_processing, number
     from vigproc.pipeline.processor import MODES
 
     sp = subparsers.add_parser(
@@ -216,6 +236,7 @@ def register(subparsers) -> None:
     sp.add_argument("--journal", help="journal database (default OUT/.vigproc-batch.sqlite; must be on a local disk)")
     sp.add_argument("--retries", type=int, help="resubmissions of a file whose worker died (default 2)")
     add_processing(sp)
+    add_learn(sp, "on with --mode correct and --profile auto on local workers")
     sp.add_argument("--json", action="store_true", help="print the summary as JSON")
     sp.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
     sp.add_argument("--retry-quarantined", action="store_true",

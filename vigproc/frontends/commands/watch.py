@@ -38,6 +38,10 @@ def _config(args: argparse.Namespace):
     settings = {"mode": args.mode, "profile": profile, "method": args.method, "transfer": args.input_transfer,
                 "output_format": args.output_format, "picture": bool(args.picture), "strength": args.strength,
                 "unapplied": args.unapplied, "in_camera": args.in_camera}
+    from vigproc.frontends.commands._options import learn_setting
+
+    if learn_setting(args, default=True):  # a hot folder learns each lens as its photos arrive
+        settings["learn"] = True
     level = logging.DEBUG if args.verbose else logging.INFO
     return WatchConfig(
         in_dir=Path(args.in_dir), out_dir=Path(args.output), settings=settings, workers=args.workers, poll=args.poll,
@@ -119,7 +123,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> None:
-    from vigproc.frontends.commands._options import add_processing, number
+    from vigproc.frontends.commands._options import add_learn, add_processing, number
     from vigproc.pipeline.faults import DEFAULT_MIN_FREE
 
     sp = subparsers.add_parser(
@@ -143,6 +147,7 @@ def register(subparsers) -> None:
     sp.add_argument("--archive", metavar="DIR", help="move inputs here once done (mirroring their sub-folders)")
     sp.add_argument("--retry-quarantined", action="store_true", help="try quarantined files once more on start")
     add_processing(sp)
+    add_learn(sp, "on in correct mode with --profile auto")
     sp.add_argument("--log-json", action="store_true", help="log JSON lines (one object per event) on stderr")
     sp.add_argument("--status", action="store_true",
                     help="print the status of the daemon on these folders and exit (0 running, 3 not running)")

@@ -299,12 +299,15 @@ class Recorder:
         self._rates.append(time.monotonic())
         # a frame nothing was applied to says so: its output (if any) is the original
         why = f"; not corrected: {summary['not_applied']}" if summary.get("not_applied") else ""
+        if summary.get("learned"):  # learning as you go: where the frame went
+            why += f"; {summary['learned']}"
         log.info("done %s -> %s (%s, %.2f s%s)", task.rel, summary.get("output") or summary.get("sidecar"),
                  summary.get("source"), summary.get("seconds") or 0.0, why,
                  extra=_ev("done", file=task.path, sha256=task.fp.sha256, output=summary.get("output"),
                            sidecar=summary.get("sidecar"), not_applied=summary.get("not_applied"),
                            source=summary.get("source"), seconds=summary.get("seconds"), worker=worker,
-                           verdict=summary.get("verdict"), recovered=summary.get("recovered")))
+                           verdict=summary.get("verdict"), recovered=summary.get("recovered"),
+                           learned=summary.get("learned")))
         self.after_finished(task.path, task.fp, "done", None)
 
     def failure(self, task: _Task, kind: str, reason: str) -> None:

@@ -60,6 +60,7 @@ def _summary(d: dict[str, Any], sidecar: Path) -> dict[str, Any]:
     return {k: v for k, v in {
         "output": d.get("output"), "sidecar": str(sidecar), "picture": d.get("picture"), "source": d.get("source"),
         "applied": d.get("applied"), "not_applied": d.get("not_applied"), "profile": d.get("profile"),
+        "learned": (d.get("learned") or {}).get("summary"),
         "seconds": d.get("seconds"),
         "lens_id": (d.get("lens") or {}).get("lens_id"),
         "verdict": (verdict.get("verdict", verdict.get("label")) if isinstance(verdict, dict) else verdict),
@@ -122,7 +123,7 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
                     conn.send(("ok", task_id, {**_summary(old, sidecar), "recovered": True}))
                     continue
                 res = proc.process_file(path, outdir, stem, extra=extra,
-                                        frame_id=fp.sha256 if s.mode == "learn" else None)
+                                        frame_id=fp.sha256 if s.mode == "learn" or s.learn else None)
                 conn.send(("ok", task_id, _summary(res.to_dict(), sidecar)))
             except Exception as exc:  # noqa: BLE001 - every failure becomes a per-file record
                 # judged here, at once: a failed writer's temporary is gone, so the output

@@ -1,0 +1,290 @@
+"""Learn as you go (issue 38): a correct run also pools each frame into its lens's profile,
+exactly once per file content; once the profile is trusted it corrects the series with one
+field; frames that would mix lenses are not pooled, and the record says why."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vigproc.core.model import VignettingModel
+from vigproc.errors import VigprocError
+from vigproc.io.exif import LensKey
+from vigproc.pipeline.learning import REFRESH_EV, SteadyProfiles, field_change_ev, pooling_refusal
+from vigproc.pipeline.processor import Processor, Settings
+from vigproc.stores.profiles import ProfileStore
+
+from conftest import photo_like
+
+VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
+#: A Nikon D70 with its kit zoom at 70 mm: an interchangeable-lens body (lensfun: "Nikon F AF").
+D70_EXIF = {"Make": "NIKON CORPORATION", "Model": "NIKON D70", "LensMake": "Nikon",
+            "LensModel": "AF-S DX Zoom-Nikkor 18-70mm f/3.5-4.5G IF-ED",
+            "FocalLength": 70, "FNumber": 4.5, "FocalLengthIn35mmFormat": 105}
+#: The same body with no lens named (an adapted manual lens, say).
+D70_NO_LENS = {"Make": "NIKON CORPORATION", "Model": "NIKON D70", "FocalLength": 50, "FNumber": 2.8}
+H, W = 256, 384
+
+
+def _frames(folder: Path, n: int, exif=D70_EXIF, seed: int = 20) -> tuple[list[Path], np.ndarray]:
+    """``n`` DNG frames of one lens setting carrying a lensfun lens's fall-off: the paths
+    and the true log2 field."""
+    from dngfixture import make_dng
+
+    from vigproc.stores.lensfun import bench_lenses, pa_field
+
+    _, pa = bench_lenses(1)[0]
+    field = pa_field((H, W), pa.k1, pa.k2, pa.k3)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i in range(n):
+        p = folder / f"frame {i:02d}.dng"
+        make_dng(p, width=W, height=H, field=field, scene=photo_like(H, W, seed=seed + i), exif=exif)
+        paths.append(p)
+    return paths, np.log2(field)
+
+
+def _out(path: Path) -> Path:
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _log2_field(rec: dict) -> np.ndarray:
+    m = VignettingModel.from_dict(rec["model"])
+    return m.log_field((m.height, m.width)) / np.log(2.0)
+
+
+@pytest.fixture(scope="module")
+def series(tmp_path_factory):
+    return _frames(tmp_path_factory.mktemp("series"), 7)
+
+
+# ------------------------------------------------------------------ which frames pool
+@dataclass
+class _InCamera:
+    reason: str
+
+
+def _key(**kw) -> LensKey:
+    base = dict(make="nikon corporation", model="nikon d70", lens="af-s dx zoom-nikkor 18-70mm f/3.5-4.5g if-ed",
+                lens_serial=None, focal_mm=70.0, fnumber=4.5, focus_distance_m=None)
+    base.update(kw)
+    return LensKey(**base)
+
+
+def test_pooling_refusal_keeps_lenses_apart():
+    assert pooling_refusal(_key()) is None
+    assert "lens is unknown" in pooling_refusal(None)
+    assert "interchangeable lenses" in pooling_refusal(_key(lens=None))
+    # a compact's fixed lens needs no name: its frames are one lens
+    assert pooling_refusal(_key(make="canon", model="canon powershot s95", lens=None)) is None
+    assert "does not know the camera" in pooling_refusal(_key(make="acme", model="x1", lens=None))
+    assert "already corrected" in pooling_refusal(_key(), _InCamera("Canon Peripheral Illumination Correction on"))
+    assert "cannot have taken it" in pooling_refusal(_key(lens_problem="shot at 300 mm, outside the 18-70 mm"))
+
+
+def test_learning_is_a_correct_mode_setting():
+    with pytest.raises(VigprocError, match="correct mode"):
+        Settings(mode="estimate", learn=True)
+    assert Settings(learn=True).needs_store
+    # settings that do not learn keep their dict (job ids, sidecars of earlier runs)
+    assert "learn" not in Settings().to_dict() and Settings(learn=True).to_dict()["learn"] is True
+
+
+# ------------------------------------------------------------------ the processor path
+def test_a_series_is_pooled_once_and_corrected_by_one_field_after_trust(series, tmp_path):
+    paths, _ = series
+    db = tmp_path / "p.sqlite"
+    recs = []
+    with ProfileStore(db) as store, Processor(Settings(learn=True), store=store) as proc:
+        for p in paths:
+            recs.append(proc.process_file(p, _out(tmp_path / "out")).to_dict())
+        # a rerun and a copy under another name: the same content, not pooled again
+        again = proc.process_file(paths[0], _out(tmp_path / "again")).to_dict()
+        copy = tmp_path / "copy.dng"
+        shutil.copyfile(paths[1], copy)
+        copied = proc.process_file(copy, _out(tmp_path / "again")).to_dict()
+        [prof] = store.list()
+    assert prof.n_frames == len(paths)
+    assert [r["learned"]["frames"] for r in recs] == list(range(1, len(paths) + 1))
+    assert all(r["learned"]["pooled"] and r["profile"] == str(prof.key) for r in recs)
+    for r in (again, copied):
+        assert not r["learned"]["pooled"] and "already pooled" in r["learned"]["reason"]
+        assert r["learned"]["frames"] == len(paths)
+    trusted_at = next(i for i, r in enumerate(recs) if r["learned"]["trusted"])
+    assert trusted_at < len(paths) - 2, "the series must reach trust with frames to spare"
+    # before trust: each frame estimated alone; after it: the stored profile, one revision, one field
+    assert all(r["source"] == "estimate" for r in recs[:trusted_at + 1])
+    after = recs[trusted_at + 1:]
+    assert all(r["source"] == "stored-profile" and r["applied"] for r in after)
+    assert len({json.dumps(r["profile_applied"], sort_keys=True) for r in after}) == 1
+    first = _log2_field(after[0])
+    for r in after[1:]:
+        np.testing.assert_array_equal(_log2_field(r), first)
+    assert "learned into profile" in recs[0]["learned"]["summary"] and "not yet trusted" in recs[0]["learned"][
+        "summary"]
+
+
+def test_a_settled_profile_corrects_without_pooling(series, tmp_path, monkeypatch):
+    import vigproc.pipeline.learning as learning
+
+    monkeypatch.setattr(learning, "SETTLED_FRAMES", 5)
+    paths, _ = series
+    with ProfileStore(tmp_path / "p.sqlite") as store, Processor(Settings(learn=True), store=store) as proc:
+        recs = [proc.process_file(p, _out(tmp_path / "out")).to_dict() for p in paths]
+        [prof] = store.list()
+    assert prof.n_frames == 5
+    settled = [r for r in recs if not r["learned"]["pooled"]]
+    assert len(settled) == len(paths) - 5
+    assert all(r["source"] == "stored-profile" and "settled (5 frames)" in r["learned"]["reason"] for r in settled)
+    # the settled profile as stored corrects them all: one revision, the 5-frame one
+    assert {r["profile_applied"]["frames"] for r in settled} == {5}
+
+
+def test_a_profile_that_moved_is_applied_anew(series, tmp_path):
+    """SteadyProfiles holds a revision until the stored field moves more than REFRESH_EV."""
+    paths, _ = series
+    with ProfileStore(tmp_path / "p.sqlite") as store, Processor(Settings(learn=True), store=store) as proc:
+        for p in paths[:4]:
+            proc.process_file(p, _out(tmp_path / "out"))
+        steady = SteadyProfiles(store)
+        key = LensKey.__new__(LensKey)  # not used: lookups go through a stub below
+        [prof] = store.list()
+
+        class Stub:
+            def __init__(self, p):
+                self.p = p
+
+            def lookup(self, *a, trusted_only=False):
+                return None if trusted_only and not self.p.trusted else self.p
+
+        steady.store = Stub(prof)
+        assert steady.lookup(key, W, H, trusted_only=True) is prof
+        nudged = replace(prof, theta=prof.theta * (1 + 1e-6))
+        steady.store = Stub(nudged)
+        assert steady.lookup(key, W, H, trusted_only=True) is prof  # a tiny move: the same revision
+        moved = replace(prof, theta=prof.theta * 1.5)
+        assert field_change_ev(prof, moved) > REFRESH_EV
+        steady.store = Stub(moved)
+        assert steady.lookup(key, W, H, trusted_only=True) is moved
+        # frames that disagree took the stored profile's trust away: the series keeps its field
+        steady.store = Stub(replace(prof, trusted=False))
+        assert steady.lookup(key, W, H, trusted_only=True) is moved
+        # a bin never applied here that is not trusted: no profile, as the store says
+        fresh = SteadyProfiles(Stub(replace(prof, trusted=False)))
+        assert fresh.lookup(key, W, H, trusted_only=True) is None
+
+
+def test_frames_of_an_unnamed_lens_on_an_interchangeable_body_are_corrected_not_pooled(tmp_path):
+    paths, _ = _frames(tmp_path / "in", 2, exif=D70_NO_LENS, seed=40)
+    with ProfileStore(tmp_path / "p.sqlite") as store, Processor(Settings(learn=True), store=store) as proc:
+        recs = [proc.process_file(p, _out(tmp_path / "out")).to_dict() for p in paths]
+        assert store.list() == []
+    for r in recs:
+        assert r["learned"]["pooled"] is False and "interchangeable lenses" in r["learned"]["reason"]
+        assert r["source"] == "estimate" and "profile" not in r
+
+
+# ------------------------------------------------------------------ front ends
+def _run(*args, env=None, timeout=900):
+    return subprocess.run([*VIGPROC, *map(str, args)], capture_output=True, text=True, timeout=timeout, env=env)
+
+
+def test_batch_learns_by_default_with_two_workers_and_a_rerun_pools_nothing(series, tmp_path):
+    paths, _ = series
+    env = dict(os.environ, VIGPROC_PROFILE_DB=str(tmp_path / "p.sqlite"))
+    out = tmp_path / "out"
+    r = _run("batch", paths[0].parent, "--mode", "correct", "-o", out, "--workers", "2", "--no-progress", "--json",
+             env=env)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["processed"] == len(paths)
+    [(key, prof)] = summary["profiles"].items()
+    assert prof["n_frames"] == len(paths) and prof["trusted"]
+    recs = [json.loads(p.read_text()) for p in sorted(out.glob("*.vigproc.json"))]
+    assert sorted(r["learned"]["frames"] for r in recs) == list(range(1, len(paths) + 1))  # concurrent, none lost
+    assert any(r["source"] == "stored-profile" for r in recs)
+    # every revision a worker applied is within the stated tolerance of the final profile
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        [final] = store.list()
+    for rec in recs:
+        if rec["source"] == "stored-profile":
+            used = _log2_field(rec)
+            now = final.model(W, H)
+            assert np.sqrt(np.mean((used - now.log_field((H, W)) / np.log(2.0)) ** 2)) < 2 * REFRESH_EV
+    # a new job over the same files (other output folder): every content is pooled already
+    r = _run("batch", paths[0].parent, "--mode", "correct", "-o", tmp_path / "out2", "--workers", "2",
+             "--no-progress", env=env)
+    assert r.returncode == 0, r.stderr
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        assert [p.n_frames for p in store.list()] == [len(paths)]
+    # --no-learn: nothing pooled, nothing said about it
+    env2 = dict(os.environ, VIGPROC_PROFILE_DB=str(tmp_path / "q.sqlite"))
+    r = _run("batch", paths[0].parent, "--mode", "correct", "-o", tmp_path / "out3", "--workers", "1",
+             "--no-progress", "--no-learn", env=env2)
+    assert r.returncode == 0, r.stderr
+    with ProfileStore(tmp_path / "q.sqlite") as store:
+        assert store.list() == []
+    assert all("learned" not in json.loads(p.read_text()) for p in (tmp_path / "out3").glob("*.vigproc.json"))
+
+
+def test_correct_learns_into_a_store_it_is_given_only(series, tmp_path):
+    paths, _ = series
+    env = dict(os.environ, VIGPROC_PROFILE_DB=str(tmp_path / "default.sqlite"))
+    r = _run("correct", paths[0], "-o", tmp_path / "a", "--json", env=env)
+    assert r.returncode == 0, r.stderr
+    assert "learned" not in json.loads(r.stdout)["results"][0]
+    db = tmp_path / "given.sqlite"
+    r = _run("correct", *paths[:2], "-o", tmp_path / "b", "--profile-db", db, "--json", env=env)
+    assert r.returncode == 0, r.stderr
+    assert [x["learned"]["frames"] for x in json.loads(r.stdout)["results"]] == [1, 2]
+
+
+@pytest.mark.skipif(shutil.which("exiftool") is None, reason="the DNG fixture needs exiftool for its EXIF")
+def test_watch_learns_by_default_and_a_frame_pooled_before_a_crash_is_not_pooled_again(series, tmp_path):
+    """A frame pooled by a worker that died before its outputs and journal entry were
+    written (simulated: pooled here first) is retried by the daemon: corrected, and said to
+    be pooled already; two workers pool the others concurrently, each once."""
+    import signal
+    import time
+
+    paths, _ = series
+    in_dir, out_dir, db = tmp_path / "in", tmp_path / "out", tmp_path / "p.sqlite"
+    in_dir.mkdir()
+    n = 5
+    for p in paths[:n]:
+        shutil.copyfile(p, in_dir / p.name)
+    with ProfileStore(db) as store, Processor(Settings(learn=True), store=store) as proc:
+        proc.process_file(in_dir / paths[0].name, _out(tmp_path / "crashed"))
+    log = tmp_path / "watch.log"
+    with open(log, "wb") as fh:
+        d = subprocess.Popen([*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--workers", "2", "--settle", "0.2",
+                              "--log-json", "--profile-db", str(db), "--output-format", "tiff16"],
+                             stdout=subprocess.DEVNULL, stderr=fh)
+        try:
+            deadline = time.monotonic() + 600
+            while len(list(out_dir.glob("*.vigproc.json"))) < n and time.monotonic() < deadline and d.poll() is None:
+                time.sleep(0.2)
+            time.sleep(0.5)  # the journal entry of the last one
+        finally:
+            d.send_signal(signal.SIGTERM)
+            assert d.wait(timeout=120) == 0
+    recs = {p.name: json.loads(p.read_text()) for p in out_dir.glob("*.vigproc.json")}
+    assert len(recs) == n, log.read_text()[-3000:]
+    with ProfileStore(db) as store:
+        assert [p.n_frames for p in store.list()] == [n]  # each content pooled once
+    first = recs[f"{paths[0].name}.vigproc.json"]
+    assert first["learned"]["pooled"] is False and "already pooled" in first["learned"]["reason"]
+    pooled = sorted(r["learned"]["frames"] for r in recs.values() if r["learned"]["pooled"])
+    assert pooled == list(range(2, n + 1))  # two workers, one store: no frame lost, none twice
+    events = [json.loads(x) for x in log.read_text().splitlines() if x.startswith("{")]
+    done = [e for e in events if e.get("event") == "done"]
+    assert len(done) == n and all(e.get("learned") for e in done)
+    assert sum("learned into profile" in e["msg"] for e in done) == n - 1
+    assert any("already pooled" in e["msg"] for e in done)

@@ -1,0 +1,76 @@
+"""``vigproc bench learn-series``: a series of one lens setting through ``vigproc batch``,
+learning as it goes (:mod:`vigproc.bench.learn_series`): when the profile is trusted, each
+frame's field error before and after, and whether the frames after trust share one field."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+
+
+def register(subparsers) -> None:
+    """No command of its own: a benchmark only (:func:`register_bench`)."""
+
+
+def register_bench(bsub) -> None:
+    from vigproc.frontends.commands._options import add_clean_bases, number
+
+    bp = bsub.add_parser("learn-series", help="learn as you go: a series of one lens setting (clean bases x a "
+                         "lensfun lens's field, with its EXIF) through 'vigproc batch --mode correct'")
+    add_clean_bases(bp)
+    bp.add_argument("--frames", type=number(3, 1000, integer=True), default=16,
+                    help="frames in the series (default %(default)s)")
+    bp.add_argument("--lenses", type=number(1, 20, integer=True), default=1,
+                    help="series of this many lensfun lenses, one after the other (default %(default)s)")
+    bp.add_argument("--workers", type=number(1, 64, integer=True), default=2,
+                    help="batch workers (default %(default)s)")
+    bp.add_argument("--tmp", help="folder for the temporary files (default: the system's)")
+    bp.add_argument("--frames-table", action="store_true", help="also print every frame's row")
+    bp.add_argument("--json", help="write the figures as JSON")
+    bp.set_defaults(fn=cmd_bench_learn_series)
+
+
+def _fmt(x: float, spec: str = ".3f") -> str:
+    return "-" if x is None or not math.isfinite(x) else format(x, spec)
+
+
+def cmd_bench_learn_series(args: argparse.Namespace) -> int:
+    import os
+    from pathlib import Path
+
+    from vigproc.bench.clean import lens_fields, load_clean_bases
+    from vigproc.bench.learn_series import run_series
+    from vigproc.frontends.commands._options import write_json_result
+    from vigproc.stores.lensfun import bench_lenses
+
+    bases, _ = load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
+    if len(bases) < args.frames:
+        print(f"only {len(bases)} bases under {args.images}; the series needs {args.frames}")
+        return 1
+    fields, _ = lens_fields()
+    lenses = bench_lenses(20)
+    results = []
+    print(f"learn as you go: {args.frames} frames of one lens setting through 'vigproc batch --mode correct "
+          f"--workers {args.workers}' (load {os.getloadavg()[0]:.1f})")
+    print("| lens | trusted at frame | own estimate: median EV | stored profile: median / max EV | "
+          "revisions applied after trust | spread EV | uncorrected EV | s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for k in range(args.lenses):
+        fld = fields[k]
+        lens, pa = lenses[k]
+        rot = [bases[(k * args.frames + i) % len(bases)] for i in range(args.frames)]
+        r = run_series(rot, fld.log_field, lens=f"{lens.maker} {lens.model}", focal_mm=pa.focal,
+                       fnumber=pa.aperture, focal35=fld.focal35, workers=args.workers,
+                       tmp=Path(args.tmp) if args.tmp else None)
+        results.append(r)
+        print(f"| {r.lens} | {r.trusted_at or '-'} | {_fmt(r.before_median_ev)} | {_fmt(r.after_median_ev)} / "
+              f"{_fmt(r.after_max_ev)} | {', '.join(map(str, r.revisions)) or '-'} | "
+              f"{_fmt(r.revision_spread_ev, '.4f')} | {_fmt(r.uncorrected_ev)} | {r.wall_s:.0f} |")
+        if args.frames_table:
+            for x in r.rows:
+                print(f"    {x.name}: pooled as {x.pooled_as}, trusted {x.trusted_after}, {x.source}"
+                      f"{f' (revision {x.revision})' if x.revision else ''}, error {x.error_ev:.3f} EV, "
+                      f"{x.seconds:.1f} s")
+    write_json_result(args.json, [dataclasses.asdict(r) for r in results])
+    return 0
