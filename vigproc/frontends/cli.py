@@ -885,6 +885,17 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_memory(args: argparse.Namespace) -> int:
+    """Peak memory of one worker (``vigproc correct``) on a 24 MP JPEG and 16-bit TIFF
+    (:mod:`vigproc.bench.memory`)."""
+    from vigproc.bench import memory as M
+
+    r = M.run_memory(args.width, args.height, workdir=Path(args.tmp) if args.tmp else None)
+    print("\n".join(M.format_result(r)))
+    write_json_result(args.json, asdict(r))
+    return 0
+
+
 def _profile_line(i: int, p) -> str:
     t = "trusted" if p.trusted else "learning"
     sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
@@ -1314,6 +1325,15 @@ def build_parser() -> argparse.ArgumentParser:
                     "(another checkout's root): before and after in one run")
     bp.add_argument("--json", help="write the figures as JSON")
     bp.set_defaults(fn=cmd_bench_throughput)
+    bp = bsub.add_parser("memory", help="peak memory of one worker (vigproc correct) on a 24 MP JPEG and "
+                         "16-bit TIFF")
+    bp.add_argument("--width", type=number(64, 100_000, integer=True), default=6000,
+                    help="frame width in px (default %(default)s)")
+    bp.add_argument("--height", type=number(64, 100_000, integer=True), default=4000,
+                    help="frame height in px (default %(default)s)")
+    bp.add_argument("--tmp", help="folder for the temporary files (default: the system's)")
+    bp.add_argument("--json", help="write the figures as JSON")
+    bp.set_defaults(fn=cmd_bench_memory)
     bp = bsub.add_parser("profile", help="profile accuracy versus number of frames (lensfun lenses)")
     bp.add_argument("--images", required=True, help="folder of images")
     bp.add_argument("--limit", type=int, help="use at most this many images")
