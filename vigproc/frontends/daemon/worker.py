@@ -99,7 +99,7 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
     except Exception as exc:  # a worker that cannot start is fatal for the daemon: say why
         conn.send(("fatal", None, f"{type(exc).__name__}: {exc}"))
         return
-    _warm(proc, wlog)
+    _warm(wlog)
     try:
         conn.send(("ready", None, os.getpid()))
         while True:
@@ -145,12 +145,13 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
                 store.close()
 
 
-def _warm(proc: Any, wlog: logging.Logger) -> None:
+def _warm(wlog: logging.Logger) -> None:
     """Pay the worker's start-up once, before it says it is ready, not on its first
     file: the Numba kernels loaded from their cache (compiled the first time on a
-    machine), this worker's share of the cores for Numba and OpenImageIO, and its
-    exiftool processes (EXIF reader, metadata writer) started.  Nothing here is fatal:
-    what fails now fails again, and is reported, on a file."""
+    machine) and this worker's share of the cores for Numba and OpenImageIO.  Not
+    fatal: what fails now fails again, and is reported, on a file.  (Its exiftool
+    processes start with the first file and persist: a hung exiftool is then charged to
+    the file that met it, with the worker's timeout.)"""
     from vigproc.frontends.batch import warm_up
 
     threads = os.environ.get("NUMBA_NUM_THREADS", "")  # set per worker by the scheduler
@@ -158,13 +159,6 @@ def _warm(proc: Any, wlog: logging.Logger) -> None:
         warm_up(int(threads) if threads.isdigit() else None)
     except Exception:  # noqa: BLE001 - the first file says it again, with its name
         wlog.debug("warm-up of the kernels failed", exc_info=True)
-    try:
-        proc.reader  # noqa: B018 - starts the EXIF reader's exiftool
-        from vigproc.io.metadata import _process
-
-        _process().start()
-    except Exception:  # noqa: BLE001 - e.g. no exiftool: each file's record says so
-        wlog.debug("exiftool not started", exc_info=True)
 
 
 def _kill_group(process: Any) -> None:
