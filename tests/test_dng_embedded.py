@@ -271,3 +271,35 @@ def test_output_dng_of_a_real_camera_dng(shared_data: Path, tmp_path: Path) -> N
     t = json.loads(subprocess.run(["exiftool", "-j", "-OpcodeList3", "-Model", "--", str(dst)],
                                   capture_output=True, check=True).stdout)[0]
     assert t["OpcodeList3"] == "FixVignetteRadial" and t["Model"] == "Canon EOS Kiss X4"
+
+
+def test_opcodes_are_read_and_written_through_the_one_persistent_exiftool(dngs: dict[str, Path],
+                                                                          tmp_path: Path, monkeypatch) -> None:
+    """No new exiftool per call: reads and the OpcodeList3 write go through the process's
+    stay-open one; a name the argument protocol cannot carry (a line break) goes through
+    an alias, and the source is not touched."""
+    from vigproc.io import metadata
+    from vigproc.io.dng_vignette import write_dng_correction
+
+    proc = metadata._process()
+    read_opcode_lists(dngs["radial"])
+    launches = proc.launches
+    started = []
+    popen = subprocess.Popen
+
+    def spy(*a, **k):
+        started.append(a[0] if a else k.get("args"))
+        return popen(*a, **k)
+
+    monkeypatch.setattr(subprocess, "Popen", spy)
+    hostile = tmp_path / "new\nline -x.dng"
+    shutil.copyfile(dngs["radial"], hostile)
+    before = sha256(hostile)
+    dst = tmp_path / "out\nput.dng"
+    for _ in range(3):
+        assert read_opcode_lists(hostile) == read_opcode_lists(dngs["radial"])
+    info = write_dng_correction(hostile, dst, true_model())
+    assert started == [] and proc.launches == launches and proc.running  # not one process more
+    assert sha256(hostile) == before
+    assert len(dict(read_opcode_lists(dst))["OpcodeList3"]) == info["opcodes_in_list"] == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([hostile.name, dst.name])  # no temporaries left

@@ -922,3 +922,45 @@ def test_linear_tiffs_carry_a_linear_srgb_icc_profile(tmp_path: Path) -> None:
                                   text=True).stdout.strip()
         assert desc(tmp_path / "lin.tif") == DESCRIPTION
         assert desc(tmp_path / "grey.tif") == "" and desc(tmp_path / "srgb.tif") == ""
+
+
+@pytest.mark.parametrize("depth,tiled", [("uint8", False), ("uint16", False), ("float", False), ("uint16", True)])
+def test_a_frame_read_in_bands_of_rows_is_the_frame(tmp_path, depth, tiled):
+    """Files stored in scanlines are read in bands of READ_BAND rows (the binding would
+    hold a whole-frame read twice): the same pixels as one read of the whole frame."""
+    import OpenImageIO as oiio
+
+    from vigproc.io import images
+
+    h, w = 2 * images.READ_BAND + 37, 50
+    rng = np.random.default_rng(0)
+    data = rng.uniform(0.01, 1, (h, w, 3)).astype(np.float32)
+    p = tmp_path / f"x{depth}{tiled}.tif"
+    spec = oiio.ImageSpec(w, h, 3, depth)
+    if tiled:
+        spec.tile_width = spec.tile_height = 64
+    out = oiio.ImageOutput.create(str(p))
+    assert out.open(str(p), spec) and out.write_image(data)
+    out.close()
+    inp = oiio.ImageInput.open(str(p))
+    whole = np.asarray(inp.read_image(0, 0, 0, 3, depth)).reshape(h, w, 3)
+    inp.close()
+    inp = oiio.ImageInput.open(str(p))
+    banded = images._read_pixels(inp, inp.spec(), depth)
+    inp.close()
+    assert banded.dtype == whole.dtype and banded.shape == (h, w, 3)
+    np.testing.assert_array_equal(banded, whole)
+    img, _ = images.read_image(p, transfer="linear")
+    assert img.shape == (h, w, 3)
+
+
+def test_a_truncated_jpeg_read_in_bands_is_a_read_error(tmp_path):
+    from vigproc.io import images
+
+    p = tmp_path / "t.jpg"
+    img = np.random.default_rng(1).uniform(0.1, 0.9, (3 * images.READ_BAND, 120, 3)).astype(np.float32)
+    write_image(p, img, bit_depth="uint8", transfer="srgb")
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ImageReadError):
+        read_image(p)

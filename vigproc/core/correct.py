@@ -322,7 +322,7 @@ ENCODE_CELLS = 65536
 
 
 def correct_codes(codes: np.ndarray, model: VignettingModel, decode: np.ndarray, steps: np.ndarray, *,
-                  strength: float = 1.0) -> np.ndarray:
+                  strength: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
     """Correct a display-encoded frame in its own domain: each code value decoded by the
     table ``decode``, multiplied by the gain 1/φ^strength, and encoded back by
     ``steps`` (what :func:`correct` then an encode with round-half-up quantisation give,
@@ -342,6 +342,10 @@ def correct_codes(codes: np.ndarray, model: VignettingModel, decode: np.ndarray,
         are clipped to.
     strength : float
         As :func:`correct`.
+    out : ndarray, optional
+        Where to write the result: C-contiguous, the shape of ``codes`` and the output's
+        dtype; may be ``codes`` itself (each sample is read before it is written), which
+        spares a second frame in memory.
 
     Returns
     -------
@@ -360,9 +364,19 @@ def correct_codes(codes: np.ndarray, model: VignettingModel, decode: np.ndarray,
     x = np.ascontiguousarray(a[..., None] if a.ndim == 2 else a)
     fh, fw = x.shape[:2]
     m = _checked_model(model, fw, fh)
-    out = np.empty(x.shape, dtype=np.uint8 if st.shape[0] <= 255 else np.uint16)
+    dtype = np.uint8 if st.shape[0] <= 255 else np.uint16
+    if out is None:
+        out = np.empty(x.shape, dtype=dtype)
+    else:
+        if out.shape != a.shape or out.dtype != dtype or not out.flags.c_contiguous or not out.flags.writeable:
+            raise InvalidImageError(f"out must be a writable C-contiguous {np.dtype(dtype)} array of shape {a.shape}, "
+                                    f"got {out.dtype} {out.shape}")
+        if a.ndim == 2:
+            out = out[..., None]
+        if np.shares_memory(out, x) and out.__array_interface__["data"][0] != x.__array_interface__["data"][0]:
+            raise InvalidImageError("out overlaps codes without being codes itself")
     if m.colour is not None and x.shape[2] >= 3 and s != 0.0:
-        _codes_colour(x, out, m, lut, st, s)
+        _codes_colour(x, out, m, lut, st, s)  # block by block of rows: in place is safe
         return out[..., 0] if a.ndim == 2 else out
     step = gain_step(m, fw, fh)
     # where each code's search starts: the steps below each of 65536 cells of [0, 1)

@@ -452,9 +452,13 @@ def release_worker_state() -> None:
 
 def warm_up(numba_threads: int | None = None) -> None:
     """Load (or compile, the first time on a machine) the Numba kernels of the
-    estimator and the correction once in this process, so tasks do not pay it."""
+    estimator and the correction once in this process, so tasks do not pay it.
+
+    ``numba_threads``: this process's share of the cores, for Numba and for
+    OpenImageIO's own thread pool (N workers × all-core pools would oversubscribe)."""
     if numba_threads:
         _set_numba_threads(numba_threads)
+        _set_oiio_threads(numba_threads)
     with _warm_lock:
         if _warm[0]:
             return
@@ -477,6 +481,12 @@ def _set_numba_threads(n: int) -> None:
 
     # thread-local in Numba: set in the thread that runs the task
     numba.set_num_threads(max(1, min(int(n), numba.config.NUMBA_NUM_THREADS)))
+
+
+def _set_oiio_threads(n: int) -> None:
+    import OpenImageIO as oiio
+
+    oiio.attribute("threads", max(1, int(n)))  # process-wide
 
 
 def worker_name() -> str:

@@ -952,6 +952,31 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_scaling(args: argparse.Namespace) -> int:
+    """``vigproc watch`` and ``vigproc batch`` on full-size photographs with 1 and 2
+    workers, interleaved (:mod:`vigproc.bench.scaling`)."""
+    from vigproc.bench import scaling as S
+    from vigproc.bench import throughput as T
+
+    photos, _ = T.select_photos(Path(args.images), args.min_mp, args.limit)
+    r = S.run_scaling(photos, workers=args.workers, rounds=args.rounds, frontends=args.frontends,
+                      workdir=Path(args.tmp) if args.tmp else None)
+    print("\n".join(S.format_result(r)))
+    write_json_result(args.json, asdict(r))
+    return 0
+
+
+def cmd_bench_memory(args: argparse.Namespace) -> int:
+    """Peak memory of one worker (``vigproc correct``) on a 24 MP JPEG and 16-bit TIFF
+    (:mod:`vigproc.bench.memory`)."""
+    from vigproc.bench import memory as M
+
+    r = M.run_memory(args.width, args.height, workdir=Path(args.tmp) if args.tmp else None)
+    print("\n".join(M.format_result(r)))
+    write_json_result(args.json, asdict(r))
+    return 0
+
+
 def _profile_line(i: int, p) -> str:
     t = "trusted" if p.trusted else "learning"
     sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
@@ -1386,6 +1411,29 @@ def build_parser() -> argparse.ArgumentParser:
                     "(another checkout's root): before and after in one run")
     bp.add_argument("--json", help="write the figures as JSON")
     bp.set_defaults(fn=cmd_bench_throughput)
+    bp = bsub.add_parser("scaling", help="vigproc watch and vigproc batch on full-size photographs with 1 and 2 "
+                         "workers, interleaved: photos/s and the ratio to one worker")
+    bp.add_argument("--images", required=True, help="folder of JPEG photographs")
+    bp.add_argument("--min-mp", type=float, default=0.75, help="smallest photograph, megapixels (default %(default)s)")
+    bp.add_argument("--limit", type=number(1, 100_000, integer=True), help="use at most this many photographs")
+    bp.add_argument("--workers", type=number(1, 64, integer=True), nargs="+", default=[1, 2],
+                    help="worker counts (default 1 2)")
+    bp.add_argument("--frontends", nargs="+", choices=["watch", "batch"], default=["watch", "batch"],
+                    help="what to time (default both)")
+    bp.add_argument("--rounds", type=number(1, 100, integer=True), default=2,
+                    help="timing rounds, interleaved (default %(default)s)")
+    bp.add_argument("--tmp", help="folder for the temporary files (default: the system's)")
+    bp.add_argument("--json", help="write the figures as JSON")
+    bp.set_defaults(fn=cmd_bench_scaling)
+    bp = bsub.add_parser("memory", help="peak memory of one worker (vigproc correct) on a 24 MP JPEG and "
+                         "16-bit TIFF")
+    bp.add_argument("--width", type=number(64, 100_000, integer=True), default=6000,
+                    help="frame width in px (default %(default)s)")
+    bp.add_argument("--height", type=number(64, 100_000, integer=True), default=4000,
+                    help="frame height in px (default %(default)s)")
+    bp.add_argument("--tmp", help="folder for the temporary files (default: the system's)")
+    bp.add_argument("--json", help="write the figures as JSON")
+    bp.set_defaults(fn=cmd_bench_memory)
     bp = bsub.add_parser("profile", help="profile accuracy versus number of frames (lensfun lenses)")
     bp.add_argument("--images", required=True, help="folder of images")
     bp.add_argument("--limit", type=int, help="use at most this many images")

@@ -52,7 +52,6 @@ import logging
 import math
 import os
 import shutil
-import subprocess
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -69,12 +68,11 @@ from vigproc.io.dng_opcodes import (
     parse_opcode_list,
 )
 from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputSettingsError,
-                            one_line, write_error)
+                            VigprocError, one_line, write_error)
 from vigproc.core.colour import ColourField, fit_gain_planes
 from vigproc.core.model import FitQuality, VignettingModel
 
 __all__ = [
-    "EXIFTOOL_TIMEOUT",
     "EmbeddedCalibration",
     "GainFieldModel",
     "RadialFit",
@@ -88,8 +86,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: Seconds exiftool may take to read or write one DNG.
-EXIFTOOL_TIMEOUT = 120.0
 #: Samples along the long side of the frame for the least-squares fits.
 FIT_GRID = 64
 #: Samples along the long side on which fit errors are measured (finer than the fit's).
@@ -665,27 +661,55 @@ def model_to_gain_maps(model: VignettingModel, *, strength: float = 1.0,
 # --------------------------------------------------------------------------- #
 
 
-def _exiftool() -> str:
-    from vigproc.io.metadata import exiftool_path
+def _run(args: list[str], what: str, error: type[Exception], *, read: str | None = None,
+         rewrite: str | None = None) -> Any:
+    """One exiftool command through this process's persistent exiftool
+    (:mod:`vigproc.io.metadata`: ``-stay_open``, restarted once if it dies or hangs).
 
-    return exiftool_path()
+    ``read`` is a file the command reads, ``rewrite`` one it rewrites in place; both are
+    appended last.  A name the argument protocol cannot carry (a line break, bytes that
+    are not UTF-8) goes through a private alias, never a shell.
 
+    Returns
+    -------
+    vigproc.io.exiftool_process.ExiftoolResult
 
-def _run(args: list[str], what: str, error: type[Exception]) -> subprocess.CompletedProcess[bytes]:
-    """exiftool with an argument list (never a shell), bounded in time."""
-    from vigproc.processes import AVAILABLE, die_with_parent
+    Raises
+    ------
+    error
+        exiftool is missing, cannot start, or died twice during the command.
+    """
+    from vigproc.io.exiftool_process import ExiftoolDied
+    from vigproc.io.metadata import _Exiftool
 
     try:
-        exe = _exiftool()
-    except ImageWriteError as exc:  # exiftool is missing: say it as the caller's kind of error
+        with _Exiftool() as et:
+            tail, target = [], None
+            if read is not None:
+                tail.append(et.source_name(read))
+            if rewrite is not None:
+                target = et.target_name(rewrite)
+                tail.append(target)
+            def _no_leftover() -> None:  # a killed exiftool's half-written copy would refuse the retry
+                if target is not None:
+                    with contextlib.suppress(OSError):
+                        os.unlink(target + "_exiftool_tmp")
+
+            try:
+                res = et.proc.execute([*args, *tail], before_retry=_no_leftover)
+            except ExiftoolDied as exc:
+                raise error(f"{what}: exiftool {exc}") from None
+            if target is not None and res.status == 0:
+                et.put_back(target, rewrite)
+            return res
+    except (ImageWriteError, OutputSettingsError) as exc:  # missing or not starting: the caller's kind
+        if isinstance(exc, error):
+            raise
         raise error(f"{what}: {exc}") from None
-    try:
-        return subprocess.run([exe, *args], stdin=subprocess.DEVNULL, capture_output=True,
-                              timeout=EXIFTOOL_TIMEOUT, preexec_fn=die_with_parent if AVAILABLE else None)
-    except subprocess.TimeoutExpired:
-        raise error(f"{what}: exiftool did not finish within {EXIFTOOL_TIMEOUT:.0f} s") from None
-    except OSError as exc:
-        raise error(f"{what}: cannot run exiftool: {exc.strerror or exc}") from None
+    except VigprocError as exc:
+        if isinstance(exc, error):
+            raise
+        raise error(f"{what}: cannot run exiftool: {exc}") from None
 
 
 def _abs(path: str | os.PathLike[str]) -> str:
@@ -700,7 +724,7 @@ def _read_groups(path: str | os.PathLike[str]) -> tuple[dict[str, dict[str, Any]
     what = f"cannot read the opcode lists of {p!r}"
     res = _run(["-j", "-b", "-a", "-G1", *(f"-{t}#" for t in _LISTS), "-SubfileType#", "-CFAPattern2#",
                 "-CFARepeatPatternDim#",
-                "-PhotometricInterpretation#", "-File:FileType", "--", p], what, ImageReadError)
+                "-PhotometricInterpretation#", "-File:FileType"], what, ImageReadError, read=p)
     try:
         recs = json.loads(res.stdout.decode("utf-8", "replace") or "[]")
     except ValueError:
@@ -902,10 +926,10 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
                 if _version_tuple(backward) < (1, 3):
                     args.append("-IFD0:DNGBackwardVersion=1.3.0.0")
                     info["dng_backward_version"] = "1.3.0.0"
-                res = _run([*args, "--", tmp], f"cannot write {dst_s!r}", ImageWriteError)
-                if res.returncode != 0:
+                res = _run(args, f"cannot write {dst_s!r}", ImageWriteError, rewrite=tmp)
+                if res.status != 0:
                     err = one_line(res.stderr.decode("utf-8", "replace").strip())[:300]
-                    raise ImageWriteError(f"cannot write {dst_s!r}: exiftool failed: {err or res.returncode}")
+                    raise ImageWriteError(f"cannot write {dst_s!r}: exiftool failed: {err or res.status}")
             back = dict(read_opcode_lists(tmp)).get(info["list"])
             if back is None or back.to_bytes() != new.to_bytes():
                 raise ImageWriteError(f"cannot write {dst_s!r}: its {info['list']} does not read back as written")

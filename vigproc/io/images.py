@@ -839,6 +839,35 @@ def _select_channels(spec: oiio.ImageSpec, path: str) -> list[int]:
     return usable[:1]
 
 
+#: Rows read at a time from a file stored in scanlines (:func:`_read_pixels`).
+READ_BAND = 256
+
+
+def _read_pixels(inp: oiio.ImageInput, spec: oiio.ImageSpec, read_as: str) -> np.ndarray | None:
+    """The whole first subimage as an ``(h, w, nchannels)`` array of ``read_as``, or None
+    when the decoder fails (its error is ``inp.geterror()``).
+
+    The Python binding decodes into a buffer of its own and copies it into the array it
+    returns: one ``read_image`` holds the frame twice.  A file stored in scanlines is read
+    in bands of :data:`READ_BAND` rows into one array instead (the peak is one frame and
+    a band); a tiled file whole.
+    """
+    h, w, n = int(spec.height), int(spec.width), int(spec.nchannels)
+    if int(spec.tile_width) > 0 or h <= READ_BAND:
+        data = inp.read_image(0, 0, 0, n, read_as)
+        return None if data is None else np.asarray(data).reshape(h, w, n)
+    out = np.empty((h, w, n), dtype=np.float32 if read_as == "float" else np.dtype(read_as))
+    y0, z = int(spec.y), int(spec.z)
+    for r in range(0, h, READ_BAND):
+        e = min(r + READ_BAND, h)
+        part = inp.read_scanlines(0, 0, y0 + r, y0 + e, z, 0, n, read_as)
+        if part is None:
+            return None
+        out[r:e] = np.asarray(part).reshape(e - r, w, n)
+        del part
+    return out
+
+
 def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
                budget: int = DEFAULT_MEMORY_BUDGET, codes: bool = False,
                head: bytes = b"") -> tuple[np.ndarray | EncodedImage, ImageInfo]:
@@ -877,7 +906,7 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
     # 8/16-bit are read as integers and decoded through an exact float64 LUT.
     read_as = stored if stored in ("uint8", "uint16") else "float"
     try:
-        data = inp.read_image(0, 0, 0, spec.nchannels, read_as)
+        data = _read_pixels(inp, spec, read_as)
     except Exception as exc:  # binding-level failure (e.g. MemoryError)
         raise ImageReadError(f"cannot read image {_q(path)}: {type(exc).__name__}: {exc}") from None
     err = inp.geterror()
@@ -891,7 +920,6 @@ def _read_oiio(inp: oiio.ImageInput, path: str, want: str, max_pixels: int,
             raise ImageReadError(
                 f"cannot read image {_q(path)}: corrupt or truncated {fmt.upper()} file: {_one_line(err)}"
             )
-    data = np.asarray(data).reshape(h, w, spec.nchannels)
     if len(chans) == 1:
         data = data[..., chans[0]]
     elif chans != list(range(spec.nchannels)):  # avoid a copy for plain RGB

@@ -14,6 +14,9 @@ import numpy as np
 from vigproc.errors import InvalidImageError
 from vigproc.io.images import EncodedImage, encode_steps
 
+#: Rows per band where a whole-frame temporary is not needed.
+_BAND = 256
+
 
 def check_encoded(enc: EncodedImage) -> EncodedImage:
     """What :func:`vigproc.core.pixels.check_image` refuses of a linear frame that code
@@ -56,13 +59,16 @@ def estimate_encoded(enc: EncodedImage, method: str, *, hint=None, seed: int | N
     return estimate_checked(check_image(img, -1 if img.ndim == 3 else None), method, hint=hint, seed=seed)
 
 
-def correct_encoded(enc: EncodedImage, model, fmt, strength: float):
+def correct_encoded(enc: EncodedImage, model, fmt, strength: float, *, in_place: bool = False):
     """``enc`` corrected by ``model`` for the output format ``fmt``
     (:class:`~vigproc.pipeline.processor.OutputFormat`): an :class:`EncodedImage` in the
     output's depth and transfer, clipped at its white point, when ``fmt`` is an
     integer format (:func:`vigproc.core.correct.correct_codes`); else the float32 linear
     frame (:func:`vigproc.core.correct.correct`). A model that corrects with a field of
     its own (a DNG GainMap) goes the float way too.
+
+    ``in_place``: the output's codes overwrite ``enc``'s when they have the same depth
+    (one frame in memory instead of two; ``enc`` is then the corrected frame's codes).
     """
     from vigproc.core.correct import correct, correct_codes
 
@@ -73,13 +79,22 @@ def correct_encoded(enc: EncodedImage, model, fmt, strength: float):
     if (model.is_identity or strength == 0) and (enc.depth, enc.transfer) == (fmt.depth, fmt.transfer):
         return enc  # nothing divided out: the codes as read
     steps = encode_steps(fmt.transfer, fmt.depth)
-    return EncodedImage(correct_codes(enc.codes, model, enc.decode_table(), steps, strength=strength), fmt.transfer)
+    codes = enc.codes
+    out = codes if in_place and codes.dtype == np.dtype(fmt.depth) and codes.flags.c_contiguous \
+        and codes.flags.writeable else None
+    return EncodedImage(correct_codes(codes, model, enc.decode_table(), steps, strength=strength, out=out),
+                        fmt.transfer)
 
 
 def white_samples(x, *, source: bool = False) -> int:
     """Samples at the white point: of a corrected frame (at or above 1.0, or the top
     code), or with ``source`` of the frame as read (exactly 1.0, or the top code)."""
+    # in bands of rows: a full-frame boolean temporary is a third of an 8-bit frame
     if isinstance(x, EncodedImage):
-        return int(np.count_nonzero(x.codes == np.iinfo(x.codes.dtype).max))
+        a, top = x.codes, np.iinfo(x.codes.dtype).max
+        return sum(int(np.count_nonzero(a[r:r + _BAND] == top)) for r in range(0, max(a.shape[0], 1), _BAND))
     a = np.asarray(x)
-    return int(np.count_nonzero(a == 1.0 if source else a >= 1.0))
+    if a.ndim == 0:
+        return int(a == 1.0 if source else a >= 1.0)
+    return sum(int(np.count_nonzero(b == 1.0 if source else b >= 1.0))
+               for b in (a[r:r + _BAND] for r in range(0, max(a.shape[0], 1), _BAND)))

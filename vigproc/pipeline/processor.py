@@ -562,15 +562,17 @@ def _check_range(out: np.ndarray, fmt: OutputFormat) -> None:
             f"{_format_label(fmt)} holds: scale the input down or choose a wider output format{wider}")
 
 
-def _note_clipping(img: np.ndarray, out: np.ndarray, where: str, fmt: OutputFormat) -> None:
+def _note_clipping(img: np.ndarray | None, out: np.ndarray, where: str, fmt: OutputFormat, *,
+                   source_white: int | None = None) -> None:
     """Say when samples end up above the white point of an integer output (clipped there
     by design): pushed there by the correction, or above it in a float source.  A source's
-    own clipped highlights (exactly 1.0) are not counted."""
-    import numpy as np
-
+    own clipped highlights (exactly 1.0) are not counted (``source_white``: their number,
+    counted before a correction in place; else counted in ``img``)."""
     from vigproc.pipeline.encoded import white_samples
 
-    lost = white_samples(out) - white_samples(img, source=True)
+    if source_white is None:
+        source_white = white_samples(img, source=True)
+    lost = white_samples(out) - source_white
     if lost > 1e-3 * out.size:
         # lifted corners of a bright frame clip a little in any display format: worth a
         # warning from 1 % of the samples on, below that only a note
@@ -808,7 +810,7 @@ class Processor:
 
     # -- in memory --------------------------------------------------------
     def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image", frame_id: str | None = None,
-                      output: OutputFormat | None = None, embedded=None, in_camera=None):
+                      output: OutputFormat | None = None, embedded=None, in_camera=None, consume: bool = False):
         """Process an in-memory linear image (H×W or H×W×C, channels last).
 
         ``output``: the format the corrected frame will be written in (integer formats
@@ -818,6 +820,9 @@ class Processor:
 
         ``in_camera``: the camera already corrected the frame
         (:func:`vigproc.io.incamera.read_in_camera`): nothing is applied.
+
+        ``consume``: the caller hands ``img`` over; a display-encoded frame may be
+        corrected in place (its codes become the output's: one frame in memory, not two).
 
         ``frame_id``: the frame's content id. Learn mode, and correct mode with
         ``settings.learn``: a frame already pooled into its lens's profile is not pooled
@@ -881,13 +886,19 @@ class Processor:
                 how = dict(channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
                            clip=1.0 if fmt.integer else None)
                 # a DNG GainMap is divided out as its own field, not as its Kang-Weiss fit
+                source_white = None
+                consume = consume and not s.learn  # learning as you go reads the frame after the correction
                 if encoded:
-                    out = correct_encoded(img, m, fmt, s.strength)
+                    if consume and fmt.integer:  # counted before the codes are overwritten
+                        from vigproc.pipeline.encoded import white_samples
+
+                        source_white = white_samples(img, source=True)
+                    out = correct_encoded(img, m, fmt, s.strength, in_place=consume)
                 else:
                     out = m.correct_image(img, **how) if hasattr(m, "correct_image") else correct(img, m, **how)
                 _check_range(out, fmt)
                 if fmt.integer:
-                    _note_clipping(img, out, where, fmt)
+                    _note_clipping(img, out, where, fmt, source_white=source_white)
                 res.applied = m.candidate is None and s.strength > 0
                 res.strength = s.strength
                 used = steady.last if steady is not None and res.source == "stored-profile" else None
@@ -1127,8 +1138,10 @@ class Processor:
         if (s.mode in ("learn", "check") or s.learn) and frame_id is None and self.store is not None:
             frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
         fmt = output_for(info)
+        shape = img.shape
+        # the frame read here is ours: corrected in place (peak memory)
         out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
-                                      embedded=embedded, in_camera=in_camera)
+                                      embedded=embedded, in_camera=in_camera, consume=True)
         res.lens = lens
         if s.mode == "check":  # what an examiner files beside the verdict (vigproc.io.provenance)
             from vigproc.io.provenance import read_provenance
@@ -1137,7 +1150,7 @@ class Processor:
                 self.reader, "exif", self.reader), getattr(
                 lens_key, "problems", ()), sha256=frame_id).to_dict()
         if embedded is not None:
-            res.extra["embedded"] = embedded.to_dict(*img.shape[1::-1]) if res.source == "embedded" else \
+            res.extra["embedded"] = embedded.to_dict(*shape[1::-1]) if res.source == "embedded" else \
                 embedded.to_dict()
         return out, res, img, info, fmt
 

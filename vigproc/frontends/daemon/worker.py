@@ -100,6 +100,7 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
     except Exception as exc:  # a worker that cannot start is fatal for the daemon: say why
         conn.send(("fatal", None, f"{type(exc).__name__}: {exc}"))
         return
+    _warm(wlog)
     try:
         conn.send(("ready", None, os.getpid()))
         while True:
@@ -143,6 +144,22 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
         if store is not None:
             with contextlib.suppress(Exception):
                 store.close()
+
+
+def _warm(wlog: logging.Logger) -> None:
+    """Pay the worker's start-up once, before it says it is ready, not on its first
+    file: the Numba kernels loaded from their cache (compiled the first time on a
+    machine) and this worker's share of the cores for Numba and OpenImageIO.  Not
+    fatal: what fails now fails again, and is reported, on a file.  (Its exiftool
+    processes start with the first file and persist: a hung exiftool is then charged to
+    the file that met it, with the worker's timeout.)"""
+    from vigproc.frontends.batch import warm_up
+
+    threads = os.environ.get("NUMBA_NUM_THREADS", "")  # set per worker by the scheduler
+    try:
+        warm_up(int(threads) if threads.isdigit() else None)
+    except Exception:  # noqa: BLE001 - the first file says it again, with its name
+        wlog.debug("warm-up of the kernels failed", exc_info=True)
 
 
 def _kill_group(process: Any) -> None:

@@ -1,0 +1,220 @@
+"""``vigproc bench scaling``: the hot folder and ``vigproc batch`` with 1 and 2 workers.
+
+What a studio feels of more cores: photographs per second through ``vigproc watch IN
+-o OUT --workers N`` (the daemon running, warm, a folder of full-size JPEGs dropped
+in) and through ``vigproc batch`` (the whole command, start-up included), for each
+worker count, rounds interleaved so a busy machine weighs on every count alike.
+
+Watch: the daemon is started per round and per worker count; one photo per worker is
+dropped first and waited for (worker start-up, the Numba cache load and exiftool's
+start are paid there, once per worker), then the photographs are renamed into the
+folder at once and the round is timed from the drop to the last ``done`` in the
+daemon's journal (its records, polled: no sleeping for a guessed time).  The
+*steady* rate leaves the first file per worker out (from the N-th done to the last).
+
+Batch: ``vigproc batch IN --mode correct -o OUT --workers N`` as a new process,
+timed whole (its pool's start-up included: what a user waits).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from vigproc.bench.throughput import Photo, stage
+from vigproc.errors import VigprocError
+
+log = logging.getLogger(__name__)
+
+#: Seconds a round may take per photograph before the bench gives up.
+PER_PHOTO_TIMEOUT = 120.0
+
+
+@dataclass
+class Rounds:
+    """Seconds per round of one front end at one worker count."""
+
+    frontend: str
+    workers: int
+    wall: list[float] = field(default_factory=list)
+    steady: list[float] = field(default_factory=list)  # photos per second, first per worker left out
+
+    @property
+    def median_wall(self) -> float:
+        return float(np.median(self.wall)) if self.wall else float("nan")
+
+    @property
+    def median_steady(self) -> float:
+        return float(np.median(self.steady)) if self.steady else float("nan")
+
+
+@dataclass
+class ScalingResult:
+    """What :func:`run_scaling` measured (``vigproc bench scaling --json``)."""
+
+    photos: int
+    megapixels: float
+    rounds: int
+    cores: int
+    load_before: tuple[float, float, float]
+    load_after: tuple[float, float, float]
+    runs: list[Rounds]
+
+    def rate(self, frontend: str, workers: int) -> float:
+        """Photos per second (median round, drop or start to the last done)."""
+        r = next(r for r in self.runs if r.frontend == frontend and r.workers == workers)
+        return self.photos / r.median_wall
+
+
+def _wait_done(journal: Path, job: str, n: int, proc: subprocess.Popen, timeout: float) -> list[float]:
+    """Poll the daemon's journal until ``n`` entries are done; their completion times
+    (epoch seconds, the journal's own timestamps), sorted.
+
+    Raises
+    ------
+    VigprocError
+        The daemon exited, quarantined a file, or did not finish in time.
+    """
+    from vigproc.stores.journal import Journal
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise VigprocError(f"bench scaling: the daemon exited early (code {proc.returncode})")
+        if journal.exists():
+            with Journal(journal, job=job) as j:
+                c = j.counts()
+                if c["quarantined"]:
+                    raise VigprocError("bench scaling: the daemon quarantined files: "
+                                       f"{[e.reason for e in j.entries('quarantined')][:3]}")
+                if c["done"] >= n:
+                    return sorted(datetime.fromisoformat(e.updated.replace("Z", "+00:00")).timestamp()
+                                  for e in j.entries("done"))
+        time.sleep(0.05)
+    raise VigprocError(f"bench scaling: the daemon did not finish {n} files within {timeout:.0f} s")
+
+
+def _cli() -> list[str]:
+    return [sys.executable, "-m", "vigproc.frontends.cli"]
+
+
+def watch_round(files: Sequence[Path], warm: Sequence[Path], workers: int, root: Path) -> tuple[float, float]:
+    """One timed round of the daemon: (seconds from the drop to the last done, steady
+    photos per second). ``files`` and ``warm`` are moved into its folder (renames)."""
+    in_dir, out_dir, journal = root / "in", root / "out", root / "journal.sqlite"
+    in_dir.mkdir(parents=True)
+    cmd = [*_cli(), "watch", str(in_dir), "-o", str(out_dir), "--workers", str(workers), "--settle", "0.2",
+           "--journal", str(journal), "--job", "bench", "--unapplied", "copy", "--rescan", "3600"]
+    n, k = len(files), len(warm)
+    proc = None
+    with open(root / "daemon.log", "wb") as logf:
+        try:
+            proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=logf)
+            for f in warm:
+                os.rename(f, in_dir / f.name)
+            _wait_done(journal, "bench", k, proc, timeout=600 + PER_PHOTO_TIMEOUT * k)
+            t_drop = time.time()
+            for f in files:
+                os.rename(f, in_dir / f.name)
+            done = _wait_done(journal, "bench", n + k, proc, timeout=600 + PER_PHOTO_TIMEOUT * n)
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=120)
+            proc = None
+        finally:
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    mine = done[k:]  # the warm files were done before the drop
+    wall = mine[-1] - t_drop
+    steady = (n - workers) / (mine[-1] - mine[workers - 1]) if n > workers and mine[-1] > mine[workers - 1] \
+        else float("nan")
+    return wall, steady
+
+
+def batch_round(src: Path, n: int, workers: int, root: Path) -> float:
+    """One timed ``vigproc batch`` of the folder ``src`` (``n`` photographs): seconds."""
+    out = root / "out"
+    cmd = [*_cli(), "batch", str(src), "--mode", "correct", "-o", str(out), "--workers", str(workers),
+           "--unapplied", "copy", "--no-progress"]
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         timeout=600 + PER_PHOTO_TIMEOUT * n)
+    seconds = time.perf_counter() - t0
+    made = sum(1 for p in out.rglob("*.vigproc.json"))
+    if res.returncode != 0 or made < n:
+        tail = " / ".join(res.stderr.decode("utf-8", "replace").strip().splitlines()[-3:])
+        raise VigprocError(f"bench scaling: batch --workers {workers} exited {res.returncode} with {made} of {n} "
+                           f"sidecars: {tail}")
+    return seconds
+
+
+def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rounds: int = 2,
+                frontends: Sequence[str] = ("watch", "batch"), workdir: Path | None = None) -> ScalingResult:
+    """Time ``watch`` and ``batch`` on copies of ``photos`` at each worker count,
+    ``rounds`` times, interleaved (the order rotates each round).
+
+    Raises
+    ------
+    VigprocError
+        A run failed or did not process every photograph.
+    """
+    if not photos:
+        raise VigprocError("bench scaling: no photographs")
+    load_before = os.getloadavg()
+    runs = [Rounds(f, w) for f in frontends for w in workers]
+    env_db = os.environ.get("VIGPROC_PROFILE_DB")
+    with tempfile.TemporaryDirectory(prefix="vigproc-scaling-", dir=workdir) as tmp:
+        root = Path(tmp)
+        os.environ["VIGPROC_PROFILE_DB"] = str(root / "profiles.sqlite")  # never the user's store
+        try:
+            master = stage(photos, root / "master")
+            for r in range(max(1, rounds)):
+                order = runs[r % len(runs):] + runs[:r % len(runs)]
+                for run in order:
+                    here = root / f"r{r}-{run.frontend}-{run.workers}"
+                    if run.frontend == "watch":
+                        files = stage(photos, here / "stage")
+                        warm = [shutil.copyfile(master[i % len(master)], here / "stage" / f"warm{i}.jpg")
+                                for i in range(run.workers)]
+                        wall, steady = watch_round(files, [Path(p) for p in warm], run.workers, here / "run")
+                        run.steady.append(steady)
+                    else:
+                        wall = batch_round(root / "master", len(master), run.workers, here)
+                    run.wall.append(wall)
+                    log.info("round %d: %s --workers %d: %.2f s", r + 1, run.frontend, run.workers, wall)
+                    shutil.rmtree(here, ignore_errors=True)
+        finally:
+            if env_db is None:
+                os.environ.pop("VIGPROC_PROFILE_DB", None)
+            else:
+                os.environ["VIGPROC_PROFILE_DB"] = env_db
+    return ScalingResult(len(photos), sum(p.megapixels for p in photos), max(1, rounds), len(os.sched_getaffinity(0)),
+                         load_before,
+                         os.getloadavg(), runs)
+
+
+def format_result(r: ScalingResult) -> list[str]:
+    """The printed table: photos/s per front end and worker count, and each count's
+    ratio to one worker."""
+    lines = [f"{r.photos} photographs, {r.megapixels:.1f} MP, median of {r.rounds} rounds (interleaved); "
+             f"{r.cores} cores; load {r.load_before[0]:.1f} before, {r.load_after[0]:.1f} after",
+             f"{'front end':<10}{'workers':>8}{'seconds':>9}{'photos/s':>10}{'x 1 worker':>12}{'steady/s':>10}"]
+    for run in r.runs:
+        one = next((x for x in r.runs if x.frontend == run.frontend and x.workers == 1), None)
+        ratio = one.median_wall / run.median_wall if one is not None else float("nan")
+        steady = f"{run.median_steady:>10.2f}" if run.steady else f"{'':>10}"
+        lines.append(f"{run.frontend:<10}{run.workers:>8}{run.median_wall:>9.2f}{r.photos / run.median_wall:>10.2f}"
+                     f"{ratio:>12.2f}{steady}")
+    return lines
