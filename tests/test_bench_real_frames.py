@@ -90,6 +90,11 @@ def test_truth_does_not_hold_where_the_camera_or_a_converter_corrected():
     holds, why = rfl._truth_holds({"LensProfileEnable": 1, "Software": "Adobe Lightroom"}, None)
     assert not holds and "LensProfileEnable=1" in why
     assert rfl._truth_holds({"VignetteControl": 0}, None) == (True, "flags off: VignetteControl=0")
+    assert rfl._truth_holds({"Software": "Ver.1.00"}, None)[0]  # a camera's firmware
+    assert rfl._truth_holds({"Software": "Adobe Photoshop CC 2017 (Macintosh)", "LensProfileEnable": 0},
+                            None) == (False, "edited (Software=Adobe Photoshop CC 2017 (Macintosh))")
+    assert rfl._truth_holds({"PostCropVignetteAmount": -5}, None) == (
+        False, "an editor's own vignette (PostCropVignetteAmount=-5)")
 
 
 def test_crop_to_keeps_the_centre_at_the_asked_aspect():

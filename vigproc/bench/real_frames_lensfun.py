@@ -14,7 +14,8 @@ the gate left the frame alone) and of the estimator's candidate fit before the g
 The truth holds only where the JPEG still carries the lens's fall-off: not where the
 camera corrected it (:mod:`vigproc.io.incamera`: a maker-note flag on, a phone), nor where
 a raw converter wrote the JPEG with its own lens correction (XMP ``LensProfileEnable``),
-nor beyond lensfun's calibrated corner (ρ > :data:`MAX_RHO`: a larger sensor than the
+nor where an editor wrote it (its Software or XMP names Lightroom, Photoshop, …: tone,
+crop and vignettes of its own), nor beyond lensfun's calibrated corner (ρ > :data:`MAX_RHO`: a larger sensor than the
 calibration's, where the pa polynomial is extrapolated); and lensfun measured its fields on RAW data, linear, while a JPEG's tone curve is only
 approximately sRGB (the linearisation the estimate reads): the figures say for which
 frames the truth is taken to hold, and why not for the others.
@@ -39,6 +40,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -51,8 +53,12 @@ log = logging.getLogger(__name__)
 #: Long side of the grid fields are compared on (the metric is an RMS over the frame:
 #: a coarser grid of the same frame gives the same figure to a few 1e-4 EV).
 GRID = 240
-#: Tags read beside the in-camera flags: a raw converter's own lens correction.
-CONVERTER_TAGS = ("Software", "LensProfileEnable", "VignetteAmount")
+#: Tags read beside the in-camera flags: a raw converter's or an editor's hand on the pixels.
+CONVERTER_TAGS = ("Software", "ProcessingSoftware", "CreatorTool", "LensProfileEnable", "VignetteAmount",
+                  "PostCropVignetteAmount")
+#: Programs whose output is an edited frame (tone, crop, vignettes of their own), not the camera's JPEG.
+EDITORS = re.compile(r"photoshop|lightroom|camera raw|photo editor|gimp|capture one|darktable|rawtherapee|"
+                     r"picasa|aperture|photos|snapseed|affinity|luminar|dxo", re.IGNORECASE)
 _LN2 = math.log(2.0)
 
 
@@ -178,6 +184,12 @@ def _truth_holds(tags: dict[str, Any], ic, corner_rho: float = 1.0) -> tuple[boo
     lp = tags.get("LensProfileEnable")
     if lp not in (None, 0, "0"):
         return False, f"a raw converter's lens profile (LensProfileEnable={lp}, {tags.get('Software') or '?'})"
+    for name in ("Software", "ProcessingSoftware", "CreatorTool"):
+        if EDITORS.search(str(tags.get(name) or "")):
+            return False, f"edited ({name}={str(tags[name])[:40]})"
+    for name in ("VignetteAmount", "PostCropVignetteAmount"):
+        if tags.get(name) not in (None, 0, "0", "+0"):
+            return False, f"an editor's own vignette ({name}={tags[name]})"
     from vigproc.io.incamera import FLAG_TAGS
 
     flags = [f"{k}={tags[k]}" for k in FLAG_TAGS if tags.get(k) is not None]
