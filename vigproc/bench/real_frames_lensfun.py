@@ -345,6 +345,7 @@ def run_series(found: Sequence[tuple[Path, Any, Truth, dict, Any]], bases: Seque
     """
     from vigproc.core.estimate import estimate_with_evidence
     from vigproc.core.plausible import corner_ev
+    from vigproc.errors import ModelError
     from vigproc.io.protocol import vignetted
     from vigproc.stores.profiles import ProfileStore
 
@@ -360,8 +361,11 @@ def run_series(found: Sequence[tuple[Path, Any, Truth, dict, Any]], bases: Seque
         s = long_side / max(fw, fh)
         w, h = max(2, int(round(fw * s))), max(2, int(round(fw * s * fh / fw)))
         gshape = grid_shape(w, h)
-        true_log = truth.log_field((h, w))
-        true_grid = truth.log_field(gshape)
+        try:
+            true_log, true_grid = truth.log_field((h, w)), truth.log_field(gshape)
+        except ModelError as exc:  # lensfun's field is no field on this frame: no series of it
+            log.warning("%s: %s", truth.lens, exc)
+            continue
         order = np.random.default_rng(seed + li).permutation(len(bases))
         errs: dict[int, float] = {}
         single, single_corner, after_corner, trusted_at = [], [], [], None
