@@ -1,0 +1,158 @@
+"""``vigproc bench real-frames`` part (a): real frames against lensfun's field, one frame and
+a series through the profile store (vigproc.bench.real_frames_lensfun)."""
+
+import math
+import shutil
+import subprocess
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from vigproc.bench import real_frames_lensfun as rfl
+from vigproc.io.images import write_image
+from vigproc.stores.lensfun import pa_poly
+
+from conftest import coloured_scene
+
+needs_exiftool = pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
+VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
+
+#: The Olympus PEN E-P3's lens (lensfun: Olympus M.Zuiko Digital 17mm f/1.8, crop 2), wide open.
+E_P3 = dict(make="olympus imaging corp.", model="e-p3", lens="m.zuiko digital 17mm f1.8", focal_mm=17.0,
+            focal_35mm=34.0, fnumber=1.8, focus_distance_m=None, lens_problem=None, lens_source=None,
+            ambiguous=False, width=480, height=360)
+
+
+def _key(**kw):
+    from vigproc.io.exif import LensKey
+
+    d = {**E_P3, **kw}
+    d.pop("ambiguous")
+    return LensKey(**d)
+
+
+def test_truth_is_lensfuns_field_at_the_frames_corner():
+    truth, why = rfl.lensfun_truth(_key())
+    assert truth is not None, why
+    assert truth.lens == "Olympus / Olympus M.Zuiko Digital 17mm f/1.8" and truth.corner_rho == pytest.approx(1.0)
+    lf = truth.log_field((301, 401))
+    k1, k2, k3 = truth.k
+    assert lf[150, 200] == pytest.approx(0.0, abs=1e-12)  # the centre
+    assert lf[0, 0] == pytest.approx(math.log(1 + k1 + k2 + k3))  # r = 1 at the corner
+    assert truth.corner_ev == pytest.approx(-lf[0, 0] / math.log(2))
+    # a camera with a smaller sensor than the calibration's sees its centre only: ρ = 2 / 4
+    small, _ = rfl.lensfun_truth(_key(focal_35mm=68.0))
+    assert small.corner_rho == pytest.approx(0.5)
+    assert 0 < small.corner_ev < truth.corner_ev
+    # mid-left edge: r² = 0.64 of the frame's, (ρr)² = 0.16 of the calibration's
+    assert small.log_field((301, 401))[150, 0] == pytest.approx(
+        math.log(pa_poly(np.array(0.25 * 0.64), k1, k2, k3)), rel=1e-3)
+    none, why = rfl.lensfun_truth(_key(lens="some lens lensfun never heard of"))
+    assert none is None and why
+
+
+def _stub_processor(model, img):
+    res = SimpleNamespace(model=model, applied=model is not None and not model.is_identity, extra={})
+    return SimpleNamespace(_process_path=lambda path, fid, fmt: (None, res, img, None, None))
+
+
+def test_frame_row_error_is_zero_for_the_truth_and_the_truth_for_nothing(tmp_path):
+    from vigproc.core.model import VignettingModel
+    from vigproc.stores.lensfun_io import kw_from_pa
+
+    key = _key()
+    truth, _ = rfl.lensfun_truth(key)
+    img = np.zeros((360, 480, 3), np.float32)
+    s = truth._scaled_k()
+    exact = kw_from_pa(*s, 480, 360)  # lensfun's pa as the model family vigproc applies (misfit ~1e-3 EV)
+    row = rfl.frame_row(tmp_path / "a.jpg", _stub_processor(exact, img), truth, key, {}, None)
+    assert row.applied and row.truth_holds and row.why == "no in-camera flag recorded"
+    assert row.error_ev < 0.01 and row.candidate_error_ev == row.error_ev
+    assert row.applied_corner_ev == pytest.approx(truth.corner_ev, abs=0.02)
+    assert row.uncorrected_ev > 0.2  # a 1.27 EV lens: far from the figure above
+    none = rfl.frame_row(tmp_path / "a.jpg", _stub_processor(VignettingModel.identity(480, 360), img), truth, key,
+                         {"ShadingCompensation": 0}, None)
+    assert not none.applied and none.error_ev == pytest.approx(none.uncorrected_ev)
+    assert none.why == "flags off: ShadingCompensation=0"
+    half = kw_from_pa(*(0.5 * k for k in s), 480, 360)
+    worse = rfl.frame_row(tmp_path / "a.jpg", _stub_processor(half, img), truth, key, {}, None)
+    assert row.error_ev < worse.error_ev < none.error_ev
+
+
+def test_truth_does_not_hold_where_the_camera_or_a_converter_corrected():
+    from vigproc.io.incamera import from_tags
+
+    tags = {"Make": "Canon", "PeripheralLighting": 1}
+    assert rfl._truth_holds(tags, from_tags(tags)) == (False, "corrected in camera (PeripheralLighting=1)")
+    assert rfl._truth_holds({}, None, corner_rho=1.26) == (False, "beyond lensfun's calibrated corner (ρ = 1.26)")
+    holds, why = rfl._truth_holds({"LensProfileEnable": 1, "Software": "Adobe Lightroom"}, None)
+    assert not holds and "LensProfileEnable=1" in why
+    assert rfl._truth_holds({"VignetteControl": 0}, None) == (True, "flags off: VignetteControl=0")
+    assert rfl._truth_holds({"Software": "Ver.1.00"}, None)[0]  # a camera's firmware
+    assert rfl._truth_holds({"Software": "Adobe Photoshop CC 2017 (Macintosh)", "LensProfileEnable": 0},
+                            None) == (False, "edited (Software=Adobe Photoshop CC 2017 (Macintosh))")
+    assert rfl._truth_holds({"PostCropVignetteAmount": -5}, None) == (
+        False, "an editor's own vignette (PostCropVignetteAmount=-5)")
+
+
+def test_crop_to_keeps_the_centre_at_the_asked_aspect():
+    a = np.arange(40 * 60, dtype=np.float64).reshape(40, 60)
+    c = rfl.crop_to(a, 12, 9, frac=0.5)
+    assert c.shape == (9, 12)
+    assert c.mean() == pytest.approx(a[10:30, 17:43].mean(), rel=0.02)  # centred
+    assert rfl.crop_to(np.stack([a] * 3, -1), 9, 12).shape == (12, 9, 3)  # portrait asked: turned
+
+
+def test_series_pools_through_the_store_towards_the_truth():
+    key = _key(width=480, height=360)
+    truth, _ = rfl.lensfun_truth(key)
+    bases = [coloured_scene(900, 1200, seed=s) for s in range(4)]
+    out = rfl.run_series([(None, key, truth, {}, None)], bases, n=4, long_side=480, counts=(1, 4), family=None)
+    (row,) = out.rows
+    assert row.frames == 4 and set(row.profile_ev) == {1, 4} and out.median_ev == row.profile_ev
+    unc = rfl._ev(truth.log_field(rfl.grid_shape(480, 360)))
+    # the profile recovers most of a 1.27 EV lens (leaving it alone costs `unc`)
+    assert row.profile_ev[4] < 0.3 * unc
+    assert math.isnan(row.corner_spread_after_trust_ev) == (row.trusted_at is None)
+
+
+def _lens_jpeg(path, key):
+    truth, _ = rfl.lensfun_truth(key)
+    img = coloured_scene(360, 480, seed=7) * np.exp(truth.log_field((360, 480)))[..., None]
+    write_image(path, (0.8 * img / img.max()).astype(np.float32), transfer="srgb", quality=92)
+    subprocess.run(["exiftool", "-q", "-overwrite_original", "-Make=OLYMPUS IMAGING CORP.", "-Model=E-P3",
+                    "-LensModel=M.Zuiko Digital 17mm F1.8", "-FocalLength=17", "-FNumber=1.8",
+                    "-FocalLengthIn35mmFormat=34", str(path)], check=True)
+    return truth
+
+
+@needs_exiftool
+def test_run_lensfun_finds_the_lens_of_a_real_jpeg_and_the_cli_prints_it(tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    truth = _lens_jpeg(frames / "P1.jpg", _key())
+    write_image(frames / "other.jpg", coloured_scene(360, 480, seed=2).astype(np.float32), transfer="srgb")
+    found, other = rfl.lensfun_frames(sorted(frames.glob("*.jpg")))
+    assert [p.name for p, *_ in found] == ["P1.jpg"] and [p.name for p, _ in other] == ["other.jpg"]
+    s = rfl.run_lensfun([frames / "P1.jpg"])
+    (row,) = s.rows
+    assert row.lens == truth.lens and row.truth_holds and s.truth_frames == 1
+    assert row.truth_corner_ev == pytest.approx(truth.corner_ev)
+    assert row.uncorrected_ev == pytest.approx(rfl._ev(truth.log_field(rfl.grid_shape(480, 360))))
+    out = subprocess.run(VIGPROC + ["bench", "real-frames", "--images", str(frames), "--min-long-side", "300",
+                                    "--no-harm", "--json", str(tmp_path / "r.json")],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert "lensfun-known lenses: 1 frames, the truth holds on 1" in out.stdout
+    import json
+
+    data = json.loads((tmp_path / "r.json").read_text())
+    assert data["lensfun"]["rows"][0]["file"] == "P1.jpg" and "on" not in data
+
+
+def test_cli_refuses_a_folder_without_frames(tmp_path):
+    out = subprocess.run(VIGPROC + ["bench", "real-frames", "--images", str(tmp_path)], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 2 and "no JPEG" in out.stdout and "Traceback" not in out.stderr
