@@ -62,6 +62,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from vigproc.core._kernels.irls import weighted_normal
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import N_COMPONENTS, LensFamily, default_family, profile_family
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
@@ -481,28 +482,18 @@ def irls(d: np.ndarray, a: np.ndarray, weight: np.ndarray, c0: np.ndarray, pmean
     P. W. Holland, R. E. Welsch, "Robust regression using iteratively reweighted
     least-squares", Comm. Statist. 6(9), 1977.
     """
-    at, sums = pair_products(d, a) if products is None else products
+    at = pair_products(d, a) if products is None else products
     K = at.shape[0]
-    iu, ju = np.triu_indices(K)
-    nu = iu.size
     c = np.array(c0, dtype=np.float64, copy=True)
     scale = 1.0 / (sigma * sigma * kappa)
-    inv_s = 1.0 / sigma
     prior = pinv @ pmean
-    H = np.empty((K, K))
-    e, w = np.empty(d.size), np.empty(d.size)
+    H, g, scratch = np.empty((K, K)), np.empty(K), np.empty((2, d.size))
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    weight = np.ascontiguousarray(weight, dtype=np.float64)
     for _ in range(iterations):
-        # in place: a step is two matrix-vector products and five passes over the pairs
-        np.dot(c, at, out=e)
-        np.subtract(d, e, out=e)
-        e *= inv_s
-        np.multiply(e, e, out=e)
-        e += 1.0
-        np.divide(weight, e, out=w)
-        g = sums @ w  # the upper triangle of AᵀWA, then AᵀWd
-        H[iu, ju] = g[:nu]
-        H[ju, iu] = g[:nu]
-        c_new = np.linalg.solve(H * scale + pinv, g[nu:] * scale + prior)
+        # one pass over the pairs on one thread (the BLAS's threads spun on a busy machine)
+        weighted_normal(at, d, weight, c, 1.0 / sigma, H, g, scratch)
+        c_new = np.linalg.solve(H * scale + pinv, g * scale + prior)
         if relaxation != 1.0:
             c_new = c + relaxation * (c_new - c)
         done = float(np.max(np.abs(c_new[:converged_on] - c[:converged_on]))) < tolerance
@@ -512,25 +503,14 @@ def irls(d: np.ndarray, a: np.ndarray, weight: np.ndarray, c0: np.ndarray, pmean
     return c
 
 
-#: :func:`irls`'s sums per pair, pairs along the last axis: aᵀ (K×n), and in one array
-#: the upper triangle of a·aᵀ (K(K+1)/2 rows, in :func:`numpy.triu_indices` order)
-#: followed by a·d (K rows).
-PairProducts = tuple[np.ndarray, np.ndarray]
+#: :func:`irls`'s regressors as rows, aᵀ (K×n, contiguous): a step reads each row in order.
+PairProducts = np.ndarray
 
 
 def pair_products(d: np.ndarray, a: np.ndarray) -> PairProducts:
-    """:data:`PairProducts` of pairs ``d``, ``a``: a step of :func:`irls` is then two
-    matrix-vector products over contiguous rows."""
-    at = np.ascontiguousarray(a.T)
-    K = at.shape[0]
-    iu, ju = np.triu_indices(K)
-    sums = np.empty((iu.size + K, at.shape[1]))
-    # row by row into one array: indexing at[iu] * at[ju] copied both operands first,
-    # and took 17 times as long (the same bits)
-    for k, (i, j) in enumerate(zip(iu, ju)):
-        np.multiply(at[i], at[j], out=sums[k])
-    np.multiply(at, d, out=sums[iu.size:])
-    return at, sums
+    """:data:`PairProducts` of pairs ``d``, ``a`` (``d`` is not needed: the step reads it
+    itself), computed once for many :func:`irls` fits of the same pairs."""
+    return np.ascontiguousarray(a.T, dtype=np.float64)
 
 
 def _pair_steps(settings: FamilySettings, shape: tuple[int, int]) -> np.ndarray:
