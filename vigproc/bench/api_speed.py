@@ -12,11 +12,14 @@ caller of the library calls it) and, when given, the published C++ peer of Zheng
 (:func:`vigproc.bench.peers.published_rgs`: its process start, the 8-bit PGM written
 and the PFM read back included) in the same round, so that their ratio holds on a
 loaded machine. The peer's **floor** (the same call on a 16×16 grey frame: process
-start and file I/O with almost no estimate) is timed in each round too.
+start and file I/O with almost no estimate) is timed in each round too. Wall-clock and
+CPU time (the peer's from ``getrusage`` of its child process) are both kept: on a busy
+machine the scheduler moves the first, less the second.
 """
 
 from __future__ import annotations
 
+import resource
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -40,6 +43,11 @@ class CaseTiming:
     ratio: float = float("nan")
     #: vigproc / (peer − the peer's floor): against the peer's estimate alone
     ratio_net: float = float("nan")
+    #: the same medians in CPU time (vigproc's process; the peer's child process, from
+    #: ``getrusage``): on a machine other processes share, less moved by the scheduler
+    vigproc_cpu_ms: float = float("nan")
+    peer_cpu_ms: float = float("nan")
+    ratio_cpu: float = float("nan")
     #: how many frames the estimate left uncorrected (fall-back) / took off-centre (first round)
     fallbacks: int = 0
     off_centre: int = 0
@@ -50,6 +58,7 @@ class ApiSpeed:
     n_frames: int
     rounds: int
     peer_floor_ms: float = float("nan")
+    peer_floor_cpu_ms: float = float("nan")
     cases: list[CaseTiming] = field(default_factory=list)
 
 
@@ -99,31 +108,47 @@ def api_speed(bases: Sequence[np.ndarray], peer: Callable | None = None, rounds:
         peer(tiny)
     t_v = {c: [] for c in cases}
     t_p = {c: [] for c in cases}
+    c_v = {c: [] for c in cases}
+    c_p = {c: [] for c in cases}
     floor: list[float] = []
+    floor_cpu: list[float] = []
     fallbacks = {c: 0 for c in cases}
     off = {c: 0 for c in cases}
     for r in range(rounds):
         for i in range(len(bases)):
             for c in cases:
-                t0 = time.perf_counter()
+                t0, u0 = time.perf_counter(), time.process_time()
                 m = est(frames[c][i])
                 t_v[c].append(time.perf_counter() - t0)
+                c_v[c].append(time.process_time() - u0)
                 if r == 0:
                     fallbacks[c] += bool(m.quality.fallback)
                     off[c] += bool(abs(m.center[0]) + abs(m.center[1]) > 1)  # centre relative to the frame's
                 if peer is not None:
-                    t0 = time.perf_counter()
+                    t0, u0 = time.perf_counter(), _children_cpu()
                     peer(lums[c][i])
                     t_p[c].append(time.perf_counter() - t0)
+                    c_p[c].append(_children_cpu() - u0)
             if peer is not None:
-                t0 = time.perf_counter()
+                t0, u0 = time.perf_counter(), _children_cpu()
                 peer(tiny)
                 floor.append(time.perf_counter() - t0)
-    res = ApiSpeed(len(bases), rounds, 1000 * float(np.median(floor)) if floor else float("nan"))
+                floor_cpu.append(_children_cpu() - u0)
+    res = ApiSpeed(len(bases), rounds, _ms(floor), _ms(floor_cpu))
     for c in cases:
-        v = 1000 * float(np.median(t_v[c]))
-        p = 1000 * float(np.median(t_p[c])) if t_p[c] else float("nan")
+        v, p, vc, pc = _ms(t_v[c]), _ms(t_p[c]), _ms(c_v[c]), _ms(c_p[c])
         net = p - res.peer_floor_ms
-        res.cases.append(CaseTiming(c, len(t_v[c]), v, p, v / p if t_p[c] else float("nan"),
-                                    v / net if t_p[c] and net > 0 else float("nan"), fallbacks[c], off[c]))
+        res.cases.append(CaseTiming(c, len(t_v[c]), v, p, v / p, v / net if net > 0 else float("nan"),
+                                    vc, pc, vc / pc, fallbacks[c], off[c]))
     return res
+
+
+def _ms(seconds: list[float]) -> float:
+    """Median in ms (NaN for none)."""
+    return 1000 * float(np.median(seconds)) if seconds else float("nan")
+
+
+def _children_cpu() -> float:
+    """User and system CPU seconds of the finished child processes."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime

@@ -683,12 +683,15 @@ def _bench_speed_api(args: argparse.Namespace) -> int:
           f"{r.rounds} rounds" + (f", interleaved with the published peer {exe}" if exe else " (no peer: --peer or "
                                   f"${PEER_ENV})"))
     if exe:
-        print(f"peer floor (process start and file I/O, a {16}x{16} frame): {r.peer_floor_ms:.1f} ms")
-    print(f"{'case':<10}{'vigproc ms':>12}{'peer ms':>10}{'ratio':>8}{'net':>8}{'fall-backs':>12}{'off-centre':>12}")
+        print(f"peer floor (process start and file I/O, a 16x16 frame): {r.peer_floor_ms:.1f} ms, "
+              f"{r.peer_floor_cpu_ms:.1f} ms CPU")
+    print(f"{'case':<10}{'vigproc ms':>12}{'peer ms':>10}{'ratio':>8}{'net':>8}{'vigproc CPU':>13}{'peer CPU':>10}"
+          f"{'ratio':>8}{'fall-backs':>12}{'off-centre':>12}")
     for c in r.cases:
         print(f"{c.case:<10}{c.vigproc_ms:>12.1f}{c.peer_ms:>10.1f}{c.ratio:>8.2f}{c.ratio_net:>8.2f}"
-              f"{c.fallbacks:>12}{c.off_centre:>12}")
-    print("ratio: vigproc / peer; net: vigproc / (peer - its floor)")
+              f"{c.vigproc_cpu_ms:>13.1f}{c.peer_cpu_ms:>10.1f}{c.ratio_cpu:>8.2f}{c.fallbacks:>12}{c.off_centre:>12}")
+    print("medians (ms); ratio: vigproc / peer; net: vigproc / (peer - its floor); CPU: process time (the peer's "
+          "child process by getrusage), first-round fall-backs and off-centre fits of the frames")
     return 0
 
 
