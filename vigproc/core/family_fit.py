@@ -62,7 +62,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from vigproc.core._kernels.irls import weighted_normal
+from vigproc.core._kernels.irls import irls_fit
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import N_COMPONENTS, LensFamily, default_family, profile_family
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
@@ -484,24 +484,14 @@ def irls(d: np.ndarray, a: np.ndarray, weight: np.ndarray, c0: np.ndarray, pmean
     """
     at = pair_products(d, a) if products is None else products
     K = at.shape[0]
-    c = np.array(c0, dtype=np.float64, copy=True)
-    scale = 1.0 / (sigma * sigma * kappa)
-    prior = pinv @ pmean
-    H, g, scratch = np.empty((K, K)), np.empty(K), np.empty((2, d.size))
-    d = np.ascontiguousarray(d, dtype=np.float64)
-    weight = np.ascontiguousarray(weight, dtype=np.float64)
-    for _ in range(iterations):
-        # one pass over the pairs on one thread (the BLAS's threads spun on a busy machine)
-        weighted_normal(at, d, weight, c, 1.0 / sigma, H, g, scratch)
-        c_new = np.linalg.solve(H * scale + pinv, g * scale + prior)
-        if relaxation != 1.0:
-            c_new = c + relaxation * (c_new - c)
-        done = float(np.max(np.abs(c_new[:converged_on] - c[:converged_on]))) < tolerance
-        c = c_new
-        if done:
-            break
-    return c
-
+    c0 = np.array(c0, dtype=np.float64, copy=True)
+    if K == 0 or iterations <= 0:
+        return c0
+    # the loop in one compiled call, on one thread (the BLAS's threads spun on a busy machine)
+    return irls_fit(at, np.ascontiguousarray(d, dtype=np.float64), np.ascontiguousarray(weight, dtype=np.float64),
+                    c0, np.ascontiguousarray(pinv, dtype=np.float64), np.asarray(pinv @ pmean, dtype=np.float64),
+                    1.0 / (sigma * sigma * kappa), 1.0 / sigma, int(iterations), float(tolerance),
+                    K if converged_on is None else min(int(converged_on), K), float(relaxation))
 
 #: :func:`irls`'s regressors as rows, aᵀ (K×n, contiguous): a step reads each row in order.
 PairProducts = np.ndarray

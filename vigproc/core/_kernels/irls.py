@@ -10,6 +10,7 @@ processes running); here it is one pass over the K regressors, on one thread.
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 
@@ -59,3 +60,34 @@ def weighted_normal(at, d, weight, c, inv_s, H, g, wa):
                 s += row[i] * at[m, i]
             H[k, m] = s
             H[m, k] = s
+
+
+@njit(cache=True, nogil=True)
+def irls_fit(at, d, weight, c0, pinv, prior, scale, inv_s, iterations, tolerance, n_watch, relaxation):
+    """The IRLS loop of :func:`vigproc.core.family_fit.irls`: each step solves
+    (H·scale + Λ) c = g·scale + Λμ (``prior`` = Λμ) from :func:`weighted_normal`'s sums;
+    it stops when none of the first ``n_watch`` coefficients moves by ``tolerance``.
+    Each step moves ``relaxation`` times as far as the solve says. Returns c (K,)."""
+    K, n = at.shape
+    c = c0.copy()
+    H = np.empty((K, K))
+    g = np.empty(K)
+    scratch = np.empty((2, n))
+    for _ in range(iterations):
+        weighted_normal(at, d, weight, c, inv_s, H, g, scratch)
+        A = H * scale + pinv
+        b = g * scale + prior
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+            # what LAPACK gives for such a system, without its refusal here
+            c[:] = np.nan
+            break
+        c_new = np.linalg.solve(A, b)
+        if relaxation != 1.0:
+            c_new = c + relaxation * (c_new - c)
+        move = 0.0
+        for k in range(n_watch):
+            move = max(move, abs(c_new[k] - c[k]))
+        c = c_new
+        if move < tolerance:
+            break
+    return c
