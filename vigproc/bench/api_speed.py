@@ -138,14 +138,19 @@ def api_speed(bases: Sequence[np.ndarray], peer: Callable | None = None, rounds:
     for c in cases:
         v, p, vc, pc = _ms(t_v[c]), _ms(t_p[c]), _ms(c_v[c]), _ms(c_p[c])
         net = p - res.peer_floor_ms
-        res.cases.append(CaseTiming(c, len(t_v[c]), v, p, v / p, v / net if net > 0 else float("nan"),
-                                    vc, pc, vc / pc, fallbacks[c], off[c]))
+        res.cases.append(CaseTiming(c, len(t_v[c]), v, p, _ratio(v, p), _ratio(v, net), vc, pc, _ratio(vc, pc),
+                                    fallbacks[c], off[c]))
     return res
 
 
 def _ms(seconds: list[float]) -> float:
     """Median in ms (NaN for none)."""
     return 1000 * float(np.median(seconds)) if seconds else float("nan")
+
+
+def _ratio(a: float, b: float) -> float:
+    """a / b, NaN when b is not a positive time."""
+    return a / b if b > 0 else float("nan")
 
 
 def _children_cpu() -> float:
