@@ -94,11 +94,11 @@ def api_speed(bases: Sequence[np.ndarray], peer: Callable | None = None, rounds:
     -------
     ApiSpeed
     """
-    import vigproc
+    from vigproc.core.estimate import estimate as public  # what ``vigproc.estimate`` names
     from vigproc.core.pixels import luminance
     from vigproc.io.protocol import vignetted
 
-    est = estimate or vigproc.estimate
+    est = estimate or public
     fields = case_fields()
     frames = {c: [vignetted(b, fields[c][i % len(fields[c])]) for i, b in enumerate(bases)] for c in cases}
     lums = {c: [luminance(f) for f in frames[c]] for c in cases}
