@@ -26,9 +26,10 @@ scene's own shading to pass as vignetting.
    N(0, ``chroma_covariate``²): where a scene's brightness goes with its colour
    (surfaces, coloured light), γ explains it and the field need not; a lens moves no
    chroma. Clean protocol, lens-family fit: 0.040 → 0.037 EV. Linear in c: IRLS solves it exactly
-   (:func:`irls`, NumPy: each step is two matrix-vector products over the pairs'
-   precomputed a·aᵀ and a·d, faster than the Numba loop it replaced, and a process
-   that only pools a profile never waits for Numba to load its compiled kernels).
+   (:func:`irls`: one compiled loop on one thread, each step's weighted sums as
+   reductions over the regressors' rows; as BLAS matrix-vector products, the BLAS's
+   threads spun against other processes. A process that pools a profile loads this one
+   cached kernel).
 4. Uncertainty: neighbouring pairs are far from independent, so the Gauss-Newton
    covariance understates the error. A delete-one-block jackknife (3×3 blocks) measures
    how much the scene moves the estimate; its field spread, scaled by a factor measured
