@@ -171,6 +171,31 @@ def test_irls_solves_the_weighted_normal_equations():
                                atol=5e-4)
 
 
+def test_irls_leaves_out_pairs_of_weight_zero_and_steps_as_numpy_does():
+    """A pair weighed 0 is no pair (the jackknife leaves a block out so); a step is the
+    NumPy solve of the reweighted normal equations (five plain steps, to rounding); data
+    no system can be solved for give NaN, not an error."""
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(600, 5))
+    d = a @ rng.normal(size=5) + 0.05 * rng.standard_cauchy(600)
+    weight = rng.random(600)
+    out = np.arange(600) % 3 == 0
+    pmean, pinv, sigma, kappa = np.zeros(5), np.eye(5) * 2.0, 0.05, 0.7
+    left = irls(d, a, weight * ~out, np.zeros(5), pmean, pinv, sigma, kappa, 7, tolerance=0.0)
+    kept = irls(d[~out], a[~out], weight[~out], np.zeros(5), pmean, pinv, sigma, kappa, 7, tolerance=0.0)
+    np.testing.assert_allclose(left, kept, rtol=1e-10, atol=1e-12)
+    c = np.zeros(5)
+    for _ in range(5):
+        w = weight / (1 + ((d - a @ c) / sigma) ** 2)
+        s = 1 / (sigma**2 * kappa)
+        c = np.linalg.solve((a * w[:, None]).T @ a * s + pinv, (a * w[:, None]).T @ d * s + pinv @ pmean)
+    np.testing.assert_allclose(irls(d, a, weight, np.zeros(5), pmean, pinv, sigma, kappa, 5, tolerance=0.0), c,
+                               rtol=1e-9, atol=1e-12)
+    bad = d.copy()
+    bad[3] = np.inf
+    assert np.all(np.isnan(irls(bad, a, weight, np.zeros(5), pmean, pinv, sigma, kappa, 5)))
+
+
 def _lens_field(k1=-0.55, k2=0.05, center=None):
     return pa_field((H, W), k1, k2, 0.0, center=center)
 

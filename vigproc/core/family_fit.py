@@ -26,9 +26,10 @@ scene's own shading to pass as vignetting.
    N(0, ``chroma_covariate``²): where a scene's brightness goes with its colour
    (surfaces, coloured light), γ explains it and the field need not; a lens moves no
    chroma. Clean protocol, lens-family fit: 0.040 → 0.037 EV. Linear in c: IRLS solves it exactly
-   (:func:`irls`, NumPy: each step is two matrix-vector products over the pairs'
-   precomputed a·aᵀ and a·d, faster than the Numba loop it replaced, and a process
-   that only pools a profile never waits for Numba to load its compiled kernels).
+   (:func:`irls`: one compiled loop on one thread, each step's weighted sums as
+   reductions over the regressors' rows; as BLAS matrix-vector products, the BLAS's
+   threads spun against other processes. A process that pools a profile loads this one
+   cached kernel).
 4. Uncertainty: neighbouring pairs are far from independent, so the Gauss-Newton
    covariance understates the error. A delete-one-block jackknife (3×3 blocks) measures
    how much the scene moves the estimate; its field spread, scaled by a factor measured
@@ -62,6 +63,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from vigproc.core._kernels.irls import irls_fit
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import N_COMPONENTS, LensFamily, default_family, profile_family
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
@@ -481,56 +483,25 @@ def irls(d: np.ndarray, a: np.ndarray, weight: np.ndarray, c0: np.ndarray, pmean
     P. W. Holland, R. E. Welsch, "Robust regression using iteratively reweighted
     least-squares", Comm. Statist. 6(9), 1977.
     """
-    at, sums = pair_products(d, a) if products is None else products
+    at = pair_products(d, a) if products is None else products
     K = at.shape[0]
-    iu, ju = np.triu_indices(K)
-    nu = iu.size
-    c = np.array(c0, dtype=np.float64, copy=True)
-    scale = 1.0 / (sigma * sigma * kappa)
-    inv_s = 1.0 / sigma
-    prior = pinv @ pmean
-    H = np.empty((K, K))
-    e, w = np.empty(d.size), np.empty(d.size)
-    for _ in range(iterations):
-        # in place: a step is two matrix-vector products and five passes over the pairs
-        np.dot(c, at, out=e)
-        np.subtract(d, e, out=e)
-        e *= inv_s
-        np.multiply(e, e, out=e)
-        e += 1.0
-        np.divide(weight, e, out=w)
-        g = sums @ w  # the upper triangle of AᵀWA, then AᵀWd
-        H[iu, ju] = g[:nu]
-        H[ju, iu] = g[:nu]
-        c_new = np.linalg.solve(H * scale + pinv, g[nu:] * scale + prior)
-        if relaxation != 1.0:
-            c_new = c + relaxation * (c_new - c)
-        done = float(np.max(np.abs(c_new[:converged_on] - c[:converged_on]))) < tolerance
-        c = c_new
-        if done:
-            break
-    return c
+    c0 = np.array(c0, dtype=np.float64, copy=True)
+    if K == 0 or iterations <= 0:
+        return c0
+    # the loop in one compiled call, on one thread (the BLAS's threads spun on a busy machine)
+    return irls_fit(at, np.ascontiguousarray(d, dtype=np.float64), np.ascontiguousarray(weight, dtype=np.float64),
+                    c0, np.ascontiguousarray(pinv, dtype=np.float64), np.asarray(pinv @ pmean, dtype=np.float64),
+                    1.0 / (sigma * sigma * kappa), 1.0 / sigma, int(iterations), float(tolerance),
+                    K if converged_on is None else min(int(converged_on), K), float(relaxation))
 
-
-#: :func:`irls`'s sums per pair, pairs along the last axis: aᵀ (K×n), and in one array
-#: the upper triangle of a·aᵀ (K(K+1)/2 rows, in :func:`numpy.triu_indices` order)
-#: followed by a·d (K rows).
-PairProducts = tuple[np.ndarray, np.ndarray]
+#: :func:`irls`'s regressors as rows, aᵀ (K×n, contiguous): a step reads each row in order.
+PairProducts = np.ndarray
 
 
 def pair_products(d: np.ndarray, a: np.ndarray) -> PairProducts:
-    """:data:`PairProducts` of pairs ``d``, ``a``: a step of :func:`irls` is then two
-    matrix-vector products over contiguous rows."""
-    at = np.ascontiguousarray(a.T)
-    K = at.shape[0]
-    iu, ju = np.triu_indices(K)
-    sums = np.empty((iu.size + K, at.shape[1]))
-    # row by row into one array: indexing at[iu] * at[ju] copied both operands first,
-    # and took 17 times as long (the same bits)
-    for k, (i, j) in enumerate(zip(iu, ju)):
-        np.multiply(at[i], at[j], out=sums[k])
-    np.multiply(at, d, out=sums[iu.size:])
-    return at, sums
+    """:data:`PairProducts` of pairs ``d``, ``a`` (``d`` is not needed: the step reads it
+    itself), computed once for many :func:`irls` fits of the same pairs."""
+    return np.ascontiguousarray(a.T, dtype=np.float64)
 
 
 def _pair_steps(settings: FamilySettings, shape: tuple[int, int]) -> np.ndarray:

@@ -680,6 +680,8 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
     from vigproc.core.estimate import estimate
     from vigproc.io.images import read_image
 
+    if args.api:
+        return _bench_speed_api(args)
     folder = Path(args.images) if args.images else Path(str(resources.files("vigproc.data").joinpath("samples")))
     files = _images_in(folder, args.limit)
     phi = table1_model(2).field()
@@ -694,6 +696,38 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
                 estimate(fr, method, channel_axis=None)
                 ts.append(time.perf_counter() - t0)
         print(f"{method:<14} median {1000 * np.median(ts):8.2f} ms  p90 {1000 * np.percentile(ts, 90):8.2f} ms")
+    return 0
+
+
+def _bench_speed_api(args: argparse.Namespace) -> int:
+    """``bench speed --api``: vigproc.estimate on clean-protocol crops beside the published peer."""
+    from vigproc.bench.api_speed import api_speed
+    from vigproc.bench.clean import load_clean_bases
+    from vigproc.bench.peers import PEER_ENV, published_rgs
+
+    if not args.images:
+        print("vigproc: bench speed --api: give --images (full-size camera frames, e.g. ../shared/data/jpeg_exif)",
+              file=sys.stderr)
+        return 2
+    bases, _ = load_clean_bases([args.images], limit=args.limit, colour=True)
+    if not bases:
+        print(f"vigproc: bench speed --api: no frame of at least 1000 px in {args.images}", file=sys.stderr)
+        return 2
+    exe = args.peer or os.environ.get(PEER_ENV)
+    r = api_speed(bases, published_rgs(exe) if exe else None, rounds=args.repeat)
+    print(f"vigproc.estimate on {r.n_frames} central crops (480x320, colour, linear) of {args.images}, "
+          f"{r.rounds} rounds" + (f", interleaved with the published peer {exe}" if exe else " (no peer: --peer or "
+                                  f"${PEER_ENV})"))
+    if exe:
+        print(f"peer floor (process start and file I/O, a 16x16 frame): {r.peer_floor_ms:.1f} ms, "
+              f"{r.peer_floor_cpu_ms:.1f} ms CPU")
+    print(f"{'case':<10}{'vigproc ms':>12}{'peer ms':>10}{'ratio':>8}{'net':>8}{'vigproc CPU':>13}{'peer CPU':>10}"
+          f"{'ratio':>8}{'fall-backs':>12}{'off-centre':>12}")
+    for c in r.cases:
+        print(f"{c.case:<10}{c.vigproc_ms:>12.1f}{c.peer_ms:>10.1f}{c.ratio:>8.2f}{c.ratio_net:>8.2f}"
+              f"{c.vigproc_cpu_ms:>13.1f}{c.peer_cpu_ms:>10.1f}{c.ratio_cpu:>8.2f}{c.fallbacks:>12}{c.off_centre:>12}")
+    print("medians (ms); ratio: vigproc / peer; net: vigproc / (peer - its floor); CPU: process time (the peer's "
+          "child process by getrusage), first-round fall-backs and off-centre fits of the frames")
     return 0
 
 
@@ -1376,6 +1410,10 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--repeat", type=int, default=5, help="timing rounds (default %(default)s)")
     bp.add_argument("--methods", nargs="+", default=["ga", "default"], choices=list(METHODS),
                     help="estimators to time (default: ga default)")
+    bp.add_argument("--api", action="store_true", help="time vigproc.estimate (colour, default method) on central "
+                    "crops of --images's camera frames with a lensfun lens, Lyu's Table 1 setting 2 and no fall-off, "
+                    "interleaved with the published peer")
+    bp.add_argument("--peer", help="with --api: the built rgs_peer (scripts/build_rgs_peer.sh; default $VIGPROC_RGS_PEER)")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_speed)
     bp = bsub.add_parser("scene-scatter", help="how vignetting-free photographs scatter a frame's lens-family fit, "
