@@ -83,6 +83,7 @@ from vigproc.errors import (
     VigprocError,
     write_error,
 )
+from vigproc.io.formats import RAW_SUFFIXES, WRITE_EXT_FORMAT, WRITE_FORMAT_ALIASES, WRITE_FORMAT_EXT
 
 try:  # rawpy is optional at import time: without it RAW files are "unsupported".
     import rawpy
@@ -112,14 +113,7 @@ PathLike = Union[str, "os.PathLike[str]", bytes]
 SUPPORTED_OIIO_FORMATS = frozenset({"jpeg", "png", "tiff", "openexr"})
 
 #: Extensions tried with LibRaw *first* (content still decides: see :func:`read_image`).
-RAW_EXTENSIONS = frozenset(
-    {
-        ".3fr", ".ari", ".arw", ".bay", ".cap", ".cr2", ".cr3", ".crw", ".dcr", ".dcs",
-        ".dng", ".drf", ".eip", ".erf", ".fff", ".gpr", ".iiq", ".k25", ".kdc", ".mdc",
-        ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".ptx", ".pxn", ".r3d",
-        ".raf", ".raw", ".rw2", ".rwl", ".rwz", ".sr2", ".srf", ".srw", ".sti", ".x3f",
-    }
-)
+RAW_EXTENSIONS = RAW_SUFFIXES
 
 #: Written into the ImageDescription of linear integer/float TIFFs by :func:`write_image`.
 LINEAR_TIFF_MARKER = "vigproc:transfer=linear"
@@ -1069,12 +1063,6 @@ def _libraw_msg(exc: BaseException) -> str:
 # Writing
 # --------------------------------------------------------------------------- #
 
-#: The writers' formats, by file extension and by name (one table for io and metadata).
-WRITE_EXT_FORMAT = {".tif": "tiff", ".tiff": "tiff", ".png": "png", ".exr": "openexr", ".jpg": "jpeg",
-                    ".jpeg": "jpeg"}
-WRITE_FORMAT_ALIASES = {"tif": "tiff", "tiff": "tiff", "png": "png", "exr": "openexr", "openexr": "openexr",
-                        "jpg": "jpeg", "jpeg": "jpeg"}
-WRITE_FORMAT_EXT = {"tiff": ".tif", "png": ".png", "openexr": ".exr", "jpeg": ".jpg"}
 _EXT_FORMAT, _FORMAT_ALIASES, _FORMAT_EXT = WRITE_EXT_FORMAT, WRITE_FORMAT_ALIASES, WRITE_FORMAT_EXT
 _FORMAT_DEPTHS = {
     "tiff": ("uint16", "uint8", "float"),

@@ -126,9 +126,9 @@ from vigproc.atomic import publish
 from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputRefusedError,
                             OutputSettingsError, VigprocError, write_error)
 from vigproc.io.exiftool_process import ExiftoolDied, ExiftoolProcess, ExiftoolResult, line_safe
-from vigproc.io.images import WRITE_EXT_FORMAT as _EXT_FORMAT
-from vigproc.io.images import WRITE_FORMAT_ALIASES as _FORMAT_ALIASES
-from vigproc.io.images import WRITE_FORMAT_EXT as _FORMAT_EXT
+from vigproc.io.formats import WRITE_EXT_FORMAT as _EXT_FORMAT
+from vigproc.io.formats import WRITE_FORMAT_ALIASES as _FORMAT_ALIASES
+from vigproc.io.formats import WRITE_FORMAT_EXT as _FORMAT_EXT
 from vigproc.io.images import recorded_transfer, write_image
 from vigproc.core.model import VignettingModel
 

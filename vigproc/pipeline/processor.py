@@ -24,6 +24,7 @@ from typing import Any, Container, Iterable, Sequence
 
 from vigproc.errors import (CONTROL_ESCAPES, ImageReadError, ImageWriteError, ModelError, OutputFormatError, OutputRefusedError,
                             OutputSettingsError, VigprocError, write_error)
+from vigproc.io.formats import IMAGE_SUFFIXES, WRITE_EXT_FORMAT  # noqa: F401  (IMAGE_SUFFIXES: re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +89,6 @@ OUTPUT_FORMATS: dict[str, OutputFormat | None] = {
 #: An ``auto`` JPEG output is saved at the source's own quality (IJG scale), but never
 #: below this: a second lossy pass at a low quality would show.
 MIN_AUTO_JPEG_QUALITY = 90
-#: What ``auto`` writes for an input, by its suffix (RAW and anything else: tiff16).
-_AUTO_KIND = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png", ".tif": "tiff", ".tiff": "tiff", ".exr": "openexr"}
 #: When nothing is applied (weak evidence, a refused field, strength 0), what a correct run
 #: writes: ``keep`` (the default: every photo comes out) the original under the output's
 #: name, its bytes when the output is the input's own kind (else the frame as read, in the
@@ -125,7 +124,7 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
         raise OutputFormatError(f"--output-format dng needs a DNG input, not {path.name!r}")
     if fixed is not None and fixed.format != "jpeg":
         return fixed
-    kind = "jpeg" if fixed is not None else _AUTO_KIND.get(src_suffix)
+    kind = "jpeg" if fixed is not None else WRITE_EXT_FORMAT.get(src_suffix)  # RAW and others: tiff16
     depth = getattr(info, "bit_depth", None)
     transfer = getattr(info, "transfer", None)
     if kind == "jpeg":  # at the source's own quality when it is a JPEG
@@ -143,10 +142,6 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
         return OutputFormat(".exr", "openexr", "half" if depth == "half" else "float")
     return OUTPUT_FORMATS["tiff16"]  # a RAW: linear 16 bits, what raw editors take
 
-
-#: File name suffixes vigproc reads (RAW through rawpy, the rest through OpenImageIO).
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".dng", ".cr2", ".cr3", ".nef",
-                            ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw", ".kdc"})
 
 #: Why nothing was applied to a frame whose estimate is weak: one wording for every front end.
 WEAK_EVIDENCE = "weak evidence: the estimate is not clearly above its uncertainty"

@@ -14,12 +14,10 @@ from pathlib import Path
 from typing import Any
 
 from vigproc.errors import SETTINGS, VigprocError
+from vigproc.io.formats import IMAGE_SUFFIXES
 from vigproc.pipeline.faults import DEFAULT_MIN_FREE
 from vigproc.pipeline.processor import percent_encode, shorten_stem
 from vigproc.stores.journal import Fingerprint
-
-#: Image suffixes the daemon takes (the pipeline's).
-_IMAGE_SUFFIXES: frozenset[str] | None = None
 
 #: Suffixes of files that writers are still filling (browsers, torrent clients, scp/WinSCP,
 #: download managers, editors): ignored until renamed.
@@ -61,18 +59,9 @@ def is_temporary_name(name: str) -> bool:
     return any(low.endswith(s) for s in TEMP_SUFFIXES)
 
 
-def _image_suffixes() -> frozenset[str]:
-    global _IMAGE_SUFFIXES
-    if _IMAGE_SUFFIXES is None:  # the pipeline imports numba: only when first needed
-        from vigproc.pipeline.processor import IMAGE_SUFFIXES
-
-        _IMAGE_SUFFIXES = IMAGE_SUFFIXES
-    return _IMAGE_SUFFIXES
-
-
 def is_candidate_name(name: str) -> bool:
     """An image suffix the pipeline reads, and not a temporary name."""
-    return not is_temporary_name(name) and os.path.splitext(name)[1].lower() in _image_suffixes()
+    return not is_temporary_name(name) and os.path.splitext(name)[1].lower() in IMAGE_SUFFIXES
 
 
 def output_stem(rel: str) -> str:
