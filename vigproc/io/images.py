@@ -70,7 +70,7 @@ from typing import Callable, Union
 import numpy as np
 import OpenImageIO as oiio
 
-from vigproc.atomic import publish
+from vigproc.atomic import replacing
 from vigproc.errors import (
     DiskFullError,
     ImageReadError,
@@ -1275,7 +1275,6 @@ def write_image(
         spec.attribute("Compression", f"jpeg:{int(quality or DEFAULT_JPEG_QUALITY)}")
 
     directory = os.path.dirname(os.path.abspath(fspath))
-    name = os.path.basename(fspath)
     # Encoded in memory first: a native writer that fails on a full disk may end the
     # process (libjpeg's "Output file write error --- out of disk space?" calls exit()),
     # and none gives an errno.  The bytes then go out by Python I/O, where a full disk is
@@ -1287,20 +1286,13 @@ def write_image(
     # Temp name keeps a format extension so OIIO picks the right writer; the
     # basename is shortened so prefix+suffix stay within NAME_MAX.
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{name[:100]}.tmp-", suffix=_FORMAT_EXT[fmt], dir=directory)
-    except (OSError, ValueError) as exc:
-        raise write_error(f"cannot write {q}: cannot create a temporary file in {directory!r}: {exc}", exc) from None
-    done = False
-    try:
-        if encoded is not None:
-            with os.fdopen(fd, "wb") as fh, encoded:
-                encoded.seek(0)
-                shutil.copyfileobj(encoded, fh, 1 << 20)
-        else:  # no in-memory file here (not Linux): the native writer writes the file itself
-            os.close(fd)
-            _oiio_write(tmp, spec, data, q)
-        publish(tmp, fspath)
-        done = True
+        with replacing(fspath, what=f"cannot write {q}", suffix=_FORMAT_EXT[fmt]) as tmp:
+            if encoded is not None:
+                with open(tmp, "wb") as fh:
+                    encoded.seek(0)
+                    shutil.copyfileobj(encoded, fh, 1 << 20)
+            else:  # no in-memory file here (not Linux): the native writer writes the file itself
+                _oiio_write(tmp, spec, data, q)
     except ImageWriteError:
         raise
     except OSError as exc:
@@ -1308,11 +1300,6 @@ def write_image(
     finally:
         if encoded is not None:
             encoded.close()
-        if not done:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
     logger.debug("wrote %s (%s, %s, %s, %dx%dx%d)", fspath, fmt, depth, tr, w, h, nch)
 
 

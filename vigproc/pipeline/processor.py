@@ -498,28 +498,22 @@ def keep_original(src: Path, dst: Path, *, link: bool = False) -> None:
     a hard link when ``link`` and the file systems allow it, else a copy of its bytes;
     atomically (temporary name, then rename), so ``dst`` is whole or absent."""
     import shutil
-    import tempfile
 
-    from vigproc.atomic import atomic_path, fsync_dir
+    from vigproc.atomic import atomic_path, replacing
 
     try:
         if link:
-            # not through atomic_path: its publish() sets the temporary's mode, which for
-            # a hard link is the input's own
-            # a name only: os.link refuses one that exists meanwhile, it never overwrites
-            tmp = tempfile.mktemp(prefix=f".{dst.name[:100]}.tmp-", dir=dst.parent)
+            linked = False
             try:
-                os.link(src, tmp)
-            except OSError as exc:  # another file system, or links not allowed: copy instead
-                log.debug("cannot link %s (%s); copying it", src, exc.strerror or exc)
-            else:
-                try:
-                    os.replace(tmp, dst)
-                except OSError:
-                    os.unlink(tmp)
-                    raise
-                fsync_dir(dst.parent)
+                # a name only (os.link never overwrites); no chmod: a hard link's mode is the input's own
+                with replacing(dst, create=False, chmod=False) as tmp:
+                    os.link(src, tmp)
+                    linked = True
                 return
+            except OSError as exc:  # another file system, or links not allowed: copy instead
+                if linked:
+                    raise
+                log.debug("cannot link %s (%s); copying it", src, exc.strerror or exc)
         with atomic_path(dst) as tmp_path:  # a copy is an output like the others (mode, fsync)
             shutil.copyfile(src, tmp_path)
     except OSError as exc:

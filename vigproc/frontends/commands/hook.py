@@ -203,7 +203,7 @@ class _HostLens:
 # ------------------------------------------------------------------ one file
 def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) -> dict[str, Any]:
     from vigproc.frontends.api import Result
-    from vigproc.atomic import fsync_dir
+    from vigproc.atomic import publish
     from vigproc.pipeline.processor import SIDECAR_SUFFIX, safe_output
 
     path = Path(job["path"])
@@ -226,8 +226,7 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) 
         try:
             # the host asked for this file: it is written even when nothing is applied
             res = proc.process_file(path, work, "out", unapplied="write", like=target)
-            os.replace(res.output, target)
-            fsync_dir(target.parent)
+            publish(res.output, target)
         finally:
             shutil.rmtree(work, ignore_errors=True)
         out.update(Result.from_frame(res).to_dict(), output=str(target))
