@@ -18,6 +18,7 @@ from vigproc.io.formats import IMAGE_SUFFIXES
 from vigproc.pipeline.faults import DEFAULT_MIN_FREE
 from vigproc.pipeline.processor import percent_encode, shorten_stem
 from vigproc.stores.journal import Fingerprint
+from vigproc.stores.retry import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_CRASHES, DEFAULT_RETRY_BASE, DEFAULT_RETRY_CAP
 
 #: Suffixes of files that writers are still filling (browsers, torrent clients, scp/WinSCP,
 #: download managers, editors): ignored until renamed.
@@ -140,10 +141,10 @@ class WatchConfig:
     status_file: Path | None = None
     rescan: float = 300.0
     timeout: float = 900.0
-    max_attempts: int = 5
-    max_crashes: int = 3
-    retry_base: float = 5.0
-    retry_cap: float = 600.0
+    max_attempts: int = DEFAULT_MAX_ATTEMPTS
+    max_crashes: int = DEFAULT_MAX_CRASHES
+    retry_base: float = DEFAULT_RETRY_BASE
+    retry_cap: float = DEFAULT_RETRY_CAP
     retry_quarantined: bool = False
     min_free: int = DEFAULT_MIN_FREE  # bytes: a write failure with less free is a full disk
     log_json: bool = False
