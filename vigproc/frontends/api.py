@@ -312,9 +312,11 @@ class Pipeline:
             return None
         st = getattr(self._local, "store", None)
         if st is None:
-            from vigproc.stores.profiles import ProfileStore
+            from vigproc.stores.opening import open_profile_store
 
-            st = ProfileStore(self.store_path)  # sqlite connections are per thread
+            st = open_profile_store(self.store_path, write=self.settings.mode == "learn")  # one connection per thread
+            if st is None:
+                return None
             self._local.store = st
             with self._lock:
                 self._stores.append(st)

@@ -418,9 +418,9 @@ def _worker_state(spec: JobSpec) -> _WorkerState:
     if settings.mode == "learn":
         store = evidence = _Evidence()
     elif spec.store_snapshot is not None:
-        from vigproc.stores.profiles import ProfileStore
+        from vigproc.stores.opening import open_profile_store
 
-        store = ProfileStore(_materialise(spec.store_snapshot))
+        store = open_profile_store(_materialise(spec.store_snapshot))
     st = _WorkerState(token, Processor(settings, store=store), store, evidence)
     _thread.state = st
     return st

@@ -116,14 +116,14 @@ def cmd_batch(args: argparse.Namespace) -> int:
     profile_db = _option(args, config, "profile_db")
     try:
         if settings.needs_store:
-            from vigproc.stores.profiles import ProfileStore
+            from vigproc.stores.opening import open_profile_store
 
-            store = ProfileStore(profile_db)
-            if settings.mode != "learn":  # workers read a snapshot; only learn mode writes, here
+            store = open_profile_store(profile_db, write=settings.mode == "learn")
+            if store is not None and settings.mode != "learn":  # workers read a snapshot; only learn writes, here
                 snapshot = B.Shipped.of("profiles.sqlite", B.snapshot_store(store))
                 store.close()
                 store = None
-            else:
+            elif store is not None:
                 fs = B.filesystem_type(store.path)
                 if fs in B.NETWORK_FS:
                     log.warning("profile store %s is on a %s network filesystem; SQLite wants a local disk",

@@ -163,9 +163,9 @@ def cmd_check(args: argparse.Namespace) -> int:
         default_match_calibration() if args.method == "default" else default_calibration()
     store = None
     if not args.no_store:
-        from vigproc.frontends.commands._options import open_read_store
+        from vigproc.stores.opening import open_profile_store
 
-        store = open_read_store(args.profile_db)  # a store that cannot exist holds no reference
+        store = open_profile_store(args.profile_db)  # a store that cannot exist holds no reference
     run = run_record(args, calibration, store)
     results, items, verdicts = [], [], []
     failed = 0

@@ -319,9 +319,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     store = None
     if settings.needs_store:  # the hook's modes only read it
-        from vigproc.frontends.commands._options import open_read_store
+        from vigproc.stores.opening import open_profile_store
 
-        store = open_read_store(opt["profile_db"])
+        store = open_profile_store(opt["profile_db"])
     reader = _HostLens(given)
     results = []
     try:

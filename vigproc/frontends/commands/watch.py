@@ -61,9 +61,11 @@ def _check_settings(cfg) -> None:
 
         import_profile(settings.profile)
     if settings.needs_store:
-        from vigproc.stores.profiles import ProfileStore
+        from vigproc.stores.opening import open_profile_store
 
-        ProfileStore(cfg.profile_db).close()
+        store = open_profile_store(cfg.profile_db, write=settings.mode == "learn")
+        if store is not None:
+            store.close()
     if cfg.settings["mode"] == "check" and importlib.util.find_spec("vigproc.forensics.check") is None:
         log.warning("check mode needs vigproc.forensics.check, which this installation lacks: every file will be "
                     "quarantined with that reason (requeue them later with --retry-quarantined)")
