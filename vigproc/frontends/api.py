@@ -156,7 +156,7 @@ class Result:
     fallback : bool
         The estimate was too weak to apply: the image is returned uncorrected.
     verdict : dict or None
-        Check mode: the forensic verdict (:func:`vigproc.forensics.check.check_image`).
+        Check mode: the forensic verdict (:func:`vigproc.forensics.check.forensic_check`).
     lens : dict
         The lens key used (``lens_id`` None when unknown).
     seconds : float

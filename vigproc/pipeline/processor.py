@@ -827,9 +827,9 @@ class Processor:
         res = FrameResult(file=where, mode=s.mode, lens=lens)
         out = None
         if s.mode == "check":
-            from vigproc.forensics.check import check_image  # noqa: PLC0415 - only check mode needs it
+            from vigproc.forensics.check import forensic_check  # noqa: PLC0415 - only check mode needs it
 
-            verdict = check_image(img, lens_key, store=self.store, method=s.method, frame_id=frame_id)
+            verdict = forensic_check(img, lens_key, store=self.store, method=s.method, frame_id=frame_id)
             res.verdict = verdict.to_dict()
             res.source = "estimate"
             res.model = getattr(verdict, "estimate", None)

@@ -148,7 +148,7 @@ def _version_of(package: str) -> str | None:
 
 def cmd_check(args: argparse.Namespace) -> int:
     from vigproc.forensics.crops import check_crop
-    from vigproc.forensics.check import check_image, default_calibration, load_calibration, pool_verdicts
+    from vigproc.forensics.check import forensic_check, default_calibration, load_calibration, pool_verdicts
     from vigproc.forensics.lensmatch import default_match_calibration
     from vigproc.io.images import read_image
     from vigproc.io.provenance import read_provenance
@@ -178,7 +178,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                     # the pipeline's check step, with this run's calibration and threshold
                     # the frame's content id: a stored profile that pooled it is no reference
                     fid = file_sha256(f)
-                    v = check_image(img, lens_key, store=proc.store, method=settings.method,
+                    v = forensic_check(img, lens_key, store=proc.store, method=settings.method,
                                     calibration=calibration, alpha=args.alpha,
                                     frame_id=fid if proc.store is not None else None)
                     prov = read_provenance(f, proc.reader, getattr(lens_key, "problems", ()), sha256=fid)
