@@ -90,10 +90,10 @@ def test_the_report_and_json_hold_hash_dates_camera_conflicts_and_the_run(confli
 
 def test_the_png_report_has_the_run_at_its_head(conflicted, tmp_path, capsys):
     """The PNG report is the figures stacked under the run's record: taller by it."""
-    from vigproc.forensics.check import check_image
+    from vigproc.forensics.check import forensic_check
     from vigproc.forensics.report import ReportItem, png_bytes, report_figure, write_report
 
-    v = check_image(np.repeat(textured(160, 240, seed=1)[..., None], 3, axis=2), None)
+    v = forensic_check(np.repeat(textured(160, 240, seed=1)[..., None], 3, axis=2), None)
     item = ReportItem("x.jpg", v)
     plain, with_run = tmp_path / "a.png", tmp_path / "b.png"
     write_report(plain, [item])

@@ -23,7 +23,7 @@ from vigproc.forensics.check import (
     Calibration,
     ForensicsError,
     Verdict,
-    check_image,
+    forensic_check,
     check_model,
     expected_from_field,
     fit_calibration,
@@ -162,7 +162,7 @@ def test_calibration_round_trip_and_bad_files(tmp_path):
 # ------------------------------------------------------------------ verdicts
 def test_matching_lens_is_consistent(classes, calibration):
     c = classes[4]
-    v = check_image(frame(c, seed=1), key_of(c), calibration=calibration)
+    v = forensic_check(frame(c, seed=1), key_of(c), calibration=calibration)
     assert v.verdict == "consistent", v.reason
     assert v.expected_source == "lensfun"
     assert v.p_false_alarm >= calibration.alpha
@@ -173,7 +173,7 @@ def test_matching_lens_is_consistent(classes, calibration):
 def test_mislabelled_lens_is_inconsistent(classes, calibration):
     strong, mild = classes[4], classes[5]
     # taken at f/1.4, labelled f/2.8: much more fall-off than the claimed setting gives
-    v = check_image(frame(strong, seed=2), key_of(mild), calibration=calibration)
+    v = forensic_check(frame(strong, seed=2), key_of(mild), calibration=calibration)
     assert v.verdict == "inconsistent", v.reason
     assert v.p_false_alarm < calibration.alpha
     assert v.evidence.falloff_diff_ev[-1] < -0.3
@@ -182,10 +182,10 @@ def test_mislabelled_lens_is_inconsistent(classes, calibration):
 
 def test_unknown_lens(classes, calibration):
     img = frame(classes[4], seed=3)
-    v = check_image(img, None, calibration=calibration)
+    v = forensic_check(img, None, calibration=calibration)
     assert v.verdict == "unknown-lens" and v.score is None and v.estimate is not None
     nowhere = LensKey(make="Nobody", model="X", lens="Imaginary 33mm f/0.7 Prototype", focal_mm=33.0, fnumber=0.7)
-    v = check_image(img, nowhere, calibration=calibration)
+    v = forensic_check(img, nowhere, calibration=calibration)
     assert v.verdict == "unknown-lens"
     assert v.lens_id == nowhere.lens_id()
 
@@ -207,11 +207,11 @@ def test_weak_estimate_gives_insufficient_signal_with_numbers(classes, calibrati
 
 def test_check_needs_a_calibration_for_its_estimator(classes, calibration):
     with pytest.raises(ForensicsError):
-        check_image(frame(classes[4]), key_of(classes[4]), method="ga", calibration=calibration)
+        forensic_check(frame(classes[4]), key_of(classes[4]), method="ga", calibration=calibration)
 
 
 def test_verdict_json_round_trip(classes, calibration):
-    v = check_image(frame(classes[4], seed=5), key_of(classes[5]), calibration=calibration)
+    v = forensic_check(frame(classes[4], seed=5), key_of(classes[5]), calibration=calibration)
     d = json.loads(json.dumps(v.to_dict()))
     back = Verdict.from_dict(d)
     assert back.verdict == v.verdict and back.score == pytest.approx(v.score)
@@ -226,14 +226,14 @@ def test_pooled_frames(classes, calibration):
     # honest frames: at the test-sized calibration each verdict is a 5 %-level test, so a
     # seed can land in the tail (seeds re-chosen when the estimator changed; measured over
     # 10 pooled triples the false-alarm count was 1 with the current estimator, 0 before)
-    vs = [check_image(frame(c, seed=11 + i), key_of(c), calibration=calibration) for i in range(3)]
+    vs = [forensic_check(frame(c, seed=11 + i), key_of(c), calibration=calibration) for i in range(3)]
     pv = pool_verdicts(vs, calibration=calibration)
     assert pv.n_frames == 3
     z = np.mean([v.whitened for v in vs], axis=0)
     assert pv.score == pytest.approx(3 * float(z @ z))
     assert pv.p_false_alarm == pytest.approx(calibration.p_value(pv.score, 3))
     assert pv.verdict == "consistent"
-    other = check_image(frame(c, seed=20), key_of(classes[5]), calibration=calibration)
+    other = forensic_check(frame(c, seed=20), key_of(classes[5]), calibration=calibration)
     with pytest.raises(ForensicsError):
         pool_verdicts(vs + [other], calibration=calibration)
 
@@ -247,7 +247,7 @@ def test_stored_profiles_come_before_lensfun(tmp_path, classes, calibration):
         # a user profile under the strong setting's key that says "mild": the store wins
         theta, _, _ = normalise(mild.true_model(W, H))
         store.put(Profile(key=ProfileKey.from_lens(key, W, H), theta=theta, provenance="user", trusted=True))
-        v = check_image(frame(strong, seed=6), key, store=store, calibration=calibration)
+        v = forensic_check(frame(strong, seed=6), key, store=store, calibration=calibration)
         assert v.expected_source == "stored-profile"
         assert v.verdict == "inconsistent", v.reason
     with ProfileStore(tmp_path / "learned.sqlite") as store:
@@ -255,12 +255,12 @@ def test_stored_profiles_come_before_lensfun(tmp_path, classes, calibration):
         for i in range(4):  # learn the lens from a few frames, then check another one
             m = estimate(frame(strong, seed=30 + i), FORENSICS_METHOD, channel_axis=None)
             store.learn(pk, m.candidate or m)
-        v = check_image(frame(strong, seed=40), key, store=store, calibration=calibration)
+        v = forensic_check(frame(strong, seed=40), key, store=store, calibration=calibration)
         assert v.expected_source == "stored-profile"
         assert v.verdict == "consistent", v.reason
         # a much stronger lens (Tamron 14-150 at 14 mm f/3.5: 3.7 EV in the corners)
         tamron = next(c for c in bench_classes(8) if c.maker == "Tamron")
-        v = check_image(frame(tamron, seed=41), key, store=store, calibration=calibration)
+        v = forensic_check(frame(tamron, seed=41), key, store=store, calibration=calibration)
         assert v.verdict == "inconsistent", v.reason
 
 
@@ -284,8 +284,8 @@ def test_report_html_and_png(tmp_path, classes, calibration):
     from vigproc.forensics.report import ReportItem, thumbnail, write_report
 
     img = frame(classes[4], seed=7)
-    v = check_image(img, key_of(classes[5]), calibration=calibration)
-    u = check_image(img, None, calibration=calibration)
+    v = forensic_check(img, key_of(classes[5]), calibration=calibration)
+    u = forensic_check(img, None, calibration=calibration)
     items = [ReportItem('<script>alert("x")</script>.jpg', v, thumbnail(img)),
              ReportItem("unknown.jpg", u, thumbnail(np.repeat(img[..., None], 3, axis=2)))]
     out = tmp_path / "r.html"
@@ -310,12 +310,16 @@ def test_report_failure_keeps_the_old_file(tmp_path, classes, calibration, monke
     import vigproc.atomic
     from vigproc.forensics.report import ReportItem, write_report
 
-    v = check_image(frame(classes[4], seed=8), None, calibration=calibration)
+    v = forensic_check(frame(classes[4], seed=8), None, calibration=calibration)
     out = tmp_path / "r.html"
     out.write_text("previous report")
 
-    def broken(tmp, dst):
-        raise OSError("disk full")
+    real = vigproc.atomic.publish
+
+    def broken(tmp, dst, **kw):  # only the report's own rename fails (its figure is written too)
+        if os.fspath(dst) == os.fspath(out):
+            raise OSError("disk full")
+        real(tmp, dst, **kw)
 
     monkeypatch.setattr(vigproc.atomic, "publish", broken)
     with pytest.raises(ImageWriteError):
@@ -362,11 +366,11 @@ def test_a_check_never_uses_a_profile_that_holds_the_frame_itself(tmp_path, clas
         m = estimate(img, FORENSICS_METHOD, channel_axis=None)
         store.learn(ProfileKey.from_lens(key, W, H), m.candidate or m, frame_id="sha-of-this-frame")
         # a profile learned from this very frame would vouch for it
-        v = check_image(img, key, store=store, calibration=calibration, frame_id="sha-of-this-frame")
+        v = forensic_check(img, key, store=store, calibration=calibration, frame_id="sha-of-this-frame")
         assert v.expected_source != "stored-profile"
         assert store.holds_frame(ProfileKey.from_lens(key, W, H), "sha-of-this-frame")
         # another frame of the lens may use it
-        v = check_image(frame(strong, seed=51), key, store=store, calibration=calibration, frame_id="other")
+        v = forensic_check(frame(strong, seed=51), key, store=store, calibration=calibration, frame_id="other")
         assert v.expected_source == "stored-profile"
 
 

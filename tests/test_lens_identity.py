@@ -213,7 +213,7 @@ def test_lensfun_rejects_weak_matches(name, brand) -> None:
 
 
 def test_lensfun_finds_the_sony_d_lens_and_checks_against_it(frames) -> None:
-    from vigproc.forensics.check import check_image
+    from vigproc.forensics.check import forensic_check
     from vigproc.io.images import read_image
     from vigproc.stores.lensfun_io import lensfun_model
     from vigproc.stores.lensfun_match import match_lens
@@ -223,13 +223,13 @@ def test_lensfun_finds_the_sony_d_lens_and_checks_against_it(frames) -> None:
     assert m.lens is not None and m.lens.model == "Minolta/Sony AF DT 18-70mm f/3.5-5.6 (D)"
     assert lensfun_model(key, 360, 240).method == "lensfun"
     img, _ = read_image(frames["sony_d"])
-    v = check_image(img, key)
+    v = forensic_check(img, key)
     assert v.verdict != "unknown-lens" and v.expected_source == "lensfun"
     assert "Minolta/Sony AF DT 18-70mm f/3.5-5.6 (D)" in v.profile
 
 
 def test_no_lensfun_calibration_for_a_lens_the_shot_cannot_be_from(frames) -> None:
-    from vigproc.forensics.check import check_image
+    from vigproc.forensics.check import forensic_check
     from vigproc.io.images import read_image
     from vigproc.stores.lensfun_io import lensfun_model
     from vigproc.stores.lensfun_match import match_lens
@@ -241,17 +241,17 @@ def test_no_lensfun_calibration_for_a_lens_the_shot_cannot_be_from(frames) -> No
     ok = read(frames["in_range"])  # the same lens at a focal length it has: found
     assert match_lens(ok).lens is not None and match_lens(ok).lens.model == "Canon EF 70-200mm f/2.8L IS II USM"
     img, _ = read_image(frames["out_of_range"])
-    v = check_image(img, key)
+    v = forensic_check(img, key)
     assert v.verdict == "unknown-lens" and "contradictory" in v.reason and "31 mm" in v.reason
     assert v.expected_source is None and "31 mm" in v.to_dict()["lens_problem"]
 
 
 def test_check_of_the_canon_251_frame_is_not_consistent(canon_251: Path) -> None:
-    from vigproc.forensics.check import check_image
+    from vigproc.forensics.check import forensic_check
     from vigproc.io.images import read_image
 
     img, _ = read_image(canon_251)
-    v = check_image(img, read(canon_251))
+    v = forensic_check(img, read(canon_251))
     assert v.verdict == "unknown-lens" and "70-200" not in (v.profile or "") and "describes" in v.reason
 
 

@@ -12,7 +12,7 @@ import pytest
 from vigproc.bench.forensics import bench_classes
 from vigproc.io.exif import LensKey
 from vigproc.core.family_fit import profile_to_model
-from vigproc.forensics.check import check_image, load_calibration, pool_verdicts
+from vigproc.forensics.check import forensic_check, load_calibration, pool_verdicts
 from vigproc.core.lensfamily import default_family
 from vigproc.forensics.lensmatch import (
     MatchCalibration,
@@ -135,8 +135,8 @@ def test_shipped_calibration_is_for_the_shipped_family():
 def test_mismatched_lens_is_caught_and_the_true_one_is_not(classes, calibration):
     strong, mild = classes[4], classes[5]
     img = textured(H, W, seed=11, contrast=0.15) * strong.field(H, W)
-    right = check_image(img, key_of(strong), calibration=calibration)
-    wrong = check_image(img, key_of(mild), calibration=calibration)
+    right = forensic_check(img, key_of(strong), calibration=calibration)
+    wrong = forensic_check(img, key_of(mild), calibration=calibration)
     assert right.test == wrong.test == "lens-family"
     assert right.verdict == "consistent" and wrong.verdict == "inconsistent"
     assert wrong.score > 10 * right.score
@@ -151,12 +151,12 @@ def test_mismatched_lens_is_caught_and_the_true_one_is_not(classes, calibration)
 def test_pooled_family_verdicts(classes, calibration):
     strong, mild = classes[4], classes[5]
     frames = [textured(H, W, seed=20 + i, contrast=0.15) * strong.field(H, W) for i in range(5)]
-    vs = [check_image(f, key_of(mild), calibration=calibration) for f in frames]
+    vs = [forensic_check(f, key_of(mild), calibration=calibration) for f in frames]
     pv = pool_verdicts(vs, calibration=calibration)
     assert pv.test == "lens-family" and pv.n_frames == 5 and pv.verdict == "inconsistent"
     z = np.array([v.whitened for v in vs])
     assert pv.score == pytest.approx(5 * float(np.median(z, axis=0) @ np.median(z, axis=0)))
-    ok = pool_verdicts([check_image(f, key_of(strong), calibration=calibration) for f in frames],
+    ok = pool_verdicts([forensic_check(f, key_of(strong), calibration=calibration) for f in frames],
                        calibration=calibration)
     assert ok.verdict == "consistent"
 
@@ -171,7 +171,7 @@ def test_a_fit_no_model_can_hold_is_insufficient_signal(classes, calibration, mo
     monkeypatch.setattr(lensmatch, "frame_fit", lambda lum, fam=None, settings=None, colour=None: FrameCoefficients(
         np.array([5e3, -4e3]), np.eye(2), 1000))
     img = textured(H, W, seed=6, contrast=0.15) * classes[4].field(H, W)
-    v = check_image(img, key_of(classes[4]), calibration=calibration)
+    v = forensic_check(img, key_of(classes[4]), calibration=calibration)
     assert v.verdict == "insufficient-signal", v.reason
 
 
@@ -179,9 +179,9 @@ def test_unknown_lens_and_explicit_method(classes, calibration):
     from vigproc.forensics.check import ForensicsError
 
     img = textured(H, W, seed=5, contrast=0.15)
-    assert check_image(img, None, calibration=calibration).verdict == "unknown-lens"
+    assert forensic_check(img, None, calibration=calibration).verdict == "unknown-lens"
     with pytest.raises(ForensicsError):
-        check_image(img, key_of(classes[4]), method="robust", calibration=calibration)
+        forensic_check(img, key_of(classes[4]), method="robust", calibration=calibration)
 
 
 def test_cli_check_json_says_which_test(tmp_path, classes):
@@ -221,11 +221,11 @@ def test_a_grey_frame_is_judged_by_the_scatter_of_grey_fits(classes, calibration
 
     strong, mild = classes[4], classes[5]
     img = textured(H, W, seed=11, contrast=0.15) * mild.field(H, W)
-    plain = check_image(img, key_of(strong), calibration=calibration)
-    wider = check_image(img, key_of(strong), calibration=replace(calibration, grey_inflate=4.0))
+    plain = forensic_check(img, key_of(strong), calibration=calibration)
+    wider = forensic_check(img, key_of(strong), calibration=replace(calibration, grey_inflate=4.0))
     assert wider.score == pytest.approx(plain.score / 4.0, rel=1e-9)
     rgb = img[..., None] * np.array([0.9, 1.0, 0.7])  # channels alike: the same fit, but a colour frame
-    colour = check_image(rgb, key_of(strong), calibration=replace(calibration, grey_inflate=4.0))
+    colour = forensic_check(rgb, key_of(strong), calibration=replace(calibration, grey_inflate=4.0))
     assert colour.score == pytest.approx(plain.score, rel=1e-6)
     assert wider.evidence.grey is True and colour.evidence.grey is False
     # the check against the file's own calibration reads the same: a grey frame's Σ is wider
@@ -297,23 +297,23 @@ def test_a_frame_no_lens_explains_is_left_undecided(classes, calibration):
     yy, xx = np.mgrid[0:H, 0:W]
     rho2 = ((xx - (W - 1) / 2) ** 2 + (yy - (H - 1) / 2) ** 2) / ((W - 1) ** 2 + (H - 1) ** 2) * 4
     glow = textured(H, W, seed=12, contrast=0.15) * np.exp(1.5 * rho2)  # +2.2 EV at the corners
-    v = check_image(glow, key_of(mild), calibration=gated)
+    v = forensic_check(glow, key_of(mild), calibration=gated)
     # labelled as what the numbers say (it was 'insufficient-signal' beside a strong fall-off)
     assert v.verdict == "unlike-any-lens" and "unlike any lens" in v.reason, v.reason
     assert not v.decided
     assert "2.3 % of the calibration's genuine frames" in v.reason  # the measured share, not the Gaussian one
     assert v.evidence.scene_d2 > gated.scene_limit and v.whitened is not None
-    ungated = check_image(glow, key_of(mild), calibration=calibration)
+    ungated = forensic_check(glow, key_of(mild), calibration=calibration)
     assert ungated.verdict == "inconsistent" and ungated.evidence.scene_limit is None
     lens = textured(H, W, seed=11, contrast=0.15) * strong.field(H, W)
-    right = check_image(lens, key_of(strong), calibration=gated)
-    wrong = check_image(lens, key_of(mild), calibration=gated)
+    right = forensic_check(lens, key_of(strong), calibration=gated)
+    wrong = forensic_check(lens, key_of(mild), calibration=gated)
     assert (right.verdict, wrong.verdict) == ("consistent", "inconsistent")
     assert right.evidence.scene_d2 <= gated.scene_limit
     pv = pool_verdicts([v, wrong, wrong], calibration=gated)
     assert pv.n_frames == 3
     # a set of such frames is pooled by its median and decided, as the benchmark counts it
-    glows = [check_image(textured(H, W, seed=30 + i, contrast=0.15) * np.exp(1.5 * rho2), key_of(mild),
+    glows = [forensic_check(textured(H, W, seed=30 + i, contrast=0.15) * np.exp(1.5 * rho2), key_of(mild),
                          calibration=gated) for i in range(3)]
     assert all(g.verdict == "unlike-any-lens" for g in glows)
     assert pool_verdicts(glows, calibration=gated).verdict == "inconsistent"

@@ -3,7 +3,7 @@
 import numpy as np
 
 from vigproc.bench.synthetic import table1_model
-from vigproc.forensics.check import check_image, ring_falloff
+from vigproc.forensics.check import forensic_check, ring_falloff
 from vigproc.forensics.report import _EST, ReportItem, report_figure, thumbnail, write_report
 
 from conftest import textured
@@ -25,7 +25,7 @@ def test_a_fit_that_brightens_the_corners_is_drawn_not_flattened_at_zero():
     """A new user's check showed '+0.24 ... +1.18 EV' in the numbers and a flat red line
     at 0 EV in the plot: values above 0 EV were clipped to the top edge."""
     img = _brightening_frame()
-    v = check_image(img, None)
+    v = forensic_check(img, None)
     fit = v.estimate.candidate if v.estimate.candidate is not None else v.estimate
     assert ring_falloff(fit, (0.9,))[0] > 0.5  # the premise: a fit that brightens the corners
     fig = report_figure(ReportItem("bright.jpg", v, thumbnail(img)))
@@ -39,7 +39,7 @@ def test_the_html_report_is_small(tmp_path):
     frame with a 320 px thumbnail now, also for a frame of noise-like texture (the worst
     case for compression)."""
     img = np.repeat(_brightening_frame(2000, 3000)[..., None], 3, axis=2)
-    v = check_image(img, None)
+    v = forensic_check(img, None)
     items = [ReportItem(f"frame{i}.jpg", v, thumbnail(img)) for i in range(4)]
     out = write_report(tmp_path / "r.html", items)
     text = out.read_text()

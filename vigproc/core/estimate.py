@@ -145,6 +145,10 @@ def _from_working(m: VignettingModel, k: int, width: int, height: int) -> Vignet
     )
 
 
+#: The estimators that take a lens hint (``hint=``, :func:`exif_hint`: EXIF's 35-mm focal
+#: length and f-number for the lens-family prior); the others ignore it.
+HINT_METHODS = ("default", "lens-family")
+
 #: The estimators that read the frame only through binned working copies of about
 #: ``work_size`` px (96; the centre tests 60): a reduced copy of a large frame gives
 #: them the same data (:func:`estimate_reduced`).
@@ -353,7 +357,7 @@ def exif_hint(lens_key, method: str) -> LensHint | None:
     -------
     LensHint or None
     """
-    if method not in ("default", "lens-family") or lens_key is None:
+    if method not in HINT_METHODS or lens_key is None:
         return None
     f35, fno = getattr(lens_key, "focal_35mm", None), getattr(lens_key, "fnumber", None)
     return LensHint(f35, fno) if f35 and fno else None

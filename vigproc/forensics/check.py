@@ -1,7 +1,7 @@
 """Forensic consistency check: does a frame's vignetting match the lens its EXIF names?
 
 A photograph whose vignetting does not match the lens named in its metadata has
-been cropped, edited or mislabelled (Lyu 2010, Section 1).  :func:`check_image`
+been cropped, edited or mislabelled (Lyu 2010, Section 1).  :func:`forensic_check`
 estimates the frame's vignetting, looks up what the claimed lens should give (a
 stored profile, else lensfun's calibration) and turns the difference into a
 calibrated false-alarm probability and a verdict.
@@ -68,7 +68,7 @@ __all__ = [
     "VERDICTS",
     "check_embedded",
     "check_family",
-    "check_image",
+    "forensic_check",
     "check_model",
     "default_calibration",
     "expected_for",
@@ -99,7 +99,7 @@ def forensic_method(method: str) -> str:
     return FORENSICS_METHOD if method == "default" else method
 
 
-#: The verdicts :func:`check_image` gives. ``unlike-any-lens`` (the lens-family test): the
+#: The verdicts :func:`forensic_check` gives. ``unlike-any-lens`` (the lens-family test): the
 #: frame's fall-off is unlike any lens's, so no lens claim is judged; it is not
 #: ``inconsistent``, whose false-alarm rate is calibrated on the frames it decides.
 VERDICTS = ("consistent", "inconsistent", "unknown-lens", "insufficient-signal", "unlike-any-lens")
@@ -1045,7 +1045,7 @@ def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *,
     Parameters
     ----------
     estimate : VignettingModel
-        The frame's estimate (``Verdict.estimate`` of :func:`check_image`).
+        The frame's estimate (``Verdict.estimate`` of :func:`forensic_check`).
     embedded : VignettingModel
         The embedded calibration as a model of the same frame
         (:meth:`vigproc.io.dng_vignette.EmbeddedCalibration.model`).
@@ -1174,7 +1174,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
 def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alpha: float | None = None,
                  frame_id: str | None = None, family=None, quality=None) -> Verdict:
     """The lens-family test (:mod:`vigproc.forensics.lensmatch`) of a frame against the lens its
-    metadata names: the default check of :func:`check_image`.
+    metadata names: the default check of :func:`forensic_check`.
 
     Parameters
     ----------
@@ -1192,7 +1192,7 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
         Default: the shipped family; the calibration must have been made in it.
     quality : FitQuality, optional
         The frame's confidence as the verdict states it (:func:`frame_quality`, which
-        :func:`check_image` passes); None: none stated.
+        :func:`forensic_check` passes); None: none stated.
 
     Returns
     -------
@@ -1241,7 +1241,7 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
                            grey=colour is None, quality=quality, why_unknown=unknown_lens_reason(lens_key))
 
 
-def check_image(
+def forensic_check(
     img: np.ndarray, lens_key, *, store=None, method: str = "default", calibration: Calibration | None = None,
     alpha: float | None = None, frame_id: str | None = None,
 ) -> Verdict:

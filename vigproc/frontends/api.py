@@ -156,7 +156,7 @@ class Result:
     fallback : bool
         The estimate was too weak to apply: the image is returned uncorrected.
     verdict : dict or None
-        Check mode: the forensic verdict (:func:`vigproc.forensics.check.check_image`).
+        Check mode: the forensic verdict (:func:`vigproc.forensics.check.forensic_check`).
     lens : dict
         The lens key used (``lens_id`` None when unknown).
     seconds : float
@@ -312,9 +312,11 @@ class Pipeline:
             return None
         st = getattr(self._local, "store", None)
         if st is None:
-            from vigproc.stores.profiles import ProfileStore
+            from vigproc.stores.opening import open_profile_store
 
-            st = ProfileStore(self.store_path)  # sqlite connections are per thread
+            st = open_profile_store(self.store_path, write=self.settings.mode == "learn")  # one connection per thread
+            if st is None:
+                return None
             self._local.store = st
             with self._lock:
                 self._stores.append(st)

@@ -68,6 +68,7 @@ from vigproc.errors import EXIT_CODES, SETTINGS, ImageWriteError, VigprocError
 from vigproc.pipeline.faults import DISK_FULL, PERMANENT, attempt_limit, classify_error
 from vigproc.pipeline.processor import (IMAGE_SUFFIXES, SIDECAR_SUFFIX, Processor, Settings, output_location, safe_output,
                               sweep_temporaries)
+from vigproc.stores.retry import DEFAULT_MAX_ATTEMPTS
 
 log = logging.getLogger(__name__)
 
@@ -428,13 +429,13 @@ def _worker_state(spec: JobSpec) -> _WorkerState:
     if settings.mode == "learn":
         store = evidence = _Evidence()
     elif spec.store_path is not None:  # learning as you go: the live store, pooled into here
-        from vigproc.stores.profiles import ProfileStore
+        from vigproc.stores.opening import open_profile_store
 
-        store = ProfileStore(spec.store_path)
+        store = open_profile_store(spec.store_path, write=True)
     elif spec.store_snapshot is not None:
-        from vigproc.stores.profiles import ProfileStore
+        from vigproc.stores.opening import open_profile_store
 
-        store = ProfileStore(_materialise(spec.store_snapshot))
+        store = open_profile_store(_materialise(spec.store_snapshot))
     st = _WorkerState(token, Processor(settings, store=store), store, evidence)
     _thread.state = st
     return st
@@ -855,7 +856,7 @@ class _Run:
             else:
                 # the output side's fault is never the photo's: retried by later runs without limit
                 self.journal_failure(task, res.fingerprint, res.error or "failed", res.error_type or "error", True,
-                                     max_attempts=attempt_limit(res.fault, 5))
+                                     max_attempts=attempt_limit(res.fault, DEFAULT_MAX_ATTEMPTS))
             if disk and s.disk_full is None:
                 s.disk_full = res.error or "output disk full"
                 log.error("output disk full: no more files are handed out; free space and rerun to resume (%s)",
@@ -908,7 +909,7 @@ class _Run:
         self.flush_held()
 
     def journal_failure(self, task: Task, fp, reason: str, kind: str, transient: bool,
-                        max_attempts: int | None = 5) -> None:
+                        max_attempts: int | None = DEFAULT_MAX_ATTEMPTS) -> None:
         from vigproc.stores.journal import fingerprint
 
         if fp is None:  # the worker could not even read it: try here, to key the journal entry

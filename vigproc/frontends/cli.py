@@ -178,9 +178,9 @@ def _applied_ev(rec: dict) -> float:
 
 
 def _open_store(args: argparse.Namespace):
-    from vigproc.stores.profiles import ProfileStore
+    from vigproc.stores.opening import open_profile_store
 
-    return ProfileStore(args.profile_db)
+    return open_profile_store(args.profile_db, write=True)
 
 
 def _as_given(path: str, outdir: Path) -> str:
@@ -193,7 +193,8 @@ def _as_given(path: str, outdir: Path) -> str:
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from vigproc.frontends.commands._options import interrupted, learn_setting, open_read_store
+    from vigproc.frontends.commands._options import interrupted, learn_setting
+    from vigproc.stores.opening import open_profile_store
     from vigproc.pipeline.faults import DISK_FULL, classify_error
     from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 
@@ -210,11 +211,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
     results = []
     full = None  # the fault of the last failure (vigproc.pipeline.faults)
     if settings.learn:  # it writes: a store that cannot be opened is an error now, not per file
-        from vigproc.stores.profiles import ProfileStore
-
-        store = ProfileStore(args.profile_db)
+        store = open_profile_store(args.profile_db, write=True)
     else:
-        store = open_read_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
+        store = open_profile_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
             for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
@@ -407,14 +406,14 @@ def _estimator(method: str, seed: int = 0, settings=None, family=None):
     family they fit in (a bench whose fields are lensfun lenses leaves them out); they
     also take ``hint=`` (EXIF's focal length and f-number).
     """
-    from vigproc.core.estimate import estimate, estimate_checked
+    from vigproc.core.estimate import HINT_METHODS, estimate, estimate_checked
     from vigproc.core.pixels import luminance
 
     if method == "rgs":
         from vigproc.bench.peers import estimate_rgs
 
         return lambda v: estimate_rgs(luminance(v))
-    if method in ("default", "lens-family"):
+    if method in HINT_METHODS:
         # the product's own path (clipped highlights masked, colour read), in ``family``; a
         # bench's frames are float, channels last: what check_image would hand on
         return lambda v, hint=None: estimate_checked(v, method, hint=hint, family=family)

@@ -876,7 +876,7 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
     ImageWriteError
         The copy cannot be written, or does not read back as written.
     """
-    from vigproc.atomic import publish
+    from vigproc.atomic import publish, temporary_name
 
     src_s, dst_s = _abs(src), _abs(dst)
     if os.path.exists(dst_s) and os.path.samefile(src_s, dst_s):
@@ -906,10 +906,8 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
         new = existing.appended(fit.opcode.to_opcode())
         info["opcode"] = fit.to_dict()
     info["opcodes_in_list"] = len(new)
-    directory = os.path.dirname(dst_s) or "."
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(dst_s)[:60]}.tmp-", suffix=".dng", dir=directory)
-        os.close(fd)
+        tmp = temporary_name(dst_s, keep=60, suffix=".dng")
     except OSError as exc:
         raise write_error(f"cannot write {dst_s!r}: {exc.strerror or exc}", exc) from None
     leftovers = (tmp, tmp + "_exiftool_tmp")

@@ -70,7 +70,7 @@ from typing import Any, Callable, Union
 import numpy as np
 import OpenImageIO as oiio
 
-from vigproc.atomic import publish
+from vigproc.atomic import replacing
 from vigproc.errors import (
     DiskFullError,
     ImageReadError,
@@ -83,6 +83,7 @@ from vigproc.errors import (
     VigprocError,
     write_error,
 )
+from vigproc.io.formats import RAW_SUFFIXES, WRITE_EXT_FORMAT, WRITE_FORMAT_ALIASES, WRITE_FORMAT_EXT
 
 try:  # rawpy is optional at import time: without it RAW files are "unsupported".
     import rawpy
@@ -112,14 +113,7 @@ PathLike = Union[str, "os.PathLike[str]", bytes]
 SUPPORTED_OIIO_FORMATS = frozenset({"jpeg", "png", "tiff", "openexr"})
 
 #: Extensions tried with LibRaw *first* (content still decides: see :func:`read_image`).
-RAW_EXTENSIONS = frozenset(
-    {
-        ".3fr", ".ari", ".arw", ".bay", ".cap", ".cr2", ".cr3", ".crw", ".dcr", ".dcs",
-        ".dng", ".drf", ".eip", ".erf", ".fff", ".gpr", ".iiq", ".k25", ".kdc", ".mdc",
-        ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".ptx", ".pxn", ".r3d",
-        ".raf", ".raw", ".rw2", ".rwl", ".rwz", ".sr2", ".srf", ".srw", ".sti", ".x3f",
-    }
-)
+RAW_EXTENSIONS = RAW_SUFFIXES
 
 #: Written into the ImageDescription of linear integer/float TIFFs by :func:`write_image`.
 LINEAR_TIFF_MARKER = "vigproc:transfer=linear"
@@ -1137,12 +1131,6 @@ def _libraw_msg(exc: BaseException) -> str:
 # Writing
 # --------------------------------------------------------------------------- #
 
-#: The writers' formats, by file extension and by name (one table for io and metadata).
-WRITE_EXT_FORMAT = {".tif": "tiff", ".tiff": "tiff", ".png": "png", ".exr": "openexr", ".jpg": "jpeg",
-                    ".jpeg": "jpeg"}
-WRITE_FORMAT_ALIASES = {"tif": "tiff", "tiff": "tiff", "png": "png", "exr": "openexr", "openexr": "openexr",
-                        "jpg": "jpeg", "jpeg": "jpeg"}
-WRITE_FORMAT_EXT = {"tiff": ".tif", "png": ".png", "openexr": ".exr", "jpeg": ".jpg"}
 _EXT_FORMAT, _FORMAT_ALIASES, _FORMAT_EXT = WRITE_EXT_FORMAT, WRITE_FORMAT_ALIASES, WRITE_FORMAT_EXT
 _FORMAT_DEPTHS = {
     "tiff": ("uint16", "uint8", "float"),
@@ -1355,7 +1343,6 @@ def write_image(
         spec.attribute("Compression", f"jpeg:{int(quality or DEFAULT_JPEG_QUALITY)}")
 
     directory = os.path.dirname(os.path.abspath(fspath))
-    name = os.path.basename(fspath)
     # Encoded in memory first: a native writer that fails on a full disk may end the
     # process (libjpeg's "Output file write error --- out of disk space?" calls exit()),
     # and none gives an errno.  The bytes then go out by Python I/O, where a full disk is
@@ -1367,20 +1354,13 @@ def write_image(
     # Temp name keeps a format extension so OIIO picks the right writer; the
     # basename is shortened so prefix+suffix stay within NAME_MAX.
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{name[:100]}.tmp-", suffix=_FORMAT_EXT[fmt], dir=directory)
-    except (OSError, ValueError) as exc:
-        raise write_error(f"cannot write {q}: cannot create a temporary file in {directory!r}: {exc}", exc) from None
-    done = False
-    try:
-        if encoded is not None:
-            with os.fdopen(fd, "wb") as fh, encoded:
-                encoded.seek(0)
-                shutil.copyfileobj(encoded, fh, 1 << 20)
-        else:  # no in-memory file here (not Linux): the native writer writes the file itself
-            os.close(fd)
-            _oiio_write(tmp, spec, data, q)
-        publish(tmp, fspath)
-        done = True
+        with replacing(fspath, what=f"cannot write {q}", suffix=_FORMAT_EXT[fmt]) as tmp:
+            if encoded is not None:
+                with open(tmp, "wb") as fh:
+                    encoded.seek(0)
+                    shutil.copyfileobj(encoded, fh, 1 << 20)
+            else:  # no in-memory file here (not Linux): the native writer writes the file itself
+                _oiio_write(tmp, spec, data, q)
     except ImageWriteError:
         raise
     except OSError as exc:
@@ -1388,11 +1368,6 @@ def write_image(
     finally:
         if encoded is not None:
             encoded.close()
-        if not done:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
     logger.debug("wrote %s (%s, %s, %s, %dx%dx%d)", fspath, fmt, depth, tr, w, h, nch)
 
 

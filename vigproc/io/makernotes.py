@@ -49,6 +49,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from vigproc.errors import ImageReadError, VigprocError, one_line
+from vigproc.io.formats import CALIBRATED_RAW_SUFFIXES
 
 __all__ = [
     "MAKERNOTE_TAGS",
@@ -67,7 +68,7 @@ FUJI_TAG = "FujiIFD:VignettingParams"
 FUJI_CROP_TAG = "FujiFilm:CropMode"
 MAKERNOTE_TAGS = (SONY_TAG, FUJI_TAG, FUJI_CROP_TAG)
 #: File suffixes whose metadata may carry a maker's calibration (raw files).
-RAW_SUFFIXES = frozenset({".arw", ".sr2", ".srf", ".raf", ".dng"})
+RAW_SUFFIXES = CALIBRATED_RAW_SUFFIXES
 #: Attenuations outside this range are no vignetting calibration (a corrupt file).
 PHI_RANGE = (1.0 / 256.0, 1.5)
 _LN2 = math.log(2.0)

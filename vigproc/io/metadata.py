@@ -113,7 +113,6 @@ import math
 import os
 import re
 import shutil
-import stat
 import tempfile
 import threading
 from typing import Any, Mapping
@@ -122,13 +121,13 @@ import numpy as np
 import OpenImageIO as oiio
 
 from vigproc._version import __version__
-from vigproc.atomic import publish
+from vigproc.atomic import replacing
 from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputRefusedError,
                             OutputSettingsError, VigprocError, write_error)
 from vigproc.io.exiftool_process import ExiftoolDied, ExiftoolProcess, ExiftoolResult, line_safe
-from vigproc.io.images import WRITE_EXT_FORMAT as _EXT_FORMAT
-from vigproc.io.images import WRITE_FORMAT_ALIASES as _FORMAT_ALIASES
-from vigproc.io.images import WRITE_FORMAT_EXT as _FORMAT_EXT
+from vigproc.io.formats import WRITE_EXT_FORMAT as _EXT_FORMAT
+from vigproc.io.formats import WRITE_FORMAT_ALIASES as _FORMAT_ALIASES
+from vigproc.io.formats import WRITE_FORMAT_EXT as _FORMAT_EXT
 from vigproc.io.images import recorded_transfer, write_image
 from vigproc.core.model import VignettingModel
 
@@ -429,15 +428,8 @@ class _Exiftool:
         """Replace ``dst`` by the rewritten private copy ``target``, atomically."""
         if target == dst:
             return
-        fd, tmp = tempfile.mkstemp(prefix=f".{_trim(os.path.basename(dst))}.meta-", dir=os.path.dirname(dst))
-        os.close(fd)
-        try:
+        with replacing(dst, prefix=f".{_trim(os.path.basename(dst))}.meta-") as tmp:
             shutil.copyfile(target, tmp)
-            os.chmod(tmp, stat.S_IMODE(os.stat(dst).st_mode))
-            os.replace(tmp, dst)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
 
 
 def _parse_json(stdout: bytes) -> dict[str, Any]:
@@ -772,26 +764,19 @@ def _exr_write_metadata(path: str, src_tags: Mapping[str, Any], record: Mapping[
             spec.attribute(name, value)
         else:
             spec.attribute(name, str(value))
-    directory = os.path.dirname(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{_trim(os.path.basename(path))}.meta-", suffix=".exr", dir=directory)
-    os.close(fd)
     try:
-        out = oiio.ImageOutput.create(tmp)
-        if out is None:
-            raise ImageWriteError(f"{what}: {_one_line(oiio.geterror())}")
-        ok = bool(out.open(tmp, spec)) and bool(out.write_image(pixels))
-        ok = bool(out.close()) and ok
-        if not ok:
-            raise ImageWriteError(f"{what}: {_one_line(out.geterror() or oiio.geterror())}")
-        os.chmod(tmp, stat.S_IMODE(os.stat(path).st_mode))
-        os.replace(tmp, path)
+        with replacing(path, prefix=f".{_trim(os.path.basename(path))}.meta-", suffix=".exr") as tmp:
+            out = oiio.ImageOutput.create(tmp)
+            if out is None:
+                raise ImageWriteError(f"{what}: {_one_line(oiio.geterror())}")
+            ok = bool(out.open(tmp, spec)) and bool(out.write_image(pixels))
+            ok = bool(out.close()) and ok
+            if not ok:
+                raise ImageWriteError(f"{what}: {_one_line(out.geterror() or oiio.geterror())}")
     except ImageWriteError:
         raise
     except OSError as exc:
         raise write_error(f"{what}: {exc.strerror or exc}", exc) from None
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def read_record(path: Any) -> dict[str, Any] | None:
@@ -894,35 +879,21 @@ def write_corrected(
     fmt = _resolve_format(d, format)
     if record is not None:
         _normalise_record(record)  # a bad record fails before any pixel is written
-    directory, name = os.path.split(d)
+    # a short prefix: io.write_image nests its own temporary inside this one
+    name = os.path.basename(d)
     try:
-        # short prefix: io.write_image nests its own temp name inside this one
-        fd, tmp = tempfile.mkstemp(prefix=f".{_trim(name)}.tmp-", suffix=_FORMAT_EXT[fmt], dir=directory)
-    except (OSError, ValueError) as exc:
-        raise write_error(f"cannot write {_q(d)}: cannot create a temporary file in {directory!r}: {exc}", exc) from None
-    os.close(fd)
-    leftovers = (tmp, tmp + "_exiftool_tmp")  # the latter: exiftool's own, if it was killed
-    done = False
-    try:
-        try:
-            write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer, quality=quality)
-            copy_metadata(src, tmp, record, keep_colour=keep_colour, shown_as=d, source_read=source_read)
-        except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
-            err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))
-            err.__dict__.update(exc.__dict__)  # e.g. ``transient``
-            err.errno = getattr(exc, "errno", None)
-            raise err from None
-        publish(tmp, d)
-        done = True
+        with replacing(d, what=f"cannot write {_q(d)}", prefix=f".{_trim(name)}.tmp-", suffix=_FORMAT_EXT[fmt],
+                       leftovers=("_exiftool_tmp",)) as tmp:  # the latter: exiftool's own, if it was killed
+            try:
+                write_image(tmp, img, format=fmt, bit_depth=bit_depth, transfer=transfer, quality=quality)
+                copy_metadata(src, tmp, record, keep_colour=keep_colour, shown_as=d, source_read=source_read)
+            except (ImageWriteError, InvalidImageError) as exc:  # name the user's file, not our temp
+                err = type(exc)(str(exc).replace(_q(tmp), _q(d)).replace(tmp, d))
+                err.__dict__.update(exc.__dict__)  # e.g. ``transient``
+                err.errno = getattr(exc, "errno", None)
+                raise err from None
     except ImageWriteError:
         raise
     except OSError as exc:
         raise write_error(f"cannot write {_q(d)}: {exc.strerror or exc}", exc) from None
-    finally:
-        if not done:
-            for p in leftovers:
-                try:
-                    os.unlink(p)
-                except OSError:
-                    pass
     logger.debug("wrote %s with metadata from %s", d, src)

@@ -24,6 +24,7 @@ from typing import Any, Container, Iterable, Sequence
 
 from vigproc.errors import (CONTROL_ESCAPES, ImageReadError, ImageWriteError, ModelError, OutputFormatError, OutputRefusedError,
                             OutputSettingsError, VigprocError, write_error)
+from vigproc.io.formats import IMAGE_SUFFIXES, WRITE_EXT_FORMAT  # noqa: F401  (IMAGE_SUFFIXES: re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +89,6 @@ OUTPUT_FORMATS: dict[str, OutputFormat | None] = {
 #: An ``auto`` JPEG output is saved at the source's own quality (IJG scale), but never
 #: below this: a second lossy pass at a low quality would show.
 MIN_AUTO_JPEG_QUALITY = 90
-#: What ``auto`` writes for an input, by its suffix (RAW and anything else: tiff16).
-_AUTO_KIND = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png", ".tif": "tiff", ".tiff": "tiff", ".exr": "openexr"}
 #: When nothing is applied (weak evidence, a refused field, strength 0), what a correct run
 #: writes: ``keep`` (the default: every photo comes out) the original under the output's
 #: name, its bytes when the output is the input's own kind (else the frame as read, in the
@@ -125,7 +124,7 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
         raise OutputFormatError(f"--output-format dng needs a DNG input, not {path.name!r}")
     if fixed is not None and fixed.format != "jpeg":
         return fixed
-    kind = "jpeg" if fixed is not None else _AUTO_KIND.get(src_suffix)
+    kind = "jpeg" if fixed is not None else WRITE_EXT_FORMAT.get(src_suffix)  # RAW and others: tiff16
     depth = getattr(info, "bit_depth", None)
     transfer = getattr(info, "transfer", None)
     if kind == "jpeg":  # at the source's own quality when it is a JPEG
@@ -143,10 +142,6 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
         return OutputFormat(".exr", "openexr", "half" if depth == "half" else "float")
     return OUTPUT_FORMATS["tiff16"]  # a RAW: linear 16 bits, what raw editors take
 
-
-#: File name suffixes vigproc reads (RAW through rawpy, the rest through OpenImageIO).
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".dng", ".cr2", ".cr3", ".nef",
-                            ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw", ".kdc"})
 
 #: Why nothing was applied to a frame whose estimate is weak: one wording for every front end.
 WEAK_EVIDENCE = "weak evidence: the estimate is not clearly above its uncertainty"
@@ -510,28 +505,22 @@ def keep_original(src: Path, dst: Path, *, link: bool = False) -> None:
     a hard link when ``link`` and the file systems allow it, else a copy of its bytes;
     atomically (temporary name, then rename), so ``dst`` is whole or absent."""
     import shutil
-    import tempfile
 
-    from vigproc.atomic import atomic_path, fsync_dir
+    from vigproc.atomic import atomic_path, replacing
 
     try:
         if link:
-            # not through atomic_path: its publish() sets the temporary's mode, which for
-            # a hard link is the input's own
-            # a name only: os.link refuses one that exists meanwhile, it never overwrites
-            tmp = tempfile.mktemp(prefix=f".{dst.name[:100]}.tmp-", dir=dst.parent)
+            linked = False
             try:
-                os.link(src, tmp)
-            except OSError as exc:  # another file system, or links not allowed: copy instead
-                log.debug("cannot link %s (%s); copying it", src, exc.strerror or exc)
-            else:
-                try:
-                    os.replace(tmp, dst)
-                except OSError:
-                    os.unlink(tmp)
-                    raise
-                fsync_dir(dst.parent)
+                # a name only (os.link never overwrites); no chmod: a hard link's mode is the input's own
+                with replacing(dst, create=False, chmod=False) as tmp:
+                    os.link(src, tmp)
+                    linked = True
                 return
+            except OSError as exc:  # another file system, or links not allowed: copy instead
+                if linked:
+                    raise
+                log.debug("cannot link %s (%s); copying it", src, exc.strerror or exc)
         with atomic_path(dst) as tmp_path:  # a copy is an output like the others (mode, fsync)
             shutil.copyfile(src, tmp_path)
     except OSError as exc:
@@ -852,9 +841,9 @@ class Processor:
         res = FrameResult(file=where, mode=s.mode, lens=lens)
         out = None
         if s.mode == "check":
-            from vigproc.forensics.check import check_image  # noqa: PLC0415 - only check mode needs it
+            from vigproc.forensics.check import forensic_check  # noqa: PLC0415 - only check mode needs it
 
-            verdict = check_image(img, lens_key, store=self.store, method=s.method, frame_id=frame_id)
+            verdict = forensic_check(img, lens_key, store=self.store, method=s.method, frame_id=frame_id)
             res.verdict = verdict.to_dict()
             res.source = "estimate"
             res.model = getattr(verdict, "estimate", None)

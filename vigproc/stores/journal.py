@@ -59,7 +59,6 @@ import hashlib
 import json
 import logging
 import os
-import random
 import sqlite3
 import stat
 import time
@@ -68,6 +67,7 @@ from datetime import datetime, timezone
 from typing import Any, Callable
 
 from vigproc.stores.db import SQLiteFile
+from vigproc.stores.retry import DEFAULT_MAX_ATTEMPTS, DEFAULT_RETRY_BASE, DEFAULT_RETRY_CAP, retry_delay
 from vigproc.errors import EXIT_CODES, SETTINGS, ImageReadError, VigprocError
 
 __all__ = [
@@ -94,10 +94,6 @@ COUNT_KEYS = ("pending", "failed", "running", "done", "quarantined")
 SCHEMA_VERSION = 1
 #: Busy timeout (seconds) for a write lock held by another process.
 DEFAULT_TIMEOUT = 30.0
-#: First retry delay (seconds) after a transient failure; doubles per attempt ...
-DEFAULT_RETRY_BASE = 5.0
-#: ... up to this many seconds.
-DEFAULT_RETRY_CAP = 600.0
 #: Longest reason text kept (a traceback-sized message is cut).
 MAX_REASON = 4000
 _CHUNK = 1 << 20
@@ -381,7 +377,7 @@ class Journal(SQLiteFile):
                      bool(started), who)
 
     def _backoff(self, attempts: int) -> float:
-        return min(self.retry_cap, self.retry_base * 2.0 ** max(attempts - 1, 0)) * random.uniform(0.8, 1.0)
+        return retry_delay(attempts, self.retry_base, self.retry_cap, jitter=True)
 
     # ------------------------------------------------------------ queries
     def lookup(self, path: str | os.PathLike[str]) -> Entry | None:
@@ -540,7 +536,7 @@ class Journal(SQLiteFile):
         self._update_running("done", path, fp, change)
 
     def failed(self, path: str | os.PathLike[str], fp: Fingerprint, reason: str, *, transient: bool,
-               max_attempts: int | None = 5, now: float | None = None) -> str:
+               max_attempts: int | None = DEFAULT_MAX_ATTEMPTS, now: float | None = None) -> str:
         """Record a failed attempt of a claimed file.
 
         Parameters

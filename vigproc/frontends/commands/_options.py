@@ -169,46 +169,6 @@ def print_json_results(results: list[dict], code: int, **extra) -> None:
     print(json.dumps(doc, indent=1), flush=True)
 
 
-def open_read_store(path=None):
-    """The profile store of a command that only reads it (``correct --profile auto``,
-    ``check``, the hook): a store that does not exist yet holds no profile, so one that
-    cannot be created (a read-only home, no user data folder) is no reason to fail the
-    frames. The command then runs without stored profiles and says so once.
-
-    Parameters
-    ----------
-    path : str or None
-        ``--profile-db``; None: ``$VIGPROC_PROFILE_DB``, else the user data folder's.
-
-    Returns
-    -------
-    ProfileStore or None
-
-    Raises
-    ------
-    ProfileStoreError
-        An existing store that cannot be opened (corrupt, locked, unreadable): its
-        profiles would be missed.
-    """
-    import logging
-    from pathlib import Path
-
-    from vigproc.stores.profiles import ProfileStore, ProfileStoreError, default_db_path
-
-    try:
-        return ProfileStore(path)
-    except ProfileStoreError as exc:
-        target = Path(path).expanduser() if path is not None else default_db_path()
-        try:
-            present = target.exists()
-        except OSError:  # cannot even look: nothing can be read from it either
-            present = False
-        if present:
-            raise
-        logging.getLogger(__name__).warning("no profile store (%s); going on without stored profiles", exc)
-        return None
-
-
 def interrupted(command: str, done: str) -> int:
     """What an interrupted command (Ctrl-C, or SIGTERM handled alike) says: one line on
     stderr of what it had done, and exit code 130 (the front end turns it into 143 for

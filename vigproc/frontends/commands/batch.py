@@ -125,9 +125,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
     profile_db = _option(args, config, "profile_db")
     try:
         if settings.needs_store:
-            from vigproc.stores.profiles import ProfileStore
+            from vigproc.stores.opening import open_profile_store
 
-            store = ProfileStore(profile_db)
+            store = open_profile_store(profile_db, write=settings.mode == "learn" or settings.learn)
             fs = B.filesystem_type(store.path) if settings.learn else None
             if fs in B.NETWORK_FS:  # every worker would write it: SQLite's locks need a local disk
                 why = f"profile store {store.path} is on a {fs} network filesystem; learning as it goes needs a local disk"
@@ -139,11 +139,11 @@ def cmd_batch(args: argparse.Namespace) -> int:
                 store_path = str(store.path.resolve())
                 store.close()
                 store = None
-            elif settings.mode != "learn":  # workers read a snapshot; only learn mode writes, here
+            elif store is not None and settings.mode != "learn":  # workers read a snapshot; only learn writes, here
                 snapshot = B.Shipped.of("profiles.sqlite", B.snapshot_store(store))
                 store.close()
                 store = None
-            else:
+            elif store is not None:
                 fs = B.filesystem_type(store.path)
                 if fs in B.NETWORK_FS:
                     log.warning("profile store %s is on a %s network filesystem; SQLite wants a local disk",

@@ -148,7 +148,7 @@ def _version_of(package: str) -> str | None:
 
 def cmd_check(args: argparse.Namespace) -> int:
     from vigproc.forensics.crops import check_crop
-    from vigproc.forensics.check import check_image, default_calibration, load_calibration, pool_verdicts
+    from vigproc.forensics.check import forensic_check, default_calibration, load_calibration, pool_verdicts
     from vigproc.forensics.lensmatch import default_match_calibration
     from vigproc.io.images import read_image
     from vigproc.io.provenance import read_provenance
@@ -163,9 +163,9 @@ def cmd_check(args: argparse.Namespace) -> int:
         default_match_calibration() if args.method == "default" else default_calibration()
     store = None
     if not args.no_store:
-        from vigproc.frontends.commands._options import open_read_store
+        from vigproc.stores.opening import open_profile_store
 
-        store = open_read_store(args.profile_db)  # a store that cannot exist holds no reference
+        store = open_profile_store(args.profile_db)  # a store that cannot exist holds no reference
     run = run_record(args, calibration, store)
     results, items, verdicts = [], [], []
     failed = 0
@@ -179,7 +179,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                     # the pipeline's check step, with this run's calibration and threshold
                     # the frame's content id: a stored profile that pooled it is no reference
                     fid = file_sha256(f)
-                    v = check_image(img, lens_key, store=proc.store, method=settings.method,
+                    v = forensic_check(img, lens_key, store=proc.store, method=settings.method,
                                     calibration=calibration, alpha=args.alpha,
                                     frame_id=fid if proc.store is not None else None)
                     prov = read_provenance(f, tags, getattr(lens_key, "problems", ()), sha256=fid)

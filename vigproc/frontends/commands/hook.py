@@ -69,6 +69,7 @@ from pathlib import Path
 from typing import Any
 
 from vigproc.errors import EXIT_CODES, OutputSettingsError, VigprocError, one_line, write_error
+from vigproc.io.formats import WRITE_EXT_FORMAT, WRITE_SUFFIXES
 
 log = logging.getLogger(__name__)
 
@@ -82,10 +83,15 @@ MAX_REQUEST_BYTES = 16 * 1024 * 1024
 _REQUEST_KEYS = frozenset({"mode", "output_dir", "profile", "profile_db", "method", "strength", "output_format",
                            "input_transfer", "unapplied", "files"})
 _FILE_KEYS = frozenset({"path", "output", "lens"})
-# output_format -> suffixes an explicit output file may have (auto: the file's suffix says the format)
-_SUFFIXES = {"auto": (".tif", ".tiff", ".jpg", ".jpeg", ".png", ".exr"), "tiff-float": (".tif", ".tiff"),
-             "tiff16": (".tif", ".tiff"), "exr-half": (".exr",), "exr-float": (".exr",), "jpeg": (".jpg", ".jpeg"),
-             "png": (".png",)}
+
+
+def _output_suffixes(output_format: str) -> tuple[str, ...]:
+    """The suffixes an explicit output file may have for ``output_format`` (``auto``: any
+    a writer writes, the file's suffix then says the format)."""
+    from vigproc.pipeline.processor import OUTPUT_FORMATS
+
+    fixed = OUTPUT_FORMATS[output_format]
+    return tuple(WRITE_EXT_FORMAT) if fixed is None else WRITE_SUFFIXES.get(fixed.format, (fixed.suffix,))
 
 
 class UsageError(VigprocError):
@@ -197,7 +203,7 @@ class _HostLens:
 # ------------------------------------------------------------------ one file
 def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) -> dict[str, Any]:
     from vigproc.frontends.api import Result
-    from vigproc.atomic import fsync_dir
+    from vigproc.atomic import publish
     from vigproc.pipeline.processor import SIDECAR_SUFFIX, safe_output
 
     path = Path(job["path"])
@@ -207,9 +213,9 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) 
         target = Path(job["output"])
         if s.mode != "correct":
             raise UsageError(f"an output file is only written in correct mode (mode is {s.mode})")
-        if target.suffix.lower() not in _SUFFIXES[s.output_format]:
+        if target.suffix.lower() not in _output_suffixes(s.output_format):
             raise UsageError(f"output {job['output']!r}: format {s.output_format} writes "
-                         f"{' or '.join(_SUFFIXES[s.output_format])} files")
+                         f"{' or '.join(_output_suffixes(s.output_format))} files")
         if target.exists() and (target.resolve() == path.resolve() or target in inputs):
             raise OutputSettingsError(f"refusing to overwrite the input {job['output']!r}")
         # the pipeline writes into a private folder beside the target; one rename publishes it
@@ -220,8 +226,7 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) 
         try:
             # the host asked for this file: it is written even when nothing is applied
             res = proc.process_file(path, work, "out", unapplied="write", like=target)
-            os.replace(res.output, target)
-            fsync_dir(target.parent)
+            publish(res.output, target)
         finally:
             shutil.rmtree(work, ignore_errors=True)
         out.update(Result.from_frame(res).to_dict(), output=str(target))
@@ -314,9 +319,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     store = None
     if settings.needs_store:  # the hook's modes only read it
-        from vigproc.frontends.commands._options import open_read_store
+        from vigproc.stores.opening import open_profile_store
 
-        store = open_read_store(opt["profile_db"])
+        store = open_profile_store(opt["profile_db"])
     reader = _HostLens(given)
     results = []
     try:

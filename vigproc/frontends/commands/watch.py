@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from vigproc.errors import VigprocError
+from vigproc.stores.retry import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_CRASHES, DEFAULT_RETRY_BASE, DEFAULT_RETRY_CAP
 
 log = logging.getLogger("vigproc.watch")
 
@@ -64,9 +65,11 @@ def _check_settings(cfg) -> None:
 
         import_profile(settings.profile)
     if settings.needs_store:
-        from vigproc.stores.profiles import ProfileStore
+        from vigproc.stores.opening import open_profile_store
 
-        ProfileStore(cfg.profile_db).close()
+        store = open_profile_store(cfg.profile_db, write=settings.mode == "learn")
+        if store is not None:
+            store.close()
     if cfg.settings["mode"] == "check" and importlib.util.find_spec("vigproc.forensics.check") is None:
         log.warning("check mode needs vigproc.forensics.check, which this installation lacks: every file will be "
                     "quarantined with that reason (requeue them later with --retry-quarantined)")
@@ -158,12 +161,12 @@ def register(subparsers) -> None:
                     help="full rescan period, for events a file system did not deliver (default 300)")
     sp.add_argument("--timeout", type=float, default=900.0, metavar="SECONDS",
                     help="stop a worker stuck on one file this long (default 900)")
-    sp.add_argument("--max-attempts", type=int, default=5, help="quarantine after this many transient failures")
-    sp.add_argument("--max-crashes", type=int, default=3,
+    sp.add_argument("--max-attempts", type=int, default=DEFAULT_MAX_ATTEMPTS, help="quarantine after this many transient failures")
+    sp.add_argument("--max-crashes", type=int, default=DEFAULT_MAX_CRASHES,
                     help="quarantine a file that crashed or hung its worker this many times (a kill of the daemon "
                          "itself is not charged to the files in progress)")
-    sp.add_argument("--retry-base", type=float, default=5.0, metavar="SECONDS", help="first retry delay (doubles)")
-    sp.add_argument("--retry-cap", type=float, default=600.0, metavar="SECONDS", help="longest retry delay")
+    sp.add_argument("--retry-base", type=float, default=DEFAULT_RETRY_BASE, metavar="SECONDS", help="first retry delay (doubles)")
+    sp.add_argument("--retry-cap", type=float, default=DEFAULT_RETRY_CAP, metavar="SECONDS", help="longest retry delay")
     sp.add_argument("--min-free", type=number(0, 1e9), default=DEFAULT_MIN_FREE / 1e6, metavar="MB",
                     help="a failure to write an output with less free space than this on the output disk is a full "
                          "disk: the daemon pauses (nothing quarantined) and resumes once the free space has grown "

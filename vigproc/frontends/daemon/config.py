@@ -14,12 +14,11 @@ from pathlib import Path
 from typing import Any
 
 from vigproc.errors import SETTINGS, VigprocError
+from vigproc.io.formats import IMAGE_SUFFIXES
 from vigproc.pipeline.faults import DEFAULT_MIN_FREE
 from vigproc.pipeline.processor import percent_encode, shorten_stem
 from vigproc.stores.journal import Fingerprint
-
-#: Image suffixes the daemon takes (the pipeline's).
-_IMAGE_SUFFIXES: frozenset[str] | None = None
+from vigproc.stores.retry import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_CRASHES, DEFAULT_RETRY_BASE, DEFAULT_RETRY_CAP
 
 #: Suffixes of files that writers are still filling (browsers, torrent clients, scp/WinSCP,
 #: download managers, editors): ignored until renamed.
@@ -61,18 +60,9 @@ def is_temporary_name(name: str) -> bool:
     return any(low.endswith(s) for s in TEMP_SUFFIXES)
 
 
-def _image_suffixes() -> frozenset[str]:
-    global _IMAGE_SUFFIXES
-    if _IMAGE_SUFFIXES is None:  # the pipeline imports numba: only when first needed
-        from vigproc.pipeline.processor import IMAGE_SUFFIXES
-
-        _IMAGE_SUFFIXES = IMAGE_SUFFIXES
-    return _IMAGE_SUFFIXES
-
-
 def is_candidate_name(name: str) -> bool:
     """An image suffix the pipeline reads, and not a temporary name."""
-    return not is_temporary_name(name) and os.path.splitext(name)[1].lower() in _image_suffixes()
+    return not is_temporary_name(name) and os.path.splitext(name)[1].lower() in IMAGE_SUFFIXES
 
 
 def output_stem(rel: str) -> str:
@@ -151,10 +141,10 @@ class WatchConfig:
     status_file: Path | None = None
     rescan: float = 300.0
     timeout: float = 900.0
-    max_attempts: int = 5
-    max_crashes: int = 3
-    retry_base: float = 5.0
-    retry_cap: float = 600.0
+    max_attempts: int = DEFAULT_MAX_ATTEMPTS
+    max_crashes: int = DEFAULT_MAX_CRASHES
+    retry_base: float = DEFAULT_RETRY_BASE
+    retry_cap: float = DEFAULT_RETRY_CAP
     retry_quarantined: bool = False
     min_free: int = DEFAULT_MIN_FREE  # bytes: a write failure with less free is a full disk
     log_json: bool = False

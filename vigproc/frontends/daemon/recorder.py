@@ -24,13 +24,13 @@ import errno
 import json
 import os
 import shutil
-import tempfile
 import time
 from collections import deque
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
+from vigproc.atomic import replacing
 from vigproc.errors import VigprocError
 from vigproc.pipeline.faults import CRASH, PERMANENT, attempt_limit
 from vigproc.pipeline.processor import output_location, sweep_temporaries
@@ -80,18 +80,9 @@ def _move(src: str, dst_dir: Path, name: str, fp: Fingerprint | None,
     except OSError as exc:
         if exc.errno not in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP, errno.EOPNOTSUPP):
             raise
-        from vigproc.atomic import publish
-
-        fd, tmp = tempfile.mkstemp(prefix=".vigproc-move.", dir=dst_dir)
-        os.close(fd)
-        try:
+        with replacing(dst, prefix=".vigproc-move.") as tmp:
             shutil.copyfile(src, tmp)
             shutil.copystat(src, tmp)
-            publish(tmp, dst)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
     os.unlink(src)
     return dst
 
@@ -153,17 +144,10 @@ def _overwrite_in_place(path: Path, data: dict[str, Any]) -> bool:
 def _write_json_quick(path: Path, data: dict[str, Any]) -> None:
     """Atomic (rename) but not fsynced: a status file is rewritten every second and is
     worthless after a power cut anyway."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1)
-            fh.write("\n")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    with replacing(path, prefix=f".{path.name}.", suffix=".tmp", mode=0o644, sync=False) as tmp, \
+            open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=1)
+        fh.write("\n")
 
 
 # ------------------------------------------------------------------ the recorder

@@ -29,6 +29,7 @@ from typing import Any, Callable
 
 from vigproc.pipeline.faults import CRASH, DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, disk_space, output_trouble
 from vigproc.stores.journal import FileChangedError, FingerprintError, JournalError, fingerprint, runner_identity
+from vigproc.stores.retry import retry_delay
 
 from .config import RunFlags, WatchConfig, WatchError, _signature, _Task
 from .logs import _ev, log
@@ -53,6 +54,7 @@ class _DiskPause:
     free_bytes: int | None  # the output file system's free bytes when it was found full
     delay: float  # seconds until the next probe; doubles after each failed probe
     probe_at: float  # monotonic
+    probes: int = 0  # failed probes
     next_look: float = 0.0  # monotonic: next look at the free space
     probing: bool = False  # a probe is in flight
     held: set[str] = field(default_factory=set)  # files given back for the disk, not charged
@@ -350,7 +352,7 @@ class Scheduler:
     def _unreadable(self, path: str, sig: tuple[int, int, int], exc: FingerprintError) -> None:
         attempts = self.unreadable.get(path, (0, 0.0))[0] + 1
         if exc.transient and attempts < self.cfg.max_attempts:
-            delay = min(self.cfg.retry_cap, self.cfg.retry_base * 2 ** (attempts - 1))
+            delay = retry_delay(attempts, self.cfg.retry_base, self.cfg.retry_cap)
             self.unreadable[path] = (attempts, time.monotonic() + delay)
             log.warning("%s: %s; trying again in %.0f s", path, exc, delay, extra=_ev("unreadable", file=path))
             return
@@ -509,7 +511,8 @@ class Scheduler:
         else:
             d.reason, d.disk, d.free_bytes = reason, disk, free_bytes  # the latest look: the growth that resumes is from here
             if task.probe:
-                d.delay = min(d.delay * 2, max(cfg.retry_cap, cfg.retry_base))
+                d.probes += 1
+                d.delay = retry_delay(d.probes + 1, max(cfg.retry_base, 0.1), max(cfg.retry_cap, cfg.retry_base))
                 d.probe_at = now + d.delay
                 log.warning("%s still full (%s); next try in %.0f s", disk, reason, d.delay,
                             extra=_ev("disk-still-full", file=task.path, reason=reason, retry_in=round(d.delay, 1)))

@@ -93,9 +93,9 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
 
         s = Settings(**settings)
         if s.needs_store:
-            from vigproc.stores.profiles import ProfileStore
+            from vigproc.stores.opening import open_profile_store
 
-            store = ProfileStore(profile_db)
+            store = open_profile_store(profile_db, write=s.mode == "learn")
         proc = Processor(s, store=store)
     except Exception as exc:  # a worker that cannot start is fatal for the daemon: say why
         conn.send(("fatal", None, f"{type(exc).__name__}: {exc}"))
