@@ -181,6 +181,91 @@ def test_a_profile_that_moved_is_applied_anew(series, tmp_path):
         assert fresh.lookup(key, W, H, trusted_only=True) is None
 
 
+def test_two_workers_apply_one_revision_after_trust_and_follow_a_refresh(series, tmp_path):
+    """Two processors (as two workers would be) over one store file, frames interleaved:
+    after trust both apply the store's applied revision (same id, identical parameters);
+    when one finds the stored profile moved beyond its tolerance it replaces the
+    revision and the other, and a restarted worker, follow."""
+    paths, _ = series
+    db = tmp_path / "p.sqlite"
+    with ProfileStore(db) as s1, ProfileStore(db) as s2, \
+            Processor(Settings(learn=True), store=s1) as a, Processor(Settings(learn=True), store=s2) as b:
+        recs = [(a, b)[i % 2].process_file(p, _out(tmp_path / "out")).to_dict() for i, p in enumerate(paths)]
+        trusted_at = next(i for i, r in enumerate(recs) if r["learned"]["trusted"])
+        after = recs[trusted_at + 1:]
+        assert len(after) >= 2, "the series must reach trust with a frame to spare for each worker"
+        assert all(r["source"] == "stored-profile" for r in after)
+        [rev] = {r["profile_applied"]["revision"] for r in after}
+        first = _log2_field(after[0])
+        for r in after[1:]:
+            np.testing.assert_array_equal(_log2_field(r), first)
+        [prof] = s1.list()
+        rev_now, applied = s2.applied_revision(prof.key)
+        assert rev_now == rev and applied.n_frames < prof.n_frames  # the store moved on; the series did not
+        # worker a finds the stored profile moved beyond its tolerance: it replaces the revision
+        a._steady_profiles().refresh_ev = 0.0
+        ra = a.process_file(paths[0], _out(tmp_path / "again")).to_dict()
+        a._steady_profiles().refresh_ev = REFRESH_EV
+        rb = b.process_file(paths[1], _out(tmp_path / "again")).to_dict()
+    with ProfileStore(db) as s3, Processor(Settings(learn=True), store=s3) as c:  # a restart
+        rc = c.process_file(paths[2], _out(tmp_path / "again")).to_dict()
+    new = {r["profile_applied"]["revision"] for r in (ra, rb, rc)}
+    assert len(new) == 1 and rev not in new
+    assert {r["profile_applied"]["frames"] for r in (ra, rb, rc)} == {len(paths)}
+    np.testing.assert_array_equal(_log2_field(ra), _log2_field(rb))
+    np.testing.assert_array_equal(_log2_field(ra), _log2_field(rc))
+    assert np.any(_log2_field(ra) != first)
+    assert ra["model"] == rb["model"] == rc["model"]  # identical parameters, not only fields
+
+
+def test_the_applied_revision_is_a_compare_and_set(series, tmp_path):
+    paths, _ = series
+    db = tmp_path / "p.sqlite"
+    with ProfileStore(db) as s1, Processor(Settings(mode="learn"), store=s1) as proc:
+        for p in paths[:3]:
+            proc.process_file(p, _out(tmp_path / "out"))
+        [p3] = s1.list()
+        proc.process_file(paths[3], _out(tmp_path / "out"))
+        [p4] = s1.list()
+    with ProfileStore(db) as s1, ProfileStore(db) as s2:
+        assert s1.applied_revision(p3.key) is None
+        r3, got = s1.apply_revision(p3)
+        np.testing.assert_array_equal(got.theta, p3.theta)
+        assert got.n_frames == 3
+        assert s2.apply_revision(p4)[0] == r3  # one is there already: INSERT only if absent
+        r4, got = s2.apply_revision(p4, replaces=r3)  # compare-and-set: it still was r3
+        assert r4 != r3 and got.n_frames == 4
+        assert s1.apply_revision(p3, replaces=r3)[0] == r4  # lost the race: follows the winner
+        assert s1.applied_revision(p3.key)[0] == r4
+        s1.put(p3)  # a profile replaced by hand: its applied revision goes with it
+        assert s2.applied_revision(p3.key) is None
+        assert s2.apply_revision(p4)[0] == r4
+        assert s2.delete(p4.key) and s1.applied_revision(p4.key) is None
+
+
+def test_a_store_from_before_applied_revisions_opens_and_migrates(series, tmp_path):
+    import sqlite3
+
+    from vigproc.stores.profiles import SCHEMA_VERSION
+
+    paths, _ = series
+    db = tmp_path / "p.sqlite"
+    with ProfileStore(db) as store, Processor(Settings(mode="learn"), store=store) as proc:
+        for p in paths[:3]:
+            proc.process_file(p, _out(tmp_path / "out"))
+    con = sqlite3.connect(db)
+    con.execute("DROP TABLE applied_profiles")
+    con.execute("DELETE FROM schema_version WHERE version > 11")
+    con.commit()
+    con.close()
+    with ProfileStore(db) as store:
+        assert store.schema_version == SCHEMA_VERSION == 12
+        [prof] = store.list()
+        assert prof.n_frames == 3 and store.applied_revision(prof.key) is None
+        rev, _ = store.apply_revision(prof)
+        assert store.applied_revision(prof.key)[0] == rev
+
+
 def test_frames_of_an_unnamed_lens_on_an_interchangeable_body_are_corrected_not_pooled(tmp_path):
     paths, _ = _frames(tmp_path / "in", 2, exif=D70_NO_LENS, seed=40)
     with ProfileStore(tmp_path / "p.sqlite") as store, Processor(Settings(learn=True), store=store) as proc:

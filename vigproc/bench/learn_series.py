@@ -39,6 +39,7 @@ class FrameRow:
     source: str
     applied: bool
     revision: int | None  # frames of the profile revision that corrected it (stored-profile)
+    revision_id: str | None  # the store's applied revision that corrected it (stored-profile)
     error_ev: float  # applied field vs the lens's, gain-free RMS
     seconds: float
 
@@ -54,6 +55,9 @@ class SeriesResult:
     after_max_ev: float
     revisions: list[int]  # distinct profile revisions applied after trust
     revision_spread_ev: float  # largest RMS difference between two fields applied after trust
+    revision_ids: int  # distinct applied revisions (ids) after trust
+    switches: int  # field changes between consecutive frames after trust, in pooling order
+    same_revision_spread_ev: float  # largest RMS difference between two fields of one revision id
     uncorrected_ev: float
     wall_s: float
     rows: list[FrameRow] = field(default_factory=list)
@@ -136,6 +140,7 @@ def run_series(bases: Sequence[np.ndarray], log_field: np.ndarray, *, lens: str,
             fields[f.name] = lf
             rows.append(FrameRow(f.name, learned.get("frames") if learned.get("pooled") else None,
                                  learned.get("trusted"), rec["source"], bool(rec.get("applied")), used.get("frames"),
+                                 used.get("revision"),
                                  gain_free_ev((lf - truth) * math.log(2.0)), float(rec.get("seconds", math.nan))))
     finally:
         shutil.rmtree(root, ignore_errors=True)
@@ -143,14 +148,21 @@ def run_series(bases: Sequence[np.ndarray], log_field: np.ndarray, *, lens: str,
     trusted = [x.pooled_as for x in rows if x.trusted_after and x.pooled_as is not None]
     before = [x.error_ev for x in rows if x.source != "stored-profile"]
     after = [x for x in rows if x.source == "stored-profile"]
-    spread = 0.0
+    spread = same = 0.0
     for i, a in enumerate(after):
         for b in after[i + 1:]:
-            spread = max(spread, float(np.sqrt(np.mean((fields[a.name] - fields[b.name]) ** 2))))
+            d = float(np.sqrt(np.mean((fields[a.name] - fields[b.name]) ** 2)))
+            spread = max(spread, d)
+            if a.revision_id is not None and a.revision_id == b.revision_id:
+                same = max(same, d)
+    order = [x.revision_id for x in after if x.pooled_as is not None] + [
+        x.revision_id for x in after if x.pooled_as is None]
     return SeriesResult(
         lens=lens, frames=len(rows), workers=workers, trusted_at=min(trusted) if trusted else None,
         before_median_ev=float(np.median(before)) if before else math.nan,
         after_median_ev=float(np.median([x.error_ev for x in after])) if after else math.nan,
         after_max_ev=max((x.error_ev for x in after), default=math.nan),
         revisions=sorted({x.revision for x in after if x.revision is not None}), revision_spread_ev=spread,
+        revision_ids=len({x.revision_id for x in after}), switches=sum(a != b for a, b in zip(order, order[1:])),
+        same_revision_spread_ev=same,
         uncorrected_ev=gain_free_ev(log_field), wall_s=wall, rows=rows)

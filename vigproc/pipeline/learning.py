@@ -19,20 +19,22 @@ Three rules of this module:
   that frame; the profile pools the frames' evidence robustly (a multivariate-t
   centre of the lens-family fits, :mod:`vigproc.core.pooling`), where a frame a scene
   fooled is one outlier among many.
-* **The same field for a series** (:class:`SteadyProfiles`): a processor keeps the
-  trusted profile it first applied to a lens setting and applies that very profile to
-  every later frame of the setting until the stored one has moved more than
-  :data:`REFRESH_EV` (RMS over the frame, in EV) from it; the store keeps refining
-  meanwhile. Within one worker the frames after trust are corrected with one
-  identical field (until such a move); two workers may hold revisions a frame or two
-  apart, fields within :data:`REFRESH_EV` of the store's and so of each other's
-  (within twice that). A revision held is kept while the stored profile has lost its
-  trust (later frames that disagree can raise its σ above the bound for a while): the
-  series keeps its field instead of going back to single-frame estimates.
+* **The same field for a series** (:class:`SteadyProfiles`): the store keeps, per lens
+  setting, the revision of its trusted profile that correct runs apply
+  (:meth:`ProfileStore.apply_revision <vigproc.stores.profiles.ProfileStore.apply_revision>`).
+  The first worker that finds the profile trusted writes it; every worker (and a
+  restarted one) applies that very revision to every later frame of the setting until
+  the stored profile has moved more than :data:`REFRESH_EV` (RMS over the frame, in EV)
+  from it; then one worker replaces it (compare-and-set on its id) and all follow. The
+  store keeps refining meanwhile. So the frames after trust, of all workers, are
+  corrected with one identical field until such a move; the record's
+  ``profile_applied.revision`` names it. The revision is kept while the stored profile
+  has lost its trust (later frames that disagree can raise its σ above the bound for a
+  while): the series keeps its field instead of going back to single-frame estimates.
 * **Fast once settled**: a frame corrected by its own lens setting's trusted profile
   that already pooled :data:`SETTLED_FRAMES` frames is not estimated nor pooled. The
-  settled profile no longer moves, and every worker applies it as stored: from there on
-  the frames of all workers share one field.
+  settled profile no longer moves; the applied revision is replaced by it once, and
+  from there on the frames of all workers share that field.
 """
 
 from __future__ import annotations
@@ -168,8 +170,15 @@ def field_change_ev(a, b) -> float:
 
 class SteadyProfiles:
     """A profile store as :func:`vigproc.pipeline.processor.choose_model` reads it, that
-    hands out the same trusted profile for a lens setting until the stored one moved
-    more than ``refresh_ev`` from it (see the module's docstring).
+    hands out one revision of a trusted profile for a lens setting, the same to every
+    worker, until the stored one moved more than ``refresh_ev`` from it (see the
+    module's docstring).
+
+    The revision applied is kept in the store (:meth:`ProfileStore.apply_revision`): the
+    first worker that finds the profile trusted writes it, the others (and a restarted
+    one) read it, and when the stored profile has moved beyond ``refresh_ev`` (or has
+    settled, :data:`SETTLED_FRAMES`) one worker replaces it and all follow. A store
+    without applied revisions (a stand-in without a database) is held per processor.
 
     Parameters
     ----------
@@ -182,6 +191,8 @@ class SteadyProfiles:
     ----------
     last : Profile or None
         The profile the last :meth:`lookup` returned (None: none).
+    revision : str or None
+        The applied revision's id when ``last`` is one (None otherwise).
     latest : Profile or None
         The stored profile as that lookup found it (``last`` may be an earlier revision).
     """
@@ -189,37 +200,55 @@ class SteadyProfiles:
     def __init__(self, store, refresh_ev: float = REFRESH_EV) -> None:
         self.store = store
         self.refresh_ev = refresh_ev
-        self._held: dict[str, Any] = {}
-        self.last = self.latest = None
+        self._held: dict[str, Any] = {}  # only for a store without applied revisions
+        self.last = self.latest = self.revision = None
+
+    def _applied(self, key):
+        """(revision id, profile) applied for ``key``, or None."""
+        read = getattr(self.store, "applied_revision", None)
+        if read is None:
+            return self._held.get(str(key))
+        return read(key)
+
+    def _apply(self, hit, replaces: str | None):
+        write = getattr(self.store, "apply_revision", None)
+        if write is None:
+            self._held[str(hit.key)] = held = (None, hit)
+            return held
+        return write(hit, replaces=replaces)
 
     def lookup(self, lens_key, width: int, height: int, *, trusted_only: bool = False):
-        """:meth:`ProfileStore.lookup`, but a lens setting whose profile this processor
-        applied keeps that revision while the stored one stays within ``refresh_ev`` of it,
-        and also while the stored one has lost its trust (frames that disagree raised its
-        σ): the series keeps its field rather than going back to single-frame estimates."""
-        self.last = None
+        """:meth:`ProfileStore.lookup`, but a lens setting whose profile is applied keeps
+        that revision while the stored one stays within ``refresh_ev`` of it, and also
+        while the stored one has lost its trust (frames that disagree raised its σ): the
+        series keeps its field rather than going back to single-frame estimates."""
+        self.last = self.revision = None
         hit = self.latest = self.store.lookup(lens_key, width, height, trusted_only=False)
         if hit is None:
             return None
-        name = str(hit.key)
-        held = self._held.get(name)
+        applied = self._applied(hit.key)
         if not hit.trusted:
-            if held is not None:
-                self.last = held
-                return held
-            # nothing held for this bin: a trusted neighbour or interpolation, as the store gives it
+            if applied is not None:
+                self.revision, self.last = applied
+                return self.last
+            # nothing applied for this bin: a trusted neighbour or interpolation, as the store gives it
             hit = self.latest = self.store.lookup(lens_key, width, height, trusted_only=True) if trusted_only else hit
             if hit is None or not hit.trusted:
                 return hit
-            name, held = str(hit.key), self._held.get(str(hit.key))
-        # once settled the stored profile stops moving (its frames are no longer pooled): every
-        # worker then applies that very revision
-        if held is not None and hit.n_frames < SETTLED_FRAMES and field_change_ev(held, hit) <= self.refresh_ev:
-            hit = held
+            applied = self._applied(hit.key)
+        if applied is None:
+            applied = self._apply(hit, None)  # the first worker to find it trusted writes it; the others read it
         else:
-            if held is not None:
-                log.info("profile %s moved %.4f EV since this worker first applied it: now its %d-frame revision",
-                         name, field_change_ev(held, hit), hit.n_frames)
-            self._held[name] = hit
-        self.last = hit
-        return hit
+            moved = field_change_ev(applied[1], hit)
+            # once settled the stored profile stops moving (its frames are no longer pooled): the
+            # revision applied from there on is the settled one, replaced once
+            settling = hit.n_frames >= SETTLED_FRAMES and applied[1].n_frames < SETTLED_FRAMES
+            if moved > self.refresh_ev or settling:
+                was = applied[0]
+                applied = self._apply(hit, was)
+                if applied[0] != was:
+                    log.info("profile %s moved %.4f EV from its applied revision%s: now its %d-frame revision %s",
+                             hit.key, moved, " and settled" if settling else "", applied[1].n_frames,
+                             applied[0] or "")
+        self.revision, self.last = applied
+        return self.last

@@ -894,6 +894,8 @@ class Processor:
                 if used is not None and res.applied:  # which revision corrected it: one per series
                     res.extra["profile_applied"] = {"profile": str(used.key), "frames": used.n_frames,
                                                     "updated": used.updated}
+                    if steady.revision is not None:  # the store's applied revision, shared by all workers
+                        res.extra["profile_applied"]["revision"] = steady.revision
                 if s.learn:
                     learned = self._learn_as_you_go(checked, lens_key, frame_id, in_camera,
                                                     steady.latest if used is not None else None, where)

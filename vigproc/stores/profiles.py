@@ -1229,12 +1229,33 @@ def _migration_11(con: sqlite3.Connection) -> None:
         con.execute("ALTER TABLE profiles ADD COLUMN colour TEXT")
 
 
+def _migration_12(con: sqlite3.Connection) -> None:
+    """v12: the revision of each trusted profile that correct runs apply (learning as
+    you go, :meth:`ProfileStore.apply_revision`), shared by every worker: the profile
+    file's JSON, its frame count and an id (SHA-256 of that JSON, 16 hex digits)."""
+    con.execute(
+        """
+        CREATE TABLE IF NOT EXISTS applied_profiles (
+            lens_id      TEXT NOT NULL,
+            focal_bin    TEXT NOT NULL,
+            aperture_bin TEXT NOT NULL,
+            aspect       TEXT NOT NULL,
+            revision     TEXT NOT NULL,
+            n_frames     INTEGER NOT NULL,
+            profile      TEXT NOT NULL,          -- vigproc.profile/2 or /3 JSON
+            applied      TEXT NOT NULL,          -- ISO time it became the applied revision
+            PRIMARY KEY (lens_id, focal_bin, aperture_bin, aspect)
+        )
+        """
+    )
+
+
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
 #: Append a function for the next version; never edit a released one.
 MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3,
                                                                  _migration_4, _migration_5, _migration_6,
                                                                  _migration_7, _migration_8, _migration_9,
-                                                                 _migration_10, _migration_11)
+                                                                 _migration_10, _migration_11, _migration_12)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
@@ -1624,6 +1645,7 @@ class ProfileStore(SQLiteFile):
             row_id = self._upsert(con, profile)
             # the stored evidence was replaced: no frame is pooled into it any more
             con.execute("DELETE FROM pooled_frames WHERE profile_id = ?", (row_id,))
+            _drop_applied(con, profile.key)
 
         self._transact(f"storing {profile.key}", body)
 
@@ -1909,9 +1931,92 @@ class ProfileStore(SQLiteFile):
                 "DELETE FROM profiles WHERE lens_id = ? AND focal_bin = ? AND aperture_bin = ? AND aspect = ?",
                 (key.lens_id, key.focal_bin, key.aperture_bin, key.aspect),
             )
+            _drop_applied(con, key)
             return cur.rowcount > 0
 
         return bool(self._transact(f"deleting {key}", body))
+
+    def applied_revision(self, key: ProfileKey) -> tuple[str, Profile] | None:
+        """The revision of the profile under ``key`` that correct runs apply (shared by
+        every worker and kept across restarts), as ``(revision id, profile)``; None when
+        none was applied yet (or the stored one cannot be read: it is then replaced).
+
+        Raises
+        ------
+        ProfileStoreError
+            ``key`` is not a :class:`ProfileKey`, or the store cannot be read.
+        """
+        _check_key(key, "applied_revision")
+        with self._errors(f"reading the applied revision of {key}"):
+            return self._read_applied(self.con, key)
+
+    def apply_revision(self, profile: Profile, *, replaces: str | None = None) -> tuple[str, Profile]:
+        """Make ``profile`` the applied revision of its key, if no other worker got there
+        first; returns the revision applied now, ``(revision id, profile)``.
+
+        One ``BEGIN IMMEDIATE`` transaction: with ``replaces=None`` ``profile`` is
+        written only when the key has no applied revision (else the one there is
+        returned); with ``replaces=ID`` it replaces the applied revision only while that
+        is still ``ID`` (compare-and-set: of two workers that both found the stored
+        profile moved, one replaces it and the other follows).
+
+        Parameters
+        ----------
+        profile : Profile
+            The stored profile as the caller read it.
+        replaces : str, optional
+            The revision id the caller found applied.
+
+        Returns
+        -------
+        tuple of (str, Profile)
+            The revision id (16 hex digits of the SHA-256 of its JSON) and the
+            profile as read back from its JSON.
+
+        Raises
+        ------
+        ProfileStoreError
+            ``profile`` is not a :class:`Profile`, or the store cannot be written.
+        """
+        if not isinstance(profile, Profile):
+            raise ProfileStoreError(f"apply_revision() needs a Profile, got {type(profile).__name__}")
+        text = json.dumps(profile_to_dict(profile), sort_keys=True, ensure_ascii=False, allow_nan=False)
+        rev = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+        key = profile.key
+
+        def body(con: sqlite3.Connection) -> tuple[str, Profile]:
+            held = self._read_applied(con, key)
+            if held is not None and held[0] != replaces:
+                return held  # another worker wrote (or replaced) it first: follow
+            con.execute(
+                "INSERT INTO applied_profiles (lens_id, focal_bin, aperture_bin, aspect, revision, n_frames, profile, "
+                "applied) VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (lens_id, focal_bin, aperture_bin, aspect) "
+                "DO UPDATE SET revision = excluded.revision, n_frames = excluded.n_frames, "
+                "profile = excluded.profile, applied = excluded.applied",
+                (key.lens_id, key.focal_bin, key.aperture_bin, key.aspect, rev, int(profile.n_frames), text, _now()),
+            )
+            return rev, profile_from_dict(json.loads(text), f"applied revision {rev} of {key}")
+
+        return self._transact(f"applying a revision of {key}", body)
+
+    def _read_applied(self, con: sqlite3.Connection, key: ProfileKey) -> tuple[str, Profile] | None:
+        row = con.execute(
+            "SELECT revision, profile FROM applied_profiles "
+            "WHERE lens_id = ? AND focal_bin = ? AND aperture_bin = ? AND aspect = ?",
+            (key.lens_id, key.focal_bin, key.aperture_bin, key.aspect),
+        ).fetchone()
+        if row is None:
+            return None
+        try:
+            p = profile_from_dict(json.loads(row[1]), f"applied revision {row[0]} of {key}")
+        except (ProfileStoreError, ValueError, TypeError) as exc:  # a damaged row is replaced, not fatal
+            logger.warning("profile store %s: %s; it will be replaced", self.path, exc)
+            return None
+        if p.key != key:
+            logger.warning("profile store %s: applied revision %s is of %s, not %s; it will be replaced",
+                           self.path, row[0], p.key, key)
+            return None
+        return str(row[0]), p
 
     def check(self) -> builtins.list[str]:
         """``PRAGMA integrity_check`` and ``foreign_key_check``, plus decoding every
@@ -1945,6 +2050,12 @@ _UNITS = {
     "covariance": "of the free parameters: (cx, cy, p1, p2, p3, alpha1..alpha7) in that order and the units "
                   "above, without those listed in 'fixed'",
 }
+
+
+def _drop_applied(con: sqlite3.Connection, key: ProfileKey) -> None:
+    """Forget the applied revision of ``key`` (its profile was replaced or deleted)."""
+    con.execute("DELETE FROM applied_profiles WHERE lens_id = ? AND focal_bin = ? AND aperture_bin = ? AND aspect = ?",
+                (key.lens_id, key.focal_bin, key.aperture_bin, key.aspect))
 
 
 def _split_lens_id(lens_id: str) -> dict[str, str | None]:

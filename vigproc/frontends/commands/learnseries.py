@@ -54,8 +54,9 @@ def cmd_bench_learn_series(args: argparse.Namespace) -> int:
     print(f"learn as you go: {args.frames} frames of one lens setting through 'vigproc batch --mode correct "
           f"--workers {args.workers}' (load {os.getloadavg()[0]:.1f})")
     print("| lens | trusted at frame | own estimate: median EV | stored profile: median / max EV | "
-          "revisions applied after trust | spread EV | uncorrected EV | s |")
-    print("|---|---|---|---|---|---|---|---|")
+          "revisions applied after trust | revision ids / field changes | spread EV: all / within an id | "
+          "uncorrected EV | s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for k in range(args.lenses):
         fld = fields[k]
         lens, pa = lenses[k]
@@ -66,11 +67,12 @@ def cmd_bench_learn_series(args: argparse.Namespace) -> int:
         results.append(r)
         print(f"| {r.lens} | {r.trusted_at or '-'} | {_fmt(r.before_median_ev)} | {_fmt(r.after_median_ev)} / "
               f"{_fmt(r.after_max_ev)} | {', '.join(map(str, r.revisions)) or '-'} | "
-              f"{_fmt(r.revision_spread_ev, '.4f')} | {_fmt(r.uncorrected_ev)} | {r.wall_s:.0f} |")
+              f"{r.revision_ids} / {r.switches} | {_fmt(r.revision_spread_ev, '.4f')} / "
+              f"{_fmt(r.same_revision_spread_ev, '.4f')} | {_fmt(r.uncorrected_ev)} | {r.wall_s:.0f} |")
         if args.frames_table:
             for x in r.rows:
                 print(f"    {x.name}: pooled as {x.pooled_as}, trusted {x.trusted_after}, {x.source}"
-                      f"{f' (revision {x.revision})' if x.revision else ''}, error {x.error_ev:.3f} EV, "
+                      f"{f' (revision {x.revision}, {x.revision_id})' if x.revision else ''}, error {x.error_ev:.3f} EV, "
                       f"{x.seconds:.1f} s")
     write_json_result(args.json, [dataclasses.asdict(r) for r in results])
     return 0
