@@ -241,6 +241,18 @@ def test_the_applied_revision_is_a_compare_and_set(series, tmp_path):
         assert s2.applied_revision(p3.key) is None
         assert s2.apply_revision(p4)[0] == r4
         assert s2.delete(p4.key) and s1.applied_revision(p4.key) is None
+        s1.put(p3)
+        r3, _ = s1.apply_revision(p3)
+    # a damaged applied revision is not fatal: it reads as none and the next worker replaces it
+    import sqlite3
+
+    con = sqlite3.connect(db)
+    con.execute("UPDATE applied_profiles SET profile = '{\"schema\": 1'")
+    con.commit()
+    con.close()
+    with ProfileStore(db) as s1:
+        assert s1.applied_revision(p3.key) is None
+        assert s1.apply_revision(p3)[0] == r3 and s1.applied_revision(p3.key)[0] == r3
 
 
 def test_a_store_from_before_applied_revisions_opens_and_migrates(series, tmp_path):
