@@ -21,7 +21,7 @@ import math
 import numbers
 import os
 import sqlite3
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -249,6 +249,119 @@ def _unblob(b: Any, shape: tuple[int, ...], name: str) -> np.ndarray | None:
     if not isinstance(b, bytes) or len(b) != 8 * n:
         raise ValueError(f"column {name} has {len(b) if isinstance(b, bytes) else type(b).__name__} bytes, expected {8 * n}")
     return np.frombuffer(b, dtype="<f8").reshape(shape).astype(np.float64)
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """What one frame adds to a profile (:meth:`ProfileStore.learn`), checked.
+
+    ``theta`` and ``field`` (normalised θ and its log2 field on the FIELD_GRID² grid)
+    feed the Welford moments: the frame's lens-family fit when it has evidence, else
+    its estimate; ``lam`` and ``eta`` are its exact information sums."""
+
+    theta: np.ndarray
+    field: np.ndarray
+    lam: _Exact
+    eta: _Exact
+    frame_id: str | None
+    evidence: bytes | None
+    fit: Any
+    size: tuple[int, int] | None
+    shots: Shots | None
+    colour: Any  # the estimate's colour field (VignettingModel.colour), pooled as a ColourPool
+
+
+def _pool_frame(old: Profile | None, key: ProfileKey, frame: _Frame, notes: str | None, now: str) -> Profile:
+    """The profile ``old`` (None: none yet) with ``frame`` pooled in information form
+    (no database).
+
+    If the pooled θ is not a valid model, the plain mean of the frames is used, else
+    the previous θ, else the frame's own.
+
+    Parameters
+    ----------
+    old : Profile or None
+    key : ProfileKey
+    frame : _Frame
+        From :meth:`ProfileStore._learn_inputs`.
+    notes : str or None
+        Appended to the profile's notes.
+    now : str
+        The update's timestamp.
+
+    Returns
+    -------
+    Profile
+        Provenance "learned".
+    """
+    aspect = key.aspect_ratio
+    theta_i, field_i = frame.theta, frame.field
+    add_lam, add_eta = frame.lam, frame.eta
+    evidence = frame.evidence
+    extra = ""
+    if old is None:
+        exact, welford, n_frames = (add_lam, add_eta), _Welford.empty(), 1
+        created, old_notes, prev_theta = now, "", None
+    elif old._exact is None:
+        # an import without uncertainty carries no information to pool with
+        exact, welford, n_frames = (add_lam, add_eta), _Welford.empty(), 1
+        created, old_notes, prev_theta = old.created, old.notes, None
+        extra = f"learned frames superseded a {old.provenance} profile without uncertainty ({now})"
+        logger.warning("profile %s: %s", key, extra)
+    else:
+        exact = (old._exact[0].add(add_lam), old._exact[1].add(add_eta))
+        welford = old._welford if old._welford is not None else _Welford.empty()
+        n_frames = old.n_frames + 1
+        created, old_notes, prev_theta = old.created, old.notes, old.theta
+        if old.provenance != "learned":
+            extra = f"seeded from a {old.provenance} profile"
+    welford = welford.add(theta_i, field_i)
+    lam = exact[0].to_array().reshape(N_PARAMS, N_PARAMS)
+    eta = exact[1].to_array()
+    # an import's fixed parameters carry no information: the frames decide them
+    cov = _scaled_pinv(lam, f"pooled information of {key}", allow_fixed=True)
+    theta = cov @ eta
+    if not _valid_theta(theta, aspect):
+        # with evidence the pooled refit usually replaces θ: no need to alarm anyone
+        say = logger.warning if evidence is None else logger.debug
+        fallback = welford.theta_mean
+        if _valid_theta(fallback, aspect):
+            say("profile %s: pooled θ is not a valid model; using the plain mean of the frames", key)
+            theta = fallback
+        elif prev_theta is not None:
+            say("profile %s: pooled θ is not a valid model; keeping the previous θ", key)
+            theta = prev_theta
+        else:
+            theta = theta_i
+    pooled, cov_sigma, scatter = _profile_stats(theta, cov, aspect, welford)
+    shots = old.shots if old is not None and old._exact is not None else None
+    if frame.shots is not None:
+        shots = frame.shots if shots is None else shots.add(frame.shots)
+    note_parts = [s for s in (old_notes, extra if extra and extra not in old_notes else "", notes or "") if s]
+    colour = old.colour if old is not None else None
+    if frame.colour is not None:
+        mine = ColourPool.of(frame.colour)
+        colour = mine if colour is None else colour.add(mine)
+    return Profile(
+        key=key, theta=theta, covariance=cov, info_matrix=lam, info_vector=eta,
+        n_frames=n_frames, provenance="learned", created=created, updated=now,
+        trusted=_is_trusted(n_frames, pooled), field_sigma_ev=pooled, cov_sigma_ev=cov_sigma,
+        scatter_sigma_ev=scatter, notes="\n".join(note_parts)[:MAX_NOTES], shots=shots, colour=colour,
+        _exact=exact, _welford=welford,
+    )
+
+
+def _with_refit(profile: Profile, refit: tuple[np.ndarray, np.ndarray, float, int]) -> Profile:
+    """``profile`` with θ, covariance and σ from the robust pooling of its frames' fits
+    (:meth:`ProfileStore._pooled_refit`).
+
+    The pooled σ is the robust centre's (:mod:`vigproc.core.pooling`), robust to the
+    frames a scene fooled; the plain scatter of the frames is kept for reports."""
+    r_theta, r_cov, r_sigma, _ = refit
+    _, cov_sigma, scatter = _profile_stats(r_theta, r_cov, profile.key.aspect_ratio, profile._welford)
+    return replace(profile, theta=r_theta, covariance=r_cov, field_sigma_ev=r_sigma,
+                   cov_sigma_ev=cov_sigma, scatter_sigma_ev=scatter,
+                   trusted=_is_trusted(profile.n_frames, r_sigma))
 
 
 class ProfileStore(SQLiteFile):
@@ -649,18 +762,65 @@ class ProfileStore(SQLiteFile):
             not the key's, evidence that is not frame evidence, invalid values,
             database locked or corrupt.
         """
-        # Checked up front: a bad argument must not surface as a raw error from
-        # inside the transaction (``notes`` is only joined there).
+        frame = self._learn_inputs(key, model, notes, frame_id, evidence, lens_key)
+
+        def body(con: sqlite3.Connection) -> tuple[Profile | None, Profile]:
+            old = self._get(key)
+            if old is not None and frame.frame_id is not None:
+                seen = con.execute("SELECT 1 FROM pooled_frames WHERE frame = ? AND profile_id = ?",
+                                   (frame.frame_id, self._row_id(con, key))).fetchone()
+                if seen is not None:
+                    logger.info("profile %s: frame %s is already pooled; not again", key, frame.frame_id[:16])
+                    return old, old
+            now = _now()
+            profile = _pool_frame(old, key, frame, notes, now)
+            row_id = self._upsert(con, profile)
+            if frame.frame_id is not None:
+                con.execute("INSERT OR IGNORE INTO pooled_frames (frame, profile_id, pooled, evidence, family) "
+                            "VALUES (?, ?, ?, ?, ?)", (frame.frame_id, row_id, now, frame.evidence,
+                                                       None if frame.evidence is None else
+                                                       _fit_blob(frame.fit, frame.size)))
+            if frame.evidence is not None:
+                refit = self._pooled_refit(con, row_id, key, frame.size)
+                if refit is not None:
+                    profile = _with_refit(profile, refit)
+                    self._upsert(con, profile)
+                    logger.debug("profile %s: pooled from %d frames' evidence", key, refit[3])
+            return old, profile
+
+        old, profile = self._transact(f"learning {key}", body)
+        if profile.trusted and not (old is not None and old.trusted):
+            logger.info("profile %s is now trusted (%d frames, σ = %.4f EV)", key, profile.n_frames,
+                        profile.field_sigma_ev)
+        return profile
+
+    def _learn_inputs(self, key: ProfileKey, model: VignettingModel, notes: str | None, frame_id: str | None,
+                      evidence: bytes | None, lens_key: LensKey | None) -> _Frame:
+        """Check :meth:`learn`'s arguments and compute what the frame adds to a profile.
+
+        Checked up front, outside the transaction: a bad argument must not surface as a
+        raw error from inside it (``notes`` is only joined there).
+
+        Returns
+        -------
+        _Frame
+
+        Raises
+        ------
+        ProfileStoreError
+            As :meth:`learn`.
+        """
         _check_key(key, "learn")
         if not isinstance(model, VignettingModel):
             raise ProfileStoreError(f"learn() needs a VignettingModel, got {type(model).__name__}")
         if notes is not None and not isinstance(notes, str):
             raise ProfileStoreError(f"notes must be a string, got {type(notes).__name__}")
+        frame_fit, frame_size = None, None
         if evidence is not None:
             if not isinstance(evidence, bytes):
                 raise ProfileStoreError(f"evidence must be bytes, got {type(evidence).__name__}")
             try:
-                # fitted before the transaction: the refit below finds it in the cache
+                # fitted before the transaction: the refit finds it in the cache
                 frame_fit, frame_size = self._frame_fit(evidence)
             except VigprocError as exc:  # first: InvalidImageError (too few usable bins) is a ValueError too
                 raise ProfileStoreError(f"nothing to learn from this frame: {exc}") from None
@@ -697,92 +857,8 @@ class ProfileStore(SQLiteFile):
             except ModelError as exc:
                 raise ProfileStoreError(f"unusable frame evidence: {exc}") from None
             field_i = _field_and_jacobian(theta_i, aspect)[0]
-
-        def body(con: sqlite3.Connection) -> tuple[Profile | None, Profile]:
-            old = self._get(key)
-            if old is not None and frame_id is not None:
-                seen = con.execute("SELECT 1 FROM pooled_frames WHERE frame = ? AND profile_id = ?",
-                                   (frame_id, self._row_id(con, key))).fetchone()
-                if seen is not None:
-                    logger.info("profile %s: frame %s is already pooled; not again", key, frame_id[:16])
-                    return old, old
-            now = _now()
-            extra = ""
-            if old is None:
-                exact, welford, n_frames = (add_lam, add_eta), _Welford.empty(), 1
-                created, old_notes, prev_theta = now, "", None
-            elif old._exact is None:
-                # an import without uncertainty carries no information to pool with
-                exact, welford, n_frames = (add_lam, add_eta), _Welford.empty(), 1
-                created, old_notes, prev_theta = old.created, old.notes, None
-                extra = f"learned frames superseded a {old.provenance} profile without uncertainty ({now})"
-                logger.warning("profile %s: %s", key, extra)
-            else:
-                exact = (old._exact[0].add(add_lam), old._exact[1].add(add_eta))
-                welford = old._welford if old._welford is not None else _Welford.empty()
-                n_frames = old.n_frames + 1
-                created, old_notes, prev_theta = old.created, old.notes, old.theta
-                if old.provenance != "learned":
-                    extra = f"seeded from a {old.provenance} profile"
-            welford = welford.add(theta_i, field_i)
-            lam = exact[0].to_array().reshape(N_PARAMS, N_PARAMS)
-            eta = exact[1].to_array()
-            # an import's fixed parameters carry no information: the frames decide them
-            cov = _scaled_pinv(lam, f"pooled information of {key}", allow_fixed=True)
-            theta = cov @ eta
-            if not _valid_theta(theta, aspect):
-                # with evidence the pooled refit below usually replaces θ: no need to alarm anyone
-                say = logger.warning if evidence is None else logger.debug
-                fallback = welford.theta_mean
-                if _valid_theta(fallback, aspect):
-                    say("profile %s: pooled θ is not a valid model; using the plain mean of the frames", key)
-                    theta = fallback
-                elif prev_theta is not None:
-                    say("profile %s: pooled θ is not a valid model; keeping the previous θ", key)
-                    theta = prev_theta
-                else:
-                    theta = theta_i
-            pooled, cov_sigma, scatter = _profile_stats(theta, cov, aspect, welford)
-            shots = old.shots if old is not None and old._exact is not None else None
-            if frame_shots is not None:
-                shots = frame_shots if shots is None else shots.add(frame_shots)
-            note_parts = [s for s in (old_notes, extra if extra and extra not in old_notes else "", notes or "") if s]
-            colour = old.colour if old is not None else None
-            if model.colour is not None:
-                mine = ColourPool.of(model.colour)
-                colour = mine if colour is None else colour.add(mine)
-            profile = Profile(
-                key=key, theta=theta, covariance=cov, info_matrix=lam, info_vector=eta,
-                n_frames=n_frames, provenance="learned", created=created, updated=now,
-                trusted=_is_trusted(n_frames, pooled), field_sigma_ev=pooled, cov_sigma_ev=cov_sigma,
-                scatter_sigma_ev=scatter, notes="\n".join(note_parts)[:MAX_NOTES], shots=shots, colour=colour,
-                _exact=exact, _welford=welford,
-            )
-            row_id = self._upsert(con, profile)
-            if frame_id is not None:
-                con.execute("INSERT OR IGNORE INTO pooled_frames (frame, profile_id, pooled, evidence, family) "
-                            "VALUES (?, ?, ?, ?, ?)", (frame_id, row_id, now, evidence,
-                                                       None if evidence is None else
-                                                       _fit_blob(frame_fit, frame_size)))
-            if evidence is not None:
-                refit = self._pooled_refit(con, row_id, key, frame_size)
-                if refit is not None:
-                    r_theta, r_cov, r_sigma, n_pooled = refit
-                    _, cov_sigma, scatter = _profile_stats(r_theta, r_cov, aspect, welford)
-                    # the pooled σ is the median's (vigproc.core.pooling), robust to the frames
-                    # a scene fooled; the plain scatter of the frames is kept for reports
-                    profile = replace(profile, theta=r_theta, covariance=r_cov, field_sigma_ev=r_sigma,
-                                      cov_sigma_ev=cov_sigma, scatter_sigma_ev=scatter,
-                                      trusted=_is_trusted(n_frames, r_sigma))
-                    self._upsert(con, profile)
-                    logger.debug("profile %s: pooled from %d frames' evidence", key, n_pooled)
-            return old, profile
-
-        old, profile = self._transact(f"learning {key}", body)
-        if profile.trusted and not (old is not None and old.trusted):
-            logger.info("profile %s is now trusted (%d frames, σ = %.4f EV)", key, profile.n_frames,
-                        profile.field_sigma_ev)
-        return profile
+        return _Frame(theta=theta_i, field=field_i, lam=add_lam, eta=add_eta, frame_id=frame_id,
+                      evidence=evidence, fit=frame_fit, size=frame_size, shots=frame_shots, colour=model.colour)
 
     def _frame_fit(self, blob: bytes) -> tuple[Any, tuple[int, int]]:
         """The lens-family fit of a frame's evidence (:func:`vigproc.core.pooling.frame_fit`)
