@@ -23,30 +23,22 @@ field uncertainty is below :data:`TRUSTED_SIGMA_EV` (its 2σ bound below
 σ (:mod:`vigproc.core.pooling`); without, the larger of the covariance-propagated σ and
 scatter/√n.
 
-Concurrency and durability
---------------------------
-SQLite in WAL mode: readers never block the (single) writer and vice versa;
-:meth:`ProfileStore.learn` is a read-modify-write inside ``BEGIN IMMEDIATE``, so
-concurrent learners (daemon workers, CLI runs) serialise on the write lock and no
-update is lost.  Every change is one transaction: the store is never half-written.
+Modules
+-------
+This module re-exports, one concept each:
 
-Files
------
-Profiles are exchanged as JSON files of schema ``vigproc.profile/1`` (documented in
-``profiles/README.md``; examples in ``profiles/examples/``): :func:`export_profile`,
-:func:`import_profile`, :meth:`ProfileStore.import_file`.
+- :mod:`vigproc.stores.profile_key`: :class:`ProfileKey`, its bins and the shared constants;
+- :mod:`vigproc.core.information`: information-form pooling, exact sums, Welford moments;
+- :mod:`vigproc.stores.profile`: :class:`Profile`, :class:`Shots`, the trust rule, interpolation;
+- :mod:`vigproc.stores.profile_store`: the SQLite :class:`ProfileStore` (WAL, one
+  ``BEGIN IMMEDIATE`` transaction per change) and its migrations;
+- :mod:`vigproc.stores.profile_file`: the JSON files ``vigproc.profile/1``, ``/2``, ``/3``
+  (``profiles/README.md``): :func:`export_profile`, :func:`import_profile`.
 
 References
 ----------
 S. Lyu, "Estimating Vignetting Function from a Single Image for Image
 Authentication", ACM MM&Sec 2010 (the Kang-Weiss parameterisation used here).
-B. P. Welford, "Note on a method for calculating corrected sums of squares and
-products", Technometrics 4(3), 1962 (running moments).
-J. R. Shewchuk, "Adaptive precision floating-point arithmetic and fast robust
-geometric predicates", Discrete Comput. Geom. 18, 1997 (exact float summation;
-here the simpler big-integer form of the same idea).
-SQLite, "Write-Ahead Logging", https://www.sqlite.org/wal.html and
-"Isolation in SQLite", https://www.sqlite.org/isolation.html.
 """
 
 from __future__ import annotations
