@@ -759,6 +759,7 @@ def test_the_profile_pools_every_frame_up_to_the_cap(tmp_path, monkeypatch):
     """Every frame refines the profile (the store pooled only 40 before), up to
     MAX_POOLED_FRAMES, chosen by frame id whatever the order of arrival."""
     import vigproc.core.pooling as pooling
+    import vigproc.stores.profile_store as profile_store
     import vigproc.stores.profiles as profiles
 
     seen = []
@@ -770,7 +771,7 @@ def test_the_profile_pools_every_frame_up_to_the_cap(tmp_path, monkeypatch):
 
     monkeypatch.setattr(pooling, "pool_family", spy)
     shipped_cap = profiles.MAX_POOLED_FRAMES
-    monkeypatch.setattr(profiles, "MAX_POOLED_FRAMES", 3)
+    monkeypatch.setattr(profile_store, "MAX_POOLED_FRAMES", 3)
     frames, key = _lens_frames("cap", seed=80)
     h, w = frames[0].shape
     with ProfileStore(tmp_path / "a.sqlite") as store:

@@ -173,3 +173,10 @@ EXIT_CODES = {
     "interrupted": 130,  # Ctrl-C (128 + SIGINT)
     "terminated": 143,  # SIGTERM (128 + SIGTERM), handled as Ctrl-C
 }
+
+
+class ProfileStoreError(VigprocError):
+    """The profile store or a profile file cannot be used (corrupt, locked, invalid)."""
+
+    exit_code = EXIT_CODES["profile_store"]
+    blame = SETTINGS
