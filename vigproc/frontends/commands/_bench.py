@@ -8,6 +8,7 @@ import argparse
 import json
 from pathlib import Path
 
+from vigproc.core.methods import METHODS
 from vigproc.errors import PriorError
 from vigproc.frontends.commands._options import add_transfer
 
@@ -67,8 +68,6 @@ def add_colour(bp: argparse.ArgumentParser) -> None:
 
 def add_estimator_bench(bp: argparse.ArgumentParser) -> None:
     """Options of a benchmark that runs estimators on photographs (lensfun, real)."""
-    from vigproc.core.methods import METHODS
-
     add_transfer(bp)
     bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],
                     help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")

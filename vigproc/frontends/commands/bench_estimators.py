@@ -13,7 +13,7 @@ from pathlib import Path
 
 from vigproc.errors import VigprocError
 from vigproc.frontends.commands._bench import add_colour, add_estimator_bench, add_scene_prior, estimator, scene_settings
-from vigproc.frontends.commands._options import add_clean_bases, write_json_result
+from vigproc.frontends.commands._options import add_clean_bases, number, write_json_result
 from vigproc.pipeline.processor import images_in as _images_in, output_file
 
 log = logging.getLogger("vigproc")
@@ -25,8 +25,6 @@ def register(subparsers) -> None:
 
 def register_bench(bsub) -> None:
     """The benchmarks ``synthetic``, ``lensfun``, ``clean``, ``crops``, ``real``, ``scene-scatter``, ``colour``."""
-    from vigproc.frontends.commands._options import number
-
     bp = bsub.add_parser("synthetic", help="Lyu 2010 Tables 2-3 protocol")
     bp.add_argument("--images", required=True, help="folder of images (BSDS val, say)")
     bp.add_argument("--limit", type=int, help="use at most this many images")

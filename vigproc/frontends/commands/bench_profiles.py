@@ -9,9 +9,10 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from vigproc.core.methods import METHODS
 from vigproc.errors import EXIT_CODES
 from vigproc.frontends.commands._bench import estimator
-from vigproc.frontends.commands._options import add_clean_bases, write_json_result
+from vigproc.frontends.commands._options import add_clean_bases, add_transfer, number, write_json_result
 from vigproc.pipeline.processor import images_in as _images_in, output_file
 
 
@@ -21,9 +22,6 @@ def register(subparsers) -> None:
 
 def register_bench(bsub) -> None:
     """The benchmarks ``profile``, ``profile-clean``, ``profile-interp``, ``profile-flat``."""
-    from vigproc.core.methods import METHODS
-    from vigproc.frontends.commands._options import add_transfer, number
-
     bp = bsub.add_parser("profile", help="profile accuracy versus number of frames (lensfun lenses)")
     bp.add_argument("--images", required=True, help="folder of images")
     bp.add_argument("--limit", type=int, help="use at most this many images")

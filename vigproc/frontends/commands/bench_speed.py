@@ -11,8 +11,9 @@ from dataclasses import asdict
 from importlib import resources
 from pathlib import Path
 
+from vigproc.core.methods import METHODS
 from vigproc.errors import VigprocError
-from vigproc.frontends.commands._options import write_json_result
+from vigproc.frontends.commands._options import add_transfer, number, write_json_result
 from vigproc.pipeline.processor import images_in as _images_in
 
 
@@ -22,9 +23,6 @@ def register(subparsers) -> None:
 
 def register_bench(bsub) -> None:
     """The benchmarks ``speed``, ``learn``, ``correct``, ``io``, ``throughput``, ``scaling``, ``memory``."""
-    from vigproc.core.methods import METHODS
-    from vigproc.frontends.commands._options import add_transfer, number
-
     bp = bsub.add_parser("speed", help="estimator timings on 480x320 frames")
     bp.add_argument("--images", help="folder of images (default: the bundled samples)")
     bp.add_argument("--limit", type=int, default=10, help="use at most this many images (default %(default)s)")
