@@ -8,22 +8,30 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
+import io
 import json
 import logging
 import math
+import pkgutil
+import signal
 import sys
+import threading
 import warnings
 from importlib import resources
 from pathlib import Path
 from typing import Sequence
 
-from vigproc.frontends.commands._options import JSON_HELP, failure_record, files_exit_code, print_json_results
+from vigproc.frontends.commands._options import (JSON_HELP, add_learn, add_method, add_processing, add_transfer, failure_record,
+                                                 files_exit_code, interrupted, learn_setting, number, print_json_results)
 from vigproc.errors import EXIT_CODES, DiskFullError, VigprocError, one_line
 from vigproc.io.lensident import display_lens_id
 
 log = logging.getLogger("vigproc")
 
 from vigproc.pipeline.processor import OUTPUT_FORMATS, images_in as _images_in, output_file  # noqa: E402  (re-exported names)
+from vigproc.pipeline.processor import (InputFiles, Processor, Settings, file_sha256, lens_hint,  # noqa: E402
+                                        output_folder, output_stems, read_lens)
 
 
 class _AboveTheBar:
@@ -56,8 +64,6 @@ def _progress(items: Sequence, what: str):
     if len(items) < 2 or not sys.stderr.isatty():
         yield from items
         return
-    import contextlib
-
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -71,8 +77,6 @@ def _progress(items: Sequence, what: str):
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Each file in turn; the exit code is :func:`files_exit_code`'s. ``--json`` prints
     one JSON document at the end, for one file as for many (README, "--json")."""
-    from vigproc.pipeline.processor import Settings
-
     Settings(mode="estimate", method=args.method, transfer=args.input_transfer)  # a bad --method: one usage error
     from vigproc.io.exif import ExifReader
 
@@ -97,7 +101,6 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     from vigproc.core.estimate import estimate
     from vigproc.io.images import EncodedImage, read_encoded
     from vigproc.pipeline.encoded import check_encoded, estimate_encoded
-    from vigproc.pipeline.processor import lens_hint, read_lens
 
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
     # model for the full frame; a JPEG's or PNG's codes from a reduced copy; others as they are
@@ -191,10 +194,8 @@ def _as_given(path: str, outdir: Path) -> str:
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from vigproc.frontends.commands._options import interrupted, learn_setting
     from vigproc.stores.opening import open_profile_store
     from vigproc.pipeline.faults import DISK_FULL, classify_error
-    from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 
     made = not Path(args.output).exists()
     outdir = output_folder(args.output)
@@ -451,7 +452,6 @@ def cmd_profile(args: argparse.Namespace) -> int:
                 print(f"picture -> {args.plot}", file=sys.stderr if args.json else sys.stdout)
         elif args.profile_command == "learn":
             from vigproc.io.images import read_image
-            from vigproc.pipeline.processor import Processor, Settings, file_sha256, read_lens
 
             files = [Path(f) for f in args.files]
             done = failed = again = 0
@@ -522,8 +522,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="more log output (-v: info, -vv: debug and tracebacks)")
     sub = p.add_subparsers(dest="command", required=True)
 
-    from vigproc.frontends.commands._options import add_learn, add_method, add_processing, add_transfer, number
-
     sp = sub.add_parser("estimate", help="estimate the vignetting of images (nothing is written)")
     sp.add_argument("files", nargs="+", metavar="FILE", help="images to estimate")
     add_method(sp)
@@ -550,9 +548,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     # further commands live in their own modules under vigproc/commands (watch, check,
     # batch, hook, ...); each exposes register(subparsers)
-    import importlib
-    import pkgutil
-
     import vigproc.frontends.commands
 
     command_modules = [importlib.import_module(f"vigproc.frontends.commands.{m.name}")
@@ -691,9 +686,6 @@ def _terminate_like_ctrl_c():
     vanishing mid-write.  Commands with their own handlers (``watch``) replace it; the
     previous handler is restored on the way out.  Yields a function telling whether
     SIGTERM arrived (exit 143 = 128 + SIGTERM)."""
-    import signal
-    import threading
-
     got: list[int] = []
     if threading.current_thread() is not threading.main_thread() \
             or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
@@ -747,8 +739,6 @@ def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 def _hook_via_server(args: argparse.Namespace, argv: list[str], hookserver) -> int:
     """A host's call: on the warm server when one runs (vigproc.frontends.hookserver), else here,
     starting one for the calls that follow."""
-    import io
-
     stdin = None
     if args.request == "-":  # the server cannot read our stdin: pass its bytes (the hook's own limit)
         from vigproc.frontends.commands.hook import MAX_REQUEST_BYTES
