@@ -37,3 +37,19 @@ def test_api_speed_without_a_peer_states_no_ratio():
     r = api_speed([0.3 + 0.4 * rng.random((320, 480, 3))], None, rounds=1, cases=("none",))
     assert len(r.cases) == 1 and r.cases[0].vigproc_ms > 0
     assert np.isnan(r.cases[0].peer_ms) and np.isnan(r.cases[0].ratio) and np.isnan(r.peer_floor_ms)
+
+
+def test_the_command_runs_without_a_peer(tmp_path, monkeypatch, capsys):
+    """``vigproc bench speed --api`` with no peer given or in the environment: the
+    vigproc column alone, exit 0 (it once failed looking the environment up)."""
+    from vigproc.bench.peers import PEER_ENV
+    from vigproc.frontends.cli import main
+    from vigproc.io.images import write_image
+
+    monkeypatch.delenv(PEER_ENV, raising=False)
+    rng = np.random.default_rng(2)
+    frame = (0.25 + 0.5 * rng.random((800, 1200, 3))).astype(np.float32)
+    write_image(tmp_path / "frame.jpg", frame, bit_depth="uint8", transfer="srgb", quality=95)
+    assert main(["bench", "speed", "--api", "--images", str(tmp_path), "--limit", "1", "--repeat", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "no peer" in out and "none" in out

@@ -31,7 +31,7 @@ BENCH = "vigproc.bench"
 #: Functions outside vigproc.bench that may import it: the ``vigproc bench`` commands
 #: and their helpers, by (module, top-level function).
 BENCH_COMMANDS = {
-    ("vigproc.frontends.cli", "_estimator"),  # the benches' estimator table (rgs, the peer)
+    ("vigproc.frontends.commands._bench", "estimator"),  # the benches' estimator table (rgs, the peer)
     ("vigproc.frontends.commands.watch", "_make_inputs"),  # bench watch's frames
 }
 #: Real commands that still import benchmark code. Moving the shared pieces down needs
