@@ -385,3 +385,21 @@ def test_watch_learns_by_default_and_a_frame_pooled_before_a_crash_is_not_pooled
     assert len(done) == n and all(e.get("learned") for e in done)
     assert sum("learned into profile" in e["msg"] for e in done) == n - 1
     assert any("already pooled" in e["msg"] for e in done)
+
+
+def test_the_frame_pooled_is_the_one_read_not_its_correction(series, tmp_path):
+    """A frame the processor read is corrected in place (its codes become the output's):
+    learning as you go pools it first, so the profile is the one learn mode makes of the
+    same file, not one of a corrected (flat) frame."""
+    paths, _ = series
+    with ProfileStore(tmp_path / "a.sqlite") as store, Processor(Settings(learn=True), store=store) as proc:
+        rec = proc.process_file(paths[0], _out(tmp_path / "out")).to_dict()
+        [going] = store.list()
+    with ProfileStore(tmp_path / "b.sqlite") as store, Processor(Settings(mode="learn"), store=store) as proc:
+        proc.process_unwritten(paths[0])
+        [learned] = store.list()
+    assert rec["learned"]["pooled"], rec["learned"]
+    a, b = going.model(W, H), learned.model(W, H)
+    fa, fb = a.log_field((H, W)) / np.log(2.0), b.log_field((H, W)) / np.log(2.0)
+    assert fb.min() < -0.1  # the lens's fall-off, pooled from the uncorrected frame
+    np.testing.assert_allclose(fa, fb, atol=0.01)

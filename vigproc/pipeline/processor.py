@@ -875,8 +875,13 @@ class Processor:
                 how = dict(channel_axis=-1 if img.ndim == 3 else None, strength=s.strength,
                            clip=1.0 if fmt.integer else None)
                 # a DNG GainMap is divided out as its own field, not as its Kang-Weiss fit
+                used = steady.last if steady is not None and res.source == "stored-profile" else None
+                if s.learn:  # before the correction, which may overwrite the frame's codes (consume)
+                    learned = self._learn_as_you_go(checked, lens_key, frame_id, in_camera,
+                                                    steady.latest if used is not None else None, where)
+                    res.extra["learned"] = learned.to_dict()
+                    res.profile = learned.profile if learned.pooled else res.profile
                 source_white = None
-                consume = consume and not s.learn  # learning as you go reads the frame after the correction
                 if encoded:
                     if consume and fmt.integer:  # counted before the codes are overwritten
                         from vigproc.pipeline.encoded import white_samples
@@ -890,17 +895,11 @@ class Processor:
                     _note_clipping(img, out, where, fmt, source_white=source_white)
                 res.applied = m.candidate is None and s.strength > 0
                 res.strength = s.strength
-                used = steady.last if steady is not None and res.source == "stored-profile" else None
                 if used is not None and res.applied:  # which revision corrected it: one per series
                     res.extra["profile_applied"] = {"profile": str(used.key), "frames": used.n_frames,
                                                     "updated": used.updated}
                     if steady.revision is not None:  # the store's applied revision, shared by all workers
                         res.extra["profile_applied"]["revision"] = steady.revision
-                if s.learn:
-                    learned = self._learn_as_you_go(checked, lens_key, frame_id, in_camera,
-                                                    steady.latest if used is not None else None, where)
-                    res.extra["learned"] = learned.to_dict()
-                    res.profile = learned.profile if learned.pooled else res.profile
         res.seconds = round(time.perf_counter() - t0, 4)
         return out, res
 
