@@ -32,10 +32,12 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from vigproc.io.formats import READ_SUFFIXES
+
 log = logging.getLogger(__name__)
 
 #: Suffixes of the frames taken.
-JPEG_SUFFIXES = (".jpg", ".jpeg")
+JPEG_SUFFIXES = READ_SUFFIXES["jpeg"]
 
 
 @dataclass(frozen=True)

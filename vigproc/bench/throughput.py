@@ -35,11 +35,12 @@ from typing import Sequence
 import numpy as np
 
 from vigproc.errors import VigprocError
+from vigproc.io.formats import READ_SUFFIXES
 
 log = logging.getLogger(__name__)
 
 #: The suffixes the bench takes (the floor re-encodes JPEGs at their own quality).
-JPEG_SUFFIXES = (".jpg", ".jpeg")
+JPEG_SUFFIXES = READ_SUFFIXES["jpeg"]
 #: A tool's run may take at most this long (seconds) before the bench gives up on it.
 TIMEOUT = 3600.0
 
