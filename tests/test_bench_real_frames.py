@@ -156,3 +156,27 @@ def test_cli_refuses_a_folder_without_frames(tmp_path):
     out = subprocess.run(VIGPROC + ["bench", "real-frames", "--images", str(tmp_path)], capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 2 and "no JPEG" in out.stdout and "Traceback" not in out.stderr
+
+
+def test_a_frame_row_counts_the_pixels_its_correction_pushes_past_white(tmp_path):
+    """The row compares the frame as read with its correction: the frame must not be
+    corrected in place (else before and after are one array and nothing is ever new white)."""
+    from pathlib import Path
+
+    from vigproc.bench.real_frames import _row
+    from vigproc.core.plausible import Rules
+    from vigproc.pipeline.processor import Processor, Settings
+
+    profile = Path(__file__).resolve().parents[1] / "profiles" / "examples" / "sony-rx100-10.4mm-f1.8.json"
+    h, w = 320, 480
+    yy, xx = np.mgrid[0:h, 0:w]
+    corner = np.hypot((yy - h / 2) / (h / 2), (xx - w / 2) / (w / 2)) > 1.1
+    img = np.full((h, w, 3), 0.3, np.float32)
+    img[corner] = 0.8  # bright corners: the profile's gain there (up to 2.3) pushes them past white
+    path = tmp_path / "bright corners.jpg"
+    write_image(path, img, format="jpeg", bit_depth="uint8", transfer="srgb", quality=95)
+    settings = Settings(mode="correct", profile=str(profile), in_camera="ignore")
+    with Processor(settings, plausibility=False) as proc:
+        row = _row(path, proc, Rules())
+    assert row.applied
+    assert 0.5 * corner.mean() < row.new_white <= corner.mean() + 0.01

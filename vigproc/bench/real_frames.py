@@ -113,8 +113,10 @@ def _row(path: Path, proc, rules) -> FrameRow:
     from vigproc.pipeline.processor import output_format_for
 
     t0 = time.perf_counter()
-    # the path process_file takes, without writing the output
-    out, res, img, _info, _fmt = proc._process_path(path, None, lambda info: output_format_for("auto", path, info))
+    # the path process_file takes, without writing the output; the frame as read is kept
+    # beside its correction (not corrected in place) to count the pixels pushed past white
+    out, res, img, _info, _fmt = proc._process_path(path, None, lambda info: output_format_for("auto", path, info),
+                                                    consume=False)
     m = res.model
     key = (res.lens or {}).get("key") or {}
     camera = " ".join(str(key.get(k) or "") for k in ("make", "model")).strip() or "?"

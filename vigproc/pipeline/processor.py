@@ -1100,10 +1100,11 @@ class Processor:
             raise VigprocError("correct mode writes its result: use process_file")
         return self._process_path(Path(path), frame_id, lambda info: None)[1]
 
-    def _process_path(self, path: Path, frame_id: str | None, output_for):
+    def _process_path(self, path: Path, frame_id: str | None, output_for, *, consume: bool = True):
         """Read ``path`` and process it: (corrected image or None, FrameResult, image, its
         ImageInfo, output format). ``output_for(info)``: the output format (None: none
-        written)."""
+        written). ``consume``: the frame read may be corrected in place (peak memory), and
+        the image returned is then the output's codes; False keeps the frame as read."""
         from vigproc.io.images import read_encoded, read_image
 
         s = self.settings
@@ -1131,7 +1132,7 @@ class Processor:
         shape = img.shape
         # the frame read here is ours: corrected in place (peak memory)
         out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
-                                      embedded=embedded, in_camera=in_camera, consume=True)
+                                      embedded=embedded, in_camera=in_camera, consume=consume)
         res.lens = lens
         if s.mode == "check":  # what an examiner files beside the verdict (vigproc.io.provenance)
             from vigproc.io.provenance import read_provenance
