@@ -9,7 +9,7 @@ import pytest
 from vigproc.frontends.batch import collect_dir
 from vigproc.frontends.commands.hook import _output_suffixes
 from vigproc.frontends.daemon.config import is_candidate_name
-from vigproc.io import images
+from vigproc.io import image_read, images
 from vigproc.io.formats import IMAGE_SUFFIXES, RAW_SUFFIXES, WRITE_EXT_FORMAT, WRITE_SUFFIXES, suffix_kind
 from vigproc.pipeline.processor import OUTPUT_FORMATS
 
@@ -25,7 +25,7 @@ def _reads(path, monkeypatch) -> str:
     def fake_raw(*args, **kwargs):
         return np.zeros((2, 2, 3), np.float32), "raw"
 
-    monkeypatch.setattr(images, "_read_raw", fake_raw)
+    monkeypatch.setattr(image_read, "_read_raw", fake_raw)  # where read_image looks it up
     _, info = images.read_image(path)
     return "raw" if info == "raw" else info.format
 

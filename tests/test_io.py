@@ -17,7 +17,6 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from vigproc.io import images as vio
 from vigproc.errors import (
     ImageReadError,
     ImageWriteError,
@@ -557,7 +556,7 @@ def test_failed_replace_keeps_old_file_and_cleans_up(tmp_path: Path, monkeypatch
     def boom(src: str, dst: str) -> None:
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(vio.os, "replace", boom)
+    monkeypatch.setattr(os, "replace", boom)
     with pytest.raises(ImageWriteError, match="No space") as ei:
         write_image(p, np.full((4, 4, 3), 0.75, np.float32))
     assert_names_file(ei, p)

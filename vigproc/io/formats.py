@@ -7,8 +7,11 @@ Pure data: importing it loads nothing else.
 
 from __future__ import annotations
 
+from typing import Union
+
 __all__ = [
     "CALIBRATED_RAW_SUFFIXES",
+    "PathLike",
     "IMAGE_SUFFIXES",
     "RAW_SUFFIXES",
     "READ_SUFFIXES",
@@ -18,6 +21,9 @@ __all__ = [
     "WRITE_SUFFIXES",
     "suffix_kind",
 ]
+
+#: What the image readers and writers take as a file name.
+PathLike = Union[str, "os.PathLike[str]", bytes]
 
 #: Suffixes tried with LibRaw *first* (the content still decides: see ``read_image``).
 RAW_SUFFIXES = frozenset(
