@@ -24,14 +24,15 @@ import OpenImageIO as oiio
 import pytest
 
 import exiftool.exiftool as et_module
+from vigproc.bench.io import bench_exif
 from vigproc.io import exif as vexif
+from vigproc.io import lenskey
 from vigproc.errors import ImageReadError, UnsupportedFormatError, VigprocError
 from vigproc.io.exif import (
     ExifReader,
     FileNameError,
     LensKey,
     MetadataError,
-    bench_exif,
     lens_key_from_metadata,
     normalise_text,
     read_lens_key,
@@ -675,7 +676,7 @@ def test_shared_data_agrees_with_files_csv(shared_data: Path, sub: str) -> None:
                 assert key.fnumber == pytest.approx(fnum, abs=0.051), name
             checked["fnumber"] += 1
         # A lens the inventory names (not an unresolved placeholder) must give a lens.
-        csv_lens, _ = vexif._lens_text(row["lens"])
+        csv_lens, _ = lenskey._lens_text(row["lens"])
         if csv_lens is not None:
             assert key.lens is not None, name
     if sub == "jpeg_exif":

@@ -1,5 +1,12 @@
 """The lens-family estimator: a centred fall-off in the space real lenses span.
 
+Why one module of about 1200 lines: steps 1-7 below are one estimator. Its stages (the
+working copy and its gradient pairs, the IRLS fit, the jackknife, the profile written as a
+Kang-Weiss model and the off-centre fits) share one settings record
+(:class:`FamilySettings`) and one working copy (:class:`WorkingCopy`) and are tuned
+together (``docs/benchmarks/clean.md``); split by stage, each module would import most of
+the others' internals. Its compiled loop is in :mod:`vigproc.core._kernels.irls`.
+
 Real lenses' fall-offs are a two- or three-parameter family
 (:mod:`vigproc.core.lensfamily`), so a single photograph need only fix two or three
 coefficients, not the twelve of the free Kang-Weiss model: far less room for the
@@ -15,9 +22,8 @@ scene's own shading to pass as vignetting.
    (:func:`family_pairs`, ``chroma_tau``): a lens
    divides every channel alike, while much of a scene's own smooth shading changes
    colour as it changes brightness (a sky whitening towards the horizon, daylight
-   meeting lamplight, one coloured surface meeting another). On vignetting-free
-   camera frames × 20 lensfun lenses this takes a single frame's error from 0.073 to
-   0.046 EV (the same settings without colour; ``vigproc bench clean``).
+   meeting lamplight, one coloured surface meeting another); measured in
+   ``docs/benchmarks/clean.md``.
 3. Model: log φ(ρ) = m(ρ) + Σ_k c_k b_k(ρ), ρ = distance from the frame centre in
    half-diagonals, in every component of the family when the pairs are weighted by
    colour and in the first two otherwise (:func:`family_for`); a Gaussian prior on c from lensfun's calibrations (narrowed to
@@ -25,7 +31,7 @@ scene's own shading to pass as vignetting.
    change also has its chroma change as covariates, d = a·c + γ·Δchroma with γ ~
    N(0, ``chroma_covariate``²): where a scene's brightness goes with its colour
    (surfaces, coloured light), γ explains it and the field need not; a lens moves no
-   chroma. Clean protocol, lens-family fit: 0.040 → 0.037 EV. Linear in c: IRLS solves it exactly
+   chroma (``docs/benchmarks/clean.md``). Linear in c: IRLS solves it exactly
    (:func:`irls`: one compiled loop on one thread, each step's weighted sums as
    reductions over the regressors' rows; as BLAS matrix-vector products, the BLAS's
    threads spun against other processes. A process that pools a profile loads this one
@@ -131,23 +137,17 @@ class FamilySettings:
         The Cauchy scale of a fit whose pairs are not weighted by colour (a grey frame, or
         one whose channels change alike): without the colour weights, more of a scene's
         own shading is in the pairs, and a smaller scale follows the mode of the
-        gradients more closely. Session 17, lens-family fits of the clean protocol's
-        luminance (a script, median over the 20 lenses): 0.0741 EV at 0.0075, 0.0727 at
-        0.006, 0.0758 at 0.01; on BSDS × lensfun fields (gain-free): 0.071, 0.068, 0.077.
+        gradients more closely. In log units per step, like ``sigma``; chosen in
+        ``docs/benchmarks/clean.md``.
     grey_sigma_scale : float
         The scale for a fit whose pairs are not weighted by colour (a grey frame, or one
-        whose channels change alike): calibrated on the clean protocol's luminance
-        (``vigproc bench clean --grey``, session 17: 68 % within 1σ, 90 % within 2σ; 3.5
-        gave 64 % / 89 %, 4.5 gave 74 % / 91 % with 59 fall-backs of 1020 against 40).
+        whose channels change alike), dimensionless: calibrated on the clean protocol's
+        luminance (``vigproc bench clean --grey``, ``docs/benchmarks/clean.md``).
     min_snr, grey_min_snr : float
         Fall back to no correction below this field / σ; ``grey_min_snr`` for a fit whose
-        pairs are not weighted by colour. 1.0 since session 18, with the σ scale of 1.6
-        (``vigproc bench clean``, the default on 123 held-out camera frames without
-        vignetting): at 0.75, 57 were left alone and the median false field was 0.022 EV;
-        at 1.0, 79 and 0.000. The real lenses' median stayed 0.038 EV. A grey fit (its σ
-        scale unchanged), ``vigproc bench clean --grey`` and ``bench lensfun`` (BSDS,
-        gain-free) at 0.75 / 0.9 / 1.0: no-harm median 0.060 / 0.000 / 0.000 EV, real lenses
-        0.073 / 0.074 / 0.075 (p90 0.082 / 0.093 / 0.094), BSDS 0.068 / 0.068 / 0.070.
+        pairs are not weighted by colour. Dimensionless (the field's spread in units of its
+        σ); the trade between frames left alone and real lenses corrected is measured in
+        ``docs/benchmarks/clean.md``.
     off_centre_shift : float
         A centre at least this far from the frame's (half-diagonals,
         :func:`fit_centre`) makes the default estimator try an off-centre fit
@@ -166,14 +166,11 @@ class FamilySettings:
         change ((ΔR − ΔG, ΔB − ΔG) per step) enters the model of its luminance change,
         d = a·c + γ·Δchroma (module doc, step 3); 0 leaves them out. A scene's surfaces
         and lights change brightness with colour; a lens changes no colour, so γ takes
-        up scene shading the field would otherwise. Session 18, lens-family fit without
-        fall-back (a script), median over the 20 lenses: 0.0403 → 0.0370 EV on the
-        clean protocol's 51 bases and 0.0395 → 0.0369 on 123 held-out camera frames at
-        0.3 (0.1: 0.0391; 1.0: 0.0375).
+        up scene shading the field would otherwise. In log units of luminance change per
+        unit of chroma change; chosen in ``docs/benchmarks/clean.md``.
 
     The defaults of ``sigma``, ``kappa`` and ``chroma_tau`` were tuned together on the
-    clean protocol (session 15: 0.0075, 0.15, 0.002 against 0.01, 0.3, 0.003 before;
-    0.043 → 0.041 EV, each half of the bases better).
+    clean protocol (``docs/benchmarks/clean.md``).
     """
 
     work_size: int = 96

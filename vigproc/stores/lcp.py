@@ -376,7 +376,7 @@ def _lens_name(entry: LcpVignette) -> str | None:
     """The lens as a frame's EXIF key would name it: ``Lens`` (the camera's own lens tag),
     unless that is unusable (``Sigma Lens``, a bare ``18.0-55.0 mm`` spec, an ID),
     then Adobe's ``LensPrettyName``."""
-    from vigproc.io.exif import _lens_text  # the same rules as for EXIF lens names
+    from vigproc.io.lenskey import _lens_text  # the same rules as for EXIF lens names
 
     for v in (entry.lens, entry.lens_pretty):
         text = _lens_text(v)[0] if v else None
@@ -393,7 +393,7 @@ def lens_id_for(entry: LcpVignette, *, camera_model: str | None = None) -> str:
     LcpError
         Neither a camera model nor a usable lens name.
     """
-    from vigproc.io.exif import LensKey, _dedupe_model, normalise_text
+    from vigproc.io.lenskey import LensKey, _dedupe_model, normalise_text
 
     make = normalise_text(entry.make)
     model = _dedupe_model(make, normalise_text(camera_model or entry.model))

@@ -228,8 +228,7 @@ def cmd_bench_correct(args: argparse.Namespace) -> int:
 
 def cmd_bench_io(args: argparse.Namespace) -> int:
     """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
-    from vigproc.bench.io import bench_formats, bench_raw
-    from vigproc.io.exif import bench_exif
+    from vigproc.bench.io import bench_exif, bench_formats, bench_raw
 
     print(f"reading a {args.width}x{args.height} RGB frame (best of {args.repeat}); 'bytes' = reading the file's bytes")
     print(f"{'format':<20}{'MP':>7}{'MB':>9}{'read ms':>10}{'bytes ms':>10}{'ratio':>7}")
