@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from vigproc.bench.peers import estimate_rgs, radial_polynomial
-from vigproc.bench.synthetic import table1_model
+from benchmarks.peers import estimate_rgs, radial_polynomial
+from benchmarks.synthetic import table1_model
 from vigproc.io.images import write_image
 from vigproc.stores.lensfun import bench_lenses, pa_field
 
@@ -109,7 +109,7 @@ def test_bench_bad_scene_prior_is_a_clear_error(image_folder, tmp_path, content,
 
 
 def test_bench_profile_reports_when_profiles_become_trusted():
-    from vigproc.bench import profile as P
+    from benchmarks import profile as P
     from vigproc.core.estimate import estimate
 
     ims = [textured(160, 240, seed=20 + i, contrast=0.05) for i in range(4)]
@@ -190,7 +190,7 @@ def test_real_bench_pairs_and_photographs(tmp_path):
     """``vigproc bench real``: NAME_vig with NAME (or NAME without its digits) is a pair
     with a known field; other images are photographs; the field of a flat white frame
     is found, and a frame without vignetting of its own has no true fall-off."""
-    from vigproc.bench.real import find_inputs, run_pair
+    from benchmarks.real import find_inputs, run_pair
     from vigproc.core.estimate import estimate
     from vigproc.core.model import VignettingModel
     from vigproc.pipeline.processor import IMAGE_SUFFIXES
@@ -228,7 +228,7 @@ def test_real_bench_pairs_and_photographs(tmp_path):
 
 
 def test_bench_clean_scores_methods_on_crops_of_large_frames(tmp_path):
-    from vigproc.bench.clean import HEIGHT, WIDTH, crop_base
+    from benchmarks.clean import HEIGHT, WIDTH, crop_base
 
     folder = tmp_path / "frames"
     folder.mkdir()
@@ -306,7 +306,7 @@ def test_bench_profile_flat_learns_a_white_wall(tmp_path):
 def test_bench_learn_times_one_more_frame_in_a_new_process():
     """The learn benchmark fills a store, learns one more frame warm and in a new
     process, and skips a frame that cannot be estimated instead of failing."""
-    from vigproc.bench.learn import learn_speed
+    from benchmarks.learn import learn_speed
     from conftest import coloured_scene
 
     _, pa = bench_lenses(1)[0]

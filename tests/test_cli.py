@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from vigproc.bench.synthetic import table1_model
+from benchmarks.synthetic import table1_model
 from vigproc.io.images import read_image, write_image
 from vigproc.core.model import VignettingModel
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import vigproc
-from vigproc.bench.synthetic import relative_errors, table1_model
+from benchmarks.synthetic import relative_errors, table1_model
 from vigproc.errors import InvalidImageError
 from vigproc.core.robust import RobustSettings
 from vigproc.core.scene import default_scene_falloff

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vigproc.bench.forensics import bench_classes, calibration_residuals
+from benchmarks.forensics import bench_classes, calibration_residuals
 from vigproc.errors import ImageWriteError
 from vigproc.core.estimate import estimate
 from vigproc.io.exif import LensKey

@@ -1,5 +1,5 @@
 """Tests of lens identification (vigproc.forensics.identify), ``vigproc forensics train|evaluate``
-and the forensics benchmark's protocol (vigproc.bench.forensics)."""
+and the forensics benchmark's protocol (benchmarks.forensics)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import re
 import numpy as np
 import pytest
 
-from vigproc.bench.forensics import bench_classes, crop_frame, field_separation, roc_auc, split_images
+from benchmarks.forensics import bench_classes, crop_frame, field_separation, roc_auc, split_images
 from vigproc.core.estimate import estimate
 from vigproc.forensics.check import FORENSICS_METHOD, ForensicsError, ring_falloff
 from vigproc.forensics.identify import (
@@ -198,7 +198,7 @@ def test_bench_protocol_pieces():
 
 
 def test_bench_run_small():
-    from vigproc.bench.forensics import run
+    from benchmarks.forensics import run
 
     ims = [textured(96, 144, seed=300 + i, contrast=0.1) for i in range(20)]
     r = run(ims, lambda v: estimate(v, FORENSICS_METHOD, channel_axis=None), n_lenses=2, frames=2, seed=0)

@@ -13,7 +13,7 @@ imports only from its own layer or below.
 
 The graph must have no cycle; no module may import the package ``vigproc`` itself
 (its ``__init__`` is the top: it re-exports, lazily); and the benchmarks
-(``vigproc.bench``) are imported only by the code of the ``vigproc bench`` commands.
+(``benchmarks``) are imported only by the code of the ``vigproc bench`` commands.
 """
 
 from __future__ import annotations
@@ -26,16 +26,16 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "vigproc"
-BENCH = "vigproc.bench"
+BENCH = "benchmarks"
 
-#: Functions outside vigproc.bench that may import it: the ``vigproc bench`` commands
+#: Functions outside benchmarks that may import it: the ``vigproc bench`` commands
 #: and their helpers, by (module, top-level function).
 BENCH_COMMANDS = {
     ("vigproc.frontends.commands._bench", "estimator"),  # the benches' estimator table (rgs, the peer)
     ("vigproc.frontends.commands.watch", "_make_inputs"),  # bench watch's frames
 }
 #: Real commands that still import benchmark code. Moving the shared pieces down needs
-#: edits under vigproc/bench/, outside the change that added this test; not to grow.
+#: edits under benchmarks/, outside the change that added this test; not to grow.
 BENCH_DEBT = {
     # forensics calibrate takes its lens classes and residuals from bench.forensics
     # (bench_classes, calibration_residuals)
@@ -51,7 +51,7 @@ LAYERS = (
     ("vigproc.stores",),
     ("vigproc.forensics",),
     ("vigproc.pipeline",),
-    ("vigproc.frontends", "vigproc.bench", "vigproc.api"),  # vigproc.api: the stable API's old name
+    ("vigproc.frontends", "benchmarks", "vigproc.api"),  # vigproc.api: the stable API's old name
 )
 
 
@@ -222,7 +222,7 @@ def test_only_bench_commands_import_the_benchmarks(graph):
     unexpected = sorted(
         f"{m}.{f or '<module>'}" for m, f in users
         if not (f and "bench" in f) and (m, f) not in BENCH_COMMANDS | BENCH_DEBT)
-    assert not unexpected, f"real commands importing vigproc.bench: {unexpected}"
+    assert not unexpected, f"real commands importing benchmarks: {unexpected}"
     assert BENCH_DEBT <= users, f"fixed, remove from BENCH_DEBT: {sorted(BENCH_DEBT - users)}"
 
 

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from vigproc.bench.forensics import bench_classes
+from benchmarks.forensics import bench_classes
 from vigproc.io.exif import LensKey
 from vigproc.core.family_fit import profile_to_model
 from vigproc.forensics.check import forensic_check, load_calibration, pool_verdicts
@@ -205,7 +205,7 @@ def test_cli_check_json_says_which_test(tmp_path, classes):
 
 def test_the_clean_forensics_bench_refuses_folds_too_small_for_a_set():
     # bench forensics-clean --folds K: every fold must hold a multi-frame set of bases
-    from vigproc.bench import forensics_clean as F
+    from benchmarks import forensics_clean as F
 
     bases = [np.ones((32, 48))] * 20
     for folds in (1, 5):

@@ -52,7 +52,7 @@ def test_a_fooled_frame_does_not_pull_the_profile():
     lens = _lens()
     frames = [textured(H, W, seed=170 + i, contrast=0.05) * np.exp(lens) for i in range(5)]
     clean = pool_family(_fits(frames), W, H).log_field((H, W))
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
 
     frames[2] = frames[2] * np.exp(table1_model(1).log_field((H, W)))  # 0.84 EV of "scene"
     fooled = pool_family(_fits(frames), W, H).log_field((H, W))

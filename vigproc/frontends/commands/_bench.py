@@ -50,7 +50,7 @@ def estimator(method: str, seed: int = 0, settings=None, family=None):
     from vigproc.core.pixels import luminance
 
     if method == "rgs":
-        from vigproc.bench.peers import estimate_rgs
+        from benchmarks.peers import estimate_rgs
 
         return lambda v: estimate_rgs(luminance(v))
     if method in HINT_METHODS:
@@ -70,7 +70,7 @@ def add_estimator_bench(bp: argparse.ArgumentParser) -> None:
     """Options of a benchmark that runs estimators on photographs (lensfun, real)."""
     add_transfer(bp)
     bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],
-                    help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
+                    help="rgs: the radial-gradient-symmetry peer (benchmarks.peers)")
     add_scene_prior(bp)
     bp.add_argument("--json", help="write the figures to this file")
 

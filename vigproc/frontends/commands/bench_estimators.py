@@ -1,5 +1,5 @@
 """``vigproc bench`` for the estimators' accuracy: ``synthetic``, ``lensfun``, ``clean``,
-``crops``, ``real``, ``scene-scatter`` and ``colour`` (:mod:`vigproc.bench`)."""
+``crops``, ``real``, ``scene-scatter`` and ``colour`` (:mod:`benchmarks`)."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def register_bench(bsub) -> None:
                     help="the paper's protocol takes stored values as linear (default)")
     bp.add_argument("--methods", nargs="+", default=["ga", "lyu2010-rand", "lyu2010", "default"],
                     choices=["ga", "lyu2010-rand", "lyu2010", "robust", "lens-family", "default", "rgs"],
-                    help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
+                    help="rgs: the radial-gradient-symmetry peer (benchmarks.peers)")
     add_colour(bp)
     add_scene_prior(bp)
     bp.add_argument("--json", help="write the figures to this file")
@@ -110,7 +110,7 @@ def register_bench(bsub) -> None:
 
 def cmd_bench_synthetic(args: argparse.Namespace) -> int:
     """Lyu 2010's synthetic protocol (Tables 2-3): Table 1's fields on natural images, every method."""
-    from vigproc.bench import synthetic as S
+    from benchmarks import synthetic as S
     from vigproc.io.images import read_image
 
     settings = scene_settings(args.scene_prior)
@@ -135,8 +135,8 @@ def cmd_bench_synthetic(args: argparse.Namespace) -> int:
 
 def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     """Real lens fields from lensfun on natural images, and no harm on the same images unvignetted."""
-    from vigproc.bench import lensfun as B
-    from vigproc.bench.synthetic import protocol_image
+    from benchmarks import lensfun as B
+    from benchmarks.synthetic import protocol_image
     from vigproc.io.images import read_image
 
     settings = scene_settings(args.scene_prior)
@@ -176,8 +176,8 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
 
 def cmd_bench_clean(args: argparse.Namespace) -> int:
     """Vignetting-free bases × lensfun and Table 1 fields, every method side by side."""
-    from vigproc.bench import clean as C
-    from vigproc.bench.peers import PEER_ENV, published_rgs
+    from benchmarks import clean as C
+    from benchmarks.peers import PEER_ENV, published_rgs
     from vigproc.core.lensfamily import PROFILE_COMPONENTS
     from vigproc.core.pixels import luminance
     from vigproc.stores.lensfun import lensfun_family
@@ -252,8 +252,8 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
     """The crop test's AUC by fall-off and offset, its false alarms and power, on clean bases."""
     import numpy as np
 
-    from vigproc.bench import clean as C
-    from vigproc.bench import crops as K
+    from benchmarks import clean as C
+    from benchmarks import crops as K
     from vigproc.stores.lensfun import lensfun_family
     from vigproc.stores.lensfun import bench_lenses
 
@@ -297,7 +297,7 @@ def cmd_bench_real(args: argparse.Namespace) -> int:
     """Photographs vignetted by others: pairs with a known field, and real lenses."""
     import numpy as np
 
-    from vigproc.bench import real as R
+    from benchmarks import real as R
     from vigproc.core.pixels import luminance
     from vigproc.io.images import read_image
     from vigproc.pipeline.processor import IMAGE_SUFFIXES
@@ -366,7 +366,7 @@ def cmd_bench_scene_scatter(args: argparse.Namespace) -> int:
     import numpy as np
 
     from vigproc.atomic import atomic_write_text
-    from vigproc.bench import clean as C
+    from benchmarks import clean as C
     from vigproc.core.estimate import frame_evidence
     from vigproc.core.lensfamily import profile_family
     from vigproc.core.pooling import frame_fit, scene_scatter_record
@@ -392,13 +392,13 @@ def cmd_bench_scene_scatter(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_colour(args: argparse.Namespace) -> int:
-    """Colour shading: ``--part flat`` (flat frames and DNG gain maps, vigproc.bench.colour),
-    ``detect`` (one photograph's cast, vigproc.bench.colour_detect), or ``all``."""
+    """Colour shading: ``--part flat`` (flat frames and DNG gain maps, benchmarks.colour),
+    ``detect`` (one photograph's cast, benchmarks.colour_detect), or ``all``."""
     output_file(args.json)
     data: dict = {}
     if args.part in ("flat", "all"):
-        from vigproc.bench import colour as B
-        from vigproc.bench.clean import load_clean_bases
+        from benchmarks import colour as B
+        from benchmarks.clean import load_clean_bases
 
         bases, _ = load_clean_bases(args.images, args.min_long_side, args.limit, colour=True)
         rows = B.run_flat(B.physical_fields() + B.gainmap_fields(), bases, frames=args.frames, seed=args.seed)

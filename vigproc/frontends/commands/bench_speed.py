@@ -97,7 +97,7 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
     """Per-image estimation time on 480×320 protocol frames (Table 1 setting 2)."""
     import numpy as np
 
-    from vigproc.bench.synthetic import protocol_image, table1_model
+    from benchmarks.synthetic import protocol_image, table1_model
     from vigproc.core.estimate import estimate
     from vigproc.io.images import read_image
 
@@ -122,9 +122,9 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
 
 def _bench_speed_api(args: argparse.Namespace) -> int:
     """``bench speed --api``: vigproc.estimate on clean-protocol crops beside the published peer."""
-    from vigproc.bench.api_speed import api_speed
-    from vigproc.bench.clean import load_clean_bases
-    from vigproc.bench.peers import PEER_ENV, published_rgs
+    from benchmarks.api_speed import api_speed
+    from benchmarks.clean import load_clean_bases
+    from benchmarks.peers import PEER_ENV, published_rgs
 
     if not args.images:
         print("vigproc: bench speed --api: give --images (full-size camera frames, e.g. ../shared/data/jpeg_exif)",
@@ -156,7 +156,7 @@ def cmd_bench_learn(args: argparse.Namespace) -> int:
     """Learning one more frame into a profile, warm and in a new process."""
     import numpy as np
 
-    from vigproc.bench.learn import learn_speed
+    from benchmarks.learn import learn_speed
     from vigproc.io.protocol import read_protocol_images, vignetted
     from vigproc.stores.lensfun import bench_lenses, pa_field
 
@@ -185,7 +185,7 @@ def cmd_bench_correct(args: argparse.Namespace) -> int:
 
     import numba
 
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
     from vigproc.core.correct import correct, gain_step
     from vigproc.stores.lensfun import bench_lenses
     from vigproc.stores.lensfun_io import kw_from_pa
@@ -228,7 +228,7 @@ def cmd_bench_correct(args: argparse.Namespace) -> int:
 
 def cmd_bench_io(args: argparse.Namespace) -> int:
     """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
-    from vigproc.bench.io import bench_formats, bench_raw
+    from benchmarks.io import bench_formats, bench_raw
     from vigproc.io.exif import bench_exif
 
     print(f"reading a {args.width}x{args.height} RGB frame (best of {args.repeat}); 'bytes' = reading the file's bytes")
@@ -250,8 +250,8 @@ def cmd_bench_io(args: argparse.Namespace) -> int:
 
 def cmd_bench_throughput(args: argparse.Namespace) -> int:
     """``vigproc correct`` on full-size photographs beside the floor (decode + encode +
-    one exiftool batch) and darktable-cli, in one run (:mod:`vigproc.bench.throughput`)."""
-    from vigproc.bench import throughput as T
+    one exiftool batch) and darktable-cli, in one run (:mod:`benchmarks.throughput`)."""
+    from benchmarks import throughput as T
 
     if not (args.images or args.raw):
         raise VigprocError("bench throughput needs --images DIR or --raw DIR")
@@ -269,9 +269,9 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
 
 def cmd_bench_scaling(args: argparse.Namespace) -> int:
     """``vigproc watch`` and ``vigproc batch`` on full-size photographs with 1 and 2
-    workers, interleaved (:mod:`vigproc.bench.scaling`)."""
-    from vigproc.bench import scaling as S
-    from vigproc.bench import throughput as T
+    workers, interleaved (:mod:`benchmarks.scaling`)."""
+    from benchmarks import scaling as S
+    from benchmarks import throughput as T
 
     photos, _ = T.select_photos(Path(args.images), args.min_mp, args.limit)
     r = S.run_scaling(photos, workers=args.workers, rounds=args.rounds, frontends=args.frontends,
@@ -283,8 +283,8 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
 
 def cmd_bench_memory(args: argparse.Namespace) -> int:
     """Peak memory of one worker (``vigproc correct``) on a 24 MP JPEG and 16-bit TIFF
-    (:mod:`vigproc.bench.memory`)."""
-    from vigproc.bench import memory as M
+    (:mod:`benchmarks.memory`)."""
+    from benchmarks import memory as M
 
     r = M.run_memory(args.width, args.height, workdir=Path(args.tmp) if args.tmp else None)
     print("\n".join(M.format_result(r)))

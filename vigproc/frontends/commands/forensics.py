@@ -210,7 +210,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from vigproc.bench.forensics import bench_classes, calibration_residuals
+    from benchmarks.forensics import bench_classes, calibration_residuals
     from vigproc.core.estimate import estimate
     import numpy as np
 
@@ -243,7 +243,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_bench_forensics(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from vigproc.bench import forensics as B
+    from benchmarks import forensics as B
     import numpy as np
 
     from vigproc.core.estimate import estimate
@@ -291,11 +291,11 @@ def cmd_bench_forensics(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
-    """Lens mismatch and identification on the clean protocol (vigproc.bench.forensics_clean)."""
+    """Lens mismatch and identification on the clean protocol (benchmarks.forensics_clean)."""
     from dataclasses import asdict
 
-    from vigproc.bench import clean as C
-    from vigproc.bench import forensics_clean as F
+    from benchmarks import clean as C
+    from benchmarks import forensics_clean as F
     from vigproc.pipeline.processor import output_file
 
     output_file(args.json)

@@ -1,5 +1,5 @@
 """``vigproc bench learn-series``: a series of one lens setting through ``vigproc batch``,
-learning as it goes (:mod:`vigproc.bench.learn_series`): when the profile is trusted, each
+learning as it goes (:mod:`benchmarks.learn_series`): when the profile is trusted, each
 frame's field error before and after, and whether the frames after trust share one field."""
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ def cmd_bench_learn_series(args: argparse.Namespace) -> int:
     import os
     from pathlib import Path
 
-    from vigproc.bench.clean import lens_fields, load_clean_bases
-    from vigproc.bench.learn_series import run_series
+    from benchmarks.clean import lens_fields, load_clean_bases
+    from benchmarks.learn_series import run_series
     from vigproc.frontends.commands._options import write_json_result
     from vigproc.stores.lensfun import bench_lenses
 

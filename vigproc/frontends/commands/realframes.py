@@ -1,7 +1,7 @@
 """``vigproc bench real-frames``: harm of the default correction on real full frames
-(:mod:`vigproc.bench.real_frames`), with the harm rules off and on; the error against
+(:mod:`benchmarks.real_frames`), with the harm rules off and on; the error against
 lensfun's field where lensfun calibrated the frame's lens, one frame and a series
-through the profile store (:mod:`vigproc.bench.real_frames_lensfun`)."""
+through the profile store (:mod:`benchmarks.real_frames_lensfun`)."""
 
 from __future__ import annotations
 
@@ -77,8 +77,8 @@ def _print_series(s) -> None:
 
 
 def cmd_bench_real_frames(args: argparse.Namespace) -> int:
-    from vigproc.bench import real_frames_lensfun as rfl
-    from vigproc.bench.real_frames import as_dict, full_frames, run
+    from benchmarks import real_frames_lensfun as rfl
+    from benchmarks.real_frames import as_dict, full_frames, run
     from vigproc.frontends.commands._options import write_json_result
 
     images = args.images or ["../shared/data/jpeg_exif"]

@@ -1,5 +1,5 @@
 """``vigproc watch``: the watch-folder daemon; ``vigproc bench watch``, its throughput, and
-``vigproc bench faults``, its behaviour on a filling disk (:mod:`vigproc.bench.faults`).
+``vigproc bench faults``, its behaviour on a filling disk (:mod:`benchmarks.faults`).
 
 The daemon itself is :mod:`vigproc.frontends.daemon`; the journal :mod:`vigproc.stores.journal`.
 """
@@ -197,7 +197,7 @@ def _make_inputs(folder: Path, n: int, width: int, height: int, fmt: str, model)
     """N distinct synthetic frames with the model's vignetting, plus camera/lens EXIF."""
     import numpy as np
 
-    from vigproc.bench.io import synthetic_frame
+    from benchmarks.io import synthetic_frame
     from vigproc.io.images import write_image
 
     base = synthetic_frame(height, width) * model.field((height, width)).astype(np.float32)[..., None]
@@ -330,7 +330,7 @@ def files_in(folder: Path) -> list[Path]:
 def cmd_bench_watch(args: argparse.Namespace) -> int:
     """Sustained daemon throughput with a trusted profile vs the bare read+write of the
     same files in the same run."""
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
 
     n, w, h, k = args.files, args.width, args.height, args.workers
     model = table1_model(1).rescale(w, h)
@@ -429,6 +429,6 @@ def register_bench(bench_subparsers) -> None:
     bp.add_argument("--keep", action="store_true", help="keep the temporary folder")
     bp.set_defaults(fn=cmd_bench_watch)
 
-    from vigproc.bench.faults import register as register_faults
+    from benchmarks.faults import register as register_faults
 
     register_faults(bench_subparsers)  # the daemon under a filling disk and kill -9

@@ -1,6 +1,6 @@
 """Lens mismatch and lens identification on the clean protocol (``vigproc bench forensics-clean``).
 
-Bases: the vignetting-free camera crops of :mod:`vigproc.bench.clean` (480×320, linear).
+Bases: the vignetting-free camera crops of :mod:`benchmarks.clean` (480×320, linear).
 Frames: a base × the lensfun ``pa`` field of a lens A. The test is the one ``vigproc
 check`` runs (:mod:`vigproc.forensics.lensmatch`): the frame's data-only lens-family fit against
 the claimed lens's coefficients, by a Mahalanobis distance whose null is calibrated on
@@ -39,7 +39,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from vigproc.bench.clean import HEIGHT, WIDTH
+from benchmarks.clean import HEIGHT, WIDTH
 
 log = logging.getLogger(__name__)
 

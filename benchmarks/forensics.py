@@ -10,7 +10,7 @@ Protocol
   anything): the widest aperture and the calibrated one nearest two stops down.
   Each (lens, aperture) is a class, as the paper's Fig. 6 rows are.
 * **Frames**: natural photographs (480×320, linearised luminance, as in
-  :mod:`vigproc.bench.lensfun`) multiplied by each class's lensfun "pa" field.
+  :mod:`benchmarks.lensfun`) multiplied by each class's lensfun "pa" field.
   The photographs are split in two halves at random (``seed``): the *training*
   half trains the classifiers and calibrates the check, the *test* half is
   measured.  No photograph is in both.

@@ -192,7 +192,7 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
               peer: Callable | None = None, seed: int = 0, orders: int = 1) -> tuple[list[CleanProfileRow], CleanTrust]:
     """Profiles learned through a real store on the clean protocol.
 
-    Each lens (``fields``: :func:`vigproc.bench.clean.lens_fields`) sees the bases in
+    Each lens (``fields``: :func:`benchmarks.clean.lens_fields`) sees the bases in
     ``orders`` orders of its own (seeded by ``seed``, the lens and the order; each
     order a new store), up to ``max(counts)`` frames; the 51 bases are the same for
     every lens, so one order per lens leaves the figures at the mercy of which
@@ -209,7 +209,7 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
     import tempfile
     from pathlib import Path
 
-    from vigproc.bench.clean import gain_free_ev, vignetted
+    from benchmarks.clean import gain_free_ev, vignetted
     from vigproc.core.estimate import estimate, estimate_with_evidence
     from vigproc.stores.profiles import TRUSTED_BOUND_EV, ProfileKey, ProfileStore, aspect_label
 
@@ -313,7 +313,7 @@ def run_interpolation(width: int = 480, height: int = 320, max_points: int = 400
     from dataclasses import replace
     from pathlib import Path
 
-    from vigproc.bench.clean import gain_free_ev
+    from benchmarks.clean import gain_free_ev
     from vigproc.io.exif import LensKey
     from vigproc.stores.lensfun import LensfunLens, interpolate_pa, load_lenses
     from vigproc.core.normalised import denormalise, fit_model_to_field, normalise
@@ -419,7 +419,7 @@ def run_flat_field(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], methods:
     import tempfile
     from pathlib import Path
 
-    from vigproc.bench.real import _blocks
+    from benchmarks.real import _blocks
     from vigproc.core.estimate import EVIDENCE_METHODS, estimate, estimate_with_evidence
     from vigproc.stores.profiles import ProfileKey, ProfileStore, aspect_label
 

@@ -203,7 +203,7 @@ class HarmResult:
 def run_fields(bases: Sequence[np.ndarray], method: str, fn: Estimator,
                fields: Sequence[Field], label: str) -> FieldResult:
     """Every base × every field: per-field median error, then median/p90 over fields."""
-    from vigproc.bench.synthetic import psnr_best_gain
+    from benchmarks.synthetic import psnr_best_gain
 
     per_field, frames, unc, z, secs, fb, psnr = [], [], [], [], [], 0, []
     for f in fields:
@@ -252,7 +252,7 @@ def lens_fields(n: int = 20) -> tuple[list[Field], set[tuple[str, str]]]:
 
 
 def table1_fields() -> list[Field]:
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
 
     return [Field(f"Table 1 setting {s}", table1_model(s).log_field((HEIGHT, WIDTH))) for s in (1, 2, 3)]
 
