@@ -78,14 +78,14 @@ def field_difference(a: BenchLens, b: BenchLens) -> float:
 
 
 def _bench(n: int) -> list[BenchLens]:
-    from vigproc.stores.lensfun import bench_lenses
+    from vigproc.stores.lensfun import diverse_lenses
 
-    return [BenchLens(lens.maker, lens.model, (pa.k1, pa.k2, pa.k3)) for lens, pa in bench_lenses(n)]
+    return [BenchLens(lens.maker, lens.model, (pa.k1, pa.k2, pa.k3)) for lens, pa in diverse_lenses(n)]
 
 
 def select_lenses(n_test: int = 20, n_id: int = 8, min_separation: float = 0.15,
                   n_calibration: int = 20) -> tuple[list[BenchLens], list[BenchLens], list[BenchLens]]:
-    """The mismatch lenses (the first ``n_test`` of :func:`vigproc.stores.lensfun.bench_lenses`, as
+    """The mismatch lenses (the first ``n_test`` of :func:`vigproc.stores.lensfun.diverse_lenses`, as
     ``bench clean``), the identification lenses (greedy in the same order: each lens's
     field differs from every one already taken by at least ``min_separation`` EV) and
     the calibration lenses (the next ``n_calibration`` lenses in that order that are in

@@ -6,6 +6,8 @@ Each decode is printed next to the time to read the same file's bytes from disk
 
 from __future__ import annotations
 
+import math
+import os
 import tempfile
 import time
 from dataclasses import dataclass
@@ -15,6 +17,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from vigproc.errors import VigprocError
+from vigproc.io.exif import ExifReader, read_lens_key
 from vigproc.io.images import read_image, write_image
 
 #: (label, file suffix, write_image bit depth) of the synthetic frames.
@@ -89,3 +92,53 @@ def bench_raw(paths: Sequence[Path], repeat: int) -> list[ReadTiming]:
         except VigprocError:
             continue  # metadata-only stubs and unsupported files
     return out
+
+
+def bench_exif(paths: Sequence[str | os.PathLike[str]], repeat: int = 1) -> dict[str, float]:
+    """Time EXIF reading: one persistent process vs one process per file.
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+    repeat : int
+        Batch timings are the best of ``repeat`` runs.
+
+    Returns
+    -------
+    dict
+        ``n_files``; ``startup_ms`` (starting the process); ``batch_ms_per_file``
+        (one :meth:`ExifReader.read_many` call, process already running);
+        ``batch_total_ms_per_file`` (including the start-up);
+        ``per_process_ms_per_file`` (:func:`read_lens_key` per file: a new
+        process each); ``speedup`` (per-process / batch-including-start-up).
+    """
+    paths = list(paths)
+    n = len(paths)
+    if n == 0:
+        raise ValueError("bench_exif needs at least one path")
+    best_batch = math.inf
+    startup = math.inf
+    for _ in range(max(1, repeat)):
+        t0 = time.perf_counter()
+        with ExifReader() as reader:
+            t1 = time.perf_counter()
+            reader.read_many(paths)
+            t2 = time.perf_counter()
+        startup = min(startup, t1 - t0)
+        best_batch = min(best_batch, t2 - t1)
+    t0 = time.perf_counter()
+    for p in paths:
+        try:
+            read_lens_key(p)
+        except VigprocError:
+            pass
+    per_process = time.perf_counter() - t0
+    batch_total = (startup + best_batch) / n
+    return {
+        "n_files": float(n),
+        "startup_ms": startup * 1e3,
+        "batch_ms_per_file": best_batch / n * 1e3,
+        "batch_total_ms_per_file": batch_total * 1e3,
+        "per_process_ms_per_file": per_process / n * 1e3,
+        "speedup": (per_process / n) / batch_total if batch_total > 0 else math.inf,
+    }

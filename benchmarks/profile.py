@@ -1,6 +1,6 @@
 """Profile accuracy versus number of frames (issue 4's protocol).
 
-For each lens of :func:`vigproc.stores.lensfun.bench_lenses` (widest aperture), frames are
+For each lens of :func:`vigproc.stores.lensfun.diverse_lenses` (widest aperture), frames are
 natural images multiplied by the lens's "pa" field; each frame is estimated on its
 own (the default estimator's fit, kept even when it would fall back, with its
 covariance), and the per-frame estimates are pooled three ways after n frames:
@@ -29,7 +29,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from vigproc.errors import ModelError
-from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import diverse_lenses, pa_field
 from vigproc.core.model import VignettingModel
 
 POOLINGS = ("information", "mean-theta", "mean-field", "joint", "store")
@@ -96,7 +96,7 @@ def run(
     errors: dict[tuple[str, int], list[float]] = {(p, n): [] for p in POOLINGS for n in counts}
     trust: list[tuple[int, float] | None] = []  # per lens: (frames until trusted, error then)
     single: list[float] = []  # error of each frame's own estimate, as applied (fall-back included)
-    for li, (_lens, pa) in enumerate(bench_lenses(n_lenses)):
+    for li, (_lens, pa) in enumerate(diverse_lenses(n_lenses)):
         h, w = images[0].shape
         true_log = np.log(pa_field((h, w), pa.k1, pa.k2, pa.k3))
         thetas, covs, fields, frames, fits, applied = [], [], [], [], [], []

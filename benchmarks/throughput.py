@@ -34,6 +34,7 @@ from typing import Sequence
 
 import numpy as np
 
+from benchmarks import child_code
 from vigproc.errors import VigprocError
 from vigproc.io.formats import READ_SUFFIXES
 
@@ -240,8 +241,8 @@ def raw_floor_run(src: Path, dst: Path) -> int:
 def _commands(indir: Path, outdir: Path, inputs: Sequence[Path], darktable: str | None,
               baseline: str | None = None, raw: bool = False) -> dict[str, list[str]]:
     cmds = {
-        "floor": [sys.executable, "-m", "benchmarks.throughput", "rawfloor" if raw else "floor", str(indir),
-                  str(outdir / "floor")],
+        "floor": [sys.executable, "-c", child_code("from benchmarks.throughput import main\nsys.exit(main())"),
+                  "rawfloor" if raw else "floor", str(indir), str(outdir / "floor")],
         # a RAW not corrected is still developed and written (what the floor does)
         "vigproc": [sys.executable, "-m", "vigproc.frontends.cli", "correct", "--unapplied", "write" if raw else "copy",
                     "-o", str(outdir / "vigproc"), "--", *map(str, inputs)],

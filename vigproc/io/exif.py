@@ -9,7 +9,7 @@ Reading
 -------
 :class:`ExifReader` wraps **one** persistent ``exiftool -stay_open`` process
 (:class:`vigproc.io.exiftool_process.ExiftoolProcess`, over PyExifTool).  Measured on the 92 shared
-camera JPEGs (:func:`bench_exif`): ~7 ms per file through the open process (plus
+camera JPEGs (``vigproc bench io``, benchmarks/io.py): ~7 ms per file through the open process (plus
 ~60 ms start-up once) against ~90 ms per file with a process per file, so a batch
 is read with one process and, per chunk of files, one ExifTool command.
 :meth:`ExifReader.read_many` never raises for a bad file: each result is a
@@ -73,7 +73,6 @@ import math
 import os
 import re
 import stat
-import time
 import unicodedata
 from collections import deque
 from dataclasses import dataclass, field
@@ -93,7 +92,6 @@ __all__ = [
     "RECORD_TAGS",
     "LensKey",
     "MetadataError",
-    "bench_exif",
     "lens_key_from_metadata",
     "normalise_text",
     "read_lens_key",
@@ -1496,53 +1494,3 @@ def read_lens_key(path: PathLike, **kwargs: Any) -> LensKey:
     """
     with ExifReader(**kwargs) as reader:
         return reader.read(path)
-
-
-def bench_exif(paths: Sequence[PathLike], repeat: int = 1) -> dict[str, float]:
-    """Time EXIF reading: one persistent process vs one process per file.
-
-    Parameters
-    ----------
-    paths : sequence of path-like
-    repeat : int
-        Batch timings are the best of ``repeat`` runs.
-
-    Returns
-    -------
-    dict
-        ``n_files``; ``startup_ms`` (starting the process); ``batch_ms_per_file``
-        (one :meth:`ExifReader.read_many` call, process already running);
-        ``batch_total_ms_per_file`` (including the start-up);
-        ``per_process_ms_per_file`` (:func:`read_lens_key` per file: a new
-        process each); ``speedup`` (per-process / batch-including-start-up).
-    """
-    paths = list(paths)
-    n = len(paths)
-    if n == 0:
-        raise ValueError("bench_exif needs at least one path")
-    best_batch = math.inf
-    startup = math.inf
-    for _ in range(max(1, repeat)):
-        t0 = time.perf_counter()
-        with ExifReader() as reader:
-            t1 = time.perf_counter()
-            reader.read_many(paths)
-            t2 = time.perf_counter()
-        startup = min(startup, t1 - t0)
-        best_batch = min(best_batch, t2 - t1)
-    t0 = time.perf_counter()
-    for p in paths:
-        try:
-            read_lens_key(p)
-        except VigprocError:
-            pass
-    per_process = time.perf_counter() - t0
-    batch_total = (startup + best_batch) / n
-    return {
-        "n_files": float(n),
-        "startup_ms": startup * 1e3,
-        "batch_ms_per_file": best_batch / n * 1e3,
-        "batch_total_ms_per_file": batch_total * 1e3,
-        "per_process_ms_per_file": per_process / n * 1e3,
-        "speedup": (per_process / n) / batch_total if batch_total > 0 else math.inf,
-    }

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from vigproc.frontends.commands._bench import benchmark
 
 
 def register(subparsers) -> None:
@@ -55,8 +56,8 @@ def bench_detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
 
     import numpy as np
 
-    from benchmarks import clean as C
-    from benchmarks import colour_detect as D
+    C = benchmark("clean")
+    D = benchmark("colour_detect")
 
     targets, directions = getattr(args, "targets", None), getattr(args, "directions", 8)
     theta_max, lenses = getattr(args, "theta_max", None), getattr(args, "lenses", 10)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from vigproc.frontends.commands._bench import benchmark
 
 
 def register(subparsers) -> None:
@@ -77,8 +78,10 @@ def _print_series(s) -> None:
 
 
 def cmd_bench_real_frames(args: argparse.Namespace) -> int:
-    from benchmarks import real_frames_lensfun as rfl
-    from benchmarks.real_frames import as_dict, full_frames, run
+    rfl = benchmark("real_frames_lensfun")
+    as_dict = benchmark("real_frames").as_dict
+    full_frames = benchmark("real_frames").full_frames
+    run = benchmark("real_frames").run
     from vigproc.frontends.commands._options import write_json_result
 
     images = args.images or ["../shared/data/jpeg_exif"]
