@@ -77,3 +77,14 @@ def test_a_copy_of_the_package_alone_runs_everything_but_bench(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0 and r.stdout.startswith(str(tmp_path)), r.stderr
+
+
+def test_python_m_benchmarks_is_vigproc_bench():
+    """From the checkout's root, ``python -m benchmarks NAME`` runs ``vigproc bench NAME``
+    on that checkout's benchmarks."""
+    r = subprocess.run([sys.executable, "-m", "benchmarks", "--help"], cwd=REPO, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0 and "usage: vigproc bench" in r.stdout and "real-frames" in r.stdout, r.stderr
+    r = subprocess.run([sys.executable, "-m", "benchmarks", "io", "--exif"], cwd=REPO, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 2 and "--exif: expected one argument" in r.stderr  # vigproc bench io's own parser
