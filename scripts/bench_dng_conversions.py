@@ -1,6 +1,6 @@
 """Measure the DNG opcode conversions on real lenses' fall-offs (docs/benchmarks/dng.md).
 
-For each of the 20 lenses of :func:`vigproc.stores.lensfun.bench_lenses` (lensfun's calibration
+For each of the 20 lenses of :func:`vigproc.stores.lensfun.diverse_lenses` (lensfun's calibration
 at its shortest focal length, widest aperture, farthest distance):
 
 * model -> FixVignetteRadial: the lens's Kang-Weiss model (:func:`vigproc.stores.lensfun_io.kw_from_pa`)
@@ -27,7 +27,7 @@ import numpy as np
 from vigproc.io.dng_opcodes import FixVignetteRadial, parse_opcode_list
 from vigproc.io.dng_vignette import model_to_radial, opcode_to_model
 from vigproc.errors import ModelError
-from vigproc.stores.lensfun import bench_lenses
+from vigproc.stores.lensfun import diverse_lenses
 from vigproc.stores.lensfun_io import kw_from_pa
 
 log = logging.getLogger("bench_dng_conversions")
@@ -54,7 +54,7 @@ def main() -> int:
     rows: list[dict] = []
     refused: list[str] = []
     t0 = time.perf_counter()
-    for lens, pa in bench_lenses(20):
+    for lens, pa in diverse_lenses(20):
         m = kw_from_pa(pa.k1, pa.k2, pa.k3, W, H)
         to = model_to_radial(m)
         try:

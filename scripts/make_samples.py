@@ -13,7 +13,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from vigproc.io.images import linear_to_srgb, read_image
-from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import diverse_lenses, pa_field
 from vigproc.core.model import VignettingModel
 
 SRC = Path(__file__).resolve().parents[1].parent / "shared/data/natural/kodak"
@@ -21,7 +21,7 @@ DST = Path(__file__).resolve().parents[1] / "vigproc/data/samples"
 
 
 def main() -> None:
-    lenses = bench_lenses(20)
+    lenses = diverse_lenses(20)
     meta = []
     for name, kind, li in [("kodim05.png", "lensfun", 0), ("kodim23.png", "kw", None), ("kodim13.png", "lensfun", 3)]:
         img, _ = read_image(SRC / name)

@@ -1,5 +1,5 @@
 """Pool the rows of several ``vigproc bench real-frames --json`` runs into one table of harm
-counts (each file once, by name; the counts as :func:`vigproc.bench.real_frames.run` makes
+counts (each file once, by name; the counts as :func:`benchmarks.real_frames.run` makes
 them), for a set measured in parts.
 
 Usage: python scripts/pool_real_frames.py RUN1.json RUN2.json ...

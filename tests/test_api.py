@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from vigproc.frontends import api
-from vigproc.bench.synthetic import table1_model
+from benchmarks.synthetic import table1_model
 from vigproc.errors import InvalidImageError, VigprocError
 from vigproc.core.estimate import estimate
 from vigproc.core.extensions import (
@@ -362,7 +362,7 @@ def test_the_papers_fits_state_their_fall_off_and_no_made_up_certainty():
 
     import vigproc
     from conftest import textured
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
 
     img = textured(320, 480, seed=3, contrast=0.05) * table1_model(1).field((320, 480))
     for method in ("ga", "lyu2010"):

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from conftest import textured
-from vigproc.bench.faults import _Watch, _results, why_not
+from benchmarks.faults import _Watch, _results, why_not
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "profiles" / "examples" / "sony-rx100-10.4mm-f1.8.json"  # 3:2 frames
@@ -140,7 +140,7 @@ def test_watch_on_a_full_output_disk_quarantines_no_healthy_photo(tmp_path, tmpf
     it fills mid-run; a filler is deleted a few seconds into the trouble.  Every healthy
     photo done, none quarantined, no worker death; then a corrupt file with a disk-full
     name is quarantined (its name does not make it a full disk)."""
-    from vigproc.bench.faults import FaultBenchError
+    from benchmarks.faults import FaultBenchError
 
     in_dir, q = tmp_path / "in", tmp_path / "q"
     in_dir.mkdir()
@@ -241,7 +241,7 @@ def test_an_output_sub_folder_that_cannot_be_made_is_the_output_sides(tmp_path):
     the worker die of an UnboundLocalError on its first task, and the photo was
     quarantined after three deaths.  Now: an output failure with a clear reason, retried,
     no worker death; done once the file is out of the way."""
-    from vigproc.bench.faults import FaultBenchError
+    from benchmarks.faults import FaultBenchError
 
     in_dir, q, out = tmp_path / "in", tmp_path / "q", tmp_path / "out"
     (in_dir / "sub1").mkdir(parents=True)

@@ -1,16 +1,17 @@
 """Benchmark pieces: the radial-gradient-symmetry peer and the benches' scene-prior option."""
 
 import json
+import shutil
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from vigproc.bench.peers import estimate_rgs, radial_polynomial
-from vigproc.bench.synthetic import table1_model
+from benchmarks.peers import estimate_rgs, radial_polynomial
+from benchmarks.synthetic import table1_model
 from vigproc.io.images import write_image
-from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import diverse_lenses, pa_field
 
 from conftest import textured
 
@@ -24,7 +25,7 @@ def _gain_free_ev(a: np.ndarray, b: np.ndarray) -> float:
 def test_rgs_recovers_a_centred_real_lens():
     """A real lens's centred radial fall-off on a texture without fall-off of its own."""
     h, w = 320, 480
-    _, pa = bench_lenses(1)[0]
+    _, pa = diverse_lenses(1)[0]
     truth = pa_field((h, w), pa.k1, pa.k2, pa.k3)
     base = textured(h, w, seed=3, contrast=0.05)
     m = estimate_rgs(base * truth)
@@ -109,7 +110,7 @@ def test_bench_bad_scene_prior_is_a_clear_error(image_folder, tmp_path, content,
 
 
 def test_bench_profile_reports_when_profiles_become_trusted():
-    from vigproc.bench import profile as P
+    from benchmarks import profile as P
     from vigproc.core.estimate import estimate
 
     ims = [textured(160, 240, seed=20 + i, contrast=0.05) for i in range(4)]
@@ -190,7 +191,7 @@ def test_real_bench_pairs_and_photographs(tmp_path):
     """``vigproc bench real``: NAME_vig with NAME (or NAME without its digits) is a pair
     with a known field; other images are photographs; the field of a flat white frame
     is found, and a frame without vignetting of its own has no true fall-off."""
-    from vigproc.bench.real import find_inputs, run_pair
+    from benchmarks.real import find_inputs, run_pair
     from vigproc.core.estimate import estimate
     from vigproc.core.model import VignettingModel
     from vigproc.pipeline.processor import IMAGE_SUFFIXES
@@ -228,7 +229,7 @@ def test_real_bench_pairs_and_photographs(tmp_path):
 
 
 def test_bench_clean_scores_methods_on_crops_of_large_frames(tmp_path):
-    from vigproc.bench.clean import HEIGHT, WIDTH, crop_base
+    from benchmarks.clean import HEIGHT, WIDTH, crop_base
 
     folder = tmp_path / "frames"
     folder.mkdir()
@@ -285,11 +286,11 @@ def test_bench_clean_base_falloff_scores_table1_against_bases_that_carry_a_lens(
 def test_bench_profile_flat_learns_a_white_wall(tmp_path):
     """``vigproc bench profile-flat``: three unevenly lit shots of a vignetted white frame
     give a trusted flat-field profile close to the field; no white pairs is a usage error."""
-    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
 
     d = tmp_path / "flat"
     d.mkdir()
-    _, pa = bench_lenses(1)[0]
+    _, pa = diverse_lenses(1)[0]
     white = np.full((120, 180), 0.5)
     for name, img in (("white", white), ("white1_vig", white * pa_field((120, 180), pa.k1, pa.k2, pa.k3))):
         write_image(d / f"{name}.png", np.repeat(img[..., None], 3, axis=2).astype(np.float32), bit_depth="uint16")
@@ -306,10 +307,10 @@ def test_bench_profile_flat_learns_a_white_wall(tmp_path):
 def test_bench_learn_times_one_more_frame_in_a_new_process():
     """The learn benchmark fills a store, learns one more frame warm and in a new
     process, and skips a frame that cannot be estimated instead of failing."""
-    from vigproc.bench.learn import learn_speed
+    from benchmarks.learn import learn_speed
     from conftest import coloured_scene
 
-    _, pa = bench_lenses(1)[0]
+    _, pa = diverse_lenses(1)[0]
     field = pa_field((160, 240), pa.k1, pa.k2, pa.k3)
     frames = [coloured_scene(160, 240, seed=s) * field[..., None] for s in range(3)]
     frames.insert(1, np.zeros((160, 240, 3)))  # blank: no positive pixel
@@ -373,3 +374,17 @@ def test_bench_estimators_are_the_products_own(method):
     ours = estimator(method)(frame).log_field((160, 240))
     product = vigproc.estimate(frame, method, channel_axis=-1).log_field((160, 240))
     assert np.array_equal(ours, product)
+
+
+@pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
+def test_bench_exif_returns_both_figures(shared_data) -> None:
+    from benchmarks.io import bench_exif
+
+    paths = sorted((shared_data / "jpeg_exif" / "exiftool-stubs").glob("*.jpg"))[:4]
+    if not paths:
+        pytest.skip("exiftool-stubs absent")
+    res = bench_exif(paths)
+    assert res["n_files"] == len(paths)
+    assert res["batch_ms_per_file"] > 0 and res["per_process_ms_per_file"] > 0
+    # A process per file pays the Perl start-up every time.
+    assert res["per_process_ms_per_file"] > res["batch_ms_per_file"]

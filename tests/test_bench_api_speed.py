@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from vigproc.bench.api_speed import CASES, api_speed
+from benchmarks.api_speed import CASES, api_speed
 
 
 def test_api_speed_times_every_case_and_the_peers_floor():
@@ -42,7 +42,7 @@ def test_api_speed_without_a_peer_states_no_ratio():
 def test_the_command_runs_without_a_peer(tmp_path, monkeypatch, capsys):
     """``vigproc bench speed --api`` with no peer given or in the environment: the
     vigproc column alone, exit 0 (it once failed looking the environment up)."""
-    from vigproc.bench.peers import PEER_ENV
+    from benchmarks.peers import PEER_ENV
     from vigproc.frontends.cli import main
     from vigproc.io.images import write_image
 

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from vigproc.bench.memory import cli_code, peak_of
+from benchmarks.memory import cli_code, peak_of
 from vigproc.errors import VigprocError
 
 pytestmark = pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs Linux's /proc")

@@ -1,5 +1,5 @@
 """``vigproc bench real-frames`` part (a): real frames against lensfun's field, one frame and
-a series through the profile store (vigproc.bench.real_frames_lensfun)."""
+a series through the profile store (benchmarks.real_frames_lensfun)."""
 
 import math
 import shutil
@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from vigproc.bench import real_frames_lensfun as rfl
+from benchmarks import real_frames_lensfun as rfl
 from vigproc.io.images import write_image
 from vigproc.stores.lensfun import pa_poly
 
@@ -163,7 +163,7 @@ def test_a_frame_row_counts_the_pixels_its_correction_pushes_past_white(tmp_path
     corrected in place (else before and after are one array and nothing is ever new white)."""
     from pathlib import Path
 
-    from vigproc.bench.real_frames import _row
+    from benchmarks.real_frames import _row
     from vigproc.core.plausible import Rules
     from vigproc.pipeline.processor import Processor, Settings
 

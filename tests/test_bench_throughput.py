@@ -9,7 +9,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from vigproc.bench import throughput as T
+from benchmarks import throughput as T
 from vigproc.errors import VigprocError
 from vigproc.io.images import jpeg_quality, write_image
 from vigproc.io.metadata import exiftool_path

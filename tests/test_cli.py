@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from vigproc.bench.synthetic import table1_model
+from benchmarks.synthetic import table1_model
 from vigproc.io.images import read_image, write_image
 from vigproc.core.model import VignettingModel
 
@@ -282,11 +282,11 @@ def test_profile_store_flow(tmp_path, monkeypatch):
     """learn pools frames per lens; a trusted stored profile is applied with no estimation."""
     from dngfixture import make_dng
 
-    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
     from vigproc.core.model import VignettingModel
 
     monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path / "store.sqlite"))
-    lens, pa = bench_lenses(1)[0]
+    lens, pa = diverse_lenses(1)[0]
     h, w = 256, 384
     # the frames claim the lens setting whose lensfun calibration they carry
     exif = {"Make": "Canon", "Model": "Canon EOS 5D", "LensModel": "EF24-105mm f/4L IS USM",

@@ -7,7 +7,7 @@ import sys
 
 import numpy as np
 
-from vigproc.bench import colour as B
+from benchmarks import colour as B
 
 
 def test_physical_field_is_cos_k_of_the_chief_ray_angle():

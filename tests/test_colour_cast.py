@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vigproc.bench.colour_detect import Cast, cast_for, detection_rates, physical_casts
+from benchmarks.colour_detect import Cast, cast_for, detection_rates, physical_casts
 from vigproc.core.colour_cast import ColourCastEvidence, detect_colour_cast
 from vigproc.core.colour_difference import grey_cast_de
 from vigproc.errors import InvalidImageError

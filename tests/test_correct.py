@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import vigproc
-from vigproc.bench.synthetic import table1_model
+from benchmarks.synthetic import table1_model
 from vigproc.core.correct import correct_stripe
 from vigproc.errors import InvalidImageError
 

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from vigproc.bench.crops import shifted_field
+from benchmarks.crops import shifted_field
 from vigproc.forensics.crops import CropCalibration, CropCalibrationError, auc, check_crop
 from vigproc.io.images import write_image
 
@@ -108,7 +108,7 @@ def test_a_known_profile_places_the_centre_of_its_own_lens():
     """bench crops --statistic known-profile fits the centre alone, in a family that is the
     lens's own profile: on a texture with little shading it finds a 40 % shift, and an
     uncropped frame stays near the centre."""
-    from vigproc.bench.crops import known_profile_family
+    from benchmarks.crops import known_profile_family
     from vigproc.core.pixels import luminance
     from vigproc.forensics.crops import crop_statistic
 

@@ -662,7 +662,7 @@ def test_a_profile_source_is_not_a_profile_file(tmp_path):
 def test_learn_mode_pools_each_frame_once_across_a_kill(tmp_path):
     from dngfixture import make_dng
 
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
     from vigproc.stores.profiles import ProfileStore
 
     in_dir, out_dir, db = tmp_path / "in", tmp_path / "out", tmp_path / "profiles.sqlite"

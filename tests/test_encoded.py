@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import vigproc
-from vigproc.bench.synthetic import table1_model
+from benchmarks.synthetic import table1_model
 from vigproc.core.correct import correct_codes
 from vigproc.core.estimate import estimate_checked, estimate_reduced, from_reduced, reduction_factor
 from vigproc.core.pixels import bin_mean, check_image, reduce_codes

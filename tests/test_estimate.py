@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import vigproc
-from vigproc.bench.synthetic import relative_errors, table1_model
+from benchmarks.synthetic import relative_errors, table1_model
 from vigproc.errors import InvalidImageError
 from vigproc.core.robust import RobustSettings
 from vigproc.core.scene import default_scene_falloff
@@ -139,7 +139,7 @@ def test_centred_refit_only_without_evidence_of_an_off_centre_fall_off(monkeypat
     (centre well off the middle, clear evidence) keeps the free fit."""
     import vigproc.core.robust as R
     from conftest import photo_like
-    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
 
     calls = []
     real = R.fit_robust
@@ -149,7 +149,7 @@ def test_centred_refit_only_without_evidence_of_an_off_centre_fall_off(monkeypat
         return real(wc, s, start)
 
     monkeypatch.setattr(R, "fit_robust", spy)
-    _, pa = bench_lenses(1)[0]
+    _, pa = diverse_lenses(1)[0]
     centred = photo_like(320, 480, seed=1) * pa_field((320, 480), pa.k1, pa.k2, pa.k3)
     m = vigproc.estimate(centred, "robust", channel_axis=None)
     assert calls == [RobustSettings().sigma_center, RobustSettings().centred_sigma_center]
@@ -186,7 +186,7 @@ def test_centred_refit_holds_the_fall_off_circular(monkeypatch):
     selection="centre" only the centre."""
     import vigproc.core.robust as R
     from conftest import photo_like
-    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
 
     seen = []
     real = R.fit_robust
@@ -196,7 +196,7 @@ def test_centred_refit_holds_the_fall_off_circular(monkeypatch):
         return real(wc, s, start)
 
     monkeypatch.setattr(R, "fit_robust", spy)
-    _, pa = bench_lenses(1)[0]
+    _, pa = diverse_lenses(1)[0]
     img = photo_like(320, 480, seed=2) * pa_field((320, 480), pa.k1, pa.k2, pa.k3)
     d = RobustSettings()
     m = vigproc.estimate(img, "robust", channel_axis=None)
@@ -272,13 +272,13 @@ def test_power_loss_kernel_is_the_smoothed_hyper_laplacian():
 def test_shape_ratio_separates_real_lenses_from_broad_fall_off():
     """Real lenses keep the frame centre flat (lensfun: ratio 0.23 in the median);
     Lyu's Table 1 setting 2 falls off from the centre on (0.45)."""
-    from vigproc.stores.lensfun import bench_lenses
+    from vigproc.stores.lensfun import diverse_lenses
     from vigproc.stores.lensfun_io import kw_from_pa
     from vigproc.core.normalised import normalise
     from vigproc.core.robust import REAL_LENS_SHAPE_RATIO, RobustSettings, shape_ratio, working_copy
 
     wc = working_copy(np.ones((320, 480)), RobustSettings())
-    _, pa = bench_lenses(20)[8]
+    _, pa = diverse_lenses(20)[8]
     lens = normalise(kw_from_pa(pa.k1, pa.k2, pa.k3, 480, 320))[0]
     broad = normalise(table1_model(2))[0]
     assert shape_ratio(lens, wc) < REAL_LENS_SHAPE_RATIO < shape_ratio(broad, wc)
@@ -286,14 +286,14 @@ def test_shape_ratio_separates_real_lenses_from_broad_fall_off():
 
 
 def test_real_lens_method_refuses_broad_fall_off_only():
-    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
 
     base = textured(320, 480, seed=1, contrast=0.05)
     broad = base * table1_model(2).field()
     assert not vigproc.estimate(broad, "robust", channel_axis=None).quality.fallback
     refused = vigproc.estimate(broad, "real-lens", channel_axis=None)
     assert refused.quality.fallback and refused.is_identity and refused.candidate is not None
-    _, pa = bench_lenses(20)[8]
+    _, pa = diverse_lenses(20)[8]
     lens = base * pa_field((320, 480), pa.k1, pa.k2, pa.k3)
     m = vigproc.estimate(lens, "real-lens", channel_axis=None)
     assert not m.quality.fallback
@@ -336,9 +336,9 @@ def test_flat_field_method_reads_a_frame_without_scene_exactly():
     """A white frame under a real lens's fall-off: "flat-field" recovers it; the default
     divides out the scene prior (the darker edges photographs of scenes have), which a
     frame of no scene does not have, and so under-corrects."""
-    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
 
-    _, pa = bench_lenses(1)[0]
+    _, pa = diverse_lenses(1)[0]
     h, w = 320, 480
     truth = pa_field((h, w), pa.k1, pa.k2, pa.k3)
     rng = np.random.default_rng(0)

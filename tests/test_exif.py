@@ -703,17 +703,6 @@ def test_shared_data_keys_deterministic(shared_data: Path) -> None:
     assert sum(k.lens is not None for k in keys) >= 12
 
 
-def test_bench_exif_returns_both_figures(shared_data: Path) -> None:
-    paths = sorted((shared_data / "jpeg_exif" / "exiftool-stubs").glob("*.jpg"))[:4]
-    if not paths:
-        pytest.skip("exiftool-stubs absent")
-    res = bench_exif(paths)
-    assert res["n_files"] == len(paths)
-    assert res["batch_ms_per_file"] > 0 and res["per_process_ms_per_file"] > 0
-    # A process per file pays the Perl start-up every time.
-    assert res["per_process_ms_per_file"] > res["batch_ms_per_file"]
-
-
 def test_a_typed_lens_id_keeps_its_escapes() -> None:
     """``import-lensfun --lens-id`` takes the id ``vigproc estimate`` printed: casefolding
     it must not turn ``%7C`` into ``%7c``, or the profile is stored under another key."""

@@ -254,7 +254,7 @@ def _colour_texture(seed: int = 3) -> np.ndarray:
 
 
 def test_default_fits_a_strong_off_centre_fall_off_in_the_family_off_centre():
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
     from vigproc.core.pixels import luminance
     from vigproc.core.robust import estimate_robust
 
@@ -474,7 +474,7 @@ def test_the_default_asks_the_centre_and_the_choice_of_the_luminance(monkeypatch
     Kang-Weiss fit does not weigh pairs by colour, and a loss weighted by colour would
     favour the fit that does. An off-centre, elliptical fall-off (Table 1 setting 2)
     still goes to an off-centre fit."""
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
     from vigproc.core import family_fit
 
     seen = []

@@ -45,7 +45,7 @@ def _stub_disk(monkeypatch, free: int, total: int = 20_000_000) -> None:
 
 
 def _can_mount() -> str | None:
-    from vigproc.bench.faults import why_not
+    from benchmarks.faults import why_not
 
     return why_not()
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vigproc.bench.forensics import bench_classes, calibration_residuals
+from vigproc.forensics.calibration_frames import calibration_residuals, lens_classes
 from vigproc.errors import ImageWriteError
 from vigproc.core.estimate import estimate
 from vigproc.io.exif import LensKey
@@ -46,7 +46,7 @@ def _est(img):
 def classes():
     # two apertures of each of two real lensfun lenses; [4] (Sigma 105 f/1.4) vignettes
     # strongly (0.7 EV RMS), [5] (the same at f/2.8) mildly (0.14 EV RMS)
-    return bench_classes(3)
+    return lens_classes(3)
 
 
 @pytest.fixture(scope="module")
@@ -259,7 +259,7 @@ def test_stored_profiles_come_before_lensfun(tmp_path, classes, calibration):
         assert v.expected_source == "stored-profile"
         assert v.verdict == "consistent", v.reason
         # a much stronger lens (Tamron 14-150 at 14 mm f/3.5: 3.7 EV in the corners)
-        tamron = next(c for c in bench_classes(8) if c.maker == "Tamron")
+        tamron = next(c for c in lens_classes(8) if c.maker == "Tamron")
         v = forensic_check(frame(tamron, seed=41), key, store=store, calibration=calibration)
         assert v.verdict == "inconsistent", v.reason
 

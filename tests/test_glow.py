@@ -44,7 +44,7 @@ def test_a_light_source_glow_is_told_from_a_lens():
 def test_lyus_strong_fields_are_not_taken_for_a_glow():
     # the Kang-Weiss illumination of a short focal length has a glow's form near the
     # centre, but its fall-off keeps steepening to the corners (module doc)
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
 
     field = table1_model(1).field((H, W))
     assert _advantage(textured(H, W, seed=3, contrast=0.1) * field) < GlowTest().margin

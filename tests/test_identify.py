@@ -1,5 +1,5 @@
 """Tests of lens identification (vigproc.forensics.identify), ``vigproc forensics train|evaluate``
-and the forensics benchmark's protocol (vigproc.bench.forensics)."""
+and the forensics benchmark's protocol (benchmarks.forensics)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import re
 import numpy as np
 import pytest
 
-from vigproc.bench.forensics import bench_classes, crop_frame, field_separation, roc_auc, split_images
+from benchmarks.forensics import crop_frame, field_separation, roc_auc, split_images
+from vigproc.forensics.calibration_frames import lens_classes
 from vigproc.core.estimate import estimate
 from vigproc.forensics.check import FORENSICS_METHOD, ForensicsError, ring_falloff
 from vigproc.forensics.identify import (
@@ -39,7 +40,7 @@ def _clusters(seed=0, n=25, spread=0.3):
 def test_feature_vectors(tmp_path):
     from vigproc.stores.lensfun_io import kw_from_pa
 
-    c = bench_classes(1)[0]
+    c = lens_classes(1)[0]
     m = kw_from_pa(c.k1, c.k2, c.k3, 300, 200)
     assert feature_vector(m, "lyu2010") == pytest.approx(normalise(m)[0][2:])
     assert feature_vector(m, "falloff") == pytest.approx(ring_falloff(m))
@@ -132,7 +133,7 @@ def _folder(root, classes, n, seed0):
 def test_train_and_evaluate_round_trip(tmp_path, capsys):
     from vigproc.frontends.cli import main
 
-    strong = bench_classes(3)[4]  # Sigma 105 mm at f/1.4: 0.7 EV RMS
+    strong = lens_classes(3)[4]  # Sigma 105 mm at f/1.4: 0.7 EV RMS
     classes = {"strong-lens": strong, "no-vignetting": None}
     _folder(tmp_path / "train", classes, 5, 0)
     _folder(tmp_path / "test", classes, 4, 50)
@@ -175,7 +176,7 @@ def test_calibrate_command(tmp_path, capsys):
 
 # ------------------------------------------------------------------ benchmark protocol
 def test_bench_protocol_pieces():
-    classes = bench_classes(4)
+    classes = lens_classes(4)
     assert len(classes) == 8
     for a, b in zip(classes[::2], classes[1::2]):
         assert a.lens == b.lens and b.aperture >= a.aperture * 1.4
@@ -198,7 +199,7 @@ def test_bench_protocol_pieces():
 
 
 def test_bench_run_small():
-    from vigproc.bench.forensics import run
+    from benchmarks.forensics import run
 
     ims = [textured(96, 144, seed=300 + i, contrast=0.1) for i in range(20)]
     r = run(ims, lambda v: estimate(v, FORENSICS_METHOD, channel_axis=None), n_lenses=2, frames=2, seed=0)

@@ -109,7 +109,7 @@ def test_settings_refuse_an_unknown_in_camera_policy():
 
 @needs_exiftool
 def test_bench_real_frames_counts_what_the_rules_prevent(tmp_path):
-    from vigproc.bench.real_frames import full_frames, run
+    from benchmarks.real_frames import full_frames, run
 
     phone = _jpeg(tmp_path / "IMG_1.jpg", "Apple", "iPhone 5s")
     _jpeg(tmp_path / "DSC_1.jpg", "NIKON CORPORATION", "NIKON D70")

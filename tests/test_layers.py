@@ -12,8 +12,10 @@ metadata I/O, the stores, forensics, the per-frame pipeline, the front ends. A m
 imports only from its own layer or below.
 
 The graph must have no cycle; no module may import the package ``vigproc`` itself
-(its ``__init__`` is the top: it re-exports, lazily); and the benchmarks
-(``vigproc.bench``) are imported only by the code of the ``vigproc bench`` commands.
+(its ``__init__`` is the top: it re-exports, lazily). The benchmarks live outside the
+package, in the repository's ``benchmarks/`` (not installed): no module imports them,
+and only the ``vigproc bench`` commands reach them, through
+:func:`vigproc.frontends.commands._bench.benchmark`.
 """
 
 from __future__ import annotations
@@ -26,21 +28,19 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "vigproc"
-BENCH = "vigproc.bench"
+REPO = PACKAGE.parent
+#: The benchmarks' top-level package, in the repository beside vigproc/.
+BENCH = "benchmarks"
 
-#: Functions outside vigproc.bench that may import it: the ``vigproc bench`` commands
-#: and their helpers, by (module, top-level function).
+#: Functions outside the ``vigproc bench`` commands (a function whose name holds "bench")
+#: that may load the benchmarks, by (module, top-level function).
 BENCH_COMMANDS = {
     ("vigproc.frontends.commands._bench", "estimator"),  # the benches' estimator table (rgs, the peer)
     ("vigproc.frontends.commands.watch", "_make_inputs"),  # bench watch's frames
 }
-#: Real commands that still import benchmark code. Moving the shared pieces down needs
-#: edits under vigproc/bench/, outside the change that added this test; not to grow.
-BENCH_DEBT = {
-    # forensics calibrate takes its lens classes and residuals from bench.forensics
-    # (bench_classes, calibration_residuals)
-    ("vigproc.frontends.commands.forensics", "cmd_calibrate"),
-}
+#: Real commands that still load benchmark code: none (forensics calibrate's lens classes
+#: and residuals are vigproc.forensics.calibration_frames).
+BENCH_DEBT: set[tuple[str, str]] = set()
 
 
 #: The layers, bottom up: a module imports only from its own layer or a lower one.
@@ -51,7 +51,7 @@ LAYERS = (
     ("vigproc.stores",),
     ("vigproc.forensics",),
     ("vigproc.pipeline",),
-    ("vigproc.frontends", "vigproc.bench", "vigproc.api"),  # vigproc.api: the stable API's old name
+    ("vigproc.frontends", "vigproc.api"),  # vigproc.api: the stable API's old name
 )
 
 
@@ -216,14 +216,68 @@ def test_no_module_imports_the_package_itself(graph):
     assert not up, f"import the leaf module instead (vigproc._version for __version__): {up}"
 
 
-def test_only_bench_commands_import_the_benchmarks(graph):
-    users = {(e.source, e.function) for e in graph
-             if (e.target == BENCH or e.target.startswith(BENCH + ".")) and not e.source.startswith(BENCH)}
-    unexpected = sorted(
-        f"{m}.{f or '<module>'}" for m, f in users
-        if not (f and "bench" in f) and (m, f) not in BENCH_COMMANDS | BENCH_DEBT)
-    assert not unexpected, f"real commands importing vigproc.bench: {unexpected}"
-    assert BENCH_DEBT <= users, f"fixed, remove from BENCH_DEBT: {sorted(BENCH_DEBT - users)}"
+def benchmark_uses(root: Path) -> tuple[list[str], set[tuple[str, str | None]]]:
+    """Import statements of the benchmarks anywhere in the package (``module:line``), and
+    the (module, top-level function) pairs that load them by name through ``benchmark(...)``."""
+    imports, loads = [], set()
+    for name, path in modules(root).items():
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        for top in tree.body:
+            function = top.name if isinstance(top, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) else None
+            for node in ast.walk(top):
+                if isinstance(node, ast.Import):
+                    targets = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and not node.level:
+                    targets = [node.module or ""]
+                else:
+                    targets = []
+                if any(t == BENCH or t.startswith(BENCH + ".") for t in targets):
+                    imports.append(f"{name}:{node.lineno}")
+                if isinstance(node, ast.Call) and (getattr(node.func, "id", None) == "benchmark"
+                                                   or getattr(node.func, "attr", None) == "benchmark"):
+                    loads.add((name, function))
+    return imports, loads
+
+
+def test_the_package_never_imports_the_benchmarks():
+    imports, _ = benchmark_uses(PACKAGE)
+    assert not imports, f"the installed package cannot import the benchmarks (not installed): {imports}"
+    assert not (PACKAGE / "bench").exists(), "the benchmarks live in the repository's benchmarks/, not in vigproc/"
+
+
+def test_only_bench_commands_load_the_benchmarks():
+    _, loads = benchmark_uses(PACKAGE)
+    unexpected = sorted(f"{m}.{f or '<module>'}" for m, f in loads
+                        if not (f and "bench" in f) and (m, f) not in BENCH_COMMANDS | BENCH_DEBT)
+    assert not unexpected, f"real commands loading the benchmarks: {unexpected}"
+    assert not BENCH_DEBT, f"commands still loading benchmark code: {sorted(BENCH_DEBT)}"
+    stale = BENCH_COMMANDS - loads
+    assert not stale, f"no longer load the benchmarks, remove from BENCH_COMMANDS: {sorted(stale)}"
+    assert ("vigproc.frontends.commands.forensics", "cmd_calibrate") not in loads  # product code, no benchmark
+
+
+def test_the_benchmark_check_sees_a_load_and_an_import(tmp_path):
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("def cmd_x():\n    return benchmark('clean')\n")
+    (pkg / "b.py").write_text("def f():\n    from benchmarks.clean import run\n    import benchmarks\n")
+    imports, loads = benchmark_uses(pkg)
+    assert imports == ["pkg.b:2", "pkg.b:3"] and loads == {("pkg.a", "cmd_x")}
+
+
+def test_the_wheel_holds_no_benchmarks():
+    """pyproject's package list (setuptools' find over the repository) is vigproc's own
+    packages: neither ``benchmarks`` nor anything under it."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    setuptools = pytest.importorskip("setuptools")
+    config = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
+    find = config["tool"]["setuptools"]["packages"]["find"]
+    packages = setuptools.find_packages(str(REPO), include=find.get("include", ["*"]), exclude=find.get("exclude", ()))
+    assert "vigproc" in packages and "vigproc.core" in packages
+    shipped = [p for p in packages if p == BENCH or p.startswith(BENCH + ".") or not p.startswith("vigproc")]
+    assert not shipped, f"packages installed beside vigproc: {shipped}"
+    assert (REPO / BENCH / "__init__.py").is_file()  # the benchmarks are there, in the checkout
 
 
 def test_the_checker_finds_a_cycle_through_a_function_level_import(tmp_path):

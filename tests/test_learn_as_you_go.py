@@ -37,9 +37,9 @@ def _frames(folder: Path, n: int, exif=D70_EXIF, seed: int = 20) -> tuple[list[P
     and the true log2 field."""
     from dngfixture import make_dng
 
-    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
 
-    _, pa = bench_lenses(1)[0]
+    _, pa = diverse_lenses(1)[0]
     field = pa_field((H, W), pa.k1, pa.k2, pa.k3)
     folder.mkdir(parents=True, exist_ok=True)
     paths = []

@@ -12,7 +12,7 @@ from vigproc.errors import InvalidImageError, ModelError
 from vigproc.stores.lensfun import (
     LensfunLens,
     PaVignetting,
-    bench_lenses,
+    diverse_lenses,
     bundled_db_dir,
     interpolate_pa,
     load_lenses,
@@ -271,8 +271,8 @@ def test_pa_field_rejects_bad_input() -> None:
 
 
 def test_bench_lenses_deterministic_and_distinct() -> None:
-    first = bench_lenses(20)
-    second = bench_lenses(20)
+    first = diverse_lenses(20)
+    second = diverse_lenses(20)
     assert first == second
     assert len(first) == 20
     assert len({(lens.maker, lens.model) for lens, _ in first}) == 20
@@ -290,4 +290,4 @@ def test_bench_lenses_deterministic_and_distinct() -> None:
 
 def test_bench_lenses_too_many() -> None:
     with pytest.raises(ModelError, match="requested"):
-        bench_lenses(100_000)
+        diverse_lenses(100_000)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from vigproc.errors import ModelError
-from vigproc.stores.lensfun import LensfunLens, PaVignetting, bench_lenses, interpolate_pa, load_lenses, pa_field
+from vigproc.stores.lensfun import LensfunLens, PaVignetting, diverse_lenses, interpolate_pa, load_lenses, pa_field
 from vigproc.stores.lensfun_io import (
     LENSFUN_DB_VERSION,
     LensfunEntry,
@@ -24,7 +24,7 @@ from vigproc.stores.lensfun_io import (
 )
 from vigproc.core.model import VignettingModel
 
-#: Measured (3:2 frames, bench_lenses(20)): max 6.8e-4 EV, median 2.7e-4 EV.
+#: Measured (3:2 frames, diverse_lenses(20)): max 6.8e-4 EV, median 2.7e-4 EV.
 KW_BOUND_EV = 2e-3
 #: Measured: pa_from_model(kw_from_pa(k)) reproduces k's field to max 6.3e-4 EV (1.7e-5 before
 #: pa_from_model fitted the half-diagonals too: it now follows the Kang-Weiss model's corners,
@@ -42,7 +42,7 @@ def _rms_ev(log_a: np.ndarray, log_b: np.ndarray) -> float:
 
 @pytest.fixture(scope="module")
 def bench() -> list[tuple[LensfunLens, PaVignetting]]:
-    return bench_lenses(20)
+    return diverse_lenses(20)
 
 
 @pytest.fixture(scope="module")

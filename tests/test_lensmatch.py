@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from vigproc.bench.forensics import bench_classes
+from vigproc.forensics.calibration_frames import lens_classes
 from vigproc.io.exif import LensKey
 from vigproc.core.family_fit import profile_to_model
 from vigproc.forensics.check import forensic_check, load_calibration, pool_verdicts
@@ -34,7 +34,7 @@ W, H = 240, 160
 @pytest.fixture(scope="module")
 def classes():
     # [4] Sigma 105 mm at f/1.4 vignettes strongly (0.7 EV RMS), [5] the same at f/2.8 mildly
-    return bench_classes(3)
+    return lens_classes(3)
 
 
 def key_of(c) -> LensKey:
@@ -205,7 +205,7 @@ def test_cli_check_json_says_which_test(tmp_path, classes):
 
 def test_the_clean_forensics_bench_refuses_folds_too_small_for_a_set():
     # bench forensics-clean --folds K: every fold must hold a multi-frame set of bases
-    from vigproc.bench import forensics_clean as F
+    from benchmarks import forensics_clean as F
 
     bases = [np.ones((32, 48))] * 20
     for folds in (1, 5):

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from vigproc.bench.synthetic import table1_model
+from benchmarks.synthetic import table1_model
 from vigproc.errors import ModelError
 from vigproc.core.normalised import denormalise, fit_model_to_field, normalise
 

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from vigproc.bench.synthetic import table1_model
+from benchmarks.synthetic import table1_model
 from vigproc.io.images import jpeg_quality, read_image, write_image
 from vigproc.pipeline.processor import OUTPUT_FORMATS, Processor, Settings, output_format_for
 

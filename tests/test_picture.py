@@ -1,6 +1,6 @@
 import numpy as np
 
-from vigproc.bench.synthetic import table1_model
+from benchmarks.synthetic import table1_model
 from vigproc.core.model import VignettingModel
 from vigproc.io.picture import _AXIS_COLOURS, falloff_figure, vignetting_picture
 

@@ -11,7 +11,7 @@ from vigproc.errors import ModelError
 from vigproc.core.estimate import frame_evidence
 from vigproc.core.family_fit import FrameCoefficients, frame_coefficients
 from vigproc.core.lensfamily import N_COMPONENTS, PROFILE_COMPONENTS, default_family, profile_family
-from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import diverse_lenses, pa_field
 from vigproc.core.pooling import (SIGMA_SCALE, frame_fit, pool_family, pooled_coefficients, scene_scatter,
                                   t_location)
 from vigproc.core.robust import RobustSettings, evidence_copy, working_copy
@@ -31,7 +31,7 @@ def _fits(frames):
 
 
 def _lens(i: int = 0) -> np.ndarray:
-    _, pa = bench_lenses(i + 1)[i]
+    _, pa = diverse_lenses(i + 1)[i]
     return np.log(pa_field((H, W), pa.k1, pa.k2, pa.k3))
 
 
@@ -52,7 +52,7 @@ def test_a_fooled_frame_does_not_pull_the_profile():
     lens = _lens()
     frames = [textured(H, W, seed=170 + i, contrast=0.05) * np.exp(lens) for i in range(5)]
     clean = pool_family(_fits(frames), W, H).log_field((H, W))
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
 
     frames[2] = frames[2] * np.exp(table1_model(1).log_field((H, W)))  # 0.84 EV of "scene"
     fooled = pool_family(_fits(frames), W, H).log_field((H, W))

@@ -32,9 +32,9 @@ def learned(tmp_path_factory):
     store through the command line: (folder, store, frames, the field's pa coefficients)."""
     from dngfixture import make_dng
 
-    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
 
-    _, pa = bench_lenses(1)[0]
+    _, pa = diverse_lenses(1)[0]
     d = tmp_path_factory.mktemp("travel")
     frames = []
     for i in range(4):

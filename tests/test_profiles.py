@@ -15,7 +15,7 @@ import pytest
 from scipy.stats import chi2
 
 from vigproc.io.exif import LensKey
-from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import diverse_lenses, pa_field
 from vigproc.core.model import VignettingModel
 from vigproc.stores.profiles import (
     ANY,
@@ -471,7 +471,7 @@ def test_export_import_round_trip(tmp_path):
 def test_example_profiles_import_and_match_lensfun(tmp_path):
     files = sorted(EXAMPLES.glob("*.json"))
     assert len(files) >= 2
-    lenses = {l.model: e for l, e in bench_lenses(20)}
+    lenses = {l.model: e for l, e in diverse_lenses(20)}
     with ProfileStore(tmp_path / "p.sqlite") as store:
         for f in files:
             p = store.import_file(f)
@@ -621,7 +621,7 @@ def test_pooled_fits_are_cached_by_evidence_not_by_frame_id(tmp_path):
 
     h, w = 160, 240
     with ProfileStore(tmp_path / "p.sqlite") as store:
-        for li, (_lens, pa) in enumerate(bench_lenses(2)):
+        for li, (_lens, pa) in enumerate(diverse_lenses(2)):
             frames = [photo_like(h, w, seed=40 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(2)]
             key = ProfileKey(f"vigproc|test|lens{li}", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
             for i, f in enumerate(frames):
@@ -642,7 +642,7 @@ def test_with_evidence_sigma_is_the_pooled_medians(tmp_path):
     from vigproc.core.pooling import coefficients_model, frame_fit, pool_family, pooled_coefficients
     from vigproc.core.robust import evidence_copy
 
-    _lens, pa = bench_lenses(1)[0]
+    _lens, pa = diverse_lenses(1)[0]
     h, w = 160, 240
     frames = [photo_like(h, w, seed=50 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(3)]
     key = ProfileKey("vigproc|test|scatter", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
@@ -667,7 +667,7 @@ def test_learning_with_evidence_pools_the_frames_family_fits(tmp_path):
     from vigproc.core.pooling import frame_fit, pool_family
     from vigproc.core.robust import evidence_copy
 
-    lens, pa = bench_lenses(1)[0]
+    lens, pa = diverse_lenses(1)[0]
     h, w = 160, 240
     truth = pa_field((h, w), pa.k1, pa.k2, pa.k3)
     frames = [photo_like(h, w, seed=60 + i) * truth for i in range(3)]
@@ -715,7 +715,7 @@ def _lens_frames(name: str, seed: int, n: int = 4, h: int = 120, w: int = 180):
     """``n`` photo-like frames through one lensfun lens, and a profile key for them."""
     from conftest import photo_like
 
-    _lens, pa = bench_lenses(1)[0]
+    _lens, pa = diverse_lenses(1)[0]
     frames = [photo_like(h, w, seed=seed + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(n)]
     return frames, ProfileKey(f"vigproc|test|{name}", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))
 
@@ -919,7 +919,7 @@ def test_migrations_6_to_9_refit_the_frames_from_their_evidence(tmp_path, old):
     from vigproc.core.pooling import frame_fit, pool_family
     from vigproc.core.robust import evidence_copy
 
-    _lens, pa = bench_lenses(1)[0]
+    _lens, pa = diverse_lenses(1)[0]
     h, w = 160, 240
     frames = [photo_like(h, w, seed=80 + i) * pa_field((h, w), pa.k1, pa.k2, pa.k3) for i in range(3)]
     key = ProfileKey("vigproc|test|v6", focal_bin(24.0), aperture_bin(2.8), aspect_label(w / h))

@@ -8,7 +8,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from vigproc.bench import throughput as T
+from benchmarks import throughput as T
 from vigproc.core.correct import correct
 from vigproc.core.model import VignettingModel
 from vigproc.io.images import EncodedImage, read_encoded, read_image

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from vigproc.bench.synthetic import table1_model
+from benchmarks.synthetic import table1_model
 from vigproc.forensics.check import forensic_check, ring_falloff
 from vigproc.forensics.report import _EST, ReportItem, report_figure, thumbnail, write_report
 

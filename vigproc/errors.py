@@ -150,6 +150,13 @@ class PriorError(VigprocError, ValueError):
     blame = SETTINGS
 
 
+class BenchmarksNotFoundError(VigprocError):
+    """``vigproc bench`` found no benchmarks: they live in a source checkout's
+    ``benchmarks/`` folder, which an installed copy does not ship."""
+
+    blame = SETTINGS
+
+
 #: Every exit code of the ``vigproc`` command, stable across releases.  Errors
 #: defined in other modules carry theirs as ``exit_code``; the tests check that
 #: they agree with this table.

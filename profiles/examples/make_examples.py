@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import diverse_lenses, pa_field
 from vigproc.io.exif import LensKey, normalise_text
 from vigproc.stores.profiles import (
     Profile, ProfileKey, aperture_bin, aspect_label, export_profile, fit_model_to_field, focal_bin, normalise,
@@ -48,7 +48,7 @@ EXAMPLES = (
 
 def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    lenses = bench_lenses(20)
+    lenses = diverse_lenses(20)
     for needle, fname, make, model, lens_name, body_note in EXAMPLES:
         lens, entry = next((l, e) for l, e in lenses if needle in l.model)
         # pa_field puts r = 1 at the corner *pixel centre* (radius hypot(W-1, H-1)/2); vigproc's

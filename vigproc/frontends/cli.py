@@ -24,6 +24,7 @@ from typing import Sequence
 
 from vigproc.frontends.commands._options import (JSON_HELP, add_learn, add_method, add_processing, add_transfer, failure_record,
                                                  files_exit_code, interrupted, learn_setting, number, print_json_results)
+from vigproc.frontends.commands._bench import add_benchmarks_dir
 from vigproc.errors import EXIT_CODES, DiskFullError, VigprocError, one_line
 from vigproc.io.lensident import display_lens_id
 
@@ -645,7 +646,8 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--db", nargs="*", help="lensfun XML files or folders (default: lensfunpy's bundled database)")
     fp.set_defaults(fn=cmd_prior_fit_lens_family)
 
-    sp = sub.add_parser("bench", help="benchmarks (print measured figures)")
+    sp = sub.add_parser("bench", help="benchmarks (print measured figures; from a source checkout)")
+    add_benchmarks_dir(sp)  # the benchmarks are found at run time, in a source checkout
     bsub = sp.add_subparsers(dest="bench_command", required=True)
     for mod in command_modules:  # the benchmarks live in the command modules (register_bench is optional)
         if hasattr(mod, "register_bench"):

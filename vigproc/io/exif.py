@@ -9,7 +9,7 @@ Reading
 -------
 :class:`ExifReader` wraps **one** persistent ``exiftool -stay_open`` process
 (:class:`vigproc.io.exiftool_process.ExiftoolProcess`, over PyExifTool).  Measured on the 92 shared
-camera JPEGs (:func:`vigproc.bench.io.bench_exif`): ~7 ms per file through the open process (plus
+camera JPEGs (``vigproc bench io``, benchmarks/io.py): ~7 ms per file through the open process (plus
 ~60 ms start-up once) against ~90 ms per file with a process per file, so a batch
 is read with one process and, per chunk of files, one ExifTool command.
 :meth:`ExifReader.read_many` never raises for a bad file: each result is a

@@ -2,7 +2,7 @@
 
 Photographs are centre-cropped to 3:2 (portrait frames turned to landscape first) and
 resized to 480×320 by area; their luminance is kept as stored, scaled to [0, 1]. The
-benchmarks (:mod:`vigproc.bench.synthetic`) and the commands that fit priors and
+benchmarks (:mod:`benchmarks.synthetic`) and the commands that fit priors and
 calibrations on folders of photographs read frames this way.
 
 References

@@ -78,8 +78,8 @@ __all__ = [
     "LensfunCamera",
     "LensfunLens",
     "PaVignetting",
-    "bench_lenses",
     "bundled_db_dir",
+    "diverse_lenses",
     "find_camera",
     "interpolate_pa",
     "load_lenses",
@@ -98,7 +98,7 @@ MAX_DB_FILE_BYTES = 8 << 20
 EXACT_MATCH_DISTANCE = 1e-4
 #: Normalised distance beyond which lensfun refuses to interpolate.
 MAX_INTERPOLATION_DISTANCE = 1.0
-#: Corner attenuation below which :func:`bench_lenses` calls a fall-off noticeable.
+#: Corner attenuation below which :func:`diverse_lenses` calls a fall-off noticeable.
 NOTICEABLE_CORNER = 0.9
 
 
@@ -649,7 +649,7 @@ def pa_field(
 # benchmark selection
 
 
-def _bench_entry(lens: LensfunLens) -> PaVignetting:
+def _selection_entry(lens: LensfunLens) -> PaVignetting:
     """Calibration point at the shortest focal, widest aperture there, farthest distance."""
     focal = lens.focal_range[0]
     aperture = lens.widest_aperture(focal)
@@ -673,10 +673,11 @@ def _round_robin(groups: dict[str, list[tuple[LensfunLens, PaVignetting]]], n: i
         depth += 1
 
 
-def bench_lenses(
+def diverse_lenses(
     n: int = 20, *, db_paths: Iterable[str | Path] | None = None
 ) -> list[tuple[LensfunLens, PaVignetting]]:
-    """A deterministic, maker-diverse selection of ``n`` lenses for benchmarks.
+    """A deterministic, maker-diverse selection of ``n`` lensfun lenses: the lens fields
+    of ``forensics calibrate``, the shipped samples and the benchmarks.
 
     Each lens comes with its calibration entry at the shortest calibrated
     focal length, the widest aperture calibrated there and the largest
@@ -712,7 +713,7 @@ def bench_lenses(
     for lens in load_lenses(db_paths):
         if (lens.maker, lens.model) in seen:
             continue
-        entry = _bench_entry(lens)
+        entry = _selection_entry(lens)
         if not _plausible_falloff(entry):
             continue
         seen.add((lens.maker, lens.model))
@@ -724,6 +725,10 @@ def bench_lenses(
     if len(chosen) < n:
         raise ModelError(f"only {len(chosen)} lenses with usable pa vignetting data, {n} requested")
     return chosen
+
+
+#: The old name of :func:`diverse_lenses` (it was the benchmarks' selection first).
+bench_lenses = diverse_lenses
 
 
 def lensfun_family(exclude: Iterable[tuple[str, str]] = (), n_components: int = N_COMPONENTS,

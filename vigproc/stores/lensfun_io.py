@@ -20,7 +20,7 @@ fits of log attenuation over the frame, every frame point weighted equally:
 * :func:`pa_from_model` / :func:`export_lensfun_xml`: vigproc -> lensfun.
 
 Both report the misfit as an RMS over the frame in EV (stops); measured over
-the 20 lenses of :func:`vigproc.stores.lensfun.bench_lenses` it stays below 1e-3 EV
+the 20 lenses of :func:`vigproc.stores.lensfun.diverse_lenses` it stays below 1e-3 EV
 (see ``tests/test_lensfun_io.py``).
 
 Database version
@@ -95,7 +95,7 @@ CONSTRAINT_SAMPLES = 65
 #: length grows (P -> 0), G alone reproduces the pa polynomial exactly with
 #: alpha_i ~ s^-i blowing up.  This weight costs < 1e-3 EV on real lenses
 #: (measured: 1e-2 -> 2.0e-3 EV max, 1e-3 -> 6e-4, 1e-4 -> 2e-4 over
-#: bench_lenses(20)) and keeps alpha of order 0.1-0.3, the range vigproc's
+#: diverse_lenses(20)) and keeps alpha of order 0.1-0.3, the range vigproc's
 #: estimators use (robust prior sigma_alpha = 0.3).
 ALPHA_RIDGE = 1e-3
 #: Floor kept on G (penalty) on [0, r_corner]; the model must not black out a corner.
@@ -337,7 +337,7 @@ def kw_from_pa(
     -----
     Measured (600 x 400 frames, vigproc's field kernel at every pixel against
     :func:`vigproc.stores.lensfun.pa_field`): over the 20 lenses of
-    :func:`vigproc.stores.lensfun.bench_lenses` RMS misfit max 7.1e-4 EV, median
+    :func:`vigproc.stores.lensfun.diverse_lenses` RMS misfit max 7.1e-4 EV, median
     2.8e-4 EV; over 1603 random calibration entries of the bundled database
     (450 x 300, fit grid) median 1.0e-4, 99th percentile 8.6e-4, max 5.5e-3 EV
     (a non-monotone entry, k1 = +2.17); 13 entries whose pa polynomial reaches

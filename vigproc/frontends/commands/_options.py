@@ -116,7 +116,7 @@ def add_processing(sp: argparse.ArgumentParser, *, profile_default: str = "auto"
 
 
 def add_clean_bases(bp: argparse.ArgumentParser) -> None:
-    """The clean protocol's bases (vigproc.bench.clean), as the clean benchmarks take them."""
+    """The clean protocol's bases (benchmarks.clean), as the clean benchmarks take them."""
     bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
                     help="folders of full-size camera frames (BSDS/Kodak are skipped: film scans)")
     bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,

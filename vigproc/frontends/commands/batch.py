@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from vigproc.errors import one_line
+from vigproc.frontends.commands._bench import benchmark
 
 log = logging.getLogger(__name__)
 
@@ -253,7 +254,7 @@ def _bench_images(folder: Path, n: int, width: int, height: int) -> list[Path]:
 
     import numpy as np
 
-    from vigproc.bench.synthetic import table1_model
+    table1_model = benchmark("synthetic").table1_model
     from vigproc.io.images import write_image
 
     rng = np.random.default_rng(0)
@@ -280,7 +281,7 @@ def _bench_images(folder: Path, n: int, width: int, height: int) -> list[Path]:
 
 
 def _bench_profile(path: Path, width: int, height: int) -> None:
-    from vigproc.bench.synthetic import table1_model
+    table1_model = benchmark("synthetic").table1_model
     from vigproc.stores.profiles import Profile, ProfileKey, aspect_label, export_profile, normalise
 
     theta, _, aspect = normalise(table1_model(1).rescale(width, height))

@@ -1,5 +1,5 @@
 """``vigproc bench`` for the estimators' accuracy: ``synthetic``, ``lensfun``, ``clean``,
-``crops``, ``real``, ``scene-scatter`` and ``colour`` (:mod:`vigproc.bench`)."""
+``crops``, ``real``, ``scene-scatter`` and ``colour`` (:mod:`benchmarks`)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from vigproc.errors import VigprocError
 from vigproc.frontends.commands._bench import add_colour, add_estimator_bench, add_scene_prior, estimator, scene_settings
 from vigproc.frontends.commands._options import add_clean_bases, number, write_json_result
 from vigproc.pipeline.processor import images_in as _images_in, output_file
+from vigproc.frontends.commands._bench import benchmark
 
 log = logging.getLogger("vigproc")
 
@@ -33,7 +34,7 @@ def register_bench(bsub) -> None:
                     help="the paper's protocol takes stored values as linear (default)")
     bp.add_argument("--methods", nargs="+", default=["ga", "lyu2010-rand", "lyu2010", "default"],
                     choices=["ga", "lyu2010-rand", "lyu2010", "robust", "lens-family", "default", "rgs"],
-                    help="rgs: the radial-gradient-symmetry peer (vigproc.bench.peers)")
+                    help="rgs: the radial-gradient-symmetry peer (benchmarks.peers)")
     add_colour(bp)
     add_scene_prior(bp)
     bp.add_argument("--json", help="write the figures to this file")
@@ -110,7 +111,7 @@ def register_bench(bsub) -> None:
 
 def cmd_bench_synthetic(args: argparse.Namespace) -> int:
     """Lyu 2010's synthetic protocol (Tables 2-3): Table 1's fields on natural images, every method."""
-    from vigproc.bench import synthetic as S
+    S = benchmark("synthetic")
     from vigproc.io.images import read_image
 
     settings = scene_settings(args.scene_prior)
@@ -135,8 +136,8 @@ def cmd_bench_synthetic(args: argparse.Namespace) -> int:
 
 def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     """Real lens fields from lensfun on natural images, and no harm on the same images unvignetted."""
-    from vigproc.bench import lensfun as B
-    from vigproc.bench.synthetic import protocol_image
+    B = benchmark("lensfun")
+    protocol_image = benchmark("synthetic").protocol_image
     from vigproc.io.images import read_image
 
     settings = scene_settings(args.scene_prior)
@@ -151,10 +152,10 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
           f"{'uncorr gf':>11}{'differ. EV':>12}{'fallbk':>8}{'s/img':>8}")
     from vigproc.core.lensfamily import PROFILE_COMPONENTS
     from vigproc.stores.lensfun import lensfun_family
-    from vigproc.stores.lensfun import bench_lenses
+    from vigproc.stores.lensfun import diverse_lenses
 
     # the lens-family fits never hold the lens they are scored on
-    family = lensfun_family(exclude={(lens.maker, lens.model) for lens, _ in bench_lenses(args.lenses)},
+    family = lensfun_family(exclude={(lens.maker, lens.model) for lens, _ in diverse_lenses(args.lenses)},
                             n_components=PROFILE_COMPONENTS)
     for name in args.methods:
         fn = estimator(name, settings=settings, family=family)
@@ -176,8 +177,9 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
 
 def cmd_bench_clean(args: argparse.Namespace) -> int:
     """Vignetting-free bases × lensfun and Table 1 fields, every method side by side."""
-    from vigproc.bench import clean as C
-    from vigproc.bench.peers import PEER_ENV, published_rgs
+    C = benchmark("clean")
+    PEER_ENV = benchmark("peers").PEER_ENV
+    published_rgs = benchmark("peers").published_rgs
     from vigproc.core.lensfamily import PROFILE_COMPONENTS
     from vigproc.core.pixels import luminance
     from vigproc.stores.lensfun import lensfun_family
@@ -252,10 +254,10 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
     """The crop test's AUC by fall-off and offset, its false alarms and power, on clean bases."""
     import numpy as np
 
-    from vigproc.bench import clean as C
-    from vigproc.bench import crops as K
+    C = benchmark("clean")
+    K = benchmark("crops")
     from vigproc.stores.lensfun import lensfun_family
-    from vigproc.stores.lensfun import bench_lenses
+    from vigproc.stores.lensfun import diverse_lenses
 
     if args.calibrate and args.statistic != "shift":
         print("vigproc: bench crops: --calibrate writes the test's own null: it needs --statistic shift",
@@ -268,7 +270,7 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
     if len(bases) < 4:
         print(f"vigproc: bench crops: {len(bases)} usable frames; need 4", file=sys.stderr)
         return 2
-    chosen = bench_lenses(args.lenses)
+    chosen = diverse_lenses(args.lenses)
     family = lensfun_family(exclude={(lens.maker, lens.model) for lens, _ in chosen})
     r = K.run(bases, [(pa.k1, pa.k2, pa.k3) for _, pa in chosen], family, alpha=args.alpha,
               statistic=args.statistic)
@@ -297,7 +299,7 @@ def cmd_bench_real(args: argparse.Namespace) -> int:
     """Photographs vignetted by others: pairs with a known field, and real lenses."""
     import numpy as np
 
-    from vigproc.bench import real as R
+    R = benchmark("real")
     from vigproc.core.pixels import luminance
     from vigproc.io.images import read_image
     from vigproc.pipeline.processor import IMAGE_SUFFIXES
@@ -366,7 +368,7 @@ def cmd_bench_scene_scatter(args: argparse.Namespace) -> int:
     import numpy as np
 
     from vigproc.atomic import atomic_write_text
-    from vigproc.bench import clean as C
+    C = benchmark("clean")
     from vigproc.core.estimate import frame_evidence
     from vigproc.core.lensfamily import profile_family
     from vigproc.core.pooling import frame_fit, scene_scatter_record
@@ -392,13 +394,13 @@ def cmd_bench_scene_scatter(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_colour(args: argparse.Namespace) -> int:
-    """Colour shading: ``--part flat`` (flat frames and DNG gain maps, vigproc.bench.colour),
-    ``detect`` (one photograph's cast, vigproc.bench.colour_detect), or ``all``."""
+    """Colour shading: ``--part flat`` (flat frames and DNG gain maps, benchmarks.colour),
+    ``detect`` (one photograph's cast, benchmarks.colour_detect), or ``all``."""
     output_file(args.json)
     data: dict = {}
     if args.part in ("flat", "all"):
-        from vigproc.bench import colour as B
-        from vigproc.bench.clean import load_clean_bases
+        B = benchmark("colour")
+        load_clean_bases = benchmark("clean").load_clean_bases
 
         bases, _ = load_clean_bases(args.images, args.min_long_side, args.limit, colour=True)
         rows = B.run_flat(B.physical_fields() + B.gainmap_fields(), bases, frames=args.frames, seed=args.seed)

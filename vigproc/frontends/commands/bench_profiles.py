@@ -1,5 +1,5 @@
 """``vigproc bench`` for the profiles' accuracy: ``profile``, ``profile-clean``,
-``profile-interp`` and ``profile-flat`` (:mod:`vigproc.bench.profile`)."""
+``profile-interp`` and ``profile-flat`` (:mod:`benchmarks.profile`)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from vigproc.errors import EXIT_CODES
 from vigproc.frontends.commands._bench import estimator
 from vigproc.frontends.commands._options import add_clean_bases, add_transfer, number, write_json_result
 from vigproc.pipeline.processor import images_in as _images_in, output_file
+from vigproc.frontends.commands._bench import benchmark
 
 
 def register(subparsers) -> None:
@@ -64,8 +65,8 @@ def register_bench(bsub) -> None:
 
 def cmd_bench_profile(args: argparse.Namespace) -> int:
     """Profile accuracy after 1, 5, 20 frames of real lens fields, per pooling method."""
-    from vigproc.bench import profile as B
-    from vigproc.bench.synthetic import protocol_image
+    B = benchmark("profile")
+    protocol_image = benchmark("synthetic").protocol_image
     from vigproc.io.images import read_image
 
     files = _images_in(Path(args.images), args.limit)
@@ -94,9 +95,10 @@ def cmd_bench_profile(args: argparse.Namespace) -> int:
 
 def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
     """Profiles learned through a real store on vignetting-free bases x lensfun fields."""
-    from vigproc.bench import clean as C
-    from vigproc.bench import profile as B
-    from vigproc.bench.peers import PEER_ENV, published_rgs
+    C = benchmark("clean")
+    B = benchmark("profile")
+    PEER_ENV = benchmark("peers").PEER_ENV
+    published_rgs = benchmark("peers").published_rgs
     from vigproc.core.lensfamily import PROFILE_COMPONENTS
     from vigproc.stores.lensfun import lensfun_family
 
@@ -132,7 +134,7 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
 
 def cmd_bench_profile_interp(args: argparse.Namespace) -> int:
     """A lens's profiles answering between their bins, on lensfun's held-out calibrations."""
-    from vigproc.bench import profile as B
+    B = benchmark("profile")
 
     output_file(args.json)
     rows = B.run_interpolation(max_points=args.points)
@@ -148,8 +150,8 @@ def cmd_bench_profile_interp(args: argparse.Namespace) -> int:
 
 def cmd_bench_profile_flat(args: argparse.Namespace) -> int:
     """Profiles learned from three shots of a flat field (Zheng et al.'s white pairs)."""
-    from vigproc.bench import profile as B
-    from vigproc.bench.real import find_inputs
+    B = benchmark("profile")
+    find_inputs = benchmark("real").find_inputs
     from vigproc.core.pixels import luminance
     from vigproc.io.images import read_image
     from vigproc.pipeline.processor import IMAGE_SUFFIXES

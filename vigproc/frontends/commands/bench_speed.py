@@ -15,6 +15,7 @@ from vigproc.core.methods import METHODS
 from vigproc.errors import VigprocError
 from vigproc.frontends.commands._options import add_transfer, number, write_json_result
 from vigproc.pipeline.processor import images_in as _images_in
+from vigproc.frontends.commands._bench import benchmark
 
 
 def register(subparsers) -> None:
@@ -97,7 +98,8 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
     """Per-image estimation time on 480×320 protocol frames (Table 1 setting 2)."""
     import numpy as np
 
-    from vigproc.bench.synthetic import protocol_image, table1_model
+    protocol_image = benchmark("synthetic").protocol_image
+    table1_model = benchmark("synthetic").table1_model
     from vigproc.core.estimate import estimate
     from vigproc.io.images import read_image
 
@@ -122,9 +124,10 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
 
 def _bench_speed_api(args: argparse.Namespace) -> int:
     """``bench speed --api``: vigproc.estimate on clean-protocol crops beside the published peer."""
-    from vigproc.bench.api_speed import api_speed
-    from vigproc.bench.clean import load_clean_bases
-    from vigproc.bench.peers import PEER_ENV, published_rgs
+    api_speed = benchmark("api_speed").api_speed
+    load_clean_bases = benchmark("clean").load_clean_bases
+    PEER_ENV = benchmark("peers").PEER_ENV
+    published_rgs = benchmark("peers").published_rgs
 
     if not args.images:
         print("vigproc: bench speed --api: give --images (full-size camera frames, e.g. ../shared/data/jpeg_exif)",
@@ -156,16 +159,16 @@ def cmd_bench_learn(args: argparse.Namespace) -> int:
     """Learning one more frame into a profile, warm and in a new process."""
     import numpy as np
 
-    from vigproc.bench.learn import learn_speed
+    learn_speed = benchmark("learn").learn_speed
     from vigproc.io.protocol import read_protocol_images, vignetted
-    from vigproc.stores.lensfun import bench_lenses, pa_field
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
 
     folder = Path(args.images) if args.images else Path(str(resources.files("vigproc.data").joinpath("samples")))
     ims = read_protocol_images(_images_in(folder, args.limit), args.input_transfer, colour=True)
     if not ims:
         print(f"vigproc: bench learn: no readable images in {folder}", file=sys.stderr)
         return 2
-    lens, pa = bench_lenses(1)[0]
+    lens, pa = diverse_lenses(1)[0]
     log_field = np.log(pa_field(ims[0].shape[:2], pa.k1, pa.k2, pa.k3))
     frames = [vignetted(im, log_field) for im in ims]
     r = learn_speed(frames, stored=args.stored, rounds=args.rounds)
@@ -185,15 +188,15 @@ def cmd_bench_correct(args: argparse.Namespace) -> int:
 
     import numba
 
-    from vigproc.bench.synthetic import table1_model
+    table1_model = benchmark("synthetic").table1_model
     from vigproc.core.correct import correct, gain_step
-    from vigproc.stores.lensfun import bench_lenses
+    from vigproc.stores.lensfun import diverse_lenses
     from vigproc.stores.lensfun_io import kw_from_pa
 
     h, w = args.height, args.width
     img = np.random.default_rng(0).random((h, w, 3), dtype=np.float32)
     out = np.empty_like(img)
-    lens, pa = bench_lenses(1)[0]
+    lens, pa = diverse_lenses(1)[0]
     fields = [
         (f"real lens ({lens.maker} {lens.model}, lensfun)", kw_from_pa(pa.k1, pa.k2, pa.k3, w, h)),
         ("Lyu Table 1 setting 2 (extreme)", table1_model(2).rescale(480, round(480 * h / w))),
@@ -228,7 +231,9 @@ def cmd_bench_correct(args: argparse.Namespace) -> int:
 
 def cmd_bench_io(args: argparse.Namespace) -> int:
     """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
-    from vigproc.bench.io import bench_exif, bench_formats, bench_raw
+    bench_formats = benchmark("io").bench_formats
+    bench_raw = benchmark("io").bench_raw
+    bench_exif = benchmark("io").bench_exif
 
     print(f"reading a {args.width}x{args.height} RGB frame (best of {args.repeat}); 'bytes' = reading the file's bytes")
     print(f"{'format':<20}{'MP':>7}{'MB':>9}{'read ms':>10}{'bytes ms':>10}{'ratio':>7}")
@@ -249,8 +254,8 @@ def cmd_bench_io(args: argparse.Namespace) -> int:
 
 def cmd_bench_throughput(args: argparse.Namespace) -> int:
     """``vigproc correct`` on full-size photographs beside the floor (decode + encode +
-    one exiftool batch) and darktable-cli, in one run (:mod:`vigproc.bench.throughput`)."""
-    from vigproc.bench import throughput as T
+    one exiftool batch) and darktable-cli, in one run (:mod:`benchmarks.throughput`)."""
+    T = benchmark("throughput")
 
     if not (args.images or args.raw):
         raise VigprocError("bench throughput needs --images DIR or --raw DIR")
@@ -268,9 +273,9 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
 
 def cmd_bench_scaling(args: argparse.Namespace) -> int:
     """``vigproc watch`` and ``vigproc batch`` on full-size photographs with 1 and 2
-    workers, interleaved (:mod:`vigproc.bench.scaling`)."""
-    from vigproc.bench import scaling as S
-    from vigproc.bench import throughput as T
+    workers, interleaved (:mod:`benchmarks.scaling`)."""
+    S = benchmark("scaling")
+    T = benchmark("throughput")
 
     photos, _ = T.select_photos(Path(args.images), args.min_mp, args.limit)
     r = S.run_scaling(photos, workers=args.workers, rounds=args.rounds, frontends=args.frontends,
@@ -282,8 +287,8 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
 
 def cmd_bench_memory(args: argparse.Namespace) -> int:
     """Peak memory of one worker (``vigproc correct``) on a 24 MP JPEG and 16-bit TIFF
-    (:mod:`vigproc.bench.memory`)."""
-    from vigproc.bench import memory as M
+    (:mod:`benchmarks.memory`)."""
+    M = benchmark("memory")
 
     r = M.run_memory(args.width, args.height, workdir=Path(args.tmp) if args.tmp else None)
     print("\n".join(M.format_result(r)))

@@ -1,12 +1,13 @@
 """``vigproc bench colour-detect``: how often one photograph's colour-cast report is
 right, and how often a scene's colour is mistaken for a cast
-(:mod:`vigproc.bench.colour_detect`)."""
+(:mod:`benchmarks.colour_detect`)."""
 
 from __future__ import annotations
 
 import argparse
 import math
 import sys
+from vigproc.frontends.commands._bench import benchmark
 
 
 def register(subparsers) -> None:
@@ -55,8 +56,8 @@ def bench_detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
 
     import numpy as np
 
-    from vigproc.bench import clean as C
-    from vigproc.bench import colour_detect as D
+    C = benchmark("clean")
+    D = benchmark("colour_detect")
 
     targets, directions = getattr(args, "targets", None), getattr(args, "directions", 8)
     theta_max, lenses = getattr(args, "theta_max", None), getattr(args, "lenses", 10)

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from vigproc.frontends.commands._options import add_method, add_transfer, number, write_json_result
 from vigproc.errors import VigprocError
+from vigproc.frontends.commands._bench import benchmark
 
 
 #: --classifier choices: name -> (kind, features).
@@ -210,10 +211,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from vigproc.bench.forensics import bench_classes, calibration_residuals
     from vigproc.core.estimate import estimate
     import numpy as np
 
+    from vigproc.forensics.calibration_frames import calibration_residuals, lens_classes
     from vigproc.forensics.check import estimator_fingerprint, fit_calibration
 
     from vigproc.pipeline.processor import InputFiles, images_in, output_file, refuse_input
@@ -221,7 +222,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     refuse_input(args.output, InputFiles(f for d in args.images for f in images_in(Path(d), args.limit)))
     output_file(args.output)
     ims = _protocol_images(args.images, args.limit, args.input_transfer)
-    classes = bench_classes(args.lenses)
+    classes = lens_classes(args.lenses)
     print(f"calibrating on {len(ims)} photographs x {args.per_image} of {len(classes)} lens fields")
     res, groups, weak = calibration_residuals(ims, lambda v: estimate(v, _forensic_method(args.method), channel_axis=None), classes,
                                               per_image=args.per_image, progress=print)
@@ -243,7 +244,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_bench_forensics(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from vigproc.bench import forensics as B
+    B = benchmark("forensics")
     import numpy as np
 
     from vigproc.core.estimate import estimate
@@ -291,11 +292,11 @@ def cmd_bench_forensics(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
-    """Lens mismatch and identification on the clean protocol (vigproc.bench.forensics_clean)."""
+    """Lens mismatch and identification on the clean protocol (benchmarks.forensics_clean)."""
     from dataclasses import asdict
 
-    from vigproc.bench import clean as C
-    from vigproc.bench import forensics_clean as F
+    C = benchmark("clean")
+    F = benchmark("forensics_clean")
     from vigproc.pipeline.processor import output_file
 
     output_file(args.json)

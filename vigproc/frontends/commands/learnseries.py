@@ -1,5 +1,5 @@
 """``vigproc bench learn-series``: a series of one lens setting through ``vigproc batch``,
-learning as it goes (:mod:`vigproc.bench.learn_series`): when the profile is trusted, each
+learning as it goes (:mod:`benchmarks.learn_series`): when the profile is trusted, each
 frame's field error before and after, and whether the frames after trust share one field."""
 
 from __future__ import annotations
@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+from vigproc.frontends.commands._bench import benchmark
 
 
 def register(subparsers) -> None:
@@ -39,17 +40,18 @@ def cmd_bench_learn_series(args: argparse.Namespace) -> int:
     import os
     from pathlib import Path
 
-    from vigproc.bench.clean import lens_fields, load_clean_bases
-    from vigproc.bench.learn_series import run_series
+    lens_fields = benchmark("clean").lens_fields
+    load_clean_bases = benchmark("clean").load_clean_bases
+    run_series = benchmark("learn_series").run_series
     from vigproc.frontends.commands._options import write_json_result
-    from vigproc.stores.lensfun import bench_lenses
+    from vigproc.stores.lensfun import diverse_lenses
 
     bases, _ = load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
     if len(bases) < args.frames:
         print(f"only {len(bases)} bases under {args.images}; the series needs {args.frames}")
         return 1
     fields, _ = lens_fields()
-    lenses = bench_lenses(20)
+    lenses = diverse_lenses(20)
     results = []
     print(f"learn as you go: {args.frames} frames of one lens setting through 'vigproc batch --mode correct "
           f"--workers {args.workers}' (load {os.getloadavg()[0]:.1f})")

@@ -1,12 +1,13 @@
 """``vigproc bench real-frames``: harm of the default correction on real full frames
-(:mod:`vigproc.bench.real_frames`), with the harm rules off and on; the error against
+(:mod:`benchmarks.real_frames`), with the harm rules off and on; the error against
 lensfun's field where lensfun calibrated the frame's lens, one frame and a series
-through the profile store (:mod:`vigproc.bench.real_frames_lensfun`)."""
+through the profile store (:mod:`benchmarks.real_frames_lensfun`)."""
 
 from __future__ import annotations
 
 import argparse
 import math
+from vigproc.frontends.commands._bench import benchmark
 
 
 def register(subparsers) -> None:
@@ -77,8 +78,10 @@ def _print_series(s) -> None:
 
 
 def cmd_bench_real_frames(args: argparse.Namespace) -> int:
-    from vigproc.bench import real_frames_lensfun as rfl
-    from vigproc.bench.real_frames import as_dict, full_frames, run
+    rfl = benchmark("real_frames_lensfun")
+    as_dict = benchmark("real_frames").as_dict
+    full_frames = benchmark("real_frames").full_frames
+    run = benchmark("real_frames").run
     from vigproc.frontends.commands._options import write_json_result
 
     images = args.images or ["../shared/data/jpeg_exif"]

@@ -1,5 +1,5 @@
 """``vigproc watch``: the watch-folder daemon; ``vigproc bench watch``, its throughput, and
-``vigproc bench faults``, its behaviour on a filling disk (:mod:`vigproc.bench.faults`).
+``vigproc bench faults``, its behaviour on a filling disk (:mod:`benchmarks.faults`).
 
 The daemon itself is :mod:`vigproc.frontends.daemon`; the journal :mod:`vigproc.stores.journal`.
 """
@@ -21,6 +21,7 @@ from typing import Any
 
 from vigproc.errors import VigprocError
 from vigproc.stores.retry import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_CRASHES, DEFAULT_RETRY_BASE, DEFAULT_RETRY_CAP
+from vigproc.frontends.commands._bench import benchmark
 
 log = logging.getLogger("vigproc.watch")
 
@@ -197,7 +198,7 @@ def _make_inputs(folder: Path, n: int, width: int, height: int, fmt: str, model)
     """N distinct synthetic frames with the model's vignetting, plus camera/lens EXIF."""
     import numpy as np
 
-    from vigproc.bench.io import synthetic_frame
+    synthetic_frame = benchmark("io").synthetic_frame
     from vigproc.io.images import write_image
 
     base = synthetic_frame(height, width) * model.field((height, width)).astype(np.float32)[..., None]
@@ -330,7 +331,7 @@ def files_in(folder: Path) -> list[Path]:
 def cmd_bench_watch(args: argparse.Namespace) -> int:
     """Sustained daemon throughput with a trusted profile vs the bare read+write of the
     same files in the same run."""
-    from vigproc.bench.synthetic import table1_model
+    table1_model = benchmark("synthetic").table1_model
 
     n, w, h, k = args.files, args.width, args.height, args.workers
     model = table1_model(1).rescale(w, h)
@@ -429,6 +430,26 @@ def register_bench(bench_subparsers) -> None:
     bp.add_argument("--keep", action="store_true", help="keep the temporary folder")
     bp.set_defaults(fn=cmd_bench_watch)
 
-    from vigproc.bench.faults import register as register_faults
+    _register_bench_faults(bench_subparsers)
 
-    register_faults(bench_subparsers)  # the daemon under a filling disk and kill -9
+
+def cmd_bench_faults(args: argparse.Namespace) -> int:
+    """``vigproc bench faults``: the daemon under a filling disk and kill -9 (benchmarks/faults.py)."""
+    return benchmark("faults").cmd_bench_faults(args)
+
+
+def _register_bench_faults(bench_subparsers) -> None:
+    bp = bench_subparsers.add_parser(
+        "faults", help="the watch daemon with its output on a small tmpfs that fills, is grown, and kill -9 (root)")
+    bp.add_argument("--images", help="folder of camera JPEGs (default: the shared data's jpeg_exif)")
+    bp.add_argument("--files", type=int, default=24, help="healthy inputs (default %(default)s)")
+    bp.add_argument("--workers", type=int, default=2, help="daemon workers (default %(default)s)")
+    bp.add_argument("--small", type=int, default=20, help="tmpfs size in MB while it fills (default %(default)s)")
+    bp.add_argument("--grow", type=int, default=1024, help="tmpfs size in MB once grown (default %(default)s)")
+    bp.add_argument("--kills", type=int, default=5,
+                    help="kill -9 of the daemon: half while the disk is full, the rest once it was grown "
+                         "(default %(default)s)")
+    bp.add_argument("--tmp", help="folder for the run's files (default: the system's temporary folder)")
+    bp.add_argument("--keep", action="store_true", help="keep the run's folder (the daemon's log)")
+    bp.add_argument("--json", action="store_true", help="the figures as JSON")
+    bp.set_defaults(fn=cmd_bench_faults)

@@ -25,6 +25,7 @@ from typing import Sequence
 
 import numpy as np
 
+from benchmarks import child_code
 from vigproc.errors import VigprocError
 
 #: What a worker imports before its first frame (the baseline).
@@ -73,8 +74,8 @@ def make_fixtures(folder: Path, width: int = 6000, height: int = 4000) -> dict[s
     dict
         ``{"jpeg": path, "tiff16": path}``.
     """
-    from vigproc.bench.io import synthetic_frame
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.io import synthetic_frame
+    from benchmarks.synthetic import table1_model
     from vigproc.io.images import write_image
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -106,7 +107,8 @@ def peak_of(code: str, label: str, *, env: dict[str, str] | None = None) -> Memo
         raise VigprocError("bench memory needs Linux's /proc/self/status")
     with tempfile.TemporaryDirectory(prefix="vigproc-hwm-") as tmp:
         out = os.path.join(tmp, "hwm")
-        wrapped = f"import atexit\nfrom vigproc.bench.memory import _report_hwm\natexit.register(_report_hwm, {out!r})\n{code}"
+        wrapped = child_code(f"import atexit\nfrom benchmarks.memory import _report_hwm\n"
+                             f"atexit.register(_report_hwm, {out!r})\n{code}")
         t0 = time.perf_counter()
         res = subprocess.run([sys.executable, "-c", wrapped], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                              stderr=subprocess.PIPE, env=env)

@@ -2,15 +2,15 @@
 
 Protocol
 --------
-* **Lens classes** (:func:`bench_classes`): the first ``n_lenses`` lenses of
-  :func:`vigproc.stores.lensfun.bench_lenses` that have two calibrated apertures at their
+* **Lens classes** (:func:`vigproc.forensics.calibration_frames.lens_classes`): the first ``n_lenses`` lenses of
+  :func:`vigproc.stores.lensfun.diverse_lenses` that have two calibrated apertures at their
   shortest focal length at least one stop apart with different fall-off (corner
   attenuation differing by ≥ 0.05; some compact-camera entries repeat one
   calibration for every aperture, and such "classes" could not be told apart by
   anything): the widest aperture and the calibrated one nearest two stops down.
   Each (lens, aperture) is a class, as the paper's Fig. 6 rows are.
 * **Frames**: natural photographs (480×320, linearised luminance, as in
-  :mod:`vigproc.bench.lensfun`) multiplied by each class's lensfun "pa" field.
+  :mod:`benchmarks.lensfun`) multiplied by each class's lensfun "pa" field.
   The photographs are split in two halves at random (``seed``): the *training*
   half trains the classifiers and calibrates the check, the *test* half is
   measured.  No photograph is in both.
@@ -44,6 +44,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from vigproc.core.model import VignettingModel
+from vigproc.forensics.calibration_frames import LensClass, calibration_residuals, lens_classes  # noqa: F401  (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -51,69 +52,6 @@ WIDTH, HEIGHT = 480, 320
 CROP_FRACTIONS = (0.9, 0.8, 0.7, 0.6)
 #: Bins of the true fall-off difference between two classes (EV RMS over the frame).
 SEPARATION_BINS = (0.0, 0.1, 0.25, 0.5, math.inf)
-
-
-@dataclass(frozen=True)
-class LensClass:
-    """One (lens, aperture) class with its lensfun "pa" coefficients."""
-
-    maker: str
-    model: str
-    focal: float
-    aperture: float
-    k1: float
-    k2: float
-    k3: float
-
-    @property
-    def lens(self) -> str:
-        return f"{self.maker} {self.model}"
-
-    @property
-    def label(self) -> str:
-        return f"{self.lens} f/{self.aperture:g}"
-
-    def field(self, height: int, width: int) -> np.ndarray:
-        from vigproc.stores.lensfun import pa_field
-
-        return pa_field((height, width), self.k1, self.k2, self.k3)
-
-    def true_model(self, width: int, height: int) -> VignettingModel:
-        """The lensfun model a check of this lens compares with (:func:`kw_from_pa`)."""
-        from vigproc.stores.lensfun_io import kw_from_pa
-
-        return kw_from_pa(self.k1, self.k2, self.k3, width, height)
-
-
-def bench_classes(n_lenses: int = 8, *, min_corner_change: float = 0.05) -> list[LensClass]:
-    """``2 * n_lenses`` classes: two apertures of each of ``n_lenses`` lensfun lenses
-    (see the module docstring).
-
-    Raises
-    ------
-    ModelError
-        If the database has too few suitable lenses.
-    """
-    from vigproc.errors import ModelError
-    from vigproc.stores.lensfun import bench_lenses, interpolate_pa
-
-    out: list[LensClass] = []
-    for lens, _ in bench_lenses(200):
-        focal = lens.focal_range[0]
-        apertures = sorted({v.aperture for v in lens.vignetting if v.focal == focal})
-        wide = apertures[0]
-        stopped = [a for a in apertures if a >= wide * math.sqrt(2) * 0.99]
-        if not stopped:
-            continue
-        second = min(stopped, key=lambda a: (abs(math.log(a / (2.0 * wide))), a))
-        pa1, pa2 = interpolate_pa(lens, focal, wide), interpolate_pa(lens, focal, second)
-        if abs(pa1.corner - pa2.corner) < min_corner_change:
-            continue
-        for a, pa in ((wide, pa1), (second, pa2)):
-            out.append(LensClass(lens.maker, lens.model, focal, a, pa.k1, pa.k2, pa.k3))
-        if len(out) >= 2 * n_lenses:
-            return out
-    raise ModelError(f"only {len(out) // 2} lensfun lenses have two distinct calibrated apertures, {n_lenses} asked")
 
 
 def crop_frame(frame: np.ndarray, kappa: float, corner: int) -> np.ndarray:
@@ -280,7 +218,7 @@ def run(
 
     t_start = time.perf_counter()
     say = progress or (lambda s: None)
-    classes = bench_classes(n_lenses)
+    classes = lens_classes(n_lenses)
     train, test = split_images(len(images), seed)
     h, w = images[0].shape
     say(f"{len(classes)} classes; {len(train)} training and {len(test)} test photographs")
@@ -399,41 +337,3 @@ def run(
         n_test_images=len(test), alpha=alpha, calibration_frames=cal.n_frames, identification=ident, check=check,
         separation=separation, seconds=time.perf_counter() - t_start,
     )
-
-
-def calibration_residuals(
-    images: Sequence[np.ndarray], estimate: Callable[[np.ndarray], VignettingModel], classes: Sequence[LensClass],
-    *, per_image: int = 4, progress: Callable[[str], None] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Feature residuals f(estimate) − f(true field) of photographs × lens fields, for
-    :func:`vigproc.forensics.check.fit_calibration`: photograph i gets ``per_image`` classes
-    (cycling through ``classes``).
-
-    Returns
-    -------
-    residuals : ndarray (N, 6)
-    groups : ndarray (N,)
-        The photograph of each frame.
-    weak : ndarray of bool (N,)
-        Whether the frame's estimate was too weak for a verdict.
-    """
-    from vigproc.forensics.check import frame_features, is_weak
-
-    res, groups, weak = [], [], []
-    truth: dict[tuple[int, int, int], np.ndarray] = {}
-    for i, im in enumerate(images):
-        h, w = im.shape
-        for j in range(per_image):
-            ci = (i * per_image + j) % len(classes)
-            c = classes[ci]
-            m = estimate(im * c.field(h, w))
-            fit = m.candidate if m.candidate is not None else m
-            key = (ci, w, h)
-            if key not in truth:
-                truth[key] = frame_features(c.true_model(w, h))
-            res.append(frame_features(fit) - truth[key])
-            groups.append(i)
-            weak.append(is_weak(m))
-        if progress is not None and (i + 1) % 25 == 0:
-            progress(f"  {i + 1}/{len(images)} photographs")
-    return np.array(res), np.array(groups), np.array(weak, dtype=bool)

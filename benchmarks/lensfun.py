@@ -1,6 +1,6 @@
 """Real-lens protocol: lensfun's calibrated vignetting applied to natural images.
 
-For each of ``n_lenses`` lenses from :func:`vigproc.stores.lensfun.bench_lenses` (shortest
+For each of ``n_lenses`` lenses from :func:`vigproc.stores.lensfun.diverse_lenses` (shortest
 focal length, widest aperture), each natural image (linearised, 480×320, the frame
 taken as the lens's full calibration frame) is multiplied by the lens's "pa" field.
 The error of an estimate is the RMS over the frame of log2(φ̂ / φ), in EV (both
@@ -29,7 +29,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from vigproc.io.protocol import vignetted
-from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import diverse_lenses, pa_field
 from vigproc.core.model import VignettingModel
 
 
@@ -78,7 +78,7 @@ def run_lensfun(
     errs, unc, diff, secs, fb = [], [], [], [], 0
     gf, gf_unc = [], []
     clean_cache: dict[int, np.ndarray] = {}
-    lenses = bench_lenses(n_lenses)
+    lenses = diverse_lenses(n_lenses)
     for idx, (lens, pa) in enumerate(lenses):
         # each lens gets the next ``frames_per_lens`` images, cycling through the set
         for j in range(frames_per_lens):

@@ -1,6 +1,6 @@
 """The estimator's time through its public API beside the published peer (``vigproc bench speed --api``).
 
-Frames: the clean protocol's bases (:mod:`vigproc.bench.clean`: central crops of full-size
+Frames: the clean protocol's bases (:mod:`benchmarks.clean`: central crops of full-size
 camera frames, 480×320, linear, colour), each through three fields:
 
 - ``lens``: a lensfun lens's ``pa`` field, centred (the 20 bench lenses in turn);
@@ -9,7 +9,7 @@ camera frames, 480×320, linear, colour), each through three fields:
 
 Each frame goes through ``vigproc.estimate(frame)`` (the default method, colour, as a
 caller of the library calls it) and, when given, the published C++ peer of Zheng et al.
-(:func:`vigproc.bench.peers.published_rgs`: its process start, the 8-bit PGM written
+(:func:`benchmarks.peers.published_rgs`: its process start, the 8-bit PGM written
 and the PFM read back included) in the same round, so that their ratio holds on a
 loaded machine. The peer's **floor** (the same call on a 16×16 grey frame: process
 start and file I/O with almost no estimate) is timed in each round too. Wall-clock and
@@ -64,8 +64,8 @@ class ApiSpeed:
 
 def case_fields(n_lenses: int = 20) -> dict[str, list[np.ndarray]]:
     """The natural-log fields of each case on the 480×320 frame (``lens``: one per bench lens)."""
-    from vigproc.bench.clean import HEIGHT, WIDTH, lens_fields
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.clean import HEIGHT, WIDTH, lens_fields
+    from benchmarks.synthetic import table1_model
 
     lenses, _ = lens_fields(n_lenses)
     return {"lens": [f.log_field for f in lenses],
@@ -80,9 +80,9 @@ def api_speed(bases: Sequence[np.ndarray], peer: Callable | None = None, rounds:
     Parameters
     ----------
     bases : sequence of ndarray
-        480×320×3 linear vignetting-free frames (:func:`vigproc.bench.clean.load_clean_bases`).
+        480×320×3 linear vignetting-free frames (:func:`benchmarks.clean.load_clean_bases`).
     peer : callable, optional
-        lum -> anything (:func:`vigproc.bench.peers.published_rgs`); None: vigproc alone.
+        lum -> anything (:func:`benchmarks.peers.published_rgs`); None: vigproc alone.
     rounds : int
         Each base × case is timed this many times; the figures are medians over all.
     cases : sequence of str

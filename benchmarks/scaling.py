@@ -33,7 +33,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vigproc.bench.throughput import Photo, stage
+from benchmarks.throughput import Photo, stage
 from vigproc.errors import VigprocError
 
 log = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """The crop test's power and false alarms on the clean protocol (``vigproc bench crops``).
 
-Bases: the vignetting-free crops of :mod:`vigproc.bench.clean`. Fields: the radial
+Bases: the vignetting-free crops of :mod:`benchmarks.clean`. Fields: the radial
 fall-off of lensfun lenses (their shapes), scaled to a corner fall-off of 0.25, 0.5
 or 1 EV at the lens's own frame corner, with the optical centre moved by 0, 10, 25 or
 40 % of the frame's half-diagonal in a random direction (a crop of a larger frame, or
@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vigproc.bench.clean import HEIGHT, WIDTH
+from benchmarks.clean import HEIGHT, WIDTH
 from vigproc.stores.lensfun import pa_poly
 
 FALLOFFS_EV = (0.25, 0.5, 1.0)

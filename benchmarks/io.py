@@ -7,6 +7,7 @@ Each decode is printed next to the time to read the same file's bytes from disk
 from __future__ import annotations
 
 import math
+import os
 import tempfile
 import time
 from dataclasses import dataclass
@@ -16,7 +17,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from vigproc.errors import VigprocError
-from vigproc.io.exif import ExifReader, PathLike, read_lens_key
+from vigproc.io.exif import ExifReader, read_lens_key
 from vigproc.io.images import read_image, write_image
 
 #: (label, file suffix, write_image bit depth) of the synthetic frames.
@@ -93,7 +94,7 @@ def bench_raw(paths: Sequence[Path], repeat: int) -> list[ReadTiming]:
     return out
 
 
-def bench_exif(paths: Sequence[PathLike], repeat: int = 1) -> dict[str, float]:
+def bench_exif(paths: Sequence[str | os.PathLike[str]], repeat: int = 1) -> dict[str, float]:
     """Time EXIF reading: one persistent process vs one process per file.
 
     Parameters

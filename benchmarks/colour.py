@@ -71,7 +71,7 @@ NOISE = 0.01
 PATCH = 16
 GREY = 0.18
 _LN2 = math.log(2.0)
-GAINMAP = Path(__file__).resolve().parents[3] / "shared" / "data" / "raw" / "dng_opcodes" / "GainMap.bin"
+GAINMAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "raw" / "dng_opcodes" / "GainMap.bin"
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from vigproc.errors import VigprocError
 log = logging.getLogger(__name__)
 
 #: Where the shared camera JPEGs are, next to the repository.
-DEFAULT_IMAGES = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "jpeg_exif"
+DEFAULT_IMAGES = Path(__file__).resolve().parents[2] / "shared" / "data" / "jpeg_exif"
 
 
 class FaultBenchError(VigprocError):
@@ -310,7 +310,7 @@ def cmd_bench_faults(args: argparse.Namespace) -> int:
     reason = why_not()
     if reason is not None:
         raise FaultBenchError(f"bench faults cannot run here: {reason}")
-    folder = Path(args.images)
+    folder = Path(args.images or DEFAULT_IMAGES)
     if not folder.is_dir():
         raise FaultBenchError(f"no image folder {folder} (pass --images DIR of camera JPEGs)")
     images = pick_images(folder, args.files)
@@ -338,22 +338,3 @@ def cmd_bench_faults(args: argparse.Namespace) -> int:
     print("target (every input exactly one output, none quarantined, none moved, 0 lost): "
           + ("met" if target else "NOT met"))
     return 0 if target else 1
-
-
-def register(bench_subparsers) -> None:
-    """``vigproc bench faults`` (registered by :mod:`vigproc.frontends.commands.watch`)."""
-    bp = bench_subparsers.add_parser(
-        "faults", help="the watch daemon with its output on a small tmpfs that fills, is grown, and kill -9 (root)")
-    bp.add_argument("--images", default=str(DEFAULT_IMAGES),
-                    help="folder of camera JPEGs (default: the shared data's jpeg_exif)")
-    bp.add_argument("--files", type=int, default=24, help="healthy inputs (default %(default)s)")
-    bp.add_argument("--workers", type=int, default=2, help="daemon workers (default %(default)s)")
-    bp.add_argument("--small", type=int, default=20, help="tmpfs size in MB while it fills (default %(default)s)")
-    bp.add_argument("--grow", type=int, default=1024, help="tmpfs size in MB once grown (default %(default)s)")
-    bp.add_argument("--kills", type=int, default=5,
-                    help="kill -9 of the daemon: half while the disk is full, the rest once it was grown "
-                         "(default %(default)s)")
-    bp.add_argument("--tmp", help="folder for the run's files (default: the system's temporary folder)")
-    bp.add_argument("--keep", action="store_true", help="keep the run's folder (the daemon's log)")
-    bp.add_argument("--json", action="store_true", help="the figures as JSON")
-    bp.set_defaults(fn=cmd_bench_faults)

@@ -1,14 +1,14 @@
 """Learn as you go, end to end: a series of one lens setting through ``vigproc batch``.
 
-Frames are clean bases (:func:`vigproc.bench.clean.load_clean_bases`: central crops of
+Frames are clean bases (:func:`benchmarks.clean.load_clean_bases`: central crops of
 camera frames and linear natural images, 480×320, colour) multiplied by a lensfun lens's
-"pa" field (:func:`vigproc.bench.clean.lens_fields`), written as linear 16-bit TIFFs
+"pa" field (:func:`benchmarks.clean.lens_fields`), written as linear 16-bit TIFFs
 with the lens's EXIF (camera, lens name, focal length, f-number; one exiftool call), and
 run through ``vigproc batch --mode correct`` (learning as it goes by default) into a
 fresh profile store. Each frame's record says what corrected it (its own estimate, or
 the stored profile and which revision of it) and what its pooling did; the field each
 frame was corrected with is compared with the lens's field (gain-free RMS, EV, as the
-clean protocol measures: :func:`vigproc.bench.clean.gain_free_ev`).
+clean protocol measures: :func:`benchmarks.clean.gain_free_ev`).
 """
 
 from __future__ import annotations
@@ -115,7 +115,7 @@ def run_series(bases: Sequence[np.ndarray], log_field: np.ndarray, *, lens: str,
     import os
     import tempfile
 
-    from vigproc.bench.clean import gain_free_ev
+    from benchmarks.clean import gain_free_ev
     from vigproc.errors import VigprocError
 
     root = Path(tempfile.mkdtemp(prefix="vigproc-learn-series-", dir=tmp))

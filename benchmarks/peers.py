@@ -144,7 +144,7 @@ def _read_pfm(path) -> np.ndarray:
 
 def published_rgs(exe: str, encoding: str = "linear", timeout: float = 60.0):
     """The published C++ of Zheng et al.'s radial-gradient symmetry as a bench
-    estimator (``vigproc.bench.clean.Estimator``), run as a separate process.
+    estimator (``benchmarks.clean.Estimator``), run as a separate process.
 
     Parameters
     ----------
@@ -159,13 +159,13 @@ def published_rgs(exe: str, encoding: str = "linear", timeout: float = 60.0):
     Returns
     -------
     callable
-        lum (H×W linear) -> ``vigproc.bench.clean.Estimate``.
+        lum (H×W linear) -> ``benchmarks.clean.Estimate``.
     """
     import subprocess
     import tempfile
     from pathlib import Path
 
-    from vigproc.bench.clean import Estimate
+    from benchmarks.clean import Estimate
     from vigproc.io.images import linear_to_srgb
 
     def run(lum: np.ndarray, _field=None) -> Estimate:

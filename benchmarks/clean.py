@@ -7,7 +7,7 @@ Each crop is cut to 3:2 (portrait turned landscape), box-resized to 480×320 and
 linearised (the file's transfer: sRGB for camera JPEGs; a file named ``*linear*`` is
 read as linear), then multiplied by:
 
-- the ``pa`` field of each of 20 lensfun lenses (:func:`vigproc.stores.lensfun.bench_lenses`:
+- the ``pa`` field of each of 20 lensfun lenses (:func:`vigproc.stores.lensfun.diverse_lenses`:
   shortest focal length, widest aperture), the crop taken as the full frame (ρ = 1
   at its corner);
 - Lyu 2010's Table 1 fields (settings 1–3);
@@ -37,7 +37,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from vigproc.io.protocol import rgb_of, vignetted  # noqa: F401  (vignetted re-exported for the benches)
-from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import diverse_lenses, pa_field
 
 log = logging.getLogger(__name__)
 
@@ -203,7 +203,7 @@ class HarmResult:
 def run_fields(bases: Sequence[np.ndarray], method: str, fn: Estimator,
                fields: Sequence[Field], label: str) -> FieldResult:
     """Every base × every field: per-field median error, then median/p90 over fields."""
-    from vigproc.bench.synthetic import psnr_best_gain
+    from benchmarks.synthetic import psnr_best_gain
 
     per_field, frames, unc, z, secs, fb, psnr = [], [], [], [], [], 0, []
     for f in fields:
@@ -244,7 +244,7 @@ def run_harm(bases: Sequence[np.ndarray], method: str, fn: Estimator) -> HarmRes
 def lens_fields(n: int = 20) -> tuple[list[Field], set[tuple[str, str]]]:
     """The 20 lensfun fields on the 480×320 frame (with their calibration's 35-mm focal
     length and f-number), and the lenses' (maker, model)."""
-    lenses = bench_lenses(n)
+    lenses = diverse_lenses(n)
     fields = [Field(f"{lens.maker} {lens.model}", np.log(pa_field((HEIGHT, WIDTH), pa.k1, pa.k2, pa.k3)),
                     pa.focal * lens.crop_factor, pa.aperture)
               for lens, pa in lenses]
@@ -252,7 +252,7 @@ def lens_fields(n: int = 20) -> tuple[list[Field], set[tuple[str, str]]]:
 
 
 def table1_fields() -> list[Field]:
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
 
     return [Field(f"Table 1 setting {s}", table1_model(s).log_field((HEIGHT, WIDTH))) for s in (1, 2, 3)]
 

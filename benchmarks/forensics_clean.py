@@ -1,6 +1,6 @@
 """Lens mismatch and lens identification on the clean protocol (``vigproc bench forensics-clean``).
 
-Bases: the vignetting-free camera crops of :mod:`vigproc.bench.clean` (480×320, linear).
+Bases: the vignetting-free camera crops of :mod:`benchmarks.clean` (480×320, linear).
 Frames: a base × the lensfun ``pa`` field of a lens A. The test is the one ``vigproc
 check`` runs (:mod:`vigproc.forensics.lensmatch`): the frame's data-only lens-family fit against
 the claimed lens's coefficients, by a Mahalanobis distance whose null is calibrated on
@@ -39,7 +39,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from vigproc.bench.clean import HEIGHT, WIDTH
+from benchmarks.clean import HEIGHT, WIDTH
 
 log = logging.getLogger(__name__)
 
@@ -78,14 +78,14 @@ def field_difference(a: BenchLens, b: BenchLens) -> float:
 
 
 def _bench(n: int) -> list[BenchLens]:
-    from vigproc.stores.lensfun import bench_lenses
+    from vigproc.stores.lensfun import diverse_lenses
 
-    return [BenchLens(lens.maker, lens.model, (pa.k1, pa.k2, pa.k3)) for lens, pa in bench_lenses(n)]
+    return [BenchLens(lens.maker, lens.model, (pa.k1, pa.k2, pa.k3)) for lens, pa in diverse_lenses(n)]
 
 
 def select_lenses(n_test: int = 20, n_id: int = 8, min_separation: float = 0.15,
                   n_calibration: int = 20) -> tuple[list[BenchLens], list[BenchLens], list[BenchLens]]:
-    """The mismatch lenses (the first ``n_test`` of :func:`vigproc.stores.lensfun.bench_lenses`, as
+    """The mismatch lenses (the first ``n_test`` of :func:`vigproc.stores.lensfun.diverse_lenses`, as
     ``bench clean``), the identification lenses (greedy in the same order: each lens's
     field differs from every one already taken by at least ``min_separation`` EV) and
     the calibration lenses (the next ``n_calibration`` lenses in that order that are in

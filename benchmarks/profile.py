@@ -1,6 +1,6 @@
 """Profile accuracy versus number of frames (issue 4's protocol).
 
-For each lens of :func:`vigproc.stores.lensfun.bench_lenses` (widest aperture), frames are
+For each lens of :func:`vigproc.stores.lensfun.diverse_lenses` (widest aperture), frames are
 natural images multiplied by the lens's "pa" field; each frame is estimated on its
 own (the default estimator's fit, kept even when it would fall back, with its
 covariance), and the per-frame estimates are pooled three ways after n frames:
@@ -29,7 +29,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from vigproc.errors import ModelError
-from vigproc.stores.lensfun import bench_lenses, pa_field
+from vigproc.stores.lensfun import diverse_lenses, pa_field
 from vigproc.core.model import VignettingModel
 
 POOLINGS = ("information", "mean-theta", "mean-field", "joint", "store")
@@ -96,7 +96,7 @@ def run(
     errors: dict[tuple[str, int], list[float]] = {(p, n): [] for p in POOLINGS for n in counts}
     trust: list[tuple[int, float] | None] = []  # per lens: (frames until trusted, error then)
     single: list[float] = []  # error of each frame's own estimate, as applied (fall-back included)
-    for li, (_lens, pa) in enumerate(bench_lenses(n_lenses)):
+    for li, (_lens, pa) in enumerate(diverse_lenses(n_lenses)):
         h, w = images[0].shape
         true_log = np.log(pa_field((h, w), pa.k1, pa.k2, pa.k3))
         thetas, covs, fields, frames, fits, applied = [], [], [], [], [], []
@@ -192,7 +192,7 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
               peer: Callable | None = None, seed: int = 0, orders: int = 1) -> tuple[list[CleanProfileRow], CleanTrust]:
     """Profiles learned through a real store on the clean protocol.
 
-    Each lens (``fields``: :func:`vigproc.bench.clean.lens_fields`) sees the bases in
+    Each lens (``fields``: :func:`benchmarks.clean.lens_fields`) sees the bases in
     ``orders`` orders of its own (seeded by ``seed``, the lens and the order; each
     order a new store), up to ``max(counts)`` frames; the 51 bases are the same for
     every lens, so one order per lens leaves the figures at the mercy of which
@@ -209,7 +209,7 @@ def run_clean(bases: Sequence[np.ndarray], fields: Sequence, family, counts: Seq
     import tempfile
     from pathlib import Path
 
-    from vigproc.bench.clean import gain_free_ev, vignetted
+    from benchmarks.clean import gain_free_ev, vignetted
     from vigproc.core.estimate import estimate, estimate_with_evidence
     from vigproc.stores.profiles import TRUSTED_BOUND_EV, ProfileKey, ProfileStore, aspect_label
 
@@ -313,7 +313,7 @@ def run_interpolation(width: int = 480, height: int = 320, max_points: int = 400
     from dataclasses import replace
     from pathlib import Path
 
-    from vigproc.bench.clean import gain_free_ev
+    from benchmarks.clean import gain_free_ev
     from vigproc.io.exif import LensKey
     from vigproc.stores.lensfun import LensfunLens, interpolate_pa, load_lenses
     from vigproc.core.normalised import denormalise, fit_model_to_field, normalise
@@ -419,7 +419,7 @@ def run_flat_field(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], methods:
     import tempfile
     from pathlib import Path
 
-    from vigproc.bench.real import _blocks
+    from benchmarks.real import _blocks
     from vigproc.core.estimate import EVIDENCE_METHODS, estimate, estimate_with_evidence
     from vigproc.stores.profiles import ProfileKey, ProfileStore, aspect_label
 

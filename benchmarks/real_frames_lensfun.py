@@ -8,7 +8,7 @@ lensfun's field at the frame's focal length, f-number and focus distance
 (:func:`vigproc.stores.lensfun.interpolate_pa`), with the corner at
 ρ = calibration crop / camera crop (lensfun's own rule for another sensor size).
 Error: the RMS over the frame of log2(φ̂/φ) about its mean, in EV (``bench clean``'s
-metric, :func:`vigproc.bench.clean.gain_free_ev`): of the field applied (the identity when
+metric, :func:`benchmarks.clean.gain_free_ev`): of the field applied (the identity when
 the gate left the frame alone) and of the estimator's candidate fit before the gate.
 
 The truth holds only where the JPEG still carries the lens's fall-off: not where the
@@ -134,7 +134,7 @@ def grid_shape(width: int, height: int, long_side: int = GRID) -> tuple[int, int
 
 
 def _ev(log_ratio: np.ndarray) -> float:
-    from vigproc.bench.clean import gain_free_ev
+    from benchmarks.clean import gain_free_ev
 
     return gain_free_ev(log_ratio)
 
@@ -423,9 +423,9 @@ def _base(b) -> np.ndarray:
 
 
 def series_bases(folders: Sequence[str | Path], min_long_side: int = 2000, limit: int | None = None) -> list[Path]:
-    """Full-size camera frames for :func:`run_series` (:func:`vigproc.bench.clean.base_files`:
+    """Full-size camera frames for :func:`run_series` (:func:`benchmarks.clean.base_files`:
     BSDS and Kodak left out), read when a series takes them."""
-    from vigproc.bench.clean import base_files
+    from benchmarks.clean import base_files
 
     files = base_files([Path(x) for x in folders], min_long_side)
     return files[:limit] if limit else files

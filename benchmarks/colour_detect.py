@@ -2,7 +2,7 @@
 colour is mistaken for a cast (:func:`vigproc.core.colour_cast.detect_colour_cast`).
 
 Bases: the clean protocol's vignetting-free central crops of camera frames
-(:func:`vigproc.bench.clean.load_clean_bases`, in colour). Casts: a physical model of
+(:func:`benchmarks.clean.load_clean_bases`, in colour). Casts: a physical model of
 angle-dependent sensor response, channel c transmitting
 
     T_c(θ) = cos^{k_c}(θ),  θ = atan(r·d/f),

@@ -15,7 +15,7 @@ own development with vigproc's settings (:data:`vigproc.io.images.RAW_DEVELOP`),
 same 16-bit TIFF written by OpenImageIO, and the sources' EXIF copied by one exiftool
 batch call.
 
-``python -m vigproc.bench.throughput floor IN OUT`` runs the floor on its own
+``python -m benchmarks.throughput floor IN OUT`` runs the floor on its own
 (``rawfloor IN OUT``: the RAW floor).
 """
 
@@ -34,6 +34,7 @@ from typing import Sequence
 
 import numpy as np
 
+from benchmarks import child_code
 from vigproc.errors import VigprocError
 from vigproc.io.formats import READ_SUFFIXES
 
@@ -240,8 +241,8 @@ def raw_floor_run(src: Path, dst: Path) -> int:
 def _commands(indir: Path, outdir: Path, inputs: Sequence[Path], darktable: str | None,
               baseline: str | None = None, raw: bool = False) -> dict[str, list[str]]:
     cmds = {
-        "floor": [sys.executable, "-m", "vigproc.bench.throughput", "rawfloor" if raw else "floor", str(indir),
-                  str(outdir / "floor")],
+        "floor": [sys.executable, "-c", child_code("from benchmarks.throughput import main\nsys.exit(main())"),
+                  "rawfloor" if raw else "floor", str(indir), str(outdir / "floor")],
         # a RAW not corrected is still developed and written (what the floor does)
         "vigproc": [sys.executable, "-m", "vigproc.frontends.cli", "correct", "--unapplied", "write" if raw else "copy",
                     "-o", str(outdir / "vigproc"), "--", *map(str, inputs)],
@@ -333,10 +334,10 @@ def format_result(r: ThroughputResult) -> list[str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m vigproc.bench.throughput floor|rawfloor IN OUT``: the floor on its own."""
+    """``python -m benchmarks.throughput floor|rawfloor IN OUT``: the floor on its own."""
     args = list(sys.argv[1:] if argv is None else argv)
     if len(args) != 3 or args[0] not in ("floor", "rawfloor"):
-        print("usage: python -m vigproc.bench.throughput floor|rawfloor IN OUT", file=sys.stderr)
+        print("usage: python -m benchmarks.throughput floor|rawfloor IN OUT", file=sys.stderr)
         return 2
     (raw_floor_run if args[0] == "rawfloor" else floor_run)(Path(args[1]), Path(args[2]))
     return 0
