@@ -65,6 +65,7 @@ import numpy as np
 
 from vigproc.core._kernels.geometry import geometry_pairs
 from vigproc.core._kernels.irls import irls_fit
+from vigproc.core._kernels.pairs import list_pairs
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import N_COMPONENTS, LensFamily, default_family, profile_family
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
@@ -349,37 +350,15 @@ class PairIndex:
 
 def pair_index(L: np.ndarray, valid: np.ndarray, steps: np.ndarray, block: np.ndarray,
                C: np.ndarray | None, tau: float) -> PairIndex:
-    """The :class:`PairIndex` of a working copy; parameters as :func:`family_pairs`."""
-    h, w = L.shape
-    flat = np.arange(h * w).reshape(h, w)
-    first, second, inv, dl, lab, wt, d_rg, d_bg = [], [], [], [], [], [], [], []
-    inv_t2 = 1.0 / (tau * tau) if C is not None else 0.0
-    for s in (int(x) for x in steps):
-        for one, two in (((slice(None, -s), slice(None)), (slice(s, None), slice(None))),
-                         ((slice(None), slice(None, -s)), (slice(None), slice(s, None)))):
-            both = valid[one] & valid[two]
-            first.append(flat[one][both])
-            second.append(flat[two][both])
-            inv.append(np.full(first[-1].size, 1.0 / s))
-            dl.append(((L[two] - L[one]) / s)[both])
-            lab.append(block[one][both])
-            if C is None:
-                wt.append(np.ones(first[-1].size))
-                continue
-            g = C[1][two] - C[1][one]
-            r = ((C[0][two] - C[0][one] - g) / s)[both]
-            b = ((C[2][two] - C[2][one] - g) / s)[both]
-            wt.append(1.0 / (1.0 + (r * r + b * b) * inv_t2))
-            d_rg.append(r)
-            d_bg.append(b)
-    if not first:  # no step fits in the copy (a strip one bin high)
-        none = np.empty(0, dtype=np.int64)
-        return PairIndex(none, none, np.empty(0), np.empty(0), none, np.empty(0),
-                         np.empty((2 if C is not None else 0, 0)))
-    wt = np.concatenate(wt)
-    chroma = np.stack([np.concatenate(d_rg), np.concatenate(d_bg)]) if d_rg else np.empty((0, wt.size))
-    return PairIndex(np.concatenate(first), np.concatenate(second), np.concatenate(inv), np.concatenate(dl),
-                     np.concatenate(lab).astype(np.int64), wt, chroma)
+    """The :class:`PairIndex` of a working copy; parameters as :func:`family_pairs`
+    (listed in one compiled pass: :mod:`vigproc.core._kernels.pairs`)."""
+    colour = C is not None
+    first, second, inv, dl, lab, wt, chroma = list_pairs(
+        np.ascontiguousarray(L, dtype=np.float64), np.ascontiguousarray(valid, dtype=np.bool_),
+        np.ascontiguousarray(steps, dtype=np.int64), np.ascontiguousarray(block, dtype=np.int64),
+        np.ascontiguousarray(C, dtype=np.float64) if colour else np.zeros((3, 1, 1)),
+        1.0 / (tau * tau) if colour else 0.0, colour)
+    return PairIndex(first, second, inv, dl, lab, wt, np.ascontiguousarray(chroma))
 
 
 def settings_index(L: np.ndarray, valid: np.ndarray, C: np.ndarray | None, settings: FamilySettings) -> PairIndex:

@@ -19,21 +19,27 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _interp(x, xp, fp):
-    """``np.interp(x, xp, fp)`` for one x ≥ xp[0] (NumPy's formula and branches: the same bits)."""
+def _locate(x, xp):
+    """The interval of ``xp`` (ascending) that holds x ≥ xp[0]: lo with xp[lo] ≤ x <
+    xp[lo + 1], or the last index for x ≥ xp[-1]."""
     n = xp.shape[0]
-    if x > xp[n - 1]:
-        return fp[n - 1]
-    if x == xp[n - 1]:
-        return fp[n - 1]
-    lo, hi = 0, n - 1  # xp[lo] <= x < xp[hi]
+    if x >= xp[n - 1]:
+        return n - 1
+    lo, hi = 0, n - 1
     while hi - lo > 1:
         mid = (lo + hi) >> 1
         if xp[mid] <= x:
             lo = mid
         else:
             hi = mid
-    if xp[lo] == x:
+    return lo
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _interp_at(lo, x, xp, fp):
+    """``np.interp(x, xp, fp)`` in the interval :func:`_locate` found (NumPy's formula and
+    branches: the same bits)."""
+    if lo == xp.shape[0] - 1 or xp[lo] == x:
         return fp[lo]
     slope = (fp[lo + 1] - fp[lo]) / (xp[lo + 1] - xp[lo])
     return slope * (x - xp[lo]) + fp[lo]
@@ -95,10 +101,13 @@ def geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, second
                 gx = dx
                 gy = dy
             past = max(rho - rlast, 0.0)
-            M[b] = _interp(rho, radii, mean) + past * mean_tail
+            lo = _locate(rho, radii)  # one search for every profile at this bin
+            M[b] = _interp_at(lo, rho, radii, mean) + past * mean_tail
             for k in range(K):
-                J[k, b] = _interp(rho, radii, comps[k]) + past * comp_tail[k]
-            slope = _interp(min(rho, 1.0), radii, slope_profile)
+                J[k, b] = _interp_at(lo, rho, radii, comps[k]) + past * comp_tail[k]
+            # the slope at min(ρ, 1): past the last radius, its last value
+            slope = _interp_at(lo, rho, radii, slope_profile) if rho < 1.0 else \
+                _interp_at(_locate(1.0, radii), 1.0, radii, slope_profile)
             J[K, b] = -slope * gx / rho
             J[K + 1, b] = -slope * gy / rho
             if elliptical:
@@ -108,8 +117,9 @@ def geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, second
     d = np.empty(n)
     at = np.empty((nc, n))
     for p in range(n):
-        f, s, inv = first[p], second[p], inv_step[p]
-        d[p] = dlog[p] - (M[s] - M[f]) * inv
-        for c in range(nc):
-            at[c, p] = (J[c, s] - J[c, f]) * inv
+        d[p] = dlog[p] - (M[second[p]] - M[first[p]]) * inv_step[p]
+    for c in range(nc):  # a row at a time: each written in order
+        Jc = J[c]
+        for p in range(n):
+            at[c, p] = (Jc[second[p]] - Jc[first[p]]) * inv_step[p]
     return d, at
