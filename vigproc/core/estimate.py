@@ -491,16 +491,18 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     how alike its channels change; the centre must move for the luminance and for the
     colour-weighted pairs; the choice between the fits reads the luminance.
     """
-    from vigproc.core.family_fit import fit_family, luminance_copy, with_colour
+    from vigproc.core.family_fit import fit_family, luminance_copy, same_copy, with_colour
     from vigproc.core.glow import glow_advantage
     from vigproc.core.lensfamily import profile_family
 
     fs = FamilySettings()
     # one binning of the luminance for the fit (its colour copies added) and the glow test
     work = luminance_copy(lum, fs, mask)
-    fit = fit_family(lum, fs, mask, family, hint, colour,
-                     copy=with_colour(work, colour, fs) if colour is not None else work)
-    model = _off_centre_choice(lum, mask, hint, family, colour, rule, fit)
+    work_colour = with_colour(work, colour, fs) if colour is not None else work
+    fit = fit_family(lum, fs, mask, family, hint, colour, copy=work_colour)
+    # the off-centre choice reads the same copies when its settings make the same ones
+    copies = (work, work_colour) if same_copy(fs, rule.settings) else None
+    model = _off_centre_choice(lum, mask, hint, family, colour, rule, fit, copies)
     q = model.quality
     # the glow test is asked of a centred fit that would be applied, and strongly enough to harm
     if model is not fit.model or q.fallback or q.snr * q.field_sigma_ev < rule.glow.min_ev:
@@ -517,11 +519,12 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
 
 
 def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint | None, family,
-                       colour: np.ndarray | None, rule: OffCentreRule, fit) -> VignettingModel:
+                       colour: np.ndarray | None, rule: OffCentreRule, fit, copies=None) -> VignettingModel:
     """:func:`estimate_default`'s choice between the centred lens-family fit ``fit``
     (:class:`vigproc.core.family_fit.FamilyFit`) and an off-centre fit: ``fit.model`` itself
-    when the centred fit is kept."""
-    from vigproc.core.family_fit import CENTRE_WORK_SIZE, fit_centre, fit_family, fit_off_centre, luminance_copy, \
+    when the centred fit is kept. ``copies``: the frame's luminance and colour working
+    copies at ``rule.settings``' size, when the caller has them."""
+    from vigproc.core.family_fit import CENTRE_WORK_SIZE, fit_centre, fit_family, luminance_copy, off_centre_fit, \
         pair_losses, with_colour
 
     model, coef, weighted = fit
@@ -550,22 +553,31 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
                                    copy=with_colour(centre_copy, colour, s))
         if not centre_colour.off_centre(s.off_centre_shift):
             return model
-    # the luminance's, as the comparison reads (its field alone: no jackknife)
-    grey = fit_family(lum, s, mask, family, hint, uncertainty=False).model
+    work, work_colour = copies if copies is not None else (None, None)
     shift = centre.shift if colour is None else min(centre.shift, centre_colour.shift)
     strong = q.field_ev_rms >= rule.family_min_ev
-    alt = None
+    alt = off = None
     # a grey frame's off-centre family fit is fitted on the very pairs that judge it, and
     # wins too easily (BSDS x lensfun fields, grey: 0.086 EV with it, 0.074 without); a
     # colour frame's is fitted on colour-weighted pairs and judged on the luminance's. A
     # grey frame, or one stored as R = G = B, is fitted as grey and goes the same way.
     if shift >= rule.family_shift and strong and weighted:
-        alt = fit_off_centre(lum, coef, s, mask, family, hint, colour)
+        # its σ (a jackknife) only for a fit that is kept: the choice reads its field alone
+        off = off_centre_fit(lum, coef, s, mask, family, hint, colour, work_colour)
+        alt = None if off is None else off.field
     if alt is None:
+        off = None
         free = rule.free_settings if q.field_ev_rms >= rule.free_min_ev else RobustSettings()
         alt = estimate_robust(lum, free, mask)
-    loss_family, loss_alt = pair_losses(lum, [grey.candidate or grey, alt.candidate or alt], s, mask)
-    if loss_alt < loss_family - s.select_margin and (alt.candidate or alt).field_ev_rms() >= rule.keep_min_ev:
+    # a fit too weak to keep needs no comparison
+    if not (alt.candidate or alt).field_ev_rms() >= rule.keep_min_ev:
+        return model
+    # the luminance's, as the comparison reads (its field alone: no jackknife)
+    grey = fit_family(lum, s, mask, family, hint, uncertainty=False, copy=work).model
+    loss_family, loss_alt = pair_losses(lum, [grey.candidate or grey, alt.candidate or alt], s, mask, work)
+    if loss_alt < loss_family - s.select_margin:
+        if off is not None:
+            alt = off.with_uncertainty()
         if alt.quality.fallback and alt.candidate is not None and not model.quality.fallback:
             # the centred fit surely sees a fall-off and the off-centre fit places it better:
             # the off-centre fit's own uncertainty is no reason to apply no correction at all

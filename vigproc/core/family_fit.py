@@ -69,7 +69,9 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from vigproc.core._kernels.geometry import geometry_pairs
 from vigproc.core._kernels.irls import irls_fit
+from vigproc.core._kernels.pairs import list_pairs
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import N_COMPONENTS, LensFamily, default_family, profile_family
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
@@ -253,6 +255,14 @@ def with_colour(copy: WorkingCopy, colour: np.ndarray, settings: FamilySettings)
     return copy._replace(valid=valid, C=C)
 
 
+def same_copy(a: FamilySettings, b: FamilySettings) -> bool:
+    """Whether settings ``a`` and ``b`` make the same working copy of a frame (its
+    luminance's, and its colour fit's: :func:`luminance_copy`, :func:`with_colour`), so
+    that one copy serves fits with either."""
+    return a.work_size == b.work_size and a.dark_fraction == b.dark_fraction \
+        and (a.chroma_tau > 0) == (b.chroma_tau > 0)
+
+
 def _working_copy(lum: np.ndarray, settings: FamilySettings, mask: np.ndarray | None,
                   colour: np.ndarray | None = None) -> WorkingCopy:
     """The working copy a fit reads: the colour fit's when ``colour`` is given
@@ -337,37 +347,15 @@ class PairIndex:
 
 def pair_index(L: np.ndarray, valid: np.ndarray, steps: np.ndarray, block: np.ndarray,
                C: np.ndarray | None, tau: float) -> PairIndex:
-    """The :class:`PairIndex` of a working copy; parameters as :func:`family_pairs`."""
-    h, w = L.shape
-    flat = np.arange(h * w).reshape(h, w)
-    first, second, inv, dl, lab, wt, d_rg, d_bg = [], [], [], [], [], [], [], []
-    inv_t2 = 1.0 / (tau * tau) if C is not None else 0.0
-    for s in (int(x) for x in steps):
-        for one, two in (((slice(None, -s), slice(None)), (slice(s, None), slice(None))),
-                         ((slice(None), slice(None, -s)), (slice(None), slice(s, None)))):
-            both = valid[one] & valid[two]
-            first.append(flat[one][both])
-            second.append(flat[two][both])
-            inv.append(np.full(first[-1].size, 1.0 / s))
-            dl.append(((L[two] - L[one]) / s)[both])
-            lab.append(block[one][both])
-            if C is None:
-                wt.append(np.ones(first[-1].size))
-                continue
-            g = C[1][two] - C[1][one]
-            r = ((C[0][two] - C[0][one] - g) / s)[both]
-            b = ((C[2][two] - C[2][one] - g) / s)[both]
-            wt.append(1.0 / (1.0 + (r * r + b * b) * inv_t2))
-            d_rg.append(r)
-            d_bg.append(b)
-    if not first:  # no step fits in the copy (a strip one bin high)
-        none = np.empty(0, dtype=np.int64)
-        return PairIndex(none, none, np.empty(0), np.empty(0), none, np.empty(0),
-                         np.empty((2 if C is not None else 0, 0)))
-    wt = np.concatenate(wt)
-    chroma = np.stack([np.concatenate(d_rg), np.concatenate(d_bg)]) if d_rg else np.empty((0, wt.size))
-    return PairIndex(np.concatenate(first), np.concatenate(second), np.concatenate(inv), np.concatenate(dl),
-                     np.concatenate(lab).astype(np.int64), wt, chroma)
+    """The :class:`PairIndex` of a working copy; parameters as :func:`family_pairs`
+    (listed in one compiled pass: :mod:`vigproc.core._kernels.pairs`)."""
+    colour = C is not None
+    first, second, inv, dl, lab, wt, chroma = list_pairs(
+        np.ascontiguousarray(L, dtype=np.float64), np.ascontiguousarray(valid, dtype=np.bool_),
+        np.ascontiguousarray(steps, dtype=np.int64), np.ascontiguousarray(block, dtype=np.int64),
+        np.ascontiguousarray(C, dtype=np.float64) if colour else np.zeros((3, 1, 1)),
+        1.0 / (tau * tau) if colour else 0.0, colour)
+    return PairIndex(first, second, inv, dl, lab, wt, np.ascontiguousarray(chroma))
 
 
 def settings_index(L: np.ndarray, valid: np.ndarray, C: np.ndarray | None, settings: FamilySettings) -> PairIndex:
@@ -733,12 +721,7 @@ def _extended(fam: LensFamily, c: np.ndarray, rho: np.ndarray):
     """Mean, components and the full profile's slope at ``rho``, extended linearly
     past the corner (:func:`_extrapolated`)."""
     r = np.asarray(rho)
-    # the profiles' slopes depend on the family alone: kept on it (a Gauss-Newton fit asks
-    # at every step), as its priors are
-    grads = fam.__dict__.get("_gradients")
-    if grads is None:
-        grads = fam.__dict__.setdefault(
-            "_gradients", (np.gradient(fam.mean, fam.radii), np.gradient(fam.components, fam.radii, axis=1)))
+    grads = _profile_slopes(fam)
     slope = grads[0] + c @ grads[1]
     mean = _extrapolated(r, fam.radii, fam.mean)
     basis = np.stack([_extrapolated(r, fam.radii, b) for b in fam.components], axis=-1)
@@ -785,6 +768,31 @@ def _geometry_columns(fam: LensFamily, coef: np.ndarray, geo: np.ndarray, X: np.
     return M, np.concatenate(cols, axis=-1)
 
 
+def _profile_slopes(fam: LensFamily) -> tuple[np.ndarray, np.ndarray]:
+    """d/dρ of the family's mean and components (kept on the family: a Gauss-Newton fit
+    asks at every step, as for its priors)."""
+    grads = fam.__dict__.get("_gradients")
+    if grads is None:
+        grads = fam.__dict__.setdefault(
+            "_gradients", (np.gradient(fam.mean, fam.radii), np.gradient(fam.components, fam.radii, axis=1)))
+    return grads
+
+
+def _geometry_pairs(index: PairIndex, xs: np.ndarray, ys: np.ndarray, fam: LensFamily, coef: np.ndarray,
+                    geo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pairs_at` of :func:`_geometry_columns` at bins ``xs`` (w,) × ``ys`` (h,)
+    (half-diagonals): one compiled pass over the bins and one over the pairs
+    (:mod:`vigproc.core._kernels.geometry`), the same values."""
+    grads = _profile_slopes(fam)
+    slope = grads[0] + coef @ grads[1]
+    d, at = geometry_pairs(xs, ys, np.asarray(geo, dtype=np.float64), np.ascontiguousarray(fam.radii, dtype=np.float64),
+                           np.ascontiguousarray(fam.mean, dtype=np.float64),
+                           np.ascontiguousarray(fam.components, dtype=np.float64),
+                           np.ascontiguousarray(slope, dtype=np.float64), index.first, index.second,
+                           index.inv_step, index.dlog)
+    return d, at.T
+
+
 def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings: FamilySettings,
                   elliptical: bool, iterations: int, tolerance: float = 1e-3):
     """Gauss-Newton on the fall-off's centre u (and, ``elliptical``, its shape (e1, e2)),
@@ -800,9 +808,9 @@ def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings
     coef = np.asarray(c, dtype=np.float64).copy()
     d = a = sol = pm_it = None
     steps = 0
+    xs, ys = np.ascontiguousarray(np.ravel(X), dtype=np.float64), np.ascontiguousarray(np.ravel(Y), dtype=np.float64)
     for _ in range(iterations):
-        M, J = _geometry_columns(fam, coef, geo, X, Y)
-        d, a = pairs_at(index, M, J)
+        d, a = _geometry_pairs(index, xs, ys, fam, coef, geo)
         if d.size < MIN_VALID_BINS:
             break
         x0 = np.concatenate([coef, np.zeros(E)])
@@ -883,7 +891,8 @@ OFF_CENTRE_SPREAD = 0.5
 
 def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
                    mask: np.ndarray | None = None, family: LensFamily | None = None,
-                   hint: LensHint | None = None, colour: np.ndarray | None = None) -> VignettingModel | None:
+                   hint: LensHint | None = None, colour: np.ndarray | None = None,
+                   copy: WorkingCopy | None = None) -> VignettingModel | None:
     """The lens family's fall-off with a free centre and an elliptical shape, from the
     centred fit's coefficients ``c``: the default estimator's fit for a frame whose
     centre moves (a crop, a shifted lens, a stitched image).
@@ -895,6 +904,10 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
     frame is free. Written as the Kang-Weiss model (Lyu 2010, Eq. 2) with centre u and
     P ∝ the shape (:func:`profile_to_model`).
 
+    ``copy``: the frame's working copy at ``settings.work_size`` (:func:`luminance_copy`,
+    and :func:`with_colour` for ``colour``), when the caller has it (``mask`` and
+    ``colour`` are then not read).
+
     Returns
     -------
     VignettingModel or None
@@ -904,10 +917,50 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
         are usable or no Kang-Weiss model holds the fit (it would black out part of the
         frame).
     """
+    fit = off_centre_fit(lum, c, settings, mask, family, hint, colour, copy)
+    return None if fit is None else fit.with_uncertainty()
+
+
+@dataclass(frozen=True)
+class OffCentreFit:
+    """:func:`fit_off_centre`'s fit before its uncertainty: the default estimator reads its
+    field first (:attr:`field`) and pays for the jackknife (:meth:`with_uncertainty`) only
+    for a fit it keeps."""
+
+    #: The fit as a model, σ not yet measured (quality's ``field_sigma_ev`` and ``snr`` NaN)
+    field: VignettingModel
+    spread: float
+    _jackknife: tuple
+    _t0: float
+
+    def with_uncertainty(self) -> VignettingModel:
+        """The model :func:`fit_off_centre` returns: σ from the jackknife, and the identity
+        with the fit as ``candidate`` when the fall-off is below ``min_snr`` σ."""
+        d, a, index, sol, pm_it, pinv, settings, J = self._jackknife
+        # σ and the signal as fit_family's: the jackknife over every parameter carried to the
+        # field by its derivatives at the fit, both on a 16×16 grid over the whole frame
+        cov = _spread(_jackknife(d, a, index.labels, index.weight, sol, pm_it, pinv, settings))
+        sigma = math.hypot(settings.sigma_scale * field_spread_ev(J, cov), settings.sigma_floor)
+        snr = self.spread / sigma if sigma > 0 else math.inf
+        q = replace(self.field.quality, confidence=_confidence(snr, settings.min_snr), field_sigma_ev=sigma,
+                    snr=snr, fallback=snr < settings.min_snr, seconds=time.perf_counter() - self._t0)
+        model = replace(self.field, quality=q)
+        if q.fallback:
+            m = self.field
+            return VignettingModel.identity(m.width, m.height, method=OFF_CENTRE_METHOD, quality=q, candidate=model)
+        return model
+
+
+def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
+                   mask: np.ndarray | None = None, family: LensFamily | None = None,
+                   hint: LensHint | None = None, colour: np.ndarray | None = None,
+                   copy: WorkingCopy | None = None) -> OffCentreFit | None:
+    """:func:`fit_off_centre` up to its uncertainty (:class:`OffCentreFit`); parameters
+    and None as there."""
     t0 = time.perf_counter()
     fam = _in_components(family or profile_family(), len(c))
     h, w = lum.shape
-    L, valid, xs, ys, C, _ = _working_copy(lum, settings, mask, colour)
+    L, valid, xs, ys, C, _ = _working_copy(lum, settings, mask, colour) if copy is None else copy
     if int(valid.sum()) < MIN_VALID_BINS:
         return None
     radius = half_diagonal(w, h)
@@ -918,13 +971,9 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
     if d is None or d.size < MIN_VALID_BINS or not np.all(np.isfinite(geo)) \
             or float(np.hypot(geo[2], geo[3])) >= MAX_ELLIPTICITY - 1e-9:
         return None  # no pairs, or a shape held at the bound: no fit
-    # σ and the signal as fit_family's: the jackknife over every parameter carried to the
-    # field by its derivatives at the fit, both on a 16×16 grid over the whole frame
     gx, gy = _frame_grid(w, h)
     GX, GY = np.meshgrid(gx, gy)
     _, J = _geometry_columns(fam, coef, geo, GX / radius, GY / radius)
-    cov = _spread(_jackknife(d, a, index.labels, index.weight, sol, pm_it, pinv, settings))
-    sigma = math.hypot(settings.sigma_scale * field_spread_ev(J.reshape(GX.size, -1), cov), settings.sigma_floor)
     try:
         model, _ = profile_to_model(fam.mean + coef @ fam.components, fam.radii, w, h,
                                     center=(float(geo[0] * radius), float(geo[1] * radius)),
@@ -938,24 +987,21 @@ def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
         ev_rms = model.field_ev_rms()
     except ModelError:
         return None
-    snr = spread / sigma if sigma > 0 else math.inf
-    q = FitQuality(confidence=_confidence(snr, settings.min_snr), field_ev_rms=ev_rms,
-                   field_sigma_ev=sigma, snr=snr, fallback=snr < settings.min_snr, iterations=steps,
-                   seconds=time.perf_counter() - t0)
-    model = replace(model, method=OFF_CENTRE_METHOD, quality=q)
-    if q.fallback:
-        return VignettingModel.identity(w, h, method=OFF_CENTRE_METHOD, quality=q, candidate=model)
-    return model
+    q = FitQuality(confidence=math.nan, field_ev_rms=ev_rms, field_sigma_ev=math.nan, snr=math.nan,
+                   fallback=False, iterations=steps, seconds=time.perf_counter() - t0)
+    return OffCentreFit(replace(model, method=OFF_CENTRE_METHOD, quality=q), spread,
+                        (d, a, index, sol, pm_it, pinv, settings, J.reshape(GX.size, -1)), t0)
 
 
 def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: FamilySettings = FamilySettings(),
-                mask: np.ndarray | None = None) -> list[float]:
+                mask: np.ndarray | None = None, copy: WorkingCopy | None = None) -> list[float]:
     """Mean Cauchy loss log(1 + (e/σ)²) per pair of the frame's log differences once each
     model's field is divided out: how well a field explains the frame, the same measure
     for any model (the default estimator's choice between fits). One working copy of
     the luminance: no pair weighs more by its colour, so a fit that weighs pairs by
-    colour has no edge over one that does not."""
-    L, valid, xs, ys, _, _ = _working_copy(lum, settings, mask)
+    colour has no edge over one that does not. ``copy``: that copy
+    (:func:`luminance_copy` at ``settings.work_size``), when the caller has it."""
+    L, valid, xs, ys, _, _ = _working_copy(lum, settings, mask) if copy is None else copy
     X = np.ascontiguousarray(np.broadcast_to(xs[None, :], L.shape))
     Y = np.ascontiguousarray(np.broadcast_to(ys[:, None], L.shape))
     steps = _pair_steps(settings, L.shape)

@@ -62,19 +62,39 @@ def robust_loss(L, valid, F, steps, sigma, kind=CAUCHY):
     return loss, n
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _accumulate(H, g, jv, e, wt):
-    n = jv.shape[0]
+#: Pairs gathered before their products are summed (:func:`normal_equations`): their
+#: regressors' differences (12 × 256 floats) stay in the first-level cache.
+_CHUNK = 256
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _flush(H, g, D, we, e, m):
+    """Add Σ w·j·jᵀ (upper triangle) and Σ w·j·e over the first ``m`` gathered pairs
+    (fastmath: the reductions vectorised; the residuals and weights are not)."""
+    n = D.shape[0]
+    row = np.empty(m)
     for a in range(n):
-        ja = jv[a] * wt
-        g[a] += ja * e
+        s = 0.0
+        Da = D[a]
+        for p in range(m):
+            row[p] = Da[p] * we[p]
+            s += row[p] * e[p]
+        g[a] += s
         for b in range(a, n):
-            H[a, b] += ja * jv[b]
+            Db = D[b]
+            s = 0.0
+            for p in range(m):
+                s += row[p] * Db[p]
+            H[a, b] += s
 
 
 @njit(cache=True, nogil=True)
 def normal_equations(L, valid, F, J, steps, sigma, kind=CAUCHY):
     """IRLS Gauss-Newton system for the robust loss ``kind``.
+
+    The pairs are gathered a chunk at a time and each sum is a reduction over the
+    chunk's rows (pair by pair, the n(n+1)/2 sums were read and written in memory at
+    every pair: 1.6× the time).
 
     Returns
     -------
@@ -87,9 +107,12 @@ def normal_equations(L, valid, F, J, steps, sigma, kind=CAUCHY):
     n = J.shape[2]
     H = np.zeros((n, n))
     g = np.zeros(n)
-    jv = np.empty(n)
+    D = np.empty((n, _CHUNK))
+    we = np.empty(_CHUNK)
+    ee = np.empty(_CHUNK)
     loss = 0.0
     npairs = 0
+    m = 0
     for si in range(steps.shape[0]):
         s = steps[si]
         inv = 1.0 / (sigma[si] * sigma[si])
@@ -109,8 +132,15 @@ def normal_equations(L, valid, F, J, steps, sigma, kind=CAUCHY):
                     loss += rho
                     npairs += 1
                     for a in range(n):
-                        jv[a] = J[j2, i2, a] - J[j, i, a]
-                    _accumulate(H, g, jv, e, inv * wt)
+                        D[a, m] = J[j2, i2, a] - J[j, i, a]
+                    we[m] = inv * wt
+                    ee[m] = e
+                    m += 1
+                    if m == _CHUNK:
+                        _flush(H, g, D, we, ee, m)
+                        m = 0
+    if m:
+        _flush(H, g, D, we, ee, m)
     for a in range(n):
         for b in range(a):
             H[a, b] = H[b, a]

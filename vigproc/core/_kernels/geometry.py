@@ -1,0 +1,125 @@
+"""Numba kernel of one Gauss-Newton step's data in the lens family's centre and shape fit
+(:func:`vigproc.core.family_fit._geometry_fit`).
+
+At each step the fit needs, for every pair of bins (v, v + s·e), the log difference with
+the family's mean field divided out and the differences of the field's derivatives by
+the coefficients and the geometry (:func:`vigproc.core.family_fit._geometry_columns`,
+:func:`vigproc.core.family_fit.pairs_at`). In NumPy that was about twenty temporaries
+over the bins and two gathers of a K+E-column array per step; here it is one pass over
+the bins and one over the pairs, with the same operations in the same order (the same
+bits: ``np.interp``'s arithmetic is reproduced, no fastmath).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _locate(x, xp):
+    """The interval of ``xp`` (ascending) that holds x ≥ xp[0]: lo with xp[lo] ≤ x <
+    xp[lo + 1], or the last index for x ≥ xp[-1]."""
+    n = xp.shape[0]
+    if x >= xp[n - 1]:
+        return n - 1
+    lo, hi = 0, n - 1
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if xp[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _interp_at(lo, x, xp, fp):
+    """``np.interp(x, xp, fp)`` in the interval :func:`_locate` found (NumPy's formula and
+    branches: the same bits)."""
+    if lo == xp.shape[0] - 1 or xp[lo] == x:
+        return fp[lo]
+    slope = (fp[lo + 1] - fp[lo]) / (xp[lo + 1] - xp[lo])
+    return slope * (x - xp[lo]) + fp[lo]
+
+
+@njit(cache=True, nogil=True)
+def geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, second, inv_step, dlog):
+    """The pairs' data and regressors of one Gauss-Newton step.
+
+    Parameters
+    ----------
+    xs, ys : ndarray (w,), (h,)
+        Bin centres in half-diagonals from the frame centre.
+    geo : ndarray (2,) or (4,)
+        Centre (u_x, u_y) and, with four entries, shape (e1, e2).
+    radii, mean : ndarray (R,)
+        The family's radii and mean log profile.
+    comps : ndarray (K, R)
+        Its components.
+    slope_profile : ndarray (R,)
+        d/dρ of the full profile at the current coefficients.
+    first, second, inv_step, dlog : ndarray (n,)
+        The pairs (:class:`vigproc.core.family_fit.PairIndex`).
+
+    Returns
+    -------
+    d : ndarray (n,)
+        ``dlog`` less the mean field's difference per unit step.
+    at : ndarray (K + E, n)
+        The regressors as rows (the components', then the geometry's derivatives).
+    """
+    w, h = xs.shape[0], ys.shape[0]
+    K, R = comps.shape
+    E = geo.shape[0]
+    nc = K + E
+    rlast = radii[R - 1]
+    step_last = radii[R - 1] - radii[R - 2]
+    mean_tail = (mean[R - 1] - mean[R - 2]) / step_last
+    comp_tail = np.empty(K)
+    for k in range(K):
+        comp_tail[k] = (comps[k, R - 1] - comps[k, R - 2]) / step_last
+    M = np.empty(h * w)
+    J = np.empty((nc, h * w))
+    elliptical = E == 4
+    e1 = geo[2] if elliptical else 0.0
+    e2 = geo[3] if elliptical else 0.0
+    for j in range(h):
+        dy = ys[j] - geo[1]
+        for i in range(w):
+            b = j * w + i
+            dx = xs[i] - geo[0]
+            if elliptical:
+                q = (1 + e1) * dx * dx + 2 * e2 * dx * dy + (1 - e1) * dy * dy
+                rho = math.sqrt(max(q, 1e-18))
+                gx = (1 + e1) * dx + e2 * dy
+                gy = e2 * dx + (1 - e1) * dy
+            else:
+                rho = max(math.hypot(dx, dy), 1e-9)
+                gx = dx
+                gy = dy
+            past = max(rho - rlast, 0.0)
+            lo = _locate(rho, radii)  # one search for every profile at this bin
+            M[b] = _interp_at(lo, rho, radii, mean) + past * mean_tail
+            for k in range(K):
+                J[k, b] = _interp_at(lo, rho, radii, comps[k]) + past * comp_tail[k]
+            # the slope at min(ρ, 1): past the last radius, its last value
+            slope = _interp_at(lo, rho, radii, slope_profile) if rho < 1.0 else \
+                _interp_at(_locate(1.0, radii), 1.0, radii, slope_profile)
+            J[K, b] = -slope * gx / rho
+            J[K + 1, b] = -slope * gy / rho
+            if elliptical:
+                J[K + 2, b] = slope * 0.5 * (dx * dx - dy * dy) / rho
+                J[K + 3, b] = slope * dx * dy / rho
+    n = first.shape[0]
+    d = np.empty(n)
+    at = np.empty((nc, n))
+    for p in range(n):
+        d[p] = dlog[p] - (M[second[p]] - M[first[p]]) * inv_step[p]
+    for c in range(nc):  # a row at a time: each written in order
+        Jc = J[c]
+        for p in range(n):
+            at[c, p] = (Jc[second[p]] - Jc[first[p]]) * inv_step[p]
+    return d, at
