@@ -14,7 +14,8 @@ the gate left the frame alone) and of the estimator's candidate fit before the g
 The truth holds only where the JPEG still carries the lens's fall-off: not where the
 camera corrected it (:mod:`vigproc.io.incamera`: a maker-note flag on, a phone), nor where
 a raw converter wrote the JPEG with its own lens correction (XMP ``LensProfileEnable``),
-nor where an editor wrote it (its Software or XMP names Lightroom, Photoshop, …: tone,
+nor where the frame was cropped (its aspect is not the camera's ``RelatedImageWidth`` ×
+``RelatedImageHeight``: centre and corner are no longer the lens's), nor where an editor wrote it (its Software or XMP names Lightroom, Photoshop, …: tone,
 crop and vignettes of its own), nor beyond lensfun's calibrated corner (ρ > :data:`MAX_RHO`: a larger sensor than the
 calibration's, where the pa polynomial is extrapolated); and lensfun measured its fields on RAW data, linear, while a JPEG's tone curve is only
 approximately sRGB (the linearisation the estimate reads): the figures say for which
@@ -54,8 +55,13 @@ log = logging.getLogger(__name__)
 #: a coarser grid of the same frame gives the same figure to a few 1e-4 EV).
 GRID = 240
 #: Tags read beside the in-camera flags: a raw converter's or an editor's hand on the pixels.
+#: ``XMP-dc:Creator``: Picasa signs its edits there; ``RelatedImageWidth``/``Height``
+#: (Interop): the camera's frame, whose aspect a crop no longer has.
 CONVERTER_TAGS = ("Software", "ProcessingSoftware", "CreatorTool", "LensProfileEnable", "VignetteAmount",
-                  "PostCropVignetteAmount")
+                  "PostCropVignetteAmount", "XMP-dc:Creator", "RelatedImageWidth", "RelatedImageHeight")
+#: A frame whose aspect (long / short side) differs from its camera's by more than this
+#: is a crop: its centre and corner are no longer the lens's.
+MAX_ASPECT_CHANGE = 0.01
 #: Programs whose output is an edited frame (tone, crop, vignettes of their own), not the camera's JPEG.
 EDITORS = re.compile(r"photoshop|lightroom|camera raw|photo editor|gimp|capture one|darktable|rawtherapee|"
                      r"picasa|aperture|photos|snapseed|affinity|luminar|dxo", re.IGNORECASE)
@@ -176,17 +182,33 @@ class LensfunSummary:
 MAX_RHO = 1.05
 
 
-def _truth_holds(tags: dict[str, Any], ic, corner_rho: float = 1.0) -> tuple[bool, str]:
+def _aspect(w: Any, h: Any) -> float | None:
+    try:
+        w, h = float(w), float(h)
+    except (TypeError, ValueError):
+        return None
+    return max(w, h) / min(w, h) if w > 0 and h > 0 else None
+
+
+def _truth_holds(tags: dict[str, Any], ic, corner_rho: float = 1.0,
+                 size: tuple[int, int] | None = None) -> tuple[bool, str]:
+    """Whether lensfun's field is the frame's truth, and why (module doc). ``size``: the
+    frame's (width, height), compared with the camera's (``RelatedImageWidth``/``Height``)."""
     if corner_rho > MAX_RHO:
         return False, f"beyond lensfun's calibrated corner (ρ = {corner_rho:.2f})"
     if ic is not None:
         return False, f"corrected in camera ({ic.evidence})"
+    cam = _aspect(tags.get("RelatedImageWidth"), tags.get("RelatedImageHeight"))
+    own = _aspect(*size) if size else None
+    if cam and own and abs(own / cam - 1.0) > MAX_ASPECT_CHANGE:
+        return False, (f"cropped ({size[0]}x{size[1]} of the camera's "
+                       f"{tags['RelatedImageWidth']}x{tags['RelatedImageHeight']})")
     lp = tags.get("LensProfileEnable")
     if lp not in (None, 0, "0"):
         return False, f"a raw converter's lens profile (LensProfileEnable={lp}, {tags.get('Software') or '?'})"
-    for name in ("Software", "ProcessingSoftware", "CreatorTool"):
+    for name in ("Software", "ProcessingSoftware", "CreatorTool", "XMP-dc:Creator"):
         if EDITORS.search(str(tags.get(name) or "")):
-            return False, f"edited ({name}={str(tags[name])[:40]})"
+            return False, f"edited ({name.rsplit(':', 1)[-1]}={str(tags[name])[:40]})"
     for name in ("VignetteAmount", "PostCropVignetteAmount"):
         if tags.get(name) not in (None, 0, "0", "+0"):
             return False, f"an editor's own vignette ({name}={tags[name]})"
@@ -210,7 +232,7 @@ def frame_row(path: Path, proc, truth: Truth, lens_key, tags: dict[str, Any], ic
     cand = None if m is None else (m.candidate if m.candidate is not None else m)
     est = m.log_field(shape) if applied else np.zeros(shape)
     cand_log = cand.log_field(shape) if cand is not None and not cand.is_identity else np.zeros(shape)
-    holds, why = _truth_holds(tags, ic, truth.corner_rho)
+    holds, why = _truth_holds(tags, ic, truth.corner_rho, (w, h))
     camera = " ".join(str(getattr(lens_key, k, None) or "") for k in ("make", "model")).strip() or "?"
     return LensfunRow(
         file=path.name, camera=camera, lens=truth.lens, focal_mm=truth.focal_mm, fnumber=truth.fnumber,

@@ -97,6 +97,17 @@ def test_truth_does_not_hold_where_the_camera_or_a_converter_corrected():
         False, "an editor's own vignette (PostCropVignetteAmount=-5)")
 
 
+def test_truth_does_not_hold_on_a_crop_or_a_picasa_edit():
+    # the exif-py A200 frame: 1391x2463 of the camera's 3872x2592, XMP dc:Creator Picasa
+    cam = {"RelatedImageWidth": 3872, "RelatedImageHeight": 2592}
+    assert rfl._truth_holds(cam, None, size=(1391, 2463)) == (False, "cropped (1391x2463 of the camera's 3872x2592)")
+    # turned to portrait, or resized in camera (same aspect): not a crop
+    assert rfl._truth_holds(cam, None, size=(2592, 3872))[0]
+    assert rfl._truth_holds(cam, None, size=(1536, 1024))[0]
+    assert rfl._truth_holds({}, None, size=(1391, 2463))[0]  # nothing to compare with
+    assert rfl._truth_holds({"XMP-dc:Creator": "Picasa"}, None) == (False, "edited (Creator=Picasa)")
+
+
 def test_crop_to_keeps_the_centre_at_the_asked_aspect():
     a = np.arange(40 * 60, dtype=np.float64).reshape(40, 60)
     c = rfl.crop_to(a, 12, 9, frac=0.5)
