@@ -24,9 +24,12 @@ import threading
 import warnings
 from typing import Sequence
 
+import vigproc.frontends.commands
 from vigproc.errors import EXIT_CODES, VigprocError, one_line
+from vigproc.frontends import hookserver
 from vigproc.frontends.commands._options import (JSON_HELP, add_learn, add_method, add_processing, add_transfer,
                                                  number)
+from vigproc.frontends.commands.hook import MAX_REQUEST_BYTES  # imported by build_parser anyway
 from vigproc.pipeline.processor import OUTPUT_FORMATS, images_in as _images_in, output_file  # noqa: F401  (re-exported names)
 
 log = logging.getLogger("vigproc")
@@ -77,8 +80,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     # further commands live in their own modules under vigproc/commands (watch, check,
     # batch, hook, ...); each exposes register(subparsers)
-    import vigproc.frontends.commands
-
     command_modules = [importlib.import_module(f"vigproc.frontends.commands.{m.name}")
                        for m in sorted(pkgutil.iter_modules(vigproc.frontends.commands.__path__), key=lambda m: m.name)
                        if not m.name.startswith("_") and m.name not in HANDLER_MODULES]
@@ -248,8 +249,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     # "died" warning it gave on closing was noise (with a virtualenv path)
     warnings.filterwarnings("ignore", "ExifTool process was previously running but died", UserWarning)
     if getattr(args, "hook_call", False):
-        from vigproc.frontends import hookserver
-
         if hookserver.enabled() and not hookserver.serving():
             return _hook_via_server(args, argv, hookserver)
     with _terminate_like_ctrl_c() as terminated:
@@ -271,8 +270,6 @@ def _hook_via_server(args: argparse.Namespace, argv: list[str], hookserver) -> i
     starting one for the calls that follow."""
     stdin = None
     if args.request == "-":  # the server cannot read our stdin: pass its bytes (the hook's own limit)
-        from vigproc.frontends.commands.hook import MAX_REQUEST_BYTES
-
         stdin = sys.stdin.buffer.read(MAX_REQUEST_BYTES + 1)
     code = hookserver.call(argv, stdin)
     if code is not None:
