@@ -543,7 +543,7 @@ def test_lines_printed_during_a_progress_bar_stay_whole(monkeypatch):
     import io
     import logging
 
-    from vigproc.frontends.cli import _progress
+    from vigproc.frontends.commands._progress import _progress
 
     class Tty(io.StringIO):
         def isatty(self):

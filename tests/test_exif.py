@@ -24,7 +24,7 @@ import OpenImageIO as oiio
 import pytest
 
 import exiftool.exiftool as et_module
-from vigproc.bench.io import bench_exif
+from benchmarks.io import bench_exif
 from vigproc.io import exif as vexif
 from vigproc.io import lenskey
 from vigproc.errors import ImageReadError, UnsupportedFormatError, VigprocError

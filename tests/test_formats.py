@@ -10,7 +10,7 @@ from vigproc.frontends.batch import collect_dir
 from vigproc.frontends.commands.hook import _output_suffixes
 from vigproc.frontends.daemon.config import is_candidate_name
 from vigproc.io import image_read, images
-from vigproc.io.formats import IMAGE_SUFFIXES, RAW_SUFFIXES, WRITE_EXT_FORMAT, WRITE_SUFFIXES, suffix_kind
+from vigproc.io.formats import IMAGE_SUFFIXES, RAW_SUFFIXES, READ_SUFFIXES, WRITE_EXT_FORMAT, WRITE_SUFFIXES, suffix_kind
 from vigproc.pipeline.processor import OUTPUT_FORMATS
 
 #: Suffixes that read_image read but the scans used to skip.
@@ -82,3 +82,16 @@ def test_hook_output_suffixes_are_the_writers(tmp_path):
             images.write_image(p, img, format=fixed.format, bit_depth=fixed.depth, transfer=fixed.transfer)
             assert images.read_image(p)[1].format == fixed.format
     assert _output_suffixes("dng") == (".dng",)
+
+
+def test_jpe_is_a_jpeg_suffix_everywhere(tmp_path):
+    """``.jpe`` (a JPEG suffix cameras and OSes use) is read, scanned and checked for an
+    in-camera correction alike: io/incamera takes its JPEG suffixes from the one table."""
+    from vigproc.io.incamera import JPEG_SUFFIXES
+    from vigproc.pipeline.processor import images_in
+
+    assert JPEG_SUFFIXES == set(READ_SUFFIXES["jpeg"]) and ".jpe" in JPEG_SUFFIXES
+    p = tmp_path / "IMG_1.jpe"
+    images.write_image(p, np.full((8, 8, 3), 0.5, np.float32), transfer="srgb", bit_depth="uint8")
+    assert images.read_image(p)[1].format == "jpeg"
+    assert images_in(tmp_path) == [p] and is_candidate_name(p.name)

@@ -37,7 +37,7 @@ RAW_SUFFIXES = frozenset(
 
 #: Suffixes ``read_image`` reads, by kind (OpenImageIO format name, or ``raw``).
 READ_SUFFIXES: dict[str, tuple[str, ...]] = {
-    "jpeg": (".jpg", ".jpeg"),
+    "jpeg": (".jpg", ".jpeg", ".jpe"),
     "png": (".png",),
     "tiff": (".tif", ".tiff"),
     "openexr": (".exr",),

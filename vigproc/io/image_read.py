@@ -29,6 +29,7 @@ import numbers
 import os
 import re
 import stat
+import struct
 import tempfile
 import threading
 from dataclasses import dataclass
@@ -37,6 +38,8 @@ from typing import Any
 import numpy as np
 import OpenImageIO as oiio
 
+from vigproc.core.colour import cfa_rgb
+from vigproc.core.pixels import reduce_codes
 from vigproc.errors import ImageReadError, InvalidImageError, MemoryBudgetError, UnsupportedFormatError, VigprocError
 from vigproc.io.formats import RAW_SUFFIXES, PathLike
 from vigproc.io.jpeg import _jpeg_quality_of
@@ -175,8 +178,6 @@ class EncodedImage:
     def reduced(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
         """The frame's linear light binned ``k``×``k`` (float32) and its usable blocks
         (:func:`vigproc.core.pixels.reduce_codes`)."""
-        from vigproc.core.pixels import reduce_codes
-
         return reduce_codes(self.codes, self.decode_table(), k)
 
 
@@ -502,8 +503,6 @@ def _oiio_open(path: str) -> tuple[oiio.ImageInput | None, str]:
 def _tiff_has_subifds(path: str, limit: int = 1 << 16) -> bool:
     """Whether a TIFF's first IFD has a SubIFDs tag (330): the layout of NEF, ARW, PEF,
     DNG... whose IFD0 is a preview and whose sensor data lives in a SubIFD."""
-    import struct
-
     try:
         with open(path, "rb") as fh:
             data = fh.read(limit)
@@ -757,8 +756,6 @@ def read_cfa_planes(path: str | os.PathLike[str]) -> np.ndarray:
     InvalidImageError
         Not a Bayer sensor (X-Trans, four colours, a linear DNG).
     """
-    from vigproc.core.colour import cfa_rgb
-
     p = os.fspath(path)
     if rawpy is None:  # pragma: no cover
         raise ImageReadError(f"cannot read image {_q(p)}: rawpy is not installed")

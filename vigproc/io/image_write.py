@@ -21,6 +21,7 @@ from vigproc.atomic import replacing
 from vigproc.errors import (DiskFullError, ImageWriteError, InvalidImageError, OutputRefusedError, OutputSettingsError,
                             write_error)
 from vigproc.io.formats import WRITE_EXT_FORMAT, WRITE_FORMAT_ALIASES, WRITE_FORMAT_EXT, PathLike
+from vigproc.io.icc import linear_srgb_profile
 from vigproc.io.image_read import EncodedImage, _fspath, _one_line, _q, _unencodable
 from vigproc.io.jpeg import DEFAULT_JPEG_QUALITY
 from vigproc.io.transfer import LINEAR_TIFF_MARKER, _parse_transfer, _quantise
@@ -153,8 +154,6 @@ def write_image(
             if nch == 3:
                 # what editors and viewers go by: without it they take the values for
                 # sRGB-encoded and show a linear frame far too dark
-                from vigproc.io.icc import linear_srgb_profile
-
                 icc = linear_srgb_profile()
                 spec.attribute("ICCProfile", oiio.TypeDesc(f"uint8[{len(icc)}]"), np.frombuffer(icc, dtype=np.uint8))
     else:

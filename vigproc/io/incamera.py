@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from vigproc.errors import VigprocError
+from vigproc.io.formats import READ_SUFFIXES
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +60,7 @@ PHONE_MAKES = frozenset({
 #: Samsung's phone models (its cameras are NX, WB, ES, PL, Digimax...).
 _SAMSUNG_PHONE = re.compile(r"^(sm-|gt-|sgh-|sch-|sph-|shv-|galaxy)", re.IGNORECASE)
 #: Suffixes of JPEG files (the only outputs of a camera's image processor vigproc reads as such).
-JPEG_SUFFIXES = frozenset({".jpg", ".jpeg", ".jpe"})
+JPEG_SUFFIXES = frozenset(READ_SUFFIXES["jpeg"])
 #: Tags read: the flags, and the make and model for phones.
 TAGS = ("Make", "Model", *FLAG_TAGS)
 

@@ -13,10 +13,12 @@ import errno
 import hashlib
 import logging
 import os
+import shutil
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any, Container, Iterable, Sequence
 
+from vigproc.atomic import TEMP_KEY, atomic_path, replacing, temporary_keys
 from vigproc.errors import (CONTROL_ESCAPES, ImageWriteError, OutputFormatError, OutputRefusedError,
                             OutputSettingsError, VigprocError, write_error)
 from vigproc.io.formats import WRITE_EXT_FORMAT
@@ -86,7 +88,7 @@ def output_format_for(name: str, path: str | os.PathLike[str], info: Any = None,
     read) refines the sample type; without it the suffix is already final. ``like``:
     resolve ``auto`` by this file name's suffix instead (an output file a host named).
     """
-    from vigproc.io.images import DEFAULT_JPEG_QUALITY, jpeg_quality
+    from vigproc.io.jpeg import DEFAULT_JPEG_QUALITY, jpeg_quality  # numpy: not at start-up
 
     path = Path(path)
     fixed = OUTPUT_FORMATS.get(name, "missing")
@@ -194,8 +196,6 @@ def output_location(root: str | os.PathLike[str], rel: str | os.PathLike[str], *
     input's :func:`output_name`. ``create`` makes the folders. Raises ImageWriteError for
     a path that would leave ``root`` (``..``, absolute) or a folder that resolves outside
     it (a planted symbolic link)."""
-    from pathlib import PurePath
-
     parts = PurePath(rel).parts
     if not parts or PurePath(rel).is_absolute() or ".." in parts:
         raise OutputRefusedError(f"refusing output location {os.fspath(rel)!r}")
@@ -223,8 +223,6 @@ def temp_key(stem: str, source: str | os.PathLike[str]) -> str:
     """The prefix every output of an input (``stem``, from the file ``source``) starts
     with, cut to :data:`vigproc.atomic.TEMP_KEY`: ``IMG_1.`` covers ``IMG_1.jpg.vigproc.json``
     and ``IMG_1.corrected.jpg`` alike (sweeps of dead writers' temporaries match on it)."""
-    from vigproc.atomic import TEMP_KEY
-
     return (_image_base(stem, Path(source)) + ".")[:TEMP_KEY]
 
 
@@ -246,8 +244,6 @@ def sweep_temporaries(root: str | os.PathLike[str], rels: Iterable[str | os.Path
     int
         Files removed.
     """
-    from vigproc.atomic import temporary_keys
-
     def keys(inputs: Iterable[str | os.PathLike[str]]) -> dict[Path, set[str]]:
         by_folder: dict[Path, set[str]] = {}
         for rel in inputs:
@@ -352,10 +348,6 @@ def keep_original(src: Path, dst: Path, *, link: bool = False) -> None:
     """Put the original ``src`` at ``dst`` unchanged (a frame nothing was applied to):
     a hard link when ``link`` and the file systems allow it, else a copy of its bytes;
     atomically (temporary name, then rename), so ``dst`` is whole or absent."""
-    import shutil
-
-    from vigproc.atomic import atomic_path, replacing
-
     try:
         if link:
             linked = False
@@ -386,7 +378,7 @@ def _check_range(out: np.ndarray, fmt: OutputFormat) -> None:
     """A corrected frame must be representable in its output format: values beyond a
     float format's range would be written as Inf (HDR frames in absolute units in
     half-float EXR, say)."""
-    from vigproc.io.images import FLOAT_MAX
+    from vigproc.io.image_write import FLOAT_MAX  # numpy and OpenImageIO: not at start-up
 
     limit = FLOAT_MAX.get(fmt.depth)
     if limit is None:  # integer formats are clipped to the white point by design
@@ -405,7 +397,7 @@ def _note_clipping(img: np.ndarray | None, out: np.ndarray, where: str, fmt: Out
     by design): pushed there by the correction, or above it in a float source.  A source's
     own clipped highlights (exactly 1.0) are not counted (``source_white``: their number,
     counted before a correction in place; else counted in ``img``)."""
-    from vigproc.pipeline.encoded import white_samples
+    from vigproc.pipeline.encoded import white_samples  # numpy: not at start-up
 
     if source_white is None:
         source_white = white_samples(img, source=True)

@@ -75,8 +75,6 @@ def images_in(folder: Path, limit: int | None = None) -> list[Path]:
 def read_lens(reader, path: Path):
     """The frame's LensKey (or None) and a JSON-able record of it; an unidentifiable
     lens is reported, not fatal (the frame can still be estimated)."""
-    from vigproc.errors import ImageReadError
-
     if reader is None:
         return None, {"lens_id": None, "error": "EXIF not read"}
     try:

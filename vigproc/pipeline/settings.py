@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from vigproc.core.methods import METHODS
 from vigproc.errors import VigprocError
 from vigproc.pipeline.outputs import OUTPUT_FORMATS
 
@@ -92,8 +93,6 @@ class Settings:
     learn: bool = False
 
     def __post_init__(self) -> None:
-        from vigproc.core.methods import METHODS
-
         if self.mode not in MODES:
             raise VigprocError(f"unknown mode {self.mode!r} (choose from {', '.join(MODES)})")
         if self.method not in METHODS:

@@ -1,0 +1,120 @@
+"""``vigproc correct FILES... -o OUT`` and ``vigproc demo``: remove the vignetting of each
+frame through the processor (:class:`vigproc.pipeline.processor.Processor`)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+from importlib import resources
+from pathlib import Path
+
+from vigproc.core.model import VignettingModel
+from vigproc.errors import DiskFullError, VigprocError, one_line
+from vigproc.frontends.commands._options import (failure_record, files_exit_code, interrupted, learn_setting,
+                                                 print_json_results)
+from vigproc.frontends.commands._progress import _progress
+from vigproc.io.lensident import display_lens_id
+from vigproc.pipeline.faults import DISK_FULL, classify_error
+from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
+from vigproc.stores.opening import open_profile_store
+
+
+def _applied_ev(rec: dict) -> float:
+    """The fall-off divided out of a corrected frame (the model's, times the strength)."""
+    return VignettingModel.from_dict(rec["model"]).field_ev_rms() * rec.get("strength", 1.0)
+
+
+def _as_given(path: str, outdir: Path) -> str:
+    """An output's path under ``outdir`` as the user wrote it (``-o out`` prints
+    ``out/NAME``, not the absolute path the record keeps)."""
+    try:
+        return str(outdir / Path(path).relative_to(outdir.resolve()))
+    except ValueError:
+        return path
+
+
+def cmd_correct(args: argparse.Namespace) -> int:
+    """Each file through the processor into ``-o``, one line each (or ``--json``); stops
+    early when the output disk is full. Exit code: :func:`files_exit_code`'s."""
+    made = not Path(args.output).exists()
+    outdir = output_folder(args.output)
+    files = [Path(f) for f in args.files]
+    inputs = InputFiles(files)  # no output may replace an input of this run
+    settings = Settings(mode="correct", profile=args.profile, method=args.method, transfer=args.input_transfer,
+                        output_format=args.output_format, picture=args.picture, strength=args.strength,
+                        unapplied=args.unapplied, in_camera=getattr(args, "in_camera", "respect"),
+                        # a one-off correct learns only into a store it was given (or with --learn)
+                        learn=learn_setting(args, default=args.profile_db is not None))
+    failed = unapplied = 0
+    results = []
+    full = None  # the fault of the last failure (vigproc.pipeline.faults)
+    if settings.learn:  # it writes: a store that cannot be opened is an error now, not per file
+        store = open_profile_store(args.profile_db, write=True)
+    else:
+        store = open_profile_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
+    try:
+        with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
+            for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
+                try:
+                    rec = proc.process_file(f, outdir, stem, protect=inputs).to_dict()
+                    results.append(rec)
+                    unapplied += not rec.get("applied")
+                    if not args.json:
+                        lens = display_lens_id(rec["lens"]["lens_id"])
+                        if rec.get("applied"):
+                            tag = f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed"
+                        else:
+                            tag = f"not corrected: {rec.get('not_applied', 'nothing applied')}"
+                        if rec.get("learned"):  # learning as you go: where the frame went
+                            tag += f"; {rec['learned']['summary']}"
+                        where = _as_given(rec["output"], outdir) if rec.get("output") else \
+                            "no image written (see its .vigproc.json)"
+                        print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))
+                except VigprocError as exc:
+                    failed += 1
+                    results.append(failure_record(f, exc))
+                    print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
+                    full = classify_error(exc, outdir)
+                    if full.kind == DISK_FULL:  # the machine's fault: every further file would fail the same way
+                        break
+    except KeyboardInterrupt:  # Ctrl-C (SIGTERM alike): what was done, in one line; exit 130 (143)
+        return interrupted("correct", f"{len(results) - failed - unapplied} corrected, {unapplied} not corrected, "
+                           f"{failed} failed, {len(files) - len(results)} not started; outputs in {outdir}")
+    finally:
+        if store is not None:
+            store.close()
+    not_started = len(files) - len(results)
+    failed += not_started
+    stop = None
+    if full is not None and full.kind == DISK_FULL:
+        where = outdir if full.disk == "output disk" else f"the {full.disk}"  # a store's disk names its folder
+        stop = DiskFullError(f"{full.reason}; stopped with {not_started} file(s) not started: free space on "
+                             f"{where} and run again")
+        results += [failure_record(f, DiskFullError("not started: the output disk is full")) for f in files[len(results):]]
+    if made and failed == len(files):  # nothing written: leave no empty folder behind
+        with contextlib.suppress(OSError):
+            outdir.rmdir()
+    # every file failed alike: that error's code, as estimate, check and hook say it
+    code = stop.exit_code if stop is not None else files_exit_code([r.get("exit_code") for r in results])
+    if args.json:
+        print_json_results(results, code)
+    else:
+        print(f"{len(files) - failed - unapplied} corrected, {unapplied} not corrected, {failed} failed; "
+              + (f"outputs in {outdir}" if failed < len(files) else "nothing written"))
+    if stop is not None:
+        raise stop
+    return code
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Estimate and correct the bundled sample images with the embedded defaults."""
+    samples = resources.files("vigproc.data").joinpath("samples")
+    files = sorted(Path(str(samples)).glob("*.jpg"))
+    if not files:
+        raise VigprocError("the bundled samples are missing from this installation")
+    ns = argparse.Namespace(files=[str(f) for f in files], output=args.output, method="default",
+                            input_transfer=args.input_transfer, picture=True, json=False,
+                            output_format="auto", profile="estimate", profile_db=None,
+                            strength=1.0, unapplied="keep", in_camera="respect")
+    return cmd_correct(ns)

@@ -1,0 +1,223 @@
+"""``vigproc profile SUBCOMMAND``: the per-lens profile store (list, show, learn, import,
+export, lensfun and Adobe LCP interop); one handler per subcommand (:data:`SUBCOMMANDS`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+from vigproc.errors import VigprocError, one_line
+from vigproc.frontends.commands._progress import _progress
+from vigproc.io.exif import casefold_lens_id, escape_key_part
+from vigproc.io.images import read_image, write_image
+from vigproc.io.lensident import display_lens_id
+from vigproc.io.picture import falloff_figure
+from vigproc.pipeline.processor import Processor, Settings, file_sha256, read_lens
+from vigproc.stores.lcp import import_lcp, lcp_files
+from vigproc.stores.lensfun_io import colour_notes, export_lensfun_xml, import_lensfun, lensfun_entries
+from vigproc.stores.opening import open_profile_store
+from vigproc.stores.profiles import (Profile, ProfileKey, ProfileStoreError, _aspect_value, _canonical_aspect,
+                                     aperture_bin, aspect_label, export_profile, focal_bin, normalise)
+
+
+def _profile_line(i: int, p) -> str:
+    t = "trusted" if p.trusted else "learning"
+    sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
+    # the focal lengths the frames were shot at, not the bin's label, once the store knows them
+    focal = p.shots.describe_focal() if p.shots is not None else None
+    lens = display_lens_id(p.key.lens_id)  # escapes are for storage
+    key = str(p.key).replace(p.key.lens_id, lens, 1) if focal is None else f"{lens} @ {focal} {p.key.aperture_bin} {p.key.aspect}"
+    return f"[{i}] {key}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
+
+
+def _pick_profile(store, ident: str):
+    """A stored profile by its index in ``profile list``, its exact key text, or its lens
+    id (as ``estimate`` and ``check`` print it) when that lens has one profile."""
+    profiles = store.list()
+    if ident.isdigit() and int(ident) < len(profiles):
+        return profiles[int(ident)]
+    for p in profiles:
+        if ident in (str(p.key), _profile_line(0, p).split("] ", 1)[1].split("  ", 1)[0]):
+            return p
+    of_lens = [p for p in profiles if ident in (p.key.lens_id, display_lens_id(p.key.lens_id))]
+    if len(of_lens) == 1:
+        return of_lens[0]
+    if of_lens:
+        keys = "; ".join(str(p.key) for p in of_lens[:5]) + (" …" if len(of_lens) > 5 else "")
+        raise ProfileStoreError(f"lens {ident!r} has {len(of_lens)} profiles (focal length, aperture, aspect): "
+                                f"name one by its number in 'vigproc profile list' or its key ({keys})")
+    raise ProfileStoreError(f"no stored profile {ident!r} (see 'vigproc profile list')")
+
+
+def _profile_frame(aspect: float, width: int | None, height: int | None) -> tuple[int, int]:
+    """The frame a profile is shown for: what is given, the rest from its aspect ratio
+    (6000 px on the long side when neither is given)."""
+    if width is None and height is None:
+        if aspect >= 1:
+            width = 6000
+        else:
+            height = 6000
+    if width is None:
+        width = max(2, round(height * aspect))
+    if height is None:
+        height = max(2, round(width / aspect))
+    return int(width), int(height)
+
+
+def _import_lcp(args: argparse.Namespace, store) -> int:
+    """``profile import-lcp``: Adobe lens profiles' vignetting into the store (vigproc.stores.lcp)."""
+    aspect = None
+    if args.aspect:
+        aspect = _aspect_value(_canonical_aspect(args.aspect, "--aspect"))
+    imports, skipped = import_lcp(lcp_files(args.files), camera_model=args.camera_model, lens_id=args.lens_id,
+                                  aspect=aspect, include_jpeg=args.include_jpeg)
+    if not args.dry_run:
+        for imp in imports:
+            store.put(imp.profile)
+    if args.json:
+        print(json.dumps({"imported": [i.to_dict() for i in imports], "skipped": skipped,
+                          "stored": not args.dry_run}, indent=1))
+    else:
+        for imp in imports:
+            print(one_line(f"{imp.profile.key}  fit {imp.rms_ev:.1e} EV RMS ({imp.max_ev:.1e} at most), "
+                           f"fall-off {imp.falloff_ev:.2f} EV  <- {imp.entry.describe()}"))
+        for why in skipped:
+            print(one_line(f"skipped: {why}"))
+        print(f"{len(imports)} profiles {'found (dry run: nothing stored)' if args.dry_run else 'imported'}, "
+              f"{len(skipped)} entries skipped")
+    return 0
+
+
+def _list(args: argparse.Namespace, store) -> int:
+    """``profile list``: every stored profile, one line each, numbered for ``show`` and ``export``."""
+    profiles = store.list()
+    for i, p in enumerate(profiles):
+        print(_profile_line(i, p))
+    if not profiles:  # say so: an empty output reads like a failure
+        print(f"no profiles in {store.path} (vigproc profile learn FILES..., or import one)")
+    return 0
+
+
+def _show(args: argparse.Namespace, store) -> int:
+    """``profile show ID``: one profile as a model for a frame size (a summary, or the JSON
+    record with ``--json``), and a picture of its fall-off with ``--plot``."""
+    p = _pick_profile(store, args.id)
+    width, height = _profile_frame(p.key.aspect_ratio, args.width, args.height)
+    m = p.model(width, height)
+    if args.json:  # the profile's record, its model for the frame inside
+        sigma = p.field_sigma_ev
+        print(json.dumps({
+            "key": str(p.key), "lens_id": p.key.lens_id, "focal_bin": p.key.focal_bin,
+            "aperture_bin": p.key.aperture_bin, "aspect": p.key.aspect, "frames": p.n_frames,
+            "trusted": bool(p.trusted), "field_sigma_ev": sigma if sigma is None or math.isfinite(sigma) else None,
+            "provenance": p.provenance, "updated": p.updated, "width": width, "height": height,
+            "model": m.to_dict()}, indent=1))
+    else:
+        q = m.quality
+        print(_profile_line(0, p).split("] ", 1)[1])
+        print(f"  frame       {width}x{height}")
+        print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
+        print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame"
+              + (f", ±{q.field_sigma_ev:.3f} EV" if q and math.isfinite(q.field_sigma_ev) else ""))
+        print("  (--json prints the whole model)")
+    if args.plot:
+        write_image(args.plot, falloff_figure(m, title=str(p.key)), bit_depth="uint8", transfer="srgb")
+        print(f"picture -> {args.plot}", file=sys.stderr if args.json else sys.stdout)
+    return 0
+
+
+def _learn(args: argparse.Namespace, store) -> int:
+    """``profile learn FILES...``: estimate each frame and pool it into its lens's profile,
+    keyed by content (a file learned again is pooled once); exit 1 when a file failed."""
+    files = [Path(f) for f in args.files]
+    done = failed = again = 0
+    settings = Settings(mode="learn", transfer=args.input_transfer, method=args.method)
+    with Processor(settings, store=store) as proc:
+        for f in _progress(files, "learning"):
+            try:
+                img, _ = read_image(f, transfer=args.input_transfer)
+                lens_key, lens = read_lens(proc.reader, f)
+                if lens_key is None:
+                    raise VigprocError(f"cannot learn, lens unknown ({lens['error']})")
+                # keyed by content: learning a file again does not pool it twice
+                fid = file_sha256(f)
+                key = store.key_for(lens_key, img.shape[1], img.shape[0])
+                known = store.holds_frame(key, fid)
+                proc.process_image(img, lens_key, where=str(f), frame_id=fid)
+                p = store.get(key)
+                done += not known
+                again += known
+                note = "  (this content was already learned: counted once)" if known else ""
+                print(one_line(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}{note}"))
+            except VigprocError as exc:
+                failed += 1
+                print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
+    print(f"{done} frame{'' if done == 1 else 's'} learned"
+          + (f", {again} already learned before" if again else "") + f", {failed} failed")
+    return 0 if failed == 0 else 1
+
+
+def _import(args: argparse.Namespace, store) -> int:
+    """``profile import FILE``: a profile file (JSON, profiles/README.md) into the store."""
+    p = store.import_file(args.file)
+    print(f"imported {p.key}")
+    return 0
+
+
+def _export(args: argparse.Namespace, store) -> int:
+    """``profile export ID FILE``: a stored profile as a profile file."""
+    export_profile(_pick_profile(store, args.id), args.file)
+    print(f"exported -> {args.file}")
+    return 0
+
+
+def _import_lensfun(args: argparse.Namespace, store) -> int:
+    """``profile import-lensfun MAKER MODEL``: lensfun's calibration of a lens at one focal
+    length and aperture, stored as a trusted profile."""
+    m = import_lensfun(args.maker, args.model, args.focal, args.aperture, args.distance,
+                       width=args.width, height=args.height, crop_factor=args.crop_factor)
+    theta, _, aspect = normalise(m)
+    # escaped as lens ids from EXIF are: a "|" in a name must not forge a component
+    lens_id = args.lens_id or f"{escape_key_part(args.maker)}|{escape_key_part(args.model)}"
+    key = ProfileKey(casefold_lens_id(lens_id), focal_bin(args.focal), aperture_bin(args.aperture), aspect_label(aspect))
+    store.put(Profile(key=key, theta=theta, covariance=None, provenance="lensfun", trusted=True,
+                      notes=f"lensfun {args.maker} {args.model} at {args.focal} mm f/{args.aperture}"))
+    print(f"imported from lensfun: {key}")
+    return 0
+
+
+def _export_lensfun(args: argparse.Namespace, store) -> int:
+    """``profile export-lensfun FILE``: the learned profiles as a lensfun XML database
+    (profiles lensfun cannot hold are named on stderr)."""
+    entries, skipped = lensfun_entries(store.list(), crop_factor=args.crop_factor, mount=args.mount)
+    for why in skipped:
+        print(one_line(f"vigproc: not exported: {why}"), file=sys.stderr)
+    for note in colour_notes(store.list()):
+        print(one_line(f"vigproc: note: {note}"), file=sys.stderr)
+    n = export_lensfun_xml(entries, args.file)
+    print(f"{len(entries)} calibrations of {n} lenses -> {args.file}")
+    return 0
+
+
+#: ``vigproc profile SUBCOMMAND``: the handler of each subcommand, given the parsed
+#: arguments and the open store; it returns the exit code.
+SUBCOMMANDS = {
+    "list": _list,
+    "show": _show,
+    "learn": _learn,
+    "import": _import,
+    "export": _export,
+    "import-lensfun": _import_lensfun,
+    "import-lcp": _import_lcp,
+    "export-lensfun": _export_lensfun,
+}
+
+
+def cmd_profile(args: argparse.Namespace) -> int:
+    """``vigproc profile SUBCOMMAND``: open the store (for writing) and run the subcommand's
+    handler (:data:`SUBCOMMANDS`)."""
+    with open_profile_store(args.profile_db, write=True) as store:
+        return SUBCOMMANDS[args.profile_command](args, store)
