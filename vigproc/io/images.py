@@ -71,6 +71,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from vigproc.atomic import replacing
+from vigproc.scratch import scratch_folder
 from vigproc.errors import (
     DiskFullError,
     ImageReadError,
@@ -501,7 +502,7 @@ def _utf8_alias(path: str):
     temporary folder removed afterwards. The file itself is neither moved nor modified."""
     ext = os.path.splitext(path)[1]
     ext = ext if ext and not _unencodable(ext) and ext.isprintable() else ""
-    folder = tempfile.mkdtemp(prefix="vigproc-name-")
+    folder = scratch_folder("name")  # after a kill: removed by the next process's sweep
     alias = os.path.join(folder, "image" + ext)
     try:
         os.symlink(os.fsencode(os.path.abspath(path)), alias)
