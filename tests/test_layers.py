@@ -45,7 +45,7 @@ BENCH_DEBT: set[tuple[str, str]] = set()
 
 #: The layers, bottom up: a module imports only from its own layer or a lower one.
 LAYERS = (
-    ("vigproc.errors", "vigproc.atomic", "vigproc.processes", "vigproc._version", "vigproc.data"),
+    ("vigproc.errors", "vigproc.atomic", "vigproc.processes", "vigproc.scratch", "vigproc._version", "vigproc.data"),
     ("vigproc.core",),
     ("vigproc.io",),
     ("vigproc.stores",),

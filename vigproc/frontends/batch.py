@@ -57,7 +57,6 @@ import os
 import shutil
 import socket
 import sqlite3
-import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -65,6 +64,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Callable, Iterable, Iterator
 
 from vigproc.errors import EXIT_CODES, SETTINGS, ImageWriteError, VigprocError
+from vigproc.scratch import scratch_folder
 from vigproc.pipeline.faults import DISK_FULL, PERMANENT, attempt_limit, classify_error
 from vigproc.pipeline.processor import (IMAGE_SUFFIXES, SIDECAR_SUFFIX, Processor, Settings, output_location, safe_output,
                               sweep_temporaries)
@@ -406,7 +406,7 @@ def _materialise(s: Shipped) -> str:
         if s.digest in _files:
             return _files[s.digest]
         if not _files_dir:
-            d = tempfile.mkdtemp(prefix="vigproc-batch-")
+            d = scratch_folder("batch")  # a killed worker's: removed by the next process's sweep
             _files_dir.append(d)
             atexit.register(shutil.rmtree, d, True)
         dst = os.path.join(_files_dir[0], f"{s.digest[:16]}-{os.path.basename(s.name) or 'file'}")

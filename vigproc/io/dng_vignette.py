@@ -52,7 +52,6 @@ import logging
 import math
 import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -69,6 +68,7 @@ from vigproc.io.dng_opcodes import (
 )
 from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputSettingsError,
                             VigprocError, one_line, write_error)
+from vigproc.scratch import scratch
 from vigproc.core.colour import ColourField, fit_gain_planes
 from vigproc.core.model import FitQuality, VignettingModel
 
@@ -915,7 +915,7 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
     try:
         shutil.copyfile(src_s, tmp)
         if new is not existing:
-            with tempfile.TemporaryDirectory(prefix="vigproc-dng-") as td:
+            with scratch("dng") as td:  # after a kill: removed by the next process's sweep
                 blob = os.path.join(td, "opcodelist.bin")
                 with open(blob, "wb") as fh:
                     fh.write(new.to_bytes())

@@ -20,10 +20,16 @@ Arguments travel over a pipe, one per line (exiftool's ``-@`` argument-file prot
 nothing passes through a shell, but an argument holding a line break would be split in two.
 :func:`line_safe` tells which paths can be sent as they are; callers pass other paths
 under a safe alias (see :mod:`vigproc.io.metadata`) or refuse them (:mod:`vigproc.io.exif`).
+
+:func:`shared_process` is the process-wide one that writes metadata (:mod:`vigproc.io.metadata`,
+:mod:`vigproc.io.dng_vignette`), started with vigproc's XMP namespace (:data:`CONFIG_FILE`, a
+file shipped in the package: nothing is written to a temporary folder that a killed process
+would leave behind).
 """
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
 import select
@@ -32,18 +38,21 @@ import threading
 import time
 import warnings
 from dataclasses import dataclass
+from importlib import resources
 from typing import Callable, Sequence, Union
 
 import exiftool
 
 from vigproc.errors import VigprocError
 
-__all__ = ["ExiftoolDied", "ExiftoolProcess", "ExiftoolResult", "line_safe"]
+__all__ = ["CONFIG_FILE", "ExiftoolDied", "ExiftoolProcess", "ExiftoolResult", "line_safe", "shared_process"]
 
 logger = logging.getLogger(__name__)
 
 #: How long one command may take before its process is killed (seconds).
 DEFAULT_TIMEOUT = 300.0
+#: vigproc's XMP namespace (``XMP-vigproc``) for exiftool, shipped in the package.
+CONFIG_FILE = str(resources.files("vigproc.data").joinpath("exiftool.config"))
 
 Arg = Union[str, bytes]
 
@@ -358,3 +367,36 @@ class _Helper(exiftool.ExifToolHelper):
 
     def _parse_ver(self) -> str:
         return self.probe(self)
+
+
+#: The process-wide persistent exiftool per program path (:func:`shared_process`).
+_SHARED: dict[str, ExiftoolProcess] = {}
+_SHARED_LOCK = threading.Lock()
+
+
+def shared_process(executable: str, *, timeout: float = DEFAULT_TIMEOUT) -> ExiftoolProcess:
+    """The persistent exiftool of this process that writes metadata (one per program path),
+    started lazily with :data:`CONFIG_FILE` and closed at exit.
+
+    Parameters
+    ----------
+    executable : str
+        The exiftool program.
+    timeout : float
+        Seconds one command may take (the first call's value holds).
+
+    Returns
+    -------
+    ExiftoolProcess
+    """
+    with _SHARED_LOCK:
+        proc = _SHARED.get(executable)
+        if proc is None:
+            proc = _SHARED[executable] = ExiftoolProcess(executable, config_file=CONFIG_FILE, timeout=timeout)
+    return proc
+
+
+@atexit.register
+def _close_shared() -> None:
+    for proc in list(_SHARED.values()):
+        proc.close()  # a forked child's inherited ones are only forgotten

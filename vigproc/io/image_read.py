@@ -44,6 +44,7 @@ from vigproc.errors import ImageReadError, InvalidImageError, MemoryBudgetError,
 from vigproc.io.formats import RAW_SUFFIXES, PathLike
 from vigproc.io.jpeg import _jpeg_quality_of
 from vigproc.io.transfer import LINEAR_TIFF_MARKER, _auto_transfer, _decode_lut, _decoder, _parse_transfer, recorded_transfer
+from vigproc.scratch import scratch_folder
 
 try:  # rawpy is optional at import time: without it RAW files are "unsupported".
     import rawpy
@@ -234,7 +235,7 @@ def _utf8_alias(path: str):
     temporary folder removed afterwards. The file itself is neither moved nor modified."""
     ext = os.path.splitext(path)[1]
     ext = ext if ext and not _unencodable(ext) and ext.isprintable() else ""
-    folder = tempfile.mkdtemp(prefix="vigproc-name-")
+    folder = scratch_folder("name")  # after a kill: removed by the next process's sweep
     alias = os.path.join(folder, "image" + ext)
     try:
         os.symlink(os.fsencode(os.path.abspath(path)), alias)

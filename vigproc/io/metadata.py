@@ -75,8 +75,8 @@ XMP (TIFF, PNG)            OpenEXR attribute
 =========================  ============================================
 
 The namespace URI is :data:`XMP_NAMESPACE`; exiftool learns it from a config
-file this module writes to a private temporary folder per call (nothing is
-installed next to the package).  The record is written after the copy, and any
+file shipped in the package (``vigproc/data/exiftool.config``,
+:data:`vigproc.io.exiftool_process.CONFIG_FILE`).  The record is written after the copy, and any
 record the *source* carried is excluded from the copy: it described an earlier
 correction, not this output.
 
@@ -85,7 +85,7 @@ RAW formats that are not TIFF-based keep their camera tags in groups a TIFF has 
 name, before the group-preserving copy (which wins where the source has them in EXIF).
 
 Cost: two commands per output (check/read the source, then write) through one persistent
-exiftool per process (:class:`vigproc.io.exiftool_process.ExiftoolProcess`, started on the
+exiftool per process (:func:`vigproc.io.exiftool_process.shared_process`, started on the
 first copy, restarted once if it dies or hangs during one); an OpenEXR output is written
 twice (pixels, then with attributes).
 
@@ -96,7 +96,8 @@ line on a pipe.  Paths are passed absolute, so a name starting with ``-`` (or eq
 or ``@``) cannot be taken as an option, and no ``--`` is sent (it would turn the protocol's
 own closing options into file names).  A name the protocol cannot carry (a line break,
 bytes that are not UTF-8) is never sent: the source is read through a symbolic link with a
-plain name in a private folder, and the output is rewritten as a private copy there and put
+plain name in a private folder (:func:`vigproc.scratch.scratch_folder`: removed after the
+call, or by the next process's sweep if this one is killed), and the output is rewritten as a private copy there and put
 back atomically.  exiftool expands ``%d``, ``%f``, ``%e``... in the ``-tagsFromFile`` name
 and has no escape for ``%``; such a source takes the same link.  Warnings and errors name
 the caller's files, not the aliases.
@@ -106,15 +107,12 @@ The program is ``$VIGPROC_EXIFTOOL`` if set, else ``exiftool`` on ``PATH``.
 
 from __future__ import annotations
 
-import atexit
 import json
 import logging
 import math
 import os
 import re
 import shutil
-import tempfile
-import threading
 from typing import Any, Mapping
 
 import numpy as np
@@ -122,9 +120,10 @@ import OpenImageIO as oiio
 
 from vigproc._version import __version__
 from vigproc.atomic import replacing
+from vigproc.scratch import scratch_folder
 from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputRefusedError,
                             OutputSettingsError, VigprocError, write_error)
-from vigproc.io.exiftool_process import ExiftoolDied, ExiftoolProcess, ExiftoolResult, line_safe
+from vigproc.io.exiftool_process import ExiftoolDied, ExiftoolProcess, ExiftoolResult, line_safe, shared_process
 from vigproc.io.formats import WRITE_EXT_FORMAT as _EXT_FORMAT
 from vigproc.io.formats import WRITE_FORMAT_ALIASES as _FORMAT_ALIASES
 from vigproc.io.formats import WRITE_FORMAT_EXT as _FORMAT_EXT
@@ -155,27 +154,6 @@ _RECORD_FIELDS: dict[str, tuple[str, str]] = {
     "applied": ("Applied", "bool"),
     "strength": ("Strength", "float"),
 }
-
-_CONFIG = f"""\
-# exiftool config written by vigproc.io.metadata: vigproc's XMP namespace
-%Image::ExifTool::UserDefined = (
-    'Image::ExifTool::XMP::Main' => {{
-        vigproc => {{ SubDirectory => {{ TagTable => 'Image::ExifTool::UserDefined::vigproc' }} }},
-    }},
-);
-%Image::ExifTool::UserDefined::vigproc = (
-    GROUPS => {{ 0 => 'XMP', 1 => 'XMP-vigproc', 2 => 'Image' }},
-    NAMESPACE => {{ 'vigproc' => '{XMP_NAMESPACE}' }},
-    WRITABLE => 'string',
-    Model => {{ }},
-    Method => {{ }},
-    Version => {{ }},
-    Applied => {{ Writable => 'boolean' }},
-    Strength => {{ Writable => 'real' }},
-    Transfer => {{ }},
-);
-1;
-"""
 
 #: Tags not copied from the source (see the module docstring for why).
 _EXCLUDE = (
@@ -286,27 +264,6 @@ def _one_line(text: str) -> str:
     return " / ".join(s.strip() for s in text.splitlines() if s.strip())
 
 
-#: The process-wide persistent exiftool per program path, and its config file.
-_PROCESSES: dict[str, ExiftoolProcess] = {}
-_PROCESSES_LOCK = threading.Lock()
-_CONFIG_FILE: dict[int, str] = {}  # os.getpid() -> the config file that process wrote
-
-
-def _config_file() -> str:
-    """This process's copy of the namespace config, in a private folder removed at exit."""
-    pid = os.getpid()
-    path = _CONFIG_FILE.get(pid)
-    if path is None or not os.path.isfile(path):
-        folder = tempfile.mkdtemp(prefix="vigproc-exiftool-")
-        path = os.path.join(folder, "vigproc.config")
-        with open(path, "w", encoding="utf-8") as fh:
-            fh.write(_CONFIG)
-        _CONFIG_FILE[pid] = path
-        # a forked child inherits this handler: only the writer removes its folder
-        atexit.register(lambda: os.getpid() == pid and shutil.rmtree(folder, ignore_errors=True))
-    return path
-
-
 def _process() -> ExiftoolProcess:
     """The persistent exiftool that copies metadata in this process (one per program path).
 
@@ -315,18 +272,7 @@ def _process() -> ExiftoolProcess:
     ImageWriteError
         exiftool is not installed.
     """
-    exe = exiftool_path()
-    with _PROCESSES_LOCK:
-        proc = _PROCESSES.get(exe)
-        if proc is None or not os.path.isfile(proc.config_file or ""):
-            proc = _PROCESSES[exe] = ExiftoolProcess(exe, config_file=_config_file(), timeout=_TIMEOUT)
-    return proc
-
-
-@atexit.register
-def _close_processes() -> None:
-    for proc in list(_PROCESSES.values()):
-        proc.close()  # a forked child's inherited ones are only forgotten
+    return shared_process(exiftool_path(), timeout=_TIMEOUT)
 
 
 class _Exiftool:
@@ -346,8 +292,8 @@ class _Exiftool:
 
     @property
     def dir(self) -> str:
-        if self._dir is None:
-            self._dir = tempfile.mkdtemp(prefix="vigproc-exiftool-")
+        if self._dir is None:  # removed by __exit__, or after a kill by the next process's sweep
+            self._dir = scratch_folder("exiftool")
         return self._dir
 
     def run(self, args: list[str], what: str, *, check: bool = True, name: str = "",
