@@ -254,8 +254,9 @@ def _bench_images(folder: Path, n: int, width: int, height: int) -> list[Path]:
 
     import numpy as np
 
-    table1_model = benchmark("synthetic").table1_model
     from vigproc.io.images import write_image
+
+    table1_model = benchmark("synthetic").table1_model
 
     rng = np.random.default_rng(0)
     field = table1_model(1).rescale(width, height).field((height, width))
@@ -281,8 +282,9 @@ def _bench_images(folder: Path, n: int, width: int, height: int) -> list[Path]:
 
 
 def _bench_profile(path: Path, width: int, height: int) -> None:
-    table1_model = benchmark("synthetic").table1_model
     from vigproc.stores.profiles import Profile, ProfileKey, aspect_label, export_profile, normalise
+
+    table1_model = benchmark("synthetic").table1_model
 
     theta, _, aspect = normalise(table1_model(1).rescale(width, height))
     key = ProfileKey("vigproc|bench 1|vp 35mm f2.0 bench", "any", "any", aspect_label(aspect))

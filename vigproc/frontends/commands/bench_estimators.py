@@ -111,8 +111,9 @@ def register_bench(bsub) -> None:
 
 def cmd_bench_synthetic(args: argparse.Namespace) -> int:
     """Lyu 2010's synthetic protocol (Tables 2-3): Table 1's fields on natural images, every method."""
-    S = benchmark("synthetic")
     from vigproc.io.images import read_image
+
+    S = benchmark("synthetic")
 
     settings = scene_settings(args.scene_prior)
     output_file(args.json)
@@ -136,9 +137,10 @@ def cmd_bench_synthetic(args: argparse.Namespace) -> int:
 
 def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     """Real lens fields from lensfun on natural images, and no harm on the same images unvignetted."""
+    from vigproc.io.images import read_image
+
     B = benchmark("lensfun")
     protocol_image = benchmark("synthetic").protocol_image
-    from vigproc.io.images import read_image
 
     settings = scene_settings(args.scene_prior)
     output_file(args.json)
@@ -177,12 +179,13 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
 
 def cmd_bench_clean(args: argparse.Namespace) -> int:
     """Vignetting-free bases × lensfun and Table 1 fields, every method side by side."""
-    C = benchmark("clean")
-    PEER_ENV = benchmark("peers").PEER_ENV
-    published_rgs = benchmark("peers").published_rgs
     from vigproc.core.lensfamily import PROFILE_COMPONENTS
     from vigproc.core.pixels import luminance
     from vigproc.stores.lensfun import lensfun_family
+
+    C = benchmark("clean")
+    PEER_ENV = benchmark("peers").PEER_ENV
+    published_rgs = benchmark("peers").published_rgs
 
     output_file(args.json)
     bases, names = C.load_clean_bases(args.images, args.min_long_side, args.limit, args.crop, colour=not args.grey)
@@ -254,10 +257,11 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
     """The crop test's AUC by fall-off and offset, its false alarms and power, on clean bases."""
     import numpy as np
 
-    C = benchmark("clean")
-    K = benchmark("crops")
     from vigproc.stores.lensfun import lensfun_family
     from vigproc.stores.lensfun import diverse_lenses
+
+    C = benchmark("clean")
+    K = benchmark("crops")
 
     if args.calibrate and args.statistic != "shift":
         print("vigproc: bench crops: --calibrate writes the test's own null: it needs --statistic shift",
@@ -299,10 +303,11 @@ def cmd_bench_real(args: argparse.Namespace) -> int:
     """Photographs vignetted by others: pairs with a known field, and real lenses."""
     import numpy as np
 
-    R = benchmark("real")
     from vigproc.core.pixels import luminance
     from vigproc.io.images import read_image
     from vigproc.pipeline.processor import IMAGE_SUFFIXES
+
+    R = benchmark("real")
 
     settings = scene_settings(args.scene_prior)
     output_file(args.json)
@@ -368,11 +373,12 @@ def cmd_bench_scene_scatter(args: argparse.Namespace) -> int:
     import numpy as np
 
     from vigproc.atomic import atomic_write_text
-    C = benchmark("clean")
     from vigproc.core.estimate import frame_evidence
     from vigproc.core.lensfamily import profile_family
     from vigproc.core.pooling import frame_fit, scene_scatter_record
     from vigproc.core.robust import evidence_copy
+
+    C = benchmark("clean")
 
     output_file(args.output)
     bases, names = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)

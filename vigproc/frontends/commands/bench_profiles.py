@@ -65,9 +65,10 @@ def register_bench(bsub) -> None:
 
 def cmd_bench_profile(args: argparse.Namespace) -> int:
     """Profile accuracy after 1, 5, 20 frames of real lens fields, per pooling method."""
+    from vigproc.io.images import read_image
+
     B = benchmark("profile")
     protocol_image = benchmark("synthetic").protocol_image
-    from vigproc.io.images import read_image
 
     files = _images_in(Path(args.images), args.limit)
     if len(files) < max(args.counts):
@@ -95,12 +96,13 @@ def cmd_bench_profile(args: argparse.Namespace) -> int:
 
 def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
     """Profiles learned through a real store on vignetting-free bases x lensfun fields."""
+    from vigproc.core.lensfamily import PROFILE_COMPONENTS
+    from vigproc.stores.lensfun import lensfun_family
+
     C = benchmark("clean")
     B = benchmark("profile")
     PEER_ENV = benchmark("peers").PEER_ENV
     published_rgs = benchmark("peers").published_rgs
-    from vigproc.core.lensfamily import PROFILE_COMPONENTS
-    from vigproc.stores.lensfun import lensfun_family
 
     output_file(args.json)
     bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
@@ -150,11 +152,12 @@ def cmd_bench_profile_interp(args: argparse.Namespace) -> int:
 
 def cmd_bench_profile_flat(args: argparse.Namespace) -> int:
     """Profiles learned from three shots of a flat field (Zheng et al.'s white pairs)."""
-    B = benchmark("profile")
-    find_inputs = benchmark("real").find_inputs
     from vigproc.core.pixels import luminance
     from vigproc.io.images import read_image
     from vigproc.pipeline.processor import IMAGE_SUFFIXES
+
+    B = benchmark("profile")
+    find_inputs = benchmark("real").find_inputs
 
     output_file(args.json)
     pairs = [(v, c) for v, c in find_inputs(Path(args.images), IMAGE_SUFFIXES)[0]

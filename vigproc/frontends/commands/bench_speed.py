@@ -98,10 +98,11 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
     """Per-image estimation time on 480×320 protocol frames (Table 1 setting 2)."""
     import numpy as np
 
-    protocol_image = benchmark("synthetic").protocol_image
-    table1_model = benchmark("synthetic").table1_model
     from vigproc.core.estimate import estimate
     from vigproc.io.images import read_image
+
+    protocol_image = benchmark("synthetic").protocol_image
+    table1_model = benchmark("synthetic").table1_model
 
     if args.api:
         return _bench_speed_api(args)
@@ -159,9 +160,10 @@ def cmd_bench_learn(args: argparse.Namespace) -> int:
     """Learning one more frame into a profile, warm and in a new process."""
     import numpy as np
 
-    learn_speed = benchmark("learn").learn_speed
     from vigproc.io.protocol import read_protocol_images, vignetted
     from vigproc.stores.lensfun import diverse_lenses, pa_field
+
+    learn_speed = benchmark("learn").learn_speed
 
     folder = Path(args.images) if args.images else Path(str(resources.files("vigproc.data").joinpath("samples")))
     ims = read_protocol_images(_images_in(folder, args.limit), args.input_transfer, colour=True)
@@ -188,10 +190,11 @@ def cmd_bench_correct(args: argparse.Namespace) -> int:
 
     import numba
 
-    table1_model = benchmark("synthetic").table1_model
     from vigproc.core.correct import correct, gain_step
     from vigproc.stores.lensfun import diverse_lenses
     from vigproc.stores.lensfun_io import kw_from_pa
+
+    table1_model = benchmark("synthetic").table1_model
 
     h, w = args.height, args.width
     img = np.random.default_rng(0).random((h, w, 3), dtype=np.float32)

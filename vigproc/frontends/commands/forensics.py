@@ -244,12 +244,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_bench_forensics(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    B = benchmark("forensics")
     import numpy as np
 
     from vigproc.core.estimate import estimate
     from vigproc.forensics.identify import format_confusion
     from vigproc.pipeline.processor import output_file
+
+    B = benchmark("forensics")
 
     output_file(args.json)
     ims = _protocol_images(args.images, args.limit, args.input_transfer)
@@ -295,9 +296,10 @@ def cmd_bench_forensics_clean(args: argparse.Namespace) -> int:
     """Lens mismatch and identification on the clean protocol (benchmarks.forensics_clean)."""
     from dataclasses import asdict
 
+    from vigproc.pipeline.processor import output_file
+
     C = benchmark("clean")
     F = benchmark("forensics_clean")
-    from vigproc.pipeline.processor import output_file
 
     output_file(args.json)
     if args.calibrate:

@@ -40,11 +40,12 @@ def cmd_bench_learn_series(args: argparse.Namespace) -> int:
     import os
     from pathlib import Path
 
+    from vigproc.frontends.commands._options import write_json_result
+    from vigproc.stores.lensfun import diverse_lenses
+
     lens_fields = benchmark("clean").lens_fields
     load_clean_bases = benchmark("clean").load_clean_bases
     run_series = benchmark("learn_series").run_series
-    from vigproc.frontends.commands._options import write_json_result
-    from vigproc.stores.lensfun import diverse_lenses
 
     bases, _ = load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
     if len(bases) < args.frames:

@@ -78,11 +78,12 @@ def _print_series(s) -> None:
 
 
 def cmd_bench_real_frames(args: argparse.Namespace) -> int:
+    from vigproc.frontends.commands._options import write_json_result
+
     rfl = benchmark("real_frames_lensfun")
     as_dict = benchmark("real_frames").as_dict
     full_frames = benchmark("real_frames").full_frames
     run = benchmark("real_frames").run
-    from vigproc.frontends.commands._options import write_json_result
 
     images = args.images or ["../shared/data/jpeg_exif"]
     files = full_frames(images, args.min_long_side, args.limit)

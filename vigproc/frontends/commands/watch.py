@@ -198,8 +198,9 @@ def _make_inputs(folder: Path, n: int, width: int, height: int, fmt: str, model)
     """N distinct synthetic frames with the model's vignetting, plus camera/lens EXIF."""
     import numpy as np
 
-    synthetic_frame = benchmark("io").synthetic_frame
     from vigproc.io.images import write_image
+
+    synthetic_frame = benchmark("io").synthetic_frame
 
     base = synthetic_frame(height, width) * model.field((height, width)).astype(np.float32)[..., None]
     rng = np.random.default_rng(1)
