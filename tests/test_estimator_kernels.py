@@ -122,3 +122,20 @@ def test_off_centre_choice_is_the_same_with_the_default_s_working_copies():
     assert shared.method == again.method == "lens-family-off-centre"
     assert (shared.center, shared.p, shared.alpha) == (again.center, again.p, again.alpha)
     assert shared.quality.field_sigma_ev == again.quality.field_sigma_ev
+
+
+def test_the_fits_the_choice_weighs_state_their_own_field_rms():
+    """The off-centre choice reads a fit's stated field RMS instead of computing it again:
+    the off-centre family fit and the free fit (applied or not) state their model's own."""
+    from vigproc.core.robust import RobustSettings, estimate_robust
+
+    frame = _table1_colour_frame()
+    lum = luminance(frame)
+    rule = OffCentreRule()
+    c = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    fits = [off_centre_fit(lum, c, rule.settings, colour=frame).field]
+    for settings in (rule.free_settings, RobustSettings()):
+        m = estimate_robust(lum, settings)
+        fits.append(m.candidate or m)
+    for m in fits:
+        assert m.quality.field_ev_rms == m.field_ev_rms() > 0.5
