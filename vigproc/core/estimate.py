@@ -569,8 +569,9 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
         off = None
         free = rule.free_settings if q.field_ev_rms >= rule.free_min_ev else RobustSettings()
         alt = estimate_robust(lum, free, mask)
-    # a fit too weak to keep needs no comparison
-    if not (alt.candidate or alt).field_ev_rms() >= rule.keep_min_ev:
+    # a fit too weak to keep needs no comparison (both fits state their field's RMS: the
+    # model's own field_ev_rms(), not computed again)
+    if not (alt.candidate or alt).quality.field_ev_rms >= rule.keep_min_ev:
         return model
     # the luminance's, as the comparison reads (its field alone: no jackknife)
     grey = fit_family(lum, s, mask, family, hint, uncertainty=False, copy=work).model

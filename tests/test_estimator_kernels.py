@@ -1,0 +1,141 @@
+"""The estimator's compiled passes give what the NumPy they replaced gave, and the default's
+off-centre choice reuses its working copies and defers the off-centre fit's jackknife
+without changing its answer."""
+
+import math
+
+import numpy as np
+import pytest
+
+from vigproc.core._kernels.robust import CAUCHY, HUBER, normal_equations
+from vigproc.core.estimate import OffCentreRule, _off_centre_choice
+from vigproc.core.family_fit import (FamilySettings, _geometry_columns, _geometry_pairs, fit_family, fit_off_centre,
+                                     half_diagonal, luminance_copy, off_centre_fit, pairs_at, settings_index,
+                                     with_colour)
+from vigproc.core.lensfamily import profile_family
+from vigproc.core.pixels import luminance
+
+from conftest import textured
+
+H, W = 200, 300
+
+
+def _table1_colour_frame() -> np.ndarray:
+    from vigproc.bench.synthetic import table1_model
+
+    scene = np.stack([textured(H, W, seed=3 + k, contrast=0.05) for k in range(3)], axis=-1)
+    return scene * table1_model(2).field((H, W))[..., None]
+
+
+@pytest.mark.parametrize("geo", [[0.0, 0.0], [0.3, -0.2], [0.0, 0.0, 0.0, 0.0], [0.5, 0.4, 0.6, -0.3],
+                                 [1.5, 0.4, 0.1, -0.3]])
+def test_geometry_pairs_are_the_numpy_columns_differenced(geo):
+    """One compiled pass over the bins and the pairs (centre only, or centre and shape; a
+    centre off the frame puts bins past the profile's last radius) gives the bits of
+    _geometry_columns' field and derivatives differenced over the pairs by pairs_at."""
+    frame = _table1_colour_frame()
+    s = FamilySettings()
+    L, valid, xs, ys, C, _ = with_colour(luminance_copy(luminance(frame), s, None), frame, s)
+    index = settings_index(L, valid, C, s)
+    fam = profile_family()
+    radius = half_diagonal(W, H)
+    X, Y = xs[None, :] / radius, ys[:, None] / radius
+    coef = np.array([0.4, -0.2, 0.1])
+    geo = np.array(geo)
+    want_d, want_a = pairs_at(index, *_geometry_columns(fam, coef, geo, X, Y))
+    d, a = _geometry_pairs(index, X.ravel(), Y.ravel(), fam, coef, geo)
+    assert a.shape == want_a.shape == (d.size, 3 + geo.size)
+    np.testing.assert_array_equal(d, want_d)
+    np.testing.assert_array_equal(a, want_a)
+
+
+@pytest.mark.parametrize("kind", [CAUCHY, HUBER])
+def test_robust_normal_equations_match_their_definition(kind):
+    """The chunked sums (more pairs than a chunk, and not a multiple of it) are Σ w/σ²·j·jᵀ
+    and Σ w/σ²·j·e over every pair of usable bins."""
+    rng = np.random.default_rng(4)
+    h, w, n = 23, 31, 12
+    L = rng.normal(size=(h, w)) * 0.05
+    F = rng.normal(size=(h, w)) * 0.05
+    J = rng.normal(size=(h, w, n))
+    valid = rng.random((h, w)) > 0.15
+    steps = np.array([1, 2, 4], dtype=np.int64)
+    sigma = np.array([0.02, 0.03, 0.05])
+    Hm, g, loss, npairs = normal_equations(L, valid, F, J, steps, sigma, kind)
+    want_H, want_g, want_loss, count = np.zeros((n, n)), np.zeros(n), 0.0, 0
+    for si, s in enumerate(steps):
+        for dy, dx in ((0, s), (s, 0)):
+            for y in range(h - dy):
+                for x in range(w - dx):
+                    if not (valid[y, x] and valid[y + dy, x + dx]):
+                        continue
+                    e = L[y + dy, x + dx] - L[y, x] - F[y + dy, x + dx] + F[y, x]
+                    u2 = e * e / sigma[si] ** 2
+                    if kind == CAUCHY:
+                        rho, wt = math.log1p(u2), 1 / (1 + u2)
+                    else:
+                        rho, wt = (0.5 * u2, 1.0) if u2 <= 1 else (math.sqrt(u2) - 0.5, 1 / math.sqrt(u2))
+                    j = J[y + dy, x + dx] - J[y, x]
+                    want_H += wt / sigma[si] ** 2 * np.outer(j, j)
+                    want_g += wt / sigma[si] ** 2 * j * e
+                    want_loss += rho
+                    count += 1
+    assert npairs == count > 256 and count % 256
+    np.testing.assert_allclose(Hm, want_H, rtol=1e-12, atol=1e-12 * np.abs(want_H).max())
+    np.testing.assert_allclose(g, want_g, rtol=1e-12, atol=1e-12 * np.abs(want_g).max())
+    assert loss == pytest.approx(want_loss, rel=1e-12)
+    np.testing.assert_array_equal(Hm, Hm.T)
+
+
+def test_off_centre_fit_states_its_field_before_its_uncertainty():
+    """The deferred fit's field is fit_off_centre's, and its uncertainty, asked for, is
+    fit_off_centre's σ and fall-back: the default reads the field to choose and pays for
+    the jackknife only for a fit it keeps."""
+    frame = _table1_colour_frame()
+    lum = luminance(frame)
+    s = OffCentreRule().settings
+    c = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    whole = fit_off_centre(lum, c, s, colour=frame)
+    part = off_centre_fit(lum, c, s, colour=frame)
+    assert whole is not None and part is not None
+    fitted = whole.candidate or whole
+    assert (part.field.center, part.field.p, part.field.alpha) == (fitted.center, fitted.p, fitted.alpha)
+    assert math.isnan(part.field.quality.field_sigma_ev) and not part.field.quality.fallback
+    later = part.with_uncertainty()
+    assert later.quality.field_sigma_ev == whole.quality.field_sigma_ev > 0
+    assert later.quality.fallback == whole.quality.fallback
+    assert later.quality.snr == whole.quality.snr
+
+
+def test_off_centre_choice_is_the_same_with_the_default_s_working_copies():
+    """Given the default's own working copies (its settings make the same ones), the choice
+    is the one it makes binning the frame again for each fit."""
+    frame = _table1_colour_frame()
+    lum = luminance(frame)
+    fs = FamilySettings()
+    work = luminance_copy(lum, fs, None)
+    work_colour = with_colour(work, frame, fs)
+    fit = fit_family(lum, fs, colour=frame, copy=work_colour)
+    rule = OffCentreRule()
+    again = _off_centre_choice(lum, None, None, None, frame, rule, fit)
+    shared = _off_centre_choice(lum, None, None, None, frame, rule, fit, (work, work_colour))
+    assert shared.method == again.method == "lens-family-off-centre"
+    assert (shared.center, shared.p, shared.alpha) == (again.center, again.p, again.alpha)
+    assert shared.quality.field_sigma_ev == again.quality.field_sigma_ev
+
+
+def test_the_fits_the_choice_weighs_state_their_own_field_rms():
+    """The off-centre choice reads a fit's stated field RMS instead of computing it again:
+    the off-centre family fit and the free fit (applied or not) state their model's own."""
+    from vigproc.core.robust import RobustSettings, estimate_robust
+
+    frame = _table1_colour_frame()
+    lum = luminance(frame)
+    rule = OffCentreRule()
+    c = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    fits = [off_centre_fit(lum, c, rule.settings, colour=frame).field]
+    for settings in (rule.free_settings, RobustSettings()):
+        m = estimate_robust(lum, settings)
+        fits.append(m.candidate or m)
+    for m in fits:
+        assert m.quality.field_ev_rms == m.field_ev_rms() > 0.5
