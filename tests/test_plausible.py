@@ -8,7 +8,7 @@ import pytest
 
 from vigproc.core.model import FitQuality, VignettingModel
 from vigproc.core.plausible import (BEYOND_REAL_LENSES, BRIGHTER_CORNERS, CLIPS_HIGHLIGHTS, LOW_CONFIDENCE, Rules,
-                                    corner_ev, judge, new_white_share, population_max_ev, refused)
+                                    corner_ev, judge, new_white_share, outward_rise_ev, population_max_ev, refused)
 from vigproc.io.exif import LensKey
 from vigproc.pipeline.guard import guard
 from vigproc.pipeline.processor import Processor, Settings, not_applied_reason
@@ -45,6 +45,32 @@ def test_brighter_corners_are_refused_on_every_path():
         r = judge(m, grey(0.3), calibrated=calibrated)
         assert r is not None and r.rule == BRIGHTER_CORNERS and "+0.20 EV" in r.reason
     assert judge(centred(-0.01), grey(0.3)) is None or judge(centred(-0.01), grey(0.3)).rule != BRIGHTER_CORNERS
+
+
+def bump(height: float) -> VignettingModel:
+    """A centred field 1 + 4h u² − 4h u⁴ (u = 1 at the corner): 1 + h at mid-radius, back to
+    1 at the corners (the Nikon D3100 snow frame's fit had this shape, +0.14 EV)."""
+    p = 1e-12
+    rc = math.sqrt(p) * HALF_DIAG
+    alpha = (0.0, -4.0 * height / rc**2, 0.0, 4.0 * height / rc**4, 0.0, 0.0, 0.0)
+    return VignettingModel(W, H, p=(p, 0.0, p), alpha=alpha, method="lens-family",
+                           quality=FitQuality(confidence=0.95, field_ev_rms=0.05, field_sigma_ev=0.01))
+
+
+def test_a_fit_that_brightens_on_its_way_to_the_corners_is_refused():
+    m = bump(0.1)  # +0.1375 EV at mid-radius, the corners level with the centre
+    assert abs(corner_ev(m)[0]) < 1e-6  # the corners alone do not show it
+    assert outward_rise_ev(m) == pytest.approx(math.log2(1.1), abs=2e-3)
+    r = judge(m, grey(0.3))
+    assert r is not None and r.rule == BRIGHTER_CORNERS and "0.14 EV on its way out" in r.reason
+    assert judge(m, grey(0.3), calibrated=True) is None  # a measured field is the lens's
+    assert judge(bump(0.03), grey(0.3)) is None  # +0.04 EV: within real calibrations' spread
+    assert outward_rise_ev(centred(1.0)) == 0.0 and outward_rise_ev(VignettingModel.identity(W, H)) == 0.0
+    # off-centre: the lines start at the field's own centre, so a lens off the frame's
+    # centre (its field rising towards it from the frame's centre) is not refused
+    off = VignettingModel(W, H, center=(120.0, 40.0), p=(1 / 200**2, 0.0, 1 / 200**2), method="robust",
+                          quality=FitQuality(confidence=0.95, field_ev_rms=0.3, field_sigma_ev=0.05))
+    assert outward_rise_ev(off) < 1e-9
 
 
 def test_the_real_lens_population_bounds_a_fit_not_a_calibration():
