@@ -37,8 +37,10 @@ def test_a_fit_that_brightens_the_corners_is_drawn_not_flattened_at_zero():
 def test_the_html_report_is_small(tmp_path):
     """A 48-frame HTML report was 19 MB (a 400 px PNG per frame): one JPEG figure per
     frame with a 320 px thumbnail now, also for a frame of noise-like texture (the worst
-    case for compression)."""
-    img = np.repeat(_brightening_frame(2000, 3000)[..., None], 3, axis=2)
+    case for compression).  The frame is larger than the thumbnail (block means, then
+    resampling), not camera-sized: the thumbnail and the figure have the same size for
+    any frame, and a smaller frame's means keep more of its texture, the harder case."""
+    img = np.repeat(_brightening_frame(640, 960)[..., None], 3, axis=2)
     v = forensic_check(img, None)
     items = [ReportItem(f"frame{i}.jpg", v, thumbnail(img)) for i in range(4)]
     out = write_report(tmp_path / "r.html", items)
