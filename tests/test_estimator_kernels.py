@@ -21,7 +21,7 @@ H, W = 200, 300
 
 
 def _table1_colour_frame() -> np.ndarray:
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
 
     scene = np.stack([textured(H, W, seed=3 + k, contrast=0.05) for k in range(3)], axis=-1)
     return scene * table1_model(2).field((H, W))[..., None]

@@ -7,7 +7,7 @@ body of ``if __name__ == "__main__":`` is left out: it runs as the script
 ``__main__``, which no module imports.
 
 The package's folders are its layers, bottom up (:data:`LAYERS`): the foundation
-(``errors``, ``atomic``, ``processes``, ``_version``, the shipped ``data``), the numeric core, image and
+(``errors``, ``atomic``, ``processes``, ``scratch``, ``_version``, the shipped ``data``), the numeric core, image and
 metadata I/O, the stores, forensics, the per-frame pipeline, the front ends. A module
 imports only from its own layer or below.
 

@@ -165,10 +165,10 @@ def test_a_fit_no_model_can_hold_is_insufficient_signal(classes, calibration, mo
     """The data-only fit of a frame without usable structure can land on coefficients no
     lens has, whose model would black out part of the frame: that is no evidence (a
     camera JPEG made `vigproc check` fail with exit 6 where estimate and correct went on)."""
-    import vigproc.forensics.lensmatch as lensmatch
+    import vigproc.forensics.verdicts as verdicts  # where the check looks the lens-match fit up
     from vigproc.core.family_fit import FrameCoefficients
 
-    monkeypatch.setattr(lensmatch, "frame_fit", lambda lum, fam=None, settings=None, colour=None: FrameCoefficients(
+    monkeypatch.setattr(verdicts, "frame_fit", lambda lum, fam=None, settings=None, colour=None: FrameCoefficients(
         np.array([5e3, -4e3]), np.eye(2), 1000))
     img = textured(H, W, seed=6, contrast=0.15) * classes[4].field(H, W)
     v = forensic_check(img, key_of(classes[4]), calibration=calibration)

@@ -18,6 +18,7 @@ import numpy as np
 from vigproc.errors import VigprocError
 from vigproc.forensics.lensmatch import whitener as _whitener
 from vigproc.forensics.rings import PRIOR_FRAMES, Calibration, frame_features
+from vigproc.core.normalised import denormalise
 from vigproc.core.model import VignettingModel
 
 __all__ = ["Expected", "Reference", "expected_for", "expected_from_field", "find_reference", "unknown_lens_reason"]
@@ -47,8 +48,6 @@ class Expected:
 
 def _feature_covariance_from_theta(theta: np.ndarray, theta_cov: np.ndarray, width: int, height: int) -> np.ndarray:
     """First-order propagation of a normalised-θ covariance to :func:`frame_features`."""
-    from vigproc.core.normalised import denormalise
-
     base = frame_features(denormalise(theta, None, width, height))
     k = theta.size
     jac = np.zeros((base.size, k))

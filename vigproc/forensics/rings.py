@@ -40,6 +40,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from vigproc.atomic import atomic_write_text
 from vigproc.errors import EXIT_CODES, SETTINGS, VigprocError
 from vigproc.forensics.lensmatch import MatchCalibration, empirical_p, held_out_whitened, pooled_null
 from vigproc.core.model import VignettingModel
@@ -359,8 +360,6 @@ class Calibration:
 
     def save(self, path: str | Path) -> None:
         """Write as JSON, atomically."""
-        from vigproc.atomic import atomic_write_text
-
         atomic_write_text(Path(path), json.dumps(self.to_dict(), indent=None, separators=(",", ":")) + "\n")
 
     @classmethod

@@ -18,6 +18,7 @@ Authentication", ACM MM&Sec 2010.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -26,7 +27,10 @@ from typing import Any, Sequence
 import numpy as np
 
 from vigproc.errors import ModelError, VigprocError
-from vigproc.forensics.lensmatch import MatchCalibration
+from vigproc.forensics.lensmatch import (
+    MatchCalibration, beyond_scene_limit, default_match_calibration, frame_fit, pooled_d2, reference_coefficients,
+    scene_d2, whiten,
+)
 from vigproc.forensics.references import (
     Expected, Reference, expected_for, expected_from_field, find_reference, unknown_lens_reason,
 )
@@ -35,7 +39,10 @@ from vigproc.forensics.rings import (
     _fit_of, _half_diagonal, _is_weak, _mean_d2, _shape_ratio, _stated, _warn_if_stale, default_calibration,
     forensic_method, frame_features, frame_quality, ring_falloff,
 )
-from vigproc.core.model import VignettingModel
+from vigproc.core.lensfamily import default_family
+from vigproc.core.model import FitQuality, VignettingModel
+from vigproc.core.pixels import check_image as valid_image
+from vigproc.core.pixels import luminance
 
 __all__ = ["Evidence", "TESTS", "VERDICTS", "Verdict", "check_embedded", "check_family", "check_model",
            "forensic_check", "is_weak", "pool_verdicts", "score"]
@@ -360,9 +367,6 @@ def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *,
         lens check), so it is judged by the scatter of grey fits.
     """
     if isinstance(calibration, MatchCalibration):  # the lens-family test: the estimate is its data-only fit
-        from vigproc.core.lensfamily import default_family
-        from vigproc.forensics.lensmatch import reference_coefficients
-
         fam = default_family()
         calibration.check_family(fam)
         fit = _fit_of(estimate)
@@ -377,8 +381,7 @@ def check_embedded(estimate: VignettingModel, embedded: VignettingModel, *,
 def _family_model(c: np.ndarray, width: int, height: int, family, calibration) -> VignettingModel:
     """The frame's data-only family fit as a (centred) Kang-Weiss model, its stated σ
     the scenes' scatter (the calibration's Σ) propagated to the field."""
-    from vigproc.core.family_fit import field_spread_ev, profile_to_model
-    from vigproc.core.model import FitQuality
+    from vigproc.core.family_fit import field_spread_ev, profile_to_model  # its Numba kernel: only when used
 
     m, _ = profile_to_model(family.mean + np.asarray(c) @ family.components, family.radii, width, height)
     gx = np.linspace(0.0, 1.0, 33)
@@ -401,8 +404,6 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     (:attr:`~vigproc.forensics.lensmatch.MatchCalibration.grey_inflate`); ``quality``: the
     frame's confidence as the verdict states it (:func:`frame_quality`; the data-only fit
     has none)."""
-    from vigproc.forensics.lensmatch import beyond_scene_limit, reference_coefficients, scene_d2, whiten
-
     alpha = calibration.alpha if alpha is None else float(alpha)
     fit = _fit_of(estimate)
     rings = ring_falloff(fit)
@@ -508,11 +509,7 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
     MatchCalibrationError
         The calibration was made in another family.
     """
-    from vigproc.core.pixels import check_image as valid_image
-    from vigproc.core.pixels import luminance
-    from vigproc.core.lensfamily import default_family
-    from vigproc.core.family_fit import colour_of
-    from vigproc.forensics.lensmatch import default_match_calibration, frame_fit
+    from vigproc.core.family_fit import colour_of  # its Numba kernel: only when used
 
     cal = calibration if calibration is not None else default_match_calibration()
     fam = family if family is not None else default_family()
@@ -533,8 +530,6 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
             log.info("the frame's lens-family fit is no vignetting a model can hold; insufficient signal")
             c = None
     if est is None:
-        from vigproc.core.model import FitQuality
-
         est = VignettingModel.identity(w, h, method=FAMILY_TEST_METHOD,
                                        quality=FitQuality(confidence=0.0, fallback=True))
     ref = find_reference(lens_key, w, h, store=store, frame_id=frame_id)
@@ -617,8 +612,6 @@ def _say_lens_problem(v: Verdict, lens_key) -> Verdict:
     lensfun does not hold."""
     if v.verdict != "unknown-lens" or lens_key is None or lens_key.lens is None:
         return v
-    import dataclasses
-
     problem = getattr(lens_key, "lens_problem", None)
     if problem:
         return dataclasses.replace(v, lens_problem=problem, reason=f"the metadata's lens identity is contradictory "
@@ -649,8 +642,6 @@ def _say_own_frame(v: Verdict, lens_key, width: int, height: int, store, frame_i
         return v
     if not own:
         return v
-    import dataclasses
-
     return dataclasses.replace(v, reason=f"the stored profile {p.key} was learned from this very frame (a frame "
                                          "cannot vouch for itself) and lensfun has no calibration for this lens")
 
@@ -671,8 +662,6 @@ def pool_verdicts(verdicts: Sequence[Verdict], *,
     ForensicsError
         No frame with an expected model, or frames compared with different profiles.
     """
-    from vigproc.forensics.lensmatch import default_match_calibration, pooled_d2
-
     usable = [v for v in verdicts if v.whitened is not None]
     if not usable:
         raise ForensicsError("no frame with a known lens to pool")

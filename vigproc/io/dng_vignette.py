@@ -59,7 +59,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from vigproc.atomic import publish, temporary_name
 from vigproc.io.dng_opcodes import (
+    AreaSpec,
     DngOpcodeError,
     FixVignetteRadial,
     GainMap,
@@ -68,9 +70,12 @@ from vigproc.io.dng_opcodes import (
 )
 from vigproc.errors import (ImageReadError, ImageWriteError, InvalidImageError, ModelError, OutputSettingsError,
                             VigprocError, one_line, write_error)
+from vigproc.io.exiftool_process import ExiftoolDied
 from vigproc.scratch import scratch
 from vigproc.core.colour import ColourField, fit_gain_planes
-from vigproc.core.model import FitQuality, VignettingModel
+from vigproc.core.model import FitQuality, VignettingModel, frame_coords
+from vigproc.core.normalised import fit_model_to_field
+from vigproc.core.pixels import as_channels_last
 
 __all__ = [
     "EmbeddedCalibration",
@@ -117,8 +122,6 @@ def _fit_positions(width: int, height: int, w: int, h: int) -> tuple[np.ndarray,
     in the grid's half-diagonals, and the returned model in the frame's, so sample
     (i, j) stands for the frame point at the same normalised position (exactly, even
     when the grid's aspect ratio is only close to the frame's)."""
-    from vigproc.core.model import frame_coords
-
     scale = math.hypot(width, height) / math.hypot(w, h)
     x = frame_coords(w) * scale  # frame-centred frame pixels
     y = frame_coords(h) * scale
@@ -148,8 +151,6 @@ def fit_log_field(log_phi_at, width: int, height: int, method: str) -> tuple[Vig
         RMS and largest |log2 φ_model − log2 φ|, EV; ``model.quality.objective`` and
         ``field_sigma_ev`` hold ``rms_ev``.
     """
-    from vigproc.core.normalised import fit_model_to_field
-
     t0 = time.perf_counter()
     rows, cols = _check_positions(width, height)
     X, Y = np.meshgrid(cols - (width - 1) / 2.0, rows - (height - 1) / 2.0)
@@ -467,8 +468,7 @@ class GainFieldModel(VignettingModel):
         InvalidImageError
             Bad strength, or the result is not finite.
         """
-        from vigproc.core.correct import _check_clip, _check_strength
-        from vigproc.core.pixels import as_channels_last
+        from vigproc.core.correct import _check_clip, _check_strength  # its Numba kernels: only when used
 
         if self.calibration is None:
             raise ModelError("this gain-field model carries no calibration")
@@ -630,8 +630,6 @@ def model_to_gain_maps(model: VignettingModel, *, strength: float = 1.0,
     ModelError
         The model blacks out part of the frame, or a gain is outside :data:`GAIN_RANGE`.
     """
-    from vigproc.io.dng_opcodes import AreaSpec
-
     strength = float(strength)
     if not (math.isfinite(strength) and 0.0 <= strength <= 2.0):
         raise ModelError(f"strength must be within [0, 2], got {strength!r}")
@@ -679,8 +677,7 @@ def _run(args: list[str], what: str, error: type[Exception], *, read: str | None
     error
         exiftool is missing, cannot start, or died twice during the command.
     """
-    from vigproc.io.exiftool_process import ExiftoolDied
-    from vigproc.io.metadata import _Exiftool
+    from vigproc.io.metadata import _Exiftool  # OpenImageIO: only when a DNG is read or written
 
     try:
         with _Exiftool() as et:
@@ -876,8 +873,6 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
     ImageWriteError
         The copy cannot be written, or does not read back as written.
     """
-    from vigproc.atomic import publish, temporary_name
-
     src_s, dst_s = _abs(src), _abs(dst)
     if os.path.exists(dst_s) and os.path.samefile(src_s, dst_s):
         raise OutputSettingsError(f"refusing to write {dst_s!r}: it is the input")

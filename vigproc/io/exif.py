@@ -8,9 +8,9 @@ fields, read with ExifTool.
 Reading
 -------
 :class:`ExifReader` wraps **one** persistent ``exiftool -stay_open`` process
-(:class:`vigproc.io.exiftool_process.ExiftoolProcess`, over PyExifTool).  Measured on the 92 shared
-camera JPEGs (``vigproc bench io``, benchmarks/io.py): ~7 ms per file through the open process (plus
-~60 ms start-up once) against ~90 ms per file with a process per file, so a batch
+(:class:`vigproc.io.exiftool_process.ExiftoolProcess`, over PyExifTool): a file costs a few
+milliseconds through the open process against the start-up of a process per file
+(``docs/benchmarks/io.md``, ``vigproc bench io``, benchmarks/io.py), so a batch
 is read with one process and, per chunk of files, one ExifTool command.
 :meth:`ExifReader.read_many` never raises for a bad file: each result is a
 :class:`LensKey` or a typed :class:`~vigproc.errors.VigprocError` naming the file

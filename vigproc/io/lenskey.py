@@ -45,6 +45,9 @@ from vigproc.errors import MetadataError
 from vigproc.io.lensident import (
     LensSpec, generic_description, lens_spec, make_brand, shot_problem, strip_make_prefix,
 )
+# A bare focal/aperture spec ("18.0-55.0 mm", "100.0mm f/2.8") names no lens: ExifTool and
+# DNG converters write it when the lens is unidentified (lensident's rule, the one for every front end).
+from vigproc.io.lensident import _SPEC_ONLY
 
 __all__ = [
     "KEY_FIELDS",
@@ -97,12 +100,6 @@ _HEX_BYTES = re.compile(r"^[0-9a-f]{2}( [0-9a-f]{2})+$")
 _DIGITS = re.compile(r"^[\d.\s]+$")
 _UNKNOWN_PREFIX = re.compile(r"^unknown\b")
 _OR_SPLIT = re.compile(r"\s+or\s+")
-# A bare focal/aperture spec ("18.0-55.0 mm", "100.0mm f/2.8") names no lens:
-# ExifTool and DNG converters write it when the lens is unidentified.
-_NUM = r"\d+(?:\.\d+)?"
-_SPEC_ONLY = re.compile(
-    rf"^{_NUM}(?:\s*-\s*{_NUM})?\s*mm(?:\s*f\s*/?\s*{_NUM}(?:\s*-\s*{_NUM})?)?$"
-)
 
 
 def _clean(value: Any, casefold: bool = True) -> tuple[str | None, str | None]:
