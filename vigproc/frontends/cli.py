@@ -26,7 +26,6 @@ from typing import Sequence
 
 import vigproc.frontends.commands
 from vigproc.errors import EXIT_CODES, VigprocError, one_line
-from vigproc.frontends import hookserver
 from vigproc.frontends.commands._bench import add_benchmarks_dir
 from vigproc.frontends.commands._options import (JSON_HELP, add_learn, add_method, add_processing, add_transfer,
                                                  number)
@@ -251,6 +250,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     # "died" warning it gave on closing was noise (with a virtualenv path)
     warnings.filterwarnings("ignore", "ExifTool process was previously running but died", UserWarning)
     if getattr(args, "hook_call", False):
+        from vigproc.frontends import hookserver  # hook calls only: sockets are no start-up cost of every command
+
         if hookserver.enabled() and not hookserver.serving():
             return _hook_via_server(args, argv, hookserver)
     with _terminate_like_ctrl_c() as terminated:

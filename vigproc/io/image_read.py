@@ -59,12 +59,11 @@ SUPPORTED_OIIO_FORMATS = frozenset({"jpeg", "png", "tiff", "openexr"})
 #: Extensions tried with LibRaw *first* (content still decides: see :func:`read_image`).
 RAW_EXTENSIONS = RAW_SUFFIXES
 
-#: Default memory budget of one decoded image, in bytes: the float32 pixels
-#: :func:`read_image` returns (width x height x channels x 4).  2 GiB takes a
-#: 178-megapixel colour frame (a 150-MP medium-format RAW fits) and refuses a
-#: 196-MP colour PNG bomb of 572 KB.  Decoding an 8-bit file peaks at about 1.25x
-#: the decoded size (its integer buffer too; more for 16-bit files and RAW); a whole
-#: correction about 3.5x plus the process's 0.3 GB (7.65 GB for a 169-MP JPEG; docs/io.md).
+#: Default memory budget of one decoded image, in bytes (2 GiB): the float32 pixels
+#: :func:`read_image` returns (width x height x channels x 4), so up to a 178-megapixel
+#: colour frame.  A read peaks at about 1.25 times the decoded size, a whole correction
+#: at about 3.5 times plus the process's own 0.3 GB (measured: docs/io.md, "Memory budget";
+#: docs/benchmarks/speed.md, "Peak memory per worker").
 DEFAULT_MEMORY_BUDGET = 2 * 2**30
 #: Environment variable that sets the budget (bytes, or with a K/M/G/T suffix: powers of 1024).
 MEMORY_BUDGET_ENV = "VIGPROC_MEMORY_BUDGET"

@@ -18,6 +18,10 @@ if TYPE_CHECKING:  # annotations only
 
 log = logging.getLogger(__name__)
 
+# The imports inside the functions wait for a call: the processor imports this module at
+# start-up (``vigproc --help`` goes through it), and the estimators, the stores and the
+# image readers load numpy, Numba and OpenImageIO.
+
 
 #: Why nothing was applied to a frame whose estimate is weak: one wording for every front end.
 WEAK_EVIDENCE = "weak evidence: the estimate is not clearly above its uncertainty"

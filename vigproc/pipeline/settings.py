@@ -96,6 +96,7 @@ class Settings:
         if self.mode not in MODES:
             raise VigprocError(f"unknown mode {self.mode!r} (choose from {', '.join(MODES)})")
         if self.method not in METHODS:
+            # only for a name that is not built in: the plugin scan loads numpy and the entry points
             from vigproc.core.extensions import UnknownMethodError, method_names
 
             if self.method not in method_names():

@@ -1,4 +1,4 @@
-"""``vigproc prior fit | fit-scene | fit-lens-family``: fit the priors the estimators use
+"""``vigproc prior fit``, ``fit-scene`` and ``fit-lens-family``: fit the priors the estimators use
 (the paper's natural-image prior, the scene fall-off, the lens family)."""
 
 from __future__ import annotations
