@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
+import logging
 import os
+import subprocess
+import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -19,9 +25,6 @@ def pytest_configure(config):
     compiling its own kernels only, so that no two processes write one kernel's cache."""
     if hasattr(config, "workerinput"):  # a worker: the main process has done it
         return
-    import subprocess
-    import sys
-
     import vigproc
     from vigproc.core._kernels import codes, field
 
@@ -113,6 +116,37 @@ def photo_like(h: int, w: int, seed: int = 0, contrast: float = 0.05) -> np.ndar
     from vigproc.core.scene import default_scene_falloff
 
     return textured(h, w, seed=seed, contrast=contrast) * default_scene_falloff().model(w, h).field()
+
+
+def run_cli(*args, cwd=None) -> subprocess.CompletedProcess:
+    """``vigproc ARGS`` in this process, for tests not about the process boundary (a new
+    process costs a second of start-up): ``main(argv)`` with stdout and stderr encoded
+    as a subprocess's and decoded as ``subprocess.run(..., text=True)`` decodes them, a
+    usage error's exit code included.  Returns what ``subprocess.run`` would; an
+    exception that would end the process with a traceback propagates (the test fails)."""
+    from vigproc.frontends.cli import main
+
+    out, err = io.BytesIO(), io.BytesIO()
+    streams = [io.TextIOWrapper(b, encoding=std.encoding, errors=std.errors, write_through=True)
+               for b, std in ((out, sys.__stdout__), (err, sys.__stderr__))]
+    root, here = logging.getLogger(), os.getcwd()
+    handlers, level = root.handlers[:], root.level
+    try:
+        with warnings.catch_warnings(), contextlib.redirect_stdout(streams[0]), \
+                contextlib.redirect_stderr(streams[1]):
+            if cwd is not None:
+                os.chdir(cwd)
+            try:
+                code = main([str(a) for a in args])
+            except SystemExit as exc:  # argparse's usage errors and --help
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+            for s in streams:
+                s.flush()
+    finally:
+        os.chdir(here)
+        root.handlers[:], root.level = handlers, level
+        logging.captureWarnings(False)
+    return subprocess.CompletedProcess(args, code, out.getvalue().decode(), err.getvalue().decode())
 
 
 @pytest.fixture
