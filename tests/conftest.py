@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
+import logging
+import os
+import subprocess
+import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -11,21 +18,60 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 def pytest_configure(config):
-    """Compile the Numba kernels once, in the main process, before pytest-xdist's
-    workers start: two workers compiling the same cached kernel at once can race on
-    Numba's cache files (a fresh clone has none)."""
+    """Compile the Numba kernels once, before pytest-xdist's workers start: two workers
+    compiling the same cached kernel at once can race on Numba's cache files (a fresh
+    clone has none), and each would pay for the compile.  The kernels are split over
+    two processes (this one and :func:`_warm_codes` in a child), one per core, each
+    compiling its own kernels only, so that no two processes write one kernel's cache."""
     if hasattr(config, "workerinput"):  # a worker: the main process has done it
         return
     import vigproc
+    from vigproc.core._kernels import codes, field
 
-    img = textured(96, 144, seed=0, contrast=0.1)
-    for method in ("default", "robust", "lens-family", "flat-field", "lyu2010", "ga"):
-        try:
-            vigproc.estimate(img if method not in ("lyu2010", "ga") else textured(64, 96), method, channel_axis=None)
-        except vigproc.VigprocError:  # warm-up only: the tests judge the estimators
-            pass
-    vigproc.correct(np.repeat(img[..., None], 3, axis=2).astype(np.float32),
-                    vigproc.VignettingModel(144, 96, p=(1e-4, 0.0, 1e-4)))
+    # log φ on a grid is called by the child's corrections too: compiled here first (all
+    # three array layouts the estimators and lyu2010's reversed border strips pass), so
+    # that the child only loads it from the cache
+    xs, ys = np.linspace(-1.0, 1.0, 8), np.linspace(-1.0, 1.0, 6)
+    alpha = np.zeros(7)
+    for sx, sy in ((xs, ys), (xs[::-1][:4], ys), (xs, ys[::-1][:3])):
+        field.log_field_grid(sx, sy, 0.0, 0.0, 1e-4, 0.0, 1e-4, alpha, np.empty((sy.shape[0], sx.shape[0])))
+    child = None
+    if not all(os.path.exists(k._cache._cache_file._index_path)  # noqa: SLF001 - Numba's cache index
+               for k in (codes.reduce_codes, codes.correct_codes, field.log_field_grid_parallel)):
+        child = subprocess.Popen([sys.executable, "-c", "import conftest; conftest._warm_codes()"],
+                                 cwd=Path(__file__).parent)
+    try:
+        img = textured(96, 144, seed=0, contrast=0.1)
+        for method in ("default", "robust", "lens-family", "flat-field", "ga"):
+            try:
+                vigproc.estimate(img if method != "ga" else textured(64, 96), method, channel_axis=None)
+            except vigproc.VigprocError:  # warm-up only: the tests judge the estimators
+                pass
+        vigproc.correct(np.repeat(img[..., None], 3, axis=2).astype(np.float32),
+                        vigproc.VignettingModel(144, 96, p=(1e-4, 0.0, 1e-4)))
+    finally:
+        if child is not None:
+            child.wait()
+
+
+def _warm_codes() -> None:
+    """The kernels of display-encoded frames (8- and 16-bit codes: binning and correction)
+    and of full-frame fields, compiled in a child of :func:`pytest_configure`."""
+    from vigproc.core._kernels.field import log_field_grid_parallel
+    from vigproc.core.correct import correct_codes
+    from vigproc.core.model import VignettingModel
+    from vigproc.core.pixels import reduce_codes
+    from vigproc.io.images import EncodedImage, encode_steps
+
+    m = VignettingModel(144, 96, p=(1e-4, 0.0, 1e-4))
+    for depth, top in (("uint8", 255), ("uint16", 65535)):
+        # the tables the pipeline passes (read-only: Numba compiles another signature for those)
+        frame = EncodedImage((np.arange(96 * 144 * 3) % top).astype(depth).reshape(96, 144, 3), "srgb")
+        reduce_codes(frame.codes, frame.decode_table(), 4)
+        correct_codes(frame.codes, m, frame.decode_table(), encode_steps("srgb", depth))
+    correct_codes(frame.codes.astype(np.uint8), m, frame.decode_table()[:256], encode_steps("srgb", "uint16"))
+    xs, ys = np.linspace(-1.0, 1.0, 8), np.linspace(-1.0, 1.0, 6)
+    log_field_grid_parallel(xs, ys, 0.0, 0.0, *m.p, np.asarray(m.alpha, dtype=np.float64), np.empty((6, 8)))
 
 
 def textured(h: int, w: int, seed: int = 0, contrast: float = 0.3) -> np.ndarray:
@@ -70,6 +116,37 @@ def photo_like(h: int, w: int, seed: int = 0, contrast: float = 0.05) -> np.ndar
     from vigproc.core.scene import default_scene_falloff
 
     return textured(h, w, seed=seed, contrast=contrast) * default_scene_falloff().model(w, h).field()
+
+
+def run_cli(*args, cwd=None) -> subprocess.CompletedProcess:
+    """``vigproc ARGS`` in this process, for tests not about the process boundary (a new
+    process costs a second of start-up): ``main(argv)`` with stdout and stderr encoded
+    as a subprocess's and decoded as ``subprocess.run(..., text=True)`` decodes them, a
+    usage error's exit code included.  Returns what ``subprocess.run`` would; an
+    exception that would end the process with a traceback propagates (the test fails)."""
+    from vigproc.frontends.cli import main
+
+    out, err = io.BytesIO(), io.BytesIO()
+    streams = [io.TextIOWrapper(b, encoding=std.encoding, errors=std.errors, write_through=True)
+               for b, std in ((out, sys.__stdout__), (err, sys.__stderr__))]
+    root, here = logging.getLogger(), os.getcwd()
+    handlers, level = root.handlers[:], root.level
+    try:
+        with warnings.catch_warnings(), contextlib.redirect_stdout(streams[0]), \
+                contextlib.redirect_stderr(streams[1]):
+            if cwd is not None:
+                os.chdir(cwd)
+            try:
+                code = main([str(a) for a in args])
+            except SystemExit as exc:  # argparse's usage errors and --help
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+            for s in streams:
+                s.flush()
+    finally:
+        os.chdir(here)
+        root.handlers[:], root.level = handlers, level
+        logging.captureWarnings(False)
+    return subprocess.CompletedProcess(args, code, out.getvalue().decode(), err.getvalue().decode())
 
 
 @pytest.fixture

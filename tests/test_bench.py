@@ -13,7 +13,7 @@ from benchmarks.synthetic import table1_model
 from vigproc.io.images import write_image
 from vigproc.stores.lensfun import diverse_lenses, pa_field
 
-from conftest import textured
+from conftest import run_cli, textured
 
 VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
@@ -62,7 +62,9 @@ def test_rgs_cannot_follow_off_centre_vignetting():
 
 
 def _bench(*args):
-    return subprocess.run([*VIGPROC, "bench", *map(str, args)], capture_output=True, text=True, timeout=600)
+    """``vigproc bench ARGS`` in this process (the prior, real, scene-scatter and learn
+    commands below run as new processes)."""
+    return run_cli("bench", *args)
 
 
 def _texture_folder(d, n: int, seed: int):

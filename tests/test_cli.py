@@ -1,6 +1,11 @@
-"""The command line, run as a real subprocess: outputs, JSON, exit codes, hostile names."""
+"""The command line: outputs, JSON, exit codes, hostile names.  The calls where the
+process boundary matters (exit codes of failures and usage errors, hostile names in
+stderr, the store a new process opens, each command's start-up) run a real subprocess;
+the others run ``main`` in this process, which gives the same exit code and output text
+without a second's start-up per call."""
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -12,12 +17,13 @@ from benchmarks.synthetic import table1_model
 from vigproc.io.images import read_image, write_image
 from vigproc.core.model import VignettingModel
 
-from conftest import coloured_scene, photo_like, textured
+from conftest import coloured_scene, photo_like, run_cli as run, textured
 
 VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
-def run(*args, cwd=None):
+def run_process(*args, cwd=None):
+    """``vigproc ARGS`` as a new process."""
     return subprocess.run([*VIGPROC, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=300)
 
 
@@ -42,7 +48,7 @@ def lens_tiff(tmp_path):
 
 def test_estimate_json(vignetted_tiff):
     path, truth = vignetted_tiff
-    r = run("estimate", path, "--json")
+    r = run_process("estimate", path, "--json")
     assert r.returncode == 0, r.stderr
     top = json.loads(r.stdout)  # one document, for one file as for many (README, --json)
     assert (top["done"], top["failed"], top["exit_code"]) == (1, 0, 0)
@@ -81,7 +87,7 @@ def test_correct_writes_outputs_atomically_and_keeps_input(lens_tiff, tmp_path):
     path, truth = lens_tiff
     before = path.read_bytes()
     out = tmp_path / "out"
-    r = run("correct", path, "-o", out, "--picture", "--json")
+    r = run_process("correct", path, "-o", out, "--picture", "--json")
     assert r.returncode == 0, r.stderr
     assert path.read_bytes() == before
     names = sorted(p.name for p in out.iterdir())
@@ -102,7 +108,7 @@ def test_hostile_names_stay_inside_output(tmp_path, vignetted_tiff):
     weird = tmp_path / "a b 'q' \"dq\" ; $(rm -rf x) \u00e9\n.tif"
     weird.write_bytes(path.read_bytes())
     out = tmp_path / "out"
-    r = run("correct", weird, "-o", out)
+    r = run_process("correct", weird, "-o", out)
     assert r.returncode == 0, r.stderr
     produced = list(out.iterdir())
     assert len(produced) == 2 and all(p.parent == out for p in produced)
@@ -112,7 +118,7 @@ def test_hostile_names_stay_inside_output(tmp_path, vignetted_tiff):
 def test_bad_files_exit_nonzero_without_traceback(tmp_path, content, code):
     bad = tmp_path / "bad.jpg"
     bad.write_bytes(content)
-    r = run("estimate", bad)
+    r = run_process("estimate", bad)
     assert r.returncode == code
     assert "Traceback" not in r.stderr and "bad.jpg" in r.stderr
 
@@ -133,7 +139,7 @@ def test_constant_image_is_a_clear_error(tmp_path):
 
 
 def test_demo_runs_on_bundled_samples(tmp_path):
-    r = run("demo", "-o", tmp_path / "demo")
+    r = run_process("demo", "-o", tmp_path / "demo")
     assert r.returncode == 0, r.stderr
     # JPEG samples come back as JPEG, every one (the embedded default keeps an uncorrected
     # photo under its output name); the sidecar says why one was not corrected
@@ -149,14 +155,14 @@ def test_demo_runs_on_bundled_samples(tmp_path):
 
 
 def test_bench_io_runs(tmp_path):
-    r = run("bench", "io", "--width", "64", "--height", "48", "--repeat", "1")
+    r = run_process("bench", "io", "--width", "64", "--height", "48", "--repeat", "1")
     assert r.returncode == 0, r.stderr
     for label in ("TIFF 16-bit", "TIFF float", "EXR half", "EXR float", "PNG 16-bit"):
         assert label in r.stdout
 
 
 def test_usage_errors_exit_2_without_traceback():
-    r = run("estimate")
+    r = run_process("estimate")
     assert r.returncode == 2 and "Traceback" not in r.stderr
 
 
@@ -232,11 +238,11 @@ def test_file_names_cannot_forge_message_lines(tmp_path, vignetted_tiff):
     good.write_bytes(path.read_bytes())
     bad = tmp_path / "x\nvigproc: FAKE\r\u2028.tif"
     bad.write_bytes(b"not an image")
-    r = run("correct", good, bad, "-o", tmp_path / "out")
+    r = run_process("correct", good, bad, "-o", tmp_path / "out")
     assert r.returncode == 1
     assert len(r.stderr.splitlines()) == 1 and "FAKE" in r.stderr, r.stderr
     assert len(r.stdout.splitlines()) == 2, r.stdout  # the file's line and the summary
-    r = run("estimate", bad)
+    r = run_process("estimate", bad)
     assert r.returncode == 4 and len(r.stderr.splitlines()) == 1 and "x\\nvigproc: FAKE" in r.stderr
 
 
@@ -297,7 +303,7 @@ def test_profile_store_flow(tmp_path, monkeypatch):
         make_dng(p, width=w, height=h, field=pa_field((h, w), pa.k1, pa.k2, pa.k3),
                  scene=photo_like(h, w, seed=10 + i), exif=exif)
         dngs.append(p)
-    r = run("profile", "learn", *dngs)
+    r = run_process("profile", "learn", *dngs)
     assert r.returncode == 0, r.stderr
     r = run("profile", "learn", dngs[0])  # a frame learned again (a rerun) is not pooled twice
     assert r.returncode == 0, r.stderr
@@ -308,7 +314,7 @@ def test_profile_store_flow(tmp_path, monkeypatch):
             "--width", w, "--height", h, "--lens-id", lens_id, "--crop-factor", lens.crop_factor)
     assert r.returncode == 0, r.stderr
     # the learned (untrusted) profile and the imported one share the key: the import replaced it
-    r = run("correct", dngs[0], "-o", tmp_path / "out", "--profile", "auto", "--json")
+    r = run_process("correct", dngs[0], "-o", tmp_path / "out", "--profile", "auto", "--json")
     assert r.returncode == 0, r.stderr
     rec = json.loads(r.stdout)["results"][0]
     assert rec["source"] == "stored-profile"
@@ -322,13 +328,13 @@ def test_single_output_never_replaces_an_input(tmp_path, vignetted_tiff):
     any work (exit 5), and the input keeps its bytes."""
     path, _ = vignetted_tiff
     before = path.read_bytes()
-    r = run("check", path, "--report", path)
+    r = run_process("check", path, "--report", path)
     assert r.returncode == 5 and "it is an input of this run" in r.stderr, r.stderr
     for c in ("A", "B"):
         (tmp_path / "tr" / c).mkdir(parents=True)
         (tmp_path / "tr" / c / "1.tif").write_bytes(before)
     victim = tmp_path / "tr" / "A" / "1.tif"
-    r = run("forensics", "train", tmp_path / "tr", "-o", victim)
+    r = run_process("forensics", "train", tmp_path / "tr", "-o", victim)
     assert r.returncode == 5 and "it is an input of this run" in r.stderr, r.stderr
     assert path.read_bytes() == before and victim.read_bytes() == before
 

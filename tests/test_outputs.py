@@ -5,7 +5,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -14,15 +13,15 @@ from benchmarks.synthetic import table1_model
 from vigproc.io.images import jpeg_quality, read_image, write_image
 from vigproc.pipeline.processor import OUTPUT_FORMATS, Processor, Settings, output_format_for
 
-from conftest import photo_like
+from conftest import photo_like, run_cli
 
 pytestmark = pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
 
-VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
 def run(*args):
-    return subprocess.run([*VIGPROC, *map(str, args)], capture_output=True, text=True, timeout=300)
+    """``vigproc ARGS``, in this process (what is tested is not the process boundary)."""
+    return run_cli(*args)
 
 
 def _vignetted(h=240, w=360, seed=3):

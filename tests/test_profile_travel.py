@@ -4,7 +4,6 @@ used as it is by ``correct --profile FILE`` and by ``profile import`` into anoth
 import json
 import math
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -12,9 +11,8 @@ import pytest
 from vigproc.core.model import PARAM_NAMES, VignettingModel
 from vigproc.stores.profiles import ProfileStore, import_profile
 
-from conftest import photo_like
+from conftest import photo_like, run_cli
 
-VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 #: What a Nikon D70 with its kit zoom writes at 70 mm (the issue's camera), spelt as the camera spells it.
 D70_EXIF = {"Make": "NIKON CORPORATION", "Model": "NIKON D70", "LensMake": "Nikon",
             "LensModel": "AF-S DX Zoom-Nikkor 18-70mm f/3.5-4.5G IF-ED",
@@ -23,7 +21,8 @@ H, W = 256, 384
 
 
 def run(*args):
-    return subprocess.run([*VIGPROC, *map(str, args)], capture_output=True, text=True, timeout=300)
+    """``vigproc ARGS``, in this process (what is tested is not the process boundary)."""
+    return run_cli(*args)
 
 
 @pytest.fixture(scope="module")
