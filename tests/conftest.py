@@ -38,8 +38,11 @@ def pytest_configure(config):
     child = None
     if not all(os.path.exists(k._cache._cache_file._index_path)  # noqa: SLF001 - Numba's cache index
                for k in (codes.reduce_codes, codes.correct_codes, field.log_field_grid_parallel)):
+        # the child imports the vigproc this process imported (Numba caches by source file)
+        here = str(Path(vigproc.__file__).resolve().parents[1])
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [here, os.environ.get("PYTHONPATH")]))}
         child = subprocess.Popen([sys.executable, "-c", "import conftest; conftest._warm_codes()"],
-                                 cwd=Path(__file__).parent)
+                                 cwd=Path(__file__).parent, env=env)
     try:
         img = textured(96, 144, seed=0, contrast=0.1)
         for method in ("default", "robust", "lens-family", "flat-field", "ga"):
