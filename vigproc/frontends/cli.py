@@ -215,6 +215,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
         store = open_profile_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
+            proc.prepare()  # Numba's set-up and exiftool's start beside the first file's read
             for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
                 try:
                     rec = proc.process_file(f, outdir, stem, protect=inputs).to_dict()

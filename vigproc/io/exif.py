@@ -1190,6 +1190,18 @@ class ExifReader:
         self._proc.start()
         return self
 
+    def spawn(self) -> "ExifReader":
+        """Start the ExifTool process without waiting for it to be ready (see
+        :meth:`vigproc.io.exiftool_process.ExiftoolProcess.spawn`).
+
+        Raises
+        ------
+        VigprocError
+            If ExifTool cannot be launched.
+        """
+        self._proc.spawn()
+        return self
+
     def close(self) -> None:
         """Stop the ExifTool process."""
         self._proc.close()

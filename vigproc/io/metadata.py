@@ -323,6 +323,26 @@ def _process() -> ExiftoolProcess:
     return proc
 
 
+def spawn_exiftool() -> None:
+    """Launch this process's metadata-writing exiftool now, without waiting for it
+    (a no-op when it runs).
+
+    Its start (a Perl interpreter loading ExifTool's modules) is otherwise paid, waiting,
+    by the first output that copies metadata; a caller that knows it will write can
+    launch it earlier, to start beside other work
+    (:meth:`vigproc.pipeline.processor.Processor.prepare`).
+
+    Raises
+    ------
+    OutputSettingsError
+        exiftool is not installed or cannot be launched.
+    """
+    try:
+        _process().spawn()
+    except VigprocError as exc:
+        raise OutputSettingsError(f"cannot start exiftool: {exc}") from None
+
+
 @atexit.register
 def _close_processes() -> None:
     for proc in list(_PROCESSES.values()):
