@@ -10,6 +10,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -122,3 +123,96 @@ def test_prepare_changes_nothing_a_file_gets(tmp_path):
     pa, pb = (read_encoded(r["output"])[0] for r in (a, b))  # the pixels (the metadata holds times)
     assert np.array_equal(pa.codes, pb.codes)
     assert src.read_bytes() == before
+
+
+def _jpeg(path: Path, model: str) -> Path:
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(32, 24, 3, "uint8")
+    spec.attribute("Make", "Testmaker")
+    spec.attribute("Model", model)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(np.full((24, 32, 3), 128, np.uint8))
+    out.close()
+    return path
+
+
+def _counting(reader):
+    calls = []
+    execute = reader._proc.execute
+
+    def counted(args, **kw):
+        calls.append(list(args))
+        return execute(args, **kw)
+
+    reader._proc.execute = counted
+    return calls
+
+
+@needs_exiftool
+def test_prefetched_exif_is_the_same_record_and_no_second_read(tmp_path):
+    from vigproc.io.exif import ExifReader
+
+    a, b = _jpeg(tmp_path / "a.jpg", "Alpha 1"), _jpeg(tmp_path / "b b.jpg", "Beta 2")
+    with ExifReader() as plain:
+        want = {p: plain.read_file(p).record for p in (a, b)}
+    with ExifReader() as reader:
+        calls = _counting(reader)
+        reader.prefetch(a)
+        reader.prefetch(b)
+        got_a = reader.read_file(a)
+        got_b = reader.read_file(b)
+        assert calls == []  # both answers came from the prefetch
+        assert got_a.record == want[a] and got_b.record == want[b]
+        assert got_a.read().model == "alpha 1" and got_b.read().model == "beta 2"
+        # asked ahead but skipped (the file before it failed, say): read again when its turn comes
+        reader.prefetch(a)
+        reader.prefetch(b)
+        assert reader.read_file(b).record == want[b] and calls == []
+        assert reader.read_file(a).record == want[a] and len(calls) == 1
+
+
+@needs_exiftool
+def test_prefetch_of_a_file_changed_since_is_not_used(tmp_path):
+    from vigproc.io.exif import ExifReader
+
+    a = _jpeg(tmp_path / "a.jpg", "Before")
+    with ExifReader() as reader:
+        calls = _counting(reader)
+        reader.prefetch(a)
+        _jpeg(tmp_path / "new.jpg", "After 2").replace(a)  # another file under the same name
+        assert reader.read_file(a).read().model == "after 2" and len(calls) == 1
+
+
+@needs_exiftool
+def test_submitted_answers_come_back_in_order_and_a_death_is_reported(tmp_path):
+    import signal
+
+    from vigproc.io.exiftool_process import ExiftoolDied, ExiftoolProcess
+
+    proc = ExiftoolProcess().start()
+    try:
+        p1 = proc.submit(["-echo", "first"])
+        p2 = proc.submit(["-echo", "second"])
+        time.sleep(1.0)  # both answered: one read of the pipe brings both
+        assert proc.result(p1).stdout == b"first"
+        p3 = proc.submit(["-echo", "third"])
+        assert proc.execute(["-echo", "fourth"]).stdout == b"fourth"  # reads those before it first
+        assert proc.result(p3).stdout == b"third" and proc.result(p2).stdout == b"second"
+        p5 = proc.submit(["-echo", "lost"])
+        os.kill(proc.pid, signal.SIGKILL)
+        with pytest.raises(ExiftoolDied):
+            proc.result(p5)
+        assert proc.execute(["-echo", "again"]).stdout == b"again" and proc.launches == 2
+    finally:
+        proc.close()
+
+
+def test_an_answer_read_together_with_the_next_is_split_at_its_marker():
+    from vigproc.io.exiftool_process import _marker_line
+
+    buf = b'[{"A": "x {ready12} y"}]\n{ready12}\n[{"B": 1}]\n{ready34}\n'
+    cut = _marker_line(buf, b"{ready12}")
+    assert buf[:cut] == b'[{"A": "x {ready12} y"}]\n{ready12}\n'  # the quoted one is not the end
+    assert _marker_line(buf[cut:], b"{ready34}") == len(buf) - cut
+    assert _marker_line(b"=0=post7", b"post7") == 8 and _marker_line(b"=0=pos", b"post7") == -1

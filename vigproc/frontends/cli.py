@@ -216,8 +216,12 @@ def cmd_correct(args: argparse.Namespace) -> int:
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
             proc.prepare()  # Numba's set-up and exiftool's start beside the first file's read
-            for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
+            for k, (f, stem) in enumerate(_progress(list(zip(files, output_stems(files))), "correcting")):
                 try:
+                    if k == 0:
+                        proc.prefetch(f)
+                    if k + 1 < len(files):  # exiftool reads the next file's EXIF while this one is processed
+                        proc.prefetch(files[k + 1])
                     rec = proc.process_file(f, outdir, stem, protect=inputs).to_dict()
                     results.append(rec)
                     unapplied += not rec.get("applied")

@@ -811,6 +811,13 @@ class Processor:
             log.debug("early exiftool launch failed (retried on first use): %s", exc)
         preload_numba()
 
+    def prefetch(self, path: str | os.PathLike[str]) -> None:
+        """Have the EXIF reader's exiftool read ``path``'s metadata now, while this
+        process works on the file before it (:meth:`vigproc.io.exif.ExifReader.prefetch`:
+        used only if the file is unchanged when its turn comes). Nothing else is read
+        ahead: the decisions and their order are the same."""
+        self.reader.prefetch(path)
+
     def close(self) -> None:
         if self._own_reader and self._reader is not None:
             self._reader.close()
