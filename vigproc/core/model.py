@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from vigproc.core._kernels.field import log_field_grid, log_field_grid_parallel
 from vigproc.core.colour import ColourField
 from vigproc.errors import ModelError
 
@@ -351,6 +350,9 @@ class VignettingModel:
         if m.is_identity:
             out.fill(0.0)
             return out
+        # imported here: importing the model (the profile store does) need not load Numba
+        from vigproc.core._kernels.field import log_field_grid, log_field_grid_parallel
+
         # threads pay off only on large grids
         kernel = log_field_grid_parallel if out.size >= 1 << 20 else log_field_grid
         gmin = kernel(

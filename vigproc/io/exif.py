@@ -277,6 +277,8 @@ class ExifReader:
         # check_execute is off there: a batch with one bad file exits with status 1,
         # which is per-file information, not a failure of the command
         self._proc = ExiftoolProcess(executable, common_args=_COMMON_ARGS)
+        # prefetch()'s commands in order: (path, identity, job, pending answer)
+        self._ahead: list[tuple[str, tuple[int, int, int], _Job, Any]] = []
 
     # ---- process lifetime ------------------------------------------------- #
 
@@ -289,6 +291,18 @@ class ExifReader:
             If ExifTool cannot be started.
         """
         self._proc.start()
+        return self
+
+    def spawn(self) -> "ExifReader":
+        """Start the ExifTool process without waiting for it to be ready (see
+        :meth:`vigproc.io.exiftool_process.ExiftoolProcess.spawn`).
+
+        Raises
+        ------
+        VigprocError
+            If ExifTool cannot be launched.
+        """
+        self._proc.spawn()
         return self
 
     def close(self) -> None:
@@ -337,11 +351,34 @@ class ExifReader:
             raise result
         return result
 
+    def prefetch(self, path: PathLike) -> None:
+        """Ask exiftool now for what :meth:`read_file` of ``path`` will read, without
+        waiting: exiftool reads the file while the caller works on another one.
+
+        Only the next :meth:`read_file` of the same path takes the answer, and only
+        if the file is still the one asked about (same inode, size and modification
+        time); otherwise the answer is dropped and the file read again. Best effort:
+        a path :meth:`read_file` would refuse, or a process that cannot start, is
+        left to :meth:`read_file` to report.
+        """
+        job = _prepare(path)
+        if isinstance(job, VigprocError):
+            return
+        try:
+            ident = _identity(job.display)
+            pending = self._proc.submit(["-j", *_TAGS, job.arg])
+        except (OSError, VigprocError) as exc:
+            logger.debug("exiftool prefetch of %s not sent: %s", _q(job.display), _safe_msg(exc))
+            return
+        self._ahead.append((job.display, ident, job, pending))
+
     def read_file(self, path: PathLike) -> FileTags:
         """Read one file once: its :class:`LensKey` and the tags of :data:`RECORD_TAGS`
         (:class:`FileTags`). Never raises for the file: a failed read is kept in
         :attr:`FileTags.error` and raised by what asks it."""
-        res = self.read_metadata_many([path])[0]
+        res = self._prefetched(path)
+        if res is None:
+            res = self.read_metadata_many([path])[0]
         if isinstance(res, VigprocError):
             return FileTags(self, path, None, res)
         return FileTags(self, path, res[1])
@@ -423,17 +460,41 @@ class ExifReader:
 
     def _execute(self, args: list[Union[str, bytes]], tags: Sequence[str] = _TAGS) -> tuple[list[Any], str]:
         """One ExifTool command (``tags`` then ``args``); returns (JSON records, stderr)."""
-        res = self._proc.execute(["-j", *tags, *args])
-        text = res.stdout.decode("utf-8", errors="replace").strip()
-        records = json.loads(text) if text else []
-        if not isinstance(records, list):
-            raise ValueError("exiftool JSON output is not a list")
-        return records, res.stderr.decode("utf-8", errors="replace")
+        return _parse_records(self._proc.execute(["-j", *tags, *args]))
 
-    def _run_jobs(self, jobs: list[_Job], tags: Sequence[str] = _TAGS
+    def _prefetched(self, path: PathLike) -> tuple[str, dict[str, Any]] | VigprocError | None:
+        """:meth:`prefetch`'s answer for ``path`` if it is still the file asked about, else None."""
+        try:
+            name = os.fsdecode(os.fspath(path))
+        except TypeError:
+            return None
+        at = next((i for i, a in enumerate(self._ahead) if a[0] == name), None)
+        if at is None:
+            return None
+        # the ones asked before it were not read (their files failed earlier): dropped
+        display, ident, job, pending = self._ahead[at]
+        del self._ahead[:at + 1]
+        try:
+            same = _identity(display) == ident
+        except OSError:
+            same = False
+        try:
+            res = self._proc.result(pending)
+        except VigprocError as exc:
+            logger.debug("exiftool prefetch of %s lost (%s): reading again", _q(display), _safe_msg(exc))
+            return None
+        if not same:
+            return None
+
+        def answer(args: list[Union[str, bytes]], tags: Sequence[str]) -> tuple[list[Any], str]:
+            return _parse_records(res)
+
+        return self._run_jobs([job], answer=answer)[0]
+
+    def _run_jobs(self, jobs: list[_Job], tags: Sequence[str] = _TAGS, *, answer: Any = None
                   ) -> list[tuple[str, dict[str, Any]] | VigprocError]:
         try:
-            records, stderr = self._execute([j.arg for j in jobs], tags)
+            records, stderr = (answer or self._execute)([j.arg for j in jobs], tags)
         except Exception as exc:  # noqa: BLE001 - any failure of the command itself
             logger.warning("exiftool command failed for %d file(s): %s", len(jobs), _safe_msg(exc))
             self._restart()
@@ -498,6 +559,20 @@ class ExifReader:
                 f"required EXIF field(s) missing: {', '.join(lacking)}" + (f" ({'; '.join(why)})" if why else ""),
             )
         return key
+
+
+def _parse_records(res: Any) -> tuple[list[Any], str]:
+    """An exiftool ``-j`` answer: (JSON records, stderr)."""
+    text = res.stdout.decode("utf-8", errors="replace").strip()
+    records = json.loads(text) if text else []
+    if not isinstance(records, list):
+        raise ValueError("exiftool JSON output is not a list")
+    return records, res.stderr.decode("utf-8", errors="replace")
+
+
+def _identity(path: Union[str, bytes]) -> tuple[int, int, int]:
+    st = os.stat(path)
+    return st.st_ino, st.st_size, st.st_mtime_ns
 
 
 class FileTags:

@@ -114,6 +114,42 @@ def _exit_reason(proc: object) -> str:
     return f"exit status {code}"
 
 
+def _marker_line(buf: bytes, end: bytes, start: int = 0) -> int:
+    """Where the line ending in ``end`` stops in ``buf`` (past its line break once it has
+    come), or -1. Only a line's end counts: a tag value quoting the marker is followed by
+    the JSON's closing quote."""
+    at = buf.find(end, start)
+    while at >= 0:
+        stop = at + len(end)
+        if stop == len(buf) or buf[stop:stop + 1] in (b"\n", b"\r"):
+            while buf[stop:stop + 1] in (b"\r", b"\n") and stop < len(buf):
+                if buf[stop:stop + 1] == b"\n":
+                    return stop + 1
+                stop += 1
+            return stop
+        at = buf.find(end, at + 1)
+    return -1
+
+
+def _check_args(args: Sequence[Arg]) -> None:
+    if "--" in args or b"--" in args:
+        # it would make the protocol's own closing options (-echo4, -execute) file names
+        raise ValueError("no '--' through a -stay_open exiftool: pass absolute paths instead")
+    for a in args:
+        if (b"\n" in a or b"\r" in a) if isinstance(a, bytes) else ("\n" in a or "\r" in a):
+            raise ValueError(f"exiftool argument with a line break: {a!r}")
+
+
+class Pending:
+    """A command sent by :meth:`ExiftoolProcess.submit`, its answer not yet read."""
+
+    def __init__(self, proc: object) -> None:
+        self.proc = proc
+        self.ends: tuple[bytes, bytes] = (b"", b"")
+        self.answer: ExiftoolResult | None = None
+        self.error: ExiftoolDied | None = None
+
+
 class ExiftoolProcess:
     """A persistent exiftool process, restarted when it dies.
 
@@ -143,6 +179,9 @@ class ExiftoolProcess:
         self._et: exiftool.ExifToolHelper | None = None
         self._owner = 0  # os.getpid() of the process that started _et
         self._lock = threading.RLock()
+        self._unprobed = False  # spawned, its version (its readiness) not yet asked
+        self._pending: list[Pending] = []  # submitted commands whose answers are not read yet, in order
+        self._rest: dict[int, bytes] = {}  # per pipe: what was read past the last answer
         #: Number of exiftool processes started (1 unless one died).
         self.launches = 0
 
@@ -167,7 +206,11 @@ class ExiftoolProcess:
     @property
     def version(self) -> str | None:
         """exiftool's version, or None when not running."""
-        return self._et.version if self.running and self._et is not None else None
+        with self._lock:
+            if not self.running or self._et is None:
+                return None
+            self._ready()
+            return self._et.version if self._et is not None else None
 
     def start(self) -> "ExiftoolProcess":
         """Start exiftool unless it is running (a no-op then).
@@ -177,6 +220,23 @@ class ExiftoolProcess:
         VigprocError
             exiftool cannot be started.
         """
+        return self._launch(wait=True)
+
+    def spawn(self) -> "ExiftoolProcess":
+        """Start exiftool without waiting for it to be ready (a no-op when it runs).
+
+        Perl's start-up (about 0.2 s of CPU) then runs beside the caller's work; the
+        first command waits for what is left of it. A program that cannot run is
+        reported by that first command, as :meth:`start` would have.
+
+        Raises
+        ------
+        VigprocError
+            exiftool cannot be launched at all (no such program).
+        """
+        return self._launch(wait=False)
+
+    def _launch(self, *, wait: bool) -> "ExiftoolProcess":
         with self._lock:
             if self.running:
                 return self
@@ -189,20 +249,34 @@ class ExiftoolProcess:
             et = None
             try:
                 et = _Helper(check_execute=False, auto_start=False, **kwargs)
-                et.probe = self._probe
+                et.probe = self._probe if wait else (lambda _et: "")
                 et.run()
             except (OSError, RuntimeError, ValueError, exiftool.exceptions.ExifToolException) as exc:
                 if et is not None:  # dead already: PyExifTool would warn of it when collected
                     et._running, et._process = False, None
                 raise VigprocError(f"cannot run exiftool {self.executable or 'exiftool'!r}: {exc}") from exc
-            self._et, self._owner = et, os.getpid()
+            self._et, self._owner, self._unprobed = et, os.getpid(), not wait
             self.launches += 1
-            logger.debug("exiftool %s started (pid %s)", et.version, self.pid)
+            logger.debug("exiftool %s started (pid %s)", et.version or "(not yet asked)", self.pid)
             return self
+
+    def _ready(self) -> None:
+        """Wait for a spawned exiftool to answer (its version); one that cannot is
+        dropped and started again, which reports why it cannot run."""
+        if not self._unprobed:
+            return
+        self._unprobed = False
+        try:
+            self._et._ver = self._probe(self._et)  # type: ignore[union-attr]
+        except RuntimeError as exc:
+            logger.debug("spawned exiftool did not answer (%s): starting it again", exc)
+            self._drop()
+            self.start()
 
     def close(self) -> None:
         """Stop exiftool (only one this process started)."""
         with self._lock:
+            self._fail_pending("was closed before answering")
             et, owned = self._et, self._owner == os.getpid()
             self._et = None
             if et is None or not owned:
@@ -218,6 +292,8 @@ class ExiftoolProcess:
 
     def _drop(self) -> None:
         """Forget a dead, hung or inherited process: kill it only if it is ours."""
+        self._fail_pending("was stopped before answering")
+        self._rest.clear()
         et, self._et = self._et, None
         if et is None:
             return
@@ -272,12 +348,7 @@ class ExiftoolProcess:
         ValueError
             An argument holds a line break, or is ``--``.
         """
-        if "--" in args or b"--" in args:
-            # it would make the protocol's own closing options (-echo4, -execute) file names
-            raise ValueError("no '--' through a -stay_open exiftool: pass absolute paths instead")
-        for a in args:
-            if (b"\n" in a or b"\r" in a) if isinstance(a, bytes) else ("\n" in a or "\r" in a):
-                raise ValueError(f"exiftool argument with a line break: {a!r}")
+        _check_args(args)
         with self._lock:
             try:
                 return self._once(args)
@@ -289,10 +360,77 @@ class ExiftoolProcess:
             return self._once(args)
 
     def _once(self, args: Sequence[Arg]) -> ExiftoolResult:
+        self._drain()  # answers come in order: the submitted ones first
         self.start()
+        self._ready()
         et = self._et
         assert et is not None
         return self._command(et._process, args)
+
+    def submit(self, args: Sequence[Arg]) -> "Pending":
+        """Send one command and return at once; :meth:`result` reads its answer.
+
+        exiftool answers commands in order, so the process works on this one while the
+        caller does something else; a later :meth:`execute` or :meth:`result` first
+        reads the answers of the commands submitted before it.  A submitted command is
+        not retried: if the process dies, :meth:`result` raises and the caller asks
+        again with :meth:`execute` (which restarts it).
+
+        Raises
+        ------
+        VigprocError
+            exiftool cannot be started.
+        ValueError
+            An argument holds a line break, or is ``--``.
+        """
+        _check_args(args)
+        with self._lock:
+            self.start()
+            self._ready()
+            et = self._et
+            assert et is not None
+            pending = Pending(et._process)
+            try:
+                pending.ends = self._send(et._process, args)
+            except ExiftoolDied as exc:
+                pending.error = exc
+                self._drop()
+                return pending
+            self._pending.append(pending)
+            return pending
+
+    def result(self, pending: "Pending") -> ExiftoolResult:
+        """The answer to a command of :meth:`submit` (waiting for it if need be).
+
+        Raises
+        ------
+        ExiftoolDied
+            The process died, hung or was stopped before answering it.
+        """
+        with self._lock:
+            if pending in self._pending:
+                self._drain(until=pending)
+            if pending.error is not None:
+                raise pending.error
+            assert pending.answer is not None
+            return pending.answer
+
+    def _drain(self, until: "Pending | None" = None) -> None:
+        """Read the answers of submitted commands, in order (up to ``until``)."""
+        while self._pending:
+            pending = self._pending.pop(0)
+            try:
+                pending.answer = self._receive(pending.proc, *pending.ends)
+            except ExiftoolDied as exc:
+                pending.error = exc
+                self._drop()  # the later ones cannot be answered either
+            if pending is until:
+                return
+
+    def _fail_pending(self, why: str) -> None:
+        pending, self._pending = self._pending, []
+        for p in pending:
+            p.error = ExiftoolDied(why)
 
     def _probe(self, et: "exiftool.ExifToolHelper") -> str:
         """exiftool's version, asked of a process PyExifTool just started (its own probe
@@ -304,6 +442,10 @@ class ExiftoolProcess:
 
     def _command(self, proc, args: Sequence[Arg]) -> ExiftoolResult:
         """One command through the stay-open protocol of ``proc``."""
+        return self._receive(proc, *self._send(proc, args))
+
+    def _send(self, proc, args: Sequence[Arg]) -> tuple[bytes, bytes]:
+        """Write one command; returns the markers that end its answer on stdout and stderr."""
         # PyExifTool's own protocol (ExifTool.execute), read here with end-of-file and a deadline
         tag = int.from_bytes(os.urandom(3), "big") % 900000 + 100000
         ready, post = f"{{ready{tag}}}".encode(), f"post{tag}".encode()
@@ -315,6 +457,10 @@ class ExiftoolProcess:
         except (BrokenPipeError, OSError, ValueError) as exc:
             self._reap(proc)
             raise ExiftoolDied(f"could not take the command ({_exit_reason(proc)})") from exc
+        return ready, post
+
+    def _receive(self, proc, ready: bytes, post: bytes) -> ExiftoolResult:
+        """Read the answer of the command whose markers are ``ready`` and ``post``."""
         deadline = time.monotonic() + self.timeout
         out = self._read_until(proc, proc.stdout.fileno(), ready, deadline)
         err = self._read_until(proc, proc.stderr.fileno(), post, deadline)
@@ -329,9 +475,17 @@ class ExiftoolProcess:
         return ExiftoolResult(stdout=stdout.strip(), stderr=head.strip(), status=code)
 
     def _read_until(self, proc: object, fd: int, end: bytes, deadline: float) -> bytes:
-        chunks: list[bytes] = []
-        tail = b""
-        while not tail.rstrip().endswith(end):
+        """Read ``fd`` up to the line ``end`` (included). With commands submitted ahead
+        (:meth:`submit`) one read may also bring the start of the next answer: that rest
+        is kept for the next call."""
+        buf = self._rest.pop(fd, b"")
+        searched = 0
+        while True:
+            at = _marker_line(buf, end, searched)
+            if at >= 0:
+                self._rest[fd] = buf[at:]
+                return buf[:at]
+            searched = max(0, len(buf) - len(end) - 1)
             left = deadline - time.monotonic()
             if left <= 0:
                 proc.kill()  # type: ignore[attr-defined]
@@ -347,9 +501,7 @@ class ExiftoolProcess:
             if not chunk:  # end of file: the process is gone
                 self._reap(proc)
                 raise ExiftoolDied(f"died during a command ({_exit_reason(proc)})")
-            chunks.append(chunk)
-            tail = (tail + chunk)[-(len(end) + 16):]
-        return b"".join(chunks)
+            buf += chunk
 
     @staticmethod
     def _reap(proc: object) -> None:

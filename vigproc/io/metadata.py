@@ -275,6 +275,26 @@ def _process() -> ExiftoolProcess:
     return shared_process(exiftool_path(), timeout=_TIMEOUT)
 
 
+def spawn_exiftool() -> None:
+    """Launch this process's metadata-writing exiftool now, without waiting for it
+    (a no-op when it runs).
+
+    Its start (a Perl interpreter loading ExifTool's modules) is otherwise paid, waiting,
+    by the first output that copies metadata; a caller that knows it will write can
+    launch it earlier, to start beside other work
+    (:meth:`vigproc.pipeline.processor.Processor.prepare`).
+
+    Raises
+    ------
+    OutputSettingsError
+        exiftool is not installed or cannot be launched.
+    """
+    try:
+        _process().spawn()
+    except VigprocError as exc:
+        raise OutputSettingsError(f"cannot start exiftool: {exc}") from None
+
+
 class _Exiftool:
     """One call's use of the persistent exiftool: safe names for the argument protocol
     (aliases in a private folder, made on demand), warnings said once per file."""

@@ -136,6 +136,38 @@ class Processor:
             self._reader = ExifReader().start()
         return self._reader
 
+    def prepare(self) -> None:
+        """Start now the one-off set-up the first file would otherwise wait for.
+
+        The EXIF reader's exiftool and, when images are written, the metadata writer's
+        are launched without waiting for them (Perl's start-up runs beside this
+        process's work), then Numba's set-up starts in a background thread
+        (:func:`vigproc.core.preload.preload_numba`). Optional, and nothing is decided
+        here: a start that fails is met again, and reported, where the first file
+        needs it.
+        """
+        from vigproc.core.preload import preload_numba
+
+        try:  # launched before the preloading thread runs: exiftool's launch forks
+            if self._reader is None:
+                from vigproc.io.exif import ExifReader
+
+                self._reader = ExifReader().spawn()
+            if self.settings.mode == "correct":
+                from vigproc.io.metadata import spawn_exiftool
+
+                spawn_exiftool()
+        except VigprocError as exc:
+            log.debug("early exiftool launch failed (retried on first use): %s", exc)
+        preload_numba()
+
+    def prefetch(self, path: str | os.PathLike[str]) -> None:
+        """Have the EXIF reader's exiftool read ``path``'s metadata now, while this
+        process works on the file before it (:meth:`vigproc.io.exif.ExifReader.prefetch`:
+        used only if the file is unchanged when its turn comes). Nothing else is read
+        ahead: the decisions and their order are the same."""
+        self.reader.prefetch(path)
+
     def close(self) -> None:
         if self._own_reader and self._reader is not None:
             self._reader.close()

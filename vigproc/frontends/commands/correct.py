@@ -55,8 +55,13 @@ def cmd_correct(args: argparse.Namespace) -> int:
         store = open_profile_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
-            for f, stem in _progress(list(zip(files, output_stems(files))), "correcting"):
+            proc.prepare()  # Numba's set-up and exiftool's start beside the first file's read
+            for k, (f, stem) in enumerate(_progress(list(zip(files, output_stems(files))), "correcting")):
                 try:
+                    if k == 0:
+                        proc.prefetch(f)
+                    if k + 1 < len(files):  # exiftool reads the next file's EXIF while this one is processed
+                        proc.prefetch(files[k + 1])
                     rec = proc.process_file(f, outdir, stem, protect=inputs).to_dict()
                     results.append(rec)
                     unapplied += not rec.get("applied")
