@@ -479,6 +479,14 @@ def cmd_profile(args: argparse.Namespace) -> int:
             print(f"{done} frame{'' if done == 1 else 's'} learned"
                   + (f", {again} already learned before" if again else "") + f", {failed} failed")
             return 0 if failed == 0 else 1
+        elif args.profile_command == "apply":
+            p = _pick_profile(store, args.id)
+            if not p.trusted:
+                raise VigprocError(f"profile {p.key} is not trusted ({p.n_frames} frames): it corrects no series")
+            held = store.applied_revision(p.key)
+            rev, got = store.apply_revision(p, replaces=held[0] if held is not None else None)
+            print(f"profile {p.key}: revision {rev} ({got.n_frames} frames) applied from the next frame on "
+                  f"(a new series){'' if held is None or held[0] != rev else '; it was applied already'}")
         elif args.profile_command == "import":
             p = store.import_file(args.file)
             print(f"imported {p.key}")
@@ -574,6 +582,10 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("files", nargs="+", metavar="FILE", help="frames of one or more lenses (their EXIF names the lens)")
     add_transfer(q)
     add_method(q)
+    q.set_defaults(fn=cmd_profile)
+    q = psub.add_parser("apply", help="learning as you go: correct this lens setting's frames with the profile "
+                        "as stored now, from the next frame on (a new series; docs/watch.md)")
+    q.add_argument("id", help="index from 'profile list' or the key text")
     q.set_defaults(fn=cmd_profile)
     q = psub.add_parser("import", help="import a profile file (profiles/README.md)")
     q.add_argument("file", help="profile file (JSON) to import")
