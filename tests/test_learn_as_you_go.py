@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vigproc.core.model import VignettingModel
+from vigproc.core.model import FitQuality, VignettingModel
 from vigproc.errors import VigprocError
 from vigproc.io.exif import LensKey
 from vigproc.pipeline.learning import SERIES_GAP_S, SteadyProfiles, field_change_ev, pooling_refusal
@@ -32,15 +32,15 @@ D70_NO_LENS = {"Make": "NIKON CORPORATION", "Model": "NIKON D70", "FocalLength":
 H, W = 256, 384
 
 
-def _frames(folder: Path, n: int, exif=D70_EXIF, seed: int = 20) -> tuple[list[Path], np.ndarray]:
-    """``n`` DNG frames of one lens setting carrying a lensfun lens's fall-off: the paths
-    and the true log2 field."""
+def _frames(folder: Path, n: int, exif=D70_EXIF, seed: int = 20, power: float = 1.0) -> tuple[list[Path], np.ndarray]:
+    """``n`` DNG frames of one lens setting carrying a lensfun lens's fall-off (to the
+    ``power``: a stronger one): the paths and the true log2 field."""
     from dngfixture import make_dng
 
     from vigproc.stores.lensfun import bench_lenses, pa_field
 
     _, pa = bench_lenses(1)[0]
-    field = pa_field((H, W), pa.k1, pa.k2, pa.k3)
+    field = pa_field((H, W), pa.k1, pa.k2, pa.k3) ** power
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for i in range(n):
@@ -141,6 +141,7 @@ def test_a_series_is_pooled_once_and_corrected_by_one_field_after_trust(series, 
         if r["source"] == "profile-evidence":
             ev = r["profile_evidence"]
             assert ev["profile_sigma_ev"] < ev["frame_sigma_ev"] and ev["frames"] >= 2
+            assert r["applied"] and "not_applied_rule" not in r, r  # the profile's field is applied
     after = recs[trusted_at + 1:]
     assert all(r["source"] == "stored-profile" and r["applied"] for r in after)
     assert len({json.dumps(r["profile_applied"], sort_keys=True) for r in after}) == 1
@@ -550,3 +551,56 @@ def test_profile_apply_starts_a_new_series_by_hand(series, tmp_path):
     with ProfileStore(db) as store:
         rev, got, new = store.series_revision(moved, moved.key, at=120.0, clock="capture", gap=SERIES_GAP_S)
     assert rev != old and got.n_frames == moved.n_frames == 5 and rev in r.stdout
+
+
+def test_a_series_keeps_its_field_however_far_the_stored_profile_moves(series, tmp_path):
+    """After trust, frames of one series get one field even when another worker pools frames
+    that move the stored profile far (here: frames of twice the fall-off); the refresh
+    rule this replaced changed the field in mid-series at a 0.02 EV move."""
+    paths, _ = series
+    strong, _ = _frames(tmp_path / "strong", 7, seed=60, power=2.0)
+    with ProfileStore(tmp_path / "p.sqlite") as store, Processor(Settings(learn=True), store=store) as proc, \
+            Processor(Settings(mode="learn"), store=store) as other:
+        recs = [proc.process_file(p, _out(tmp_path / "out")).to_dict() for p in paths[:5]]
+        [rev] = {r["profile_applied"]["revision"] for r in recs if r["source"] == "stored-profile"}
+        for p in strong:
+            other.process_file(p, _out(tmp_path / "other"))
+        [moved] = store.list()
+        _, applied = store.applied_revision(moved.key)
+        assert field_change_ev(applied, moved) > 0.04, "the stored profile must have moved far"
+        recs += [proc.process_file(p, _out(tmp_path / "out")).to_dict() for p in paths[5:]]
+    after = [r for r in recs if r["source"] == "stored-profile"]
+    assert len(after) >= 3 and {r["profile_applied"]["revision"] for r in after} == {rev}
+    for r in after[1:]:
+        np.testing.assert_array_equal(_log2_field(r), _log2_field(after[0]))
+
+
+def test_the_profile_so_far_is_chosen_only_where_it_is_surer_than_the_frame(series, tmp_path):
+    from vigproc.pipeline.guard import guard
+    from vigproc.pipeline.learning import prefer_profile
+
+    paths, _ = series
+    with ProfileStore(tmp_path / "p.sqlite") as store, Processor(Settings(mode="learn"), store=store) as proc:
+        for p in paths[:2]:
+            proc.process_file(p, _out(tmp_path / "out"))
+        [two] = store.list()
+    assert not two.trusted and two.n_frames == 2
+    own = VignettingModel(W, H, p=(1 / 300**2, 0.0, 1 / 300**2))
+    sure = replace(two, field_sigma_ev=0.01)
+
+    def frame(sigma):
+        return replace(own, quality=FitQuality(confidence=0.9, field_sigma_ev=sigma))
+
+    m, why = prefer_profile(frame(0.05), sure, W, H)
+    assert why is not None and why["profile_sigma_ev"] == 0.01 and why["frame_sigma_ev"] == 0.05
+    np.testing.assert_array_equal(m.log_field((H, W)), two.model(W, H).log_field((H, W)))
+    assert m.quality.confidence > 0.5 and not m.quality.fallback
+    assert guard(m, "profile-evidence", None, None, check=True, clips=False)[1] is None  # applied
+    assert prefer_profile(frame(0.005), sure, W, H) == (frame(0.005), None)  # the frame is surer
+    assert prefer_profile(frame(0.05), replace(sure, trusted=True), W, H)[1] is None  # trusted: not before trust
+    assert prefer_profile(frame(0.05), replace(sure, n_frames=1), W, H)[1] is None
+    assert prefer_profile(frame(0.05), replace(sure, field_sigma_ev=float("nan")), W, H)[1] is None
+    assert prefer_profile(frame(0.05), None, W, H)[1] is None
+    # a profile whose fall-off is not clear (under min_snr times its sigma) leaves the frame alone
+    flat = replace(sure, theta=two.theta * 1e-3)
+    assert prefer_profile(frame(0.05), flat, W, H)[1] is None

@@ -48,7 +48,7 @@ import logging
 import math
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from vigproc.errors import VigprocError
@@ -251,10 +251,12 @@ def pooled_of(estimate, img, method: str):
 
 
 def prefer_profile(estimate, profile, width: int, height: int):
-    """The frame's own estimate, or the lens's profile pooled so far (not yet trusted)
-    when that profile is already surer than the frame: its field σ (EV, the pooled
-    frames' scatter) is below the frame's own field σ (``quality.field_sigma_ev``; the
-    candidate's for a frame too weak to apply alone).
+    """The frame's own estimate, or the lens's profile pooled so far (2 frames or more,
+    not yet trusted) when that profile is already surer than the frame: its field σ (EV,
+    the pooled frames' scatter) is below the frame's own field σ (``quality.field_sigma_ev``;
+    the candidate's for a frame too weak to apply alone), and its fall-off is clear by the
+    default estimator's own rule (at least ``FamilySettings.min_snr`` times that σ; the
+    model states the matching confidence, so the plausibility rules judge it as a fit).
 
     Parameters
     ----------
@@ -274,15 +276,27 @@ def prefer_profile(estimate, profile, width: int, height: int):
     if profile is None or profile.trusted or profile.n_frames < 2:
         return estimate, None
     own = estimate.candidate if estimate.candidate is not None else estimate
-    frame_sigma = float(own.quality.field_sigma_ev)
+    frame_sigma = float(own.quality.field_sigma_ev) if own.quality is not None else math.nan
     pooled_sigma = profile.field_sigma_ev
     if pooled_sigma is None or not math.isfinite(pooled_sigma) or not pooled_sigma < frame_sigma:
         return estimate, None  # an unknown σ (NaN) is never "surer"
     try:
         m = profile.model(width, height)
+        ev_rms = m.field_ev_rms()
     except VigprocError as exc:  # a profile of another aspect or an absurd one: the frame stands alone
         log.debug("profile %s not usable for this frame: %s", profile.key, exc)
         return estimate, None
+    # an untrusted profile states confidence 0: here its own, by the default estimator's
+    # do-no-harm rule (the fall-off min_snr times its σ), so the plausibility rules judge it
+    # as they judge the frame's fit; a fall-off that is not clear leaves the frame alone
+    from vigproc.core.family_fit import FamilySettings, _confidence
+
+    min_snr = FamilySettings().min_snr
+    snr = ev_rms / pooled_sigma if pooled_sigma > 0 else math.inf
+    if not snr >= min_snr:
+        return estimate, None
+    m = replace(m, quality=replace(m.quality, confidence=_confidence(snr, min_snr), field_ev_rms=ev_rms,
+                                   field_sigma_ev=float(pooled_sigma), snr=snr, fallback=False))
     return m, {"profile": str(profile.key), "frames": int(profile.n_frames),
                "profile_sigma_ev": round(float(pooled_sigma), 5), "frame_sigma_ev": round(frame_sigma, 5)}
 
