@@ -140,7 +140,7 @@ def test_a_series_is_pooled_once_and_corrected_by_one_field_after_trust(series, 
     for r in recs[:trusted_at + 1]:
         if r["source"] == "profile-evidence":
             ev = r["profile_evidence"]
-            assert ev["profile_sigma_ev"] < ev["frame_sigma_ev"] and ev["frames"] >= 2
+            assert 2 * ev["profile_sigma_ev"] < ev["frame_sigma_ev"] and ev["frames"] >= 3
             assert r["applied"] and "not_applied_rule" not in r, r  # the profile's field is applied
     after = recs[trusted_at + 1:]
     assert all(r["source"] == "stored-profile" and r["applied"] for r in after)
@@ -585,6 +585,7 @@ def test_the_profile_so_far_is_chosen_only_where_it_is_surer_than_the_frame(seri
             proc.process_file(p, _out(tmp_path / "out"))
         [two] = store.list()
     assert not two.trusted and two.n_frames == 2
+    two = replace(two, n_frames=3)  # as if a third frame had not moved it
     own = VignettingModel(W, H, p=(1 / 300**2, 0.0, 1 / 300**2))
     sure = replace(two, field_sigma_ev=0.01)
 
@@ -597,8 +598,9 @@ def test_the_profile_so_far_is_chosen_only_where_it_is_surer_than_the_frame(seri
     assert m.quality.confidence > 0.5 and not m.quality.fallback
     assert guard(m, "profile-evidence", None, None, check=True, clips=False)[1] is None  # applied
     assert prefer_profile(frame(0.005), sure, W, H) == (frame(0.005), None)  # the frame is surer
+    assert prefer_profile(frame(0.019), sure, W, H)[1] is None  # surer, but not clearly (PRIOR_MARGIN)
     assert prefer_profile(frame(0.05), replace(sure, trusted=True), W, H)[1] is None  # trusted: not before trust
-    assert prefer_profile(frame(0.05), replace(sure, n_frames=1), W, H)[1] is None
+    assert prefer_profile(frame(0.05), replace(sure, n_frames=2), W, H)[1] is None
     assert prefer_profile(frame(0.05), replace(sure, field_sigma_ev=float("nan")), W, H)[1] is None
     assert prefer_profile(frame(0.05), None, W, H)[1] is None
     # a profile whose fall-off is not clear (under min_snr times its sigma) leaves the frame alone

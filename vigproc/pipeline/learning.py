@@ -55,13 +55,19 @@ from vigproc.errors import VigprocError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SERIES_GAP_S", "SETTLED_FRAMES", "Learned", "SteadyProfiles", "capture_time", "field_change_ev",
+__all__ = ["PRIOR_MARGIN", "PRIOR_MIN_FRAMES", "SERIES_GAP_S", "SETTLED_FRAMES", "Learned", "SteadyProfiles", "capture_time", "field_change_ev",
            "pooling_refusal", "prefer_profile"]
 
 #: Seconds between two frames of one lens setting that end a series: the applied
 #: revision is replaced only there. An hour: the frames of one shoot (a wedding's
 #: ceremony, a product set) come minutes apart; the next shoot, hours or days later.
 SERIES_GAP_S = 3600.0
+#: Before trust, the profile so far replaces a frame's own estimate only once it pooled this
+#: many frames (trust needs as many) and its field σ times :data:`PRIOR_MARGIN` is below the
+#: frame's: a σ from the scatter of a few frames is itself uncertain (with 2 frames and no
+#: margin, bench learn-series applied worse fields than the frames' own at frames 3 and 5).
+PRIOR_MIN_FRAMES = 3
+PRIOR_MARGIN = 2.0
 #: Frames pooled into a trusted profile beyond which a frame it corrects is no longer
 #: estimated (the figures of docs/benchmarks/profiles.md: 20 frames reach 0.009 EV).
 SETTLED_FRAMES = 20
@@ -251,9 +257,10 @@ def pooled_of(estimate, img, method: str):
 
 
 def prefer_profile(estimate, profile, width: int, height: int):
-    """The frame's own estimate, or the lens's profile pooled so far (2 frames or more,
-    not yet trusted) when that profile is already surer than the frame: its field σ (EV,
-    the pooled frames' scatter) is below the frame's own field σ (``quality.field_sigma_ev``;
+    """The frame's own estimate, or the lens's profile pooled so far (:data:`PRIOR_MIN_FRAMES`
+    frames or more, not yet trusted) when that profile is already clearly surer than the
+    frame: its field σ (EV, the pooled frames' scatter) times :data:`PRIOR_MARGIN` is below
+    the frame's own field σ (``quality.field_sigma_ev``;
     the candidate's for a frame too weak to apply alone), and its fall-off is clear by the
     default estimator's own rule (at least ``FamilySettings.min_snr`` times that σ; the
     model states the matching confidence, so the plausibility rules judge it as a fit).
@@ -273,12 +280,12 @@ def prefer_profile(estimate, profile, width: int, height: int):
         The model to apply and, when the profile was chosen, what the record says of
         the choice (None: the frame's own estimate stands).
     """
-    if profile is None or profile.trusted or profile.n_frames < 2:
+    if profile is None or profile.trusted or profile.n_frames < PRIOR_MIN_FRAMES:
         return estimate, None
     own = estimate.candidate if estimate.candidate is not None else estimate
     frame_sigma = float(own.quality.field_sigma_ev) if own.quality is not None else math.nan
     pooled_sigma = profile.field_sigma_ev
-    if pooled_sigma is None or not math.isfinite(pooled_sigma) or not pooled_sigma < frame_sigma:
+    if pooled_sigma is None or not math.isfinite(pooled_sigma) or not pooled_sigma * PRIOR_MARGIN < frame_sigma:
         return estimate, None  # an unknown σ (NaN) is never "surer"
     try:
         m = profile.model(width, height)
