@@ -105,6 +105,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_transfer(q)
     add_method(q)
     q.set_defaults(fn="profile:cmd_profile")
+    q = psub.add_parser("apply", help="learning as you go: correct this lens setting's frames with the profile "
+                        "as stored now, from the next frame on (a new series; docs/watch.md)")
+    q.add_argument("id", help="index from 'profile list' or the key text")
+    q.set_defaults(fn="profile:cmd_profile")
     q = psub.add_parser("import", help="import a profile file (profiles/README.md)")
     q.add_argument("file", help="profile file (JSON) to import")
     q.set_defaults(fn="profile:cmd_profile")

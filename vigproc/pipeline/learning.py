@@ -19,44 +19,55 @@ Three rules of this module:
   that frame; the profile pools the frames' evidence robustly (a multivariate-t
   centre of the lens-family fits, :mod:`vigproc.core.pooling`), where a frame a scene
   fooled is one outlier among many.
-* **The same field for a series** (:class:`SteadyProfiles`): the store keeps, per lens
-  setting, the revision of its trusted profile that correct runs apply
-  (:meth:`ProfileStore.apply_revision <vigproc.stores.profiles.ProfileStore.apply_revision>`).
-  The first worker that finds the profile trusted writes it; every worker (and a
-  restarted one) applies that very revision to every later frame of the setting until
-  the stored profile has moved more than :data:`REFRESH_EV` (RMS over the frame, in EV)
-  from it; then one worker replaces it (compare-and-set on its id) and all follow. The
-  store keeps refining meanwhile. So the frames after trust, of all workers, are
-  corrected with one identical field until such a move; the record's
-  ``profile_applied.revision`` names it. The revision is kept while the stored profile
+* **One field per series** (:class:`SteadyProfiles`): the store keeps, per lens
+  setting, the revision of its trusted profile that correct runs apply, and the span of
+  frame times of the series it corrects
+  (:meth:`ProfileStore.series_revision <vigproc.stores.profiles.ProfileStore.series_revision>`).
+  A frame's time is its capture time (EXIF ``DateTimeOriginal``, :func:`capture_time`),
+  else the time it arrived. A frame within :data:`SERIES_GAP_S` of the span belongs to
+  the series and gets that very revision; a frame further away starts a new series, and
+  only there is the revision replaced by the stored profile as it is then (one worker
+  writes it in one transaction, a compare-and-set; all follow). So every frame after
+  trust of a series, of all workers, is corrected with one identical field, while the
+  store keeps refining and the next series gets the better profile. ``vigproc profile
+  apply`` starts a new series by hand. The revision is kept while the stored profile
   has lost its trust (later frames that disagree can raise its σ above the bound for a
   while): the series keeps its field instead of going back to single-frame estimates.
 * **Fast once settled**: a frame corrected by its own lens setting's trusted profile
-  that already pooled :data:`SETTLED_FRAMES` frames is not estimated nor pooled. The
-  settled profile no longer moves; the applied revision is replaced by it once, and
-  from there on the frames of all workers share that field.
+  that already pooled :data:`SETTLED_FRAMES` frames is not estimated nor pooled; the
+  settled profile no longer moves and is applied from the next series on.
+* **The profile's evidence before trust** (:func:`prefer_profile`): while the profile
+  is not trusted yet, a frame's own estimate gives way to the profile pooled so far when
+  that profile's field σ is already smaller than the frame's own.
 """
 
 from __future__ import annotations
 
+import calendar
 import logging
 import math
-from dataclasses import dataclass
+import re
+import time
+from dataclasses import dataclass, replace
 from typing import Any
 
 from vigproc.errors import VigprocError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REFRESH_EV", "SETTLED_FRAMES", "Learned", "SteadyProfiles", "field_change_ev", "pooling_refusal"]
+__all__ = ["PRIOR_MARGIN", "PRIOR_MIN_FRAMES", "SERIES_GAP_S", "SETTLED_FRAMES", "Learned", "SteadyProfiles", "capture_time", "field_change_ev",
+           "pooling_refusal", "prefer_profile"]
 
-#: A trusted profile in use is replaced by the stored one only once their fields differ
-#: by more than this (RMS of log2 φ over the frame, EV): a quarter of the trust bound
-#: (:data:`vigproc.stores.profiles.TRUSTED_BOUND_EV`), 1.4 % in brightness, invisible
-#: between two frames of a series. A profile just trusted still moves by about 0.01 EV
-#: per frame for its first frames (a tighter tolerance would change the field every
-#: few frames; docs/benchmarks/profiles.md, "learn as you go").
-REFRESH_EV = 0.02
+#: Seconds between two frames of one lens setting that end a series: the applied
+#: revision is replaced only there. An hour: the frames of one shoot (a wedding's
+#: ceremony, a product set) come minutes apart; the next shoot, hours or days later.
+SERIES_GAP_S = 3600.0
+#: Before trust, the profile so far replaces a frame's own estimate only once it pooled this
+#: many frames (trust needs as many) and its field σ times :data:`PRIOR_MARGIN` is below the
+#: frame's: a σ from the scatter of a few frames is itself uncertain (with 2 frames and no
+#: margin, bench learn-series applied worse fields than the frames' own at frames 3 and 5).
+PRIOR_MIN_FRAMES = 3
+PRIOR_MARGIN = 2.0
 #: Frames pooled into a trusted profile beyond which a frame it corrects is no longer
 #: estimated (the figures of docs/benchmarks/profiles.md: 20 frames reach 0.009 EV).
 SETTLED_FRAMES = 20
@@ -168,24 +179,150 @@ def field_change_ev(a, b) -> float:
     return float(np.sqrt(np.mean((fa - fb) ** 2)))
 
 
+_DATE = re.compile(r"\s*(\d{4})[:-](\d\d)[:-](\d\d)[ T](\d\d):(\d\d):(\d\d)(\.\d+)?")
+
+
+def parse_exif_date(text) -> float | None:
+    """Seconds of an EXIF or XMP date (``2019:06:01 14:03:22``, sub-seconds and XMP's
+    ``2019-06-01T14:03:22+02:00`` too) on the camera's own clock: its time zone is
+    ignored, as the frames of one camera are compared with each other only. None when
+    absent, unparsable or zero (``0000:00:00 00:00:00``)."""
+    m = _DATE.match(str(text)) if text is not None else None
+    if m is None:
+        return None
+    y, mo, d, hh, mm, ss = (int(g) for g in m.groups()[:6])
+    try:
+        return calendar.timegm((y, mo, d, hh, mm, ss, 0, 0, 0)) + float(m.group(7) or 0.0) \
+            if y > 0 and 1 <= mo <= 12 and 1 <= d <= 31 else None
+    except (OverflowError, ValueError):
+        return None
+
+
+def capture_time(path, tags) -> float | None:
+    """A file's capture time (EXIF ``DateTimeOriginal``, else XMP's), seconds on the
+    camera's clock (:func:`parse_exif_date`), from the one exiftool read of the file
+    (``tags``: :class:`vigproc.io.exif.FileTags` or a reader with ``read_tags``); None
+    when the file does not say or cannot be read."""
+    read = getattr(tags, "read_tags", None)
+    if read is None:
+        return None
+    for k in ("EXIF:DateTimeOriginal", "XMP:DateTimeOriginal"):  # one name a call (read_tags)
+        try:
+            t = parse_exif_date(read(path, (k,)).get(k))
+        except (VigprocError, ValueError, OSError) as exc:  # the frame is read elsewhere; its time is a hint
+            log.debug("%s: no capture time: %s", path, exc)
+            return None
+        if t is not None:
+            return t
+    return None
+
+
+def pooled_of(estimate, img, method: str):
+    """What learning as you go pools of a frame the correction estimated: that very
+    estimate (its candidate when too weak to apply alone) and, for the methods that give
+    it, the frame's evidence, binned from the frame without fitting it again.
+
+    Parameters
+    ----------
+    estimate : VignettingModel
+        The frame's own estimate, as :func:`~vigproc.pipeline.processor.choose_model` made it.
+    img : ndarray or EncodedImage
+        The frame as the pipeline's door accepted it (a JPEG's codes are decoded here).
+    method : str
+        The estimation method.
+
+    Returns
+    -------
+    (VignettingModel, bytes or None)
+        For :meth:`ProfileStore.learn <vigproc.stores.profiles.ProfileStore.learn>`.
+
+    Raises
+    ------
+    ModelError
+        Nothing to pool: no evidence and an estimate without uncertainty.
+    """
+    from vigproc.core.estimate import EVIDENCE_METHODS, _robust_settings, clipped_mask, colour_of, luminance
+    from vigproc.core.robust import frame_evidence
+    from vigproc.errors import ModelError
+    from vigproc.io.images import EncodedImage
+
+    fit = estimate.candidate if estimate.candidate is not None else estimate
+    evidence = None
+    if method in EVIDENCE_METHODS:
+        a = img.linear() if isinstance(img, EncodedImage) else img
+        evidence = frame_evidence(luminance(a), _robust_settings(method, None), clipped_mask(a), colour_of(a))
+    if fit.covariance is None and evidence is None:
+        raise ModelError("no usable fit to learn from (no uncertainty)")
+    return fit, evidence
+
+
+def prefer_profile(estimate, profile, width: int, height: int):
+    """The frame's own estimate, or the lens's profile pooled so far (:data:`PRIOR_MIN_FRAMES`
+    frames or more, not yet trusted) when that profile is already clearly surer than the
+    frame: its field σ (EV, the pooled frames' scatter) times :data:`PRIOR_MARGIN` is below
+    the frame's own field σ (``quality.field_sigma_ev``;
+    the candidate's for a frame too weak to apply alone), and its fall-off is clear by the
+    default estimator's own rule (at least ``FamilySettings.min_snr`` times that σ; the
+    model states the matching confidence, so the plausibility rules judge it as a fit).
+
+    Parameters
+    ----------
+    estimate : VignettingModel
+        The frame's own estimate.
+    profile : Profile or None
+        The stored profile of the frame's lens setting, as looked up now.
+    width, height : int
+        The frame's size.
+
+    Returns
+    -------
+    (VignettingModel, dict or None)
+        The model to apply and, when the profile was chosen, what the record says of
+        the choice (None: the frame's own estimate stands).
+    """
+    if profile is None or profile.trusted or profile.n_frames < PRIOR_MIN_FRAMES:
+        return estimate, None
+    own = estimate.candidate if estimate.candidate is not None else estimate
+    frame_sigma = float(own.quality.field_sigma_ev) if own.quality is not None else math.nan
+    pooled_sigma = profile.field_sigma_ev
+    if pooled_sigma is None or not math.isfinite(pooled_sigma) or not pooled_sigma * PRIOR_MARGIN < frame_sigma:
+        return estimate, None  # an unknown σ (NaN) is never "surer"
+    try:
+        m = profile.model(width, height)
+        ev_rms = m.field_ev_rms()
+    except VigprocError as exc:  # a profile of another aspect or an absurd one: the frame stands alone
+        log.debug("profile %s not usable for this frame: %s", profile.key, exc)
+        return estimate, None
+    # an untrusted profile states confidence 0: here its own, by the default estimator's
+    # do-no-harm rule (the fall-off min_snr times its σ), so the plausibility rules judge it
+    # as they judge the frame's fit; a fall-off that is not clear leaves the frame alone
+    from vigproc.core.family_fit import FamilySettings, _confidence
+
+    min_snr = FamilySettings().min_snr
+    snr = ev_rms / pooled_sigma if pooled_sigma > 0 else math.inf
+    if not snr >= min_snr:
+        return estimate, None
+    m = replace(m, quality=replace(m.quality, confidence=_confidence(snr, min_snr), field_ev_rms=ev_rms,
+                                   field_sigma_ev=float(pooled_sigma), snr=snr, fallback=False))
+    return m, {"profile": str(profile.key), "frames": int(profile.n_frames),
+               "profile_sigma_ev": round(float(pooled_sigma), 5), "frame_sigma_ev": round(frame_sigma, 5)}
+
+
 class SteadyProfiles:
     """A profile store as :func:`vigproc.pipeline.processor.choose_model` reads it, that
-    hands out one revision of a trusted profile for a lens setting, the same to every
-    worker, until the stored one moved more than ``refresh_ev`` from it (see the
-    module's docstring).
+    hands out one revision of a trusted profile per lens setting and series, the same to
+    every worker (see the module's docstring).
 
-    The revision applied is kept in the store (:meth:`ProfileStore.apply_revision`): the
-    first worker that finds the profile trusted writes it, the others (and a restarted
-    one) read it, and when the stored profile has moved beyond ``refresh_ev`` (or has
-    settled, :data:`SETTLED_FRAMES`) one worker replaces it and all follow. A store
-    without applied revisions (a stand-in without a database) is held per processor.
+    Before each frame, :meth:`at` says when it was taken. The revision applied and the
+    span of its series are kept in the store (:meth:`ProfileStore.series_revision`); a
+    store without them (a stand-in without a database) is held per processor.
 
     Parameters
     ----------
     store : ProfileStore
         Borrowed.
-    refresh_ev : float
-        :data:`REFRESH_EV` by default.
+    gap_s : float
+        :data:`SERIES_GAP_S` by default.
 
     Attributes
     ----------
@@ -195,60 +332,67 @@ class SteadyProfiles:
         The applied revision's id when ``last`` is one (None otherwise).
     latest : Profile or None
         The stored profile as that lookup found it (``last`` may be an earlier revision).
+    new_series : bool
+        The last lookup's frame started a new series.
     """
 
-    def __init__(self, store, refresh_ev: float = REFRESH_EV) -> None:
+    def __init__(self, store, gap_s: float = SERIES_GAP_S) -> None:
         self.store = store
-        self.refresh_ev = refresh_ev
-        self._held: dict[str, Any] = {}  # only for a store without applied revisions
+        self.gap_s = gap_s
+        self._held: dict[str, list] = {}  # only for a store without applied revisions
+        self._time: tuple[float, str] | None = None
         self.last = self.latest = self.revision = None
+        self.new_series = False
 
-    def _applied(self, key):
-        """(revision id, profile) applied for ``key``, or None."""
-        read = getattr(self.store, "applied_revision", None)
-        if read is None:
-            return self._held.get(str(key))
-        return read(key)
+    def at(self, captured: float | None) -> None:
+        """The next frame's time: its capture time (seconds, :func:`capture_time`), else
+        (None) now, on the arrival clock."""
+        self._time = (float(captured), "capture") if captured is not None else (time.time(), "arrival")
+        self.last = self.latest = self.revision = None  # nothing of the previous frame's lookup
+        self.new_series = False
 
-    def _apply(self, hit, replaces: str | None):
-        write = getattr(self.store, "apply_revision", None)
-        if write is None:
-            self._held[str(hit.key)] = held = (None, hit)
-            return held
-        return write(hit, replaces=replaces)
+    def _series(self, hit, t: float, clock: str):
+        """(revision id, profile, new series) applied to ``hit.key`` for a frame at ``t``, or None."""
+        series = getattr(self.store, "series_revision", None)
+        if series is not None:
+            return series(hit, hit.key, at=t, clock=clock, gap=self.gap_s)
+        # the store's rule (ProfileStore.series_revision), held here: [profile, first, last, clock, seen]
+        now, held = time.time(), self._held.get(str(hit.key))
+        if held is not None:
+            if held[3] == clock and held[1] - self.gap_s <= t <= held[2] + self.gap_s:
+                held[1], held[2], held[4] = min(held[1], t), max(held[2], t), now
+                return None, held[0], False
+            if held[3] != clock and now - held[4] <= self.gap_s:
+                held[4] = now
+                if clock == "capture":
+                    held[1:4] = [t, t, clock]
+                return None, held[0], False
+        if hit.trusted or held is not None:
+            self._held[str(hit.key)] = [hit if hit.trusted else held[0], t, t, clock, now]
+            return None, self._held[str(hit.key)][0], True
+        return None
 
     def lookup(self, lens_key, width: int, height: int, *, trusted_only: bool = False):
         """:meth:`ProfileStore.lookup`, but a lens setting whose profile is applied keeps
-        that revision while the stored one stays within ``refresh_ev`` of it, and also
-        while the stored one has lost its trust (frames that disagree raised its σ): the
-        series keeps its field rather than going back to single-frame estimates."""
+        that revision for the whole series, also while the stored one has lost its trust
+        (frames that disagree raised its σ): the series keeps its field rather than going
+        back to single-frame estimates."""
         self.last = self.revision = None
+        self.new_series = False
+        t, clock = self._time or (time.time(), "arrival")
+        self._time = None  # one frame's time, once
         hit = self.latest = self.store.lookup(lens_key, width, height, trusted_only=False)
         if hit is None:
             return None
-        applied = self._applied(hit.key)
-        if not hit.trusted:
-            if applied is not None:
-                self.revision, self.last = applied
-                return self.last
+        got = self._series(hit, t, clock)
+        if got is None and not hit.trusted and trusted_only:
             # nothing applied for this bin: a trusted neighbour or interpolation, as the store gives it
-            hit = self.latest = self.store.lookup(lens_key, width, height, trusted_only=True) if trusted_only else hit
-            if hit is None or not hit.trusted:
-                return hit
-            applied = self._applied(hit.key)
-        if applied is None:
-            applied = self._apply(hit, None)  # the first worker to find it trusted writes it; the others read it
-        else:
-            moved = field_change_ev(applied[1], hit)
-            # once settled the stored profile stops moving (its frames are no longer pooled): the
-            # revision applied from there on is the settled one, replaced once
-            settling = hit.n_frames >= SETTLED_FRAMES and applied[1].n_frames < SETTLED_FRAMES
-            if moved > self.refresh_ev or settling:
-                was = applied[0]
-                applied = self._apply(hit, was)
-                if applied[0] != was:
-                    log.info("profile %s moved %.4f EV from its applied revision%s: now its %d-frame revision %s",
-                             hit.key, moved, " and settled" if settling else "", applied[1].n_frames,
-                             applied[0] or "")
-        self.revision, self.last = applied
+            alt = self.store.lookup(lens_key, width, height, trusted_only=True)
+            got = self._series(alt, t, clock) if alt is not None and alt.trusted else None
+        if got is None:
+            return None if trusted_only else hit
+        self.revision, self.last, self.new_series = got
+        if self.new_series:
+            log.info("profile %s: a new series; applying its %d-frame revision %s", self.last.key,
+                     self.last.n_frames, self.revision or "")
         return self.last

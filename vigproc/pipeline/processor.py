@@ -181,7 +181,8 @@ class Processor:
 
     # -- in memory --------------------------------------------------------
     def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image", frame_id: str | None = None,
-                      output: OutputFormat | None = None, embedded=None, in_camera=None, consume: bool = False):
+                      output: OutputFormat | None = None, embedded=None, in_camera=None, consume: bool = False,
+                      captured: float | None = None):
         """Process an in-memory linear image (H×W or H×W×C, channels last).
 
         ``output``: the format the corrected frame will be written in (integer formats
@@ -194,6 +195,9 @@ class Processor:
 
         ``consume``: the caller hands ``img`` over; a display-encoded frame may be
         corrected in place (its codes become the output's: one frame in memory, not two).
+
+        ``captured``: the frame's capture time (seconds, :func:`vigproc.pipeline.learning.capture_time`;
+        None: it arrived now): where a series of its lens setting begins, while learning.
 
         ``frame_id``: the frame's content id. Learn mode, and correct mode with
         ``settings.learn``: a frame already pooled into its lens's profile is not pooled
@@ -234,9 +238,18 @@ class Processor:
         else:
             warnings: list[str] = []
             steady = self._steady_profiles() if s.learn and s.profile == "auto" else None
+            if steady is not None:
+                steady.at(captured)
             m, res.source = choose_model(checked, lens_key, s, steady or (self.store if s.profile == "auto" else None),
                                          where=where, sources=self.sources if s.profile == "auto" else None,
                                          embedded=embedded, warnings=warnings)
+            own = m if s.learn and res.source == "estimate" else None  # pooled as it is: not estimated twice
+            if own is not None and steady is not None:
+                from vigproc.pipeline.learning import prefer_profile
+
+                m, chosen = prefer_profile(m, steady.latest, checked.shape[1], checked.shape[0])
+                if chosen is not None:  # before trust, the profile so far is surer than the frame
+                    res.source, res.extra["profile_evidence"] = "profile-evidence", {**chosen, "own": own.to_dict()}
             if warnings:
                 res.extra["warnings"] = warnings
             res.model = m
@@ -260,7 +273,7 @@ class Processor:
                 used = steady.last if steady is not None and res.source == "stored-profile" else None
                 if s.learn:  # before the correction, which may overwrite the frame's codes (consume)
                     learned = self._learn_as_you_go(checked, lens_key, frame_id, in_camera,
-                                                    steady.latest if used is not None else None, where)
+                                                    steady.latest if used is not None else None, where, own)
                     res.extra["learned"] = learned.to_dict()
                     res.profile = learned.profile if learned.pooled else res.profile
                 source_white = None
@@ -333,16 +346,18 @@ class Processor:
             self._steady = SteadyProfiles(self.store)
         return self._steady
 
-    def _learn_as_you_go(self, img, lens_key, frame_id: str | None, in_camera, used, where: str):
+    def _learn_as_you_go(self, img, lens_key, frame_id: str | None, in_camera, used, where: str, own=None):
         """Pool a frame correct mode handles into its lens's profile, exactly once
         (:mod:`vigproc.pipeline.learning`); ``used``: the trusted profile that corrected it,
-        as stored now (None: none). Returns a :class:`~vigproc.pipeline.learning.Learned`.
+        as stored now (None: none); ``own``: the frame's own estimate when the correction
+        made one (pooled as it is, :func:`~vigproc.pipeline.learning.pooled_of`).
+        Returns a :class:`~vigproc.pipeline.learning.Learned`.
 
         A frame the store cannot pool (too few usable bins, an invalid fit) is recorded as
         not pooled; a locked store, or a full disk under it, raises (the frame is tried
         again, and a frame pooled before is not pooled twice: ``frame_id``)."""
         from vigproc.io.images import EncodedImage
-        from vigproc.pipeline.learning import SETTLED_FRAMES, Learned, pooling_refusal
+        from vigproc.pipeline.learning import SETTLED_FRAMES, Learned, pooled_of, pooling_refusal
         from vigproc.stores.profiles import ProfileStoreError
 
         if self.store is None:
@@ -360,9 +375,12 @@ class Processor:
                 done = Learned.of(self.store.get(key), pooled=False, reason="this content is already pooled")
                 log.info("%s: %s", where, done.describe())
                 return done
-            linear = img.linear() if isinstance(img, EncodedImage) else img
             try:
-                fit, evidence = self._pool_fit(linear, checked=not isinstance(img, EncodedImage))
+                if own is not None:
+                    fit, evidence = pooled_of(own, img, self.settings.method)
+                else:  # corrected by a profile: the frame's one estimate is made here
+                    linear = img.linear() if isinstance(img, EncodedImage) else img
+                    fit, evidence = self._pool_fit(linear, checked=not isinstance(img, EncodedImage))
             except (ModelError, VigprocError) as exc:  # nothing to pool; the correction stands
                 log.info("%s: not learned: %s", where, exc)
                 return Learned(False, reason=f"no fit to pool: {exc}")
@@ -513,8 +531,13 @@ class Processor:
         fmt = output_for(info)
         shape = img.shape
         # the frame read here is ours: corrected in place (peak memory)
+        captured = None
+        if s.learn:  # where a series of the lens setting begins (pipeline.learning)
+            from vigproc.pipeline.learning import capture_time
+
+            captured = capture_time(path, tags)
         out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
-                                      embedded=embedded, in_camera=in_camera, consume=consume)
+                                      embedded=embedded, in_camera=in_camera, consume=consume, captured=captured)
         res.lens = lens
         if s.mode == "check":  # what an examiner files beside the verdict (vigproc.io.provenance)
             from vigproc.io.provenance import read_provenance

@@ -223,12 +223,25 @@ def _migration_12(con: sqlite3.Connection) -> None:
     )
 
 
+def _migration_13(con: sqlite3.Connection) -> None:
+    """v13: the series an applied revision corrects (learning as you go,
+    :meth:`ProfileStore.series_revision`): the first and last frame times it has seen
+    (seconds), their clock (``capture``: EXIF DateTimeOriginal; ``arrival``) and when
+    its last frame arrived (seconds since the epoch)."""
+    have = {r[1] for r in con.execute("PRAGMA table_info(applied_profiles)")}
+    for col, kind in (("series_first", "REAL"), ("series_last", "REAL"), ("series_clock", "TEXT"),
+                      ("series_seen", "REAL")):
+        if col not in have:
+            con.execute(f"ALTER TABLE applied_profiles ADD COLUMN {col} {kind}")
+
+
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
 #: Append a function for the next version; never edit a released one.
 MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3,
                                                                  _migration_4, _migration_5, _migration_6,
                                                                  _migration_7, _migration_8, _migration_9,
-                                                                 _migration_10, _migration_11, _migration_12)
+                                                                 _migration_10, _migration_11, _migration_12,
+                                                                 _migration_13)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
@@ -778,6 +791,9 @@ class ProfileStore(SQLiteFile):
             Kang-Weiss fits pooled until session 10 (``vigproc bench profile --clean``).
             The information sums are still kept.
             Needs ``frame_id`` (default: the SHA-256 of the evidence).
+            With evidence, ``model`` may state no covariance (the lens-family
+            estimate a correction applied): the information sums then take the
+            evidence's own lens-family fit's, so the frame is not estimated twice.
         lens_key : LensKey, optional
             The frame's EXIF: its focal length, crop factor and names as spelt are
             added to the profile's :attr:`Profile.shots`.
@@ -869,7 +885,22 @@ class ProfileStore(SQLiteFile):
                 f"a {model.width}x{model.height} estimate ({aspect_label(model.width / model.height)}) "
                 f"cannot refine the {key.aspect} profile {key}"
             )
-        theta_i, lam_i, eta_i = frame_information(model)
+        if model.covariance is None and evidence is not None:
+            # an estimate that states no covariance (the lens-family fit a correction
+            # applied): its information is that of the evidence's own fit, not a second estimate
+            from vigproc.core.pooling import pool_family
+
+            try:
+                own = pool_family([frame_fit], *frame_size, family=self._family)
+            except ModelError as exc:
+                raise ProfileStoreError(f"unusable frame evidence: {exc}") from None
+            # centred and circular by construction: those parameters are fixed, adding no information
+            theta_i, cov_i, _ = normalise(own)
+            lam_i = _scaled_pinv(_check_covariance(cov_i, "frame fit", allow_fixed=True), "frame fit",
+                                 allow_fixed=True)
+            eta_i = lam_i @ theta_i
+        else:
+            theta_i, lam_i, eta_i = frame_information(model)
         aspect = key.aspect_ratio
         field_i, _, gmin = _field_and_jacobian(theta_i, aspect)
         if not (gmin > 0 and np.all(np.isfinite(field_i))):
@@ -1041,12 +1072,141 @@ class ProfileStore(SQLiteFile):
                 "INSERT INTO applied_profiles (lens_id, focal_bin, aperture_bin, aspect, revision, n_frames, profile, "
                 "applied) VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (lens_id, focal_bin, aperture_bin, aspect) "
                 "DO UPDATE SET revision = excluded.revision, n_frames = excluded.n_frames, "
-                "profile = excluded.profile, applied = excluded.applied",
+                "profile = excluded.profile, applied = excluded.applied, "
+                "series_first = NULL, series_last = NULL, series_clock = NULL, series_seen = NULL",  # opens a series
                 (key.lens_id, key.focal_bin, key.aperture_bin, key.aspect, rev, int(profile.n_frames), text, _now()),
             )
             return rev, profile_from_dict(json.loads(text), f"applied revision {rev} of {key}")
 
         return self._transact(f"applying a revision of {key}", body)
+
+    def series_revision(self, profile: Profile | None, key: ProfileKey, *, at: float, clock: str,
+                        gap: float, now: float | None = None) -> tuple[str, Profile, bool] | None:
+        """The applied revision of ``key`` for a frame taken at ``at``: replaced only at a
+        series boundary, never within a series.
+
+        The applied revision remembers the span of frame times of the series it corrects
+        (on one clock: the first frame's) and when its last frame arrived. A frame within
+        ``gap`` seconds of that span belongs to the series: it gets the revision and
+        extends the span. A frame of the other clock (a file without a capture time in a
+        series of files with one, or the reverse) is judged by its arrival instead:
+        within ``gap`` of the series' last arrival it belongs to it (and a capture time
+        then replaces an arrival-clock span). A frame further away starts a new series:
+        ``profile`` (the stored profile as the caller read it), when trusted and not the
+        applied revision already, replaces it, and the span restarts at ``at``. With no
+        applied revision, a trusted ``profile`` becomes it. All of it is one ``BEGIN
+        IMMEDIATE`` transaction (a compare-and-set on the revision held: of two workers at
+        one boundary, one replaces it and the other finds the new series and follows); a
+        frame inside the span writes nothing (but a minute's arrival time).
+
+        Parameters
+        ----------
+        profile : Profile or None
+            The stored profile of ``key`` as the caller read it (None: none).
+        key : ProfileKey
+        at : float
+            The frame's time, seconds (its capture time, else its arrival).
+        clock : str
+            ``"capture"`` or ``"arrival"``.
+        gap : float
+            Seconds between frames that end a series.
+        now : float, optional
+            The frame's arrival, seconds since the epoch (default: now).
+
+        Returns
+        -------
+        tuple of (str, Profile, bool) or None
+            Revision id, the applied profile, and whether this frame started a new
+            series; None when nothing is applied (and ``profile`` is not trusted).
+
+        Raises
+        ------
+        ProfileStoreError
+            Bad arguments, or the store cannot be read or written.
+        """
+        import time
+
+        _check_key(key, "series_revision")
+        if profile is not None and (not isinstance(profile, Profile) or profile.key != key):
+            raise ProfileStoreError(f"series_revision() needs a Profile of {key}")
+        now = time.time() if now is None else now
+        if not (all(isinstance(x, (int, float)) and math.isfinite(x) for x in (at, gap, now)) and gap >= 0
+                and clock in ("capture", "arrival")):
+            raise ProfileStoreError(f"series_revision(): bad frame time {at!r}, clock {clock!r} or gap {gap!r}")
+        at, now = float(at), float(now)
+        slack = min(60.0, gap / 60.0)  # an arrival time this much newer is written; less is not worth a write
+
+        def plan(row) -> tuple[bool, tuple | None]:
+            """(in the series, the series columns to write or None)."""
+            first, last, clk, seen = row[2:]
+            fresh = seen is None or now > seen + slack
+            if first is None:  # applied before series were kept, or by hand: this frame opens one
+                return True, (at, at, clock, now)
+            if clk == clock:
+                if not first - gap <= at <= last + gap:
+                    return False, None
+                if first <= at <= last and not fresh:
+                    return True, None
+                return True, (min(first, at), max(last, at), clk, max(now, seen or now))
+            if seen is not None and now - seen > gap:
+                return False, None
+            if clock == "capture":  # a capture time replaces an arrival-clock span
+                return True, (at, at, clock, max(now, seen or now))
+            return True, (first, last, clk, max(now, seen or now)) if fresh else None
+
+        with self._errors(f"reading the applied revision of {key}"):
+            row = self._read_series(self.con, key)
+        if row is not None:
+            inside, write = plan(row)
+            if inside and write is None:
+                return row[0], row[1], False
+        text = rev = None
+        if profile is not None and profile.trusted:
+            text = json.dumps(profile_to_dict(profile), sort_keys=True, ensure_ascii=False, allow_nan=False)
+            rev = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+        where = (key.lens_id, key.focal_bin, key.aperture_bin, key.aspect)
+        set_series = ("UPDATE applied_profiles SET series_first = ?, series_last = ?, series_clock = ?, "
+                      "series_seen = ? WHERE lens_id = ? AND focal_bin = ? AND aperture_bin = ? AND aspect = ?")
+
+        def body(con: sqlite3.Connection) -> tuple[str, Profile, bool] | None:
+            held = self._read_series(con, key)
+            if held is not None:
+                inside, write = plan(held)
+                if inside:
+                    if write is not None:
+                        con.execute(set_series, (*write, *where))
+                    return held[0], held[1], False
+            if rev is None or (held is not None and held[0] == rev):  # a new series, the same revision
+                if held is None:
+                    return None
+                con.execute(set_series, (at, at, clock, now, *where))
+                return held[0], held[1], True
+            con.execute(
+                "INSERT INTO applied_profiles (lens_id, focal_bin, aperture_bin, aspect, revision, n_frames, profile, "
+                "applied, series_first, series_last, series_clock, series_seen) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) "
+                "ON CONFLICT (lens_id, focal_bin, aperture_bin, aspect) DO UPDATE SET revision = excluded.revision, "
+                "n_frames = excluded.n_frames, profile = excluded.profile, applied = excluded.applied, "
+                "series_first = excluded.series_first, series_last = excluded.series_last, "
+                "series_clock = excluded.series_clock, series_seen = excluded.series_seen",
+                (*where, rev, int(profile.n_frames), text, _now(), at, at, clock, now),
+            )
+            return rev, profile_from_dict(json.loads(text), f"applied revision {rev} of {key}"), True
+
+        return self._transact(f"applying a revision of {key}", body)
+
+    def _read_series(self, con: sqlite3.Connection, key: ProfileKey):
+        """(revision, profile, series_first, series_last, series_clock, series_seen) of
+        ``key``'s applied revision, or None (none, or unreadable: it is then replaced)."""
+        held = self._read_applied(con, key)
+        if held is None:
+            return None
+        row = con.execute("SELECT series_first, series_last, series_clock, series_seen FROM applied_profiles "
+                          "WHERE lens_id = ? AND focal_bin = ? AND aperture_bin = ? AND aspect = ?",
+                          (key.lens_id, key.focal_bin, key.aperture_bin, key.aspect)).fetchone()
+        first, last, clock, seen = row if row is not None else (None, None, None, None)
+        num = (lambda x: None if x is None else float(x))
+        return held[0], held[1], num(first), num(last), clock, num(seen)
 
     def _read_applied(self, con: sqlite3.Connection, key: ProfileKey) -> tuple[str, Profile] | None:
         row = con.execute(

@@ -167,6 +167,19 @@ def _import(args: argparse.Namespace, store) -> int:
     return 0
 
 
+def _apply(args: argparse.Namespace, store) -> int:
+    """``profile apply ID``: learning as you go corrects this lens setting's frames with the
+    profile as stored now, from the next frame on (a new series, docs/watch.md)."""
+    p = _pick_profile(store, args.id)
+    if not p.trusted:
+        raise VigprocError(f"profile {p.key} is not trusted ({p.n_frames} frames): it corrects no series")
+    held = store.applied_revision(p.key)
+    rev, got = store.apply_revision(p, replaces=held[0] if held is not None else None)
+    print(f"profile {p.key}: revision {rev} ({got.n_frames} frames) applied from the next frame on "
+          f"(a new series){'' if held is None or held[0] != rev else '; it was applied already'}")
+    return 0
+
+
 def _export(args: argparse.Namespace, store) -> int:
     """``profile export ID FILE``: a stored profile as a profile file."""
     export_profile(_pick_profile(store, args.id), args.file)
@@ -208,6 +221,7 @@ SUBCOMMANDS = {
     "list": _list,
     "show": _show,
     "learn": _learn,
+    "apply": _apply,
     "import": _import,
     "export": _export,
     "import-lensfun": _import_lensfun,
