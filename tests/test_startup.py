@@ -199,6 +199,7 @@ def test_submitted_answers_come_back_in_order_and_a_death_is_reported(tmp_path):
         p3 = proc.submit(["-echo", "third"])
         assert proc.execute(["-echo", "fourth"]).stdout == b"fourth"  # reads those before it first
         assert proc.result(p3).stdout == b"third" and proc.result(p2).stdout == b"second"
+        os.kill(proc.pid, signal.SIGSTOP)  # stopped: the next command is sent but never answered
         p5 = proc.submit(["-echo", "lost"])
         os.kill(proc.pid, signal.SIGKILL)
         with pytest.raises(ExiftoolDied):
