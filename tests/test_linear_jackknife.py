@@ -110,3 +110,29 @@ def test_the_refits_decide_near_the_threshold(monkeypatch):
     calls.clear()
     fit_family(lum, far, colour=frame, ev_checks=(q_far.field_ev_rms + 2 * q_far.field_sigma_ev,))
     assert calls
+
+
+def test_off_centre_sigma_is_linearised_unless_near_its_threshold(monkeypatch):
+    """The off-centre fit's σ: no refits far from min_snr; with min_snr at its SNR, the
+    refits' σ."""
+    from vigproc.bench.synthetic import table1_model
+    from vigproc.core.estimate import OffCentreRule
+    from vigproc.core.family_fit import off_centre_fit
+
+    scene = np.stack([textured(H, W, seed=3 + k, contrast=0.05) for k in range(3)], axis=-1)
+    frame = scene * table1_model(2).field((H, W))[..., None]
+    lum = luminance(frame)
+    s = OffCentreRule().settings
+    c = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    calls = []
+    real = ff._jackknife
+    monkeypatch.setattr(ff, "_jackknife", lambda *a: calls.append(1) or real(*a))
+    far = off_centre_fit(lum, c, replace(s, min_snr=1e-3), colour=frame).with_uncertainty()
+    assert not calls and far.quality.field_sigma_ev > s.sigma_floor
+    part = off_centre_fit(lum, c, replace(s, min_snr=far.quality.snr), colour=frame)
+    near = part.with_uncertainty()
+    assert len(calls) == 1
+    d, a, index, sol, pm_it, pinv, settings, J = part._jackknife
+    jk = ff.field_spread_ev(J, ff._spread(real(d, a, index.labels, index.weight, sol, pm_it, pinv, settings)))
+    q = (near.candidate or near).quality
+    assert q.field_sigma_ev == pytest.approx(math.hypot(s.sigma_scale * jk, s.sigma_floor), rel=1e-12)

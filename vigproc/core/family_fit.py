@@ -993,13 +993,19 @@ class OffCentreFit:
     _t0: float
 
     def with_uncertainty(self) -> VignettingModel:
-        """The model :func:`fit_off_centre` returns: σ from the jackknife, and the identity
+        """The model :func:`fit_off_centre` returns: σ from the jackknife (as :func:`fit_family`'s:
+        linearised unless near the threshold), and the identity
         with the fit as ``candidate`` when the fall-off is below ``min_snr`` σ."""
         d, a, index, sol, pm_it, pinv, settings, J = self._jackknife
         # σ and the signal as fit_family's: the jackknife over every parameter carried to the
-        # field by its derivatives at the fit, both on a 16×16 grid over the whole frame
-        cov = _spread(_jackknife(d, a, index.labels, index.weight, sol, pm_it, pinv, settings))
-        sigma = math.hypot(settings.sigma_scale * field_spread_ev(J, cov), settings.sigma_floor)
+        # field by its derivatives at the fit, both on a 16×16 grid over the whole frame;
+        # linearised (linear_jackknife) unless it is close enough to sway the fall-back
+        refits = (index.labels, index.weight, sol, pm_it, pinv, settings)
+        sigma_jk = field_spread_ev(J, _spread(linear_jackknife(d, a, *refits)))
+        if _near_threshold(sigma_jk, settings.sigma_scale, settings.sigma_floor, self.spread, settings.min_snr,
+                           math.nan, ()):
+            sigma_jk = field_spread_ev(J, _spread(_jackknife(d, a, *refits)))
+        sigma = math.hypot(settings.sigma_scale * sigma_jk, settings.sigma_floor)
         snr = self.spread / sigma if sigma > 0 else math.inf
         q = replace(self.field.quality, confidence=_confidence(snr, settings.min_snr), field_sigma_ev=sigma,
                     snr=snr, fallback=snr < settings.min_snr, seconds=time.perf_counter() - self._t0)
