@@ -65,7 +65,7 @@ import numpy as np
 
 from vigproc.core._kernels.geometry import geometry_pairs
 from vigproc.core._kernels.irls import irls_fit
-from vigproc.core._kernels.blocks import block_normal
+from vigproc.core._kernels.blocks import block_normal, linear_refits
 from vigproc.core._kernels.pairs import list_pairs
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import N_COMPONENTS, LensFamily, default_family, profile_family
@@ -602,24 +602,11 @@ def linear_jackknife(d, a, labels, wt, c, pmean, pinv, s: FamilySettings) -> np.
     c = np.asarray(c, dtype=np.float64)
     block_normal(at, np.ascontiguousarray(d, dtype=np.float64), np.ascontiguousarray(wt, dtype=np.float64),
                  np.ascontiguousarray(labels, dtype=np.int64), c, 1.0 / s.sigma, nb, HI, HN, G)
-    scale = 1.0 / (s.sigma * s.sigma * s.kappa)
-    pinv = np.asarray(pinv, dtype=np.float64)
     # the full fit's own gradient (zero when it converged; what is left, a refit sees too)
-    grad = scale * G.sum(axis=0) - pinv @ (c - np.asarray(pmean, dtype=np.float64))
-    hi, hn = HI.sum(axis=0), HN.sum(axis=0)
-    rows = np.empty((nb, K))
-    for j in range(nb):
-        A = scale * (hi - HI[j]) + pinv
-        N = scale * (hn - HN[j]) + pinv
-        S = grad - scale * G[j]
-        delta = np.zeros(K)
-        for _ in range(s.jackknife_iterations):
-            step = np.linalg.solve(A, S - N @ delta)
-            delta += step
-            if not np.max(np.abs(step)) >= s.tolerance:
-                break
-        rows[j] = c + delta
-    return rows
+    # is in S₋ᵦ: the refits start where the full fit stopped
+    return linear_refits(HI, HN, G, c, np.ascontiguousarray(pinv, dtype=np.float64),
+                         np.ascontiguousarray(pmean, dtype=np.float64), 1.0 / (s.sigma * s.sigma * s.kappa),
+                         int(s.jackknife_iterations), float(s.tolerance))
 
 
 def _jackknife_cov(d, a, labels, wt, c, pmean, pinv, s: FamilySettings) -> np.ndarray:

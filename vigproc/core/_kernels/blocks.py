@@ -63,3 +63,37 @@ def block_normal(at, d, weight, labels, c, inv_s, n_blocks, HI, HN, G):
             for m in range(k + 1, K):
                 HI[b, m, k] = HI[b, k, m]
                 HN[b, m, k] = HN[b, k, m]
+
+
+@njit(cache=True, nogil=True)
+def linear_refits(HI, HN, G, c, pinv, pmean, scale, iterations, tolerance):
+    """The delete-one-block refits of the quadratic model about the full fit ``c``: for
+    each block b, δ ← δ + A₋ᵦ⁻¹ (S₋ᵦ − N₋ᵦ δ) at most ``iterations`` times, stopping when no
+    coefficient moves by ``tolerance``, with A₋ᵦ = scale·(ΣHI − HI[b]) + Λ,
+    N₋ᵦ = scale·(ΣHN − HN[b]) + Λ and S₋ᵦ = scale·(ΣG − G[b]) − Λ(c − μ). Returns the refits
+    c + δ as rows (n_blocks, K)."""
+    nb, K = G.shape
+    hi = np.zeros((K, K))
+    hn = np.zeros((K, K))
+    g = np.zeros(K)
+    for b in range(nb):
+        hi += HI[b]
+        hn += HN[b]
+        g += G[b]
+    prior = pinv @ (c - pmean)
+    rows = np.empty((nb, K))
+    for b in range(nb):
+        A = scale * (hi - HI[b]) + pinv
+        N = scale * (hn - HN[b]) + pinv
+        S = scale * (g - G[b]) - prior
+        delta = np.zeros(K)
+        for _ in range(iterations):
+            step = np.linalg.solve(A, S - N @ delta)
+            delta += step
+            move = 0.0
+            for k in range(K):
+                move = max(move, abs(step[k]))
+            if not move >= tolerance:
+                break
+        rows[b] = c + delta
+    return rows
