@@ -499,7 +499,8 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     # one binning of the luminance for the fit (its colour copies added) and the glow test
     work = luminance_copy(lum, fs, mask)
     work_colour = with_colour(work, colour, fs) if colour is not None else work
-    fit = fit_family(lum, fs, mask, family, hint, colour, copy=work_colour)
+    # σ from the refits themselves where it could decide whether to try an off-centre fit
+    fit = fit_family(lum, fs, mask, family, hint, colour, copy=work_colour, ev_checks=(rule.any_min_ev,))
     # the off-centre choice reads the same copies when its settings make the same ones
     copies = (work, work_colour) if same_copy(fs, rule.settings) else None
     model = _off_centre_choice(lum, mask, hint, family, colour, rule, fit, copies)
