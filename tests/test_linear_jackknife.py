@@ -22,7 +22,7 @@ H, W = 200, 300
 
 
 def _frame(seed: int = 3) -> np.ndarray:
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
 
     scene = np.stack([textured(H, W, seed=seed + k, contrast=0.05) for k in range(3)], axis=-1)
     return scene * table1_model(1).field((H, W))[..., None]
@@ -115,7 +115,7 @@ def test_the_refits_decide_near_the_threshold(monkeypatch):
 def test_off_centre_sigma_is_linearised_unless_near_its_threshold(monkeypatch):
     """The off-centre fit's σ: no refits far from min_snr; with min_snr at its SNR, the
     refits' σ."""
-    from vigproc.bench.synthetic import table1_model
+    from benchmarks.synthetic import table1_model
     from vigproc.core.estimate import OffCentreRule
     from vigproc.core.family_fit import off_centre_fit
 

@@ -329,6 +329,10 @@ def serve(path: Path, run: Runner, idle: float = IDLE_SECONDS) -> int:
                 path.unlink(missing_ok=True)
             finally:
                 probe.close()
+        # load the estimator's kernels before the socket appears: a host that finds the
+        # socket gets a warm answer, and a SIGTERM during the warm-up (the signal waits for
+        # the compiled code) leaves no socket behind
+        estimate(np.exp(np.random.default_rng(0).normal(0.0, 0.1, (96, 128))))
         old = os.umask(0o177)
         try:
             srv.bind(os.fspath(path))
@@ -340,8 +344,6 @@ def serve(path: Path, run: Runner, idle: float = IDLE_SECONDS) -> int:
             return 0
         raise
     try:
-        # load the estimator's kernels before the first call (the point of this process)
-        estimate(np.exp(np.random.default_rng(0).normal(0.0, 0.1, (96, 128))))
         # wake every second: is the socket still ours to serve? (a removed socket, as a host's
         # or the hook benchmark's clean-up leaves it, ends the server within a second, not 10)
         srv.settimeout(min(idle, 1.0))
