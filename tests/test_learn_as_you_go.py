@@ -218,17 +218,24 @@ def test_a_profile_that_moved_is_applied_only_at_a_series_boundary(series, tmp_p
         assert fresh.lookup(key, W, H, trusted_only=True) is None
 
 
+
+def _trusted_then_one_more(paths, db, out):
+    """Learn the first 3 frames into the store ``db`` (the profile is then trusted), then
+    a 4th: the stored profile after each step."""
+    with ProfileStore(db) as store, Processor(Settings(mode="learn"), store=store) as proc:
+        for p in paths[:3]:
+            proc.process_file(p, _out(out))
+        [p3] = store.list()
+        proc.process_file(paths[3], _out(out))
+        [p4] = store.list()
+    return p3, p4
+
 def test_the_store_replaces_the_applied_revision_only_at_a_series_boundary(series, tmp_path):
     """ProfileStore.series_revision: one transaction per boundary; frames inside the
     series' span write nothing; two stores (two workers) agree."""
     paths, _ = series
     db = tmp_path / "p.sqlite"
-    with ProfileStore(db) as s1, Processor(Settings(mode="learn"), store=s1) as proc:
-        for p in paths[:3]:
-            proc.process_file(p, _out(tmp_path / "out"))
-        [p3] = s1.list()
-        proc.process_file(paths[3], _out(tmp_path / "out"))
-        [p4] = s1.list()
+    p3, p4 = _trusted_then_one_more(paths, db, tmp_path / "out")
     assert p3.trusted and p4.trusted
     g = 100.0
     with ProfileStore(db) as s1, ProfileStore(db) as s2:
@@ -295,12 +302,7 @@ def test_two_workers_apply_one_revision_after_trust_and_follow_a_refresh(series,
 def test_the_applied_revision_is_a_compare_and_set(series, tmp_path):
     paths, _ = series
     db = tmp_path / "p.sqlite"
-    with ProfileStore(db) as s1, Processor(Settings(mode="learn"), store=s1) as proc:
-        for p in paths[:3]:
-            proc.process_file(p, _out(tmp_path / "out"))
-        [p3] = s1.list()
-        proc.process_file(paths[3], _out(tmp_path / "out"))
-        [p4] = s1.list()
+    p3, p4 = _trusted_then_one_more(paths, db, tmp_path / "out")
     with ProfileStore(db) as s1, ProfileStore(db) as s2:
         assert s1.applied_revision(p3.key) is None
         r3, got = s1.apply_revision(p3)
