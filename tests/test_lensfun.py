@@ -270,7 +270,7 @@ def test_pa_field_rejects_bad_input() -> None:
 # ---------------------------------------------------------------- bench
 
 
-def test_bench_lenses_deterministic_and_distinct() -> None:
+def test_diverse_lenses_deterministic_and_distinct() -> None:
     first = diverse_lenses(20)
     second = diverse_lenses(20)
     assert first == second
@@ -288,6 +288,6 @@ def test_bench_lenses_deterministic_and_distinct() -> None:
         assert 0.0 < field.min() and field.max() <= 1.0 + 1e-3
 
 
-def test_bench_lenses_too_many() -> None:
+def test_diverse_lenses_too_many() -> None:
     with pytest.raises(ModelError, match="requested"):
         diverse_lenses(100_000)

@@ -727,10 +727,6 @@ def diverse_lenses(
     return chosen
 
 
-#: The old name of :func:`diverse_lenses` (it was the benchmarks' selection first).
-bench_lenses = diverse_lenses
-
-
 def lensfun_family(exclude: Iterable[tuple[str, str]] = (), n_components: int = N_COMPONENTS,
                    db_paths: Iterable[str | Path] | None = None) -> LensFamily:
     """:func:`vigproc.core.lensfamily.build_family` over lensfun's ``pa`` calibrations.
