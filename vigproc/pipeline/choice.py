@@ -35,7 +35,7 @@ def not_applied_reason(model) -> str:
 
 
 def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where: str = "frame",
-                 sources=None, embedded=None, warnings: list[str] | None = None):
+                 sources=None, embedded=None, warnings: list[str] | None = None, seed: int | None = None):
     """Model to apply and where it came from: ``profile-file``, ``lensfun``,
     ``stored-profile`` (a trusted profile of the lens: no estimation), ``embedded``
     (the DNG's own vignetting opcodes), ``source:NAME`` (a profile-source plugin) or
@@ -47,6 +47,7 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
     :func:`vigproc.io.makernotes.calibration_for`), used by ``embedded`` and,
     after a trusted stored profile, by ``auto``.  ``warnings``, when given, gets what
     the record should say (a profile file of another lens than the frame's EXIF names).
+    ``seed``: the random start of an estimator that draws one (``lyu2010-rand``).
 
     ``img`` is the frame as the pipeline's door accepted it
     (:func:`vigproc.core.pixels.check_image`'s result): it is not validated again."""
@@ -113,8 +114,8 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
     if isinstance(img, EncodedImage):  # from a copy binned straight from the codes
         from vigproc.pipeline.encoded import estimate_encoded
 
-        return estimate_encoded(img, settings.method, hint=lens_hint(lens_key, settings.method)), "estimate"
-    return estimate_checked(img, settings.method, hint=lens_hint(lens_key, settings.method)), "estimate"
+        return estimate_encoded(img, settings.method, hint=lens_hint(lens_key, settings.method), seed=seed), "estimate"
+    return estimate_checked(img, settings.method, hint=lens_hint(lens_key, settings.method), seed=seed), "estimate"
 
 
 def lens_hint(lens_key, method: str):

@@ -3,9 +3,10 @@
 file → linear image + lens key → model (stored profile, profile file, lensfun or a
 fresh estimate) → correction, profile update or verdict → output file + JSON sidecar.
 
-The command line (``correct``, ``demo``), the watch-folder daemon, batch jobs and the
-pipeline hook all call :class:`Processor`, so a frame is handled identically whoever
-asks.  A :class:`Processor` owns (or borrows) one exiftool process and one profile
+The command line (``correct``, ``demo``, ``estimate``, ``profile learn``), the
+watch-folder daemon, batch jobs and the pipeline hook all call :class:`Processor`, so a
+frame is handled identically whoever asks: :meth:`Processor.read_frame` reads a file
+once (pixels, lens key, content id), :meth:`Processor.process_frame` takes it on.  A :class:`Processor` owns (or borrows) one exiftool process and one profile
 store; it is not shared between threads (make one per worker).
 """
 
@@ -61,6 +62,47 @@ class FrameResult:
         return {k: v for k, v in d.items() if v is not None}
 
 
+@dataclass
+class Frame:
+    """One input file as the per-frame path read it (:meth:`Processor.read_frame`): the
+    pixels and what the file's one metadata read says of them.
+
+    Attributes
+    ----------
+    path : Path
+    img : ndarray or EncodedImage
+        Linear float32 (H×W or H×W×C, channels last), or a JPEG's or PNG's code values
+        in correct and estimate modes (:class:`vigproc.io.images.EncodedImage`).
+    info : ImageInfo
+        Format, size, bit depth and transfer as read.
+    tags : FileTags or reader
+        The file's one exiftool read (a host's stand-in reader itself).
+    lens_key : LensKey or None
+        The lens identity, None when the EXIF does not give one.
+    lens : dict
+        The record's ``lens``: the lens id and key, or why it is unknown.
+    frame_id : str or None
+        The content id (SHA-256 hex) where learning or a check needs it.
+    embedded : object or None
+        The file's own calibration (:func:`vigproc.io.makernotes.calibration_for`).
+    in_camera : InCamera or None
+        The camera already corrected the frame (:func:`vigproc.io.incamera.read_in_camera`).
+    captured : float or None
+        Capture time, seconds on the camera's clock (learning as it goes only).
+    """
+
+    path: Path
+    img: Any
+    info: Any
+    tags: Any
+    lens_key: Any
+    lens: dict[str, Any]
+    frame_id: str | None = None
+    embedded: Any = None
+    in_camera: Any = None
+    captured: float | None = None
+
+
 def images_in(folder: Path, limit: int | None = None) -> list[Path]:
     """Image files under ``folder`` (recursive, sorted)."""
     if not folder.is_dir():
@@ -108,12 +150,23 @@ class Processor:
     plausibility : bool
         Refuse implausible fields (:mod:`vigproc.pipeline.guard`); off only to measure
         what the rules prevent (``vigproc bench real-frames``).
+    seed : int, optional
+        The random start of estimators that draw one (``lyu2010-rand``).
+    judge_estimates : bool
+        Estimate mode: each estimate is judged by the rules correct mode applies
+        (:func:`vigproc.pipeline.guard.guard`, the in-camera flags included), so the
+        record says whether a correction would apply it (``vigproc estimate``).
     """
 
     def __init__(self, settings: Settings, *, store=None, reader=None, sources=None,
-                 plausibility: bool = True) -> None:
+                 plausibility: bool = True, seed: int | None = None, judge_estimates: bool = False) -> None:
         self.settings = settings
         self.plausibility = plausibility
+        self.seed = seed
+        self.judge_estimates = judge_estimates
+        #: The capture time (seconds, or None) of the last frame learning as it goes
+        #: judged the series of: a cluster's batch client applies the series rule with it.
+        self.captured: float | None = None
         self.store = store
         self._reader = reader
         self._own_reader = reader is None
@@ -240,9 +293,10 @@ class Processor:
             steady = self._steady_profiles() if s.learn and s.profile == "auto" else None
             if steady is not None:
                 steady.at(captured)
+                self.captured = captured
             m, res.source = choose_model(checked, lens_key, s, steady or (self.store if s.profile == "auto" else None),
                                          where=where, sources=self.sources if s.profile == "auto" else None,
-                                         embedded=embedded, warnings=warnings)
+                                         embedded=embedded, warnings=warnings, seed=self.seed)
             own = m if s.learn and res.source == "estimate" else None  # pooled as it is: not estimated twice
             if own is not None and steady is not None:
                 from vigproc.pipeline.learning import prefer_profile
@@ -500,19 +554,43 @@ class Processor:
             raise VigprocError("correct mode writes its result: use process_file")
         return self._process_path(Path(path), frame_id, lambda info: None)[1]
 
-    def _process_path(self, path: Path, frame_id: str | None, output_for, *, consume: bool = True):
-        """Read ``path`` and process it: (corrected image or None, FrameResult, image, its
-        ImageInfo, output format). ``output_for(info)``: the output format (None: none
-        written). ``consume``: the frame read may be corrected in place (peak memory), and
-        the image returned is then the output's codes; False keeps the frame as read."""
+    def read_frame(self, path: str | os.PathLike[str], frame_id: str | None = None, *,
+                   raw_half_size: bool = False) -> Frame:
+        """Read one file the way every front end's frames are read: "file → linear image +
+        lens key", once.
+
+        The pixels (a JPEG's or PNG's code values as they are in correct and estimate
+        modes, :mod:`vigproc.pipeline.encoded`), then one exiftool read of the file
+        (:class:`vigproc.io.exif.FileTags`) answers the lens, the maker's calibration,
+        the in-camera flags and the capture time; the content id is the file's SHA-256
+        where learning or a check needs it.
+
+        Parameters
+        ----------
+        path : path
+        frame_id : str, optional
+            The content id when the caller has it already (a batch worker's fingerprint).
+        raw_half_size : bool
+            A RAW is developed at half size (``vigproc estimate``'s fast path; the model
+            is then for the half-size frame).
+
+        Returns
+        -------
+        Frame
+
+        Raises
+        ------
+        VigprocError
+            The file cannot be read or is not a supported image.
+        """
         from vigproc.io.images import read_encoded, read_image
 
         s = self.settings
+        path = Path(path)
         # correct and estimate take a JPEG's or PNG's code values as they are (pipeline.encoded)
-        img, info = (read_encoded if s.mode in ("correct", "estimate") else read_image)(path, transfer=s.transfer)
-        # one exiftool read of the file answers the lens, the maker's calibration, the
-        # in-camera flags and the provenance (io.exif.FileTags); a host's stand-in reader
-        # may not offer it
+        img, info = (read_encoded if s.mode in ("correct", "estimate") else read_image)(
+            path, transfer=s.transfer, raw_half_size=raw_half_size)
+        # a host's stand-in reader may not offer the one read of the whole file
         read_file = getattr(self.reader, "read_file", None)
         tags = read_file(path) if read_file is not None else self.reader
         lens_key, lens = read_lens(tags, path)
@@ -522,33 +600,70 @@ class Processor:
 
             embedded = calibration_for(path, s.profile, tags)
         in_camera = None
-        if s.mode == "correct" and s.in_camera == "respect":
+        if s.in_camera == "respect" and (s.mode == "correct" or (s.mode == "estimate" and self.judge_estimates)):
             from vigproc.io.incamera import read_in_camera
 
             in_camera = read_in_camera(path, tags)
         if (s.mode in ("learn", "check") or s.learn) and frame_id is None and self.store is not None:
             frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
-        fmt = output_for(info)
-        shape = img.shape
-        # the frame read here is ours: corrected in place (peak memory)
         captured = None
         if s.learn:  # where a series of the lens setting begins (pipeline.learning)
             from vigproc.pipeline.learning import capture_time
 
             captured = capture_time(path, tags)
-        out, res = self.process_image(img, lens_key, where=str(path), frame_id=frame_id, output=fmt,
-                                      embedded=embedded, in_camera=in_camera, consume=consume, captured=captured)
-        res.lens = lens
+        return Frame(path, img, info, tags, lens_key, lens, frame_id, embedded, in_camera, captured)
+
+    def process_frame(self, frame: Frame, *, output: OutputFormat | None = None,
+                      consume: bool = True) -> tuple[Any, FrameResult]:
+        """Process a frame :meth:`read_frame` read: "model → correction, profile update,
+        estimate or verdict" (:meth:`process_image`), its record completed with what the
+        file says (the lens, a check's provenance, a DNG's own calibration).
+
+        ``output``: the format the corrected frame will be written in (correct mode).
+        ``consume``: the frame may be corrected in place (peak memory); ``frame.img`` is
+        then the output's codes.
+
+        Returns
+        -------
+        (ndarray or EncodedImage or None, FrameResult)
+            The corrected frame in correct mode (None otherwise) and the record.
+        """
+        s = self.settings
+        shape = frame.img.shape  # before a correction in place
+        where = str(frame.path)
+        out, res = self.process_image(frame.img, frame.lens_key, where=where, frame_id=frame.frame_id,
+                                      output=output, embedded=frame.embedded, in_camera=frame.in_camera,
+                                      consume=consume, captured=frame.captured)
+        res.lens = frame.lens
+        if s.mode == "estimate" and self.judge_estimates:  # what correct would do with this field
+            from vigproc.pipeline.guard import guard
+
+            res.model, refusal = guard(res.model, res.source, frame.img, frame.lens_key,
+                                       clips=frame.info.bit_depth not in ("half", "float", "double"),
+                                       in_camera=frame.in_camera, where=where, check=self.plausibility)
+            if refusal is not None:
+                res.extra["not_applied_rule"] = refusal.rule
         if s.mode == "check":  # what an examiner files beside the verdict (vigproc.io.provenance)
             from vigproc.io.provenance import read_provenance
 
-            res.extra["provenance"] = read_provenance(path, tags if read_file is not None else getattr(
-                self.reader, "exif", self.reader), getattr(
-                lens_key, "problems", ()), sha256=frame_id).to_dict()
-        if embedded is not None:
-            res.extra["embedded"] = embedded.to_dict(*shape[1::-1]) if res.source == "embedded" else \
-                embedded.to_dict()
-        return out, res, img, info, fmt
+            whole = frame.tags is not self.reader  # else a host's stand-in reader
+            res.extra["provenance"] = read_provenance(frame.path, frame.tags if whole else getattr(
+                self.reader, "exif", self.reader), getattr(frame.lens_key, "problems", ()),
+                sha256=frame.frame_id).to_dict()
+        if frame.embedded is not None:
+            res.extra["embedded"] = frame.embedded.to_dict(*shape[1::-1]) if res.source == "embedded" else \
+                frame.embedded.to_dict()
+        return out, res
+
+    def _process_path(self, path: Path, frame_id: str | None, output_for, *, consume: bool = True):
+        """Read ``path`` and process it: (corrected image or None, FrameResult, image, its
+        ImageInfo, output format). ``output_for(info)``: the output format (None: none
+        written). ``consume``: the frame read may be corrected in place (peak memory), and
+        the image returned is then the output's codes; False keeps the frame as read."""
+        frame = self.read_frame(path, frame_id)
+        fmt = output_for(frame.info)
+        out, res = self.process_frame(frame, output=fmt, consume=consume)
+        return out, res, frame.img, frame.info, fmt
 
     @staticmethod
     def _picture(path: Path, outdir: Path, stem: str, res: FrameResult) -> None:

@@ -4,33 +4,29 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
 
 from vigproc.core.colour_cast import CastSettings, detect_colour_cast
-from vigproc.core.estimate import estimate
 from vigproc.errors import VigprocError, one_line
 from vigproc.frontends.commands._options import failure_record, files_exit_code, print_json_results
-from vigproc.io.exif import ExifReader
-from vigproc.io.images import EncodedImage, read_encoded
-from vigproc.io.incamera import read_in_camera
+from vigproc.io.images import EncodedImage
 from vigproc.io.lensident import display_lens_id
-from vigproc.pipeline.encoded import check_encoded, estimate_encoded
-from vigproc.pipeline.guard import guard
-from vigproc.pipeline.processor import Settings, lens_hint, read_lens
+from vigproc.pipeline.processor import Processor, Settings
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    """Each file in turn; the exit code is :func:`files_exit_code`'s. ``--json`` prints
-    one JSON document at the end, for one file as for many (README, "--json")."""
-    Settings(mode="estimate", method=args.method, transfer=args.input_transfer)  # a bad --method: one usage error
+    """Each file in turn through the processor's per-frame path (estimate mode); the exit
+    code is :func:`files_exit_code`'s. ``--json`` prints one JSON document at the end, for
+    one file as for many (README, "--json")."""
+    # always the frame's own estimate (no profile), judged as correct would judge it
+    settings = Settings(mode="estimate", profile="estimate", method=args.method, transfer=args.input_transfer)
     results: list[dict] = []
     codes: list[int | None] = []
-    with ExifReader() as reader:  # one exiftool process for all the files
+    with Processor(settings, seed=args.seed, judge_estimates=True) as proc:  # one exiftool for all the files
         for f in args.files:
             try:
-                results.append(_estimate_file(args, f, reader))
+                results.append(_estimate_file(args, f, proc))
                 codes.append(None)
             except VigprocError as exc:  # one line naming the file, as the multi-file commands do
                 print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
@@ -42,25 +38,18 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return code
 
 
-def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
+def _estimate_file(args: argparse.Namespace, file: str, proc: Processor) -> dict:
     # RAW: estimate on LibRaw's half-size development (the fast path) and report the
     # model for the full frame; a JPEG's or PNG's codes from a reduced copy; others as they are
-    img, info = read_encoded(file, transfer=args.input_transfer, raw_half_size=True)
-    reader = reader.read_file(Path(file))  # one exiftool read: the lens and the in-camera flags
-    key, lens = read_lens(reader, Path(file))
-    if isinstance(img, EncodedImage):
-        m = estimate_encoded(check_encoded(img), args.method, hint=lens_hint(key, args.method), seed=args.seed)
-    else:
-        m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
-                     hint=lens_hint(key, args.method))
-    # "applied" says what correct would do: the same harm rules (vigproc.pipeline.guard)
-    m, refusal = guard(m, "estimate", img, key, clips=info.bit_depth not in ("half", "float", "double"),
-                       in_camera=read_in_camera(Path(file), reader), where=str(file))
+    frame = proc.read_frame(file, raw_half_size=True)
+    _, res = proc.process_frame(frame)
+    img, info, lens, m = frame.img, frame.info, frame.lens, res.model
+    refusal = res.extra.get("not_applied_rule")  # "applied" says what correct would do (pipeline.guard)
     cast = _colour_cast(img, m)  # a report only: never applied (colour fields come from flat frames/profiles/DNGs)
     if info.format == "raw":
         m = m.rescale(2 * m.width, 2 * m.height)
     doc = {"file": str(file), "lens": lens, "model": m.to_dict(), "colour_cast": cast,
-           **({"not_applied_rule": refusal.rule} if refusal is not None else {})}
+           **({"not_applied_rule": refusal} if refusal is not None else {})}
     if not args.json:
         q = m.quality
         # the frame the model is for: a RAW's full frame, though estimated at half size

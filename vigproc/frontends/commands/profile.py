@@ -12,10 +12,10 @@ from pathlib import Path
 from vigproc.errors import VigprocError, one_line
 from vigproc.frontends.commands._progress import _progress
 from vigproc.io.exif import casefold_lens_id, escape_key_part
-from vigproc.io.images import read_image, write_image
+from vigproc.io.images import write_image
 from vigproc.io.lensident import display_lens_id
 from vigproc.io.picture import falloff_figure
-from vigproc.pipeline.processor import Processor, Settings, file_sha256, read_lens
+from vigproc.pipeline.processor import Processor, Settings
 from vigproc.stores.lcp import import_lcp, lcp_files
 from vigproc.stores.lensfun_io import colour_notes, export_lensfun_xml, import_lensfun, lensfun_entries
 from vigproc.stores.opening import open_profile_store
@@ -138,15 +138,14 @@ def _learn(args: argparse.Namespace, store) -> int:
     with Processor(settings, store=store) as proc:
         for f in _progress(files, "learning"):
             try:
-                img, _ = read_image(f, transfer=args.input_transfer)
-                lens_key, lens = read_lens(proc.reader, f)
-                if lens_key is None:
-                    raise VigprocError(f"cannot learn, lens unknown ({lens['error']})")
-                # keyed by content: learning a file again does not pool it twice
-                fid = file_sha256(f)
-                key = store.key_for(lens_key, img.shape[1], img.shape[0])
-                known = store.holds_frame(key, fid)
-                proc.process_image(img, lens_key, where=str(f), frame_id=fid)
+                # read, lens and content id as every front end reads a frame; keyed by
+                # content: learning a file again does not pool it twice
+                frame = proc.read_frame(f)
+                if frame.lens_key is None:
+                    raise VigprocError(f"cannot learn, lens unknown ({frame.lens['error']})")
+                key = store.key_for(frame.lens_key, frame.img.shape[1], frame.img.shape[0])
+                known = store.holds_frame(key, frame.frame_id)
+                proc.process_frame(frame)
                 p = store.get(key)
                 done += not known
                 again += known
