@@ -5,6 +5,9 @@ drives: ``capacity`` (tasks worth keeping in flight), ``describe()``, ``start(sp
 ``submit(task)``, ``completed()`` (yields each task with its
 :class:`~vigproc.frontends.batch.Outcome` or the exception it raised), ``cancel()`` and
 ``close()``; ``remote`` is true when tasks may outlive an interrupt on other machines.
+The Dask backend also has ``hand_out(handout)``: the client's
+:class:`~vigproc.frontends.batch.Handout` for the tasks it submits from then on
+(learning as it goes on a cluster).
 
 References
 ----------
@@ -224,6 +227,7 @@ class _Dask:
         self._ac = None
         self._tasks: dict[str, Task] = {}
         self._spec_future = None
+        self._handout = None  # a future of the client's latest Handout, once it hands one out
         self._capacity = 1
         self._capacity_checked = 0.0
 
@@ -254,10 +258,16 @@ class _Dask:
         self.client.register_plugin(WarmUp(self.numba_threads), name=_WarmUpPlugin.name)
         self._ac = as_completed(loop=self.client.loop)
 
+    def hand_out(self, handout) -> None:
+        """The tasks submitted from now on get ``handout`` (shipped once to the cluster,
+        not with every task; the version before is released with its last task)."""
+        self._handout = self.client.scatter(handout, hash=False)
+
     def submit(self, task: Task) -> None:
         key = f"vigproc-batch-{hashlib.sha1(task.path.encode('utf-8', 'surrogateescape')).hexdigest()[:12]}-" \
               f"{os.urandom(4).hex()}"
-        f = self.client.submit(run_task, task, self._spec_future, key=key, retries=self.retries, pure=False)
+        f = self.client.submit(run_task, task, self._spec_future, self._handout, key=key, retries=self.retries,
+                               pure=False)
         self._tasks[f.key] = task
         self._ac.add(f)
 

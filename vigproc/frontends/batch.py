@@ -30,11 +30,17 @@ shipped to every worker, which opens it from a private local temporary file: no
 SQLite file is ever shared over the network, and every frame of the job sees the
 same profiles.
 
-Correct mode that learns as it goes (``Settings.learn``, :mod:`vigproc.pipeline.learning`)
-runs on local workers only: each opens the client's own store (``JobSpec.store_path``,
-on this machine), pools its frames there keyed by their content (``BEGIN IMMEDIATE``
-serialises the workers; a frame pooled before a crash is not pooled again) and reads
-the profiles as they become trusted.
+Correct mode that learns as it goes (``Settings.learn``, :mod:`vigproc.pipeline.learning`):
+local workers open the client's own store (``JobSpec.store_path``, on this machine), pool
+their frames there keyed by their content (``BEGIN IMMEDIATE`` serialises the workers; a
+frame pooled before a crash is not pooled again) and read the profiles as they become
+trusted.  A cluster's workers cannot share the store (``JobSpec.client_learns``): they
+read the job's snapshot plus what the client hands out (:class:`Handout`: each lens
+setting's applied revision and its profile pooled so far) and return each frame's
+pooled material (:func:`vigproc.pipeline.learning.pooled_of`'s fit and evidence) with
+its record; the client pools it into the store, keyed by content as above, applies the
+series rule there (:class:`~vigproc.pipeline.learning.SteadyProfiles`) and hands the
+revision it applies to the tasks it submits next.
 
 References
 ----------
@@ -297,6 +303,10 @@ class JobSpec:
     store_path : str or None
         The live profile store, for correct mode that learns as it goes (local
         workers only: the file is on the client's machine).
+    client_learns : bool
+        Correct mode that learns as it goes on a cluster: the workers read
+        ``store_snapshot`` and the client's :class:`Handout`, and return each frame's
+        pooled material; the client pools it (the one writer of the store).
     """
 
     settings: Settings
@@ -305,12 +315,14 @@ class JobSpec:
     profile_file: Shipped | None = None
     store_snapshot: Shipped | None = None
     store_path: str | None = None
+    client_learns: bool = False
 
     @property
     def token(self) -> str:
         """Identity of the spec: worker state is cached per token."""
         h = hashlib.sha256(json.dumps([self.settings.to_dict(), self.outdir]
-                                      + ([self.store_path] if self.store_path else []), sort_keys=True).encode())
+                                      + ([self.store_path] if self.store_path else [])
+                                      + (["client-learns"] if self.client_learns else []), sort_keys=True).encode())
         for s in (self.profile_file, self.store_snapshot):
             h.update((s.digest if s is not None else "-").encode())
         return h.hexdigest()[:16]
@@ -337,6 +349,30 @@ class Task:
     force: bool = False
 
 
+@dataclass(frozen=True)
+class Handout:
+    """What the client of a cluster job that learns as it goes hands the tasks it
+    submits (``JobSpec.client_learns``): the store's state the workers' correction
+    reads, as the client pooled it so far.
+
+    Attributes
+    ----------
+    version : int
+        Raised at every change (the backend ships each version once).
+    applied : dict
+        Profile key text → (revision id, Profile): the revision each lens setting's
+        series is corrected with (:meth:`ProfileStore.series_revision
+        <vigproc.stores.profiles.ProfileStore.series_revision>`).
+    latest : dict
+        Profile key text → Profile: the profiles pooled into during this job, as stored
+        after the last frame (trust, the profile's evidence before trust, settling).
+    """
+
+    version: int = 0
+    applied: dict[str, tuple[str, Any]] = field(default_factory=dict)
+    latest: dict[str, Any] = field(default_factory=dict)
+
+
 @dataclass
 class Outcome:
     """What a worker did with one :class:`Task`.
@@ -351,6 +387,8 @@ class Outcome:
     fingerprint: Any = None
     record: dict[str, Any] | None = None
     evidence: list[tuple[Any, ...]] = field(default_factory=list)  # (ProfileKey, VignettingModel, bytes|None, LensKey|None)
+    frame: tuple[Any, int, int] | None = None  # client_learns: (LensKey, width, height) the profiles were read for
+    captured: float | None = None  # client_learns: the frame's capture time (None: the client's clock)
     error: str | None = None
     error_type: str | None = None
     transient: bool = False
@@ -382,12 +420,75 @@ class _Learned:
     key: Any
 
 
+@dataclass(frozen=True)
+class _Pending:
+    """What a cluster worker's stand-in store says a frame's pooling gives, until the
+    client has pooled it and rewritten the record (:meth:`_Run.learn_on_client`)."""
+
+    key: Any
+    n_frames: int
+    trusted: bool
+    field_sigma_ev: float | None = None
+
+
+class _ClientPooled:
+    """Stands in for the profile store of a correct-mode Processor that learns as it
+    goes on a cluster worker (``JobSpec.client_learns``): reads the job's snapshot of
+    the store and the client's :class:`Handout`; keeps each frame's pooled material
+    (and the lens setting it read profiles for) for the client, the one writer."""
+
+    def __init__(self, snapshot) -> None:
+        self.snapshot = snapshot
+        self.handout = Handout()
+        self.items: list[tuple[Any, ...]] = []
+        self.frame: tuple[Any, int, int] | None = None
+
+    def begin(self, handout: Handout | None) -> None:
+        """A new task: what the client handed it, nothing of the task before."""
+        self.handout = handout if handout is not None else Handout()
+        self.items.clear()
+        self.frame = None
+
+    def key_for(self, lens_key, width: int, height: int):
+        return self.snapshot.key_for(lens_key, width, height)
+
+    def lookup(self, lens_key, width: int, height: int, *, trusted_only: bool = False):
+        self.frame = (lens_key, int(width), int(height))
+        p = self.handout.latest.get(str(self.snapshot.key_for(lens_key, width, height)))
+        if p is not None and (p.trusted or not trusted_only):
+            return p
+        return self.snapshot.lookup(lens_key, width, height, trusted_only=trusted_only)
+
+    def series_revision(self, profile, key, *, at: float, clock: str, gap: float, now: float | None = None):
+        # the client applies the series rule; a worker follows the revision handed out
+        held = self.handout.applied.get(str(key)) or self.snapshot.applied_revision(key)
+        return (held[0], held[1], False) if held is not None else None
+
+    def get(self, key):
+        p = self.handout.latest.get(str(key))
+        return p if p is not None else self.snapshot.get(key)
+
+    def holds_frame(self, key, frame_id: str) -> bool:
+        return self.snapshot.holds_frame(key, frame_id)  # pooled in this job: the client's learn() knows
+
+    def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
+              evidence: bytes | None = None, lens_key=None):
+        self.items.append((key, model, evidence, lens_key))
+        known = self.get(key)
+        return _Pending(key, (known.n_frames if known is not None else 0) + 1,
+                        bool(known is not None and known.trusted))
+
+    def close(self) -> None:
+        self.snapshot.close()
+
+
 @dataclass
 class _WorkerState:
     token: str
     processor: Processor
     store: Any
     evidence: _Evidence | None
+    pooled: _ClientPooled | None = None
 
 
 # Per-process worker state: materialised shipped files (shared by the process's
@@ -425,9 +526,13 @@ def _worker_state(spec: JobSpec) -> _WorkerState:
     settings = spec.settings
     if spec.profile_file is not None:
         settings = dataclasses.replace(settings, profile=_materialise(spec.profile_file))
-    store = evidence = None
+    store = evidence = pooled = None
     if settings.mode == "learn":
         store = evidence = _Evidence()
+    elif spec.client_learns:  # learning as it goes on a cluster: the client pools
+        from vigproc.stores.opening import open_profile_store
+
+        store = pooled = _ClientPooled(open_profile_store(_materialise(spec.store_snapshot)))
     elif spec.store_path is not None:  # learning as you go: the live store, pooled into here
         from vigproc.stores.opening import open_profile_store
 
@@ -436,7 +541,7 @@ def _worker_state(spec: JobSpec) -> _WorkerState:
         from vigproc.stores.opening import open_profile_store
 
         store = open_profile_store(_materialise(spec.store_snapshot))
-    st = _WorkerState(token, Processor(settings, store=store), store, evidence)
+    st = _WorkerState(token, Processor(settings, store=store), store, evidence, pooled)
     _thread.state = st
     return st
 
@@ -501,14 +606,15 @@ def _out_folder(spec: JobSpec, rel: str) -> tuple[Path, str]:
     return output_location(spec.outdir, PurePosixPath(rel))
 
 
-def run_task(task: Task, spec: JobSpec) -> Outcome:
+def run_task(task: Task, spec: JobSpec, handout: Handout | None = None) -> Outcome:
     """Process one file on a worker (the function the client submits).
 
     Fingerprints the file, skips it if its content is ``task.known_sha`` (unless
     ``task.force``), else runs it through this thread's Processor; outputs are
     written atomically under ``spec.outdir``.  Failures of the file are returned,
     not raised (the client journals them); only the loss of the worker itself
-    reaches the client as an exception.
+    reaches the client as an exception.  ``handout``: the client's profiles as of
+    this task's submission (``spec.client_learns``).
     """
     from vigproc.stores.journal import FileChangedError, fingerprint
 
@@ -525,6 +631,9 @@ def run_task(task: Task, spec: JobSpec) -> Outcome:
         folder, stem = _out_folder(spec, task.rel)
         if st.evidence is not None:
             st.evidence.items.clear()
+        if st.pooled is not None:
+            st.pooled.begin(handout)
+            st.processor.captured = None
         res = st.processor.process_file(task.path, folder, stem,
                                         frame_id=fp.sha256 if spec.settings.learn else None)
         after = os.stat(task.path)
@@ -532,7 +641,10 @@ def run_task(task: Task, spec: JobSpec) -> Outcome:
             raise FileChangedError(f"{task.path} changed while it was being processed")
         out.record = res.to_dict()
         out.record["sidecar"] = str(safe_output(folder, stem, SIDECAR_SUFFIX))
-        out.evidence = list(st.evidence.items) if st.evidence is not None else []
+        holder = st.evidence if st.evidence is not None else st.pooled  # what the client pools
+        out.evidence = list(holder.items) if holder is not None else []
+        if st.pooled is not None:
+            out.frame, out.captured = st.pooled.frame, st.processor.captured
         out.status = "done"
     except Exception as exc:  # the file's fault or not: the policy the daemon and correct use too
         fault = classify_error(exc, spec.outdir)
@@ -663,7 +775,8 @@ def run_batch(
     journal_path : path
         SQLite journal (on a local disk); ``job`` names this job in it.
     store : ProfileStore, optional
-        Learn mode: the store the client pools the workers' estimates into.
+        Learn mode, and learning as it goes on a cluster (``spec.client_learns``): the
+        store the client pools the workers' frames into (its one writer).
     retries : int
         Immediate resubmissions of a task whose worker died or that failed
         transiently; after that the file is journaled as failed (a later run retries
@@ -692,8 +805,9 @@ def run_batch(
     from vigproc.stores.journal import Journal
 
     learn = spec.settings.mode == "learn"
-    if learn and store is None:
-        raise BatchError("learn mode needs a profile store")
+    if (learn or spec.client_learns) and store is None:
+        raise BatchError("learn mode needs a profile store" if learn else
+                         "learning as it goes on a cluster needs the client's profile store")
     missing = list(missing)
     summary = BatchSummary(job=job, journal=str(journal_path), backend="", mode=spec.settings.mode,
                            total=len(items) + len(missing))
@@ -712,7 +826,7 @@ def run_batch(
                 log.info("recovered %d entries left running by an interrupted run", recovered)
             if retry_quarantined:
                 log.info("%d quarantined files get another chance", journal.requeue("quarantined"))
-            run = _Run(items, spec, backend, journal, summary, store=store if learn else None,
+            run = _Run(items, spec, backend, journal, summary, store=store if learn or spec.client_learns else None,
                        retries=retries, window=window)
             show = sys.stderr.isatty() if progress is None else progress
             if show:
@@ -747,7 +861,17 @@ class _Run:
         self.backend = backend
         self.journal = journal
         self.summary = summary
-        self.store = store  # learn mode only
+        self.store = store  # learn mode, and learning as it goes on a cluster
+        self.learn_mode = spec.settings.mode == "learn"
+        # learning as it goes on a cluster: the series rule on the store itself, and what
+        # the next tasks are handed (Handout)
+        self.steady = None
+        if spec.client_learns:
+            from vigproc.pipeline.learning import SteadyProfiles
+
+            self.steady = SteadyProfiles(store)
+        self.handout = Handout()
+        self.handed = -1  # the Handout version the backend ships
         self.retries = retries
         self.window = window
         self.me = worker_name()
@@ -808,6 +932,9 @@ class _Run:
             t = self.next_task()
             if t is None:
                 return
+            if self.steady is not None and self.handed != self.handout.version:
+                self.backend.hand_out(self.handout)  # to this task and the next ones
+                self.handed = self.handout.version
             self.backend.submit(t)
 
     def next_task(self) -> Task | None:
@@ -828,7 +955,7 @@ class _Run:
                 continue
             if same and e.state == "done":
                 sidecar = (e.result or {}).get("sidecar")
-                if sidecar and not os.path.exists(sidecar) and self.store is None:
+                if sidecar and not os.path.exists(sidecar) and not self.learn_mode:
                     s.redone += 1  # outputs deleted since: write them again (not in learn mode: no re-pooling)
                     return Task(it.path, it.rel, e.fingerprint.sha256, force=True)
                 s.skipped += 1
@@ -877,6 +1004,8 @@ class _Run:
                 if e is not None and res.fingerprint is not None:
                     self.journal.touch(task.path, res.fingerprint)  # next time known from size + mtime
         elif task.force and res.fingerprint.sha256 == task.known_sha:  # outputs rewritten; journal has it
+            if self.steady is not None:  # the record says what the store holds (pooled before)
+                self.learn_on_client(res)
             s.processed += 1
             _count_source(s, res.record)
         else:
@@ -890,7 +1019,9 @@ class _Run:
         if not _claim(self.journal, task.path, fp, self.me):
             s.skipped += 1  # same content done meanwhile (e.g. listed twice)
             return
-        if self.store is not None:  # learn: pool here, the one writer of the store
+        if self.steady is not None:  # learning as it goes on a cluster: pooled here
+            self.learn_on_client(res)
+        elif self.store is not None:  # learn: pool here, the one writer of the store
             for key, model, evidence, lens_key in res.evidence:
                 # keyed by content: a frame pooled before a crash, then redone, is not pooled twice
                 p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key)
@@ -907,6 +1038,75 @@ class _Run:
         _count_source(s, res.record)
         self.seen_done = True
         self.flush_held()
+
+    def learn_on_client(self, res: Outcome) -> None:
+        """Learning as it goes on a cluster (``spec.client_learns``), for a frame a worker
+        corrected: pool its material into the store under its content id (a frame
+        pooled before, by an earlier run or before a crash, is not pooled again:
+        :meth:`ProfileStore.learn`), then apply the series rule to its lens setting with
+        its capture time (:class:`~vigproc.pipeline.learning.SteadyProfiles`, the store's
+        applied revision), and hand the result to the tasks submitted next. The
+        record, and the sidecar the worker wrote, then say what the store did."""
+        from vigproc.pipeline.learning import Learned
+        from vigproc.stores.profiles import ProfileStoreError
+
+        fid = res.fingerprint.sha256
+        applied, latest = dict(self.handout.applied), dict(self.handout.latest)
+        learned = None
+        for key, model, evidence, lens_key in res.evidence:
+            try:
+                known = self.store.holds_frame(key, fid)
+                p = self.store.learn(key, model, frame_id=fid, evidence=evidence, lens_key=lens_key)
+            except ProfileStoreError as exc:
+                if getattr(exc, "transient", False) or getattr(exc, "sqlite_errorcode", None) is not None:
+                    raise  # the store itself: the job stops, the frame is not journaled and is redone
+                log.warning("%s: not learned: %s", res.path, exc)  # as a local worker says it
+                learned = Learned(False, reason=str(exc))
+                continue
+            latest[str(p.key)] = p
+            learned = Learned.of(p, pooled=not known, reason="this content is already pooled" if known else None)
+        if res.frame is not None:
+            lens_key, width, height = res.frame
+            self.steady.at(res.captured)
+            try:
+                self.steady.lookup(lens_key, width, height, trusted_only=True)
+            except VigprocError as exc:  # an odd key: the frame was corrected; its series is not kept
+                log.warning("%s: series of its lens setting not kept: %s", res.path, exc)
+            if self.steady.revision is not None:
+                applied[str(self.steady.last.key)] = (self.steady.revision, self.steady.last)
+        changed = applied.keys() != self.handout.applied.keys() or latest.keys() != self.handout.latest.keys() or any(
+            applied[k][0] != self.handout.applied[k][0] for k in applied) or any(
+            latest[k] is not self.handout.latest[k] for k in latest)
+        if changed:
+            self.handout = Handout(self.handout.version + 1, applied, latest)
+        if learned is not None and res.record is not None:
+            self._rewrite_learned(res.record, learned)
+
+    @staticmethod
+    def _rewrite_learned(record: dict[str, Any], learned) -> None:
+        """The record's and the sidecar's ``learned`` (and ``profile``) as the store
+        pooled the frame (the worker could only say what it handed over)."""
+        from vigproc.atomic import atomic_write_text
+
+        record["learned"] = learned.to_dict()
+        if learned.pooled:
+            record["profile"] = learned.profile
+        else:
+            record.pop("profile", None)
+        sidecar = record.get("sidecar")
+        if not sidecar:
+            return
+        try:
+            with open(sidecar, encoding="utf-8") as fh:
+                doc = json.load(fh)
+            doc["learned"] = record["learned"]
+            if "profile" in record:
+                doc["profile"] = record["profile"]
+            else:
+                doc.pop("profile", None)
+            atomic_write_text(sidecar, json.dumps(doc, indent=1) + "\n")
+        except (OSError, ValueError) as exc:  # the store is right; the sidecar keeps the worker's words
+            log.warning("sidecar %s: its 'learned' not updated: %s", sidecar, exc)
 
     def journal_failure(self, task: Task, fp, reason: str, kind: str, transient: bool,
                         max_attempts: int | None = DEFAULT_MAX_ATTEMPTS) -> None:

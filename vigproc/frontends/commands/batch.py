@@ -78,12 +78,6 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
     config = read_config(args.config) if args.config else {}
     learn = learn_setting(args, default=True)
-    if learn and _option(args, config, "scheduler"):
-        if args.learn:
-            raise B.BatchError("--learn needs local workers (a cluster's workers cannot share the profile store): "
-                               "run 'vigproc batch --mode learn' first, then correct on the cluster")
-        log.info("not learning as it goes on a cluster (workers cannot share the profile store)")
-        learn = False
     settings = Settings(mode=args.mode, profile=args.profile, method=args.method, transfer=args.input_transfer,
                         output_format=args.output_format, strength=args.strength, picture=args.picture,
                         unapplied=args.unapplied, in_camera=args.in_camera, learn=learn)
@@ -123,6 +117,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         backend = BK.local_backend(_option(args, config, "workers"))
 
     store = snapshot = store_path = None
+    client_learns = False
     profile_db = _option(args, config, "profile_db")
     try:
         if settings.needs_store:
@@ -136,7 +131,13 @@ def cmd_batch(args: argparse.Namespace) -> int:
                     raise B.BatchError(f"{why} (--profile-db, or --no-learn)")
                 log.warning("%s: not learning (pass --profile-db on a local disk)", why)
                 settings = dataclasses.replace(settings, learn=False)
-            if settings.learn:  # local workers pool into the store itself, and read it as profiles become trusted
+            if settings.learn and scheduler:
+                # a cluster's workers read a snapshot and what the client hands out; the
+                # client pools their frames into the store (its one writer)
+                log.info("learning as it goes on a cluster: this client pools every frame into %s", store.path)
+                snapshot = B.Shipped.of("profiles.sqlite", B.snapshot_store(store))
+                client_learns = True
+            elif settings.learn:  # local workers pool into the store itself, and read it as profiles become trusted
                 store_path = str(store.path.resolve())
                 store.close()
                 store = None
@@ -155,7 +156,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise B.BatchError(f"cannot create output folder {outdir}: {exc.strerror or exc}") from None
         spec = B.JobSpec(settings=settings, outdir=str(outdir), numba_threads=getattr(backend, "numba_threads", 1),
-                         profile_file=profile_file, store_snapshot=snapshot, store_path=store_path)
+                         profile_file=profile_file, store_snapshot=snapshot, store_path=store_path,
+                         client_learns=client_learns)
         summary = B.run_batch(items, spec, backend, journal_path=journal, job=job, store=store, retries=retries,
                               missing=missing, progress=None if not args.no_progress else False,
                               retry_quarantined=args.retry_quarantined)
@@ -237,7 +239,7 @@ def register(subparsers) -> None:
     sp.add_argument("--journal", help="journal database (default OUT/.vigproc-batch.sqlite; must be on a local disk)")
     sp.add_argument("--retries", type=int, help="resubmissions of a file whose worker died (default 2)")
     add_processing(sp)
-    add_learn(sp, "on with --mode correct and --profile auto on local workers")
+    add_learn(sp, "on with --mode correct and --profile auto")
     sp.add_argument("--json", action="store_true", help="print the summary as JSON")
     sp.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
     sp.add_argument("--retry-quarantined", action="store_true",
