@@ -1015,13 +1015,13 @@ class _Run:
 
     def record_done(self, task: Task, res: Outcome) -> None:
         s, fp = self.summary, res.fingerprint
-        result = _journal_result(res.record or {}, res.worker)
         if not _claim(self.journal, task.path, fp, self.me):
             s.skipped += 1  # same content done meanwhile (e.g. listed twice)
             return
-        if self.steady is not None:  # learning as it goes on a cluster: pooled here
+        if self.steady is not None:  # learning as it goes on a cluster: pooled here (the record follows)
             self.learn_on_client(res)
-        elif self.store is not None:  # learn: pool here, the one writer of the store
+        result = _journal_result(res.record or {}, res.worker)
+        if self.steady is None and self.store is not None:  # learn: pool here, the one writer of the store
             for key, model, evidence, lens_key in res.evidence:
                 # keyed by content: a frame pooled before a crash, then redone, is not pooled twice
                 p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key)
