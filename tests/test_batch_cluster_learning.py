@@ -151,3 +151,14 @@ def test_a_crash_between_the_store_and_the_journal_does_not_pool_twice(series, t
     assert all("profile" not in r for r in recs)
     # the series goes on: the trusted profile's revision corrects the redone frames
     assert sum(r["source"] == "stored-profile" for r in recs) >= N - 2
+
+
+def test_the_client_pools_for_a_cluster_backend_only(tmp_path):
+    """Local workers pool into the store themselves: a spec asking the client to pool for
+    them is a typed error before anything runs (no journal, no outputs)."""
+    spec = B.JobSpec(settings=Settings(learn=True), outdir=str(tmp_path), client_learns=True)
+    with pytest.raises(B.BatchError, match="cluster backend only"):
+        B.run_batch([], spec, BK.local_backend(1), journal_path=tmp_path / "j.sqlite", job="t", store=object())
+    with pytest.raises(B.BatchError, match="client's profile store"):
+        B.run_batch([], spec, BK.local_backend(1), journal_path=tmp_path / "j.sqlite", job="t")
+    assert list(tmp_path.iterdir()) == []

@@ -808,6 +808,9 @@ def run_batch(
     if (learn or spec.client_learns) and store is None:
         raise BatchError("learn mode needs a profile store" if learn else
                          "learning as it goes on a cluster needs the client's profile store")
+    if spec.client_learns and not hasattr(backend, "hand_out"):
+        raise BatchError("the client pools frames for a cluster backend only (local workers pool into the "
+                         "store itself: JobSpec.store_path)")
     missing = list(missing)
     summary = BatchSummary(job=job, journal=str(journal_path), backend="", mode=spec.settings.mode,
                            total=len(items) + len(missing))
