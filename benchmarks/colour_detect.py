@@ -93,6 +93,10 @@ class RateRow:
     median_de_est: float = math.nan
     #: which frames were reported as cast (names of bases; fields for the luminance row)
     hits: list[str] = field(default_factory=list)
+    #: per frame: the detector's decision statistic (``ColourCastEvidence.score``, -inf
+    #: where it could not judge) and the index of the base it was rendered on
+    scores: list[float] = field(default_factory=list)
+    base_index: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -105,12 +109,59 @@ class DetectionResult:
     rate_at_5: float
     ms_per_frame: float
     settings: dict = field(default_factory=dict)
+    #: :func:`split_calibrated` of this result (two folds)
+    split: list[dict] = field(default_factory=list)
 
 
-def _row(label: str, flags: list[bool], des: list[float], names: list[str]) -> RateRow:
+def _row(label: str, flags: list[bool], des: list[float], names: list[str],
+         scores: list[float] = (), idx: list[int] = ()) -> RateRow:
     n, k = len(flags), int(sum(flags))
     return RateRow(label, n, k, k / n if n else math.nan, float(np.median(des)) if des else math.nan,
-                   sorted({nm for nm, f in zip(names, flags) if f}))
+                   sorted({nm for nm, f in zip(names, flags) if f}), list(scores), list(idx))
+
+
+def _score(ev) -> float:
+    return float(ev.score) if math.isfinite(ev.score) else -math.inf
+
+
+def split_calibrated(result: "DetectionResult", false_rate: float = 0.05) -> list[dict]:
+    """Detection curve with the decision threshold calibrated out of sample.
+
+    The bases are split by index parity. On one half the threshold on the detector's
+    score is set to the lowest value that calls at most ``false_rate`` of that half's clean
+    frames cast; the rates are then counted on the other half (clean, luminance-only and
+    every cast target). Both folds are returned (even→odd, odd→even).
+
+    Parameters
+    ----------
+    result : DetectionResult
+        From :func:`detection_rates` (its rows carry per-frame scores).
+    false_rate : float
+        Allowed share of clean calibration frames called cast.
+
+    Returns
+    -------
+    list of dict
+        Per fold: ``calibrated_on``, ``threshold`` (score; the detector's own rule is 1),
+        ``clean_calibration``, ``clean``, ``luminance_only`` and ``by_target``
+        (``{"dE 5": rate, ...}``), rates on the evaluation half.
+    """
+    def rate(row: RateRow, half: int, thr: float) -> float:
+        s = [sc for sc, b in zip(row.scores, row.base_index) if b % 2 == half]
+        return float(np.mean([sc >= thr for sc in s])) if s else math.nan
+
+    folds = []
+    for cal in (0, 1):
+        cs = np.sort([sc for sc, b in zip(result.clean.scores, result.clean.base_index) if b % 2 == cal])[::-1]
+        k = int(math.floor(false_rate * len(cs)))  # frames allowed above the threshold
+        # just above the (k+1)-th highest score: at most k calibration frames reach it
+        thr = float(np.nextafter(cs[k], math.inf)) if k < len(cs) else -math.inf
+        ev = 1 - cal
+        folds.append({"calibrated_on": "even" if cal == 0 else "odd", "threshold": thr,
+                      "clean_calibration": rate(result.clean, cal, thr), "clean": rate(result.clean, ev, thr),
+                      "luminance_only": rate(result.luminance_only, ev, thr),
+                      "by_target": {row.label: rate(row, ev, thr) for row in result.by_target}})
+    return folds
 
 
 def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
@@ -148,20 +199,23 @@ def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
         return ev
 
     clean = [run(b) for b in bases]
-    clean_row = _row("clean", [e.detected for e in clean], [e.delta_e for e in clean], names)
-    lf, ld, ln = [], [], []
+    clean_row = _row("clean", [e.detected for e in clean], [e.delta_e for e in clean], names,
+                     [_score(e) for e in clean], list(range(len(bases))))
+    lf, ld, ln, ls, li = [], [], [], [], []
     for fname, lfield in luminance_fields:
-        for b, nm in zip(bases, names):
+        for i, (b, nm) in enumerate(zip(bases, names)):
             e = run(b * np.exp(lfield)[..., None])
             lf.append(e.detected)
             ld.append(e.delta_e)
             ln.append(f"{nm} x {fname}")
-    lum_row = _row("luminance only", lf, ld, ln)
-    groups: dict[float, tuple[list[bool], list[float], list[str]]] = {}
+            ls.append(_score(e))
+            li.append(i)
+    lum_row = _row("luminance only", lf, ld, ln, ls, li)
+    groups: dict[float, tuple[list, ...]] = {}
     cache: dict[tuple[tuple[int, int], Cast], np.ndarray] = {}
     for c in casts:
-        g = groups.setdefault(c.target_de, ([], [], []))
-        for b, nm in zip(bases, names):
+        g = groups.setdefault(c.target_de, ([], [], [], [], []))
+        for i, (b, nm) in enumerate(zip(bases, names)):
             key = (b.shape[:2], c)
             if key not in cache:
                 cache[key] = np.exp(c.log_transmission(b.shape[:2]))
@@ -169,9 +223,14 @@ def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
             g[0].append(e.detected)
             g[1].append(e.delta_e)
             g[2].append(f"{nm} x {c.name}")
+            g[3].append(_score(e))
+            g[4].append(i)
         cache.clear()
     rows = [_row(f"dE {t:g}", *groups[t]) for t in sorted(groups)]
     big = [f for t in groups if t >= 5 for f in groups[t][0]]
-    return DetectionResult(len(bases), rows, clean_row, lum_row, float(np.mean(big)) if big else math.nan,
-                           1000 * float(np.median(secs)) if secs else math.nan,
-                           {k: getattr(settings, k) for k in settings.__dataclass_fields__})
+    res = DetectionResult(len(bases), rows, clean_row, lum_row, float(np.mean(big)) if big else math.nan,
+                          1000 * float(np.median(secs)) if secs else math.nan,
+                          {k: getattr(settings, k) for k in settings.__dataclass_fields__})
+    if len(bases) >= 2:
+        res.split = split_calibrated(res)
+    return res

@@ -168,3 +168,42 @@ def test_estimate_json_reports_the_cast_and_does_not_correct_it(tmp_path, capsys
     assert grey == {"detected": False, "reason": "a grey frame has no colour"}
     # the model stays a luminance field: nothing about colour is applied
     assert "colour" not in json.dumps(recs[0]["model"])
+
+
+def test_score_is_the_decision_statistic():
+    c = cast_for(10.0, 135.0, 40.0)
+    for frame in (scene(1) * np.exp(c.log_transmission((H, W))), scene(2), scene(3) * np.exp(4.0 * radial_log(45.0))[..., None]):
+        ev = detect_colour_cast(frame)
+        assert math.isfinite(ev.score)
+        assert ev.detected == (ev.score >= 1.0), ev
+        assert ev.to_dict()["score"] == pytest.approx(ev.score, abs=1e-4)
+
+
+def test_a_mask_that_leaves_nothing_is_a_verdict_not_a_crash():
+    frame = scene(1)
+    ev = detect_colour_cast(frame, usable=np.zeros((H, W), dtype=bool))
+    assert not ev.detected and ev.reason and not math.isfinite(ev.score)
+    assert "score" not in ev.to_dict()
+    json.dumps(ev.to_dict())
+
+
+def test_split_calibration_counts_out_of_sample():
+    from benchmarks.colour_detect import DetectionResult, RateRow, split_calibrated
+
+    # 40 bases: clean scores 0..39 (even bases calibrate fold 0: their scores 0, 2, .., 38)
+    n = 40
+    clean = RateRow("clean", n, 0, 0.0, scores=[float(i) for i in range(n)], base_index=list(range(n)))
+    lum = RateRow("luminance only", n, 0, 0.0, scores=[-math.inf] * n, base_index=list(range(n)))
+    cast = RateRow("dE 5", 2 * n, 0, 0.0, scores=[float(i) + 10 for i in range(n)] + [-1.0] * n,
+                   base_index=list(range(n)) * 2)
+    r = DetectionResult(n, [cast], clean, lum, math.nan, math.nan)
+    f0, f1 = split_calibrated(r)
+    # 20 calibration frames, 5 %: one may be called; the threshold sits just above the 2nd highest (36)
+    assert f0["calibrated_on"] == "even" and 36 < f0["threshold"] < 36.001
+    assert f0["clean_calibration"] == pytest.approx(1 / 20)
+    # evaluation on the odd bases: clean 37, 39 are called (2 of 20); casts 27..49 odd of 40 frames
+    assert f0["clean"] == pytest.approx(2 / 20)
+    assert f0["luminance_only"] == 0.0
+    want = sum(1 for i in range(1, n, 2) if i + 10 > 36.0001) / 40
+    assert f0["by_target"]["dE 5"] == pytest.approx(want)
+    assert f1["calibrated_on"] == "odd" and 37 < f1["threshold"] < 37.001

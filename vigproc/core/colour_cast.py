@@ -128,6 +128,10 @@ class ColourCastEvidence:
         Log-chroma differences used.
     reason : str
         Why no cast is reported, when it is not ("" when detected).
+    score : float
+        The decision statistic, min(weakest quadrant ΔE / ``min_sector_de``, weakest z /
+        ``min_sector_z``): a cast is reported at ≥ 1. NaN when the frame could not be
+        judged. Benchmarks calibrate a threshold on it (``benchmarks.colour_detect``).
     """
 
     detected: bool
@@ -139,6 +143,7 @@ class ColourCastEvidence:
     sector_z: tuple[float, ...] = field(default_factory=tuple)
     n_samples: int = 0
     reason: str = ""
+    score: float = math.nan
 
     @property
     def weakest_de(self) -> float:
@@ -155,6 +160,7 @@ class ColourCastEvidence:
             "shift_log_bg": round(self.shift[1], 5),
             "weakest_sector_delta_e": round(self.weakest_de, 3),
             "sector_delta_e": [round(d, 3) for d in self.sector_de],
+            **({"score": round(self.score, 4)} if math.isfinite(self.score) else {}),
             **({"reason": self.reason} if self.reason else {}),
         }
 
@@ -292,6 +298,8 @@ def detect_colour_cast(img: np.ndarray, *, channel_axis: int | None = -1, lumina
             qs.append(q[m])
     du, dv, quad = (np.concatenate(z) for z in (dus, dvs, qs))
     R = np.concatenate(regs, axis=1).T
+    if du.size < 4 * settings.min_samples:  # e.g. a usable mask that leaves (almost) nothing
+        return _replace(none, n_samples=int(du.size), reason="too few usable pixels in some quadrant")
     if settings.flat_quantile < 1:
         # chroma edges mostly come with luminance edges: keep the smooth parts of objects
         # judged after the frame's radial luminance fall-off is taken out: a vignetting
@@ -334,7 +342,7 @@ def detect_colour_cast(img: np.ndarray, *, channel_axis: int | None = -1, lumina
     delta_e = float(grey_cast_de(shift[0], shift[1]))
     if norm <= 0:
         return ColourCastEvidence(False, 0.0, (0.0, 0.0), 0.0, tuple(map(tuple, est)), (0.0,) * 4, (0.0,) * 4, n,
-                                  "no chroma shift")
+                                  "no chroma shift", 0.0)
     e = shift / norm
     proj = est @ e
     proj_se = np.sqrt((se ** 2) @ (e ** 2))
@@ -344,7 +352,8 @@ def detect_colour_cast(img: np.ndarray, *, channel_axis: int | None = -1, lumina
     zmin = float(sector_z.min())
     detected = weakest >= settings.min_sector_de and zmin >= settings.min_sector_z
     # margin past both thresholds, in units of the threshold: 0.5 at the decision
-    margin = min(weakest / settings.min_sector_de, zmin / settings.min_sector_z) - 1.0
+    score = min(weakest / settings.min_sector_de, zmin / settings.min_sector_z)
+    margin = score - 1.0
     confidence = float(1.0 / (1.0 + math.exp(-4.0 * margin)))
     reason = ""
     if not detected:
@@ -353,7 +362,7 @@ def detect_colour_cast(img: np.ndarray, *, channel_axis: int | None = -1, lumina
     log.debug("colour cast: shift %s, dE %.2f, sectors %s (z %s)", shift, delta_e, sector_de, sector_z)
     return ColourCastEvidence(detected, confidence, (float(shift[0]), float(shift[1])), delta_e,
                               tuple((float(u), float(v)) for u, v in est), tuple(float(d) for d in sector_de),
-                              tuple(float(z) for z in sector_z), n, reason)
+                              tuple(float(z) for z in sector_z), n, reason, float(score))
 
 
 def _replace(ev: ColourCastEvidence, **kw) -> ColourCastEvidence:

@@ -87,4 +87,10 @@ def bench_detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
           f"{_pct(r.clean.rate)}, luminance only {_pct(r.luminance_only.rate)} (target <= 5 %)")
     if r.clean.hits:
         print("clean bases called cast: " + ", ".join(r.clean.hits))
+    for f in r.split:
+        # out of sample: the score threshold set on one half of the bases (<= 5 % clean called cast there)
+        curve = ", ".join(f"{k} {_pct(v)}" for k, v in f["by_target"].items())
+        print(f"threshold from the {f['calibrated_on']} bases (score >= {f['threshold']:.3g}; the detector's "
+              f"own is 1), rates on the others: clean {_pct(f['clean'])}, luminance only "
+              f"{_pct(f['luminance_only'])}; {curve}")
     return 0, asdict(r)
