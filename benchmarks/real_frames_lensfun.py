@@ -10,6 +10,9 @@ lensfun's field at the frame's focal length, f-number and focus distance
 Error: the RMS over the frame of log2(φ̂/φ) about its mean, in EV (``bench clean``'s
 metric, :func:`benchmarks.clean.gain_free_ev`): of the field applied (the identity when
 the gate left the frame alone) and of the estimator's candidate fit before the gate.
+The estimate's lens-family prior is lensfun's population without the lenses measured
+(:func:`without_lenses`), as in ``bench clean`` and the series: the shipped family holds
+their own calibrations.
 
 The truth holds only where the JPEG still carries the lens's fall-off: not where the
 camera corrected it (:mod:`vigproc.io.incamera`: a maker-note flag on, a phone), nor where
@@ -269,19 +272,46 @@ def lensfun_frames(files: Sequence[Path]) -> tuple[list[tuple[Path, Any, Truth, 
     return found, other
 
 
-def run_lensfun(files: Sequence[Path]) -> LensfunSummary:
+def without_lenses(found: Sequence[tuple[Path, Any, Truth, dict, Any]]):
+    """lensfun's lens family (all the shipped family's components) built without the
+    lenses of ``found``: the prior of an estimate that is scored against one of them
+    must not hold that lens's own calibrations."""
+    from vigproc.core.lensfamily import PROFILE_COMPONENTS
+    from vigproc.stores.lensfun import lensfun_family
+
+    names = {tuple(t.lens.split(" / ", 1)) for _p, _k, t, _tg, _ic in found}
+    return lensfun_family(exclude=names, n_components=PROFILE_COMPONENTS)
+
+
+def run_lensfun(files: Sequence[Path], family: Any = "exclude") -> LensfunSummary:
     """Part (a) on one frame each: every file whose lens lensfun calibrated.
+
+    Parameters
+    ----------
+    files : sequence of Path
+    family : "exclude", None or LensFamily
+        The lens family the default estimate's prior comes from, standing in for the
+        shipped one (:func:`vigproc.core.lensfamily.shipped_family_replaced`):
+        "exclude" builds lensfun's without the lenses of these frames
+        (:func:`without_lenses`; the shipped family holds every lensfun lens, the
+        measured ones too); None: the shipped family, as a user's ``correct`` runs.
 
     Returns
     -------
     LensfunSummary
         Medians over the frames whose truth holds.
     """
+    from contextlib import nullcontext
+
+    from vigproc.core.lensfamily import shipped_family_replaced
     from vigproc.pipeline.processor import Processor, Settings
 
     found, _ = lensfun_frames(files)
+    if isinstance(family, str) and family == "exclude":
+        family = without_lenses(found) if found else None
     rows = []
-    with Processor(Settings(mode="correct", profile="estimate"), plausibility=True) as proc:
+    with shipped_family_replaced(family) if family is not None else nullcontext(), \
+            Processor(Settings(mode="correct", profile="estimate"), plausibility=True) as proc:
         for p, k, truth, tags, ic in found:
             try:
                 rows.append(frame_row(p, proc, truth, k, tags, ic))

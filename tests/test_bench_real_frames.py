@@ -191,3 +191,40 @@ def test_a_frame_row_counts_the_pixels_its_correction_pushes_past_white(tmp_path
         row = _row(path, proc, Rules())
     assert row.applied
     assert 0.5 * corner.mean() < row.new_white <= corner.mean() + 0.01
+
+
+def test_part_a_prior_holds_no_calibration_of_the_lens_measured():
+    """The default estimate of part (a) takes its prior from lensfun's family without the
+    measured lens (the shipped family holds its calibrations); inside the block the
+    pipeline's estimate is the one given that family, outside it the shipped one's."""
+    from vigproc.core.estimate import estimate_checked
+    from vigproc.core.family_fit import LensHint
+    from vigproc.core.lensfamily import profile_family, shipped_family_replaced
+    from vigproc.stores.lensfun import lensfun_family, load_lenses
+
+    truth, _ = rfl.lensfun_truth(_key())
+    found = [(None, _key(), truth, {}, None)]
+    fam = rfl.without_lenses(found)
+    everyone = lensfun_family(n_components=fam.n_components)
+    maker, model = truth.lens.split(" / ", 1)
+    (lens,) = [lz for lz in load_lenses() if (lz.maker, lz.model) == (maker, model)]
+    assert fam.lenses == everyone.lenses - 1
+    assert 0 < everyone.coefficients.shape[0] - fam.coefficients.shape[0] <= len(lens.vignetting)
+    assert fam.n_components == profile_family().n_components
+
+    shipped = profile_family()
+    img = coloured_scene(240, 320, seed=5)
+    h, w = img.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w]
+    r2 = ((yy - (h - 1) / 2) ** 2 + (xx - (w - 1) / 2) ** 2) / (((h - 1) / 2) ** 2 + ((w - 1) / 2) ** 2)
+    img = (img * pa_poly(r2, *truth.k)[..., None]).astype(np.float64)
+    hint = LensHint(34.0, 1.8)
+    with shipped_family_replaced(fam):
+        assert profile_family() is fam
+        inside = estimate_checked(img, "default", hint=hint)
+    assert profile_family() is shipped
+    given = estimate_checked(img, "default", hint=hint, family=fam)
+    outside = estimate_checked(img, "default", hint=hint)
+    field = lambda m: (m.candidate or m).log_field((24, 32))  # noqa: E731
+    assert np.allclose(field(inside), field(given))
+    assert not np.allclose(field(inside), field(outside))

@@ -267,6 +267,23 @@ def test_lensfun_match_refuses_out_of_range_lens(frames) -> None:
     assert got.lens is None and "31 mm" in got.reason
 
 
+
+@pytest.mark.parametrize("focal35, crop", [(200.0, 1.0), (256.3, 1.0), (320.0, 1.62), (324.0, 1.62)])
+def test_lensfun_match_picks_a_calibration_that_covers_the_frame(focal35, crop) -> None:
+    """lensfun holds the EF 70-200mm f/2.8L IS USM calibrated on full frame and on APS-C:
+    an APS-H body (crop 1.28, a 1D Mark III) gets the full-frame one (its corner inside the
+    calibrated radius), not the APS-C one whose crop is nearer in ratio but ends before the
+    frame's corner (ρ = 1.26)."""
+    from vigproc.io.lenskey import LensKey
+    from vigproc.stores.lensfun_match import match_lens
+
+    key = LensKey(make="canon", model="canon eos-1d mark iii", lens="canon ef 70-200mm f/2.8l is usm",
+                  focal_mm=200.0, fnumber=5.6, focal_35mm=focal35)
+    got = match_lens(key).lens
+    assert got is not None and got.model == "Canon EF 70-200mm f/2.8L IS USM"
+    assert got.crop_factor == pytest.approx(crop)
+    assert got.crop_factor <= 1.02 * focal35 / 200.0
+
 # ------------------------------------------------------------------ commands
 def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin", "HOME": str(cwd)}

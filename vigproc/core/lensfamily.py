@@ -31,10 +31,11 @@ import json
 import logging
 import math
 from dataclasses import dataclass
+from contextlib import contextmanager
 from functools import lru_cache
 from importlib.resources import files
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -273,14 +274,47 @@ def _load(path: str) -> LensFamily:
         raise ModelError(f"cannot read lens family {path}: {exc}") from None
 
 
+#: The family standing in for the shipped one inside :func:`shipped_family_replaced`, or None.
+_STAND_IN: LensFamily | None = None
+
+
+@contextmanager
+def shipped_family_replaced(family: LensFamily) -> Iterator[LensFamily]:
+    """Within the block, :func:`profile_family` and :func:`default_family` answer ``family``.
+
+    For a benchmark that scores the default estimate as the pipeline runs it (``vigproc
+    bench real-frames``, part a) against a lens lensfun calibrated: the shipped family
+    holds that lens's own calibrations, so the prior would know the answer; ``family``
+    is one built without it (:func:`vigproc.stores.lensfun.lensfun_family` with
+    ``exclude``). Process-wide (threads included), for one block at a time; the
+    pipeline itself never uses it.
+
+    Parameters
+    ----------
+    family : LensFamily
+
+    Returns
+    -------
+    context manager yielding ``family``
+    """
+    global _STAND_IN
+    before, _STAND_IN = _STAND_IN, family
+    try:
+        yield family
+    finally:
+        _STAND_IN = before
+
+
 def profile_family() -> LensFamily:
     """The shipped lens family with all its components (:data:`PROFILE_COMPONENTS`):
     what lens profiles pool in."""
+    if _STAND_IN is not None:
+        return _STAND_IN
     return _load(str(family_path()))
 
 
-@lru_cache(maxsize=1)
 def default_family() -> LensFamily:
     """The shipped lens family truncated to :data:`N_COMPONENTS`: what a grey frame's
     fit and the forensic tests use (every lens of the bundled lensfun database)."""
+    # truncated() keeps its truncations: the same object every call
     return profile_family().truncated(N_COMPONENTS)

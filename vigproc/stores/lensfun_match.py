@@ -19,7 +19,10 @@ Every match is then verified: the lens's focal range must hold the shot's focal 
 and a lens whose EXIF identity has a problem (``LensKey.lens_problem``), that EXIF only
 describes (``18-55mm``) or names ambiguously is never matched.  Where lensfun holds one lens
 calibrated on several sensors, the frame's crop factor (from its 35-mm equivalent focal
-length, else lensfunpy's ``Database.find_cameras`` for the camera) picks the calibration.
+length, else lensfunpy's ``Database.find_cameras`` for the camera) picks the calibration:
+the nearest of those measured on a sensor no smaller than the frame's (whose corner lies
+within the calibrated radius, as lensfun itself requires a lens calibrated for the camera's
+crop or a larger one), else the nearest.
 
 lensfunpy's own ``Database.find_lenses`` scores names too loosely to be trusted alone: on a
 Canon 350D, with ``loose_search``, its best for ``18-55mm`` is ``Super-Takumar 55mm f/1.8``
@@ -48,6 +51,9 @@ logger = logging.getLogger(__name__)
 SOFT_WORDS = frozenset({"af", "lens", "hsm", "usm", "ex", "digital", "zoom", "asph", "aspherical", "if", "mc"})
 # focal lengths may stray this far outside a lens's nominal range (rounding, Nikon's 18.3-71.3 mm)
 _FOCAL_SLACK = 0.06
+#: A calibration covers a frame when its crop factor is at most the frame's times this
+#: (the EXIF's 35-mm focal lengths are rounded: 1.62 against a 1.6 body still covers it).
+_COVER_SLACK = 1.02
 
 _APERTURE = re.compile(r"(?:\bf\s*/?\s*|\b1:)(\d+(?:\.\d+)?(?:\s*-\s*\d+(?:\.\d+)?)?)")
 _FOCAL = re.compile(r"(\d+(?:\.\d+)?(?:\s*-\s*\d+(?:\.\d+)?)?)\s*mm\b")
@@ -241,7 +247,10 @@ def match_lens(lens_key, *, db_paths: Iterable[str | Path] | None = None) -> Len
         if crop is None:  # no sensor size known: the calibration with the most data
             chosen = max(lenses, key=lambda lz: (len(lz.vignetting), -lz.crop_factor))
         else:
-            chosen = min(lenses, key=lambda lz: (abs(math.log(lz.crop_factor / crop)), lz.crop_factor))
+            # a calibration on a smaller sensor than the frame's is extrapolated at its corners
+            # (an APS-C calibration on an APS-H body: ρ = 1.26); one that covers it is not
+            covering = [lz for lz in lenses if lz.crop_factor <= crop * _COVER_SLACK] or lenses
+            chosen = min(covering, key=lambda lz: (abs(math.log(lz.crop_factor / crop)), lz.crop_factor))
     logger.debug("lensfun match (%s): %r -> %s / %s (crop %g)", how, lens_key.lens, chosen.maker, chosen.model,
                  chosen.crop_factor)
     return LensfunMatch(chosen, how)
