@@ -407,10 +407,30 @@ def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), 
     return cf
 
 
+def _to_cell_centre(plane: np.ndarray, r: int, c: int) -> np.ndarray:
+    """Phase (r, c) of a 2×2 cell, sampled at sensor pixel (2i + r, 2j + c), interpolated
+    (bilinear) at the cell centre (2i + ½, 2j + ½): a quarter plane pixel towards the
+    neighbour on the centre's side, the edge row or column held."""
+    def shift(a: np.ndarray, axis: int, towards_next: bool) -> np.ndarray:
+        if a.shape[axis] < 2:
+            return a
+        n = a.shape[axis]
+        idx = np.minimum(np.arange(n) + 1, n - 1) if towards_next else np.maximum(np.arange(n) - 1, 0)
+        return 0.75 * a + 0.25 * np.take(a, idx, axis=axis)
+
+    return shift(shift(plane, 0, r == 0), 1, c == 0)
+
+
 def cfa_rgb(raw: np.ndarray, pattern: np.ndarray, colours: Sequence[str], black: Sequence[float] | float = 0.0,
             white: float = 1.0) -> np.ndarray:
     """A Bayer mosaic's colour planes before demosaicing, one pixel per 2×2 cell:
     (H/2)×(W/2)×3 linear R, G (the mean of the two green phases), B.
+
+    Each phase is resampled to the cell's centre (bilinear: a quarter of a plane pixel
+    in each axis, edges held): a phase's photosites lie half a sensor pixel off it, and a
+    channel ratio is a small difference of strong fields, so a quarter-pixel offset
+    between the R and B planes moves a tint's fitted centre by about a pixel
+    (k_R/(k_R − k_G) quarter pixels for cos^k fall-offs).
 
     Parameters
     ----------
@@ -452,7 +472,7 @@ def cfa_rgb(raw: np.ndarray, pattern: np.ndarray, colours: Sequence[str], black:
     for r in range(2):
         for c in range(2):
             idx = int(pat[r, c])
-            plane = (cells[:, r, :, c] - bl[idx]) / max(float(white) - bl[idx], 1e-12)
+            plane = _to_cell_centre((cells[:, r, :, c] - bl[idx]) / max(float(white) - bl[idx], 1e-12), r, c)
             k = "RGB".index(names[idx])
             out[..., k] += plane / (2.0 if k == 1 else 1.0)
     return out
@@ -519,6 +539,43 @@ def planar_gradient(lum: np.ndarray, center: tuple[float, float], block: int | N
     lm, X, Y, k, size = _log_blocks(lum, block)
     fit = _odd_part(lm, X, Y, k, size, center)
     return np.zeros(2) if fit is None else fit[0]
+
+
+def white_balance(img: np.ndarray, cf: ColourField, block: int | None = None) -> np.ndarray:
+    """The per-channel levels of a flat frame relative to green, beside its colour field:
+    (3,) factors b with b_G = 1 such that img_c / b_c = φ·ρ_c times one common level.
+
+    A wall's colour (and the camera's white balance, or none on a RAW's planes) scales
+    each channel by a constant; ρ_c has no constant term (it is 1 where the field's
+    polynomial is 0). The luminance the colour field splits (Σ w_c ρ_c = 1) is that of
+    the balanced frame: the luminance of an unbalanced one weighs the channels' fall-offs
+    by the wall's colour too (a wall of R, G, B levels (0.4, 0.8, 0.56) through a phone
+    module's tint: 0.009 EV off in every channel).
+
+    Parameters
+    ----------
+    img : ndarray, H×W×3 linear (channels last)
+    cf : ColourField
+        The frame's colour field (:func:`fit_colour_field`).
+    block : int, optional
+        Block size (default about 64 blocks on the long side).
+
+    Returns
+    -------
+    ndarray (3,)
+    """
+    a = np.asarray(img)
+    h, w = a.shape[:2]
+    k = block or max(1, max(h, w) // 64)
+    hb, wb = h // k, w // k
+    m = a[: hb * k, : wb * k, :3].astype(np.float64).reshape(hb, k, wb, k, 3).mean(axis=(1, 3))
+    ok = np.all(m > 0, axis=2)
+    xs = (np.arange(wb) * k + (k - 1) / 2.0) - (w - 1) / 2.0
+    ys = (np.arange(hb) * k + (k - 1) / 2.0) - (h - 1) / 2.0
+    X, Y = np.meshgrid(xs, ys)
+    lr = cf.rescale(w, h).log_ratios_at(X[ok], Y[ok])
+    off = np.median(np.log(m[ok]) - lr, axis=0)
+    return np.exp(off - off[1])
 
 
 #: Largest 1-σ uncertainty of a centre found from the fall-off's symmetry alone

@@ -440,8 +440,6 @@ def _without_gradient(m: VignettingModel, a: np.ndarray, lum: np.ndarray, center
     from vigproc.core.model import frame_coords
 
     g = planar_gradient(lum, center)
-    if not np.any(g != 0):
-        return m
     h, w = lum.shape
     tilt = np.exp(-(g[0] * frame_coords(w)[None, :] + g[1] * frame_coords(h)[:, None]))
     m2 = _named(estimate_robust(lum * tilt, _robust_settings("flat-field", settings), clipped_mask(a)), "flat-field")
@@ -456,7 +454,7 @@ def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings
     fitted again without the wall's planar gradient, removed about the optical centre:
     the tint's centre, or for a colourless lens the point about which the fall-off is
     even (:func:`vigproc.core.colour.symmetric_centre`)."""
-    from vigproc.core.colour import fit_colour_field, symmetric_centre
+    from vigproc.core.colour import fit_colour_field, symmetric_centre, white_balance
 
     ref = m.candidate if m.candidate is not None else m
     cf = fit_colour_field(a, ref.center, max_residual=FLAT_MAX_RESIDUAL)
@@ -472,7 +470,9 @@ def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings
         return m if sym is None else _without_gradient(m, a, lum, sym[0], settings, "the fall-off's centre")
     # the tint's centre is the optical centre, which no brightness gradient of the wall
     # moves: the wall's planar gradient is the luminance's part odd about it, removed
-    # before the luminance is fitted again
+    # before the luminance is fitted again -- the luminance of the white-balanced frame,
+    # the one the colour field splits between the channels
+    lum = luminance(a[..., :3] / white_balance(a, cf).astype(a.dtype))
     m = _without_gradient(m, a, lum, cf.center, settings, "the tint's centre")
     # a fit too weak to apply alone (the candidate) is still learned from: it keeps the tint too
     cand = replace(m.candidate, colour=cf) if m.candidate is not None else None

@@ -138,7 +138,7 @@ def _learn(args: argparse.Namespace, store) -> int:
     with Processor(settings, store=store) as proc:
         for f in _progress(files, "learning"):
             try:
-                img, _ = read_image(f, transfer=args.input_transfer)
+                img, info = read_image(f, transfer=args.input_transfer)
                 lens_key, lens = read_lens(proc.reader, f)
                 if lens_key is None:
                     raise VigprocError(f"cannot learn, lens unknown ({lens['error']})")
@@ -146,7 +146,8 @@ def _learn(args: argparse.Namespace, store) -> int:
                 fid = file_sha256(f)
                 key = store.key_for(lens_key, img.shape[1], img.shape[0])
                 known = store.holds_frame(key, fid)
-                proc.process_image(img, lens_key, where=str(f), frame_id=fid)
+                proc.process_image(img, lens_key, where=str(f), frame_id=fid,
+                                   raw_path=f if info.format == "raw" else None)
                 p = store.get(key)
                 done += not known
                 again += known
