@@ -114,3 +114,20 @@ def test_a_raw_without_a_bayer_mosaic_is_left_to_the_developed_frame(tmp_path: P
 
     with pytest.raises(ImageReadError):
         cfa_flat_field(path, W, H)
+
+
+def test_estimate_command_on_a_raw_flat_frame(tmp_path: Path) -> None:
+    """``vigproc estimate --method flat-field --json`` on a RAW (its half-size path): the
+    planes' model, for the full frame."""
+    import json
+
+    from conftest import run_cli
+
+    from vigproc.core.model import VignettingModel
+
+    path = flat_dng(tmp_path / "-x flat.dng", seed=2, gradient=(0.04, 0.05))
+    r = run_cli("estimate", "--method", "flat-field", "--json", "--", path)
+    assert r.returncode == 0, r.stderr
+    m = VignettingModel.from_dict(json.loads(r.stdout)["results"][0]["model"])
+    assert m.size == (W, H) and m.colour is not None and m.colour.source == "flat-field:cfa"
+    assert per_plane_error_ev(m).max() < 0.01

@@ -48,7 +48,14 @@ def _estimate_file(args: argparse.Namespace, file: str, reader) -> dict:
     img, info = read_encoded(file, transfer=args.input_transfer, raw_half_size=True)
     reader = reader.read_file(Path(file))  # one exiftool read: the lens and the in-camera flags
     key, lens = read_lens(reader, Path(file))
-    if isinstance(img, EncodedImage):
+    cfa = None
+    if info.format == "raw" and args.method == "flat-field":  # a RAW flat frame: per CFA plane
+        from vigproc.pipeline.cfa_flat import cfa_flat_field
+
+        cfa = cfa_flat_field(file, info.width, info.height)
+    if cfa is not None:
+        m = cfa
+    elif isinstance(img, EncodedImage):
         m = estimate_encoded(check_encoded(img), args.method, hint=lens_hint(key, args.method), seed=args.seed)
     else:
         m = estimate(img, args.method, channel_axis=-1 if img.ndim == 3 else None, seed=args.seed,
