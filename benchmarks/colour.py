@@ -347,3 +347,26 @@ def report_flat(rows: Sequence[FlatRow], dng: Sequence[DngRow], n_bases: int, fr
                          f" max {' '.join(f'{x:.1e}' for x in d.spec_max_ev)}; written max {ev(d.written_max_ev)}; "
                          f"colour fit {d.fit_rms_ev:.4f} EV")
     return "\n".join(lines)
+
+
+def lamp_gradient(aside: float, out: float, wall: tuple[float, float] = (1.2, 0.8)) -> tuple[float, float]:
+    """A wall patch of ``wall`` metres (the frame) lit by one point lamp ``aside`` metres to
+    the side of its centre and ``out`` metres in front of it: irradiance cos(incidence)/d².
+    Returns (the planar part's edge-to-edge change, ln; the non-planar part's RMS, EV): how
+    far the protocol's planar ±5 % is from a real set-up."""
+    x, y = np.meshgrid(np.linspace(-wall[0] / 2, wall[0] / 2, 240), np.linspace(-wall[1] / 2, wall[1] / 2, 160))
+    d2 = (x - aside) ** 2 + y * y + out * out
+    le = np.log(out / np.sqrt(d2) / d2).ravel()
+    A = np.stack([np.ones(x.size), x.ravel(), y.ravel()], axis=1)
+    c = np.linalg.lstsq(A, le, rcond=None)[0]
+    r = le - A @ c
+    return float(np.ptp(A[:, 1:] @ c[1:])), float(np.sqrt(np.mean(r * r)) / _LN2)
+
+
+def lamp_table() -> str:
+    """:func:`lamp_gradient` for a few single-lamp set-ups, as a text table."""
+    rows = ["lamp aside, out (m)   planar edge-to-edge (ln)   non-planar RMS (EV)"]
+    for a, o in ((1.5, 2.0), (0.5, 3.0), (3.0, 4.0), (6.0, 8.0)):
+        p, n = lamp_gradient(a, o)
+        rows.append(f"{a:>5.1f} {o:>5.1f}            {p:>8.3f}                  {n:.4f}")
+    return "\n".join(rows)
