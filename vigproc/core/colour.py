@@ -568,7 +568,7 @@ def white_balance(img: np.ndarray, cf: ColourField, block: int | None = None) ->
     h, w = a.shape[:2]
     k = block or max(1, max(h, w) // 64)
     hb, wb = h // k, w // k
-    m = a[: hb * k, : wb * k, :3].astype(np.float64).reshape(hb, k, wb, k, 3).mean(axis=(1, 3))
+    m = a[: hb * k, : wb * k, :3].reshape(hb, k, wb, k, 3).mean(axis=(1, 3), dtype=np.float64)
     ok = np.all(m > 0, axis=2)
     xs = (np.arange(wb) * k + (k - 1) / 2.0) - (w - 1) / 2.0
     ys = (np.arange(hb) * k + (k - 1) / 2.0) - (h - 1) / 2.0

@@ -13,7 +13,7 @@ from vigproc.errors import InvalidImageError, ModelError
 from vigproc.core.family_fit import EVIDENCE_FIT, FamilySettings, LensHint, colour_of
 from vigproc.core.glow import GlowTest
 from vigproc.core.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
-from vigproc.core.pixels import bin_mean, check_image, log_image, luminance, require_size
+from vigproc.core.pixels import LUMA_709, bin_mean, check_image, log_image, luminance, require_size
 from vigproc.core.model import VignettingModel
 from vigproc.core.robust import RobustSettings, estimate_robust
 
@@ -472,7 +472,7 @@ def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings
     # moves: the wall's planar gradient is the luminance's part odd about it, removed
     # before the luminance is fitted again -- the luminance of the white-balanced frame,
     # the one the colour field splits between the channels
-    lum = luminance(a[..., :3] / white_balance(a, cf).astype(a.dtype))
+    lum = np.asarray(a[..., :3]) @ (LUMA_709 / white_balance(a, cf))  # no balanced copy of the frame
     m = _without_gradient(m, a, lum, cf.center, settings, "the tint's centre")
     # a fit too weak to apply alone (the candidate) is still learned from: it keeps the tint too
     cand = replace(m.candidate, colour=cf) if m.candidate is not None else None
