@@ -550,7 +550,7 @@ def white_balance(img: np.ndarray, cf: ColourField, block: int | None = None) ->
     polynomial is 0). The luminance the colour field splits (Σ w_c ρ_c = 1) is that of
     the balanced frame: the luminance of an unbalanced one weighs the channels' fall-offs
     by the wall's colour too (a wall of R, G, B levels (0.4, 0.8, 0.56) through a phone
-    module's tint: 0.009 EV off in every channel).
+    module's tint: 0.006-0.009 EV off in every channel).
 
     Parameters
     ----------
