@@ -73,3 +73,13 @@ def test_a_coloured_wall_does_not_bend_a_tinted_lens():
     d = (est.channel_log_fields() - lf) / math.log(2)
     d -= d.mean(axis=(0, 1))
     assert np.sqrt(np.mean(d * d, axis=(0, 1))).max() < 0.003
+
+
+def test_a_grey_flat_frame_too():
+    """One channel (a monochrome camera, a grey file): the same centre, the same removal."""
+    truth = cos4(center=(-9.0, 5.0))
+    grey = wall(truth, (0.07, 0.04), seed=4)[..., 0]
+    est = estimate(grey, "flat-field", channel_axis=None)
+    d = (est.log_field() - truth) / math.log(2)
+    d -= d.mean()
+    assert float(np.sqrt(np.mean(d * d))) < 0.003

@@ -393,6 +393,8 @@ def estimate_checked(
         m = _named(estimate_robust(lum, _robust_settings(method, settings), keep), method)
         if method == "flat-field" and a.ndim == 3 and a.shape[2] >= 3:
             m = with_flat_colour(m, a, settings)
+        elif method == "flat-field":  # a grey flat frame: no tint, the fall-off's own centre
+            m = _about_symmetric_centre(m, a, lum, settings)
         return m
     if method == "lens-family":
         from vigproc.core.family_fit import estimate_family
@@ -447,6 +449,18 @@ def _without_gradient(m: VignettingModel, a: np.ndarray, lum: np.ndarray, center
     return m2 if not m2.quality.fallback or m.quality.fallback else m
 
 
+def _about_symmetric_centre(m: VignettingModel, a: np.ndarray, lum: np.ndarray,
+                            settings: RobustSettings | None) -> VignettingModel:
+    """``m`` refitted without the wall's gradient, removed about the point where the flat
+    frame's fall-off is even (:func:`vigproc.core.colour.symmetric_centre`); ``m`` itself
+    when the fall-off is too weak to place it."""
+    from vigproc.core.colour import symmetric_centre
+
+    ref = m.candidate if m.candidate is not None else m
+    sym = symmetric_centre(lum, ref.center)
+    return m if sym is None else _without_gradient(m, a, lum, sym[0], settings, "the fall-off's centre")
+
+
 def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings | None = None) -> VignettingModel:
     """The flat-field estimate ``m`` of the H×W×C frame ``a`` with the frame's colour
     field (:func:`vigproc.core.colour.fit_colour_field`, centred on ``m``'s centre, or
@@ -454,7 +468,7 @@ def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings
     fitted again without the wall's planar gradient, removed about the optical centre:
     the tint's centre, or for a colourless lens the point about which the fall-off is
     even (:func:`vigproc.core.colour.symmetric_centre`)."""
-    from vigproc.core.colour import fit_colour_field, symmetric_centre, white_balance
+    from vigproc.core.colour import fit_colour_field, white_balance
 
     ref = m.candidate if m.candidate is not None else m
     cf = fit_colour_field(a, ref.center, max_residual=FLAT_MAX_RESIDUAL)
@@ -466,8 +480,7 @@ def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings
         log.debug("flat field: colour shading %.4f EV RMS is not measurable (sigma %.4f EV): none kept",
                   strong, cf.sigma_ev())
         # no tint to place the optical centre: the fall-off's own symmetry places it
-        sym = symmetric_centre(lum, ref.center)
-        return m if sym is None else _without_gradient(m, a, lum, sym[0], settings, "the fall-off's centre")
+        return _about_symmetric_centre(m, a, lum, settings)
     # the tint's centre is the optical centre, which no brightness gradient of the wall
     # moves: the wall's planar gradient is the luminance's part odd about it, removed
     # before the luminance is fitted again -- the luminance of the white-balanced frame,
