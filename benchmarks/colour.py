@@ -37,6 +37,11 @@ and colour) is then
   correction and uncorrected; and the same with the corner's luminance equalised to
   the centre's (the tint alone).
 
+The same frames also give a **grid field** (:func:`vigproc.core.gridfield.flat_grid`: each
+frame's gradient removed about its optical centre, the log blocks averaged and fitted by a
+33-node bilinear grid per channel), compared and applied the same way: what a flat-field
+profile holding the measured field, not a Kang-Weiss fit of it, would give.
+
 DNG part: vigproc's correction by the GainMap (:class:`vigproc.io.dng_vignette.GainFieldModel`)
 against an independent implementation of the DNG specification's interpolation
 (pixel centres at ((row + ½)/H, (col + ½)/W), bilinear, clamped), per channel; and the
@@ -138,9 +143,10 @@ def flat_frames(lens: ColourLens, n: int, rng: np.random.Generator) -> list[np.n
     return out
 
 
-def learn_profile(frames: Sequence[np.ndarray]) -> VignettingModel:
+def learn_profile(frames: Sequence[np.ndarray]) -> tuple[VignettingModel, list[tuple[float, float]]]:
     """The flat frames' profile model, as ``vigproc profile learn --method flat-field``
-    pools them (a temporary store)."""
+    pools them (a temporary store), and each frame's optical centre as its estimate
+    placed it (its tint's centre, else its fall-off's)."""
     from vigproc.core.estimate import estimate
     from vigproc.stores.profiles import ProfileKey, ProfileStore, aspect_label
 
@@ -149,11 +155,13 @@ def learn_profile(frames: Sequence[np.ndarray]) -> VignettingModel:
     with tempfile.TemporaryDirectory(prefix="vigproc-bench-") as tmp, \
             ProfileStore(Path(tmp) / "profiles.sqlite") as st:
         p = None
+        centres = []
         for i, f in enumerate(frames):
             m = estimate(f, "flat-field")
             fit = m if m.candidate is None else replace(m.candidate, colour=m.colour)
             p = st.learn(key, fit, frame_id=f"shot{i}")
-        return p.model(w, h)
+            centres.append(m.colour.center if m.colour is not None else fit.center)
+        return p.model(w, h), centres
 
 
 def channel_ev(log_ratio: np.ndarray) -> np.ndarray:
@@ -199,6 +207,9 @@ class FlatRow:
     de_corrected: tuple[float, float]
     colour_found: bool
     sigma_ev: float = math.nan
+    grid_ev: list[float] = field(default_factory=list)  # the grid field's error (flat_grid), EV per channel
+    grid_bases_ev: list[float] = field(default_factory=list)
+    de_grid: tuple[float, float] = (math.nan, math.nan)
     extra: dict = field(default_factory=dict)
 
 
@@ -206,24 +217,32 @@ def run_flat(lenses: Sequence[ColourLens], bases: Sequence[np.ndarray], frames: 
              seed: int = 0) -> list[FlatRow]:
     """The flat part of the protocol (module docstring) for each of ``lenses``."""
     from vigproc.core.correct import correct
+    from vigproc.core.gridfield import correct_with_grid, flat_grid
 
     rng = np.random.default_rng(seed)
     rows = []
     for lens in lenses:
         h, w = lens.log_fields.shape[:2]
-        m = learn_profile(flat_frames(lens, frames, rng))
+        shots = flat_frames(lens, frames, rng)
+        m, centres = learn_profile(shots)
+        grid = flat_grid(shots, centres)
+        est_grid = grid.log_fields(w, h)
         est = m.channel_log_fields((h, w))
         lum_only = VignettingModel(m.width, m.height, m.center, m.p, m.alpha)
         est_lum = lum_only.channel_log_fields((h, w))
         truth = lens.log_fields
-        bases_err = []
-        for b in bases:
-            vig = b * np.exp(truth)
-            out = correct(vig, m)
+        bases_err, grid_err = [], []
+
+        def base_ev(out: np.ndarray, b: np.ndarray) -> np.ndarray:
             ok = np.all((b > 1e-3) & (out > 0), axis=2)
             lr = np.log(np.where(ok[..., None], out, 1.0) / np.where(ok[..., None], b, 1.0))
             d = lr[ok] - lr[ok].mean(axis=0)
-            bases_err.append(np.sqrt(np.mean(d * d, axis=0)) / _LN2)
+            return np.sqrt(np.mean(d * d, axis=0)) / _LN2
+
+        for b in bases:
+            vig = b * np.exp(truth)
+            bases_err.append(base_ev(correct(vig, m), b))
+            grid_err.append(base_ev(correct_with_grid(vig, grid), b))
         rows.append(FlatRow(
             name=lens.name, note=lens.note,
             truth_ev=channel_ev(truth).tolist(),
@@ -236,6 +255,9 @@ def run_flat(lenses: Sequence[ColourLens], bases: Sequence[np.ndarray], frames: 
             de_corrected=corner_delta_e(truth - est),
             colour_found=m.colour is not None,
             sigma_ev=m.colour.sigma_ev() if m.colour is not None else math.nan,
+            grid_ev=channel_ev(est_grid - truth).tolist(),
+            grid_bases_ev=(np.median(grid_err, axis=0) if grid_err else np.full(3, math.nan)).tolist(),
+            de_grid=corner_delta_e(truth - est_grid),
         ))
         log.info("%s: field error %s EV", lens.name, rows[-1].field_ev)
     return rows
@@ -304,7 +326,8 @@ def report_flat(rows: Sequence[FlatRow], dng: Sequence[DngRow], n_bases: int, fr
              "EV columns: R G B, RMS over the frame about the channel's mean; dE00: worst corner vs centre "
              "(grey patch), full / luminance equalised",
              f"{'lens':<24}{'tint R,B':>12}{'field error':>22}{'luminance only':>22}{'bases':>22}"
-             f"{'dE uncorr':>12}{'dE lum-only':>12}{'dE corr':>12}  colour"]
+             f"{'dE uncorr':>12}{'dE lum-only':>12}{'dE corr':>12}  colour"
+             f"{'grid error':>22}{'grid bases':>22}{'dE grid':>12}"]
 
     def ev(v):
         return " ".join(f"{x:.4f}" for x in v)
@@ -314,7 +337,8 @@ def report_flat(rows: Sequence[FlatRow], dng: Sequence[DngRow], n_bases: int, fr
                      f"{ev(r.luminance_only_ev):>22}{ev(r.bases_ev):>22}"
                      f"{r.de_uncorrected[0]:>6.2f}/{r.de_uncorrected[1]:<5.2f}"
                      f"{r.de_luminance_only[0]:>6.2f}/{r.de_luminance_only[1]:<5.2f}"
-                     f"{r.de_corrected[0]:>6.2f}/{r.de_corrected[1]:<5.2f}  {'yes' if r.colour_found else 'no'}")
+                     f"{r.de_corrected[0]:>6.2f}/{r.de_corrected[1]:<5.2f}  {'yes' if r.colour_found else 'no ':<6}"
+                     f"{ev(r.grid_ev):>22}{ev(r.grid_bases_ev):>22}{r.de_grid[0]:>6.2f}/{r.de_grid[1]:<5.2f}")
     if dng:
         lines.append("DNG per-plane GainMap: vigproc's correction vs the spec's interpolation (RMS, max EV per "
                      "channel); the fitted model written as per-plane GainMaps, read back (max EV)")
@@ -323,3 +347,61 @@ def report_flat(rows: Sequence[FlatRow], dng: Sequence[DngRow], n_bases: int, fr
                          f" max {' '.join(f'{x:.1e}' for x in d.spec_max_ev)}; written max {ev(d.written_max_ev)}; "
                          f"colour fit {d.fit_rms_ev:.4f} EV")
     return "\n".join(lines)
+
+
+def lamp_gradient(aside: float, out: float, wall: tuple[float, float] = (1.2, 0.8)) -> tuple[float, float]:
+    """A wall patch of ``wall`` metres (the frame) lit by one point lamp ``aside`` metres to
+    the side of its centre and ``out`` metres in front of it: irradiance cos(incidence)/d².
+    Returns (the planar part's edge-to-edge change, ln; the non-planar part's RMS, EV): how
+    far the protocol's planar ±5 % is from a real set-up."""
+    x, y = np.meshgrid(np.linspace(-wall[0] / 2, wall[0] / 2, 240), np.linspace(-wall[1] / 2, wall[1] / 2, 160))
+    d2 = (x - aside) ** 2 + y * y + out * out
+    le = np.log(out / np.sqrt(d2) / d2).ravel()
+    A = np.stack([np.ones(x.size), x.ravel(), y.ravel()], axis=1)
+    c = np.linalg.lstsq(A, le, rcond=None)[0]
+    r = le - A @ c
+    return float(np.ptp(A[:, 1:] @ c[1:])), float(np.sqrt(np.mean(r * r)) / _LN2)
+
+
+def lamp_table() -> str:
+    """:func:`lamp_gradient` for a few single-lamp set-ups, as a text table."""
+    rows = ["lamp aside, out (m)   planar edge-to-edge (ln)   non-planar RMS (EV)"]
+    for a, o in ((1.5, 2.0), (0.5, 3.0), (3.0, 4.0), (6.0, 8.0)):
+        p, n = lamp_gradient(a, o)
+        rows.append(f"{a:>5.1f} {o:>5.1f}            {p:>8.3f}                  {n:.4f}")
+    return "\n".join(rows)
+
+
+def run_turned(lens: ColourLens | None = None, trials: int = 3, seed: int = 0) -> list[dict]:
+    """The grid field from 3 flat frames (each frame's gradient removed about its optical
+    centre, :func:`vigproc.core.gridfield.flat_grid`) against 2 pairs of frames shot with the
+    camera turned 180° between a pair's frames (the wall's gradient turns with the frame,
+    the lens's field does not: the pair's gradients cancel, nothing is removed), per
+    channel EV error (default lens: the real GainMap). The optical centre is the first
+    frame's flat-field estimate's."""
+    from vigproc.core.estimate import estimate
+    from vigproc.core.gridfield import flat_grid
+
+    lens = lens or (gainmap_fields() or [None])[0]
+    if lens is None:
+        return []
+    lf = lens.log_fields
+    h, w = lf.shape[:2]
+    rng = np.random.default_rng(seed)
+
+    def shot(g: float, a: float) -> np.ndarray:
+        ramp = np.exp(g * (frame_coords(w)[None, :] / w * math.cos(a) + frame_coords(h)[:, None] / h * math.sin(a)))
+        img = np.exp(lf) * ramp[..., None] * np.array(WALL) * 0.5
+        return np.clip(img * (1 + NOISE * rng.standard_normal(img.shape)), 1e-6, None)
+
+    out = []
+    for _ in range(trials):
+        gs = [(GRADIENT * rng.uniform(-1, 1), rng.uniform(0, 2 * math.pi)) for _ in range(3)]
+        three = [shot(g, a) for g, a in gs]
+        turned = [shot(s * g, a) for g, a in gs[:2] for s in (1, -1)]
+        m = estimate(three[0], "flat-field")
+        c = m.colour.center if m.colour is not None else m.center
+        out.append({"removed_3": channel_ev(flat_grid(three, [c] * 3).log_fields(w, h) - lf).tolist(),
+                    "turned_2x2": channel_ev(flat_grid(turned, [c] * 4, remove_gradient=False).log_fields(w, h)
+                                             - lf).tolist()})
+    return out

@@ -58,3 +58,14 @@ def test_the_detect_part_runs_the_detection_report(tmp_path, monkeypatch, capsys
     assert cli.main(["bench", "colour", "--part", "detect", "--json", str(out)]) == 0
     assert len(seen) == 1 and "detect table" in capsys.readouterr().out
     assert json.loads(out.read_text())["detect"] == {"rate_at_5": 0.5}
+
+
+def test_flat_part_measures_the_grid_field_too():
+    """The grid field (a flat-field profile holding the measured field) is scored beside the
+    Kang-Weiss profile: on a physical lens it holds the field as well."""
+    lens = B.physical_fields()[2]
+    rng = np.random.default_rng(1)
+    base = np.clip(0.3 + 0.1 * rng.standard_normal((B.HEIGHT, B.WIDTH, 3)), 0.05, 1.0)
+    (row,) = B.run_flat([lens], [base])
+    assert max(row.grid_ev) < 0.005 and max(row.grid_bases_ev) < 0.005
+    assert row.de_grid[0] < 1.0 < row.de_uncorrected[0]

@@ -407,10 +407,30 @@ def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), 
     return cf
 
 
+def _to_cell_centre(plane: np.ndarray, r: int, c: int) -> np.ndarray:
+    """Phase (r, c) of a 2×2 cell, sampled at sensor pixel (2i + r, 2j + c), interpolated
+    (bilinear) at the cell centre (2i + ½, 2j + ½): a quarter plane pixel towards the
+    neighbour on the centre's side, the edge row or column held."""
+    def shift(a: np.ndarray, axis: int, towards_next: bool) -> np.ndarray:
+        if a.shape[axis] < 2:
+            return a
+        n = a.shape[axis]
+        idx = np.minimum(np.arange(n) + 1, n - 1) if towards_next else np.maximum(np.arange(n) - 1, 0)
+        return 0.75 * a + 0.25 * np.take(a, idx, axis=axis)
+
+    return shift(shift(plane, 0, r == 0), 1, c == 0)
+
+
 def cfa_rgb(raw: np.ndarray, pattern: np.ndarray, colours: Sequence[str], black: Sequence[float] | float = 0.0,
             white: float = 1.0) -> np.ndarray:
     """A Bayer mosaic's colour planes before demosaicing, one pixel per 2×2 cell:
     (H/2)×(W/2)×3 linear R, G (the mean of the two green phases), B.
+
+    Each phase is resampled to the cell's centre (bilinear: a quarter of a plane pixel
+    in each axis, edges held): a phase's photosites lie half a sensor pixel off it, and a
+    channel ratio is a small difference of strong fields, so a quarter-pixel offset
+    between the R and B planes moves a tint's fitted centre by about a pixel
+    (k_R/(k_R − k_G) quarter pixels for cos^k fall-offs).
 
     Parameters
     ----------
@@ -452,10 +472,46 @@ def cfa_rgb(raw: np.ndarray, pattern: np.ndarray, colours: Sequence[str], black:
     for r in range(2):
         for c in range(2):
             idx = int(pat[r, c])
-            plane = (cells[:, r, :, c] - bl[idx]) / max(float(white) - bl[idx], 1e-12)
+            plane = _to_cell_centre((cells[:, r, :, c] - bl[idx]) / max(float(white) - bl[idx], 1e-12), r, c)
             k = "RGB".index(names[idx])
             out[..., k] += plane / (2.0 if k == 1 else 1.0)
     return out
+
+
+def _log_blocks(lum: np.ndarray, block: int | None):
+    """ln of a frame's k×k block means and the blocks' centres (px from the frame
+    centre): (ln means hb×wb, X, Y, k, (h, w))."""
+    a = np.asarray(lum, dtype=np.float64)
+    h, w = a.shape
+    k = block or max(1, max(h, w) // 64)
+    hb, wb = h // k, w // k
+    m = a[: hb * k, : wb * k].reshape(hb, k, wb, k).mean(axis=(1, 3))
+    xs = (np.arange(wb) * k + (k - 1) / 2.0) - (w - 1) / 2.0
+    ys = (np.arange(hb) * k + (k - 1) / 2.0) - (h - 1) / 2.0
+    X, Y = np.meshgrid(xs, ys)
+    lm = np.where(m > 0, np.log(np.maximum(m, 1e-300)), np.nan)
+    return lm, X, Y, k, (h, w)
+
+
+def _odd_part(lm: np.ndarray, X: np.ndarray, Y: np.ndarray, k: int, size: tuple[int, int],
+              center: tuple[float, float]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The planar gradient fit to the log blocks' part odd about ``center`` and its
+    residual: ((g_x, g_y), residual per block pair); None with fewer than 16 pairs."""
+    from scipy.ndimage import map_coordinates
+
+    h, w = size
+    hb, wb = lm.shape
+    # mirror of each block about the centre, as a (fractional) block index
+    mi = ((2 * center[0] - X) + (w - 1) / 2.0 - (k - 1) / 2.0) / k
+    mj = ((2 * center[1] - Y) + (h - 1) / 2.0 - (k - 1) / 2.0) / k
+    ok = (mi >= 0) & (mi <= wb - 1) & (mj >= 0) & (mj <= hb - 1) & np.isfinite(lm)
+    if np.count_nonzero(ok) < 16:
+        return None
+    filled = np.where(np.isfinite(lm), lm, np.nanmean(lm))
+    odd = lm[ok] - map_coordinates(filled, [mj[ok], mi[ok]], order=1)
+    A = np.stack([2 * (X[ok] - center[0]), 2 * (Y[ok] - center[1])], axis=1)
+    g = np.linalg.lstsq(A, odd, rcond=None)[0]
+    return g, odd - A @ g
 
 
 def planar_gradient(lum: np.ndarray, center: tuple[float, float], block: int | None = None) -> np.ndarray:
@@ -465,9 +521,9 @@ def planar_gradient(lum: np.ndarray, center: tuple[float, float], block: int | N
     A lens's fall-off is even about its optical centre (radially symmetric, or an
     ellipse centred there); ln of a wall's light falling off linearly is odd about any
     point. So ln L(c + v) − ln L(c − v) = 2 g·v, fitted by least squares over the block
-    pairs that both lie in the frame. This needs the optical centre from elsewhere: a
-    colour field's centre (:func:`fit_colour_field`), which no brightness gradient
-    moves. Without it a gradient is indistinguishable from an off-centre fall-off.
+    pairs that both lie in the frame. This needs the optical centre: a colour field's
+    centre (:func:`fit_colour_field`), which no brightness gradient moves, or, for a
+    colourless lens, :func:`symmetric_centre`.
 
     Parameters
     ----------
@@ -480,27 +536,122 @@ def planar_gradient(lum: np.ndarray, center: tuple[float, float], block: int | N
     -------
     ndarray (2,)
     """
-    a = np.asarray(lum, dtype=np.float64)
-    h, w = a.shape
+    lm, X, Y, k, size = _log_blocks(lum, block)
+    fit = _odd_part(lm, X, Y, k, size, center)
+    return np.zeros(2) if fit is None else fit[0]
+
+
+def white_balance(img: np.ndarray, cf: ColourField, block: int | None = None) -> np.ndarray:
+    """The per-channel levels of a flat frame relative to green, beside its colour field:
+    (3,) factors b with b_G = 1 such that img_c / b_c = φ·ρ_c times one common level.
+
+    A wall's colour (and the camera's white balance, or none on a RAW's planes) scales
+    each channel by a constant; ρ_c has no constant term (it is 1 where the field's
+    polynomial is 0). The luminance the colour field splits (Σ w_c ρ_c = 1) is that of
+    the balanced frame: the luminance of an unbalanced one weighs the channels' fall-offs
+    by the wall's colour too (a wall of R, G, B levels (0.4, 0.8, 0.56) through a phone
+    module's tint: 0.006-0.009 EV off in every channel).
+
+    Parameters
+    ----------
+    img : ndarray, H×W×3 linear (channels last)
+    cf : ColourField
+        The frame's colour field (:func:`fit_colour_field`).
+    block : int, optional
+        Block size (default about 64 blocks on the long side).
+
+    Returns
+    -------
+    ndarray (3,)
+    """
+    a = np.asarray(img)
+    h, w = a.shape[:2]
     k = block or max(1, max(h, w) // 64)
     hb, wb = h // k, w // k
-    m = a[: hb * k, : wb * k].reshape(hb, k, wb, k).mean(axis=(1, 3))
+    m = a[: hb * k, : wb * k, :3].reshape(hb, k, wb, k, 3).mean(axis=(1, 3), dtype=np.float64)
+    ok = np.all(m > 0, axis=2)
     xs = (np.arange(wb) * k + (k - 1) / 2.0) - (w - 1) / 2.0
     ys = (np.arange(hb) * k + (k - 1) / 2.0) - (h - 1) / 2.0
     X, Y = np.meshgrid(xs, ys)
-    # mirror of each block about the centre, as a (fractional) block index
-    mi = ((2 * center[0] - X) + (w - 1) / 2.0 - (k - 1) / 2.0) / k
-    mj = ((2 * center[1] - Y) + (h - 1) / 2.0 - (k - 1) / 2.0) / k
-    ok = (mi >= 0) & (mi <= wb - 1) & (mj >= 0) & (mj <= hb - 1) & (m > 0)
-    if np.count_nonzero(ok) < 16:
-        return np.zeros(2)
-    from scipy.ndimage import map_coordinates
+    lr = cf.rescale(w, h).log_ratios_at(X[ok], Y[ok])
+    off = np.median(np.log(m[ok]) - lr, axis=0)
+    return np.exp(off - off[1])
 
-    lm = np.log(np.maximum(m, 1e-12))
-    mirrored = map_coordinates(lm, [mj[ok], mi[ok]], order=1)
-    odd = lm[ok] - mirrored
-    A = np.stack([2 * (X[ok] - center[0]), 2 * (Y[ok] - center[1])], axis=1)
-    return np.linalg.lstsq(A, odd, rcond=None)[0]
+
+#: Largest 1-σ uncertainty of a centre found from the fall-off's symmetry alone
+#: (:func:`symmetric_centre`), in half-diagonals: a weaker fall-off does not place it.
+SYMMETRIC_CENTRE_MAX_SIGMA = 0.01
+
+
+def symmetric_centre(lum: np.ndarray, start: tuple[float, float] = (0.0, 0.0), block: int | None = None,
+                     reach: float = 0.15) -> tuple[tuple[float, float], float] | None:
+    """The point about which a flat frame's log luminance is even up to a planar
+    gradient: the optical centre of a colourless lens on an unevenly lit wall.
+
+    A planar gradient of the wall's light shifts a fall-off's apparent centre (ln of the
+    fall-off about c + δ is, to first order, the fall-off about c plus a linear ramp),
+    so a Kang-Weiss fit with a free centre reads the gradient as an off-centre lens. The
+    ramp is odd about every point; the fall-off's higher even terms (r⁴, r⁶, r⁸) are
+    even only about the optical centre. So the log blocks are fitted (least squares,
+    variable projection over the centre c) by a constant, a plane, a quadratic form and
+    r⁴, r⁶, r⁸ about c: the plane takes the gradient and any first-order shift, the
+    higher terms place c. Needs a fall-off with curvature beyond r²: the answer is None
+    when the centre's 1-σ uncertainty exceeds :data:`SYMMETRIC_CENTRE_MAX_SIGMA`
+    half-diagonals.
+
+    Parameters
+    ----------
+    lum : ndarray, H×W linear luminance of a flat frame
+    start : (float, float)
+        Where the search starts (px from the frame centre).
+    block : int, optional
+        Block size (default about 64 blocks on the long side).
+    reach : float
+        The search stays within this many half-diagonals of the frame centre.
+
+    Returns
+    -------
+    ((cx, cy), sigma) or None
+        The centre (px from the frame centre) and its 1-σ uncertainty (px).
+
+    References
+    ----------
+    G. H. Golub, V. Pereyra, "Separable nonlinear least squares: the variable projection
+    method and its applications", Inverse Problems 19(2), 2003.
+    """
+    from scipy.optimize import least_squares
+
+    lm, X, Y, _, size = _log_blocks(lum, block)
+    h, w = size
+    hd = 0.5 * math.hypot(w, h)
+    ok = np.isfinite(lm)
+    if np.count_nonzero(ok) < 32:
+        return None
+    t, x, y = lm[ok], X[ok] / hd, Y[ok] / hd
+
+    def resid(u: np.ndarray) -> np.ndarray:
+        ex, ey = x - u[0], y - u[1]
+        r2 = ex * ex + ey * ey
+        A = np.stack([np.ones_like(x), x, y, ex * ex, ex * ey, ey * ey, r2 * r2, r2 ** 3, r2 ** 4], axis=1)
+        return t - A @ np.linalg.lstsq(A, t, rcond=None)[0]
+
+    # a coarse grid first: the fit is not convex far from the centre
+    grid = np.linspace(-reach, reach, 7)
+    s0 = (float(np.clip(start[0] / hd, -reach, reach)), float(np.clip(start[1] / hd, -reach, reach)))
+    u0 = min([(float(a), float(b)) for a in grid for b in grid] + [s0],
+             key=lambda u: float(np.sum(resid(np.array(u)) ** 2)))
+    sol = least_squares(resid, np.array(u0), bounds=([-reach, -reach], [reach, reach]), x_scale=0.01)
+    J = sol.jac
+    s2 = 2.0 * sol.cost / max(t.size - 11, 1)
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        return None
+    sigma = float(math.sqrt(max(float(np.max(np.diag(cov))), 0.0)))
+    if not math.isfinite(sigma) or sigma > SYMMETRIC_CENTRE_MAX_SIGMA:
+        logger.debug("no symmetric centre: its uncertainty %.3g half-diagonals is too large", sigma)
+        return None
+    return (float(sol.x[0]) * hd, float(sol.x[1]) * hd), sigma * hd
 
 
 def fit_gain_planes(log_gains: np.ndarray, x: np.ndarray, y: np.ndarray, width: int, height: int,

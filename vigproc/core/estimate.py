@@ -13,7 +13,7 @@ from vigproc.errors import InvalidImageError, ModelError
 from vigproc.core.family_fit import EVIDENCE_FIT, FamilySettings, LensHint, colour_of
 from vigproc.core.glow import GlowTest
 from vigproc.core.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
-from vigproc.core.pixels import bin_mean, check_image, log_image, luminance, require_size
+from vigproc.core.pixels import LUMA_709, bin_mean, check_image, log_image, luminance, require_size
 from vigproc.core.model import VignettingModel
 from vigproc.core.robust import RobustSettings, estimate_robust
 
@@ -393,6 +393,8 @@ def estimate_checked(
         m = _named(estimate_robust(lum, _robust_settings(method, settings), keep), method)
         if method == "flat-field" and a.ndim == 3 and a.shape[2] >= 3:
             m = with_flat_colour(m, a, settings)
+        elif method == "flat-field":  # a grey flat frame: no tint, the fall-off's own centre
+            m = _about_symmetric_centre(m, a, lum, settings)
         return m
     if method == "lens-family":
         from vigproc.core.family_fit import estimate_family
@@ -432,37 +434,59 @@ FLAT_MAX_RESIDUAL = 0.03
 COLOUR_MIN_EV = 0.002
 
 
+def _without_gradient(m: VignettingModel, a: np.ndarray, lum: np.ndarray, center: tuple[float, float],
+                      settings: RobustSettings | None, why: str) -> VignettingModel:
+    """``m`` fitted again to the flat frame's luminance with the wall's planar gradient
+    about ``center`` (the optical centre) divided out (:func:`planar_gradient`)."""
+    from vigproc.core.colour import planar_gradient
+    from vigproc.core.model import frame_coords
+
+    g = planar_gradient(lum, center)
+    h, w = lum.shape
+    tilt = np.exp(-(g[0] * frame_coords(w)[None, :] + g[1] * frame_coords(h)[:, None]))
+    m2 = _named(estimate_robust(lum * tilt, _robust_settings("flat-field", settings), clipped_mask(a)), "flat-field")
+    log.debug("flat field: wall gradient (%.2e, %.2e) ln/px removed about %s %s", *g, why, center)
+    return m2 if not m2.quality.fallback or m.quality.fallback else m
+
+
+def _about_symmetric_centre(m: VignettingModel, a: np.ndarray, lum: np.ndarray,
+                            settings: RobustSettings | None) -> VignettingModel:
+    """``m`` refitted without the wall's gradient, removed about the point where the flat
+    frame's fall-off is even (:func:`vigproc.core.colour.symmetric_centre`); ``m`` itself
+    when the fall-off is too weak to place it."""
+    from vigproc.core.colour import symmetric_centre
+
+    ref = m.candidate if m.candidate is not None else m
+    sym = symmetric_centre(lum, ref.center)
+    return m if sym is None else _without_gradient(m, a, lum, sym[0], settings, "the fall-off's centre")
+
+
 def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings | None = None) -> VignettingModel:
     """The flat-field estimate ``m`` of the H×W×C frame ``a`` with the frame's colour
     field (:func:`vigproc.core.colour.fit_colour_field`, centred on ``m``'s centre, or
-    its candidate's when it fell back), when the tint is measurable."""
-    from vigproc.core.colour import fit_colour_field
-
-    from vigproc.core.colour import planar_gradient
+    its candidate's when it fell back), when the tint is measurable, and its luminance
+    fitted again without the wall's planar gradient, removed about the optical centre:
+    the tint's centre, or for a colourless lens the point about which the fall-off is
+    even (:func:`vigproc.core.colour.symmetric_centre`)."""
+    from vigproc.core.colour import fit_colour_field, white_balance
 
     ref = m.candidate if m.candidate is not None else m
     cf = fit_colour_field(a, ref.center, max_residual=FLAT_MAX_RESIDUAL)
     if cf is None:  # a frame with colours of its own (a scene): no tint is read from it
         return m
+    lum = luminance(a)
     strong = float(np.max(cf.rms_ev()))
     if strong < max(COLOUR_MIN_EV, 3.0 * cf.sigma_ev()):
         log.debug("flat field: colour shading %.4f EV RMS is not measurable (sigma %.4f EV): none kept",
                   strong, cf.sigma_ev())
-        return m
+        # no tint to place the optical centre: the fall-off's own symmetry places it
+        return _about_symmetric_centre(m, a, lum, settings)
     # the tint's centre is the optical centre, which no brightness gradient of the wall
     # moves: the wall's planar gradient is the luminance's part odd about it, removed
-    # before the luminance is fitted again
-    lum = luminance(a)
-    g = planar_gradient(lum, cf.center)
-    if np.any(g != 0):
-        h, w = lum.shape
-        from vigproc.core.model import frame_coords
-
-        tilt = np.exp(-(g[0] * frame_coords(w)[None, :] + g[1] * frame_coords(h)[:, None]))
-        m2 = _named(estimate_robust(lum * tilt, _robust_settings("flat-field", settings), clipped_mask(a)), "flat-field")
-        if not m2.quality.fallback or m.quality.fallback:
-            m = m2
-        log.debug("flat field: wall gradient (%.2e, %.2e) ln/px removed about the tint's centre %s", *g, cf.center)
+    # before the luminance is fitted again -- the luminance of the white-balanced frame,
+    # the one the colour field splits between the channels
+    lum = np.asarray(a[..., :3]) @ (LUMA_709 / white_balance(a, cf))  # no balanced copy of the frame
+    m = _without_gradient(m, a, lum, cf.center, settings, "the tint's centre")
     # a fit too weak to apply alone (the candidate) is still learned from: it keeps the tint too
     cand = replace(m.candidate, colour=cf) if m.candidate is not None else None
     return replace(m, colour=cf, candidate=cand)

@@ -35,7 +35,8 @@ def not_applied_reason(model) -> str:
 
 
 def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where: str = "frame",
-                 sources=None, embedded=None, warnings: list[str] | None = None, seed: int | None = None):
+                 sources=None, embedded=None, warnings: list[str] | None = None, seed: int | None = None,
+                 estimated=None):
     """Model to apply and where it came from: ``profile-file``, ``lensfun``,
     ``stored-profile`` (a trusted profile of the lens: no estimation), ``embedded``
     (the DNG's own vignetting opcodes), ``source:NAME`` (a profile-source plugin) or
@@ -48,6 +49,8 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
     after a trusted stored profile, by ``auto``.  ``warnings``, when given, gets what
     the record should say (a profile file of another lens than the frame's EXIF names).
     ``seed``: the random start of an estimator that draws one (``lyu2010-rand``).
+    ``estimated``: the frame's estimate when it was made elsewhere (a RAW flat frame
+    measured on its CFA planes, :mod:`vigproc.pipeline.cfa_flat`), returned as ``estimate``.
 
     ``img`` is the frame as the pipeline's door accepted it
     (:func:`vigproc.core.pixels.check_image`'s result): it is not validated again."""
@@ -109,6 +112,8 @@ def choose_model(img: np.ndarray, lens_key, settings: Settings, store, *, where:
                 continue
             if m is not None:
                 return m, f"source:{name}"
+    if estimated is not None:
+        return estimated, "estimate"
     from vigproc.io.images import EncodedImage
 
     if isinstance(img, EncodedImage):  # from a copy binned straight from the codes

@@ -235,7 +235,7 @@ class Processor:
     # -- in memory --------------------------------------------------------
     def process_image(self, img: np.ndarray, lens_key=None, *, where: str = "image", frame_id: str | None = None,
                       output: OutputFormat | None = None, embedded=None, in_camera=None, consume: bool = False,
-                      captured: float | None = None):
+                      captured: float | None = None, raw_path: str | os.PathLike[str] | None = None):
         """Process an in-memory linear image (H×W or H×W×C, channels last).
 
         ``output``: the format the corrected frame will be written in (integer formats
@@ -251,6 +251,9 @@ class Processor:
 
         ``captured``: the frame's capture time (seconds, :func:`vigproc.pipeline.learning.capture_time`;
         None: it arrived now): where a series of its lens setting begins, while learning.
+
+        ``raw_path``: the RAW the frame was developed from: a ``flat-field`` estimate
+        measures its CFA planes before demosaicing (:mod:`vigproc.pipeline.cfa_flat`).
 
         ``frame_id``: the frame's content id. Learn mode, and correct mode with
         ``settings.learn``: a frame already pooled into its lens's profile is not pooled
@@ -279,6 +282,11 @@ class Processor:
                 else {"lens_id": None, "error": "no lens data given"})
         res = FrameResult(file=where, mode=s.mode, lens=lens)
         out = None
+        estimated = None  # a RAW flat frame's estimate, measured per CFA plane
+        if raw_path is not None and s.method == "flat-field" and s.mode in ("correct", "estimate", "learn"):
+            from vigproc.pipeline.cfa_flat import cfa_flat_field
+
+            estimated = cfa_flat_field(raw_path, checked.shape[1], checked.shape[0])
         if s.mode == "check":
             from vigproc.forensics.check import forensic_check  # noqa: PLC0415 - only check mode needs it
 
@@ -287,7 +295,7 @@ class Processor:
             res.source = "estimate"
             res.model = getattr(verdict, "estimate", None)
         elif s.mode == "learn":
-            res.model, res.source, res.profile = self._learn(checked, lens_key, frame_id)
+            res.model, res.source, res.profile = self._learn(checked, lens_key, frame_id, estimated)
         else:
             warnings: list[str] = []
             steady = self._steady_profiles() if s.learn and s.profile == "auto" else None
@@ -296,7 +304,8 @@ class Processor:
                 self.captured = captured
             m, res.source = choose_model(checked, lens_key, s, steady or (self.store if s.profile == "auto" else None),
                                          where=where, sources=self.sources if s.profile == "auto" else None,
-                                         embedded=embedded, warnings=warnings, seed=self.seed)
+                                         embedded=embedded, warnings=warnings, seed=self.seed,
+                                         estimated=estimated)
             own = m if s.learn and res.source == "estimate" else None  # pooled as it is: not estimated twice
             if own is not None and steady is not None:
                 from vigproc.pipeline.learning import prefer_profile
@@ -352,7 +361,7 @@ class Processor:
         res.seconds = round(time.perf_counter() - t0, 4)
         return out, res
 
-    def _learn(self, img: np.ndarray, lens_key, frame_id: str | None):
+    def _learn(self, img: np.ndarray, lens_key, frame_id: str | None, estimated=None):
         from vigproc.core.estimate import EVIDENCE_METHODS, estimate_checked, estimate_with_evidence
 
         if self.store is None:
@@ -366,18 +375,20 @@ class Processor:
         # store (no database to ask) keys by the current rule
         key_for = getattr(self.store, "key_for", None)
         key = key_for(lens_key, w, h) if key_for is not None else ProfileKey.from_lens(lens_key, w, h)
-        fit, evidence = self._pool_fit(img, checked=True)
+        fit, evidence = self._pool_fit(img, checked=True, estimated=estimated)
         p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key)
         return fit, "estimate", str(p.key)
 
-    def _pool_fit(self, img, *, checked: bool):
+    def _pool_fit(self, img, *, checked: bool, estimated=None):
         """What learn mode pools of a linear frame: its estimate (the candidate of one too
         weak to apply alone: it still carries evidence for the lens) and, for the methods
         that give it, the frame's evidence (None otherwise)."""
         from vigproc.core.estimate import EVIDENCE_METHODS, estimate, estimate_checked, estimate_with_evidence
 
         evidence = None
-        if self.settings.method in EVIDENCE_METHODS:
+        if estimated is not None:  # made elsewhere (a RAW flat frame's CFA planes)
+            m = estimated
+        elif self.settings.method in EVIDENCE_METHODS:
             # with the frame's data, so the store can pool the lens's profile from all its frames
             m, evidence = estimate_with_evidence(img, -1 if img.ndim == 3 else None, method=self.settings.method,
                                                  checked=checked)
@@ -633,7 +644,8 @@ class Processor:
         where = str(frame.path)
         out, res = self.process_image(frame.img, frame.lens_key, where=where, frame_id=frame.frame_id,
                                       output=output, embedded=frame.embedded, in_camera=frame.in_camera,
-                                      consume=consume, captured=frame.captured)
+                                      consume=consume, captured=frame.captured,
+                                      raw_path=frame.path if frame.info.format == "raw" else None)
         res.lens = frame.lens
         if s.mode == "estimate" and self.judge_estimates:  # what correct would do with this field
             from vigproc.pipeline.guard import guard
