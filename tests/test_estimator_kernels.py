@@ -139,3 +139,62 @@ def test_the_fits_the_choice_weighs_state_their_own_field_rms():
         fits.append(m.candidate or m)
     for m in fits:
         assert m.quality.field_ev_rms == m.field_ev_rms() > 0.5
+
+
+def _geometry_fit_reference(index, X, Y, fam, c, pm, pinv, settings, elliptical, iterations, tolerance=1e-3):
+    """The Gauss-Newton loop in Python over _geometry_pairs and _solve (what the compiled
+    loop replaced), step for step."""
+    from vigproc.core.family_fit import MAX_ELLIPTICITY, _solve
+
+    K = fam.n_components
+    E = 4 if elliptical else 2
+    geo = np.zeros(E)
+    coef = np.asarray(c, dtype=np.float64).copy()
+    d = a = sol = pm_it = None
+    steps = 0
+    xs, ys = np.ascontiguousarray(np.ravel(X)), np.ascontiguousarray(np.ravel(Y))
+    for _ in range(iterations):
+        d, a = _geometry_pairs(index, xs, ys, fam, coef, geo)
+        x0 = np.concatenate([coef, np.zeros(E)])
+        pm_it = pm.copy()
+        pm_it[K:] = -geo
+        sol = _solve(d, a, index.weight, x0, pm_it, pinv, settings, 4)
+        if not np.all(np.isfinite(sol)):
+            break
+        steps += 1
+        coef = sol[:K]
+        step = sol[K:].copy()
+        if elliptical:
+            e = geo[2:] + step[2:]
+            size = float(np.hypot(*e))
+            if size > MAX_ELLIPTICITY:
+                step[2:] = e * (MAX_ELLIPTICITY / size) - geo[2:]
+        geo = geo + step
+        if float(np.max(np.abs(sol[K:]))) < tolerance:
+            break
+    return coef, geo, d, a, sol, pm_it, steps
+
+
+@pytest.mark.parametrize("elliptical, iterations", [(False, 12), (True, 30), (True, 3)])
+def test_geometry_fit_in_one_compiled_loop_is_the_python_loop(elliptical, iterations):
+    """The compiled Gauss-Newton loop (the centre test's circular fit, the off-centre fit's
+    elliptical one, and one stopped by its step limit) takes the Python loop's steps: the
+    same number, and every output equal to 1e-12 (relative; the two loops differ only in
+    which BLAS call forms two small matrix-vector products)."""
+    from vigproc.core.family_fit import _geometry_fit, _prior_with_geometry, LensHint
+
+    frame = _table1_colour_frame()
+    s = OffCentreRule().settings
+    lum = luminance(frame)
+    c = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    L, valid, xs, ys, C, _ = with_colour(luminance_copy(lum, s, None), frame, s)
+    index = settings_index(L, valid, C, s)
+    fam = profile_family().truncated(len(c))
+    radius = half_diagonal(W, H)
+    pm, pinv = _prior_with_geometry(fam, LensHint(), 4 if elliptical else 2, 0.5)
+    args = (index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv, s, elliptical, iterations)
+    got = _geometry_fit(*args)
+    want = _geometry_fit_reference(*args)
+    assert got[6] == want[6] >= min(iterations, 3)
+    for g, w in zip(got[:6], want[:6]):
+        np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12 * float(np.max(np.abs(w))))

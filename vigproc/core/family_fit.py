@@ -72,6 +72,7 @@ import numpy as np
 from vigproc.core._kernels.geometry import geometry_pairs
 from vigproc.core._kernels.irls import irls_fit
 from vigproc.core._kernels.blocks import block_normal, linear_refits
+from vigproc.core._kernels.gauss_newton import geometry_gauss_newton
 from vigproc.core._kernels.pairs import list_pairs
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import N_COMPONENTS, LensFamily, default_family, profile_family
@@ -840,40 +841,32 @@ def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings
                   elliptical: bool, iterations: int, tolerance: float = 1e-3):
     """Gauss-Newton on the fall-off's centre u (and, ``elliptical``, its shape (e1, e2)),
     four IRLS steps of the family coefficients inside each (:func:`_geometry_columns`;
-    a step is shortened so that |e| stays within :data:`MAX_ELLIPTICITY`).
+    a step is shortened so that |e| stays within :data:`MAX_ELLIPTICITY`): one compiled
+    loop (:mod:`vigproc.core._kernels.gauss_newton`) over :func:`_geometry_pairs` and
+    :func:`_solve`'s steps.
 
     Returns the coefficients, the geometry (u, or u and e), the last step's pairs,
     solution and prior mean (for the jackknife), and the number of steps taken.
     """
-    K = fam.n_components
     E = 4 if elliptical else 2
     geo = np.zeros(E)
     coef = np.asarray(c, dtype=np.float64).copy()
-    d = a = sol = pm_it = None
-    steps = 0
     xs, ys = np.ascontiguousarray(np.ravel(X), dtype=np.float64), np.ascontiguousarray(np.ravel(Y), dtype=np.float64)
-    for _ in range(iterations):
+    if iterations <= 0:
+        return coef, geo, None, None, None, None, 0
+    if index.first.size < MIN_VALID_BINS:  # too few pairs: no step
         d, a = _geometry_pairs(index, xs, ys, fam, coef, geo)
-        if d.size < MIN_VALID_BINS:
-            break
-        x0 = np.concatenate([coef, np.zeros(E)])
-        pm_it = pm.copy()
-        pm_it[K:] = -geo  # the prior is on the geometry, not on the step
-        sol = _solve(d, a, index.weight, x0, pm_it, pinv, settings, 4)
-        if not np.all(np.isfinite(sol)):
-            break
-        steps += 1
-        coef = sol[:K]
-        step = sol[K:].copy()
-        if elliptical:
-            e = geo[2:] + step[2:]
-            size = float(np.hypot(*e))
-            if size > MAX_ELLIPTICITY:  # along the step, to the largest shape allowed
-                step[2:] = e * (MAX_ELLIPTICITY / size) - geo[2:]
-        geo = geo + step
-        if float(np.max(np.abs(sol[K:]))) < tolerance:
-            break
-    return coef, geo, d, a, sol, pm_it, steps
+        return coef, geo, d, a, None, None, 0
+    grads = _profile_slopes(fam)
+    f64 = np.float64
+    coef, geo, d, at, sol, pm_it, steps = geometry_gauss_newton(
+        xs, ys, geo, np.ascontiguousarray(fam.radii, dtype=f64), np.ascontiguousarray(fam.mean, dtype=f64),
+        np.ascontiguousarray(fam.components, dtype=f64), np.ascontiguousarray(grads[0], dtype=f64),
+        np.ascontiguousarray(grads[1], dtype=f64), index.first, index.second, index.inv_step, index.dlog,
+        np.ascontiguousarray(index.weight, dtype=f64), coef, np.ascontiguousarray(pm, dtype=f64),
+        np.ascontiguousarray(pinv, dtype=f64), 1.0 / (settings.sigma * settings.sigma * settings.kappa),
+        1.0 / settings.sigma, 4, float(settings.tolerance), int(iterations), float(tolerance), MAX_ELLIPTICITY)
+    return coef, geo, d, at.T, sol, pm_it, int(steps)
 
 
 #: Long side of :func:`fit_centre`'s working copy.

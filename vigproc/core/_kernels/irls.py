@@ -69,10 +69,16 @@ def irls_fit(at, d, weight, c0, pinv, prior, scale, inv_s, iterations, tolerance
     it stops when none of the first ``n_watch`` coefficients moves by ``tolerance``.
     Each step moves ``relaxation`` times as far as the solve says. Returns c (K,)."""
     K, n = at.shape
+    return irls_into(at, d, weight, c0, pinv, prior, scale, inv_s, iterations, tolerance, n_watch, relaxation,
+                     np.empty((K, K)), np.empty(K), np.empty((2, n)))
+
+
+@njit(cache=True, nogil=True)
+def irls_into(at, d, weight, c0, pinv, prior, scale, inv_s, iterations, tolerance, n_watch, relaxation, H, g,
+              scratch):
+    """:func:`irls_fit` with the caller's scratch: ``H`` (K×K), ``g`` (K) and ``scratch``
+    (2×n), which a loop of fits over the same pairs allocates once. Returns c (K,)."""
     c = c0.copy()
-    H = np.empty((K, K))
-    g = np.empty(K)
-    scratch = np.empty((2, n))
     for _ in range(iterations):
         weighted_normal(at, d, weight, c, inv_s, H, g, scratch)
         A = H * scale + pinv
