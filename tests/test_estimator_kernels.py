@@ -198,3 +198,21 @@ def test_geometry_fit_in_one_compiled_loop_is_the_python_loop(elliptical, iterat
     assert got[6] == want[6] >= min(iterations, 3)
     for g, w in zip(got[:6], want[:6]):
         np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12 * float(np.max(np.abs(w))))
+
+
+def test_pair_losses_read_the_pairs_listed_for_the_fit_they_judge():
+    """The comparison's losses from the pairs listed for the luminance's fit (jackknife
+    labels and all) are the losses of the pairs it lists for itself, to the bit."""
+    from vigproc.core.family_fit import pair_losses
+
+    frame = _table1_colour_frame()
+    lum = luminance(frame)
+    s = OffCentreRule().settings
+    work = luminance_copy(lum, s, None)
+    index = settings_index(work.L, work.valid, None, s)
+    grey = fit_family(lum, s, uncertainty=False, copy=work, index=index).model
+    alone = fit_family(lum, s, uncertainty=False, copy=work).model
+    assert (grey.p, grey.alpha) == (alone.p, alone.alpha)
+    c = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    models = [grey.candidate or grey, off_centre_fit(lum, c, s, colour=frame).field]
+    assert pair_losses(lum, models, s, None, work, index) == pair_losses(lum, models, s, None, work)

@@ -1036,22 +1036,26 @@ def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
 
 
 def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: FamilySettings = FamilySettings(),
-                mask: np.ndarray | None = None, copy: WorkingCopy | None = None) -> list[float]:
+                mask: np.ndarray | None = None, copy: WorkingCopy | None = None,
+                index: PairIndex | None = None) -> list[float]:
     """Mean Cauchy loss log(1 + (e/σ)²) per pair of the frame's log differences once each
     model's field is divided out: how well a field explains the frame, the same measure
     for any model (the default estimator's choice between fits). One working copy of
     the luminance: no pair weighs more by its colour, so a fit that weighs pairs by
     colour has no edge over one that does not. ``copy``: that copy
-    (:func:`luminance_copy` at ``settings.work_size``), when the caller has it."""
+    (:func:`luminance_copy` at ``settings.work_size``), when the caller has it; ``index``:
+    its pairs (:func:`settings_index` of ``copy`` with ``settings``, no colour), listed
+    once for the fit that is compared and for the comparison."""
     L, valid, xs, ys, _, _ = _working_copy(lum, settings, mask) if copy is None else copy
     X = np.ascontiguousarray(np.broadcast_to(xs[None, :], L.shape))
     Y = np.ascontiguousarray(np.broadcast_to(ys[:, None], L.shape))
-    steps = _pair_steps(settings, L.shape)
-    none, one_block = np.zeros(L.shape + (1,)), np.zeros(L.shape, dtype=np.int64)
+    if index is None:  # the pairs' order and data do not depend on the blocks' labels
+        index = pair_index(L, valid, _pair_steps(settings, L.shape), np.zeros(L.shape, dtype=np.int64), None,
+                           settings.chroma_tau)
+    none = np.zeros(L.shape + (1,))
     out = []
     for model in models:
-        F = model.log_field_at(X, Y)
-        d, _, _, _ = family_pairs(L, valid, F, none, steps, one_block, None, settings.chroma_tau)
+        d, _ = pairs_at(index, model.log_field_at(X, Y), none)
         out.append(mean_cauchy_loss(d, settings.sigma))
     return out
 
@@ -1199,7 +1203,8 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
                mask: np.ndarray | None = None, family: LensFamily | None = None,
                hint: LensHint | None = None,
                colour: np.ndarray | None = None, copy: WorkingCopy | None = None,
-               uncertainty: bool = True, ev_checks: tuple[float, ...] = ()) -> FamilyFit:
+               uncertainty: bool = True, ev_checks: tuple[float, ...] = (),
+               index: PairIndex | None = None) -> FamilyFit:
     """Estimate a centred lens fall-off from an H×W linear luminance image.
 
     Parameters
@@ -1231,6 +1236,9 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
         linearised jackknife (:func:`linear_jackknife`) unless the SNR or one of these
         comparisons is within :data:`JACKKNIFE_CHECK` of its threshold, where the
         jackknife itself decides.
+    index : PairIndex, optional
+        The pairs of ``copy`` with ``settings`` (:func:`settings_index`), when the caller
+        lists them once for this fit and another use (:func:`pair_losses`).
 
     Returns
     -------
@@ -1247,7 +1255,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
         return FamilyFit(VignettingModel.identity(w, h, method=METHOD, quality=q), None)
     radius = half_diagonal(w, h)
     M, B = fam.profiles(bin_rho(xs, ys, radius))
-    index = settings_index(L, valid, C, settings)
+    index = settings_index(L, valid, C, settings) if index is None else index
     d, a = pairs_at(index, M, B)
     labels, wt = index.labels, index.weight
     # components nest: the first k columns of a are the k-component family's
