@@ -529,6 +529,13 @@ def _solve(d, a, wt, c0, pmean, pinv, s: FamilySettings, iterations: int, conver
                 converged_on=converged_on, relaxation=relaxation)
 
 
+#: Over-relaxation of a fit without chroma covariates made only to be compared with another
+#: (:func:`fit_family` without ``uncertainty``: the default estimator's luminance fit, whose
+#: field only its pair loss reads): plain IRLS took 34-100 steps on the off-centre frames of
+#: ``vigproc bench speed --api`` (Cauchy scale 0.01, tolerance 1e-4), 21-66 at ω = 1.6; the
+#: coefficients moved by at most 6e-4 and the loss compared by at most 9e-7 (a script; the
+#: closest choice was 0.016 from its margin).
+COMPARISON_RELAXATION = 1.6
 #: Over-relaxation of the colour fit with chroma covariates (:func:`irls`): its five
 #: coefficients took 19 plain steps on the clean protocol's frames (a script), 13.5 at
 #: ω = 1.6, and ended nearer the converged fit (median largest coefficient difference
@@ -537,17 +544,17 @@ COVARIATE_RELAXATION = 1.6
 
 
 def _fit_with_chroma(d, a, index: PairIndex, wt, pmean, pinv, s: FamilySettings,
-                     iterations: int) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int, relaxation: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The field's coefficients (K = a's columns) fitted with the pairs' chroma changes as
     covariates (module doc, step 3; ``s.chroma_covariate`` the s.d. of their centred prior),
     and the pairs' data with the covariates' part taken out: a jackknife refits the field
     on it with the covariates held (a third of the cost of refitting them too; σ is
     calibrated on fits made so). Without covariates (``chroma_covariate`` 0, a grey frame,
-    or one whose channels are proportional and so change no chroma): the plain fit and
-    ``d`` itself."""
+    or one whose channels are proportional and so change no chroma): the plain fit (over-relaxed
+    by ``relaxation``, :func:`irls`) and ``d`` itself."""
     K = a.shape[1]
     if s.chroma_covariate <= 0 or not index.chroma.size or float(np.max(np.abs(index.chroma))) <= 1e-9:
-        return _solve(d, a, wt, pmean, pmean, pinv, s, iterations), d
+        return _solve(d, a, wt, pmean, pmean, pinv, s, iterations, relaxation=relaxation), d
     pm = np.concatenate([pmean, np.zeros(2)])
     prec = np.block([[pinv, np.zeros((K, 2))], [np.zeros((2, K)), np.eye(2) / s.chroma_covariate**2]])
     # rows stacked, then seen as columns: irls reads the rows without a copy
@@ -1230,7 +1237,8 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
         ``colour`` are then not read.
     uncertainty : bool
         False: no jackknife (σ NaN) and no fall-back, for a fit that is only compared
-        with another (the default estimator's choice between fits reads its field alone).
+        with another (the default estimator's choice between fits reads its field alone);
+        its IRLS is over-relaxed (:data:`COMPARISON_RELAXATION`).
     ev_checks : tuple of float
         Levels (EV) a caller compares the field's RMS + 2σ with: σ comes from the
         linearised jackknife (:func:`linear_jackknife`) unless the SNR or one of these
@@ -1269,7 +1277,8 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
     pinv = np.linalg.inv(pcov)
     n = d.size
-    c, d = _fit_with_chroma(d, a, index, wt, pmean, pinv, settings, settings.iterations)
+    c, d = _fit_with_chroma(d, a, index, wt, pmean, pinv, settings, settings.iterations,
+                            1.0 if uncertainty else COMPARISON_RELAXATION)
     grid = frame_rho_grid(w, h)
     # a fit that does not weigh its pairs by colour is calibrated on its own
     scale = settings.sigma_scale if weighted else settings.grey_sigma_scale
