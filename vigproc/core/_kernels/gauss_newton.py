@@ -4,10 +4,10 @@
 Each step is :func:`vigproc.core._kernels.geometry.fill_geometry_pairs` (the pairs' data and
 regressors at the current centre, shape and coefficients) and four IRLS steps
 (:func:`vigproc.core._kernels.irls.irls_into`), in the order and with the arithmetic of the
-Python loop it replaces. What it saves is the loop's own cost: the pairs' data, regressors
-and IRLS scratch (about 2 MB a step for a 96-px working copy) were new arrays at every step,
-whose fresh pages the kernel zeroed (a tenth of the off-centre path's CPU time was system
-time), and a dozen small NumPy calls a step.
+Python loop it replaces (the same bits, ``tests/test_estimator_kernels.py``). What it saves
+is the loop's own cost: the pairs' data, regressors and IRLS scratch (about 2 MB a step for
+a 96-px working copy) made once a fit rather than at every step, and a dozen small NumPy
+calls a step (about 5 % of the off-centre path's user time, docs/benchmarks/speed.md).
 """
 
 from __future__ import annotations
