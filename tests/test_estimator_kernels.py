@@ -216,3 +216,24 @@ def test_pair_losses_read_the_pairs_listed_for_the_fit_they_judge():
     c = fit_family(lum, FamilySettings(), colour=frame).coefficients
     models = [grey.candidate or grey, off_centre_fit(lum, c, s, colour=frame).field]
     assert pair_losses(lum, models, s, None, work, index) == pair_losses(lum, models, s, None, work)
+
+
+@pytest.mark.parametrize("K", [1, 2, 5, 7])
+def test_irls_normal_equations_two_sums_a_pass_are_their_definition(K):
+    """The IRLS step's sums (two of H's entries a pass over the pairs, and the odd one left
+    over) are Σ w·a·aᵀ and Σ w·a·d with w = weight / (1 + ((d − a·c)/σ)²), symmetric."""
+    from vigproc.core._kernels.irls import weighted_normal
+
+    rng = np.random.default_rng(K)
+    n = 1001
+    at = rng.standard_normal((K, n))
+    d = 0.01 * rng.standard_normal(n)
+    weight = rng.uniform(0.0, 1.0, n)
+    c = 1e-3 * rng.standard_normal(K)
+    Hm, g = np.full((K, K), np.nan), np.full(K, np.nan)
+    weighted_normal(at, d, weight, c, 100.0, Hm, g, np.empty((2, n)))
+    w = weight / (1.0 + ((d - c @ at) * 100.0) ** 2)
+    want_H = (at * w) @ at.T
+    np.testing.assert_allclose(Hm, want_H, rtol=1e-12, atol=1e-12 * np.abs(want_H).max())
+    np.testing.assert_allclose(g, (at * w) @ d, rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(Hm, Hm.T)
