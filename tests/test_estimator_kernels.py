@@ -139,3 +139,101 @@ def test_the_fits_the_choice_weighs_state_their_own_field_rms():
         fits.append(m.candidate or m)
     for m in fits:
         assert m.quality.field_ev_rms == m.field_ev_rms() > 0.5
+
+
+def _geometry_fit_reference(index, X, Y, fam, c, pm, pinv, settings, elliptical, iterations, tolerance=1e-3):
+    """The Gauss-Newton loop in Python over _geometry_pairs and _solve (what the compiled
+    loop replaced), step for step."""
+    from vigproc.core.family_fit import MAX_ELLIPTICITY, _solve
+
+    K = fam.n_components
+    E = 4 if elliptical else 2
+    geo = np.zeros(E)
+    coef = np.asarray(c, dtype=np.float64).copy()
+    d = a = sol = pm_it = None
+    steps = 0
+    xs, ys = np.ascontiguousarray(np.ravel(X)), np.ascontiguousarray(np.ravel(Y))
+    for _ in range(iterations):
+        d, a = _geometry_pairs(index, xs, ys, fam, coef, geo)
+        x0 = np.concatenate([coef, np.zeros(E)])
+        pm_it = pm.copy()
+        pm_it[K:] = -geo
+        sol = _solve(d, a, index.weight, x0, pm_it, pinv, settings, 4)
+        if not np.all(np.isfinite(sol)):
+            break
+        steps += 1
+        coef = sol[:K]
+        step = sol[K:].copy()
+        if elliptical:
+            e = geo[2:] + step[2:]
+            size = float(np.hypot(*e))
+            if size > MAX_ELLIPTICITY:
+                step[2:] = e * (MAX_ELLIPTICITY / size) - geo[2:]
+        geo = geo + step
+        if float(np.max(np.abs(sol[K:]))) < tolerance:
+            break
+    return coef, geo, d, a, sol, pm_it, steps
+
+
+@pytest.mark.parametrize("elliptical, iterations", [(False, 12), (True, 30), (True, 3)])
+def test_geometry_fit_in_one_compiled_loop_is_the_python_loop(elliptical, iterations):
+    """The compiled Gauss-Newton loop (the centre test's circular fit, the off-centre fit's
+    elliptical one, and one stopped by its step limit) takes the Python loop's steps: the
+    same number, and every output equal to 1e-12 (relative; the two loops differ only in
+    which BLAS call forms two small matrix-vector products)."""
+    from vigproc.core.family_fit import _geometry_fit, _prior_with_geometry, LensHint
+
+    frame = _table1_colour_frame()
+    s = OffCentreRule().settings
+    lum = luminance(frame)
+    c = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    L, valid, xs, ys, C, _ = with_colour(luminance_copy(lum, s, None), frame, s)
+    index = settings_index(L, valid, C, s)
+    fam = profile_family().truncated(len(c))
+    radius = half_diagonal(W, H)
+    pm, pinv = _prior_with_geometry(fam, LensHint(), 4 if elliptical else 2, 0.5)
+    args = (index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv, s, elliptical, iterations)
+    got = _geometry_fit(*args)
+    want = _geometry_fit_reference(*args)
+    assert got[6] == want[6] >= min(iterations, 3)
+    for g, w in zip(got[:6], want[:6]):
+        np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12 * float(np.max(np.abs(w))))
+
+
+def test_pair_losses_read_the_pairs_listed_for_the_fit_they_judge():
+    """The comparison's losses from the pairs listed for the luminance's fit (jackknife
+    labels and all) are the losses of the pairs it lists for itself, to the bit."""
+    from vigproc.core.family_fit import pair_losses
+
+    frame = _table1_colour_frame()
+    lum = luminance(frame)
+    s = OffCentreRule().settings
+    work = luminance_copy(lum, s, None)
+    index = settings_index(work.L, work.valid, None, s)
+    grey = fit_family(lum, s, uncertainty=False, copy=work, index=index).model
+    alone = fit_family(lum, s, uncertainty=False, copy=work).model
+    assert (grey.p, grey.alpha) == (alone.p, alone.alpha)
+    c = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    models = [grey.candidate or grey, off_centre_fit(lum, c, s, colour=frame).field]
+    assert pair_losses(lum, models, s, None, work, index) == pair_losses(lum, models, s, None, work)
+
+
+@pytest.mark.parametrize("K", [1, 2, 5, 7])
+def test_irls_normal_equations_two_sums_a_pass_are_their_definition(K):
+    """The IRLS step's sums (two of H's entries a pass over the pairs, and the odd one left
+    over) are Σ w·a·aᵀ and Σ w·a·d with w = weight / (1 + ((d − a·c)/σ)²), symmetric."""
+    from vigproc.core._kernels.irls import weighted_normal
+
+    rng = np.random.default_rng(K)
+    n = 1001
+    at = rng.standard_normal((K, n))
+    d = 0.01 * rng.standard_normal(n)
+    weight = rng.uniform(0.0, 1.0, n)
+    c = 1e-3 * rng.standard_normal(K)
+    Hm, g = np.full((K, K), np.nan), np.full(K, np.nan)
+    weighted_normal(at, d, weight, c, 100.0, Hm, g, np.empty((2, n)))
+    w = weight / (1.0 + ((d - c @ at) * 100.0) ** 2)
+    want_H = (at * w) @ at.T
+    np.testing.assert_allclose(Hm, want_H, rtol=1e-12, atol=1e-12 * np.abs(want_H).max())
+    np.testing.assert_allclose(g, (at * w) @ d, rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(Hm, Hm.T)

@@ -550,7 +550,7 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
     when the centred fit is kept. ``copies``: the frame's luminance and colour working
     copies at ``rule.settings``' size, when the caller has them."""
     from vigproc.core.family_fit import CENTRE_WORK_SIZE, fit_centre, fit_family, luminance_copy, off_centre_fit, \
-        pair_losses, with_colour
+        pair_losses, settings_index, with_colour
 
     model, coef, weighted = fit
     q = (model.candidate or model).quality
@@ -598,9 +598,13 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
     # model's own field_ev_rms(), not computed again)
     if not (alt.candidate or alt).quality.field_ev_rms >= rule.keep_min_ev:
         return model
-    # the luminance's, as the comparison reads (its field alone: no jackknife)
-    grey = fit_family(lum, s, mask, family, hint, uncertainty=False, copy=work).model
-    loss_family, loss_alt = pair_losses(lum, [grey.candidate or grey, alt.candidate or alt], s, mask, work)
+    # the luminance's, as the comparison reads (its field alone: no jackknife); its pairs
+    # listed once for the fit and the comparison
+    if work is None:
+        work = luminance_copy(lum, s, mask)
+    index = settings_index(work.L, work.valid, None, s)
+    grey = fit_family(lum, s, mask, family, hint, uncertainty=False, copy=work, index=index).model
+    loss_family, loss_alt = pair_losses(lum, [grey.candidate or grey, alt.candidate or alt], s, mask, work, index)
     if loss_alt < loss_family - s.select_margin:
         if off is not None:
             alt = off.with_uncertainty()

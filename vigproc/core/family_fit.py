@@ -72,6 +72,7 @@ import numpy as np
 from vigproc.core._kernels.geometry import geometry_pairs
 from vigproc.core._kernels.irls import irls_fit
 from vigproc.core._kernels.blocks import block_normal, linear_refits
+from vigproc.core._kernels.gauss_newton import geometry_gauss_newton
 from vigproc.core._kernels.pairs import list_pairs
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import N_COMPONENTS, LensFamily, default_family, profile_family
@@ -528,6 +529,13 @@ def _solve(d, a, wt, c0, pmean, pinv, s: FamilySettings, iterations: int, conver
                 converged_on=converged_on, relaxation=relaxation)
 
 
+#: Over-relaxation of a fit without chroma covariates made only to be compared with another
+#: (:func:`fit_family` without ``uncertainty``: the default estimator's luminance fit, whose
+#: field only its pair loss reads): plain IRLS took 34-100 steps on the off-centre frames of
+#: ``vigproc bench speed --api`` (Cauchy scale 0.01, tolerance 1e-4), 21-66 at ω = 1.6; the
+#: coefficients moved by at most 6e-4 and the loss compared by at most 9e-7 (a script; the
+#: closest choice was 0.016 from its margin).
+COMPARISON_RELAXATION = 1.6
 #: Over-relaxation of the colour fit with chroma covariates (:func:`irls`): its five
 #: coefficients took 19 plain steps on the clean protocol's frames (a script), 13.5 at
 #: ω = 1.6, and ended nearer the converged fit (median largest coefficient difference
@@ -536,17 +544,17 @@ COVARIATE_RELAXATION = 1.6
 
 
 def _fit_with_chroma(d, a, index: PairIndex, wt, pmean, pinv, s: FamilySettings,
-                     iterations: int) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int, relaxation: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The field's coefficients (K = a's columns) fitted with the pairs' chroma changes as
     covariates (module doc, step 3; ``s.chroma_covariate`` the s.d. of their centred prior),
     and the pairs' data with the covariates' part taken out: a jackknife refits the field
     on it with the covariates held (a third of the cost of refitting them too; σ is
     calibrated on fits made so). Without covariates (``chroma_covariate`` 0, a grey frame,
-    or one whose channels are proportional and so change no chroma): the plain fit and
-    ``d`` itself."""
+    or one whose channels are proportional and so change no chroma): the plain fit (over-relaxed
+    by ``relaxation``, :func:`irls`) and ``d`` itself."""
     K = a.shape[1]
     if s.chroma_covariate <= 0 or not index.chroma.size or float(np.max(np.abs(index.chroma))) <= 1e-9:
-        return _solve(d, a, wt, pmean, pmean, pinv, s, iterations), d
+        return _solve(d, a, wt, pmean, pmean, pinv, s, iterations, relaxation=relaxation), d
     pm = np.concatenate([pmean, np.zeros(2)])
     prec = np.block([[pinv, np.zeros((K, 2))], [np.zeros((2, K)), np.eye(2) / s.chroma_covariate**2]])
     # rows stacked, then seen as columns: irls reads the rows without a copy
@@ -840,40 +848,32 @@ def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings
                   elliptical: bool, iterations: int, tolerance: float = 1e-3):
     """Gauss-Newton on the fall-off's centre u (and, ``elliptical``, its shape (e1, e2)),
     four IRLS steps of the family coefficients inside each (:func:`_geometry_columns`;
-    a step is shortened so that |e| stays within :data:`MAX_ELLIPTICITY`).
+    a step is shortened so that |e| stays within :data:`MAX_ELLIPTICITY`): one compiled
+    loop (:mod:`vigproc.core._kernels.gauss_newton`) over :func:`_geometry_pairs` and
+    :func:`_solve`'s steps.
 
     Returns the coefficients, the geometry (u, or u and e), the last step's pairs,
     solution and prior mean (for the jackknife), and the number of steps taken.
     """
-    K = fam.n_components
     E = 4 if elliptical else 2
     geo = np.zeros(E)
     coef = np.asarray(c, dtype=np.float64).copy()
-    d = a = sol = pm_it = None
-    steps = 0
     xs, ys = np.ascontiguousarray(np.ravel(X), dtype=np.float64), np.ascontiguousarray(np.ravel(Y), dtype=np.float64)
-    for _ in range(iterations):
+    if iterations <= 0:
+        return coef, geo, None, None, None, None, 0
+    if index.first.size < MIN_VALID_BINS:  # too few pairs: no step
         d, a = _geometry_pairs(index, xs, ys, fam, coef, geo)
-        if d.size < MIN_VALID_BINS:
-            break
-        x0 = np.concatenate([coef, np.zeros(E)])
-        pm_it = pm.copy()
-        pm_it[K:] = -geo  # the prior is on the geometry, not on the step
-        sol = _solve(d, a, index.weight, x0, pm_it, pinv, settings, 4)
-        if not np.all(np.isfinite(sol)):
-            break
-        steps += 1
-        coef = sol[:K]
-        step = sol[K:].copy()
-        if elliptical:
-            e = geo[2:] + step[2:]
-            size = float(np.hypot(*e))
-            if size > MAX_ELLIPTICITY:  # along the step, to the largest shape allowed
-                step[2:] = e * (MAX_ELLIPTICITY / size) - geo[2:]
-        geo = geo + step
-        if float(np.max(np.abs(sol[K:]))) < tolerance:
-            break
-    return coef, geo, d, a, sol, pm_it, steps
+        return coef, geo, d, a, None, None, 0
+    grads = _profile_slopes(fam)
+    f64 = np.float64
+    coef, geo, d, at, sol, pm_it, steps = geometry_gauss_newton(
+        xs, ys, geo, np.ascontiguousarray(fam.radii, dtype=f64), np.ascontiguousarray(fam.mean, dtype=f64),
+        np.ascontiguousarray(fam.components, dtype=f64), np.ascontiguousarray(grads[0], dtype=f64),
+        np.ascontiguousarray(grads[1], dtype=f64), index.first, index.second, index.inv_step, index.dlog,
+        np.ascontiguousarray(index.weight, dtype=f64), coef, np.ascontiguousarray(pm, dtype=f64),
+        np.ascontiguousarray(pinv, dtype=f64), 1.0 / (settings.sigma * settings.sigma * settings.kappa),
+        1.0 / settings.sigma, 4, float(settings.tolerance), int(iterations), float(tolerance), MAX_ELLIPTICITY)
+    return coef, geo, d, at.T, sol, pm_it, int(steps)
 
 
 #: Long side of :func:`fit_centre`'s working copy.
@@ -1043,22 +1043,26 @@ def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
 
 
 def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: FamilySettings = FamilySettings(),
-                mask: np.ndarray | None = None, copy: WorkingCopy | None = None) -> list[float]:
+                mask: np.ndarray | None = None, copy: WorkingCopy | None = None,
+                index: PairIndex | None = None) -> list[float]:
     """Mean Cauchy loss log(1 + (e/σ)²) per pair of the frame's log differences once each
     model's field is divided out: how well a field explains the frame, the same measure
     for any model (the default estimator's choice between fits). One working copy of
     the luminance: no pair weighs more by its colour, so a fit that weighs pairs by
     colour has no edge over one that does not. ``copy``: that copy
-    (:func:`luminance_copy` at ``settings.work_size``), when the caller has it."""
+    (:func:`luminance_copy` at ``settings.work_size``), when the caller has it; ``index``:
+    its pairs (:func:`settings_index` of ``copy`` with ``settings``, no colour), listed
+    once for the fit that is compared and for the comparison."""
     L, valid, xs, ys, _, _ = _working_copy(lum, settings, mask) if copy is None else copy
     X = np.ascontiguousarray(np.broadcast_to(xs[None, :], L.shape))
     Y = np.ascontiguousarray(np.broadcast_to(ys[:, None], L.shape))
-    steps = _pair_steps(settings, L.shape)
-    none, one_block = np.zeros(L.shape + (1,)), np.zeros(L.shape, dtype=np.int64)
+    if index is None:  # the pairs' order and data do not depend on the blocks' labels
+        index = pair_index(L, valid, _pair_steps(settings, L.shape), np.zeros(L.shape, dtype=np.int64), None,
+                           settings.chroma_tau)
+    none = np.zeros(L.shape + (1,))
     out = []
     for model in models:
-        F = model.log_field_at(X, Y)
-        d, _, _, _ = family_pairs(L, valid, F, none, steps, one_block, None, settings.chroma_tau)
+        d, _ = pairs_at(index, model.log_field_at(X, Y), none)
         out.append(mean_cauchy_loss(d, settings.sigma))
     return out
 
@@ -1206,7 +1210,8 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
                mask: np.ndarray | None = None, family: LensFamily | None = None,
                hint: LensHint | None = None,
                colour: np.ndarray | None = None, copy: WorkingCopy | None = None,
-               uncertainty: bool = True, ev_checks: tuple[float, ...] = ()) -> FamilyFit:
+               uncertainty: bool = True, ev_checks: tuple[float, ...] = (),
+               index: PairIndex | None = None) -> FamilyFit:
     """Estimate a centred lens fall-off from an H×W linear luminance image.
 
     Parameters
@@ -1232,12 +1237,16 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
         ``colour`` are then not read.
     uncertainty : bool
         False: no jackknife (σ NaN) and no fall-back, for a fit that is only compared
-        with another (the default estimator's choice between fits reads its field alone).
+        with another (the default estimator's choice between fits reads its field alone);
+        its IRLS is over-relaxed (:data:`COMPARISON_RELAXATION`).
     ev_checks : tuple of float
         Levels (EV) a caller compares the field's RMS + 2σ with: σ comes from the
         linearised jackknife (:func:`linear_jackknife`) unless the SNR or one of these
         comparisons is within :data:`JACKKNIFE_CHECK` of its threshold, where the
         jackknife itself decides.
+    index : PairIndex, optional
+        The pairs of ``copy`` with ``settings`` (:func:`settings_index`), when the caller
+        lists them once for this fit and another use (:func:`pair_losses`).
 
     Returns
     -------
@@ -1254,7 +1263,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
         return FamilyFit(VignettingModel.identity(w, h, method=METHOD, quality=q), None)
     radius = half_diagonal(w, h)
     M, B = fam.profiles(bin_rho(xs, ys, radius))
-    index = settings_index(L, valid, C, settings)
+    index = settings_index(L, valid, C, settings) if index is None else index
     d, a = pairs_at(index, M, B)
     labels, wt = index.labels, index.weight
     # components nest: the first k columns of a are the k-component family's
@@ -1268,7 +1277,8 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
     pinv = np.linalg.inv(pcov)
     n = d.size
-    c, d = _fit_with_chroma(d, a, index, wt, pmean, pinv, settings, settings.iterations)
+    c, d = _fit_with_chroma(d, a, index, wt, pmean, pinv, settings, settings.iterations,
+                            1.0 if uncertainty else COMPARISON_RELAXATION)
     grid = frame_rho_grid(w, h)
     # a fit that does not weigh its pairs by colour is calibrated on its own
     scale = settings.sigma_scale if weighted else settings.grey_sigma_scale

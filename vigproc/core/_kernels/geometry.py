@@ -71,6 +71,21 @@ def geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, second
     at : ndarray (K + E, n)
         The regressors as rows (the components', then the geometry's derivatives).
     """
+    nb = xs.shape[0] * ys.shape[0]
+    nc = comps.shape[0] + geo.shape[0]
+    n = first.shape[0]
+    d = np.empty(n)
+    at = np.empty((nc, n))
+    fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, second, inv_step, dlog,
+                        np.empty(nb), np.empty((nc, nb)), d, at)
+    return d, at
+
+
+@njit(cache=True, nogil=True)
+def fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, second, inv_step, dlog, M, J, d, at):
+    """:func:`geometry_pairs` written into the caller's arrays: ``M`` (h·w,) and ``J``
+    (K + E, h·w) scratch over the bins, ``d`` (n,) and ``at`` (K + E, n) the result (a
+    Gauss-Newton loop reuses them at every step)."""
     w, h = xs.shape[0], ys.shape[0]
     K, R = comps.shape
     E = geo.shape[0]
@@ -81,8 +96,6 @@ def geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, second
     comp_tail = np.empty(K)
     for k in range(K):
         comp_tail[k] = (comps[k, R - 1] - comps[k, R - 2]) / step_last
-    M = np.empty(h * w)
-    J = np.empty((nc, h * w))
     elliptical = E == 4
     e1 = geo[2] if elliptical else 0.0
     e2 = geo[3] if elliptical else 0.0
@@ -114,12 +127,9 @@ def geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, second
                 J[K + 2, b] = slope * 0.5 * (dx * dx - dy * dy) / rho
                 J[K + 3, b] = slope * dx * dy / rho
     n = first.shape[0]
-    d = np.empty(n)
-    at = np.empty((nc, n))
     for p in range(n):
         d[p] = dlog[p] - (M[second[p]] - M[first[p]]) * inv_step[p]
     for c in range(nc):  # a row at a time: each written in order
         Jc = J[c]
         for p in range(n):
             at[c, p] = (Jc[second[p]] - Jc[first[p]]) * inv_step[p]
-    return d, at
