@@ -7,19 +7,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from vigproc.frontends.commands._bench import benchmark
 
+from benchmarks.cli._common import add_clean_bases
+from vigproc.frontends.commands._options import number
 
-def register(subparsers) -> None:
-    """No command of its own: a benchmark only (:func:`register_bench`)."""
-
-
-def register_bench(bsub) -> None:
-    from vigproc.frontends.commands._options import add_clean_bases, number
-
-    bp = bsub.add_parser("colour-detect", help="colour-cast detection from one photograph: physical casts "
-                         "(cos^k_c of the chief ray's angle) rendered on the clean bases; detection rate by "
-                         "corner dE2000, false detections on the bases and under luminance-only fall-offs")
+def colour_detect_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench colour-detect``'s options."""
     add_clean_bases(bp)
     bp.add_argument("--targets", type=number(0.1, 100), nargs="+", default=None,
                     help="corner dE2000 of the rendered casts (default 1 2 3 4 5 7 10)")
@@ -39,7 +32,7 @@ def _pct(x: float) -> str:
 
 
 def cmd_bench_colour_detect(args: argparse.Namespace) -> int:
-    from vigproc.frontends.commands._options import write_json_result
+    from benchmarks.cli._common import write_json_result
     from vigproc.pipeline.processor import output_file
 
     output_file(args.json)
@@ -56,8 +49,8 @@ def bench_detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
 
     import numpy as np
 
-    C = benchmark("clean")
-    D = benchmark("colour_detect")
+    from benchmarks import clean as C
+    from benchmarks import colour_detect as D
 
     targets, directions = getattr(args, "targets", None), getattr(args, "directions", 8)
     theta_max, lenses = getattr(args, "theta_max", None), getattr(args, "lenses", 10)
