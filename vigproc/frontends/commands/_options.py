@@ -7,9 +7,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from typing import Callable, Sequence
 
-from vigproc.errors import VigprocError
+from vigproc.errors import EXIT_CODES, VigprocError, one_line
 
 PROFILE_HELP = ("auto (a trusted stored profile of the frame's lens, else a DNG's own vignetting opcodes, else "
                 "an installed profile-source plugin, else estimate), estimate, lensfun (lensfun's calibration of "
@@ -163,9 +164,5 @@ def interrupted(command: str, done: str) -> int:
     int
         :data:`vigproc.errors.EXIT_CODES` ``["interrupted"]``.
     """
-    import sys
-
-    from vigproc.errors import EXIT_CODES, one_line
-
     print(one_line(f"vigproc {command}: interrupted: {done}"), file=sys.stderr, flush=True)
     return EXIT_CODES["interrupted"]

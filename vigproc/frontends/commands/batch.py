@@ -16,9 +16,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vigproc.errors import one_line
+from vigproc.errors import DiskFullError, one_line
 from vigproc.frontends.commands._options import add_learn, add_processing, learn_setting, number
-from vigproc.pipeline.processor import MODES
+from vigproc.pipeline.processor import MODES, Settings
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,6 @@ def _option(args: argparse.Namespace, config: dict[str, Any], name: str, default
 def cmd_batch(args: argparse.Namespace) -> int:
     from vigproc.frontends import backends as BK
     from vigproc.frontends import batch as B
-    from vigproc.pipeline.processor import Settings
 
     config = read_config(args.config) if args.config else {}
     learn = learn_setting(args, default=True)
@@ -164,8 +163,6 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if summary.interrupted:
         return 130
     if summary.disk_full is not None:
-        from vigproc.errors import DiskFullError
-
         raise DiskFullError(f"batch stopped: {summary.disk_full}; {summary.not_started} file(s) not started, none "
                             f"quarantined for it: free space on {outdir} and rerun the same command to resume")
     return 0 if summary.failed == 0 else 1

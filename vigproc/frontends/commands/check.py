@@ -26,10 +26,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import logging
 import sys
 from pathlib import Path
 
+from vigproc._version import __version__
 from vigproc.errors import EXIT_CODES, VigprocError, one_line
 from vigproc.io.lensident import display_lens_id
 from vigproc.frontends.commands._options import (JSON_HELP, add_method, add_profile_db, add_transfer, failure_record,
@@ -113,9 +115,6 @@ def _embedded_verdict(path: Path, v, calibration, alpha, reader=None):
 def run_record(args: argparse.Namespace, calibration, store) -> dict:
     """What an examiner files about the run itself: when (UTC), which vigproc, the command
     line as run, its settings and the references the frames were compared with."""
-    import datetime
-
-    from vigproc._version import __version__
     from vigproc.forensics.lensmatch import MatchCalibration
 
     argv = list(getattr(args, "argv", None) or sys.argv[1:])

@@ -59,6 +59,7 @@ stderr); 70 an internal error outside any file; 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import logging
 import shutil
@@ -66,9 +67,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from vigproc._version import __version__
+from vigproc.atomic import publish
 from vigproc.errors import EXIT_CODES, OutputSettingsError, VigprocError, one_line, write_error
 from vigproc.frontends.commands._options import add_processing, files_exit_code
 from vigproc.io.formats import WRITE_EXT_FORMAT, WRITE_SUFFIXES
+from vigproc.pipeline.processor import (OUTPUT_FORMATS, SIDECAR_SUFFIX, InputFiles, Processor, Settings, output_folder,
+                                        output_stems, safe_output)
 from vigproc.scratch import scratch_folder
 
 log = logging.getLogger(__name__)
@@ -88,8 +93,6 @@ _FILE_KEYS = frozenset({"path", "output", "lens"})
 def _output_suffixes(output_format: str) -> tuple[str, ...]:
     """The suffixes an explicit output file may have for ``output_format`` (``auto``: any
     a writer writes, the file's suffix then says the format)."""
-    from vigproc.pipeline.processor import OUTPUT_FORMATS
-
     fixed = OUTPUT_FORMATS[output_format]
     return tuple(WRITE_EXT_FORMAT) if fixed is None else WRITE_SUFFIXES.get(fixed.format, (fixed.suffix,))
 
@@ -203,8 +206,6 @@ class _HostLens:
 # ------------------------------------------------------------------ one file
 def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) -> dict[str, Any]:
     from vigproc.frontends.api import Result
-    from vigproc.atomic import publish
-    from vigproc.pipeline.processor import SIDECAR_SUFFIX, safe_output
 
     path = Path(job["path"])
     s = proc.settings
@@ -260,16 +261,13 @@ def _error(file: str, exc: BaseException) -> dict[str, Any]:
 
 def overall_exit_code(results: list[dict[str, Any]]) -> int:
     """0 when every file is done; the shared code when every file failed alike; else 1."""
-
     return files_exit_code([None if r["status"] == "ok" else r["exit_code"] for r in results])
 
 
 # ------------------------------------------------------------------ command
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run a hook call; returns the answer document (see the module docstring)."""
-    from vigproc._version import __version__
     from vigproc.frontends.api import RequestError, lens_key
-    from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 
     req = _read_request(args.request) if args.request else {}
     opt = {k: getattr(args, k) for k in ("mode", "profile", "profile_db", "method", "strength", "output_format",
@@ -346,15 +344,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     answer = {"protocol": PROTOCOL, "vigproc": __version__, "mode": settings.mode, "ok": ok,
               "failed": len(results) - ok, "exit_code": overall_exit_code(results), "results": results}
     if settings.mode == "check":  # when the verdicts were made, for the host's record
-        import datetime
-
         answer["analysed_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     return answer
 
 
 def cmd_hook(args: argparse.Namespace) -> int:
-    from vigproc._version import __version__
-
     try:
         answer = run(args)
     except VigprocError as exc:

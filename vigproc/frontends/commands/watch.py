@@ -7,6 +7,7 @@ The daemon itself is :mod:`vigproc.frontends.daemon`; the journal :mod:`vigproc.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import logging
 import os
@@ -15,6 +16,7 @@ from typing import Any
 
 from vigproc.frontends.commands._options import add_learn, add_processing, learn_setting, number
 from vigproc.pipeline.faults import DEFAULT_MIN_FREE
+from vigproc.pipeline.processor import Settings, names_profile_file
 from vigproc.stores.retry import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_CRASHES, DEFAULT_RETRY_BASE, DEFAULT_RETRY_CAP
 
 log = logging.getLogger("vigproc.watch")
@@ -26,7 +28,6 @@ def _default_workers() -> int:
 
 def _config(args: argparse.Namespace):
     from vigproc.frontends.daemon import WatchConfig
-    from vigproc.pipeline.processor import names_profile_file
 
     profile = args.profile
     if names_profile_file(profile):
@@ -49,10 +50,6 @@ def _config(args: argparse.Namespace):
 
 def _check_settings(cfg) -> None:
     """Fail at start, not once per file, on settings that cannot work."""
-    import importlib.util
-
-    from vigproc.pipeline.processor import Settings
-
     settings = Settings(**cfg.settings)
     if settings.mode == "correct" and settings.profile_is_file:
         from vigproc.stores.profiles import import_profile
