@@ -93,3 +93,18 @@ def test_python_m_benchmarks_is_vigproc_bench():
     r = subprocess.run([sys.executable, "-m", "benchmarks", "io", "--exif"], cwd=REPO, capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 2 and "--exif: expected one argument" in r.stderr  # vigproc bench io's own parser
+
+
+def test_a_bench_table_prints_as_its_columns_say(capsys):
+    """The one helper the bench commands print their tables with: a title takes its
+    column's alignment and width, a number the whole spec, a text value ('-') the width."""
+    from benchmarks.cli._common import Table
+
+    t = Table((("method", "<8"), ("n", ">4"), ("median EV", ">10.3f")))
+    assert t.header() == f"{'method':<8}{'n':>4}{'median EV':>10}"
+    assert t.row("default", 12, 0.12345) == f"{'default':<8}{12:>4}{0.12345:>10.3f}"
+    assert t.row("rgs", 3, "-") == f"{'rgs':<8}{3:>4}{'-':>10}"
+    with pytest.raises(ValueError):
+        t.row("default", 12)
+    t.print_rows([("a", 1, 1.0), ("b", 2, 2.0)])
+    assert capsys.readouterr().out.splitlines() == [t.header(), t.row("a", 1, 1.0), t.row("b", 2, 2.0)]

@@ -14,6 +14,7 @@ from vigproc.core.methods import METHODS
 from vigproc.errors import PriorError
 from vigproc.frontends.commands._options import add_transfer, number
 
+
 def scene_settings(spec: str):
     """RobustSettings for a bench's ``--scene-prior``: "shipped", "none" or a file
     written by ``vigproc prior fit-scene``."""
@@ -102,6 +103,8 @@ def write_json_result(path: str | None, data: object) -> None:
 
 # ------------------------------------------------------------------ printed tables
 @dataclass(frozen=True)
+
+
 class Table:
     """A printed table of fixed-width columns: its header line and its rows, each value
     formatted by its column's spec (what every bench prints).

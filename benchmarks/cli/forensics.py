@@ -11,6 +11,7 @@ from benchmarks.cli._common import Table, add_clean_bases, write_json_result
 from vigproc.frontends.commands._options import add_transfer, number
 from vigproc.frontends.commands.forensics import _forensic_method, _protocol_images
 
+
 def forensics_arguments(bp: argparse.ArgumentParser) -> None:
     """``vigproc bench forensics``'s options."""
     bp.add_argument("--images", nargs="+", required=True, help="folders of photographs (not the prior's)")

@@ -8,6 +8,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+
 def cmd_bench_hook(args: argparse.Namespace) -> int:
     """What a host pays per call: the hook as a process vs the in-process API, same frame."""
     import statistics

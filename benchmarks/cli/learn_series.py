@@ -11,6 +11,7 @@ import math
 from benchmarks.cli._common import add_clean_bases
 from vigproc.frontends.commands._options import number
 
+
 def learn_series_arguments(bp: argparse.ArgumentParser) -> None:
     """``vigproc bench learn-series``'s options."""
     add_clean_bases(bp)

@@ -10,6 +10,7 @@ import math
 
 from vigproc.frontends.commands._options import number
 
+
 def real_frames_arguments(bp: argparse.ArgumentParser) -> None:
     """``vigproc bench real-frames``'s options."""
     bp.add_argument("--images", nargs="+", action="extend", metavar="DIR",

@@ -19,6 +19,7 @@ from vigproc.errors import VigprocError
 from vigproc.frontends.commands.watch import _default_workers
 from vigproc.pipeline.processor import OUTPUT_FORMATS
 
+
 def _write_jpeg(path: Path, rgb01, quality: int = 92) -> None:
     import numpy as np
     import OpenImageIO as oiio

@@ -3,8 +3,8 @@
 A command line of a few dozen sub-commands spends most of its start-up building their
 parsers (argparse objects, and the modules that declare them). A :class:`Command` names
 its one-line summary and the function that declares its arguments; :func:`add_commands`
-lists every command of a table by name and summary (what ``--help`` shows) but builds
-the arguments of the one the command line names only. ``vigproc`` and ``vigproc bench``
+lists every command of a table by name and summary (what ``--help`` shows) and builds
+the arguments of only the command the command line names. ``vigproc`` and ``vigproc bench``
 (the checkout's ``benchmarks/``) both declare their commands this way.
 """
 
