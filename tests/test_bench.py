@@ -368,7 +368,7 @@ def test_bench_estimators_are_the_products_own(method):
     """A bench scores what ``vigproc.estimate`` returns: clipped highlights masked the same
     way (a frame with a burnt-out patch), the same model to the bit."""
     import vigproc
-    from vigproc.frontends.commands._bench import estimator
+    from benchmarks.cli._common import estimator
 
     frame = np.stack([textured(160, 240, seed=60 + k, contrast=0.1) for k in range(3)], axis=-1)
     frame = frame * pa_field((160, 240), -0.4, 0.1, 0.0)[..., None]

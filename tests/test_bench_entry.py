@@ -62,8 +62,9 @@ def test_a_wrong_benchmarks_dir_is_a_typed_error(no_choice, monkeypatch, tmp_pat
 
 def test_a_copy_of_the_package_alone_runs_everything_but_bench(tmp_path):
     """The installed layout for real: vigproc/ without benchmarks/ beside it, in a new
-    process. ``vigproc bench`` fails in one line (exit 1); its help and the product's
-    commands that used benchmark code (forensics calibrate) still load."""
+    process. ``vigproc bench`` (a benchmark's help too: its options live in benchmarks/)
+    fails in one line (exit 1); ``vigproc --help`` and the product's commands that used
+    benchmark code (forensics calibrate) still load."""
     shutil.copytree(REPO / "vigproc", tmp_path / "vigproc", ignore=shutil.ignore_patterns("__pycache__"))
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(tmp_path), "HOME": str(tmp_path)}
     run = lambda *a: subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", *a], cwd=tmp_path,  # noqa: E731
@@ -71,7 +72,11 @@ def test_a_copy_of_the_package_alone_runs_everything_but_bench(tmp_path):
     r = run("bench", "synthetic", "--images", str(tmp_path))
     assert r.returncode == 1 and "Traceback" not in r.stderr
     assert r.stderr.strip().startswith("vigproc: the benchmarks are not installed with vigproc"), r.stderr
-    assert run("bench", "clean", "--help").returncode == 0
+    for argv in (("bench", "clean", "--help"), ("bench", "--help")):
+        r = run(*argv)
+        assert r.returncode == 1 and r.stderr.strip().startswith("vigproc: the benchmarks are not installed"), r.stderr
+    r = run("--help")
+    assert r.returncode == 0 and "bench" in r.stdout and "Traceback" not in r.stderr
     code = ("import sys; import vigproc.forensics.calibration_frames as m, vigproc.frontends.commands.forensics; "
             "assert 'benchmarks' not in sys.modules; print(m.__file__)")
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
@@ -88,3 +93,18 @@ def test_python_m_benchmarks_is_vigproc_bench():
     r = subprocess.run([sys.executable, "-m", "benchmarks", "io", "--exif"], cwd=REPO, capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 2 and "--exif: expected one argument" in r.stderr  # vigproc bench io's own parser
+
+
+def test_a_bench_table_prints_as_its_columns_say(capsys):
+    """The one helper the bench commands print their tables with: a title takes its
+    column's alignment and width, a number the whole spec, a text value ('-') the width."""
+    from benchmarks.cli._common import Table
+
+    t = Table((("method", "<8"), ("n", ">4"), ("median EV", ">10.3f")))
+    assert t.header() == f"{'method':<8}{'n':>4}{'median EV':>10}"
+    assert t.row("default", 12, 0.12345) == f"{'default':<8}{12:>4}{0.12345:>10.3f}"
+    assert t.row("rgs", 3, "-") == f"{'rgs':<8}{3:>4}{'-':>10}"
+    with pytest.raises(ValueError):
+        t.row("default", 12)
+    t.print_rows([("a", 1, 1.0), ("b", 2, 2.0)])
+    assert capsys.readouterr().out.splitlines() == [t.header(), t.row("a", 1, 1.0), t.row("b", 2, 2.0)]

@@ -506,7 +506,10 @@ def test_every_option_and_argument_has_help_text():
             elif not isinstance(action, argparse._HelpAction) and not action.help:
                 missing.append((" ".join(path), action.option_strings or action.dest))
 
+    from benchmarks.cli import build_parser as bench_parser
+
     walk(build_parser(), ["vigproc"])
+    walk(bench_parser(), ["vigproc", "bench"])
     assert missing == []
 
 

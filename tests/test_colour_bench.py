@@ -43,8 +43,8 @@ def test_the_detect_part_runs_the_detection_report(tmp_path, monkeypatch, capsys
     (the report itself: tests/test_colour_cast.py); its figures land in the JSON."""
     import json
 
+    from benchmarks.cli import colour_detect
     from vigproc.frontends import cli
-    from vigproc.frontends.commands import colourdetect
 
     seen = []
 
@@ -53,7 +53,7 @@ def test_the_detect_part_runs_the_detection_report(tmp_path, monkeypatch, capsys
         print("detect table")
         return 0, {"rate_at_5": 0.5}
 
-    monkeypatch.setattr(colourdetect, "bench_detect_report", report)
+    monkeypatch.setattr(colour_detect, "bench_detect_report", report)
     out = tmp_path / "c.json"
     assert cli.main(["bench", "colour", "--part", "detect", "--json", str(out)]) == 0
     assert len(seen) == 1 and "detect table" in capsys.readouterr().out

@@ -14,7 +14,7 @@ imports only from its own layer or below.
 The graph must have no cycle; no module may import the package ``vigproc`` itself
 (its ``__init__`` is the top: it re-exports, lazily). The benchmarks live outside the
 package, in the repository's ``benchmarks/`` (not installed): no module imports them,
-and only the ``vigproc bench`` commands reach them, through
+and only the ``vigproc bench`` entry reaches them, through
 :func:`vigproc.frontends.commands._bench.benchmark`.
 """
 
@@ -34,10 +34,7 @@ BENCH = "benchmarks"
 
 #: Functions outside the ``vigproc bench`` commands (a function whose name holds "bench")
 #: that may load the benchmarks, by (module, top-level function).
-BENCH_COMMANDS = {
-    ("vigproc.frontends.commands._bench", "estimator"),  # the benches' estimator table (rgs, the peer)
-    ("vigproc.frontends.commands.watch", "_make_inputs"),  # bench watch's frames
-}
+BENCH_COMMANDS: set[tuple[str, str]] = set()  # the bench commands live in benchmarks/cli
 #: Real commands that still load benchmark code: none (forensics calibrate's lens classes
 #: and residuals are vigproc.forensics.calibration_frames).
 BENCH_DEBT: set[tuple[str, str]] = set()

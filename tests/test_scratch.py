@@ -135,3 +135,60 @@ def test_the_shipped_exiftool_config_declares_the_record_s_namespace() -> None:
     assert f"'vigproc' => '{XMP_NAMESPACE}'" in text
     for tag in ("Model", "Method", "Version", "Applied", "Strength", "Transfer"):
         assert f"    {tag} => {{" in text
+
+
+@needs_proc
+def test_a_killed_hook_call_s_folder_beside_its_output_goes_with_the_next_call(tmp_path: Path) -> None:
+    """``vigproc hook --output-file`` writes into a hidden folder beside the target (one rename
+    publishes it); killed mid-write, the folder stays until the next hook call writing there."""
+    import numpy as np
+
+    from vigproc.io.images import write_image
+
+    src, out = tmp_path / "src.tif", tmp_path / "out"
+    out.mkdir()
+    write_image(src, np.full((24, 32, 3), 0.25, np.float32), bit_depth="uint16")
+    before = src.read_bytes()
+    printed = run_killed(f"""
+        import os, signal, sys
+        from vigproc.pipeline.processor import Processor
+        def killed(self, path, work, *args, **kwargs):
+            print(work)
+            sys.stdout.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+        Processor.process_file = killed
+        from vigproc.frontends.cli import main
+        main(["hook", "--output-file={out / 'a.tif'}", "--", {str(src)!r}])
+    """, tmp_path / "tmp")
+    left = Path(printed.strip())
+    assert left.parent == out and left.is_dir() and left.name.startswith(".vigproc-hook-")
+    env = dict(os.environ, TMPDIR=str(tmp_path / "tmp"), PYTHONPATH=str(ROOT))
+    subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "hook", f"--output-file={out / 'b.tif'}",
+                    "--", str(src)], env=env, capture_output=True, text=True, timeout=300)
+    assert not left.exists()
+    assert not [p for p in out.iterdir() if p.name.startswith(".vigproc-hook-")]  # nor the second call's
+    assert src.read_bytes() == before
+
+
+@needs_proc
+def test_a_killed_report_writer_s_folder_is_swept(tmp_path: Path) -> None:
+    """A report's figures go through a scratch folder: a writer killed inside it leaves a
+    folder the next process sweeps."""
+    printed = run_killed("""
+        import os, signal, sys
+        import numpy as np
+        import vigproc.io.images as images
+        from vigproc.forensics.report import jpeg_bytes
+        write = images.write_image
+        def killed(path, *args, **kwargs):
+            write(path, *args, **kwargs)
+            print(path)
+            sys.stdout.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+        images.write_image = killed
+        jpeg_bytes(np.full((16, 16, 3), 0.5, np.float32))
+    """, tmp_path / "tmp")
+    folder = Path(printed.strip()).parent
+    assert folder.parent == tmp_path / "tmp" and folder.is_dir() and folder.name.startswith("vigproc-report-")
+    assert scratch.sweep(str(tmp_path / "tmp")) == 1
+    assert not folder.exists()

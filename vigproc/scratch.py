@@ -5,8 +5,10 @@ handler stays behind when its process is killed (a daemon or pool worker stopped
 SIGKILL, the kernel's out-of-memory killer): nothing of the process runs any more.  The
 folders made here carry their owner in their name, ``vigproc-KIND-PID.START-XXXXXXXX``
 (START: the process's start time, so a recycled process id is not taken for its owner),
-and the first one a process makes sweeps the folders of owners that are gone
-(:func:`sweep`).  So a killed process's folder lasts until the next vigproc process needs
+and the first one a process makes in a directory sweeps that directory of the folders of
+owners that are gone (:func:`sweep`). A folder made beside its output (so that one rename
+publishes the result on the same file system) is hidden, ``.vigproc-KIND-...``, and swept
+the same way by the next process writing there.  So a killed process's folder lasts until the next vigproc process needs
 one, and never accumulates.
 
 Folders of vigproc versions before this module, ``vigproc-exiftool-XXXXXXXX`` holding
@@ -32,13 +34,13 @@ __all__ = ["owner_alive", "scratch", "scratch_folder", "sweep"]
 
 logger = logging.getLogger(__name__)
 
-_NAME = re.compile(r"^vigproc-[a-z]+-(\d+)\.(\d+)-[A-Za-z0-9_]+$")
+_NAME = re.compile(r"^\.?vigproc-[a-z]+-(\d+)\.(\d+)-[A-Za-z0-9_]+$")
 _LEGACY = re.compile(r"^vigproc-exiftool-[A-Za-z0-9_]{8}$")
 _LEGACY_FILES = {"vigproc.config"}
 #: Age (s) after which a folder of the old form holding only a config file is swept.
 LEGACY_AGE = 3600.0
 
-_swept: dict[int, bool] = {}  # os.getpid() -> whether this process swept already
+_swept: set[tuple[int, str]] = set()  # (os.getpid(), directory) swept already
 _lock = threading.Lock()
 
 
@@ -136,16 +138,19 @@ def sweep(directory: str | None = None) -> int:
     return removed
 
 
-def scratch_folder(kind: str) -> str:
-    """A new private folder (mode 0700) in the temporary directory, named for this process.
+def scratch_folder(kind: str, directory: str | os.PathLike[str] | None = None) -> str:
+    """A new private folder (mode 0700), named for this process.
 
     The caller removes it when done (see :func:`scratch`); if this process is killed first,
-    the next process's first :func:`scratch_folder` removes it.
+    the next process's first :func:`scratch_folder` in the same directory removes it.
 
     Parameters
     ----------
     kind : str
         Lower-case letters naming its use (``exiftool``, ``batch``...).
+    directory : path, optional
+        Where to make it (default: :func:`tempfile.gettempdir`). Elsewhere (beside an
+        output, for one rename to publish it) the folder is hidden: ``.vigproc-KIND-...``.
 
     Returns
     -------
@@ -154,20 +159,22 @@ def scratch_folder(kind: str) -> str:
     """
     if not kind.isalpha() or not kind.islower():
         raise ValueError(f"scratch kind must be lower-case letters: {kind!r}")
+    where = os.fspath(directory) if directory is not None else tempfile.gettempdir()
     pid = os.getpid()
     with _lock:
-        first = not _swept.get(pid)
-        _swept[pid] = True
+        first = (pid, where) not in _swept
+        _swept.add((pid, where))
     if first:
-        sweep()
+        sweep(where)
     start = _start_time(pid)
-    return tempfile.mkdtemp(prefix=f"vigproc-{kind}-{pid}.{start if start and start > 0 else 0}-")
+    dot = "." if directory is not None else ""
+    return tempfile.mkdtemp(prefix=f"{dot}vigproc-{kind}-{pid}.{start if start and start > 0 else 0}-", dir=where)
 
 
 @contextlib.contextmanager
-def scratch(kind: str) -> Iterator[str]:
+def scratch(kind: str, directory: str | os.PathLike[str] | None = None) -> Iterator[str]:
     """A :func:`scratch_folder` removed with its content when the block ends."""
-    folder = scratch_folder(kind)
+    folder = scratch_folder(kind, directory)
     try:
         yield folder
     finally:

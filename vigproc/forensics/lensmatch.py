@@ -65,6 +65,7 @@ from vigproc.errors import EXIT_CODES, VigprocError
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "GaussianNull",
     "MatchCalibration",
     "MatchCalibrationError",
     "beyond_scene_limit",
@@ -217,8 +218,28 @@ def empirical_p(null: np.ndarray, statistic: float) -> float:
     return (k + 1.0) / (null.size + 1.0)
 
 
+class GaussianNull:
+    """The Gaussian part of a calibration's null, stored as its ``mean`` and ``covariance``
+    fields (tuples, as in its file), read as arrays: the lens-mismatch test's
+    (:class:`MatchCalibration`) and the ring test's
+    (:class:`vigproc.forensics.rings.Calibration`)."""
+
+    mean: tuple[float, ...]
+    covariance: tuple[tuple[float, ...], ...]
+
+    @property
+    def mean_vector(self) -> np.ndarray:
+        """The mean, shape (k,)."""
+        return np.asarray(self.mean, dtype=np.float64)
+
+    @property
+    def covariance_matrix(self) -> np.ndarray:
+        """The covariance, shape (k, k)."""
+        return np.asarray(self.covariance, dtype=np.float64)
+
+
 @dataclass(frozen=True)
-class MatchCalibration:
+class MatchCalibration(GaussianNull):
     """The scenes' scatter of the family coefficients, and the test's null distribution.
 
     Attributes
@@ -301,14 +322,6 @@ class MatchCalibration:
     @property
     def n_components(self) -> int:
         return len(self.mean)
-
-    @property
-    def mean_vector(self) -> np.ndarray:
-        return np.asarray(self.mean, dtype=np.float64)
-
-    @property
-    def covariance_matrix(self) -> np.ndarray:
-        return np.asarray(self.covariance, dtype=np.float64)
 
     def check_family(self, family) -> None:
         """Raise when the calibration was made in another family than ``family``."""

@@ -25,6 +25,7 @@ import numpy as np
 from vigproc.errors import ImageWriteError
 from vigproc.io.lensident import display_lens_id
 from vigproc.forensics.check import RING_RADII, Verdict, ring_falloff
+from vigproc.scratch import scratch
 
 __all__ = ["ReportItem", "jpeg_bytes", "png_bytes", "report_figure", "thumbnail", "write_report"]
 
@@ -110,11 +111,9 @@ def png_bytes(rgb: np.ndarray) -> bytes:
 
 def jpeg_bytes(rgb: np.ndarray, quality: int = HTML_JPEG_QUALITY) -> bytes:
     """8-bit sRGB JPEG of a linear RGB float image in [0, 1]."""
-    import tempfile
-
     from vigproc.io.images import write_image
 
-    with tempfile.TemporaryDirectory(prefix="vigproc-report-") as d:
+    with scratch("report") as d:  # swept by the next process when this one is killed
         path = Path(d) / "figure.jpg"
         write_image(path, np.clip(np.asarray(rgb, dtype=np.float32), 0.0, 1.0), format="jpeg", bit_depth="uint8",
                     transfer="srgb", quality=quality)

@@ -42,7 +42,7 @@ import numpy as np
 
 from vigproc.atomic import atomic_write_text
 from vigproc.errors import EXIT_CODES, SETTINGS, VigprocError
-from vigproc.forensics.lensmatch import MatchCalibration, empirical_p, held_out_whitened, pooled_null
+from vigproc.forensics.lensmatch import GaussianNull, MatchCalibration, empirical_p, held_out_whitened, pooled_null
 from vigproc.core.model import VignettingModel
 
 __all__ = [
@@ -240,7 +240,7 @@ def _as_matrix(a: Any, n: int, what: str) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class Calibration:
+class Calibration(GaussianNull):
     """Null distribution of the consistency statistic for one estimator.
 
     Attributes
@@ -302,14 +302,6 @@ class Calibration:
             raise ForensicsError(f"calibration: alpha must be within (0, 1), got {self.alpha}")
 
     # -- the null -----------------------------------------------------------
-    @property
-    def mean_vector(self) -> np.ndarray:
-        return np.asarray(self.mean, dtype=np.float64)
-
-    @property
-    def covariance_matrix(self) -> np.ndarray:
-        return np.asarray(self.covariance, dtype=np.float64)
-
     def null_d2(self, n_frames: int = 1, *, decided: bool = False) -> np.ndarray:
         """Sorted D² of matching frames (``n_frames`` = 1) or of the mean of
         ``n_frames`` matching frames from different photographs (deterministic draws).

@@ -361,11 +361,17 @@ class ExiftoolProcess:
 
     def _once(self, args: Sequence[Arg]) -> ExiftoolResult:
         self._drain()  # answers come in order: the submitted ones first
+        return self._command(self._live(), args)
+
+    def _live(self):
+        """The process of a running exiftool that has answered: started, or a spawned
+        one waited for, when need be (the one way :meth:`execute` and :meth:`submit`
+        reach it; the caller holds the lock)."""
         self.start()
         self._ready()
         et = self._et
         assert et is not None
-        return self._command(et._process, args)
+        return et._process
 
     def submit(self, args: Sequence[Arg]) -> "Pending":
         """Send one command and return at once; :meth:`result` reads its answer.
@@ -385,13 +391,10 @@ class ExiftoolProcess:
         """
         _check_args(args)
         with self._lock:
-            self.start()
-            self._ready()
-            et = self._et
-            assert et is not None
-            pending = Pending(et._process)
+            proc = self._live()
+            pending = Pending(proc)
             try:
-                pending.ends = self._send(et._process, args)
+                pending.ends = self._send(proc, args)
             except ExiftoolDied as exc:
                 pending.error = exc
                 self._drop()

@@ -1,10 +1,8 @@
-"""Sub-commands of ``vigproc`` that live in their own modules.
+"""The handlers of ``vigproc``'s commands, one module per command (or family).
 
-Each module here exposes ``register(subparsers)``, which adds its parser(s) and sets
-``fn`` to a callable taking the parsed ``argparse.Namespace`` and returning an exit
-code.  A module may also expose ``register_bench(bench_subparsers)`` to add a
-``vigproc bench NAME`` benchmark.  :func:`vigproc.frontends.cli.build_parser` registers every
-module found here, except the handler modules of the commands it declares itself
-(``estimate``, ``correct``, ``profile``, ``prior``: :data:`vigproc.frontends.cli.HANDLER_MODULES`),
-which are imported only to run their command and import what they need at their top.
+:data:`vigproc.frontends.cli.COMMANDS` names, for each command, the function declaring
+its arguments (``add_arguments`` in its module, or :mod:`._parsers` for the commands
+whose handler modules load the numeric stack); that function sets the parser's ``fn``
+to the handler, a function taking the parsed ``argparse.Namespace`` and returning an
+exit code. Modules with a leading underscore hold what several commands share.
 """

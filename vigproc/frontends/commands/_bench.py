@@ -1,9 +1,8 @@
-"""What the ``vigproc bench`` command modules (``bench_*.py``) share: where the
-benchmarks are (:func:`benchmark`), their estimator table, the ``--scene-prior`` setting
-and a few option groups. No command of its own (a leading underscore: command discovery
-passes it by).
+"""``vigproc bench [--benchmarks-dir DIR] NAME [OPTIONS]``: the thin entry to the
+benchmarks. It finds them (:func:`benchmarks_dir`) and hands ``NAME [OPTIONS]`` to their
+own command line, :func:`benchmarks.cli.main`, which parses, runs and prints.
 
-The benchmark protocols are not part of the installed package: they live in the
+The benchmarks (their protocols and their commands) are not part of the installed package: they live in the
 repository's top-level ``benchmarks/`` folder, beside ``vigproc/`` in a source checkout.
 ``vigproc bench`` finds them there, or where ``--benchmarks-dir`` or
 ``$VIGPROC_BENCHMARKS`` says, and otherwise stops with
@@ -14,15 +13,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import os
 import sys
 from pathlib import Path
 from types import ModuleType
 
-from vigproc.core.methods import METHODS
-from vigproc.errors import BenchmarksNotFoundError, PriorError
-from vigproc.frontends.commands._options import add_transfer
+from vigproc.errors import BenchmarksNotFoundError
 
 #: Environment variable naming the ``benchmarks`` folder (or the checkout holding it).
 BENCHMARKS_ENV = "VIGPROC_BENCHMARKS"
@@ -112,69 +108,32 @@ def benchmark(name: str) -> ModuleType:
     return importlib.import_module(f"benchmarks.{name}")
 
 
-def scene_settings(spec: str):
-    """RobustSettings for a bench's ``--scene-prior``: "shipped", "none" or a file
-    written by ``vigproc prior fit-scene``."""
-    from vigproc.core.robust import RobustSettings
-    from vigproc.core.scene import SceneFalloff
-
-    if spec == "shipped":
-        return RobustSettings()
-    if spec == "none":
-        return RobustSettings(scene_prior=False)
-    try:
-        text = Path(spec).read_text()
-    except OSError as exc:
-        raise PriorError(f"cannot read the scene prior {spec!r}: {exc.strerror or exc}") from exc
-    try:
-        data = json.loads(text)
-    except (json.JSONDecodeError, RecursionError) as exc:  # RecursionError: absurdly nested
-        raise PriorError(f"the scene prior {spec!r} is not JSON: {exc}") from exc
-    try:
-        return RobustSettings(scene=SceneFalloff.from_dict(data))
-    except PriorError as exc:
-        raise PriorError(f"{spec!r}: {exc}") from exc
+def add_arguments(sp: argparse.ArgumentParser) -> None:
+    """``vigproc bench``'s own arguments: where the benchmarks are, and what it hands on."""
+    sp.description = ("Run a benchmark of a vigproc source checkout (its benchmarks/ folder, not installed with "
+                      "vigproc); 'vigproc bench --help' lists them, 'vigproc bench NAME --help' gives a "
+                      "benchmark's options.")
+    sp.add_argument("-h", "--help", action="store_true", help="list the benchmarks (or NAME's options)")
+    add_benchmarks_dir(sp)
+    sp.add_argument("bench_argv", nargs=argparse.REMAINDER, metavar="NAME [OPTIONS]",
+                    help="the benchmark and its options, handed to it")
+    sp.set_defaults(fn=cmd_bench)
 
 
-def estimator(method: str, seed: int = 0, settings=None, family=None):
-    """A bench's estimator: ``vigproc.estimate`` on a frame (H×W grey, or H×W×3 with
-    channels last), or the "rgs" peer (on its luminance).
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Run ``vigproc bench NAME [OPTIONS]``: the checkout's :func:`benchmarks.cli.main`.
 
-    ``settings`` (``--scene-prior``) tune the robust Kang-Weiss estimators; the
-    default and lens-family estimators have no scene prior. ``family``: the lens
-    family they fit in (a bench whose fields are lensfun lenses leaves them out); they
-    also take ``hint=`` (EXIF's focal length and f-number).
+    Returns
+    -------
+    int
+        The benchmark's exit code (a usage error exits 2 from its parser).
+
+    Raises
+    ------
+    BenchmarksNotFoundError
+        No benchmarks folder (an installed copy), or not the one asked for.
     """
-    from vigproc.core.estimate import HINT_METHODS, estimate, estimate_checked
-    from vigproc.core.pixels import luminance
-
-    if method == "rgs":
-        estimate_rgs = benchmark("peers").estimate_rgs
-        return lambda v: estimate_rgs(luminance(v))
-    if method in HINT_METHODS:
-        # the product's own path (clipped highlights masked, colour read), in ``family``; a
-        # bench's frames are float, channels last: what check_image would hand on
-        return lambda v, hint=None: estimate_checked(v, method, hint=hint, family=family)
-    return lambda v: estimate(v, method, channel_axis=-1 if v.ndim == 3 else None, seed=seed, settings=settings)
-
-
-def add_colour(bp: argparse.ArgumentParser) -> None:
-    """``--colour``: the benches' estimators see R, G, B."""
-    bp.add_argument("--colour", action="store_true",
-                    help="give the estimators the images' R, G, B (the paper's protocol is grey: its luminance)")
-
-
-def add_estimator_bench(bp: argparse.ArgumentParser) -> None:
-    """Options of a benchmark that runs estimators on photographs (lensfun, real)."""
-    add_transfer(bp)
-    bp.add_argument("--methods", nargs="+", default=["default"], choices=[*METHODS, "rgs"],
-                    help="rgs: the radial-gradient-symmetry peer (benchmarks/peers.py)")
-    add_scene_prior(bp)
-    bp.add_argument("--json", help="write the figures to this file")
-
-
-def add_scene_prior(bp: argparse.ArgumentParser) -> None:
-    """``--scene-prior``, read by :func:`scene_settings`."""
-    bp.add_argument("--scene-prior", default="shipped", metavar="shipped|none|FILE",
-                    help="scene prior of the default estimator: the shipped one (fitted on linearised "
-                         "photos), none, or a file from 'vigproc prior fit-scene' (default: shipped)")
+    argv = list(args.bench_argv)
+    if args.help:
+        argv.append("--help")
+    return int(benchmark("cli").main(argv) or 0)

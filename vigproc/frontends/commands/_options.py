@@ -7,9 +7,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from typing import Callable, Sequence
 
-from vigproc.errors import VigprocError
+from vigproc.errors import EXIT_CODES, VigprocError, one_line
 
 PROFILE_HELP = ("auto (a trusted stored profile of the frame's lens, else a DNG's own vignetting opcodes, else "
                 "an installed profile-source plugin, else estimate), estimate, lensfun (lensfun's calibration of "
@@ -115,28 +116,6 @@ def add_processing(sp: argparse.ArgumentParser, *, profile_default: str = "auto"
     add_transfer(sp)
 
 
-def add_clean_bases(bp: argparse.ArgumentParser) -> None:
-    """The clean protocol's bases (benchmarks.clean), as the clean benchmarks take them."""
-    bp.add_argument("--images", nargs="+", default=["../shared/data/jpeg_exif", "../shared/data/natural"],
-                    help="folders of full-size camera frames (BSDS/Kodak are skipped: film scans)")
-    bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
-                    help="frames whose long side is shorter are not used (default %(default)s)")
-    bp.add_argument("--limit", type=number(1, 10**6, integer=True), help="use at most this many frames")
-    bp.add_argument("--grey", action="store_true",
-                    help="give the estimators the bases' luminance only (as before session 12), not their colour")
-
-
-def write_json_result(path: str | None, data: object) -> None:
-    """A bench's figures as JSON at ``path`` (atomically; nothing when None)."""
-    if path:
-        import json
-        from pathlib import Path
-
-        from vigproc.atomic import atomic_write_text
-
-        atomic_write_text(Path(path), json.dumps(data, indent=1) + "\n")
-
-
 # ------------------------------------------------------------------ --json and exit codes
 #: The help of ``--json`` on the commands that take several files (estimate, correct, check).
 JSON_HELP = ("print one JSON document at the end, for one file as for many: {results: one record per file, "
@@ -185,9 +164,5 @@ def interrupted(command: str, done: str) -> int:
     int
         :data:`vigproc.errors.EXIT_CODES` ``["interrupted"]``.
     """
-    import sys
-
-    from vigproc.errors import EXIT_CODES, one_line
-
     print(one_line(f"vigproc {command}: interrupted: {done}"), file=sys.stderr, flush=True)
     return EXIT_CODES["interrupted"]

@@ -26,13 +26,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import logging
 import sys
 from pathlib import Path
 
+from vigproc._version import __version__
 from vigproc.errors import EXIT_CODES, VigprocError, one_line
 from vigproc.io.lensident import display_lens_id
-from vigproc.frontends.commands._options import JSON_HELP, failure_record, files_exit_code, print_json_results
+from vigproc.frontends.commands._options import (JSON_HELP, add_method, add_profile_db, add_transfer, failure_record,
+                                                 files_exit_code, interrupted, number, print_json_results)
 
 log = logging.getLogger(__name__)
 
@@ -56,13 +59,9 @@ inconsistent, unknown-lens, insufficient-signal or unlike-any-lens, with a calib
 false-alarm probability."""
 
 
-def register(subparsers) -> None:
-    from vigproc.frontends.commands._options import add_method, add_profile_db, add_transfer, number
-
-    sp = subparsers.add_parser(
-        "check", help="forensics: does each frame's vignetting match the lens its EXIF names?",
-        description=_DESCRIPTION,
-        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_arguments(sp: argparse.ArgumentParser) -> None:
+    """``vigproc check``'s arguments (its summary: :data:`vigproc.frontends.cli.COMMANDS`)."""
+    sp.description, sp.epilog, sp.formatter_class = _DESCRIPTION, _EPILOG, argparse.RawDescriptionHelpFormatter
     sp.add_argument("files", nargs="+", metavar="FILE",
                     help="images to check against the lens their EXIF names")
     store = sp.add_mutually_exclusive_group()  # a store that is then not read is a mistake
@@ -116,9 +115,6 @@ def _embedded_verdict(path: Path, v, calibration, alpha, reader=None):
 def run_record(args: argparse.Namespace, calibration, store) -> dict:
     """What an examiner files about the run itself: when (UTC), which vigproc, the command
     line as run, its settings and the references the frames were compared with."""
-    import datetime
-
-    from vigproc._version import __version__
     from vigproc.forensics.lensmatch import MatchCalibration
 
     argv = list(getattr(args, "argv", None) or sys.argv[1:])
@@ -207,7 +203,6 @@ def cmd_check(args: argparse.Namespace) -> int:
                     if "embedded" in rec:
                         print(_line(f"{f} (against its embedded calibration)", rec["embedded"]))
     except KeyboardInterrupt:  # Ctrl-C: what was checked, in one line; exit 130 (no report of a part)
-        from vigproc.frontends.commands._options import interrupted
 
         found = {}
         for v in (r.get("verdict") for r in results):

@@ -59,17 +59,22 @@ stderr); 70 an internal error outside any file; 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import logging
-import os
 import shutil
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
+from vigproc._version import __version__
+from vigproc.atomic import publish
 from vigproc.errors import EXIT_CODES, OutputSettingsError, VigprocError, one_line, write_error
+from vigproc.frontends.commands._options import add_processing, files_exit_code
 from vigproc.io.formats import WRITE_EXT_FORMAT, WRITE_SUFFIXES
+from vigproc.pipeline.processor import (OUTPUT_FORMATS, SIDECAR_SUFFIX, InputFiles, Processor, Settings, output_folder,
+                                        output_stems, safe_output)
+from vigproc.scratch import scratch_folder
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +93,6 @@ _FILE_KEYS = frozenset({"path", "output", "lens"})
 def _output_suffixes(output_format: str) -> tuple[str, ...]:
     """The suffixes an explicit output file may have for ``output_format`` (``auto``: any
     a writer writes, the file's suffix then says the format)."""
-    from vigproc.pipeline.processor import OUTPUT_FORMATS
-
     fixed = OUTPUT_FORMATS[output_format]
     return tuple(WRITE_EXT_FORMAT) if fixed is None else WRITE_SUFFIXES.get(fixed.format, (fixed.suffix,))
 
@@ -203,8 +206,6 @@ class _HostLens:
 # ------------------------------------------------------------------ one file
 def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) -> dict[str, Any]:
     from vigproc.frontends.api import Result
-    from vigproc.atomic import publish
-    from vigproc.pipeline.processor import SIDECAR_SUFFIX, safe_output
 
     path = Path(job["path"])
     s = proc.settings
@@ -220,7 +221,7 @@ def _process(proc, job: dict[str, Any], outdir: Path | None, stem: str, inputs) 
             raise OutputSettingsError(f"refusing to overwrite the input {job['output']!r}")
         # the pipeline writes into a private folder beside the target; one rename publishes it
         try:
-            work = tempfile.mkdtemp(prefix=".vigproc-hook-", dir=target.parent)
+            work = scratch_folder("hook", target.parent)  # a killed call's folder goes with the next call here
         except OSError as exc:
             raise write_error(f"cannot write beside {job['output']!r}: {exc.strerror or exc}", exc) from None
         try:
@@ -260,17 +261,13 @@ def _error(file: str, exc: BaseException) -> dict[str, Any]:
 
 def overall_exit_code(results: list[dict[str, Any]]) -> int:
     """0 when every file is done; the shared code when every file failed alike; else 1."""
-    from vigproc.frontends.commands._options import files_exit_code
-
     return files_exit_code([None if r["status"] == "ok" else r["exit_code"] for r in results])
 
 
 # ------------------------------------------------------------------ command
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run a hook call; returns the answer document (see the module docstring)."""
-    from vigproc._version import __version__
     from vigproc.frontends.api import RequestError, lens_key
-    from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 
     req = _read_request(args.request) if args.request else {}
     opt = {k: getattr(args, k) for k in ("mode", "profile", "profile_db", "method", "strength", "output_format",
@@ -347,15 +344,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     answer = {"protocol": PROTOCOL, "vigproc": __version__, "mode": settings.mode, "ok": ok,
               "failed": len(results) - ok, "exit_code": overall_exit_code(results), "results": results}
     if settings.mode == "check":  # when the verdicts were made, for the host's record
-        import datetime
-
         answer["analysed_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     return answer
 
 
 def cmd_hook(args: argparse.Namespace) -> int:
-    from vigproc._version import __version__
-
     try:
         answer = run(args)
     except VigprocError as exc:
@@ -380,14 +373,11 @@ def cmd_hook(args: argparse.Namespace) -> int:
     return int(answer["exit_code"])
 
 
-def register(subparsers) -> None:
-    from vigproc.frontends.commands._options import add_processing
-
-    sp = subparsers.add_parser(
-        "hook", help="for host programs: process files, answer JSON on stdout (stable exit codes)",
-        description="Process FILES (and/or the files of a JSON request) and print one JSON answer on "
-                    "stdout. Exit codes: 0 ok, 1 some files failed, 2 usage, 3-12 every file failed with "
-                    "that error, 70 internal.")
+def add_arguments(sp: argparse.ArgumentParser) -> None:
+    """``vigproc hook``'s arguments (its summary: :data:`vigproc.frontends.cli.COMMANDS`)."""
+    sp.description = ("Process FILES (and/or the files of a JSON request) and print one JSON answer on "
+                      "stdout. Exit codes: 0 ok, 1 some files failed, 2 usage, 3-12 every file failed with "
+                      "that error, 70 internal.")
     sp.add_argument("files", nargs="*", help="input images (put them after --)")
     sp.add_argument("--mode", choices=HOOK_MODES, default="correct",
                     help="correct (write corrected images), estimate or check (default %(default)s)")
@@ -398,98 +388,3 @@ def register(subparsers) -> None:
     sp.add_argument("--request", metavar="FILE", help="JSON request ('-' reads standard input)")
     add_processing(sp, picture=False)
     sp.set_defaults(fn=cmd_hook, hook_call=True)  # run on the warm server when there is one
-
-
-# ------------------------------------------------------------------ benchmark
-def cmd_bench_hook(args: argparse.Namespace) -> int:
-    """What a host pays per call: the hook as a process vs the in-process API, same frame."""
-    import statistics
-    import subprocess
-    import time
-
-    import numpy as np
-
-    from vigproc.frontends.api import Pipeline
-    from vigproc.io.images import write_image
-
-    w, h = args.width, args.height
-    rng = np.random.default_rng(0)
-    yy, xx = np.mgrid[0:h, 0:w]
-    r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (0.5 * np.hypot(w, h)) ** 2
-    scene = np.exp(0.2 * rng.standard_normal((h, w)))
-    img = np.repeat((0.3 * scene / (1 + r2) ** 2)[..., None], 3, axis=2).astype(np.float32)
-
-    def median_ms(fn) -> tuple[float, float]:
-        """Median wall time and median CPU time (this process + children), in ms."""
-        ts, cpu = [], []
-        for _ in range(args.repeat):
-            t0, c0 = time.perf_counter(), os.times()
-            fn()
-            c1 = os.times()
-            ts.append(time.perf_counter() - t0)
-            cpu.append(sum(c1[:4]) - sum(c0[:4]))
-        return 1000 * statistics.median(ts), 1000 * statistics.median(cpu)
-
-    from vigproc.frontends import hookserver
-    from vigproc.pipeline.processor import Processor, Settings
-
-    with tempfile.TemporaryDirectory() as tmp:
-        src = Path(tmp) / "frame.tif"
-        write_image(src, img, bit_depth="float")
-        rt = Path(tmp) / "run"
-        rt.mkdir(mode=0o700)
-        env = {**os.environ, "VIGPROC_PROFILE_DB": str(Path(tmp) / "p.sqlite"), hookserver.ENV_DIR: str(rt)}
-        vp = Pipeline("correct", profile="estimate")
-        vp.process(img)  # warm-up (kernels loaded)
-        api_ms = median_ms(lambda: vp.process(img))
-        # the work of a hook estimate call, in a warm process: read, EXIF (its own exiftool), estimate
-        def work() -> None:
-            with Processor(Settings(mode="estimate", profile="estimate")) as proc:
-                proc.process_file(src, Path(tmp) / "w")
-
-        (Path(tmp) / "w").mkdir()
-        work()
-        work_ms = median_ms(work)
-
-        def hook_call(mode: str, *extra: str, server: str = "off") -> None:
-            subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "hook", "--mode", mode, "--profile", "estimate",
-                            *extra, "--", str(src)], env={**env, hookserver.ENV_SWITCH: server}, check=True,
-                           capture_output=True)
-
-        est_ms = median_ms(lambda: hook_call("estimate"))
-        cor_ms = median_ms(lambda: hook_call("correct", "-o", str(Path(tmp) / "out")))
-        start_ms = median_ms(lambda: subprocess.run([sys.executable, "-c", "import vigproc.frontends.cli"], check=True))
-        # the warm server: the first call starts it; wait until it answers
-        hook_call("estimate", server="on")
-        for _ in range(100):
-            if any(rt.glob("*.sock")):
-                break
-            time.sleep(0.1)
-        hook_call("estimate", server="on")
-        srv_est = median_ms(lambda: hook_call("estimate", server="on"))
-        srv_cor = median_ms(lambda: hook_call("correct", "-o", str(Path(tmp) / "out2"), server="on"))
-        for sock in rt.glob("*.sock"):
-            sock.unlink()  # the server leaves at its next call or idle timeout; nobody finds it now
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"{w}x{h} RGB float32 frame, median of {args.repeat}; {os.cpu_count()} CPUs, load average {load:.1f}")
-    print(f"{'':<66}{'wall':>9}    {'CPU':>9}")
-    rows = [("API Pipeline.process (correct, in memory, warm)", api_ms),
-            ("work of an estimate call, warm process (read, EXIF, estimate)", work_ms),
-            ("python -c 'import vigproc.frontends.cli' (interpreter + imports)", start_ms),
-            ("hook --mode estimate, new process (VIGPROC_HOOK_SERVER=off)", est_ms),
-            ("hook --mode correct -o, new process (VIGPROC_HOOK_SERVER=off)", cor_ms),
-            ("hook --mode estimate on the warm server (default)", srv_est),
-            ("hook --mode correct -o on the warm server (default)", srv_cor)]
-    for label, (ms, cpu) in rows:
-        print(f"{label:<66}{ms:>9.1f} ms {cpu:>9.1f} ms")
-    print(f"overhead of an estimate call beyond its work: {est_ms[0] - work_ms[0]:.0f} ms in a new process, "
-          f"{srv_est[0] - work_ms[0]:.0f} ms on the warm server (CPU: client only)")
-    return 0
-
-
-def register_bench(bench_subparsers) -> None:
-    bp = bench_subparsers.add_parser("hook", help="cost of one vigproc hook call vs the in-process API")
-    bp.add_argument("--width", type=int, default=1200, help="frame width in px (default %(default)s)")
-    bp.add_argument("--height", type=int, default=800, help="frame height in px (default %(default)s)")
-    bp.add_argument("--repeat", type=int, default=5, help="timing rounds (default %(default)s)")
-    bp.set_defaults(fn=cmd_bench_hook)

@@ -47,8 +47,8 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     return 1 if broken and args.strict else 0
 
 
-def register(subparsers) -> None:
-    sp = subparsers.add_parser("plugins", help="list installed extensions (estimators, profile sources)")
+def add_arguments(sp: argparse.ArgumentParser) -> None:
+    """``vigproc plugins``'s arguments (its summary: :data:`vigproc.frontends.cli.COMMANDS`)."""
     sp.add_argument("--json", action="store_true", help="print the list as JSON")
     sp.add_argument("--strict", action="store_true", help="exit 1 when an installed plugin is broken")
     sp.set_defaults(fn=cmd_plugins)

@@ -11,20 +11,21 @@ from dataclasses import asdict
 from importlib import resources
 from pathlib import Path
 
+from benchmarks.cli._common import Table, write_json_result
 from vigproc.core.methods import METHODS
 from vigproc.errors import VigprocError
-from vigproc.frontends.commands._options import add_transfer, number, write_json_result
+from vigproc.frontends.commands._options import add_transfer, number
 from vigproc.pipeline.processor import images_in as _images_in
-from vigproc.frontends.commands._bench import benchmark
+#: bench speed --api's table (one row a case) and bench io's (one row a format).
+API_SPEED_TABLE = Table((("case", "<10"), ("vigproc ms", ">12.1f"), ("peer ms", ">10.1f"), ("ratio", ">8.2f"),
+                         ("net", ">8.2f"), ("vigproc CPU", ">13.1f"), ("peer CPU", ">10.1f"), ("ratio", ">8.2f"),
+                         ("fall-backs", ">12"), ("off-centre", ">12")))
+IO_TABLE = Table((("format", "<20"), ("MP", ">7.1f"), ("MB", ">9.1f"), ("read ms", ">10.1f"), ("bytes ms", ">10.1f"),
+                  ("ratio", ">7.1f")))
 
 
-def register(subparsers) -> None:
-    """No command of its own: benchmarks only (:func:`register_bench`)."""
-
-
-def register_bench(bsub) -> None:
-    """The benchmarks ``speed``, ``learn``, ``correct``, ``io``, ``throughput``, ``scaling``, ``memory``."""
-    bp = bsub.add_parser("speed", help="estimator timings on 480x320 frames")
+def speed_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench speed``'s options."""
     bp.add_argument("--images", help="folder of images (default: the bundled samples)")
     bp.add_argument("--limit", type=int, default=10, help="use at most this many images (default %(default)s)")
     bp.add_argument("--repeat", type=int, default=5, help="timing rounds (default %(default)s)")
@@ -36,7 +37,10 @@ def register_bench(bsub) -> None:
     bp.add_argument("--peer", help="with --api: the built rgs_peer (scripts/build_rgs_peer.sh; default $VIGPROC_RGS_PEER)")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_speed)
-    bp = bsub.add_parser("learn", help="learning one more frame into a lens profile, warm and in a new process")
+
+
+def learn_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench learn``'s options."""
     bp.add_argument("--images", help="folder of photographs (default: the bundled samples)")
     bp.add_argument("--limit", type=int, default=60, help="use at most this many images (default %(default)s)")
     bp.add_argument("--stored", type=int, default=50, help="frames already in the profile (default %(default)s)")
@@ -44,20 +48,28 @@ def register_bench(bsub) -> None:
     bp.add_argument("--json", help="write the figures as JSON")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_learn)
-    bp = bsub.add_parser("correct", help="full-resolution correction speed (24 MP by default)")
+
+
+def correct_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench correct``'s options."""
     bp.add_argument("--width", type=int, default=6000, help="frame width in px (default %(default)s)")
     bp.add_argument("--height", type=int, default=4000, help="frame height in px (default %(default)s)")
     bp.add_argument("--repeat", type=int, default=15, help="timing rounds (default %(default)s)")
     bp.set_defaults(fn=cmd_bench_correct)
-    bp = bsub.add_parser("io", help="frame read times per format and EXIF per file in batch")
+
+
+def io_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench io``'s options."""
     bp.add_argument("--width", type=int, default=6000, help="frame width in px (default %(default)s)")
     bp.add_argument("--height", type=int, default=4000, help="frame height in px (default %(default)s)")
     bp.add_argument("--repeat", type=int, default=3, help="timing rounds (default %(default)s)")
     bp.add_argument("--raw", help="folder of RAW files to time (full and half size)")
     bp.add_argument("--exif", help="folder of images to time EXIF reading on")
     bp.set_defaults(fn=cmd_bench_io)
-    bp = bsub.add_parser("throughput", help="vigproc correct on full-size photographs beside the floor (decode, "
-                         "encode, EXIF copy) and darktable-cli, in one run")
+
+
+def throughput_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench throughput``'s options."""
     bp.add_argument("--images", help="folder of JPEG photographs")
     bp.add_argument("--raw", metavar="DIR", help="folder of camera RAW files: vigproc correct beside rawpy's "
                     "development and the same TIFF written")
@@ -69,8 +81,10 @@ def register_bench(bsub) -> None:
                     "(another checkout's root): before and after in one run")
     bp.add_argument("--json", help="write the figures as JSON")
     bp.set_defaults(fn=cmd_bench_throughput)
-    bp = bsub.add_parser("scaling", help="vigproc watch and vigproc batch on full-size photographs with 1 and 2 "
-                         "workers, interleaved: photos/s and the ratio to one worker")
+
+
+def scaling_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench scaling``'s options."""
     bp.add_argument("--images", required=True, help="folder of JPEG photographs")
     bp.add_argument("--min-mp", type=float, default=0.75, help="smallest photograph, megapixels (default %(default)s)")
     bp.add_argument("--limit", type=number(1, 100_000, integer=True), help="use at most this many photographs")
@@ -83,8 +97,10 @@ def register_bench(bsub) -> None:
     bp.add_argument("--tmp", help="folder for the temporary files (default: the system's)")
     bp.add_argument("--json", help="write the figures as JSON")
     bp.set_defaults(fn=cmd_bench_scaling)
-    bp = bsub.add_parser("memory", help="peak memory of one worker (vigproc correct) on a 24 MP JPEG and "
-                         "16-bit TIFF")
+
+
+def memory_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench memory``'s options."""
     bp.add_argument("--width", type=number(64, 100_000, integer=True), default=6000,
                     help="frame width in px (default %(default)s)")
     bp.add_argument("--height", type=number(64, 100_000, integer=True), default=4000,
@@ -101,8 +117,7 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
     from vigproc.core.estimate import estimate
     from vigproc.io.images import read_image
 
-    protocol_image = benchmark("synthetic").protocol_image
-    table1_model = benchmark("synthetic").table1_model
+    from benchmarks.synthetic import protocol_image, table1_model
 
     if args.api:
         return _bench_speed_api(args)
@@ -125,10 +140,9 @@ def cmd_bench_speed(args: argparse.Namespace) -> int:
 
 def _bench_speed_api(args: argparse.Namespace) -> int:
     """``bench speed --api``: vigproc.estimate on clean-protocol crops beside the published peer."""
-    api_speed = benchmark("api_speed").api_speed
-    load_clean_bases = benchmark("clean").load_clean_bases
-    PEER_ENV = benchmark("peers").PEER_ENV
-    published_rgs = benchmark("peers").published_rgs
+    from benchmarks.api_speed import api_speed
+    from benchmarks.clean import load_clean_bases
+    from benchmarks.peers import PEER_ENV, published_rgs
 
     if not args.images:
         print("vigproc: bench speed --api: give --images (full-size camera frames, e.g. ../shared/data/jpeg_exif)",
@@ -146,11 +160,8 @@ def _bench_speed_api(args: argparse.Namespace) -> int:
     if exe:
         print(f"peer floor (process start and file I/O, a 16x16 frame): {r.peer_floor_ms:.1f} ms, "
               f"{r.peer_floor_cpu_ms:.1f} ms CPU")
-    print(f"{'case':<10}{'vigproc ms':>12}{'peer ms':>10}{'ratio':>8}{'net':>8}{'vigproc CPU':>13}{'peer CPU':>10}"
-          f"{'ratio':>8}{'fall-backs':>12}{'off-centre':>12}")
-    for c in r.cases:
-        print(f"{c.case:<10}{c.vigproc_ms:>12.1f}{c.peer_ms:>10.1f}{c.ratio:>8.2f}{c.ratio_net:>8.2f}"
-              f"{c.vigproc_cpu_ms:>13.1f}{c.peer_cpu_ms:>10.1f}{c.ratio_cpu:>8.2f}{c.fallbacks:>12}{c.off_centre:>12}")
+    API_SPEED_TABLE.print_rows((c.case, c.vigproc_ms, c.peer_ms, c.ratio, c.ratio_net, c.vigproc_cpu_ms, c.peer_cpu_ms,
+                                c.ratio_cpu, c.fallbacks, c.off_centre) for c in r.cases)
     print("medians (ms); ratio: vigproc / peer; net: vigproc / (peer - its floor); CPU: process time (the peer's "
           "child process by getrusage), first-round fall-backs and off-centre fits of the frames")
     return 0
@@ -163,7 +174,7 @@ def cmd_bench_learn(args: argparse.Namespace) -> int:
     from vigproc.io.protocol import read_protocol_images, vignetted
     from vigproc.stores.lensfun import diverse_lenses, pa_field
 
-    learn_speed = benchmark("learn").learn_speed
+    from benchmarks.learn import learn_speed
 
     folder = Path(args.images) if args.images else Path(str(resources.files("vigproc.data").joinpath("samples")))
     ims = read_protocol_images(_images_in(folder, args.limit), args.input_transfer, colour=True)
@@ -194,7 +205,7 @@ def cmd_bench_correct(args: argparse.Namespace) -> int:
     from vigproc.stores.lensfun import diverse_lenses
     from vigproc.stores.lensfun_io import kw_from_pa
 
-    table1_model = benchmark("synthetic").table1_model
+    from benchmarks.synthetic import table1_model
 
     h, w = args.height, args.width
     img = np.random.default_rng(0).random((h, w, 3), dtype=np.float32)
@@ -234,18 +245,15 @@ def cmd_bench_correct(args: argparse.Namespace) -> int:
 
 def cmd_bench_io(args: argparse.Namespace) -> int:
     """Frame read times per format (vs reading the bytes) and EXIF per file in batch."""
-    bench_formats = benchmark("io").bench_formats
-    bench_raw = benchmark("io").bench_raw
-    bench_exif = benchmark("io").bench_exif
+    from benchmarks.io import bench_exif, bench_formats, bench_raw
 
     print(f"reading a {args.width}x{args.height} RGB frame (best of {args.repeat}); 'bytes' = reading the file's bytes")
-    print(f"{'format':<20}{'MP':>7}{'MB':>9}{'read ms':>10}{'bytes ms':>10}{'ratio':>7}")
+    print(IO_TABLE.header())
     rows = bench_formats(args.height, args.width, args.repeat)
     if args.raw:
         rows += bench_raw(sorted(p for p in Path(args.raw).rglob("*") if p.is_file()), args.repeat)
     for r in rows:
-        print(f"{r.label:<20}{r.megapixels:>7.1f}{r.megabytes:>9.1f}{r.read_ms:>10.1f}{r.bytes_ms:>10.1f}"
-              f"{r.read_ms / max(r.bytes_ms, 1e-9):>7.1f}")
+        print(IO_TABLE.row(r.label, r.megapixels, r.megabytes, r.read_ms, r.bytes_ms, r.read_ms / max(r.bytes_ms, 1e-9)))
     if args.exif:
         files = _images_in(Path(args.exif))
         e = bench_exif(files, repeat=args.repeat)
@@ -258,7 +266,7 @@ def cmd_bench_io(args: argparse.Namespace) -> int:
 def cmd_bench_throughput(args: argparse.Namespace) -> int:
     """``vigproc correct`` on full-size photographs beside the floor (decode + encode +
     one exiftool batch) and darktable-cli, in one run (:mod:`benchmarks.throughput`)."""
-    T = benchmark("throughput")
+    from benchmarks import throughput as T
 
     if not (args.images or args.raw):
         raise VigprocError("bench throughput needs --images DIR or --raw DIR")
@@ -277,8 +285,8 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
 def cmd_bench_scaling(args: argparse.Namespace) -> int:
     """``vigproc watch`` and ``vigproc batch`` on full-size photographs with 1 and 2
     workers, interleaved (:mod:`benchmarks.scaling`)."""
-    S = benchmark("scaling")
-    T = benchmark("throughput")
+    from benchmarks import scaling as S
+    from benchmarks import throughput as T
 
     photos, _ = T.select_photos(Path(args.images), args.min_mp, args.limit)
     r = S.run_scaling(photos, workers=args.workers, rounds=args.rounds, frontends=args.frontends,
@@ -291,7 +299,7 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
 def cmd_bench_memory(args: argparse.Namespace) -> int:
     """Peak memory of one worker (``vigproc correct``) on a 24 MP JPEG and 16-bit TIFF
     (:mod:`benchmarks.memory`)."""
-    M = benchmark("memory")
+    from benchmarks import memory as M
 
     r = M.run_memory(args.width, args.height, workdir=Path(args.tmp) if args.tmp else None)
     print("\n".join(M.format_result(r)))

@@ -7,19 +7,12 @@ from __future__ import annotations
 
 import argparse
 import math
-from vigproc.frontends.commands._bench import benchmark
+
+from vigproc.frontends.commands._options import number
 
 
-def register(subparsers) -> None:
-    """No command of its own: a benchmark only (:func:`register_bench`)."""
-
-
-def register_bench(bsub) -> None:
-    from vigproc.frontends.commands._options import number
-
-    bp = bsub.add_parser("real-frames", help="harm of the default correction on real full-size camera JPEGs: "
-                         "brighter corners, fall-offs beyond real lenses, low confidence, pixels pushed past "
-                         "white, in-camera corrected frames; the harm rules off and on")
+def real_frames_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench real-frames``'s options."""
     bp.add_argument("--images", nargs="+", action="extend", metavar="DIR",
                     help="folders of camera JPEGs (repeatable; default ../shared/data/jpeg_exif)")
     bp.add_argument("--min-long-side", type=number(64, 10**6, integer=True), default=1000,
@@ -81,12 +74,10 @@ def _print_series(s) -> None:
 
 
 def cmd_bench_real_frames(args: argparse.Namespace) -> int:
-    from vigproc.frontends.commands._options import write_json_result
+    from benchmarks.cli._common import write_json_result
 
-    rfl = benchmark("real_frames_lensfun")
-    as_dict = benchmark("real_frames").as_dict
-    full_frames = benchmark("real_frames").full_frames
-    run = benchmark("real_frames").run
+    from benchmarks import real_frames_lensfun as rfl
+    from benchmarks.real_frames import as_dict, full_frames, run
 
     images = args.images or ["../shared/data/jpeg_exif"]
     files = full_frames(images, args.min_long_side, args.limit)

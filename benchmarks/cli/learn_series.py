@@ -7,18 +7,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-from vigproc.frontends.commands._bench import benchmark
+
+from benchmarks.cli._common import add_clean_bases
+from vigproc.frontends.commands._options import number
 
 
-def register(subparsers) -> None:
-    """No command of its own: a benchmark only (:func:`register_bench`)."""
-
-
-def register_bench(bsub) -> None:
-    from vigproc.frontends.commands._options import add_clean_bases, number
-
-    bp = bsub.add_parser("learn-series", help="learn as you go: a series of one lens setting (clean bases x a "
-                         "lensfun lens's field, with its EXIF) through 'vigproc batch --mode correct'")
+def learn_series_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench learn-series``'s options."""
     add_clean_bases(bp)
     bp.add_argument("--frames", type=number(3, 1000, integer=True), default=16,
                     help="frames in each series (default %(default)s)")
@@ -43,12 +38,11 @@ def cmd_bench_learn_series(args: argparse.Namespace) -> int:
     import os
     from pathlib import Path
 
-    from vigproc.frontends.commands._options import write_json_result
+    from benchmarks.cli._common import write_json_result
     from vigproc.stores.lensfun import diverse_lenses
 
-    lens_fields = benchmark("clean").lens_fields
-    load_clean_bases = benchmark("clean").load_clean_bases
-    run_series = benchmark("learn_series").run_series
+    from benchmarks.clean import lens_fields, load_clean_bases
+    from benchmarks.learn_series import run_series
 
     bases, _ = load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
     need = args.frames * args.series

@@ -7,19 +7,18 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from vigproc.frontends.commands._bench import benchmark
+
+from benchmarks.cli._common import Table, add_clean_bases
+from vigproc.frontends.commands._options import number
+
+#: Detection rates by the casts' corner dE2000, then on the clean bases and under
+#: luminance-only fall-offs (false detections).
+DETECTION_TABLE = Table((("frames", "<22"), ("n", ">7"), ("called cast", ">13"), ("rate", ">10"),
+                         ("median dE est", ">15.2f")))
 
 
-def register(subparsers) -> None:
-    """No command of its own: a benchmark only (:func:`register_bench`)."""
-
-
-def register_bench(bsub) -> None:
-    from vigproc.frontends.commands._options import add_clean_bases, number
-
-    bp = bsub.add_parser("colour-detect", help="colour-cast detection from one photograph: physical casts "
-                         "(cos^k_c of the chief ray's angle) rendered on the clean bases; detection rate by "
-                         "corner dE2000, false detections on the bases and under luminance-only fall-offs")
+def colour_detect_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench colour-detect``'s options."""
     add_clean_bases(bp)
     bp.add_argument("--targets", type=number(0.1, 100), nargs="+", default=None,
                     help="corner dE2000 of the rendered casts (default 1 2 3 4 5 7 10)")
@@ -39,7 +38,7 @@ def _pct(x: float) -> str:
 
 
 def cmd_bench_colour_detect(args: argparse.Namespace) -> int:
-    from vigproc.frontends.commands._options import write_json_result
+    from benchmarks.cli._common import write_json_result
     from vigproc.pipeline.processor import output_file
 
     output_file(args.json)
@@ -56,8 +55,8 @@ def bench_detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
 
     import numpy as np
 
-    C = benchmark("clean")
-    D = benchmark("colour_detect")
+    from benchmarks import clean as C
+    from benchmarks import colour_detect as D
 
     targets, directions = getattr(args, "targets", None), getattr(args, "directions", 8)
     theta_max, lenses = getattr(args, "theta_max", None), getattr(args, "lenses", 10)
@@ -78,11 +77,9 @@ def bench_detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
     print(f"colour-cast detection on {r.n_bases} clean colour bases (480x320, linear), casts cos^k_c(theta) at "
           f"{', '.join(f'{t:g}' for t in (theta_max or D.THETA_MAX))} deg corner angles x {directions} "
           f"hues; {r.ms_per_frame:.0f} ms/frame")
-    print(f"{'frames':<22}{'n':>7}{'called cast':>13}{'rate':>10}{'median dE est':>15}")
-    for row in r.by_target + [r.clean, r.luminance_only]:
-        label = f"cast {row.label}" if row.label.startswith("dE") else row.label
-        med = "-" if not math.isfinite(row.median_de_est) else f"{row.median_de_est:.2f}"
-        print(f"{label:<22}{row.n:>7}{row.detected:>13}{_pct(row.rate):>10}{med:>15}")
+    DETECTION_TABLE.print_rows((f"cast {row.label}" if row.label.startswith("dE") else row.label, row.n, row.detected,
+                                _pct(row.rate), row.median_de_est if math.isfinite(row.median_de_est) else "-")
+                               for row in r.by_target + [r.clean, r.luminance_only])
     print(f"detected at dE >= 5: {_pct(r.rate_at_5)} (target >= 80 %); false detections: clean "
           f"{_pct(r.clean.rate)}, luminance only {_pct(r.luminance_only.rate)} (target <= 5 %)")
     if r.clean.hits:

@@ -11,22 +11,30 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from benchmarks.cli._common import (Table, add_clean_bases, add_colour, add_estimator_bench, add_scene_prior,
+                                   estimator, scene_settings, write_json_result)
 from vigproc.errors import VigprocError
-from vigproc.frontends.commands._bench import add_colour, add_estimator_bench, add_scene_prior, estimator, scene_settings
-from vigproc.frontends.commands._options import add_clean_bases, number, write_json_result
+from vigproc.frontends.commands._options import number
 from vigproc.pipeline.processor import images_in as _images_in, output_file
-from vigproc.frontends.commands._bench import benchmark
 
 log = logging.getLogger("vigproc")
 
+#: bench lensfun's tables: the fields' errors, and the harm on the same images unvignetted.
+LENSFUN_TABLE = Table((("method", "<14"), ("frames", ">7"), ("median EV", ">11.3f"), ("p90 EV", ">9.3f"),
+                       ("uncorr EV", ">11.3f"), ("gain-free", ">11.3f"), ("uncorr gf", ">11.3f"),
+                       ("differ. EV", ">12.3f"), ("fallbk", ">8"), ("s/img", ">8.3f")))
+LENSFUN_HARM_TABLE = Table((("method", "<14"), ("frames", ">7"), ("median EV", ">11.3f"), ("worst EV", ">10.3f"),
+                            ("cand. med", ">11.3f"), ("fallbk", ">8")))
+#: bench clean's tables: the fields' errors, and the harm on the same crops unvignetted.
+CLEAN_TABLE = Table((("method", "<18"), ("fields", "<9"), ("median EV", ">10.3f"), ("p90 EV", ">8.3f"),
+                     ("frames med", ">11.3f"), ("uncorr", ">8.3f"), ("<=1sd", ">7.2f"), ("<=2sd", ">7.2f"),
+                     ("fallbk", ">8"), ("ms/frame", ">10.1f"), ("PSNR dB", ">9.2f")))
+CLEAN_HARM_TABLE = Table((("method", "<18"), ("frames", ">7"), ("median EV", ">11.3f"), ("worst EV", ">10.3f"),
+                          ("fallbk", ">8")))
 
-def register(subparsers) -> None:
-    """No command of its own: benchmarks only (:func:`register_bench`)."""
 
-
-def register_bench(bsub) -> None:
-    """The benchmarks ``synthetic``, ``lensfun``, ``clean``, ``crops``, ``real``, ``scene-scatter``, ``colour``."""
-    bp = bsub.add_parser("synthetic", help="Lyu 2010 Tables 2-3 protocol")
+def synthetic_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench synthetic``'s options."""
     bp.add_argument("--images", required=True, help="folder of images (BSDS val, say)")
     bp.add_argument("--limit", type=int, help="use at most this many images")
     bp.add_argument("--quantize", action="store_true", help="quantise the vignetted frames to 8 bits, as a JPEG would")
@@ -39,7 +47,10 @@ def register_bench(bsub) -> None:
     add_scene_prior(bp)
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_synthetic)
-    bp = bsub.add_parser("lensfun", help="real lens profiles from lensfun applied to natural images")
+
+
+def lensfun_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench lensfun``'s options."""
     bp.add_argument("--images", required=True, help="folder of images")
     bp.add_argument("--limit", type=int, help="use at most this many images")
     bp.add_argument("--lenses", type=int, default=20, help="lensfun lenses (default %(default)s)")
@@ -47,8 +58,10 @@ def register_bench(bsub) -> None:
     add_colour(bp)
     add_estimator_bench(bp)
     bp.set_defaults(fn=cmd_bench_lensfun)
-    bp = bsub.add_parser("clean", help="vignetting-free bases (central crops of camera frames) x real lens "
-                         "fields, with the published peer when built")
+
+
+def clean_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench clean``'s options."""
     add_clean_bases(bp)
     bp.add_argument("--crop", type=number(0.05, 1.0), default=0.4,
                     help="side fraction of each frame kept about its centre (default %(default)s; the "
@@ -72,8 +85,10 @@ def register_bench(bsub) -> None:
                          "them (odd frames)")
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_clean)
-    bp = bsub.add_parser("crops", help="the crop/shift test's AUC by fall-off and offset on clean bases, "
-                         "its false alarms and power; --calibrate writes its calibration")
+
+
+def crops_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench crops``'s options."""
     add_clean_bases(bp)
     bp.add_argument("--lenses", type=number(1, 100, integer=True), default=10,
                     help="lensfun lens shapes (default %(default)s)")
@@ -88,17 +103,24 @@ def register_bench(bsub) -> None:
                     "statistic) as a crop calibration")
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_crops)
-    bp = bsub.add_parser("real", help="photographs vignetted by others: known-field pairs and real lenses")
+
+
+def real_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench real``'s options."""
     bp.add_argument("--images", required=True, help="folder tree, e.g. ../shared/data/vignetted")
     add_estimator_bench(bp)
     bp.set_defaults(fn=cmd_bench_real)
-    bp = bsub.add_parser("scene-scatter", help="how vignetting-free photographs scatter a frame's lens-family fit, "
-                         "from the clean protocol's bases: the profile store's pooling (vigproc/data/scene_scatter.json)")
+
+
+def scene_scatter_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench scene-scatter``'s options."""
     bp.add_argument("-o", "--output", required=True, help="file to write (JSON)")
     add_clean_bases(bp)
     bp.set_defaults(fn=cmd_bench_scene_scatter)
-    bp = bsub.add_parser("colour", help="colour shading: per-channel fields from flat frames and DNG gain maps "
-                         "(flat), a single photograph's corner cast (detect)")
+
+
+def colour_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench colour``'s options."""
     bp.add_argument("--part", choices=["flat", "detect", "all"], default="flat",
                     help="which part to run (default %(default)s)")
     add_clean_bases(bp)
@@ -113,7 +135,7 @@ def cmd_bench_synthetic(args: argparse.Namespace) -> int:
     """Lyu 2010's synthetic protocol (Tables 2-3): Table 1's fields on natural images, every method."""
     from vigproc.io.images import read_image
 
-    S = benchmark("synthetic")
+    from benchmarks import synthetic as S
 
     settings = scene_settings(args.scene_prior)
     output_file(args.json)
@@ -139,8 +161,8 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     """Real lens fields from lensfun on natural images, and no harm on the same images unvignetted."""
     from vigproc.io.images import read_image
 
-    B = benchmark("lensfun")
-    protocol_image = benchmark("synthetic").protocol_image
+    from benchmarks import lensfun as B
+    from benchmarks.synthetic import protocol_image
 
     settings = scene_settings(args.scene_prior)
     output_file(args.json)
@@ -150,8 +172,7 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
     print(f"lensfun protocol: {args.lenses} lenses x {args.frames_per_lens} frames from {len(ims)} images "
           f"(input transfer {args.input_transfer}, 480x320, scene prior {args.scene_prior}); "
           "RMS of log2(estimated/true field)")
-    print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'p90 EV':>9}{'uncorr EV':>11}{'gain-free':>11}"
-          f"{'uncorr gf':>11}{'differ. EV':>12}{'fallbk':>8}{'s/img':>8}")
+    print(LENSFUN_TABLE.header())
     from vigproc.core.lensfamily import PROFILE_COMPONENTS
     from vigproc.stores.lensfun import lensfun_family
     from vigproc.stores.lensfun import diverse_lenses
@@ -164,15 +185,15 @@ def cmd_bench_lensfun(args: argparse.Namespace) -> int:
         fn(ims[0])
         r = B.run_lensfun(ims, name, fn, args.lenses, args.frames_per_lens)
         results.append(asdict(r))
-        print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}{r.uncorrected_median_ev:>11.3f}"
-              f"{r.gain_free_median_ev:>11.3f}{r.gain_free_uncorrected_ev:>11.3f}"
-              f"{r.differential_median_ev:>12.3f}{r.fallbacks:>8}{r.seconds_per_image:>8.3f}")
+        print(LENSFUN_TABLE.row(r.method, r.n_frames, r.median_ev, r.p90_ev, r.uncorrected_median_ev,
+                                r.gain_free_median_ev, r.gain_free_uncorrected_ev, r.differential_median_ev,
+                                r.fallbacks, r.seconds_per_image))
     print("do no harm (same images, no vignetting): RMS log2 of the applied field")
-    print(f"{'method':<14}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'cand. med':>11}{'fallbk':>8}")
+    print(LENSFUN_HARM_TABLE.header())
     for name in args.methods:
         r = B.run_flat(ims, name, estimator(name, settings=settings, family=family))
         results.append(asdict(r))
-        print(f"{r.method:<14}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.candidate_median_ev:>11.3f}{r.fallbacks:>8}")
+        print(LENSFUN_HARM_TABLE.row(r.method, r.n_frames, r.median_ev, r.worst_ev, r.candidate_median_ev, r.fallbacks))
     write_json_result(args.json, results)
     return 0
 
@@ -183,9 +204,8 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
     from vigproc.core.pixels import luminance
     from vigproc.stores.lensfun import lensfun_family
 
-    C = benchmark("clean")
-    PEER_ENV = benchmark("peers").PEER_ENV
-    published_rgs = benchmark("peers").published_rgs
+    from benchmarks import clean as C
+    from benchmarks.peers import PEER_ENV, published_rgs
 
     output_file(args.json)
     bases, names = C.load_clean_bases(args.images, args.min_long_side, args.limit, args.crop, colour=not args.grey)
@@ -229,26 +249,23 @@ def cmd_bench_clean(args: argparse.Namespace) -> int:
           f"{args.min_long_side} px from {' '.join(args.images)}; error = RMS of log2(estimated/true) "
           "about its mean (EV); median per field, then median / p90 over fields")
     print(f"lens family for lens-family: {family.lenses} lensfun lenses, the {len(lens)} test lenses left out")
-    head = (f"{'method':<18}{'fields':<9}{'median EV':>10}{'p90 EV':>8}{'frames med':>11}{'uncorr':>8}"
-            f"{'<=1sd':>7}{'<=2sd':>7}{'fallbk':>8}{'ms/frame':>10}{'PSNR dB':>9}")
     results = []
     groups = ([] if args.base_falloff else [("lensfun", lens)]) + ([] if args.no_table1 else
                                     [(f"table1-{i + 1}", [f]) for i, f in enumerate(C.table1_fields())])
-    print(head)
+    print(CLEAN_TABLE.header())
     for name, fn in methods.items():
         fn(bases[0], None)  # JIT warm-up outside the timings
         for label, fields in groups:
             r = C.run_fields(bases, name, fn, fields, label)
             results.append(asdict(r))
-            print(f"{r.method:<18}{r.fields:<9}{r.median_ev:>10.3f}{r.p90_ev:>8.3f}{r.frame_median_ev:>11.3f}"
-                  f"{r.uncorrected_ev:>8.3f}{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}{r.fallbacks:>8}"
-                  f"{r.ms_per_frame:>10.1f}{r.psnr_db:>9.2f}", flush=True)
+            print(CLEAN_TABLE.row(r.method, r.fields, r.median_ev, r.p90_ev, r.frame_median_ev, r.uncorrected_ev,
+                                  r.within_1sigma, r.within_2sigma, r.fallbacks, r.ms_per_frame, r.psnr_db), flush=True)
     print("no harm (the same crops, no vignetting): RMS of log2 of the applied field about its mean")
-    print(f"{'method':<18}{'frames':>7}{'median EV':>11}{'worst EV':>10}{'fallbk':>8}")
+    print(CLEAN_HARM_TABLE.header())
     for name, fn in methods.items():
         r = C.run_harm(bases, name, fn)
         results.append(asdict(r))
-        print(f"{r.method:<18}{r.n_frames:>7}{r.median_ev:>11.3f}{r.worst_ev:>10.3f}{r.fallbacks:>8}")
+        print(CLEAN_HARM_TABLE.row(r.method, r.n_frames, r.median_ev, r.worst_ev, r.fallbacks))
     write_json_result(args.json, {"bases": names, "results": results})
     return 0
 
@@ -260,8 +277,8 @@ def cmd_bench_crops(args: argparse.Namespace) -> int:
     from vigproc.stores.lensfun import lensfun_family
     from vigproc.stores.lensfun import diverse_lenses
 
-    C = benchmark("clean")
-    K = benchmark("crops")
+    from benchmarks import clean as C
+    from benchmarks import crops as K
 
     if args.calibrate and args.statistic != "shift":
         print("vigproc: bench crops: --calibrate writes the test's own null: it needs --statistic shift",
@@ -307,7 +324,7 @@ def cmd_bench_real(args: argparse.Namespace) -> int:
     from vigproc.io.images import read_image
     from vigproc.pipeline.processor import IMAGE_SUFFIXES
 
-    R = benchmark("real")
+    from benchmarks import real as R
 
     settings = scene_settings(args.scene_prior)
     output_file(args.json)
@@ -378,7 +395,7 @@ def cmd_bench_scene_scatter(args: argparse.Namespace) -> int:
     from vigproc.core.pooling import frame_fit, scene_scatter_record
     from vigproc.core.robust import evidence_copy
 
-    C = benchmark("clean")
+    from benchmarks import clean as C
 
     output_file(args.output)
     bases, names = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
@@ -405,8 +422,8 @@ def cmd_bench_colour(args: argparse.Namespace) -> int:
     output_file(args.json)
     data: dict = {}
     if args.part in ("flat", "all"):
-        B = benchmark("colour")
-        load_clean_bases = benchmark("clean").load_clean_bases
+        from benchmarks import colour as B
+        from benchmarks.clean import load_clean_bases
 
         bases, _ = load_clean_bases(args.images, args.min_long_side, args.limit, colour=True)
         rows = B.run_flat(B.physical_fields() + B.gainmap_fields(), bases, frames=args.frames, seed=args.seed)
@@ -415,7 +432,7 @@ def cmd_bench_colour(args: argparse.Namespace) -> int:
         data["flat"] = [asdict(r) for r in rows]
         data["dng"] = [asdict(r) for r in dng]
     if args.part in ("detect", "all"):
-        from vigproc.frontends.commands.colourdetect import bench_detect_report
+        from benchmarks.cli.colour_detect import bench_detect_report
 
         code, data["detect"] = bench_detect_report(args)  # its options at their defaults (see bench colour-detect)
         if code:

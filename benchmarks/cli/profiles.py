@@ -9,21 +9,25 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from benchmarks.cli._common import Table, add_clean_bases, estimator, write_json_result
 from vigproc.core.methods import METHODS
 from vigproc.errors import EXIT_CODES
-from vigproc.frontends.commands._bench import estimator
-from vigproc.frontends.commands._options import add_clean_bases, add_transfer, number, write_json_result
+from vigproc.frontends.commands._options import add_transfer, number
 from vigproc.pipeline.processor import images_in as _images_in, output_file
-from vigproc.frontends.commands._bench import benchmark
+#: The tables of bench profile (by pooling), profile-clean (by method), profile-interp
+#: (between which bins) and profile-flat (by frame).
+PROFILE_TABLE = Table((("pooling", "<14"), ("frames", ">7"), ("lenses", ">8"), ("median EV", ">11.3f"),
+                       ("p90 EV", ">9.3f")))
+PROFILE_CLEAN_TABLE = Table((("method", "<24"), ("frames", ">7"), ("lenses", ">8"), ("median EV", ">11.3f"),
+                             ("p90 EV", ">9.3f"), ("<=1sd", ">7.2f"), ("<=2sd", ">7.2f")))
+PROFILE_INTERP_TABLE = Table((("method", "<24"), ("between", "<10"), ("points", ">7"), ("median EV", ">11.4f"),
+                              ("p90 EV", ">9.4f"), ("<=1sd", ">7.2f"), ("<=2sd", ">7.2f")))
+PROFILE_FLAT_TABLE = Table((("frame", "<20"), ("method", "<12"), ("error EV", ">9.3f"), ("uncorr", ">8.3f"),
+                            ("sigma", ">7.3f"), ("trusted", ">9")))
 
 
-def register(subparsers) -> None:
-    """No command of its own: benchmarks only (:func:`register_bench`)."""
-
-
-def register_bench(bsub) -> None:
-    """The benchmarks ``profile``, ``profile-clean``, ``profile-interp``, ``profile-flat``."""
-    bp = bsub.add_parser("profile", help="profile accuracy versus number of frames (lensfun lenses)")
+def profile_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench profile``'s options."""
     bp.add_argument("--images", required=True, help="folder of images")
     bp.add_argument("--limit", type=int, help="use at most this many images")
     bp.add_argument("--lenses", type=int, default=20, help="lensfun lenses (default %(default)s)")
@@ -33,8 +37,10 @@ def register_bench(bsub) -> None:
                     help="skip the joint multi-frame fit (its cost grows with the frames)")
     add_transfer(bp)
     bp.set_defaults(fn=cmd_bench_profile)
-    bp = bsub.add_parser("profile-clean", help="profiles learned through a real store on vignetting-free bases x "
-                         "lensfun fields, beside the published peer pooled the same way")
+
+
+def profile_clean_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench profile-clean``'s options."""
     add_clean_bases(bp)
     bp.add_argument("--lenses", type=number(1, 100, integer=True), default=20,
                     help="lensfun lenses (default %(default)s)")
@@ -46,14 +52,18 @@ def register_bench(bsub) -> None:
     bp.add_argument("--peer", help="the built rgs_peer executable (default: $VIGPROC_RGS_PEER)")
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_profile_clean)
-    bp = bsub.add_parser("profile-interp", help="a lens's profiles answering between their focal and aperture "
-                         "bins, on lensfun's held-out calibrations")
+
+
+def profile_interp_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench profile-interp``'s options."""
     bp.add_argument("--points", type=number(1, 100_000, integer=True), default=200,
                     help="held-out calibrations at most (default %(default)s)")
     bp.add_argument("--json", help="write the figures to this file")
     bp.set_defaults(fn=cmd_bench_profile_interp)
-    bp = bsub.add_parser("profile-flat", help="profiles learned from a few shots of a flat field "
-                         "(Zheng et al.'s white pairs), flat-field against the default")
+
+
+def profile_flat_arguments(bp: argparse.ArgumentParser) -> None:
+    """``vigproc bench profile-flat``'s options."""
     bp.add_argument("--images", default="../shared/data/vignetted", help="folder with white*_vig / white pairs "
                     "(default %(default)s)")
     bp.add_argument("--methods", nargs="+", default=["flat-field", "default"], choices=list(METHODS),
@@ -67,8 +77,8 @@ def cmd_bench_profile(args: argparse.Namespace) -> int:
     """Profile accuracy after 1, 5, 20 frames of real lens fields, per pooling method."""
     from vigproc.io.images import read_image
 
-    B = benchmark("profile")
-    protocol_image = benchmark("synthetic").protocol_image
+    from benchmarks import profile as B
+    from benchmarks.synthetic import protocol_image
 
     files = _images_in(Path(args.images), args.limit)
     if len(files) < max(args.counts):
@@ -85,9 +95,7 @@ def cmd_bench_profile(args: argparse.Namespace) -> int:
     rows, trust = B.run(ims, fn, args.lenses, args.counts, joint=joint, store=True)
     print(f"profile accuracy: {args.lenses} lensfun lenses, frames from {len(ims)} images (480x320); "
           "RMS of log2(pooled/true field)")
-    print(f"{'pooling':<14}{'frames':>7}{'lenses':>8}{'median EV':>11}{'p90 EV':>9}")
-    for r in rows:
-        print(f"{r.pooling:<14}{r.n_frames:>7}{r.n_lenses:>8}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}")
+    PROFILE_TABLE.print_rows((r.pooling, r.n_frames, r.n_lenses, r.median_ev, r.p90_ev) for r in rows)
     print(f"trusted store profiles: {trust.n_trusted}/{trust.n_lenses} lenses within {trust.max_frames} frames, "
           f"after a median {trust.median_frames:.0f} frames, error then {trust.median_ev:.3f} EV median "
           f"(p90 {trust.p90_ev:.3f}); each frame estimated alone: {trust.single_frame_median_ev:.3f} EV median")
@@ -99,10 +107,9 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
     from vigproc.core.lensfamily import PROFILE_COMPONENTS
     from vigproc.stores.lensfun import lensfun_family
 
-    C = benchmark("clean")
-    B = benchmark("profile")
-    PEER_ENV = benchmark("peers").PEER_ENV
-    published_rgs = benchmark("peers").published_rgs
+    from benchmarks import clean as C
+    from benchmarks import profile as B
+    from benchmarks.peers import PEER_ENV, published_rgs
 
     output_file(args.json)
     bases, _ = C.load_clean_bases(args.images, args.min_long_side, args.limit, colour=not args.grey)
@@ -123,10 +130,8 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
           f"{len(bases)} clean bases (480x320, {'luminance' if args.grey else 'colour'}, linear) in "
           f"{args.orders} order(s) of its own; error = RMS of log2(profile/true field) about its mean (EV), "
           "median / p90 over the lens x order runs")
-    print(f"{'method':<24}{'frames':>7}{'lenses':>8}{'median EV':>11}{'p90 EV':>9}{'<=1sd':>7}{'<=2sd':>7}")
-    for r in rows:
-        print(f"{r.method:<24}{r.n_frames:>7}{r.n_lenses:>8}{r.median_ev:>11.3f}{r.p90_ev:>9.3f}"
-              f"{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}")
+    PROFILE_CLEAN_TABLE.print_rows((r.method, r.n_frames, r.n_lenses, r.median_ev, r.p90_ev, r.within_1sigma,
+                                    r.within_2sigma) for r in rows)
     print(f"trusted (2 sigma < {trust.bound_ev:g} EV): {trust.n_trusted}/{trust.n_lenses} lenses, after a median "
           f"{trust.median_frames:.0f} frames; error then below the bound on {trust.share_within_bound:.0%} of them, "
           f"and on {trust.share_within_bound_later:.0%} of trusted profiles at the counts above")
@@ -136,16 +141,14 @@ def cmd_bench_profile_clean(args: argparse.Namespace) -> int:
 
 def cmd_bench_profile_interp(args: argparse.Namespace) -> int:
     """A lens's profiles answering between their bins, on lensfun's held-out calibrations."""
-    B = benchmark("profile")
+    from benchmarks import profile as B
 
     output_file(args.json)
     rows = B.run_interpolation(max_points=args.points)
     print("between bins: lensfun zoom lenses' interior calibrations held out, the others stored as profiles; "
           "error = RMS of log2(answer/held-out calibration) about its mean (EV)")
-    print(f"{'method':<24}{'between':<10}{'points':>7}{'median EV':>11}{'p90 EV':>9}{'<=1sd':>7}{'<=2sd':>7}")
-    for r in rows:
-        print(f"{r.method:<24}{r.axis:<10}{r.n_points:>7}{r.median_ev:>11.4f}{r.p90_ev:>9.4f}"
-              f"{r.within_1sigma:>7.2f}{r.within_2sigma:>7.2f}")
+    PROFILE_INTERP_TABLE.print_rows((r.method, r.axis, r.n_points, r.median_ev, r.p90_ev, r.within_1sigma,
+                                     r.within_2sigma) for r in rows)
     write_json_result(args.json, [asdict(r) for r in rows])
     return 0
 
@@ -156,8 +159,8 @@ def cmd_bench_profile_flat(args: argparse.Namespace) -> int:
     from vigproc.io.images import read_image
     from vigproc.pipeline.processor import IMAGE_SUFFIXES
 
-    B = benchmark("profile")
-    find_inputs = benchmark("real").find_inputs
+    from benchmarks import profile as B
+    from benchmarks.real import find_inputs
 
     output_file(args.json)
     pairs = [(v, c) for v, c in find_inputs(Path(args.images), IMAGE_SUFFIXES)[0]
@@ -172,9 +175,7 @@ def cmd_bench_profile_flat(args: argparse.Namespace) -> int:
     print(f"flat-field profiles: {len(pairs)} white pairs under {args.images}, 3 unevenly lit shots of each "
           f"learned into a store (input transfer {args.input_transfer}); error = RMS of log2(profile/true field) "
           "about its mean (EV)")
-    print(f"{'frame':<20}{'method':<12}{'error EV':>9}{'uncorr':>8}{'sigma':>7}{'trusted':>9}")
-    for r in rows:
-        print(f"{r.name:<20}{r.method:<12}{r.error_ev:>9.3f}{r.uncorrected_ev:>8.3f}{r.sigma_ev:>7.3f}"
-              f"{'yes' if r.trusted else 'no':>9}")
+    PROFILE_FLAT_TABLE.print_rows((r.name, r.method, r.error_ev, r.uncorrected_ev, r.sigma_ev,
+                                   "yes" if r.trusted else "no") for r in rows)
     write_json_result(args.json, [asdict(r) for r in rows])
     return 0
