@@ -151,7 +151,7 @@ def frame_coefficients_table(bases: Sequence[np.ndarray], lenses: Sequence[Bench
     from vigproc.io.protocol import vignetted
     from vigproc.core.family_fit import colour_of
     from vigproc.core.pixels import luminance
-    from vigproc.forensics.lensmatch import frame_fit
+    from vigproc.forensics.lensmatch import luminance_family_fit
 
     out = np.full((len(lenses), len(bases), family.n_components), np.nan)
     secs = []
@@ -159,7 +159,7 @@ def frame_coefficients_table(bases: Sequence[np.ndarray], lenses: Sequence[Bench
         for j, im in enumerate(bases):
             t0 = time.perf_counter()
             frame = vignetted(im, lens.log_field()) if lens is not None else im
-            r = frame_fit(luminance(frame), family, colour=colour_of(frame))
+            r = luminance_family_fit(luminance(frame), family, colour=colour_of(frame))
             secs.append(time.perf_counter() - t0)
             if r is not None:
                 out[i, j] = r.coefficients

@@ -10,7 +10,7 @@ import pytest
 from vigproc.core._kernels.robust import CAUCHY, HUBER, normal_equations
 from vigproc.core.estimate import OffCentreRule, _off_centre_choice
 from vigproc.core.family_fit import (FamilySettings, _geometry_columns, _geometry_pairs, fit_family, fit_off_centre,
-                                     half_diagonal, luminance_copy, off_centre_fit, pairs_at, settings_index,
+                                     corner_radius, luminance_copy, off_centre_fit, pairs_at, settings_index,
                                      with_colour)
 from vigproc.core.lensfamily import profile_family
 from vigproc.core.pixels import luminance
@@ -38,7 +38,7 @@ def test_geometry_pairs_are_the_numpy_columns_differenced(geo):
     L, valid, xs, ys, C, _ = with_colour(luminance_copy(luminance(frame), s, None), frame, s)
     index = settings_index(L, valid, C, s)
     fam = profile_family()
-    radius = half_diagonal(W, H)
+    radius = corner_radius(W, H)
     X, Y = xs[None, :] / radius, ys[:, None] / radius
     coef = np.array([0.4, -0.2, 0.1])
     geo = np.array(geo)
@@ -190,7 +190,7 @@ def test_geometry_fit_in_one_compiled_loop_is_the_python_loop(elliptical, iterat
     L, valid, xs, ys, C, _ = with_colour(luminance_copy(lum, s, None), frame, s)
     index = settings_index(L, valid, C, s)
     fam = profile_family().truncated(len(c))
-    radius = half_diagonal(W, H)
+    radius = corner_radius(W, H)
     pm, pinv = _prior_with_geometry(fam, LensHint(), 4 if elliptical else 2, 0.5)
     args = (index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv, s, elliptical, iterations)
     got = _geometry_fit(*args)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from vigproc.core.estimate import OffCentreRule, estimate_default
-from vigproc.core.family_fit import FamilySettings, half_diagonal, luminance_copy
+from vigproc.core.family_fit import FamilySettings, corner_radius, luminance_copy
 from vigproc.core.glow import GlowTest, glow_advantage
 from vigproc.core.lensfamily import profile_family
 from vigproc.stores.lensfun import pa_field
@@ -19,7 +19,7 @@ H, W = 320, 480
 
 def _rho() -> np.ndarray:
     y, x = np.mgrid[0:H, 0:W]
-    return np.hypot(x - (W - 1) / 2, y - (H - 1) / 2) / half_diagonal(W, H)
+    return np.hypot(x - (W - 1) / 2, y - (H - 1) / 2) / corner_radius(W, H)
 
 
 def _glow(k: float = -1.5, rho0: float = 0.25) -> np.ndarray:

@@ -21,7 +21,7 @@ from vigproc.forensics.lensmatch import (
     family_fingerprint,
     fit_match_calibration,
     whiten,
-    frame_fit,
+    luminance_family_fit,
     pooled_d2,
     reference_coefficients,
 )
@@ -50,7 +50,7 @@ def calibration(classes):
     for i in range(40):
         base = textured(H, W, seed=300 + i, contrast=0.15)
         for model, field in ((_identity(), 1.0), *((c.true_model(W, H), c.field(H, W)) for c in classes[:2])):
-            fc = frame_fit(base * field, fam)
+            fc = luminance_family_fit(base * field, fam)
             rows.append(fc.coefficients - reference_coefficients(model, W, H, fam))
             groups.append(i)
     return fit_match_calibration(np.array(rows), groups, fam, source="test")
@@ -75,8 +75,8 @@ def test_frame_fit_is_equivariant():
     img = textured(H, W, seed=3, contrast=0.15)
     c = np.array([-4.0, 1.0])
     model, _ = profile_to_model(fam.mean + c @ fam.components, fam.radii, W, H)
-    c0 = frame_fit(img, fam).coefficients
-    c1 = frame_fit(img * np.exp(model.log_field((H, W))), fam).coefficients
+    c0 = luminance_family_fit(img, fam).coefficients
+    c1 = luminance_family_fit(img * np.exp(model.log_field((H, W))), fam).coefficients
     c_id = reference_coefficients(_identity(), W, H, fam)
     assert np.allclose(c1 - c0, c - c_id, atol=0.3)
 
@@ -168,7 +168,7 @@ def test_a_fit_no_model_can_hold_is_insufficient_signal(classes, calibration, mo
     import vigproc.forensics.verdicts as verdicts  # where the check looks the lens-match fit up
     from vigproc.core.family_fit import FrameCoefficients
 
-    monkeypatch.setattr(verdicts, "frame_fit", lambda lum, fam=None, settings=None, colour=None: FrameCoefficients(
+    monkeypatch.setattr(verdicts, "luminance_family_fit", lambda lum, fam=None, settings=None, colour=None: FrameCoefficients(
         np.array([5e3, -4e3]), np.eye(2), 1000))
     img = textured(H, W, seed=6, contrast=0.15) * classes[4].field(H, W)
     v = forensic_check(img, key_of(classes[4]), calibration=calibration)

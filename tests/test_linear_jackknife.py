@@ -11,7 +11,7 @@ import pytest
 from vigproc.core import family_fit as ff
 from vigproc.core._kernels.blocks import block_normal
 from vigproc.core.family_fit import (FamilySettings, bin_rho, family_for, field_sigma_ev, fit_family,
-                                     half_diagonal, linear_jackknife, luminance_copy, pairs_at, settings_index,
+                                     corner_radius, linear_jackknife, luminance_copy, pairs_at, settings_index,
                                      with_colour)
 from vigproc.core.lensfamily import profile_family
 from vigproc.core.pixels import luminance
@@ -33,7 +33,7 @@ def _pairs(frame: np.ndarray, s: FamilySettings):
     as fit_family makes them."""
     L, valid, xs, ys, C, _ = with_colour(luminance_copy(luminance(frame), s, None), frame, s)
     fam = family_for(profile_family(), True)
-    M, B = fam.profiles(bin_rho(xs, ys, half_diagonal(W, H)))
+    M, B = fam.profiles(bin_rho(xs, ys, corner_radius(W, H)))
     index = settings_index(L, valid, C, s)
     d, a = pairs_at(index, M, B)
     a = a[:, :fam.n_components]

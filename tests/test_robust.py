@@ -184,7 +184,7 @@ def test_too_few_usable_bins_is_no_fit_at_all(what):
 # ------------------------------------------------------------------ evidence
 def test_evidence_is_the_working_copy_before_the_scene_division():
     frame = _frame(CENTRED, 2)
-    blob = R.frame_evidence(frame, PLAIN)
+    blob = R.luminance_evidence(frame, PLAIN)
     wc, back = R.working_copy(frame, PLAIN), R.evidence_copy(blob)
     np.testing.assert_allclose(back.L, wc.L, atol=1e-6)  # stored as float32
     np.testing.assert_array_equal(back.valid, wc.valid)
@@ -192,7 +192,7 @@ def test_evidence_is_the_working_copy_before_the_scene_division():
     # one working copy for both: the same model and the same evidence as separately
     scene = R.RobustSettings()
     m, blob2 = R.estimate_robust_with_evidence(frame, scene)
-    assert blob2 == R.frame_evidence(frame, scene)
+    assert blob2 == R.luminance_evidence(frame, scene)
     assert _ev_rms(m.candidate or m, R.estimate_robust(frame, scene).candidate or m) < 1e-9
 
 
@@ -209,7 +209,7 @@ def test_format_1_evidence_had_the_scene_divided_out():
 
 
 def test_evidence_refuses_what_is_not_evidence():
-    good = R.frame_evidence(_frame(CENTRED, 1), PLAIN)
+    good = R.luminance_evidence(_frame(CENTRED, 1), PLAIN)
     with pytest.raises(ValueError, match="not frame evidence"):
         R.evidence_copy(b"junk")
     with pytest.raises(ValueError, match="not frame evidence"):

@@ -620,7 +620,7 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
 
 def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
                    settings: RobustSettings | None = None) -> bytes:
-    """A frame's data for its lens's profile (:func:`vigproc.core.robust.frame_evidence`,
+    """A frame's data for its lens's profile (:func:`vigproc.core.robust.luminance_evidence`,
     pooled by :mod:`vigproc.core.pooling`), prepared as :func:`estimate` prepares it for
     the default method (luminance, clipped pixels masked, binned, log), before the
     scene prior.
@@ -633,7 +633,7 @@ def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
     InvalidImageError
         As :func:`estimate`.
     """
-    from vigproc.core.robust import frame_evidence as _evidence
+    from vigproc.core.robust import luminance_evidence as _evidence
 
     a = check_image(img, channel_axis)
     return _evidence(luminance(a), settings or RobustSettings(), clipped_mask(a), colour_of(a))

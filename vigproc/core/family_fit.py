@@ -3,7 +3,7 @@
 Why one module of about 1200 lines: steps 1-7 below are one estimator. Its stages (the
 working copy and its gradient pairs, the IRLS fit, the jackknife, the profile written as a
 Kang-Weiss model and the off-centre fits) share one settings record
-(:class:`FamilySettings`) and one working copy (:class:`WorkingCopy`) and are tuned
+(:class:`FamilySettings`) and one working copy (:class:`FamilyWorkingCopy`) and are tuned
 together (``docs/benchmarks/clean.md``); split by stage, each module would import most of
 the others' internals. Its compiled loop is in :mod:`vigproc.core._kernels.irls`.
 
@@ -222,7 +222,7 @@ EVIDENCE_SETTINGS = FamilySettings(**EVIDENCE_FIT, jackknife_blocks=2, jackknife
                                    sigma_scale=2.25, sigma_floor=0.01, grey_sigma_scale=2.25, min_snr=0.75)
 
 
-class WorkingCopy(NamedTuple):
+class FamilyWorkingCopy(NamedTuple):
     """A frame's binned log working copy: log luminance ``L`` and its usable bins
     ``valid`` (h, w), the bins' centres ``xs`` (w,), ``ys`` (h,) in px from the frame
     centre, the R, G, B log copies ``C`` (3, h, w) that weigh pairs by colour (None: a
@@ -236,14 +236,14 @@ class WorkingCopy(NamedTuple):
     k: int
 
 
-def luminance_copy(lum: np.ndarray, settings: FamilySettings, mask: np.ndarray | None) -> WorkingCopy:
+def luminance_copy(lum: np.ndarray, settings: FamilySettings, mask: np.ndarray | None) -> FamilyWorkingCopy:
     """The luminance's working copy (step 1 of the module doc)."""
     h, w = lum.shape
     L, valid, k = binned_log_copy(lum, settings.work_size, settings.dark_fraction, mask)
-    return WorkingCopy(L, valid, binned_coords(w, k), binned_coords(h, k), None, k)
+    return FamilyWorkingCopy(L, valid, binned_coords(w, k), binned_coords(h, k), None, k)
 
 
-def with_colour(copy: WorkingCopy, colour: np.ndarray, settings: FamilySettings) -> WorkingCopy:
+def with_colour(copy: FamilyWorkingCopy, colour: np.ndarray, settings: FamilySettings) -> FamilyWorkingCopy:
     """A luminance working copy made the colour fit's: the R, G, B log copies of
     ``colour`` (H×W×3, linear), and only the bins every channel can use
     (:func:`_with_chroma`)."""
@@ -266,7 +266,7 @@ def same_copy(a: FamilySettings, b: FamilySettings) -> bool:
 
 
 def _working_copy(lum: np.ndarray, settings: FamilySettings, mask: np.ndarray | None,
-                  colour: np.ndarray | None = None) -> WorkingCopy:
+                  colour: np.ndarray | None = None) -> FamilyWorkingCopy:
     """The working copy a fit reads: the colour fit's when ``colour`` is given
     (:func:`with_colour`), else the luminance's."""
     h, w = lum.shape
@@ -502,7 +502,7 @@ def _block_labels(shape: tuple[int, int], nb: int) -> np.ndarray:
     return (nb * (np.arange(hb) * nb // hb)[:, None] + (np.arange(wb) * nb // wb)[None, :]).astype(np.int64)
 
 
-def half_diagonal(width: int, height: int) -> float:
+def corner_radius(width: int, height: int) -> float:
     """Distance (px) from the frame centre to its corner pixel's centre: ρ = 1 there."""
     return math.hypot((width - 1) / 2.0, (height - 1) / 2.0)
 
@@ -650,7 +650,7 @@ def _frame_corners(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
 def frame_rho_grid(width: int, height: int, n: int = 16) -> np.ndarray:
     """ρ (half-diagonals from the frame centre) on the :func:`_frame_grid`: where a
     family fit's field and its uncertainty are summarised."""
-    return bin_rho(*_frame_grid(width, height, n), half_diagonal(width, height))
+    return bin_rho(*_frame_grid(width, height, n), corner_radius(width, height))
 
 
 def field_sigma_ev(family: LensFamily, cov: np.ndarray, width: int, height: int) -> float:
@@ -678,7 +678,7 @@ def profile_to_model(log_profile: np.ndarray, radii: np.ndarray, width: int, hei
     rms_ev : float
         RMS (over ρ) of the written model's log2 error against the profile.
     """
-    R = half_diagonal(width, height)
+    R = corner_radius(width, height)
     e1, e2 = shape
     cx, cy = _frame_corners(width, height)
     cx, cy = (cx - center[0]) / R, (cy - center[1]) / R
@@ -884,7 +884,7 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
                mask: np.ndarray | None = None, family: LensFamily | None = None,
                hint: LensHint | None = None, work_size: int = CENTRE_WORK_SIZE, iterations: int = 12,
                colour: np.ndarray | None = None, uncertainty: bool = True,
-               copy: WorkingCopy | None = None) -> CentreFit:
+               copy: FamilyWorkingCopy | None = None) -> CentreFit:
     """Fit the fall-off's centre together with its family coefficients (Gauss-Newton
     on the centre, IRLS inside), from the centred fit's coefficients ``c``.
 
@@ -904,7 +904,7 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
     if copy is None:
         copy = _working_copy(lum, replace(settings, work_size=work_size), mask, colour)
     L, valid, xs, ys, C, _ = copy
-    radius = half_diagonal(w, h)
+    radius = corner_radius(w, h)
     # the centre within about half a half-diagonal
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 2, 0.5)
     # the pairs and their weights stay; only the field divided out moves with the centre
@@ -935,7 +935,7 @@ OFF_CENTRE_SPREAD = 0.5
 def fit_off_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
                    mask: np.ndarray | None = None, family: LensFamily | None = None,
                    hint: LensHint | None = None, colour: np.ndarray | None = None,
-                   copy: WorkingCopy | None = None) -> VignettingModel | None:
+                   copy: FamilyWorkingCopy | None = None) -> VignettingModel | None:
     """The lens family's fall-off with a free centre and an elliptical shape, from the
     centred fit's coefficients ``c``: the default estimator's fit for a frame whose
     centre moves (a crop, a shifted lens, a stitched image).
@@ -1003,7 +1003,7 @@ class OffCentreFit:
 def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
                    mask: np.ndarray | None = None, family: LensFamily | None = None,
                    hint: LensHint | None = None, colour: np.ndarray | None = None,
-                   copy: WorkingCopy | None = None) -> OffCentreFit | None:
+                   copy: FamilyWorkingCopy | None = None) -> OffCentreFit | None:
     """:func:`fit_off_centre` up to its uncertainty (:class:`OffCentreFit`); parameters
     and None as there."""
     t0 = time.perf_counter()
@@ -1012,7 +1012,7 @@ def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
     L, valid, xs, ys, C, _ = _working_copy(lum, settings, mask, colour) if copy is None else copy
     if int(valid.sum()) < MIN_VALID_BINS:
         return None
-    radius = half_diagonal(w, h)
+    radius = corner_radius(w, h)
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 4, OFF_CENTRE_SPREAD)
     index = settings_index(L, valid, C, settings)
     coef, geo, d, a, sol, pm_it, steps = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c,
@@ -1043,7 +1043,7 @@ def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
 
 
 def pair_losses(lum: np.ndarray, models: Sequence[VignettingModel], settings: FamilySettings = FamilySettings(),
-                mask: np.ndarray | None = None, copy: WorkingCopy | None = None,
+                mask: np.ndarray | None = None, copy: FamilyWorkingCopy | None = None,
                 index: PairIndex | None = None) -> list[float]:
     """Mean Cauchy loss log(1 + (e/σ)²) per pair of the frame's log differences once each
     model's field is divided out: how well a field explains the frame, the same measure
@@ -1138,7 +1138,7 @@ def frame_coefficients(L: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.
     valid, C = _with_chroma(valid, channels, settings)
     if int(valid.sum()) < MIN_VALID_BINS:
         return None
-    M, B = fam.profiles(bin_rho(xs, ys, half_diagonal(width, height)))
+    M, B = fam.profiles(bin_rho(xs, ys, corner_radius(width, height)))
     index = settings_index(L, valid, C, settings)
     d, a = pairs_at(index, M, B)
     labels, wt = index.labels, index.weight
@@ -1209,7 +1209,7 @@ def _near_threshold(sigma_lin: float, scale: float, floor: float, spread: float,
 def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
                mask: np.ndarray | None = None, family: LensFamily | None = None,
                hint: LensHint | None = None,
-               colour: np.ndarray | None = None, copy: WorkingCopy | None = None,
+               colour: np.ndarray | None = None, copy: FamilyWorkingCopy | None = None,
                uncertainty: bool = True, ev_checks: tuple[float, ...] = (),
                index: PairIndex | None = None) -> FamilyFit:
     """Estimate a centred lens fall-off from an H×W linear luminance image.
@@ -1231,7 +1231,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     colour : ndarray, H×W×3, linear, optional
         The frame's R, G, B (:func:`colour_of`): pairs are weighted by how alike their
         channels change (module doc, step 2).
-    copy : WorkingCopy, optional
+    copy : FamilyWorkingCopy, optional
         The frame's working copy at ``settings.work_size`` (:func:`luminance_copy`, and
         :func:`with_colour` for ``colour``), when the caller has it; ``mask`` and
         ``colour`` are then not read.
@@ -1261,7 +1261,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
         log.debug("too few usable pixels (%d bins); no correction", int(valid.sum()))
         q = FitQuality(confidence=0.0, fallback=True, seconds=time.perf_counter() - t0)
         return FamilyFit(VignettingModel.identity(w, h, method=METHOD, quality=q), None)
-    radius = half_diagonal(w, h)
+    radius = corner_radius(w, h)
     M, B = fam.profiles(bin_rho(xs, ys, radius))
     index = settings_index(L, valid, C, settings) if index is None else index
     d, a = pairs_at(index, M, B)

@@ -40,7 +40,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from vigproc.core.family_fit import (FamilySettings, WorkingCopy, bin_rho, family_for, half_diagonal, irls,
+from vigproc.core.family_fit import (FamilySettings, FamilyWorkingCopy, bin_rho, family_for, corner_radius, irls,
                                      mean_cauchy_loss, pairs_at, settings_index)
 from vigproc.core.lensfamily import LensFamily
 
@@ -81,14 +81,14 @@ class GlowTest:
     iterations: int = 6
 
 
-def glow_advantage(copy: WorkingCopy, width: int, height: int, family: LensFamily,
+def glow_advantage(copy: FamilyWorkingCopy, width: int, height: int, family: LensFamily,
                    start: np.ndarray | None = None, settings: FamilySettings = FamilySettings(),
                    test: GlowTest = GlowTest()) -> float:
     """How much better a light source's glow explains a frame's luminance than a lens.
 
     Parameters
     ----------
-    copy : WorkingCopy
+    copy : FamilyWorkingCopy
         The frame's luminance working copy (:func:`vigproc.core.family_fit.luminance_copy`;
         its colour copies, if any, are not read).
     width, height : int
@@ -114,7 +114,7 @@ def glow_advantage(copy: WorkingCopy, width: int, height: int, family: LensFamil
     index = settings_index(L, valid, None, s)
     if index.dlog.size == 0:
         return math.nan
-    rho = bin_rho(xs, ys, half_diagonal(width, height))
+    rho = bin_rho(xs, ys, corner_radius(width, height))
     fam = family_for(family, False)
     M, B = fam.profiles(rho)
     d, a = pairs_at(index, M, B)

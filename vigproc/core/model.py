@@ -98,6 +98,12 @@ def blackout_error(gmin: float) -> ModelError:
                       "would black out part of the image")
 
 
+def half_diagonal(width: int, height: int) -> float:
+    """Half the frame's diagonal (px): the radius that normalises a model's parameters
+    and the forensic rings' radii (:mod:`vigproc.core.normalised`)."""
+    return 0.5 * math.hypot(width, height)
+
+
 def frame_coords(n: int) -> np.ndarray:
     """Pixel-centre coordinates of ``n`` samples relative to the frame centre ((n−1)/2)."""
     return np.arange(n, dtype=np.float64) - (n - 1) / 2.0

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from vigproc.errors import ModelError
-from vigproc.core.model import N_ALPHA, PARAM_NAMES, VignettingModel, frame_coords, kw_field_and_jacobian
+from vigproc.core.model import N_ALPHA, PARAM_NAMES, VignettingModel, frame_coords, half_diagonal, kw_field_and_jacobian
 
 #: Number of model parameters (cx, cy, p1, p2, p3, α1..α7).
 N_PARAMS = len(PARAM_NAMES)
@@ -29,10 +29,6 @@ _LN2 = math.log(2.0)
 # --------------------------------------------------------------------------- #
 # normalised parameters
 # --------------------------------------------------------------------------- #
-
-
-def _half_diagonal(width: int, height: int) -> float:
-    return 0.5 * math.hypot(width, height)
 
 
 def _to_normalised(radius: float) -> np.ndarray:
@@ -56,7 +52,7 @@ def normalise(model: VignettingModel) -> tuple[np.ndarray, np.ndarray | None, fl
     aspect : float
         W/H.
     """
-    r = _half_diagonal(model.width, model.height)
+    r = half_diagonal(model.width, model.height)
     t = _to_normalised(r)
     theta = model.as_vector() * t
     cov = None
@@ -78,7 +74,7 @@ def denormalise(
     ModelError
         If the parameters are not a valid model (non-finite, P not PSD).
     """
-    r = _half_diagonal(int(width), int(height))
+    r = half_diagonal(int(width), int(height))
     t = 1.0 / _to_normalised(r)
     theta = np.asarray(theta, dtype=np.float64)
     if theta.shape != (N_PARAMS,):
@@ -167,7 +163,7 @@ def fit_model_to_field(log_field: np.ndarray, width: int, height: int) -> tuple[
     h, w = lf.shape
     if abs(math.log((w / h) / (width / height))) > 0.02:
         raise ModelError(f"a {w}x{h} field does not have the aspect ratio of {width}x{height}")
-    r = _half_diagonal(w, h)
+    r = half_diagonal(w, h)
     xs, ys = frame_coords(w) / r, frame_coords(h) / r
     target = lf.ravel()
     ridge = 1e-2  # sqrt of the 1e-4 ridge weight

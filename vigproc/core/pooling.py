@@ -66,7 +66,7 @@ from vigproc.core.family_fit import EVIDENCE_SETTINGS, FamilySettings, FrameCoef
 from vigproc.core.lensfamily import LensFamily, profile_family
 from vigproc.core.model import FitQuality, VignettingModel
 from vigproc.core.normalised import denormalise, normalise
-from vigproc.core.robust import WorkingCopy
+from vigproc.core.robust import RobustWorkingCopy
 
 #: Method name of pooled profiles.
 METHOD = "profile-pooled"
@@ -98,7 +98,7 @@ _LN2 = math.log(2.0)
 FRAME_SETTINGS = replace(EVIDENCE_SETTINGS, sigma=0.005, chroma_tau=0.002, chroma_covariate=0.3)
 
 
-def frame_fit(wc: WorkingCopy, family: LensFamily | None = None,
+def frame_fit(wc: RobustWorkingCopy, family: LensFamily | None = None,
               settings: FamilySettings = FRAME_SETTINGS) -> FrameCoefficients:
     """One frame's lens-family coefficients from its working copy (the profile
     store's frame evidence, :func:`vigproc.core.robust.evidence_copy`).

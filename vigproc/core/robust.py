@@ -168,7 +168,7 @@ class RobustSettings:
 
 
 @dataclass(frozen=True)
-class WorkingCopy:
+class RobustWorkingCopy:
     """Binned log luminance with validity mask and coordinates in half-diagonals.
 
     ``channels`` and ``channels_valid`` (C×h×w), when present, are the same copy of each
@@ -187,7 +187,7 @@ class WorkingCopy:
 
 
 def working_copy(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | None = None,
-                 colour: np.ndarray | None = None) -> WorkingCopy:
+                 colour: np.ndarray | None = None) -> RobustWorkingCopy:
     """Bin an H×W linear luminance image for the estimator.
 
     Parameters
@@ -204,13 +204,13 @@ def working_copy(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | N
     channels = channels_valid = None
     if colour is not None:
         channels, channels_valid = binned_log_channels(colour, k, valid, settings.dark_fraction)
-    return WorkingCopy(
+    return RobustWorkingCopy(
         L=L, valid=valid, xs=binned_coords(w, k) / radius, ys=binned_coords(h, k) / radius,
         radius=radius, width=w, height=h, channels=channels, channels_valid=channels_valid,
     )
 
 
-def _robust_scales(wc: WorkingCopy, F: np.ndarray, steps: np.ndarray, scale: float = 1.0) -> np.ndarray:
+def _robust_scales(wc: RobustWorkingCopy, F: np.ndarray, steps: np.ndarray, scale: float = 1.0) -> np.ndarray:
     sig = np.empty(steps.shape[0])
     for i, s in enumerate(steps):
         r = pair_residuals(wc.L, wc.valid, F, int(s))
@@ -220,7 +220,7 @@ def _robust_scales(wc: WorkingCopy, F: np.ndarray, steps: np.ndarray, scale: flo
     return sig
 
 
-def _power_scale(wc: WorkingCopy, F: np.ndarray, steps: np.ndarray) -> float:
+def _power_scale(wc: RobustWorkingCopy, F: np.ndarray, steps: np.ndarray) -> float:
     """Maximum-likelihood scale λ of a hyper-Laplacian law of the residuals:
     λ^p = p·mean|e|^p (generalised Gaussian with exponent p)."""
     r = np.concatenate([pair_residuals(wc.L, wc.valid, F, int(st)) for st in steps])
@@ -229,7 +229,7 @@ def _power_scale(wc: WorkingCopy, F: np.ndarray, steps: np.ndarray) -> float:
     return max(float(POWER_EXPONENT * np.mean(np.abs(r) ** POWER_EXPONENT)) ** (1.0 / POWER_EXPONENT), 1e-6)
 
 
-def quadratic_start(wc: WorkingCopy, steps: np.ndarray, iters: int = 6) -> np.ndarray:
+def quadratic_start(wc: RobustWorkingCopy, steps: np.ndarray, iters: int = 6) -> np.ndarray:
     """Robust (IRLS) fit of F = −½ vᵀPv + bᵀv: returns θ₀ (12 params).
 
     The log-field is linear in (p1, p2, p3, b1, b2), so each IRLS step is an exact
@@ -261,7 +261,7 @@ def quadratic_start(wc: WorkingCopy, steps: np.ndarray, iters: int = 6) -> np.nd
     return theta
 
 
-def _radii(theta: np.ndarray, wc: WorkingCopy, n: int = 24, edges: bool = False) -> np.ndarray:
+def _radii(theta: np.ndarray, wc: RobustWorkingCopy, n: int = 24, edges: bool = False) -> np.ndarray:
     """Radii r sampled from 0 to the largest r inside the frame (reached at a corner):
     at its corner pixel centres, or with ``edges`` at its outer edges (±W/2, ±H/2)."""
     off = 0.0 if edges else 1.0
@@ -286,7 +286,7 @@ def _radii(theta: np.ndarray, wc: WorkingCopy, n: int = 24, edges: bool = False)
 REAL_LENS_SHAPE_RATIO = 0.4
 
 
-def shape_ratio(theta: np.ndarray, wc: WorkingCopy) -> float:
+def shape_ratio(theta: np.ndarray, wc: RobustWorkingCopy) -> float:
     """log φ at half the largest radius inside the frame over log φ at that radius.
 
     Real lenses keep the centre of the frame nearly flat and fall off towards the
@@ -296,7 +296,7 @@ def shape_ratio(theta: np.ndarray, wc: WorkingCopy) -> float:
     Parameters
     ----------
     theta : ndarray (12,), normalised parameters
-    wc : WorkingCopy
+    wc : RobustWorkingCopy
         For the frame's extent.
     """
     r = _radii(theta, wc, 2)[-1]
@@ -317,7 +317,7 @@ MIN_VALID_BINS = 64
 G_MIN = 0.02
 
 
-def _min_g(theta: np.ndarray, wc: WorkingCopy) -> float:
+def _min_g(theta: np.ndarray, wc: RobustWorkingCopy) -> float:
     # up to the frame's edges: a model is also evaluated at other resolutions (pictures,
     # a RAW's full size), whose corner pixel centres lie further out (a 64-px fit was
     # valid at its own corners and fell below G = 0 on a 256-px grid)
@@ -326,7 +326,7 @@ def _min_g(theta: np.ndarray, wc: WorkingCopy) -> float:
     return float(np.min(1.0 - (r[:, None] ** k) @ theta[5:]))
 
 
-def _constraint_system(theta: np.ndarray, wc: WorkingCopy, weight: float) -> tuple[np.ndarray, np.ndarray, float]:
+def _constraint_system(theta: np.ndarray, wc: RobustWorkingCopy, weight: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Quadratic penalties keeping G ≥ 0.05 and d log φ / dr ≤ 0 on [0, r_max].
 
     Returns their Gauss-Newton (H, g) in α and the penalty value.
@@ -417,7 +417,7 @@ def _total(wc, F, steps, sigma, scale, phi, s, penalty_w):
     return scale * loss + pp + pc
 
 
-def fit_robust(wc: WorkingCopy, s: RobustSettings,
+def fit_robust(wc: RobustWorkingCopy, s: RobustSettings,
                start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Levenberg–Marquardt fit in normalised units. Returns θ, its covariance, info.
 
@@ -501,7 +501,7 @@ def _to_pixels(theta: np.ndarray, cov: np.ndarray, radius: float) -> tuple[np.nd
     return theta * t, cov * np.outer(t, t)
 
 
-def field_uncertainty_ev(model_theta: np.ndarray, cov: np.ndarray, wc: WorkingCopy, n: int = 16) -> tuple[float, float]:
+def field_uncertainty_ev(model_theta: np.ndarray, cov: np.ndarray, wc: RobustWorkingCopy, n: int = 16) -> tuple[float, float]:
     """RMS over the frame of log2 φ and of its 1-σ uncertainty (normalised θ, cov)."""
     hx = (wc.width - 1) / 2 / wc.radius
     hy = (wc.height - 1) / 2 / wc.radius
@@ -546,7 +546,7 @@ def shape_z(theta: np.ndarray, cov: np.ndarray) -> float:
     return _mahalanobis(theta, cov, _SHAPE)
 
 
-def _select(wc: WorkingCopy, s: RobustSettings) -> tuple[np.ndarray, np.ndarray, dict]:
+def _select(wc: RobustWorkingCopy, s: RobustSettings) -> tuple[np.ndarray, np.ndarray, dict]:
     """Free fit, then model selection: unless the free fit departs from a centred
     (``selection="centre"``) or centred circular (``"shape"``) fall-off by at least
     ``centred_z`` standard deviations, refit with the centre (and ellipticity) held
@@ -564,12 +564,12 @@ def _select(wc: WorkingCopy, s: RobustSettings) -> tuple[np.ndarray, np.ndarray,
     return fit_robust(wc, held) if z < s.centred_z else (theta, cov, info)
 
 
-def _scene_divided(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | None = None) -> WorkingCopy:
+def _scene_divided(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | None = None) -> RobustWorkingCopy:
     """The working copy of one frame, with the scene prior divided out if enabled."""
     return divide_scene(working_copy(lum, settings, mask), settings)
 
 
-def divide_scene(wc: WorkingCopy, settings: RobustSettings) -> WorkingCopy:
+def divide_scene(wc: RobustWorkingCopy, settings: RobustSettings) -> RobustWorkingCopy:
     """``wc`` with the scene prior divided out if ``settings`` enable it."""
     if settings.scene_prior:
         scene = settings.scene if settings.scene is not None else default_scene_falloff()
@@ -578,7 +578,7 @@ def divide_scene(wc: WorkingCopy, settings: RobustSettings) -> WorkingCopy:
     return wc
 
 
-def fit_joint(wcs: list[WorkingCopy], settings: RobustSettings) -> tuple[np.ndarray, np.ndarray, dict]:
+def fit_joint(wcs: list[RobustWorkingCopy], settings: RobustSettings) -> tuple[np.ndarray, np.ndarray, dict]:
     """One fit to several frames' working copies (same bin grid), in normalised units.
 
     The copies are stacked, separated by invalid rows so that no log-difference pairs
@@ -633,7 +633,7 @@ def estimate_robust_joint(lums: list[np.ndarray], settings: RobustSettings = Rob
     return joint_model([_scene_divided(lum, settings) for lum in lums], settings)
 
 
-def joint_model(wcs: list[WorkingCopy], settings: RobustSettings = RobustSettings()) -> VignettingModel:
+def joint_model(wcs: list[RobustWorkingCopy], settings: RobustSettings = RobustSettings()) -> VignettingModel:
     """:func:`fit_joint` as a :class:`VignettingModel` of the first copy's frame size."""
     t0 = time.perf_counter()
     theta, cov, info = fit_joint(wcs, settings)
@@ -647,7 +647,7 @@ def joint_model(wcs: list[WorkingCopy], settings: RobustSettings = RobustSetting
                                        covariance=covt, quality=q)
 
 
-#: Format tag of :func:`frame_evidence` blobs: the working copy before the scene
+#: Format tag of :func:`luminance_evidence` blobs: the working copy before the scene
 #: division, with the colour channels' copies when the frame has them.  Format 1
 #: (vigproc ≤ session 4) stored it after the division by the scene prior shipped at
 #: the time; format 2 (≤ session 11) held the luminance copy only.
@@ -656,7 +656,7 @@ _EVIDENCE_V1 = "vigproc.robust-evidence/1"
 _EVIDENCE_V2 = "vigproc.robust-evidence/2"
 
 
-def frame_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
+def luminance_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
                    mask: np.ndarray | None = None, colour: np.ndarray | None = None) -> bytes:
     """What a frame contributes to its lens's profile: its binned log working copy,
     before any scene prior, and the same copy of each colour channel when ``colour``
@@ -665,7 +665,7 @@ def frame_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
     return _evidence_bytes(working_copy(lum, settings, mask, colour))
 
 
-def _evidence_bytes(wc: WorkingCopy) -> bytes:
+def _evidence_bytes(wc: RobustWorkingCopy) -> bytes:
     import io
     import json
 
@@ -677,8 +677,8 @@ def _evidence_bytes(wc: WorkingCopy) -> bytes:
     return buf.getvalue()
 
 
-def evidence_copy(blob: bytes) -> WorkingCopy:
-    """The working copy of a :func:`frame_evidence` blob, before the scene division.
+def evidence_copy(blob: bytes) -> RobustWorkingCopy:
+    """The working copy of a :func:`luminance_evidence` blob, before the scene division.
 
     A format-1 blob held the copy divided by the scene prior of its day; the shipped
     scene prior is multiplied back in (exact unless the shipped prior has changed
@@ -710,7 +710,7 @@ def evidence_copy(blob: bytes) -> WorkingCopy:
         raise ValueError("not frame evidence: inconsistent colour channels")
     if meta["format"] == _EVIDENCE_V1:
         L = L + default_scene_falloff().log_field(xs, ys)
-    return WorkingCopy(L=L, valid=valid, xs=xs, ys=ys, radius=float(meta["radius"]), width=int(meta["width"]),
+    return RobustWorkingCopy(L=L, valid=valid, xs=xs, ys=ys, radius=float(meta["radius"]), width=int(meta["width"]),
                        height=int(meta["height"]), channels=C, channels_valid=Cvalid)
 
 
@@ -739,7 +739,7 @@ def estimate_robust(lum: np.ndarray, settings: RobustSettings = RobustSettings()
 def estimate_robust_with_evidence(lum: np.ndarray, settings: RobustSettings = RobustSettings(),
                                   mask: np.ndarray | None = None,
                                   colour: np.ndarray | None = None) -> tuple[VignettingModel, bytes]:
-    """:func:`estimate_robust` and the frame's :func:`frame_evidence` (with ``colour``'s
+    """:func:`estimate_robust` and the frame's :func:`luminance_evidence` (with ``colour``'s
     channels), from one working copy (learn mode needs both; binning a large frame
     twice would cost as much as the fit)."""
     t0 = time.perf_counter()
@@ -747,7 +747,7 @@ def estimate_robust_with_evidence(lum: np.ndarray, settings: RobustSettings = Ro
     return _fit_copy(divide_scene(raw, settings), settings, t0), _evidence_bytes(raw)
 
 
-def _fit_copy(wc: WorkingCopy, settings: RobustSettings, t0: float) -> VignettingModel:
+def _fit_copy(wc: RobustWorkingCopy, settings: RobustSettings, t0: float) -> VignettingModel:
     """The single-frame fit of a working copy, with the do-no-harm fall-back."""
     h, w = wc.height, wc.width
     if wc.valid.sum() < MIN_VALID_BINS:

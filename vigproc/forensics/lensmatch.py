@@ -4,7 +4,7 @@ Real lenses' fall-offs span a two-dimensional family (:mod:`vigproc.core.lensfam
 a frame and a claimed lens can be compared in two coefficients rather than in the
 features of a twelve-parameter fit:
 
-1. **The frame's data alone** (:func:`frame_fit`: :func:`vigproc.core.family_fit.frame_coefficients`,
+1. **The frame's data alone** (:func:`luminance_family_fit`: :func:`vigproc.core.family_fit.frame_coefficients`,
    the first :data:`~vigproc.core.lensfamily.N_COMPONENTS` components, no prior). The
    data term is equivariant: a field of the family multiplied onto a frame moves the
    fit by exactly its coefficients, so what a frame gets wrong is its scene's, the same
@@ -72,7 +72,7 @@ __all__ = [
     "default_match_calibration",
     "family_fingerprint",
     "fit_match_calibration",
-    "frame_fit",
+    "luminance_family_fit",
     "pooled_d2",
     "reference_coefficients",
     "scene_d2",
@@ -115,7 +115,7 @@ def family_fingerprint(family) -> tuple[float, ...]:
     return tuple([float(comps.shape[0])] + [round(float(v), 4) for c in comps for v in (c.sum(), c[-1])])
 
 
-def frame_fit(lum: np.ndarray, family=None, settings=None, colour: np.ndarray | None = None):
+def luminance_family_fit(lum: np.ndarray, family=None, settings=None, colour: np.ndarray | None = None):
     """The family coefficients of an H×W linear luminance frame from its data alone
     (with ``colour``, H×W×3, its pairs weighted by how alike their channels change).
 
@@ -413,7 +413,7 @@ def scene_d2(coefficients: np.ndarray, calibration: MatchCalibration, family, *,
     Parameters
     ----------
     coefficients : ndarray (K,)
-        :func:`frame_fit`'s coefficients.
+        :func:`luminance_family_fit`'s coefficients.
     calibration : MatchCalibration
     family : LensFamily
         The family the calibration was made in.

@@ -43,7 +43,7 @@ import numpy as np
 from vigproc.atomic import atomic_write_text
 from vigproc.errors import EXIT_CODES, SETTINGS, VigprocError
 from vigproc.forensics.lensmatch import GaussianNull, MatchCalibration, empirical_p, held_out_whitened, pooled_null
-from vigproc.core.model import VignettingModel
+from vigproc.core.model import VignettingModel, half_diagonal
 
 __all__ = [
     "CALIBRATION_SCHEMA",
@@ -122,10 +122,6 @@ class ForensicsError(VigprocError):
 
 
 # ------------------------------------------------------------------ features
-def _half_diagonal(width: int, height: int) -> float:
-    return 0.5 * math.hypot(width, height)
-
-
 def ring_falloff(model: VignettingModel, radii: Sequence[float] = RING_RADII) -> np.ndarray:
     """Mean log2 φ (EV) of ``model`` on circles of radius ρ half-diagonals around the
     frame centre, over the parts of each circle inside the frame.
@@ -136,7 +132,7 @@ def ring_falloff(model: VignettingModel, radii: Sequence[float] = RING_RADII) ->
         If G falls to zero on a ring.
     """
     w, h = model.width, model.height
-    big_r = _half_diagonal(w, h)
+    big_r = half_diagonal(w, h)
     hx, hy = (w - 1) / 2.0, (h - 1) / 2.0
     out = np.empty(len(radii))
     for i, rho in enumerate(radii):
@@ -164,7 +160,7 @@ def frame_features(model: VignettingModel) -> np.ndarray:
         lens), then the vignetting centre (cx, cy) in half-diagonals, scaled down
         when the outer ring's fall-off is below :data:`CENTRE_FALLOFF_EV`.
     """
-    big_r = _half_diagonal(model.width, model.height)
+    big_r = half_diagonal(model.width, model.height)
     rings = ring_falloff(model)
     weight = min(1.0, abs(float(rings[-1])) / CENTRE_FALLOFF_EV)
     return np.concatenate([rings, [weight * model.center[0] / big_r, weight * model.center[1] / big_r]])

@@ -27,8 +27,9 @@ from typing import Any, Sequence
 import numpy as np
 
 from vigproc.errors import ModelError, VigprocError
+from vigproc.core.model import half_diagonal
 from vigproc.forensics.lensmatch import (
-    MatchCalibration, beyond_scene_limit, default_match_calibration, frame_fit, pooled_d2, reference_coefficients,
+    MatchCalibration, beyond_scene_limit, default_match_calibration, luminance_family_fit, pooled_d2, reference_coefficients,
     scene_d2, whiten,
 )
 from vigproc.forensics.references import (
@@ -36,7 +37,7 @@ from vigproc.forensics.references import (
 )
 from vigproc.forensics.rings import (
     CENTRE, DEFAULT_ALPHA, FALLOFF, FAMILY_TEST_METHOD, RING_RADII, _LN2, Calibration, ForensicsError,
-    _fit_of, _half_diagonal, _is_weak, _mean_d2, _shape_ratio, _stated, _warn_if_stale, default_calibration,
+    _fit_of, _is_weak, _mean_d2, _shape_ratio, _stated, _warn_if_stale, default_calibration,
     forensic_method, frame_features, frame_quality, ring_falloff,
 )
 from vigproc.core.lensfamily import default_family
@@ -235,7 +236,7 @@ class Verdict:
 
 
 def _evidence(fit: VignettingModel, f_est: np.ndarray, exp: Expected | None) -> Evidence:
-    big_r = _half_diagonal(fit.width, fit.height)
+    big_r = half_diagonal(fit.width, fit.height)
     ev = Evidence(ring_radii=RING_RADII, falloff_ev=tuple(float(v) for v in f_est[FALLOFF]),
                   centre_px=(float(fit.center[0]), float(fit.center[1])), shape_ratio=_shape_ratio(fit))
     if exp is None:
@@ -407,7 +408,7 @@ def _family_verdict(estimate: VignettingModel, c: np.ndarray | None, ref: Refere
     alpha = calibration.alpha if alpha is None else float(alpha)
     fit = _fit_of(estimate)
     rings = ring_falloff(fit)
-    big_r = _half_diagonal(fit.width, fit.height)
+    big_r = half_diagonal(fit.width, fit.height)
     ev = Evidence(ring_radii=RING_RADII, falloff_ev=tuple(float(v) for v in rings),
                   centre_px=(float(fit.center[0]), float(fit.center[1])), shape_ratio=_shape_ratio(fit))
     common: dict[str, Any] = dict(lens_id=lens_id, alpha=alpha, estimate=estimate, test="lens-family",
@@ -518,7 +519,7 @@ def check_family(img: np.ndarray, lens_key, *, store=None, calibration=None, alp
     lum = luminance(a)
     h, w = lum.shape
     colour = colour_of(a)
-    fc = frame_fit(lum, fam, colour=colour)
+    fc = luminance_family_fit(lum, fam, colour=colour)
     c = None if fc is None else np.asarray(fc.coefficients)
     est = None
     if c is not None:

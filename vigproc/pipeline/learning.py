@@ -242,7 +242,7 @@ def pooled_of(estimate, img, method: str):
         Nothing to pool: no evidence and an estimate without uncertainty.
     """
     from vigproc.core.estimate import EVIDENCE_METHODS, _robust_settings, clipped_mask, colour_of, luminance
-    from vigproc.core.robust import frame_evidence
+    from vigproc.core.robust import luminance_evidence
     from vigproc.errors import ModelError
     from vigproc.io.images import EncodedImage
 
@@ -250,7 +250,7 @@ def pooled_of(estimate, img, method: str):
     evidence = None
     if method in EVIDENCE_METHODS:
         a = img.linear() if isinstance(img, EncodedImage) else img
-        evidence = frame_evidence(luminance(a), _robust_settings(method, None), clipped_mask(a), colour_of(a))
+        evidence = luminance_evidence(luminance(a), _robust_settings(method, None), clipped_mask(a), colour_of(a))
     if fit.covariance is None and evidence is None:
         raise ModelError("no usable fit to learn from (no uncertainty)")
     return fit, evidence

@@ -138,7 +138,7 @@ def _migration_2(con: sqlite3.Connection) -> None:
 
 def _migration_3(con: sqlite3.Connection) -> None:
     """v3: each pooled frame may keep its evidence for a refit of the profile
-    (:func:`vigproc.core.robust.frame_evidence`, ≈ 25 KB a frame)."""
+    (:func:`vigproc.core.robust.luminance_evidence`, ≈ 25 KB a frame)."""
     con.execute("ALTER TABLE pooled_frames ADD COLUMN evidence BLOB")
 
 
