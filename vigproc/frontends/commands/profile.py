@@ -12,7 +12,7 @@ from pathlib import Path
 from vigproc.errors import VigprocError, one_line
 from vigproc.frontends.commands._progress import _progress
 from vigproc.io.exif import casefold_lens_id, escape_key_part
-from vigproc.io.images import read_image, write_image
+from vigproc.io.images import read_encoded, write_image
 from vigproc.io.lensident import display_lens_id
 from vigproc.io.picture import falloff_figure
 from vigproc.pipeline.processor import Processor, Settings, file_sha256, read_lens
@@ -138,7 +138,8 @@ def _learn(args: argparse.Namespace, store) -> int:
     with Processor(settings, store=store) as proc:
         for f in _progress(files, "learning"):
             try:
-                img, _ = read_image(f, transfer=args.input_transfer)
+                # a JPEG's codes: estimated and binned from a reduced copy (pipeline.encoded)
+                img, _ = read_encoded(f, transfer=args.input_transfer)
                 lens_key, lens = read_lens(proc.reader, f)
                 if lens_key is None:
                     raise VigprocError(f"cannot learn, lens unknown ({lens['error']})")
