@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vigproc.bench.throughput import select_photos, stage  # noqa: E402
+from benchmarks.throughput import select_photos, stage  # noqa: E402
 from vigproc.io.images import read_encoded  # noqa: E402
 
 
