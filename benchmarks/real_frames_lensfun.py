@@ -35,9 +35,11 @@ temporary profile store keyed as the pipeline keys the lens
 then :meth:`~vigproc.stores.profiles.ProfileStore.learn` with the evidence), pooling in
 a lens family built without the lenses measured. Reported: the profile's error after
 1, 5, 10 … frames, and once the profile is trusted, the corner fall-off of the field
-each later frame is corrected with (the profile as it stands when the frame arrives,
-learn-as-you-go) against the frames' own single-frame estimates: its spread is the
-series' consistency.
+each later frame is corrected with against the frames' own single-frame estimates: its
+spread is the series' consistency. That field is the one the hot folder applies
+(:class:`~vigproc.pipeline.learning.SteadyProfiles`: the revision its series took when
+the profile became trusted, the frames of a setting being one series, a second apart),
+looked up before the frame is learned.
 """
 
 from __future__ import annotations
@@ -53,6 +55,9 @@ from typing import Any, Sequence
 import numpy as np
 
 log = logging.getLogger(__name__)
+
+#: Capture time (s, epoch) of a series' first frame; its frames follow a second apart.
+T0 = 1.7e9
 
 #: Long side of the grid fields are compared on (the metric is an RMS over the frame:
 #: a coarser grid of the same frame gives the same figure to a few 1e-4 EV).
@@ -399,6 +404,7 @@ def run_series(found: Sequence[tuple[Path, Any, Truth, dict, Any]], bases: Seque
     from vigproc.core.plausible import corner_ev
     from vigproc.errors import ModelError
     from vigproc.io.protocol import vignetted
+    from vigproc.pipeline.learning import SteadyProfiles
     from vigproc.stores.profiles import ProfileStore
 
     if family == "exclude":
@@ -424,6 +430,7 @@ def run_series(found: Sequence[tuple[Path, Any, Truth, dict, Any]], bases: Seque
         with tempfile.TemporaryDirectory(prefix="vigproc-bench-series-") as tmp, \
                 ProfileStore(Path(tmp) / "profiles.sqlite", family=family) as st:
             pkey = st.key_for(key, w, h)
+            steady = SteadyProfiles(st)
             used = 0
             for j in order:
                 if used >= n:
@@ -440,13 +447,17 @@ def run_series(found: Sequence[tuple[Path, Any, Truth, dict, Any]], bases: Seque
                 single_corner.append(corner_ev(m)[1])
                 if fit.covariance is None:
                     continue
+                # as the hot folder corrects a frame: the revision its series applies (one
+                # series: the frames a second apart), looked up before the frame is learned
+                steady.at(T0 + used)
+                applied = steady.lookup(key, w, h, trusted_only=True)
+                if applied is not None:
+                    after_corner.append(corner_ev(applied.model(w, h))[1])
                 p = st.learn(pkey, fit, frame_id=f"frame{j:04d}", evidence=evidence, lens_key=key)
                 if used in counts:
                     errs[used] = _ev(p.model(w, h).log_field(gshape) - true_grid)
                 if p.trusted:
                     trusted_at = trusted_at or used
-                    # learn-as-you-go: this frame is corrected with the profile as it stands
-                    after_corner.append(corner_ev(p.model(w, h))[1])
         k = len(after_corner)
         rows.append(SeriesRow(
             truth.lens, truth.focal_mm, truth.fnumber, used, float(np.median(single)) if single else math.nan,

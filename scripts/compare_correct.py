@@ -5,7 +5,9 @@ pixels (largest code-value difference; a speed-up may differ by at most 1).
 
     python scripts/compare_correct.py /work/main /work/h1 --images ../shared/data/jpeg_exif --limit 26 --work /tmp/cmp
 
-Each tree runs with an empty profile store of its own under ``--work``.
+Each tree runs with an empty profile store of its own under ``--work``. With ``--learn``
+each run also pools its frames into that store (learning as you go), and the two stores'
+profiles are compared too (the same keys and frames; their fields' RMS difference, EV).
 """
 
 from __future__ import annotations
@@ -22,18 +24,19 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vigproc.bench.throughput import select_photos, stage  # noqa: E402
+from benchmarks.throughput import select_photos, stage  # noqa: E402
 from vigproc.io.images import read_encoded  # noqa: E402
 
 
-def run(tree: Path, files: list[str], work: Path, name: str) -> dict[str, dict]:
+def run(tree: Path, files: list[str], work: Path, name: str, learn: bool = False) -> dict[str, dict]:
     out = work / f"out_{name}"
     shutil.rmtree(out, ignore_errors=True)
     db = work / f"{name}.sqlite"
     db.unlink(missing_ok=True)
     env = {**os.environ, "PYTHONPATH": str(tree), "VIGPROC_PROFILE_DB": str(db)}
     r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "correct", "--unapplied", "copy", "--json",
-                        "-o", str(out), *files], capture_output=True, text=True, env=env)
+                        *(["--learn", "--profile-db", str(db)] if learn else []), "-o", str(out), *files],
+                       capture_output=True, text=True, env=env, cwd=work)  # cwd: a source tree there would shadow PYTHONPATH
     data = json.loads(r.stdout)
     return {x["file"]: x for x in (data["results"] if isinstance(data, dict) else data)}
 
@@ -46,13 +49,15 @@ def main() -> int:
     ap.add_argument("--min-mp", type=float, default=0.75)
     ap.add_argument("--limit", type=int, default=26)
     ap.add_argument("--work", type=Path, required=True, help="scratch folder (created)")
+    ap.add_argument("--learn", action="store_true", help="pool the frames as they are corrected; compare the stores")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     photos, _ = select_photos(a.images, a.min_mp, a.limit)
     ins = a.work / "in"
     shutil.rmtree(ins, ignore_errors=True)
     files = [str(p) for p in stage(photos, ins)]
-    before, after = run(a.before, files, a.work, "before"), run(a.after, files, a.work, "after")
+    before = run(a.before, files, a.work, "before", a.learn)
+    after = run(a.after, files, a.work, "after", a.learn)
     same = worst = 0
     for f in files:
         x, y = before[f], after[f]
@@ -72,7 +77,25 @@ def main() -> int:
             print(f"differs: {Path(f).name}: {[x.get(k) for k in keys]} / {[y.get(k) for k in keys]}; {d} code values")
     print(f"{len(files)} photos: {same} the same decision, source and model, pixels within 1 code value; "
           f"largest code difference {worst}; applied {sum(bool(r.get('applied')) for r in after.values())}")
-    return 0 if same == len(files) else 1
+    return 0 if same == len(files) and (not a.learn or compare_stores(a.work)) else 1
+
+
+def compare_stores(work: Path) -> bool:
+    """The profiles the two runs learned: the same keys and frame counts; their fields'
+    RMS difference over the frame (EV). True when they agree within 0.001 EV."""
+    from vigproc.pipeline.learning import field_change_ev
+    from vigproc.stores.profiles import ProfileStore
+
+    with ProfileStore(work / "before.sqlite") as sb, ProfileStore(work / "after.sqlite") as sa:
+        pb, pa = ({str(p.key): p for p in s.list()} for s in (sb, sa))
+    if pb.keys() != pa.keys():
+        print(f"the stores hold different profiles: {sorted(pb.keys() ^ pa.keys())}")
+        return False
+    moved = sorted(field_change_ev(pb[k], pa[k]) for k in pb)
+    frames = all(pb[k].n_frames == pa[k].n_frames for k in pb)
+    print(f"{len(pb)} profiles learned, frame counts {'the same' if frames else 'DIFFER'}; field change "
+          f"median {np.median(moved) if moved else float('nan'):.5f} EV, largest {max(moved, default=0.0):.5f} EV")
+    return frames and max(moved, default=0.0) < 1e-3
 
 
 if __name__ == "__main__":

@@ -218,6 +218,58 @@ def estimate_reduced(small: np.ndarray, k: int, width: int, height: int, method:
     return from_reduced(estimate_checked(a, method, hint=hint, usable=usable), k, width, height)
 
 
+def reduced_evidence(small: np.ndarray, k: int, width: int, height: int, method: str = "default", *,
+                     usable: np.ndarray | None = None) -> bytes:
+    """:func:`frame_evidence` of a width×height frame read as ``small``, its linear light
+    binned k×k (:func:`reduction_factor`, as :func:`estimate_reduced` reads it): the same
+    binned values, and the full frame's geometry (bin centres, radius, size), which the
+    profile's frame fit reads (:func:`vigproc.core.robust.reduced_working_copy`).
+    ``usable`` as :func:`estimate_reduced`'s.
+
+    Raises
+    ------
+    InvalidImageError
+        As :func:`estimate`; also a ``method`` not in :data:`EVIDENCE_METHODS`, or a
+        ``small`` that is not the frame binned by ``k``.
+    """
+    from vigproc.core.robust import reduced_luminance_evidence
+
+    if method not in EVIDENCE_METHODS:
+        raise InvalidImageError(f"frame evidence comes with {', '.join(EVIDENCE_METHODS)}, not {method!r}")
+    a = check_image(small, -1 if np.ndim(small) == 3 else None)
+    try:
+        return reduced_luminance_evidence(luminance(a), k, width, height, _robust_settings(method, None), usable,
+                                          colour_of(a))
+    except ValueError as exc:
+        raise InvalidImageError(str(exc)) from None
+
+
+def reduced_estimate_with_evidence(small: np.ndarray, k: int, width: int, height: int, method: str = "default", *,
+                                   usable: np.ndarray | None = None) -> tuple[VignettingModel, bytes]:
+    """:func:`estimate_with_evidence` of a width×height frame read as ``small`` (its linear
+    light binned k×k, as :func:`reduced_evidence` reads it): the robust fit and the
+    evidence of one working copy with the full frame's geometry, so the model is the
+    full frame's (to float rounding) without :func:`from_reduced`'s shift.
+
+    Raises
+    ------
+    InvalidImageError
+        As :func:`reduced_evidence`.
+    """
+    from vigproc.core.robust import fit_with_evidence, reduced_working_copy
+
+    if method not in EVIDENCE_METHODS:
+        raise InvalidImageError(f"frame evidence comes with {', '.join(EVIDENCE_METHODS)}, not {method!r}")
+    a = check_image(small, -1 if np.ndim(small) == 3 else None)
+    s = _robust_settings(method, None)
+    try:
+        raw = reduced_working_copy(luminance(a), k, width, height, s, usable, colour_of(a))
+    except ValueError as exc:
+        raise InvalidImageError(str(exc)) from None
+    m, evidence = fit_with_evidence(raw, s)
+    return _named(m, method), evidence
+
+
 def _named(model: VignettingModel, method: str) -> VignettingModel:
     """A real-lens or flat-field estimate says so (the corrected file's record names
     the method)."""

@@ -226,9 +226,20 @@ def new_white_share(img: np.ndarray, model: VignettingModel, strength: float = 1
     sample = np.ascontiguousarray(a[::k, ::k], dtype=np.float32)
     how = dict(channel_axis=-1 if sample.ndim == 3 else None, strength=strength)
     out = model.correct_image(sample, **how) if hasattr(model, "correct_image") else correct(sample, model, **how)
-    before = sample.max(axis=-1) if sample.ndim == 3 else sample
-    after = out.max(axis=-1) if out.ndim == 3 else out
+    before, after = _brightest(sample), _brightest(out)
     return float(np.count_nonzero((before < 1.0) & (after >= 1.0))) / max(1, before.size)
+
+
+def _brightest(x: np.ndarray) -> np.ndarray:
+    """Each pixel's brightest channel (H×W) of an H×W×C frame; an H×W frame as it is."""
+    if x.ndim != 3:
+        return x
+    # channel by channel: max(axis=-1) over 3 channels reduces along the short axis, about
+    # 50 times slower (50-70 ms of a 512-px sample on a loaded machine against 1 ms)
+    b = x[..., 0].copy()
+    for i in range(1, x.shape[2]):
+        np.maximum(b, x[..., i], out=b)
+    return b
 
 
 def judge(model: VignettingModel, img: np.ndarray | None = None, *, calibrated: bool = False,

@@ -210,6 +210,57 @@ def working_copy(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | N
     )
 
 
+def reduced_working_copy(lum: np.ndarray, d: int, width: int, height: int, settings: RobustSettings,
+                         mask: np.ndarray | None = None, colour: np.ndarray | None = None) -> RobustWorkingCopy:
+    """:func:`working_copy` of a width×height frame from a copy of it binned d×d.
+
+    ``lum`` (and ``colour``) is the full frame's linear light averaged over d×d blocks,
+    the remainder rows and columns dropped (:func:`vigproc.core.pixels.reduce_codes`);
+    ``mask`` its blocks without a pixel the full frame's working copy would leave out.
+    When the full frame's bin size k is a multiple of d (as
+    :func:`vigproc.core.estimate.reduction_factor` chooses d), every bin covers the very
+    pixels the full frame's own bin covers, so its value is the same mean (to float
+    rounding), and the copy states the full frame's geometry: bin centres, radius,
+    width and height. A pooling fit reads that geometry
+    (:func:`vigproc.core.pooling.frame_fit`: ρ from the frame's half-diagonal in px); the
+    reduced frame's own is off by up to (d − 1)/2 px and a pixel's share of the diagonal.
+
+    Parameters
+    ----------
+    lum : ndarray, (H//d)×(W//d), linear
+    d : int
+        The reduction's block size.
+    width, height : int
+        The full frame's size W, H.
+    settings : RobustSettings
+    mask : ndarray of bool, (H//d)×(W//d), optional
+    colour : ndarray, (H//d)×(W//d)×C, linear, optional
+
+    Returns
+    -------
+    RobustWorkingCopy
+        As :func:`working_copy` of the full frame would give it.
+
+    Raises
+    ------
+    ValueError
+        ``lum`` is not the full frame reduced by d, or d does not divide the full
+        frame's bin size.
+    """
+    d, width, height = int(d), int(width), int(height)
+    if d < 1 or lum.shape != (height // d, width // d):
+        raise ValueError(f"a {lum.shape[1]}x{lum.shape[0]} copy is not a {width}x{height} frame binned by {d}")
+    k = max(1, int(round(max(width, height) / settings.work_size)))
+    wc = working_copy(lum, settings, mask, colour)
+    kr = max(1, int(round(max(lum.shape) / settings.work_size)))
+    if kr * d != k or wc.L.shape != (height // k, width // k):
+        raise ValueError(f"a copy binned by {d} does not bin as the {width}x{height} frame does "
+                         f"({kr} x {d} against {k})")
+    radius = 0.5 * math.hypot(width, height)
+    return replace(wc, xs=binned_coords(width, k) / radius, ys=binned_coords(height, k) / radius, radius=radius,
+                   width=width, height=height)
+
+
 def _robust_scales(wc: RobustWorkingCopy, F: np.ndarray, steps: np.ndarray, scale: float = 1.0) -> np.ndarray:
     sig = np.empty(steps.shape[0])
     for i, s in enumerate(steps):
@@ -665,6 +716,14 @@ def luminance_evidence(lum: np.ndarray, settings: RobustSettings = RobustSetting
     return _evidence_bytes(working_copy(lum, settings, mask, colour))
 
 
+def reduced_luminance_evidence(lum: np.ndarray, d: int, width: int, height: int,
+                           settings: RobustSettings = RobustSettings(), mask: np.ndarray | None = None,
+                           colour: np.ndarray | None = None) -> bytes:
+    """:func:`luminance_evidence` of a width×height frame from a copy of it binned d×d
+    (:func:`reduced_working_copy`): the same blob, the full frame's geometry."""
+    return _evidence_bytes(reduced_working_copy(lum, d, width, height, settings, mask, colour))
+
+
 def _evidence_bytes(wc: RobustWorkingCopy) -> bytes:
     import io
     import json
@@ -742,8 +801,14 @@ def estimate_robust_with_evidence(lum: np.ndarray, settings: RobustSettings = Ro
     """:func:`estimate_robust` and the frame's :func:`luminance_evidence` (with ``colour``'s
     channels), from one working copy (learn mode needs both; binning a large frame
     twice would cost as much as the fit)."""
+    return fit_with_evidence(working_copy(lum, settings, mask, colour), settings)
+
+
+def fit_with_evidence(raw: RobustWorkingCopy, settings: RobustSettings = RobustSettings()) -> tuple[VignettingModel, bytes]:
+    """:func:`estimate_robust_with_evidence` of a working copy made already (the full
+    frame's, or :func:`reduced_working_copy`'s): the model of the frame whose geometry it
+    states, and its evidence."""
     t0 = time.perf_counter()
-    raw = working_copy(lum, settings, mask, colour)
     return _fit_copy(divide_scene(raw, settings), settings, t0), _evidence_bytes(raw)
 
 

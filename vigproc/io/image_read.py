@@ -32,7 +32,7 @@ import stat
 import struct
 import tempfile
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -150,6 +150,9 @@ class EncodedImage:
 
     codes: np.ndarray
     transfer: str
+    # the last reduced copy (k, binned, usable): the estimate and the learning's evidence
+    # read the same one, made once
+    _reduced: list = field(default_factory=list, init=False, repr=False, compare=False)
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -177,8 +180,25 @@ class EncodedImage:
 
     def reduced(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
         """The frame's linear light binned ``k``×``k`` (float32) and its usable blocks
-        (:func:`vigproc.core.pixels.reduce_codes`)."""
-        return reduce_codes(self.codes, self.decode_table(), k)
+        (:func:`vigproc.core.pixels.reduce_codes`).
+
+        Made once per ``k``: the copy of the last ``k`` asked for is kept (read-only) and
+        handed out again, so the estimate and the frame's evidence for its lens's
+        profile read one reduction. :meth:`forget_reduced` drops it (codes overwritten
+        in place)."""
+        k = int(k)
+        if self._reduced and self._reduced[0] == k:
+            return self._reduced[1], self._reduced[2]
+        small, usable = reduce_codes(self.codes, self.decode_table(), k)
+        for a in (small, usable):
+            if a is not None:
+                a.setflags(write=False)
+        self._reduced[:] = [k, small, usable]
+        return small, usable
+
+    def forget_reduced(self) -> None:
+        """Drop the kept reduced copy (:meth:`reduced`): the codes are about to change."""
+        self._reduced.clear()
 
 
 def _q(path: str) -> str:

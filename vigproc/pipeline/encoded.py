@@ -59,6 +59,57 @@ def estimate_encoded(enc: EncodedImage, method: str, *, hint=None, seed: int | N
     return estimate_checked(check_image(img, -1 if img.ndim == 3 else None), method, hint=hint, seed=seed)
 
 
+def evidence_encoded(enc: EncodedImage, method: str) -> bytes:
+    """The frame's evidence for its lens's profile
+    (:func:`vigproc.core.estimate.frame_evidence`), binned from the reduced copy
+    :func:`estimate_encoded` read (the one :meth:`EncodedImage.reduced` keeps: not reduced
+    twice), with the full frame's geometry (:func:`vigproc.core.estimate.reduced_evidence`);
+    a frame too small to be reduced is decoded and binned whole, as before.
+
+    Raises
+    ------
+    InvalidImageError
+        As :func:`vigproc.core.estimate.frame_evidence`.
+    """
+    from vigproc.core.estimate import REDUCIBLE_METHODS, _robust_settings, frame_evidence, reduced_evidence, \
+        reduction_factor
+
+    h, w = enc.shape[:2]
+    k = reduction_factor(w, h)
+    if method in REDUCIBLE_METHODS and k > 1:
+        small, usable = enc.reduced(k)
+        return reduced_evidence(small, k, w, h, method, usable=usable)
+    img = enc.linear()
+    return frame_evidence(img, -1 if img.ndim == 3 else None, _robust_settings(method, None))
+
+
+def estimate_with_evidence_encoded(enc: EncodedImage, method: str):
+    """What learn mode pools of a frame (:func:`vigproc.core.estimate.estimate_with_evidence`:
+    the robust fit and the frame's evidence, one working copy), from the reduced copy
+    :meth:`EncodedImage.reduced` keeps, with the full frame's geometry; a frame too small to
+    be reduced is decoded whole, as before. ``method`` is one of
+    :data:`~vigproc.core.estimate.EVIDENCE_METHODS`.
+
+    Returns
+    -------
+    (VignettingModel, bytes)
+
+    Raises
+    ------
+    InvalidImageError
+    """
+    from vigproc.core.estimate import (REDUCIBLE_METHODS, estimate_with_evidence, reduced_estimate_with_evidence,
+                                       reduction_factor)
+
+    h, w = enc.shape[:2]
+    k = reduction_factor(w, h)
+    if method in REDUCIBLE_METHODS and k > 1:
+        small, usable = enc.reduced(k)
+        return reduced_estimate_with_evidence(small, k, w, h, method, usable=usable)
+    img = enc.linear()
+    return estimate_with_evidence(img, -1 if img.ndim == 3 else None, method=method)
+
+
 def correct_encoded(enc: EncodedImage, model, fmt, strength: float, *, in_place: bool = False):
     """``enc`` corrected by ``model`` for the output format ``fmt``
     (:class:`~vigproc.pipeline.processor.OutputFormat`): an :class:`EncodedImage` in the
@@ -82,6 +133,8 @@ def correct_encoded(enc: EncodedImage, model, fmt, strength: float, *, in_place:
     codes = enc.codes
     out = codes if in_place and codes.dtype == np.dtype(fmt.depth) and codes.flags.c_contiguous \
         and codes.flags.writeable else None
+    if out is not None:  # enc's codes become the output's: its reduced copy no longer holds
+        enc.forget_reduced()
     return EncodedImage(correct_codes(codes, model, enc.decode_table(), steps, strength=strength, out=out),
                         fmt.transfer)
 

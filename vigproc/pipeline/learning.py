@@ -227,7 +227,9 @@ def pooled_of(estimate, img, method: str):
     estimate : VignettingModel
         The frame's own estimate, as :func:`~vigproc.pipeline.processor.choose_model` made it.
     img : ndarray or EncodedImage
-        The frame as the pipeline's door accepted it (a JPEG's codes are decoded here).
+        The frame as the pipeline's door accepted it. A JPEG's or PNG's codes are binned
+        from the reduced copy its estimate read, the evidence stating the full frame's
+        geometry (:func:`vigproc.pipeline.encoded.evidence_encoded`), not decoded whole.
     method : str
         The estimation method.
 
@@ -245,12 +247,16 @@ def pooled_of(estimate, img, method: str):
     from vigproc.core.robust import luminance_evidence
     from vigproc.errors import ModelError
     from vigproc.io.images import EncodedImage
+    from vigproc.pipeline.encoded import evidence_encoded
 
     fit = estimate.candidate if estimate.candidate is not None else estimate
     evidence = None
     if method in EVIDENCE_METHODS:
-        a = img.linear() if isinstance(img, EncodedImage) else img
-        evidence = luminance_evidence(luminance(a), _robust_settings(method, None), clipped_mask(a), colour_of(a))
+        if isinstance(img, EncodedImage):  # binned from the reduced copy the estimate read
+            evidence = evidence_encoded(img, method)
+        else:
+            evidence = luminance_evidence(luminance(img), _robust_settings(method, None), clipped_mask(img),
+                                      colour_of(img))
     if fit.covariance is None and evidence is None:
         raise ModelError("no usable fit to learn from (no uncertainty)")
     return fit, evidence

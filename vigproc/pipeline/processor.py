@@ -380,21 +380,33 @@ class Processor:
         return fit, "estimate", str(p.key)
 
     def _pool_fit(self, img, *, checked: bool, estimated=None):
-        """What learn mode pools of a linear frame: its estimate (the candidate of one too
-        weak to apply alone: it still carries evidence for the lens) and, for the methods
-        that give it, the frame's evidence (None otherwise)."""
+        """What learn mode pools of a frame: its estimate (the candidate of one too weak
+        to apply alone: it still carries evidence for the lens) and, for the methods that
+        give it, the frame's evidence (None otherwise). A JPEG's or PNG's codes
+        (:class:`~vigproc.io.images.EncodedImage`) give both from their reduced copy
+        (:func:`vigproc.pipeline.encoded.estimate_with_evidence_encoded`); other methods
+        read them decoded. ``estimated``: the estimate made elsewhere (a RAW flat frame's
+        CFA planes)."""
         from vigproc.core.estimate import EVIDENCE_METHODS, estimate, estimate_checked, estimate_with_evidence
+        from vigproc.io.images import EncodedImage
 
-        evidence = None
+        method, evidence = self.settings.method, None
         if estimated is not None:  # made elsewhere (a RAW flat frame's CFA planes)
             m = estimated
-        elif self.settings.method in EVIDENCE_METHODS:
-            # with the frame's data, so the store can pool the lens's profile from all its frames
-            m, evidence = estimate_with_evidence(img, -1 if img.ndim == 3 else None, method=self.settings.method,
-                                                 checked=checked)
+        elif isinstance(img, EncodedImage) and method in EVIDENCE_METHODS:
+            from vigproc.pipeline.encoded import estimate_with_evidence_encoded
+
+            m, evidence = estimate_with_evidence_encoded(img, method)
         else:
-            m = estimate_checked(img, self.settings.method) if checked else estimate(
-                img, self.settings.method, channel_axis=-1 if img.ndim == 3 else None)
+            if isinstance(img, EncodedImage):
+                img, checked = img.linear(), False
+            if method in EVIDENCE_METHODS:
+                # with the frame's data, so the store can pool the lens's profile from all its frames
+                m, evidence = estimate_with_evidence(img, -1 if img.ndim == 3 else None, method=method,
+                                                     checked=checked)
+            else:
+                m = estimate_checked(img, method) if checked else estimate(
+                    img, method, channel_axis=-1 if img.ndim == 3 else None)
         fit = m.candidate if m.candidate is not None else m
         if fit.covariance is None:
             raise ModelError("no usable fit to learn from (no uncertainty)")
@@ -421,7 +433,6 @@ class Processor:
         A frame the store cannot pool (too few usable bins, an invalid fit) is recorded as
         not pooled; a locked store, or a full disk under it, raises (the frame is tried
         again, and a frame pooled before is not pooled twice: ``frame_id``)."""
-        from vigproc.io.images import EncodedImage
         from vigproc.pipeline.learning import SETTLED_FRAMES, Learned, pooled_of, pooling_refusal
         from vigproc.stores.profiles import ProfileStoreError
 
@@ -444,8 +455,7 @@ class Processor:
                 if own is not None:
                     fit, evidence = pooled_of(own, img, self.settings.method)
                 else:  # corrected by a profile: the frame's one estimate is made here
-                    linear = img.linear() if isinstance(img, EncodedImage) else img
-                    fit, evidence = self._pool_fit(linear, checked=not isinstance(img, EncodedImage))
+                    fit, evidence = self._pool_fit(img, checked=True)
             except (ModelError, VigprocError) as exc:  # nothing to pool; the correction stands
                 log.info("%s: not learned: %s", where, exc)
                 return Learned(False, reason=f"no fit to pool: {exc}")
@@ -598,8 +608,8 @@ class Processor:
 
         s = self.settings
         path = Path(path)
-        # correct and estimate take a JPEG's or PNG's code values as they are (pipeline.encoded)
-        img, info = (read_encoded if s.mode in ("correct", "estimate") else read_image)(
+        # correct, estimate and learn take a JPEG's or PNG's code values as they are (pipeline.encoded)
+        img, info = (read_encoded if s.mode in ("correct", "estimate", "learn") else read_image)(
             path, transfer=s.transfer, raw_half_size=raw_half_size)
         # a host's stand-in reader may not offer the one read of the whole file
         read_file = getattr(self.reader, "read_file", None)
