@@ -77,6 +77,8 @@ def test_a_second_daemon_on_the_same_folders_is_refused_in_every_variant(tmp_pat
             assert r.returncode == 1 and "already running" in r.stderr, (args, r.stderr)
             assert "Traceback" not in r.stderr
         assert not (tmp_path / "elsewhere.sqlite").exists()
+        st = _second(in_dir, out_dir, "--status", env=env)  # --status asks the running one, is not refused
+        assert st.returncode == 0 and "running, pid" in st.stdout, st.stderr
         # the output folder deleted under the daemon: the lock is not in it, so a second daemon
         # is still refused while the first lives (stopped here so that it cannot react yet) ...
         d1.send_signal(signal.SIGSTOP)

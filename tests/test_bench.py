@@ -62,8 +62,8 @@ def test_rgs_cannot_follow_off_centre_vignetting():
 
 
 def _bench(*args):
-    """``vigproc bench ARGS`` in this process (the prior, real, scene-scatter and learn
-    commands below run as new processes)."""
+    """``vigproc bench ARGS`` in this process (not about the process: main() gives the same
+    exit codes and output; the scene-scatter command below runs as a new process)."""
     return run_cli("bench", *args)
 
 
@@ -154,8 +154,7 @@ def test_prior_fit_lens_family_writes_the_shipped_kind(tmp_path):
     from vigproc.core.lensfamily import LensFamily, profile_family
 
     out = tmp_path / "family.json"
-    r = subprocess.run([*VIGPROC, "prior", "fit-lens-family", "-o", out, "--components", "3"],
-                       capture_output=True, text=True, timeout=600)
+    r = run_cli("prior", "fit-lens-family", "-o", out, "--components", "3")
     assert r.returncode == 0, r.stderr
     fam = LensFamily.from_dict(json.loads(out.read_text()))
     shipped = profile_family()
@@ -171,8 +170,7 @@ def test_prior_fit_scene_writes_a_loadable_falloff(clean_folder, tmp_path):
     command = "fit-scene"
     out = tmp_path / "out" / "falloff.json"
     out.parent.mkdir()
-    r = subprocess.run([*VIGPROC, "prior", command, clean_folder, "-o", out, "--input-transfer", "linear"],
-                       capture_output=True, text=True, timeout=600)
+    r = run_cli("prior", command, clean_folder, "-o", out, "--input-transfer", "linear")
     assert r.returncode == 0, r.stderr
     f = SceneFalloff.from_dict(json.loads(out.read_text()))
     assert f.n_images == 10 and command in f.source and "--input-transfer linear" in f.source
@@ -183,8 +181,7 @@ def test_prior_fit_scene_writes_a_loadable_falloff(clean_folder, tmp_path):
 def test_prior_fit_needs_ten_photos(clean_folder, tmp_path):
     for p in sorted(clean_folder.iterdir())[:2]:
         p.unlink()
-    r = subprocess.run([*VIGPROC, "prior", "fit-scene", clean_folder, "-o", tmp_path / "b.json"],
-                       capture_output=True, text=True, timeout=600)
+    r = run_cli("prior", "fit-scene", clean_folder, "-o", tmp_path / "b.json")
     assert r.returncode != 0 and "at least 10 photos" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "b.json").exists()
 
@@ -223,8 +220,7 @@ def test_real_bench_pairs_and_photographs(tmp_path):
     # the exact field scores (nearly) zero
     exact = run_pair(base * truth, base, "scene_vig", "truth", lambda im: table1_model(1).rescale(w, h))
     assert exact.error_ev < 0.01
-    r = subprocess.run([*VIGPROC, "bench", "real", "--images", str(tmp_path), "--methods", "default",
-                        "--json", str(tmp_path / "r.json")], capture_output=True, text=True, timeout=300)
+    r = run_cli("bench", "real", "--images", tmp_path, "--methods", "default", "--json", tmp_path / "r.json")
     assert r.returncode == 0, r.stderr
     rows = json.loads((tmp_path / "r.json").read_text())
     assert len(rows) == 3 and "2 pairs and 1 photographs" in r.stdout

@@ -81,6 +81,7 @@ def test_encoded_path_agrees_with_float_within_one_code(depth):
     rng = np.random.default_rng(3)
     codes = rng.integers(0, top + 1, (H, W, 3)).astype(np.uint8 if depth == "uint8" else np.uint16)
     decode = srgb_to_linear(np.arange(top + 1) / top).astype(np.float32)
+    decode.setflags(write=False)  # as EncodedImage.decode_table passes it: the kernel the pipeline runs
     steps = encode_steps("srgb", depth)
     got = correct_codes(codes, m, decode, steps).astype(np.int64)
     ref = np.searchsorted(steps, correct(decode[codes], m, clip=1.0), side="right")

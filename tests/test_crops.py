@@ -13,7 +13,7 @@ from benchmarks.crops import shifted_field
 from vigproc.forensics.crops import CropCalibration, CropCalibrationError, auc, check_crop
 from vigproc.io.images import write_image
 
-from conftest import photo_like
+from conftest import photo_like, run_cli
 
 #: A lensfun-like pa shape (Canon-ish wide angle): 1 - 0.6 r^2 + 0.1 r^4
 K = (-0.6, 0.1, 0.0)
@@ -93,14 +93,12 @@ def test_auc_is_the_mann_whitney_share():
 def test_check_reports_the_crop_test(tmp_path):
     p = tmp_path / "shifted.tif"
     write_image(p, np.repeat(_frame(0.4)[..., None], 3, axis=2).astype(np.float32), bit_depth="float")
-    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "check", "--no-store", "--json", str(p)],
-                       capture_output=True, text=True, timeout=300)
+    r = run_cli("check", "--no-store", "--json", p)  # not about the process: main() in this one
     doc = json.loads(r.stdout)
     crop = doc["results"][0]["crop"]
     assert crop["verdict"] in ("off-centre", "not-shown-off-centre") and crop["shift"] > 0.2, crop
     assert len(crop["offset_px"]) == 2 and len(crop["covariance_px"]) == 2
-    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "check", "--no-store", str(p)],
-                       capture_output=True, text=True, timeout=300)
+    r = run_cli("check", "--no-store", p)
     assert "; crop test: " in r.stdout.splitlines()[0]  # on the frame's own line
 
 

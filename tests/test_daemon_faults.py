@@ -125,7 +125,9 @@ def test_a_full_output_disk_pauses_the_daemon_and_quarantines_nothing(tmp_path, 
     paused = _status(out_dir)["paused"]
     assert paused["why"] == "output disk full" and paused["free_bytes"] == 1_000_000 and paused["files_waiting"] >= 1
     assert "TIFFWriteScanline failed" in paused["reason"]
-    time.sleep(2)  # a few failed probes: still nothing quarantined, nothing moved, no attempt counted
+    # a few failed probes: still nothing quarantined, nothing moved, no attempt counted
+    d.wait_for("two failed probes", lambda: sum(ev.get("event") == "disk-still-full" for ev in d.events()) >= 2,
+               timeout=60)
     entries = journal_entries(out_dir).values()
     assert not [e for e in entries if e.state == "quarantined" or e.attempts or e.crashes]
     assert _inputs(in_dir) == sorted(names) and list(qdir.iterdir()) == []
@@ -161,7 +163,7 @@ def test_retry_quarantined_brings_files_back_from_the_quarantine_folder(tmp_path
     digests = {n: sha(make_good(in_dir, n, i)) for i, n in enumerate(names)}
     (marks / "photo-refused").touch()
     common = ("--settle", "0.2", "--quarantine", str(qdir))
-    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *common, env=env).start()
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *common, env=env, workers=1).start()
     d.wait_for("both moved to the quarantine folder", lambda: _inputs(in_dir) == [], timeout=90)
     d.wait_for("the status to count them", lambda: _status(out_dir).get("this_run", {}).get("quarantined", 0)
                >= len(names), timeout=30)
@@ -173,7 +175,8 @@ def test_retry_quarantined_brings_files_back_from_the_quarantine_folder(tmp_path
         [output_stem(n) for n in names] + [output_stem(n) + ".reason.json" for n in names])
 
     (marks / "photo-refused").unlink()  # the cause was fixed
-    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *common, "--retry-quarantined", env=env).start()
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *common, "--retry-quarantined", env=env,
+               workers=1).start()
     d.wait_for("both done", lambda: sum(e.state == "done" for e in journal_entries(out_dir).values()) == 2,
                timeout=90)
     assert d.stop() == 0

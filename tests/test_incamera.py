@@ -4,7 +4,6 @@ vignetting (maker-note flag, or a phone's) is left alone by default (vigproc.io.
 import json
 import shutil
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -15,10 +14,9 @@ from vigproc.io.images import write_image
 from vigproc.io.incamera import from_tags, read_in_camera
 from vigproc.pipeline.processor import Processor, Settings
 
-from conftest import photo_like
+from conftest import photo_like, run_cli
 
 needs_exiftool = pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
-VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
 @pytest.mark.parametrize("tags, evidence", [
@@ -86,8 +84,7 @@ def test_correct_leaves_a_phone_jpeg_alone_unless_told(tmp_path):
     src = _jpeg(tmp_path / "IMG_1.jpg", "Apple", "iPhone 5s")
     before = src.read_bytes()
     out = tmp_path / "out"
-    r = subprocess.run([*VIGPROC, "correct", str(src), "-o", str(out), "--profile", "estimate"],
-                       capture_output=True, text=True, timeout=300)
+    r = run_cli("correct", src, "-o", out, "--profile", "estimate")  # in this process: not about the process
     assert r.returncode == 0, r.stderr
     side = json.loads((out / "IMG_1.jpg.vigproc.json").read_text())
     assert side["applied"] is False and side["not_applied_rule"] == "in-camera"

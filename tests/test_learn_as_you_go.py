@@ -20,7 +20,7 @@ from vigproc.pipeline.learning import SERIES_GAP_S, SteadyProfiles, field_change
 from vigproc.pipeline.processor import Processor, Settings
 from vigproc.stores.profiles import ProfileStore
 
-from conftest import photo_like
+from conftest import photo_like, run_cli
 
 VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 #: A Nikon D70 with its kit zoom at 70 mm: an interchangeable-lens body (lensfun: "Nikon F AF").
@@ -407,14 +407,14 @@ def test_batch_learns_by_default_with_two_workers_and_a_rerun_pools_nothing(seri
     assert all("learned" not in json.loads(p.read_text()) for p in (tmp_path / "out3").glob("*.vigproc.json"))
 
 
-def test_correct_learns_into_a_store_it_is_given_only(series, tmp_path):
+def test_correct_learns_into_a_store_it_is_given_only(series, tmp_path, monkeypatch):
     paths, _ = series
-    env = dict(os.environ, VIGPROC_PROFILE_DB=str(tmp_path / "default.sqlite"))
-    r = _run("correct", paths[0], "-o", tmp_path / "a", "--json", env=env)
+    monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path / "default.sqlite"))
+    r = run_cli("correct", paths[0], "-o", tmp_path / "a", "--json")  # in this process: not about the process
     assert r.returncode == 0, r.stderr
     assert "learned" not in json.loads(r.stdout)["results"][0]
     db = tmp_path / "given.sqlite"
-    r = _run("correct", *paths[:2], "-o", tmp_path / "b", "--profile-db", db, "--json", env=env)
+    r = run_cli("correct", *paths[:2], "-o", tmp_path / "b", "--profile-db", db, "--json")
     assert r.returncode == 0, r.stderr
     assert [x["learned"]["frames"] for x in json.loads(r.stdout)["results"]] == [1, 2]
 
@@ -537,7 +537,7 @@ def test_profile_apply_starts_a_new_series_by_hand(series, tmp_path):
     db = tmp_path / "p.sqlite"
     with ProfileStore(db) as store, Processor(Settings(mode="learn"), store=store) as proc:
         proc.process_file(paths[0], _out(tmp_path / "out"))
-    r = _run("profile", "--profile-db", db, "apply", "0")
+    r = run_cli("profile", "--profile-db", db, "apply", "0")
     assert r.returncode != 0 and "not trusted" in r.stderr and "Traceback" not in r.stderr
     with ProfileStore(db) as store, Processor(Settings(mode="learn"), store=store) as proc:
         for p in paths[1:4]:
@@ -548,7 +548,7 @@ def test_profile_apply_starts_a_new_series_by_hand(series, tmp_path):
         proc.process_file(paths[4], _out(tmp_path / "out"))  # the store moves on; the series keeps its revision
         [moved] = store.list()
         assert store.series_revision(moved, moved.key, at=60.0, clock="capture", gap=SERIES_GAP_S)[0] == old
-    r = _run("profile", "--profile-db", db, "apply", "0")
+    r = run_cli("profile", "--profile-db", db, "apply", "0")
     assert r.returncode == 0, r.stderr
     with ProfileStore(db) as store:
         rev, got, new = store.series_revision(moved, moved.key, at=120.0, clock="capture", gap=SERIES_GAP_S)

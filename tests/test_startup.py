@@ -57,6 +57,41 @@ def test_preload_numba_one_thread_and_kernels_run():
     assert _fresh(code) == "True True True"
 
 
+def test_preload_takes_numbas_locks_in_numbas_order():
+    """A kernel imported while the preload runs: the importing thread holds the lock that
+    creates Numba's target context, then wants the compiler lock.  The preloader, blocked
+    on that creation, must not be holding the compiler lock (it did: `vigproc correct`
+    hung for ever, one time in a few under load).  Made deterministic: this thread holds
+    the creation lock until the preloader waits on it, then asks for the compiler lock."""
+    code = (
+        "import sys, time\n"
+        "from numba.core.compiler_lock import global_compiler_lock\n"
+        "from numba.core.registry import CPUTarget\n"
+        "creation = CPUTarget.__dict__['_toplevel_target_context']._lock\n"
+        "creation.acquire()\n"
+        "from vigproc.core.preload import preload_numba\n"
+        "t = preload_numba()\n"
+        "def waiting():\n"
+        "    f = sys._current_frames().get(t.ident)\n"
+        "    while f is not None:\n"
+        "        if f.f_code.co_name == '__get__' and f.f_code.co_filename.endswith('utils.py'):\n"
+        "            return True\n"
+        "        f = f.f_back\n"
+        "    return False\n"
+        "deadline = time.monotonic() + 100\n"
+        "while not waiting() and t.is_alive() and time.monotonic() < deadline:\n"
+        "    time.sleep(0.01)\n"
+        "assert waiting(), 'the preloader never asked for the target context'\n"
+        "got = global_compiler_lock._lock.acquire(timeout=5)\n"
+        "if got:\n"
+        "    global_compiler_lock._lock.release()\n"
+        "creation.release()\n"
+        "t.join(100)\n"
+        "print(got, not t.is_alive())\n"
+    )
+    assert _fresh(code) == "True True"
+
+
 @needs_exiftool
 def test_spawned_exiftool_answers_its_first_command():
     from vigproc.io.exiftool_process import ExiftoolProcess

@@ -12,7 +12,7 @@ about a second of CPU, in one piece, before the first frame's estimate.
 caller's own thread waits on I/O (exiftool's start, the first file's decode) instead
 of after it.  It is only an earlier start of what the first kernel call would do:
 it holds Numba's compiler lock for the refresh (the first dispatch then waits for it
-and finds it done), loads no kernel and compiles nothing, and a failure is left to
+and finds it done), takes Numba's locks in the order Numba takes them, loads no kernel and compiles nothing, and a failure is left to
 the first kernel call to meet and report.
 """
 
@@ -32,9 +32,13 @@ def _load() -> None:
         from numba.core.compiler_lock import global_compiler_lock
         from numba.core.registry import cpu_target
 
+        # the context is created first, outside the compiler lock: Numba creates it under the
+        # lock of its cached property and then takes the compiler lock, so holding the compiler
+        # lock while asking for it deadlocks with a thread that imports a kernel meanwhile
+        context = cpu_target.target_context
         # what Numba's cache does before loading a kernel (caching.Cache.load_overload)
         with global_compiler_lock:
-            cpu_target.target_context.refresh()
+            context.refresh()
     except Exception:  # noqa: BLE001 - the first kernel call does it again and reports
         logger.debug("Numba preload failed", exc_info=True)
 
