@@ -153,6 +153,14 @@ def binned_coords(n: int, k: int) -> np.ndarray:
     return np.arange(nb) * k + (k - 1) / 2.0 - (n - 1) / 2.0
 
 
+#: A 1×1 stand-in for "no mask" in the compiled binning (one signature for both cases).
+_NO_MASK = np.ones((1, 1), dtype=np.bool_)
+#: The largest block the compiled binning sums as NumPy does (NumPy's pairwise block,
+#: :data:`vigproc.core._kernels.binning.MAX_BLOCK`; not imported here: a process that
+#: only pools a profile never loads Numba).
+_MAX_BLOCK = 128
+
+
 def binned_log_copy(lum: np.ndarray, work_size: int, dark_fraction: float,
                     mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """The estimators' working copy of an H×W linear luminance frame.
@@ -170,10 +178,18 @@ def binned_log_copy(lum: np.ndarray, work_size: int, dark_fraction: float,
     """
     h, w = lum.shape
     k = max(1, int(round(max(h, w) / work_size)))
-    ok = np.isfinite(lum) & (lum > 0)
-    if mask is not None:
-        ok &= mask
-    b, valid = bin_mean(np.where(ok, lum, 0.0), k, ok)
+    if 1 < k <= _MAX_BLOCK:
+        # one compiled pass, the same bits as the NumPy below (:mod:`vigproc.core._kernels.binning`)
+        from vigproc.core._kernels.binning import bin_usable
+
+        b, valid = bin_usable(np.ascontiguousarray(lum, dtype=np.float64),
+                              np.ascontiguousarray(mask, dtype=np.bool_) if mask is not None else _NO_MASK,
+                              mask is not None, k)
+    else:
+        ok = np.isfinite(lum) & (lum > 0)
+        if mask is not None:
+            ok &= mask
+        b, valid = bin_mean(np.where(ok, lum, 0.0), k, ok)
     if valid.any():
         valid &= b > dark_fraction * np.percentile(b[valid], 99)
     return log_image(b), valid, k
@@ -195,8 +211,14 @@ def binned_log_channels(img: np.ndarray, k: int, valid: np.ndarray, dark_fractio
     h, w, c = img.shape
     hb, wb = valid.shape
     a = np.asarray(img[: hb * k, : wb * k], dtype=np.float64)
-    sums = a.reshape(hb, k, wb * k, c).sum(axis=1).reshape(hb, wb, k, c).sum(axis=2)
-    b = np.moveaxis(sums / (k * k), -1, 0)
+    if k > 1:
+        # one compiled pass, the same bits as the NumPy below (:mod:`vigproc.core._kernels.binning`)
+        from vigproc.core._kernels.binning import bin_channels
+
+        b = bin_channels(np.ascontiguousarray(a), hb, wb, k)
+    else:
+        sums = a.reshape(hb, k, wb * k, c).sum(axis=1).reshape(hb, wb, k, c).sum(axis=2)
+        b = np.moveaxis(sums / (k * k), -1, 0)
     ok = np.broadcast_to(valid, b.shape).copy()
     for i in range(c):
         if ok[i].any():

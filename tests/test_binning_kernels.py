@@ -1,0 +1,85 @@
+"""The compiled working copies (vigproc/core/_kernels/binning.py) give the NumPy code's
+bits: the same bins, the same usable bins, the same logs."""
+
+import numpy as np
+import pytest
+
+from vigproc.core.pixels import _MAX_BLOCK, bin_mean, binned_log_channels, binned_log_copy, log_image
+
+
+def _copy_numpy(lum, work_size, dark_fraction, mask=None):
+    """binned_log_copy as NumPy computed it before the kernel."""
+    h, w = lum.shape
+    k = max(1, int(round(max(h, w) / work_size)))
+    ok = np.isfinite(lum) & (lum > 0)
+    if mask is not None:
+        ok &= mask
+    b, valid = bin_mean(np.where(ok, lum, 0.0), k, ok)
+    if valid.any():
+        valid &= b > dark_fraction * np.percentile(b[valid], 99)
+    return log_image(b), valid, k
+
+
+def _channels_numpy(img, k, valid, dark_fraction):
+    """binned_log_channels as NumPy computed it before the kernel."""
+    h, w, c = img.shape
+    hb, wb = valid.shape
+    a = np.asarray(img[: hb * k, : wb * k], dtype=np.float64)
+    sums = a.reshape(hb, k, wb * k, c).sum(axis=1).reshape(hb, wb, k, c).sum(axis=2)
+    b = np.moveaxis(sums / (k * k), -1, 0)
+    ok = np.broadcast_to(valid, b.shape).copy()
+    for i in range(c):
+        if ok[i].any():
+            ok[i] &= b[i] > dark_fraction * np.percentile(b[i][ok[i]], 99)
+    return log_image(b), ok
+
+
+def _frame(shape, seed):
+    rng = np.random.default_rng(seed)
+    img = np.exp(rng.normal(-1.0, 1.0, shape))  # a wide range: the sums' rounding shows
+    img[3, 5] = np.nan
+    img[7, 2] = -0.01
+    img[11, 13] = 0.0
+    return img
+
+
+@pytest.mark.parametrize("shape", [(320, 480), (333, 517), (97, 130), (1100, 1700)])
+@pytest.mark.parametrize("work_size", [96, 60, 37, 15])
+@pytest.mark.parametrize("masked", [False, True])
+def test_working_copy_is_numpys_to_the_bit(shape, work_size, masked):
+    img = _frame(shape + (3,), sum(shape) + work_size)
+    lum = img @ np.array([0.2126, 0.7152, 0.0722])
+    mask = np.random.default_rng(1).uniform(size=shape) > 0.02 if masked else None
+    k = max(1, int(round(max(shape) / work_size)))
+    assert k <= _MAX_BLOCK
+    L, valid, kk = binned_log_copy(lum, work_size, 0.01, mask)
+    L0, valid0, k0 = _copy_numpy(lum, work_size, 0.01, mask)
+    assert kk == k0 == k
+    np.testing.assert_array_equal(valid, valid0)
+    np.testing.assert_array_equal(L, L0)  # NaN where NumPy has NaN, every other bit equal
+    assert not valid.all()  # the bad pixels were seen
+    C, ok = binned_log_channels(img, k, valid, 0.01)
+    C0, ok0 = _channels_numpy(img, k, valid, 0.01)
+    np.testing.assert_array_equal(ok, ok0)
+    np.testing.assert_array_equal(C, C0)
+
+
+def test_channels_of_an_rgba_float32_frame():
+    img = _frame((200, 300, 4), 3).astype(np.float32)
+    img[..., 3] = 1.0
+    lum = img[..., :3].astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    L, valid, k = binned_log_copy(lum, 30, 0.01)
+    C, ok = binned_log_channels(img[..., :3], k, valid, 0.01)
+    C0, ok0 = _channels_numpy(img[..., :3], k, valid, 0.01)
+    np.testing.assert_array_equal(C, C0)
+    np.testing.assert_array_equal(ok, ok0)
+
+
+def test_blocks_longer_than_numpys_pairwise_block_keep_numpy():
+    """Above 128 px a block is summed by NumPy itself (its recursive pairwise sum)."""
+    lum = _frame((400, 300), 4)
+    L, valid, k = binned_log_copy(lum, 2, 0.01)
+    assert k == 200 > _MAX_BLOCK
+    L0, valid0, _ = _copy_numpy(lum, 2, 0.01)
+    np.testing.assert_array_equal(L, L0)
+    np.testing.assert_array_equal(valid, valid0)
