@@ -83,3 +83,28 @@ def test_blocks_longer_than_numpys_pairwise_block_keep_numpy():
     L0, valid0, _ = _copy_numpy(lum, 2, 0.01)
     np.testing.assert_array_equal(L, L0)
     np.testing.assert_array_equal(valid, valid0)
+
+
+def test_pairs_gathered_in_one_pass_are_numpys_gathers():
+    """pairs_at's compiled gather (vigproc/core/_kernels/pairs.py) gives the NumPy gathers' bits."""
+    from vigproc.core.family_fit import FamilySettings, luminance_copy, pairs_at, settings_index, with_colour
+
+    rng = np.random.default_rng(5)
+    img = np.exp(rng.normal(-1.0, 0.5, (320, 480, 3)))
+    lum = img @ np.array([0.2126, 0.7152, 0.0722])
+    s = FamilySettings()
+    copy = with_colour(luminance_copy(lum, s, None), img, s)
+    index = settings_index(copy.L, copy.valid, copy.C, s)
+    assert index.first.size > 1000
+    M = rng.normal(size=copy.L.shape)
+    B = rng.normal(size=copy.L.shape + (3,))
+    d, a = pairs_at(index, M, B)
+    m = M.reshape(-1)
+    d0 = index.dlog - (m.take(index.second) - m.take(index.first)) * index.inv_step
+    bt = np.ascontiguousarray(np.moveaxis(B, -1, 0)).reshape(3, m.size)
+    at0 = bt.take(index.second, axis=1)
+    at0 -= bt.take(index.first, axis=1)
+    at0 *= index.inv_step
+    np.testing.assert_array_equal(d, d0)
+    np.testing.assert_array_equal(a, at0.T)
+    assert a.T.flags.c_contiguous  # the layout irls reads without a copy

@@ -73,7 +73,7 @@ from vigproc.core._kernels.geometry import geometry_pairs
 from vigproc.core._kernels.irls import irls_fit
 from vigproc.core._kernels.blocks import block_normal, linear_refits
 from vigproc.core._kernels.gauss_newton import geometry_gauss_newton
-from vigproc.core._kernels.pairs import list_pairs
+from vigproc.core._kernels.pairs import gather_pairs, list_pairs
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.lensfamily import N_COMPONENTS, LensFamily, default_family, profile_family
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
@@ -370,14 +370,11 @@ def settings_index(L: np.ndarray, valid: np.ndarray, C: np.ndarray | None, setti
 def pairs_at(index: PairIndex, M: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pairs' data with field ``M`` (h, w) divided out and its components ``B``
     (h, w, K) as regressors: d (n,) and a (n, K) of :func:`family_pairs`."""
-    m = M.reshape(-1)
-    d = index.dlog - (m.take(index.second) - m.take(index.first)) * index.inv_step
-    # gathered component by component (K × n): faster than by rows, and the transposed
+    m = np.ascontiguousarray(M, dtype=np.float64).reshape(-1)
+    # gathered component by component (K × n), in one compiled pass each: the transposed
     # layout is what irls's products read (pair_products: no copy)
-    bt = np.ascontiguousarray(np.moveaxis(B, -1, 0)).reshape(B.shape[-1], m.size)
-    at = bt.take(index.second, axis=1)
-    at -= bt.take(index.first, axis=1)
-    at *= index.inv_step
+    bt = np.ascontiguousarray(np.moveaxis(B, -1, 0), dtype=np.float64).reshape(B.shape[-1], m.size)
+    d, at = gather_pairs(m, bt, index.first, index.second, index.inv_step, index.dlog)
     return d, at.T
 
 

@@ -73,3 +73,38 @@ def list_pairs(L, valid, steps, block, C, inv_t2, colour):
                         wt[n] = 1.0
                     n += 1
     return first[:n], second[:n], inv[:n], dl[:n], lab[:n], wt[:n], chroma[:, :n]
+
+
+@njit(cache=True, nogil=True)
+def gather_pairs(m, bt, first, second, inv_step, dlog):
+    """The pairs' data with a field divided out and their regressors
+    (:func:`vigproc.core.family_fit.pairs_at`), in one pass each: the arithmetic of its
+    NumPy gathers, in their order (the same bits).
+
+    Parameters
+    ----------
+    m : ndarray (nb,)
+        The field at each bin (flat).
+    bt : ndarray (K, nb)
+        The regressors at each bin, a row per component.
+    first, second, inv_step, dlog : ndarray (n,)
+        The pairs (:class:`vigproc.core.family_fit.PairIndex`).
+
+    Returns
+    -------
+    d : ndarray (n,)
+        dlog − (m[second] − m[first]) · inv_step.
+    at : ndarray (K, n)
+        (bt[:, second] − bt[:, first]) · inv_step.
+    """
+    n = first.shape[0]
+    K = bt.shape[0]
+    d = np.empty(n)
+    at = np.empty((K, n))
+    for p in range(n):
+        d[p] = dlog[p] - (m[second[p]] - m[first[p]]) * inv_step[p]
+    for k in range(K):
+        row = bt[k]
+        for p in range(n):
+            at[k, p] = (row[second[p]] - row[first[p]]) * inv_step[p]
+    return d, at
