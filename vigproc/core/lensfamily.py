@@ -260,8 +260,10 @@ def build_family(profiles: np.ndarray, focal35: np.ndarray, fnumber: np.ndarray,
     )
 
 
+@lru_cache(maxsize=1)
 def family_path() -> Path:
-    """The shipped family file."""
+    """The shipped family file (found once: importlib's lookup took longer than the
+    estimator's own use of the family, three times a frame)."""
     return Path(str(files("vigproc") / "data" / "lens_family.json"))
 
 

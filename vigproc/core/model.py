@@ -432,7 +432,15 @@ class VignettingModel:
         m = self.rescale(w, h) if (h, w) != (self.height, self.width) else self
         # NumPy on this small grid (≤ 256 per side): as fast as the kernel, and a process
         # that only pools a profile never waits for Numba to load
-        lf = m.log_field_at(frame_coords(w)[None, :], frame_coords(h)[:, None]) / math.log(2.0)
+        xs, ys = frame_coords(w), frame_coords(h)
+        if m.center == (0.0, 0.0) and m.p[1] == 0.0:
+            # a centred field without a tilted axis is even in x and in y, and the grid is
+            # symmetric (exactly): one quadrant evaluated, mirrored, gives the same array
+            q = m.log_field_at(xs[w // 2:][None, :], ys[h // 2:][:, None])
+            q = np.concatenate([q[:, w % 2:][:, ::-1], q], axis=1)
+            lf = np.concatenate([q[h % 2:][::-1], q], axis=0) / math.log(2.0)
+        else:
+            lf = m.log_field_at(xs[None, :], ys[:, None]) / math.log(2.0)
         return float(np.sqrt(np.mean(lf * lf)))
 
     # ------------------------------------------------------------ transforms
