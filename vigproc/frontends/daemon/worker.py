@@ -153,7 +153,7 @@ def _warm(wlog: logging.Logger) -> None:
     fatal: what fails now fails again, and is reported, on a file.  (Its exiftool
     processes start with the first file and persist: a hung exiftool is then charged to
     the file that met it, with the worker's timeout.)"""
-    from vigproc.frontends.batch import warm_up
+    from vigproc.frontends.batch_worker import warm_up
 
     threads = os.environ.get("NUMBA_NUM_THREADS", "")  # set per worker by the scheduler
     try:
