@@ -29,7 +29,7 @@ so a profile pools its frames' evidence:
    fall-back when no scatter is known.
 3. **Nothing subtracted, no prior**: the scenes' median effect on vignetting-free
    photos is below 0.01 EV (``vigproc bench profile --clean``), and a bias fitted to
-   film scans held their cameras' own fall-off (until session 10 the store subtracted
+   film scans held their cameras' own fall-off (the store once subtracted
    one). Applying the family prior to the pooled coefficients measured worse at every
    number of frames: it shrinks strong lenses.
 

@@ -24,6 +24,7 @@ import logging
 import os
 import re
 import shutil
+import signal
 import time
 from typing import Any, Iterator
 
@@ -165,8 +166,6 @@ class _Pool:
 
 
 def _pool_worker_init(numba_threads: int, client_pid: int, log_level: int = logging.WARNING) -> None:
-    import signal
-
     from vigproc.frontends.daemon.logs import configure_logging
 
     # the worker's log lines on the shared stderr, control and bidi characters of hostile

@@ -58,24 +58,29 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
+import fcntl
 import hashlib
 import json
 import logging
 import math
 import os
 import sqlite3
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
+from vigproc.atomic import atomic_write_text
 from vigproc.errors import ImageWriteError, VigprocError  # noqa: F401  (ImageWriteError: its old import path)
 from vigproc.frontends.batch_inputs import (NETWORK_FS, BatchError, BatchItem, check_local_disk, collect,
                                             collect_dir, filesystem_type, read_list)
 from vigproc.frontends.batch_worker import (Handout, JobSpec, Outcome, Shipped, Task, release_worker_state,
                                             run_task, warm_up, worker_name)
 from vigproc.pipeline.faults import DISK_FULL, attempt_limit
+from vigproc.pipeline.learning import Learned, SteadyProfiles
 from vigproc.pipeline.processor import Settings, sweep_temporaries
+from vigproc.stores.journal import Journal, fingerprint
 from vigproc.stores.retry import DEFAULT_MAX_ATTEMPTS
 
 __all__ = ["BREAKER_FILES", "JOURNAL_NAME", "NETWORK_FS", "BatchError", "BatchItem", "BatchSummary", "Handout",
@@ -237,10 +242,6 @@ def run_batch(
     BatchSummary
         ``interrupted`` is set if the run was stopped (Ctrl-C); rerun to resume.
     """
-    import sys
-
-    from vigproc.stores.journal import Journal
-
     learn = spec.settings.mode == "learn"
     if (learn or spec.client_learns) and store is None:
         raise BatchError("learn mode needs a profile store" if learn else
@@ -307,8 +308,6 @@ class _Run:
         # the next tasks are handed (Handout)
         self.steady = None
         if spec.client_learns:
-            from vigproc.pipeline.learning import SteadyProfiles
-
             self.steady = SteadyProfiles(store)
         self.handout = Handout()
         self.handed = -1  # the Handout version the backend ships
@@ -487,7 +486,6 @@ class _Run:
         its capture time (:class:`~vigproc.pipeline.learning.SteadyProfiles`, the store's
         applied revision), and hand the result to the tasks submitted next. The
         record, and the sidecar the worker wrote, then say what the store did."""
-        from vigproc.pipeline.learning import Learned
         from vigproc.stores.profiles import ProfileStoreError
 
         fid = res.fingerprint.sha256
@@ -526,8 +524,6 @@ class _Run:
     def _rewrite_learned(record: dict[str, Any], learned) -> None:
         """The record's and the sidecar's ``learned`` (and ``profile``) as the store
         pooled the frame (the worker could only say what it handed over)."""
-        from vigproc.atomic import atomic_write_text
-
         record["learned"] = learned.to_dict()
         if learned.pooled:
             record["profile"] = learned.profile
@@ -550,8 +546,6 @@ class _Run:
 
     def journal_failure(self, task: Task, fp, reason: str, kind: str, transient: bool,
                         max_attempts: int | None = DEFAULT_MAX_ATTEMPTS) -> None:
-        from vigproc.stores.journal import fingerprint
-
         if fp is None:  # the worker could not even read it: try here, to key the journal entry
             with contextlib.suppress(VigprocError):
                 fp = fingerprint(task.path)
@@ -607,8 +601,6 @@ def _count_source(summary: BatchSummary, rec: dict[str, Any] | None) -> None:
 @contextlib.contextmanager
 def _job_lock(journal_path: Path, job: str) -> Iterator[None]:
     """One client per job at a time (two would both dispatch the same files)."""
-    import fcntl
-
     lock = journal_path.with_name(f"{journal_path.name}.{job}.lock")
     try:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)

@@ -29,6 +29,7 @@ from vigproc.errors import VigprocError
 from vigproc.pipeline.faults import PERMANENT, classify_error
 from vigproc.pipeline.processor import SIDECAR_SUFFIX, Processor, Settings, output_location, safe_output
 from vigproc.scratch import scratch_folder
+from vigproc.stores.opening import open_profile_store
 
 log = logging.getLogger("vigproc.frontends.batch")  # the batch job's one logger name, as before the split
 
@@ -282,16 +283,10 @@ def _worker_state(spec: JobSpec) -> _WorkerState:
     if settings.mode == "learn":
         store = evidence = _Evidence()
     elif spec.client_learns:  # learning as it goes on a cluster: the client pools
-        from vigproc.stores.opening import open_profile_store
-
         store = pooled = _ClientPooled(open_profile_store(_materialise(spec.store_snapshot)))
     elif spec.store_path is not None:  # learning as you go: the live store, pooled into here
-        from vigproc.stores.opening import open_profile_store
-
         store = open_profile_store(spec.store_path, write=True)
     elif spec.store_snapshot is not None:
-        from vigproc.stores.opening import open_profile_store
-
         store = open_profile_store(_materialise(spec.store_snapshot))
     st = _WorkerState(token, Processor(settings, store=store), store, evidence, pooled)
     _thread.state = st
