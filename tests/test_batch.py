@@ -17,6 +17,7 @@ from conftest import textured
 
 from vigproc.frontends import backends as BK
 from vigproc.frontends import batch as B
+from vigproc.frontends import batch_worker
 from vigproc.frontends.cli import main
 from vigproc.io.images import read_image, write_image
 from vigproc.stores.journal import Journal
@@ -136,11 +137,11 @@ def test_output_folder_never_escapes(tmp_path):
     out = tmp_path / "out"
     (out / "a").mkdir(parents=True)
     spec = B.JobSpec(settings=Settings(mode="estimate", profile="estimate"), outdir=str(out))
-    assert B._out_folder(spec, "a/b/x.jpg") == (out / "a" / "b", "x.jpg")
+    assert batch_worker._out_folder(spec, "a/b/x.jpg") == (out / "a" / "b", "x.jpg")
     os.symlink(tmp_path, out / "evil")  # planted link pointing outside the output folder
     for rel in ("evil/x.jpg", "../x.jpg", "/etc/x.jpg"):
         with pytest.raises(B.ImageWriteError):
-            B._out_folder(spec, rel)
+            batch_worker._out_folder(spec, rel)
 
 
 def test_sweep_removes_only_orphaned_temporaries(tmp_path):

@@ -27,6 +27,9 @@ from pathlib import Path
 
 import pytest
 
+from scripts.deferred_imports import HEAVY_STDLIB, classify
+from scripts.deferred_imports import module_names as modules
+
 PACKAGE = Path(__file__).resolve().parents[1] / "vigproc"
 REPO = PACKAGE.parent
 #: The benchmarks' top-level package, in the repository beside vigproc/.
@@ -69,17 +72,6 @@ class Edge:
     target: str
     line: int
     function: str | None
-
-
-def modules(root: Path) -> dict[str, Path]:
-    """Dotted module name -> source file, for every ``.py`` under the package ``root``."""
-    out = {}
-    for path in sorted(root.rglob("*.py")):
-        parts = list(path.relative_to(root.parent).with_suffix("").parts)
-        if parts[-1] == "__init__":
-            parts.pop()
-        out[".".join(parts)] = path
-    return out
 
 
 def _is_main_guard(node: ast.AST) -> bool:
@@ -288,3 +280,38 @@ def test_the_checker_finds_a_cycle_through_a_function_level_import(tmp_path):
     edges = import_graph(pkg)
     assert cycles(edges) == [["pkg.a", "pkg.b"]]  # c -> d is only the script's: no cycle c, d
     assert Edge("pkg.b", "pkg.a", 2, "g") in edges
+
+
+def test_the_deferred_import_count_sees_each_reason(tmp_path):
+    """scripts/deferred_imports.py: a function-level import is ``start-up`` when it loads
+    what the module's top level does not (a third-party package, a heavy part of the
+    standard library), ``optional`` inside ``try: ... except ImportError``, else
+    ``needless``."""
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "light.py").write_text("X = 1\n")
+    (pkg / "a.py").write_text(
+        "import os\n"
+        "def f():\n    import os\n    from pkg.light import X\n    return os, X\n"
+        "def g():\n    import numpy\n    import asyncio\n    return numpy, asyncio\n"
+        "def h():\n    try:\n        import lensfunpy\n    except ImportError:\n        return None\n")
+    got = {(line, reason) for module, line, _, reason in classify(pkg) if module == "pkg.a"}
+    assert got == {(3, "needless"), (4, "needless"), (7, "start-up"), (8, "start-up"), (12, "optional")}
+    assert "asyncio" in HEAVY_STDLIB
+
+
+#: Modules allowed over :data:`MAX_LINES` say why at the top of their docstring, in these words.
+LARGE_REASON = "over the house's 1000 lines"
+MAX_LINES = 1000
+
+
+def test_modules_over_1000_lines_say_why():
+    """One concept per module: a module over 1000 lines states, in its docstring, why it is
+    one module (issue 40)."""
+    silent = []
+    for name, path in modules(PACKAGE).items():
+        text = path.read_text(encoding="utf-8")
+        if text.count("\n") > MAX_LINES and LARGE_REASON not in (ast.get_docstring(ast.parse(text)) or ""):
+            silent.append(f"{name} ({text.count(chr(10))} lines)")
+    assert not silent, f"split these, or say why each is one module ('{LARGE_REASON}'): {silent}"

@@ -85,7 +85,7 @@ def test_a_killed_batch_worker_s_shipped_files_are_swept(tmp_path: Path) -> None
     """A batch worker writes the files the client ships (a profile file) into a folder it
     removed only at exit."""
     out = run_killed("""
-        from vigproc.frontends.batch import Shipped, _materialise
+        from vigproc.frontends.batch_worker import Shipped, _materialise
         print(_materialise(Shipped.of("profile.json", b"{}")))
     """, tmp_path / "tmp")
     folder = Path(out.strip()).parent

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -366,6 +366,4 @@ def detect_colour_cast(img: np.ndarray, *, channel_axis: int | None = -1, lumina
 
 
 def _replace(ev: ColourCastEvidence, **kw) -> ColourCastEvidence:
-    from dataclasses import replace
-
     return replace(ev, **kw)

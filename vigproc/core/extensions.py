@@ -41,6 +41,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from vigproc.core.methods import METHODS
 from vigproc.errors import EXIT_CODES, SETTINGS, VigprocError
 
 log = logging.getLogger(__name__)
@@ -148,8 +149,6 @@ def discover(group: str) -> list[Extension]:
     """
     if group not in GROUPS:
         raise ValueError(f"unknown extension group {group!r}")
-    from vigproc.core.methods import METHODS
-
     found: dict[str, list[Extension]] = {}
     for ep in entry_points(group=group):
         dist = getattr(ep, "dist", None)
@@ -185,8 +184,6 @@ def estimator_names() -> tuple[str, ...]:
 
 def method_names() -> tuple[str, ...]:
     """Built-in methods followed by the installed estimator extensions."""
-    from vigproc.core.methods import METHODS
-
     return (*METHODS, *estimator_names())
 
 

@@ -1,6 +1,6 @@
 """The lens-family estimator: a centred fall-off in the space real lenses span.
 
-Why one module of about 1200 lines: steps 1-7 below are one estimator. Its stages (the
+Why one module over the house's 1000 lines: steps 1-7 below are one estimator. Its stages (the
 working copy and its gradient pairs, the IRLS fit, the jackknife, the profile written as a
 Kang-Weiss model and the off-centre fits) share one settings record
 (:class:`FamilySettings`) and one working copy (:class:`FamilyWorkingCopy`) and are tuned

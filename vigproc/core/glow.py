@@ -56,22 +56,19 @@ class GlowTest:
         profile that steepens across the frame, as a lens's does.
     margin : float
         The glow must lower the mean Cauchy loss per pair (:func:`glow_advantage`)
-        by more than this. Measured with the default estimator (session 19, a script
-        over ``vigproc bench clean``'s frames: 20 lensfun fields, Lyu's Table 1 fields and
-        none on each base): on the clean protocol's sunset 0.127, with the lens fields
-        0.058–0.187 (above the margin for 18 of the 20), with Table 1 setting 1 0.227; on
-        its other 50 bases at most 0.016; on 123 held-out camera frames at most 0.064. The
-        test was asked of 809 of the 1224 clean-protocol frames and 1997 of the 2952
-        held-out ones, and changed the answer on the sunset's frames alone.
+        by more than this (dimensionless, as the loss): the clean
+        protocol's sunset, a glow, clears it; the lens fields and vignetting-free frames
+        mostly do not (measured: ``docs/benchmarks/clean.md``, "How the glow test's
+        settings were chosen").
     min_ev : float
         Only a fit that would remove at least this much (EV RMS about the frame mean)
         is tested: a weaker one does little harm if it is a glow (the clean protocol's
         do-no-harm target is 0.25 EV).
     steps, iterations : tuple of int, int
         The pairs' step (working-copy bins) and the most IRLS steps of each fit. With
-        steps 1, 2, 4 and up to 100 IRLS steps the test took 5 ms a frame; with the step
-        of 2 alone and 6 steps about 1.1 ms, and the sunset stayed as far from the other
-        frames (session 19, a script).
+        the step of 2 alone and 6 steps the test costs about 1 ms a frame and separates the
+        sunset as well as steps 1, 2, 4 and 100 IRLS steps (5 ms) did
+        (``docs/benchmarks/clean.md``, "How the glow test's settings were chosen").
     """
 
     radii: tuple[float, ...] = (0.2, 0.4)

@@ -39,6 +39,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from vigproc.atomic import atomic_write_text
 from vigproc.errors import ModelError
 
 log = logging.getLogger(__name__)
@@ -218,8 +219,6 @@ class LensFamily:
         return fam
 
     def save(self, path: str | Path) -> None:
-        from vigproc.atomic import atomic_write_text
-
         atomic_write_text(Path(path), json.dumps(self.to_dict(), separators=(",", ":")))
 
 

@@ -43,6 +43,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from vigproc.core.lensfamily import profile_family
 from vigproc.core.model import FitQuality, VignettingModel
 from vigproc.errors import ModelError
 
@@ -159,8 +160,6 @@ def outward_rise_ev(model: VignettingModel, samples: int = 65) -> float:
 def _corner_population() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(corner fall-off in EV, 35-mm focal length, f-number) of every calibration of the
     shipped lens family (its profile at ρ = 1, the calibration's corner)."""
-    from vigproc.core.lensfamily import profile_family
-
     fam = profile_family()
     cache = fam.__dict__.setdefault("_corner_ev", None)
     if cache is None:

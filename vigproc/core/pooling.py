@@ -29,7 +29,7 @@ so a profile pools its frames' evidence:
    fall-back when no scatter is known.
 3. **Nothing subtracted, no prior**: the scenes' median effect on vignetting-free
    photos is below 0.01 EV (``vigproc bench profile --clean``), and a bias fitted to
-   film scans held their cameras' own fall-off (until session 10 the store subtracted
+   film scans held their cameras' own fall-off (the store once subtracted
    one). Applying the family prior to the pooled coefficients measured worse at every
    number of frames: it shrinks strong lenses.
 
@@ -70,12 +70,10 @@ from vigproc.core.robust import RobustWorkingCopy
 
 #: Method name of pooled profiles.
 METHOD = "profile-pooled"
-#: Scale of the pooled σ, measured on the clean protocol (the frames' colour-weighted
-#: fits of 20 lenses × 51 bases, 10 frame orders each, pooled after 1 / 5 / 20 / 50
-#: frames): at 0.5 the error is within 1σ on 69 / 88 / 89 / 93 % of the profiles and
-#: within 2σ on 90 / 99 / 100 / 100 % (0.6 overstated it: 94–96 % within 1σ from 5
-#: frames on; 0.4 understated one frame's: 76 % within 2σ); ``vigproc bench
-#: profile-clean`` prints both shares.
+#: Scale of the pooled σ (dimensionless, a factor on the robust scatter of the frames'
+#: coefficients): at 0.5 the pooled profile's error is within 1σ on about 9 in 10
+#: profiles from 5 frames on (``vigproc bench profile-clean`` prints the shares; how it was
+#: chosen: ``docs/benchmarks/profiles.md``, "How the pooling settings were chosen").
 SIGMA_SCALE = 0.5
 #: Frames whose coefficients lie further than this many robust s.d. from the median
 #: are clipped there when the scatter is estimated.
@@ -83,18 +81,12 @@ _WINSOR = 2.5
 _LN2 = math.log(2.0)
 
 
-#: The settings of a frame's fit for pooling: a Cauchy scale half the single-frame
-#: fit's of session 14 (0.005 against 0.01). Without the prior, a smaller scale follows the mode of the log-gradients more
-#: closely; pooled, the frames' fits then agree better (clean protocol, the frames'
-#: fits t-pooled, 20 lenses × 10 orders, a script: σ = 0.0025 / 0.0035 / 0.005 / 0.01 /
-#: 0.02 gave 0.022 / 0.024 / 0.023 / 0.026 / 0.030 EV after 5 frames and 0.011 /
-#: 0.012 / 0.012 / 0.014 / 0.014 after 20). The chroma scale τ is the single-frame fit's
-#: (0.002 since session 15; ``vigproc bench profile-clean`` with the scene scatter
-#: re-measured: 0.0188 / 0.0088 / 0.0069 → 0.0178 / 0.0086 / 0.0070 EV after 5 / 20 / 50
-#: frames against τ = 0.003). Since session 18 each pair's chroma change enters as a
-#: covariate, as in the single-frame fit (``vigproc bench profile-clean --orders 2``, scene
-#: scatter re-measured: 0.0178 / 0.0086 / 0.0070 → 0.0150 / 0.0074 / 0.0062 EV after 5 /
-#: 20 / 50 frames; one frame 0.0387 → 0.0392, p90 0.200 → 0.191).
+#: The settings of a frame's fit for pooling: the evidence fit's, with a Cauchy scale σ
+#: of 0.005 (log units per step; half the single-frame fit's 0.01: without the prior a
+#: smaller scale follows the mode of the log-gradients more closely, and the pooled frames
+#: agree better), the single-frame fit's chroma scale τ = 0.002 and each pair's chroma
+#: change as a covariate (weight 0.3), as in the single-frame fit. How they were chosen:
+#: ``docs/benchmarks/profiles.md``, "How the pooling settings were chosen".
 FRAME_SETTINGS = replace(EVIDENCE_SETTINGS, sigma=0.005, chroma_tau=0.002, chroma_covariate=0.3)
 
 

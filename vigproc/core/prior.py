@@ -26,6 +26,7 @@ from typing import Iterable
 
 import numpy as np
 
+from vigproc.atomic import atomic_write_text
 from vigproc.errors import PriorError
 from vigproc.core.pixels import log_image, luminance
 from vigproc.core.stats import DELTA_MAX, OPERATORS, derivative_means
@@ -94,8 +95,6 @@ class NaturalPrior:
         return cls(n_blocks=int(d.get("n_blocks", 0)), block=int(d.get("block", 0)), source=str(d.get("source", "")), **arrs)
 
     def save(self, path: str | Path) -> None:
-        from vigproc.atomic import atomic_write_text
-
         atomic_write_text(Path(path), json.dumps(self.to_dict(), indent=1) + "\n")
 
     @classmethod

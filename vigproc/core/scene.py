@@ -38,6 +38,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from vigproc.core.model import frame_coords
+from vigproc.core.normalised import denormalise, fit_model_to_field, normalise
 from vigproc.errors import ModelError, PriorError
 
 log = logging.getLogger(__name__)
@@ -88,8 +90,6 @@ class SceneFalloff:
 
     def model(self, width: int, height: int):
         """The scene fall-off as a :class:`~vigproc.core.model.VignettingModel` of a frame."""
-        from vigproc.core.normalised import denormalise
-
         return denormalise(np.asarray(self.theta), None, width, height, method="scene")
 
     def to_dict(self) -> dict[str, Any]:
@@ -131,8 +131,6 @@ def default_scene_falloff() -> SceneFalloff:
 def frame_grid(aspect: float, n: int = 48) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Pixel-centre coordinates (half-diagonals) of an n-wide frame of aspect W/H:
     (xs, ys, width, height) of the small grid mean fall-offs are fitted and pooled on."""
-    from vigproc.core.model import frame_coords
-
     w, h = n, max(4, int(round(n / aspect)))
     r = 0.5 * math.hypot(w, h)
     return frame_coords(w) / r, frame_coords(h) / r, w, h
@@ -161,8 +159,6 @@ def fit_scene_falloff(
     -------
     SceneFalloff
     """
-    from vigproc.core.normalised import fit_model_to_field, normalise
-
     if len(images) < 10:
         raise PriorError(f"fit the scene fall-off on at least 10 photos, got {len(images)}")
     h0, w0 = images[0].shape[:2]

@@ -34,7 +34,11 @@ from typing import Any
 
 import numpy as np
 
+from vigproc.atomic import atomic_write_text
+from vigproc.core.lensfamily import default_family
+from vigproc.core.pixels import check_image, luminance
 from vigproc.errors import VigprocError
+from vigproc.forensics.lensmatch import empirical_p
 
 #: A frame is called off-centre below this false-alarm probability.
 DEFAULT_ALPHA = 0.01
@@ -112,8 +116,6 @@ class CropCalibration:
     source: str = ""
 
     def p_value(self, z: float) -> float:
-        from vigproc.forensics.lensmatch import empirical_p
-
         return empirical_p(self.null_z, z)
 
     def to_dict(self) -> dict[str, Any]:
@@ -133,8 +135,6 @@ class CropCalibration:
             raise CropCalibrationError(f"unusable crop calibration: {exc}") from None
 
     def save(self, path: str | Path) -> None:
-        from vigproc.atomic import atomic_write_text
-
         atomic_write_text(Path(path), json.dumps(self.to_dict()) + "\n")
 
     @classmethod
@@ -170,7 +170,6 @@ def crop_statistic(lum: np.ndarray, family=None,
         The centred fit's fall-off over its uncertainty.
     """
     from vigproc.core.family_fit import EVIDENCE_SETTINGS, fit_centre, fit_family
-    from vigproc.core.lensfamily import default_family
 
     # the jackknife its shipped null was made with; the test decides on its own evidence below
     s = replace(EVIDENCE_SETTINGS, min_snr=0.0, grey_min_snr=0.0)
@@ -203,7 +202,6 @@ def check_crop(img: np.ndarray, *, channel_axis: int | None = -1, calibration: C
     CropEvidence
     """
     from vigproc.core.family_fit import colour_of
-    from vigproc.core.pixels import check_image, luminance
 
     a = check_image(img, channel_axis)
     lum = luminance(a)

@@ -39,6 +39,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from vigproc.atomic import atomic_write_text
+from vigproc.core.normalised import normalise
 from vigproc.forensics.check import ForensicsError, read_json, ring_falloff
 from vigproc.core.model import VignettingModel
 
@@ -69,8 +71,6 @@ def feature_vector(model: VignettingModel, features: str = "falloff") -> np.ndar
     -------
     ndarray
     """
-    from vigproc.core.normalised import normalise
-
     m = model.candidate if model.candidate is not None else model
     if features == "lyu2010":
         theta, _, _ = normalise(m)
@@ -225,8 +225,6 @@ class LensClassifier:
 
     def save(self, path: str | Path) -> None:
         """Write as JSON, atomically."""
-        from vigproc.atomic import atomic_write_text
-
         atomic_write_text(Path(path), json.dumps(self.to_dict(), separators=(",", ":")) + "\n")
 
     @classmethod

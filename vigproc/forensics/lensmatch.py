@@ -60,6 +60,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from vigproc.atomic import atomic_write_text
+from vigproc.core.lensfamily import default_family
+from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.errors import EXIT_CODES, VigprocError
 
 log = logging.getLogger(__name__)
@@ -126,8 +129,6 @@ def luminance_family_fit(lum: np.ndarray, family=None, settings=None, colour: np
         when too few pixels are usable.
     """
     from vigproc.core.family_fit import EVIDENCE_SETTINGS, frame_coefficients
-    from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
-    from vigproc.core.lensfamily import default_family
 
     s = settings or EVIDENCE_SETTINGS  # the covariance its shipped calibration read
     fam = family or default_family()
@@ -150,8 +151,6 @@ def reference_coefficients(model, width: int, height: int, family=None) -> np.nd
     """A lens's vignetting (any :class:`~vigproc.core.model.VignettingModel`) as family
     coefficients: least squares of its natural-log field over a grid of the
     ``width``×``height`` frame, against the family's mean + components and a constant."""
-    from vigproc.core.lensfamily import default_family
-
     fam = family or default_family()
     x, y, rho = _projection_grid(width, height)
     target = np.asarray(model.log_field_at(x[None, :], y[:, None]), dtype=np.float64)
@@ -386,8 +385,6 @@ class MatchCalibration(GaussianNull):
             raise MatchCalibrationError(f"invalid lens-mismatch calibration: {exc!r}") from None
 
     def save(self, path: str | Path) -> None:
-        from vigproc.atomic import atomic_write_text
-
         atomic_write_text(Path(path), json.dumps(self.to_dict(), separators=(",", ":")) + "\n")
 
 

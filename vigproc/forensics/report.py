@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import base64
 import html
+import json
 import math
+import shlex
 import struct
 import zlib
 from dataclasses import dataclass
@@ -22,9 +24,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from vigproc._version import __version__
+from vigproc.atomic import atomic_write_bytes
+from vigproc.core.resample import resize_area
 from vigproc.errors import ImageWriteError
 from vigproc.io.lensident import display_lens_id
 from vigproc.forensics.check import RING_RADII, Verdict, ring_falloff
+from vigproc.io.picture import _text as draw
 from vigproc.scratch import scratch
 
 __all__ = ["ReportItem", "jpeg_bytes", "png_bytes", "report_figure", "thumbnail", "write_report"]
@@ -71,8 +77,6 @@ class ReportItem:
 def thumbnail(img: np.ndarray, long_side: int = THUMB) -> np.ndarray:
     """A small linear RGB copy of ``img`` (H×W or H×W×C, channels last) for display,
     scaled so its 99.5th percentile is 1."""
-    from vigproc.core.resample import resize_area
-
     a = np.asarray(img, dtype=np.float32)
     if a.ndim == 2:
         a = a[..., None]
@@ -168,8 +172,6 @@ _PLAIN = str.maketrans({"≥": ">=", "≤": "<=", "ρ": "r", "σ": "sd", "α": "
 
 
 def _text(img: np.ndarray, x: int, y: int, text: str, size: int = 14, colour=(0.9, 0.9, 0.9)) -> None:
-    from vigproc.io.picture import _text as draw
-
     draw(img, x, y, text.translate(_PLAIN), size, colour)
 
 
@@ -414,9 +416,6 @@ def _html_section(item: ReportItem) -> str:
 
 def _run_rows(run: dict[str, Any]) -> list[tuple[str, str]]:
     """(name, value) of a run record (``vigproc check``'s :func:`run_record`)."""
-    import json
-    import shlex
-
     rows = [("analysed (UTC)", str(run.get("analysed_utc", "–"))), ("vigproc", str(run.get("vigproc", "–")))]
     if run.get("argv") is not None:
         rows.append(("command line", shlex.join(str(a) for a in run["argv"])))
@@ -430,8 +429,6 @@ def report_html(items: Sequence[ReportItem], *, title: str = "vigproc forensic c
                 run: dict[str, Any] | None = None) -> str:
     """The whole report as one self-contained HTML document; ``run``: when, which vigproc,
     the command line and settings (a table at its head; every value escaped)."""
-    from vigproc._version import __version__
-
     counts: dict[str, int] = {}
     for it in items:
         counts[it.verdict.verdict] = counts.get(it.verdict.verdict, 0) + 1
@@ -473,8 +470,6 @@ def write_report(path: str | Path, items: Sequence[ReportItem], *, notes: str = 
     ImageWriteError
         Unknown suffix, nothing to report, or the file cannot be written.
     """
-    from vigproc.atomic import atomic_write_bytes
-
     path = Path(path)
     suffix = path.suffix.lower()
     if not items:

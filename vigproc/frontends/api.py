@@ -40,7 +40,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from vigproc.errors import VigprocError
+from vigproc.core.pixels import check_image
+from vigproc.errors import MetadataError, VigprocError
+from vigproc.stores.opening import open_profile_store
 
 __all__ = ["API_VERSION", "MODES", "Pipeline", "RequestError", "Result", "lens_key", "process"]
 
@@ -94,7 +96,6 @@ def lens_key(lens: Any):
         Not a mapping, unknown field names, or values that are not text/numbers.
     """
     from vigproc.io.exif import LensKey, lens_key_from_metadata
-    from vigproc.errors import MetadataError
 
     if lens is None or isinstance(lens, LensKey):
         return lens
@@ -312,8 +313,6 @@ class Pipeline:
             return None
         st = getattr(self._local, "store", None)
         if st is None:
-            from vigproc.stores.opening import open_profile_store
-
             st = open_profile_store(self.store_path, write=self.settings.mode == "learn")  # one connection per thread
             if st is None:
                 return None
@@ -349,7 +348,6 @@ class Pipeline:
             Invalid image (:class:`~vigproc.errors.InvalidImageError`), lens data
             (:class:`RequestError`), profile or plugin failures.
         """
-        from vigproc.core.pixels import check_image
         from vigproc.pipeline.processor import Processor
 
         key = lens_key(lens)

@@ -3,10 +3,10 @@
 Every backend has the same small interface, which :func:`vigproc.frontends.batch.run_batch`
 drives: ``capacity`` (tasks worth keeping in flight), ``describe()``, ``start(spec)``,
 ``submit(task)``, ``completed()`` (yields each task with its
-:class:`~vigproc.frontends.batch.Outcome` or the exception it raised), ``cancel()`` and
+:class:`~vigproc.frontends.batch_worker.Outcome` or the exception it raised), ``cancel()`` and
 ``close()``; ``remote`` is true when tasks may outlive an interrupt on other machines.
 The Dask backend also has ``hand_out(handout)``: the client's
-:class:`~vigproc.frontends.batch.Handout` for the tasks it submits from then on
+:class:`~vigproc.frontends.batch_worker.Handout` for the tasks it submits from then on
 (learning as it goes on a cluster).
 
 References
@@ -24,11 +24,13 @@ import logging
 import os
 import re
 import shutil
+import signal
 import time
 from typing import Any, Iterator
 
 from vigproc._version import __version__
-from vigproc.frontends.batch import BatchError, JobSpec, Outcome, Task, release_worker_state, run_task, warm_up
+from vigproc.frontends.batch_inputs import BatchError
+from vigproc.frontends.batch_worker import JobSpec, Outcome, Task, release_worker_state, run_task, warm_up
 from vigproc.processes import die_with_parent
 
 log = logging.getLogger(__name__)
@@ -164,8 +166,6 @@ class _Pool:
 
 
 def _pool_worker_init(numba_threads: int, client_pid: int, log_level: int = logging.WARNING) -> None:
-    import signal
-
     from vigproc.frontends.daemon.logs import configure_logging
 
     # the worker's log lines on the shared stderr, control and bidi characters of hostile

@@ -19,6 +19,10 @@ from typing import Iterable
 
 import numpy as np
 
+from vigproc.core.pixels import luminance
+from vigproc.core.resample import resize_area
+from vigproc.errors import VigprocError
+
 log = logging.getLogger(__name__)
 
 #: The protocol frame (landscape).
@@ -32,9 +36,6 @@ def protocol_image(img: np.ndarray, colour: bool = False) -> np.ndarray:
     ``img`` holds stored values scaled to [0, 1] (not linearised: the paper's
     protocol takes them as linear), H×W or H×W×C.
     """
-    from vigproc.core.pixels import luminance
-    from vigproc.core.resample import resize_area
-
     a = np.asarray(img, dtype=np.float64)
     if colour:
         rgb = rgb_of(a)
@@ -57,8 +58,6 @@ def protocol_image(img: np.ndarray, colour: bool = False) -> np.ndarray:
 def rgb_of(img: np.ndarray) -> np.ndarray:
     """The R, G, B of an H×W or H×W×C frame: its first three channels, or its luminance
     in each of three (a grey file)."""
-    from vigproc.core.pixels import luminance
-
     a = np.asarray(img)
     return a[..., :3] if a.ndim == 3 and a.shape[-1] >= 3 else np.repeat(luminance(a)[..., None], 3, axis=-1)
 
@@ -73,7 +72,6 @@ def vignetted(im: np.ndarray, log_field: np.ndarray) -> np.ndarray:
 def read_protocol_images(files: Iterable[Path], transfer: str = "linear", colour: bool = False) -> list[np.ndarray]:
     """:func:`protocol_image` of each readable file (decoded with ``transfer``); a file
     that cannot be read is skipped with a warning."""
-    from vigproc.errors import VigprocError
     from vigproc.io.images import read_image
 
     ims = []

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vigproc.core.pixels import check_image
 from vigproc.errors import InvalidImageError
 from vigproc.io.images import EncodedImage, encode_steps
 
@@ -36,6 +37,37 @@ def check_encoded(enc: EncodedImage) -> EncodedImage:
     return enc
 
 
+def _reduced_or_decoded(enc: EncodedImage, method: str, on_reduced, on_frame):
+    """The one choice of every estimate of an encoded frame: from a copy binned in linear
+    light straight from the codes (:meth:`EncodedImage.reduced`, kept for the next caller)
+    when ``method`` reads binned copies only and the frame is large enough to be reduced,
+    else from the decoded frame.
+
+    Parameters
+    ----------
+    enc : EncodedImage
+    method : str
+    on_reduced : callable
+        ``on_reduced(small, k, width, height, usable)``: the reduced copy, its factor, the
+        full frame's size and the copy's usable-pixel mask.
+    on_frame : callable
+        ``on_frame(image, channel_axis)``: the decoded linear frame.
+
+    Returns
+    -------
+    What the chosen callable returns.
+    """
+    from vigproc.core.estimate import REDUCIBLE_METHODS, reduction_factor
+
+    h, w = enc.shape[:2]
+    k = reduction_factor(w, h)
+    if method in REDUCIBLE_METHODS and k > 1:
+        small, usable = enc.reduced(k)
+        return on_reduced(small, k, w, h, usable)
+    img = enc.linear()
+    return on_frame(img, -1 if img.ndim == 3 else None)
+
+
 def estimate_encoded(enc: EncodedImage, method: str, *, hint=None, seed: int | None = None):
     """The frame's estimate by ``method``: from a copy binned in linear light straight
     from the codes (:func:`vigproc.core.estimate.estimate_reduced`) when the estimator
@@ -47,16 +79,12 @@ def estimate_encoded(enc: EncodedImage, method: str, *, hint=None, seed: int | N
     VignettingModel
         For the full frame.
     """
-    from vigproc.core.estimate import REDUCIBLE_METHODS, estimate_checked, estimate_reduced, reduction_factor
-    from vigproc.core.pixels import check_image
+    from vigproc.core.estimate import estimate_checked, estimate_reduced
 
-    h, w = enc.shape[:2]
-    k = reduction_factor(w, h)
-    if method in REDUCIBLE_METHODS and k > 1:
-        small, usable = enc.reduced(k)
-        return estimate_reduced(small, k, w, h, method, hint=hint, usable=usable)
-    img = enc.linear()
-    return estimate_checked(check_image(img, -1 if img.ndim == 3 else None), method, hint=hint, seed=seed)
+    return _reduced_or_decoded(
+        enc, method,
+        lambda small, k, w, h, usable: estimate_reduced(small, k, w, h, method, hint=hint, usable=usable),
+        lambda img, axis: estimate_checked(check_image(img, axis), method, hint=hint, seed=seed))
 
 
 def evidence_encoded(enc: EncodedImage, method: str) -> bytes:
@@ -64,30 +92,26 @@ def evidence_encoded(enc: EncodedImage, method: str) -> bytes:
     (:func:`vigproc.core.estimate.frame_evidence`), binned from the reduced copy
     :func:`estimate_encoded` read (the one :meth:`EncodedImage.reduced` keeps: not reduced
     twice), with the full frame's geometry (:func:`vigproc.core.estimate.reduced_evidence`);
-    a frame too small to be reduced is decoded and binned whole, as before.
+    a frame too small to be reduced is decoded and binned whole.
 
     Raises
     ------
     InvalidImageError
         As :func:`vigproc.core.estimate.frame_evidence`.
     """
-    from vigproc.core.estimate import REDUCIBLE_METHODS, _robust_settings, frame_evidence, reduced_evidence, \
-        reduction_factor
+    from vigproc.core.estimate import _robust_settings, frame_evidence, reduced_evidence
 
-    h, w = enc.shape[:2]
-    k = reduction_factor(w, h)
-    if method in REDUCIBLE_METHODS and k > 1:
-        small, usable = enc.reduced(k)
-        return reduced_evidence(small, k, w, h, method, usable=usable)
-    img = enc.linear()
-    return frame_evidence(img, -1 if img.ndim == 3 else None, _robust_settings(method, None))
+    return _reduced_or_decoded(
+        enc, method,
+        lambda small, k, w, h, usable: reduced_evidence(small, k, w, h, method, usable=usable),
+        lambda img, axis: frame_evidence(img, axis, _robust_settings(method, None)))
 
 
 def estimate_with_evidence_encoded(enc: EncodedImage, method: str):
     """What learn mode pools of a frame (:func:`vigproc.core.estimate.estimate_with_evidence`:
     the robust fit and the frame's evidence, one working copy), from the reduced copy
     :meth:`EncodedImage.reduced` keeps, with the full frame's geometry; a frame too small to
-    be reduced is decoded whole, as before. ``method`` is one of
+    be reduced is decoded whole. ``method`` is one of
     :data:`~vigproc.core.estimate.EVIDENCE_METHODS`.
 
     Returns
@@ -98,16 +122,12 @@ def estimate_with_evidence_encoded(enc: EncodedImage, method: str):
     ------
     InvalidImageError
     """
-    from vigproc.core.estimate import (REDUCIBLE_METHODS, estimate_with_evidence, reduced_estimate_with_evidence,
-                                       reduction_factor)
+    from vigproc.core.estimate import estimate_with_evidence, reduced_estimate_with_evidence
 
-    h, w = enc.shape[:2]
-    k = reduction_factor(w, h)
-    if method in REDUCIBLE_METHODS and k > 1:
-        small, usable = enc.reduced(k)
-        return reduced_estimate_with_evidence(small, k, w, h, method, usable=usable)
-    img = enc.linear()
-    return estimate_with_evidence(img, -1 if img.ndim == 3 else None, method=method)
+    return _reduced_or_decoded(
+        enc, method,
+        lambda small, k, w, h, usable: reduced_estimate_with_evidence(small, k, w, h, method, usable=usable),
+        lambda img, axis: estimate_with_evidence(img, axis, method=method))
 
 
 def correct_encoded(enc: EncodedImage, model, fmt, strength: float, *, in_place: bool = False):

@@ -51,7 +51,7 @@ import time
 from dataclasses import dataclass, replace
 from typing import Any
 
-from vigproc.errors import VigprocError
+from vigproc.errors import ModelError, VigprocError
 
 log = logging.getLogger(__name__)
 
@@ -245,7 +245,6 @@ def pooled_of(estimate, img, method: str):
     """
     from vigproc.core.estimate import EVIDENCE_METHODS, _robust_settings, clipped_mask, colour_of, luminance
     from vigproc.core.robust import luminance_evidence
-    from vigproc.errors import ModelError
     from vigproc.io.images import EncodedImage
     from vigproc.pipeline.encoded import evidence_encoded
 

@@ -64,7 +64,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from vigproc.errors import SETTINGS, ModelError, one_line
+from vigproc.errors import SETTINGS, ModelError, VigprocError, one_line
+from vigproc.io.lenskey import LensKey, _dedupe_model, _lens_text, normalise_text
 from vigproc.stores.xmlsafe import parse_xml, read_capped
 
 __all__ = [
@@ -376,8 +377,6 @@ def _lens_name(entry: LcpVignette) -> str | None:
     """The lens as a frame's EXIF key would name it: ``Lens`` (the camera's own lens tag),
     unless that is unusable (``Sigma Lens``, a bare ``18.0-55.0 mm`` spec, an ID),
     then Adobe's ``LensPrettyName``."""
-    from vigproc.io.lenskey import _lens_text  # the same rules as for EXIF lens names
-
     for v in (entry.lens, entry.lens_pretty):
         text = _lens_text(v)[0] if v else None
         if text:
@@ -393,8 +392,6 @@ def lens_id_for(entry: LcpVignette, *, camera_model: str | None = None) -> str:
     LcpError
         Neither a camera model nor a usable lens name.
     """
-    from vigproc.io.lenskey import LensKey, _dedupe_model, normalise_text
-
     make = normalise_text(entry.make)
     model = _dedupe_model(make, normalise_text(camera_model or entry.model))
     lens = _lens_name(entry)
@@ -448,7 +445,6 @@ def import_lcp(paths: Iterable[str | os.PathLike[str]], *, camera_model: str | N
     """
     from vigproc.io.dng_vignette import fit_log_field
     from vigproc.io.exif import casefold_lens_id
-    from vigproc.errors import VigprocError
     from vigproc.stores.profiles import (
         ANY, Profile, ProfileKey, _aperture_index, _focal_centre, _focal_index, aperture_bin, aspect_label,
         focal_bin, normalise,

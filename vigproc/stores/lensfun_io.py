@@ -63,6 +63,7 @@ from vigproc.atomic import atomic_write_text
 from vigproc.errors import ModelError
 from vigproc.stores.lensfun import LensfunLens, find_camera, interpolate_pa, load_lenses, pa_poly
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
+from vigproc.stores.lensfun_match import match_lens
 
 if TYPE_CHECKING:
     from vigproc.io.exif import LensKey
@@ -618,8 +619,6 @@ def lensfun_model(lens_key: LensKey | None, width: int, height: int) -> Vignetti
         problem, or lensfun has no usable calibration (:func:`import_lensfun`); the
         message says which.
     """
-    from vigproc.stores.lensfun_match import match_lens
-
     if lens_key is None or lens_key.lens is None or lens_key.focal_mm is None or lens_key.fnumber is None:
         raise ModelError("lensfun needs the lens, focal length and f-number from EXIF")
     found = match_lens(lens_key)

@@ -40,6 +40,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from vigproc.io.lensident import make_brand
 from vigproc.stores.lensfun import LensfunLens, load_lenses
 
 __all__ = ["LensfunMatch", "SOFT_WORDS", "lens_tokens", "match_lens", "match_name"]
@@ -223,8 +224,6 @@ def match_lens(lens_key, *, db_paths: Iterable[str | Path] | None = None) -> Len
         problem, only describes it, names several, or lensfun has no lens of that name
         whose focal range holds the shot's focal length.
     """
-    from vigproc.io.lensident import make_brand
-
     if lens_key is None or lens_key.lens is None:
         return LensfunMatch(None, "the metadata names no lens")
     if lens_key.lens_problem:

@@ -7,7 +7,7 @@ update is lost.  Every change is one transaction: the store is never half-writte
 The revision of each trusted profile that correct runs apply (:meth:`ProfileStore.apply_revision`)
 is kept here too, so every worker applies the same one.
 
-About 1100 lines, over the house's 1000: one class whose methods are each one transaction
+Why one module over the house's 1000 lines: one class whose methods are each one transaction
 of the same SQLite file, and its numbered migrations, which must stay beside it.
 
 References
@@ -159,7 +159,7 @@ def _migration_5(con: sqlite3.Connection) -> None:
 def _migration_6(con: sqlite3.Connection) -> None:
     """v6: the frames' lens-family fits are made again from their evidence the first
     time their profile is pooled: fits stored before weighed no pair by its colour and
-    carried the σ scale of their day (:mod:`vigproc.core.family_fit`, session 13), and a
+    carried the σ scale of their day (:mod:`vigproc.core.family_fit` before store v6), and a
     profile must not pool fits of two kinds."""
     con.execute("UPDATE pooled_frames SET family = NULL")
 
@@ -167,21 +167,21 @@ def _migration_6(con: sqlite3.Connection) -> None:
 def _migration_7(con: sqlite3.Connection) -> None:
     """v7: the frames' lens-family fits are made again from their evidence the first
     time their profile is pooled: a frame's fit for pooling now follows the gradients'
-    mode more closely (:data:`vigproc.core.pooling.FRAME_SETTINGS`, session 14), and a
+    mode more closely (:data:`vigproc.core.pooling.FRAME_SETTINGS` from v7 on), and a
     profile must not pool fits of two kinds."""
     con.execute("UPDATE pooled_frames SET family = NULL")
 
 
 def _migration_8(con: sqlite3.Connection) -> None:
     """v8: the same again: a frame's fit for pooling weighs colour with the single-frame
-    fit's chroma scale since session 15 (:data:`vigproc.core.pooling.FRAME_SETTINGS`), and
+    fit's chroma scale from v8 on (:data:`vigproc.core.pooling.FRAME_SETTINGS`), and
     the shipped scene scatter was measured for such fits."""
     con.execute("UPDATE pooled_frames SET family = NULL")
 
 
 def _migration_9(con: sqlite3.Connection) -> None:
     """v9: the same again: a frame's fit for pooling reads each pair's chroma change as
-    covariates since session 18 (:data:`vigproc.core.pooling.FRAME_SETTINGS`), and the
+    covariates from v9 on (:data:`vigproc.core.pooling.FRAME_SETTINGS`), and the
     shipped scene scatter was measured for such fits."""
     con.execute("UPDATE pooled_frames SET family = NULL")
 
@@ -788,7 +788,7 @@ class ProfileStore(SQLiteFile):
             scenes' scatter) of their lens-family fits
             (:mod:`vigproc.core.pooling`, at most :data:`MAX_POOLED_FRAMES` frames), which
             measured better than pooling the per-frame estimates and than the centred
-            Kang-Weiss fits pooled until session 10 (``vigproc bench profile --clean``).
+            Kang-Weiss fits pooled before (``vigproc bench profile --clean``).
             The information sums are still kept.
             Needs ``frame_id`` (default: the SHA-256 of the evidence).
             With evidence, ``model`` may state no covariance (the lens-family

@@ -10,6 +10,7 @@ import math
 import sys
 from typing import Callable, Sequence
 
+from vigproc.core.methods import METHODS
 from vigproc.errors import EXIT_CODES, VigprocError, one_line
 
 PROFILE_HELP = ("auto (a trusted stored profile of the frame's lens, else a DNG's own vignetting opcodes, else "
@@ -45,8 +46,6 @@ def add_transfer(sp: argparse.ArgumentParser, default: str = "auto") -> None:
 
 
 def add_method(sp: argparse.ArgumentParser) -> None:
-    from vigproc.core.methods import METHODS
-
     # not argparse choices: installed estimator plugins are valid too (checked by Settings)
     sp.add_argument("--method", default="default", metavar="NAME",
                     help=f"estimator: {', '.join(METHODS)} or an installed estimator plugin "

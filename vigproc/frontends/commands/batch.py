@@ -19,6 +19,7 @@ from typing import Any
 from vigproc.errors import DiskFullError, one_line
 from vigproc.frontends.commands._options import add_learn, add_processing, learn_setting, number
 from vigproc.pipeline.processor import MODES, Settings
+from vigproc.stores.opening import open_profile_store
 
 log = logging.getLogger(__name__)
 
@@ -117,8 +118,6 @@ def cmd_batch(args: argparse.Namespace) -> int:
     profile_db = _option(args, config, "profile_db")
     try:
         if settings.needs_store:
-            from vigproc.stores.opening import open_profile_store
-
             store = open_profile_store(profile_db, write=settings.mode == "learn" or settings.learn)
             fs = B.filesystem_type(store.path) if settings.learn else None
             if fs in B.NETWORK_FS:  # every worker would write it: SQLite's locks need a local disk

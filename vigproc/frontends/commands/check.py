@@ -36,6 +36,9 @@ from vigproc.errors import EXIT_CODES, VigprocError, one_line
 from vigproc.io.lensident import display_lens_id
 from vigproc.frontends.commands._options import (JSON_HELP, add_method, add_profile_db, add_transfer, failure_record,
                                                  files_exit_code, interrupted, number, print_json_results)
+from vigproc.io.provenance import read_provenance
+from vigproc.pipeline.processor import InputFiles, Processor, Settings, file_sha256, output_file, read_lens, refuse_input
+from vigproc.stores.opening import open_profile_store
 
 log = logging.getLogger(__name__)
 
@@ -147,8 +150,6 @@ def cmd_check(args: argparse.Namespace) -> int:
     from vigproc.forensics.check import forensic_check, default_calibration, load_calibration, pool_verdicts
     from vigproc.forensics.lensmatch import default_match_calibration
     from vigproc.io.images import read_image
-    from vigproc.io.provenance import read_provenance
-    from vigproc.pipeline.processor import InputFiles, Processor, Settings, file_sha256, output_file, read_lens, refuse_input
 
     files = [Path(f) for f in args.files]
     refuse_input(args.report, InputFiles(files))
@@ -159,8 +160,6 @@ def cmd_check(args: argparse.Namespace) -> int:
         default_match_calibration() if args.method == "default" else default_calibration()
     store = None
     if not args.no_store:
-        from vigproc.stores.opening import open_profile_store
-
         store = open_profile_store(args.profile_db)  # a store that cannot exist holds no reference
     run = run_record(args, calibration, store)
     results, items, verdicts = [], [], []

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from vigproc.frontends.commands._options import add_method, add_transfer, number
 from vigproc.errors import VigprocError
+from vigproc.pipeline.processor import InputFiles, images_in, output_file, refuse_input
 
 
 #: --classifier choices: name -> (kind, features).
@@ -98,7 +99,6 @@ def _estimates(files: list[Path], method: str, transfer: str, what: str):
 
 def _protocol_images(folders, limit, transfer):
     from vigproc.io.protocol import read_protocol_images
-    from vigproc.pipeline.processor import images_in
 
     ims = [im for folder in folders for im in read_protocol_images(images_in(Path(folder), limit), transfer)]
     if len(ims) < 10:
@@ -111,7 +111,6 @@ def cmd_train(args: argparse.Namespace) -> int:
     import numpy as np
 
     from vigproc.forensics.identify import feature_vector, train_classifier
-    from vigproc.pipeline.processor import InputFiles, images_in, output_file, refuse_input
 
     kind, feats = CLASSIFIERS[args.classifier]
     classes = [(sub, images_in(sub)) for root in args.dirs for sub in _class_dirs(Path(root))]
@@ -135,8 +134,6 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from vigproc.forensics.identify import LensClassifier, accuracy, confusion_matrix, feature_vector, format_confusion
     import numpy as np
-
-    from vigproc.pipeline.processor import images_in
 
     clf = LensClassifier.load(args.model)
     known = {name: i for i, name in enumerate(clf.labels)}
@@ -179,8 +176,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     from vigproc.forensics.calibration_frames import calibration_residuals, lens_classes
     from vigproc.forensics.check import estimator_fingerprint, fit_calibration
-
-    from vigproc.pipeline.processor import InputFiles, images_in, output_file, refuse_input
 
     refuse_input(args.output, InputFiles(f for d in args.images for f in images_in(Path(d), args.limit)))
     output_file(args.output)

@@ -75,6 +75,7 @@ from vigproc.io.formats import WRITE_EXT_FORMAT, WRITE_SUFFIXES
 from vigproc.pipeline.processor import (OUTPUT_FORMATS, SIDECAR_SUFFIX, InputFiles, Processor, Settings, output_folder,
                                         output_stems, safe_output)
 from vigproc.scratch import scratch_folder
+from vigproc.stores.opening import open_profile_store
 
 log = logging.getLogger(__name__)
 
@@ -316,8 +317,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     store = None
     if settings.needs_store:  # the hook's modes only read it
-        from vigproc.stores.opening import open_profile_store
-
         store = open_profile_store(opt["profile_db"])
     reader = _HostLens(given)
     results = []

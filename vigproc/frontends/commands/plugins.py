@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from vigproc.core.methods import METHODS
+
 
 def _status(ext) -> tuple[bool, str | None]:
     from vigproc.core.extensions import ExtensionError
@@ -21,7 +23,6 @@ def _status(ext) -> tuple[bool, str | None]:
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
-    from vigproc.core.methods import METHODS
     from vigproc.core.extensions import GROUPS, discover
 
     rows = []

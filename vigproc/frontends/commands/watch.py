@@ -17,6 +17,7 @@ from typing import Any
 from vigproc.frontends.commands._options import add_learn, add_processing, learn_setting, number
 from vigproc.pipeline.faults import DEFAULT_MIN_FREE
 from vigproc.pipeline.processor import Settings, names_profile_file
+from vigproc.stores.opening import open_profile_store
 from vigproc.stores.retry import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_CRASHES, DEFAULT_RETRY_BASE, DEFAULT_RETRY_CAP
 
 log = logging.getLogger("vigproc.watch")
@@ -56,8 +57,6 @@ def _check_settings(cfg) -> None:
 
         import_profile(settings.profile)
     if settings.needs_store:
-        from vigproc.stores.opening import open_profile_store
-
         store = open_profile_store(cfg.profile_db, write=settings.mode == "learn")
         if store is not None:
             store.close()

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import json
 import os
 import shutil
@@ -33,7 +34,7 @@ from typing import Any, Callable, Iterable
 from vigproc.atomic import replacing
 from vigproc.errors import VigprocError
 from vigproc.pipeline.faults import CRASH, PERMANENT, attempt_limit
-from vigproc.pipeline.processor import output_location, sweep_temporaries
+from vigproc.pipeline.processor import SIDECAR_SUFFIX, output_location, safe_output, sweep_temporaries
 from vigproc.stores.journal import Fingerprint, FingerprintError, Journal, JournalError, boot_id, fingerprint
 
 from .config import REASON_SUFFIX, WatchConfig, _inside, _signature, _Task, output_stem
@@ -94,8 +95,6 @@ def read_status(cfg: WatchConfig) -> dict[str, Any]:
     out: dict[str, Any] = {"in_dir": str(cfg.in_dir), "out_dir": str(cfg.out_dir), "job": cfg.job,
                            "journal": str(cfg.journal), "running": False}
     if cfg.lock_file.exists():
-        import fcntl
-
         try:
             fd = os.open(cfg.lock_file, os.O_RDONLY)
         except OSError:
@@ -344,8 +343,6 @@ class Recorder:
     def _earlier_outputs(self, rel: str, fp: Fingerprint) -> list[str]:
         """The sidecar and output in the output folder for ``rel`` when they record
         another content than ``fp`` (the file was replaced and its new content failed)."""
-        from vigproc.pipeline.processor import SIDECAR_SUFFIX, safe_output
-
         try:
             folder, stem = output_location(self.cfg.out_dir, rel, create=False)
         except VigprocError:

@@ -25,6 +25,7 @@ import os
 import socket
 import time
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from typing import Any, Callable
 
 from vigproc.pipeline.faults import CRASH, DISK_FULL, OUTPUT, PERMANENT, TRANSIENT, disk_space, output_trouble
@@ -130,8 +131,6 @@ class Scheduler:
         d = self.disk
         if d is None:
             return None
-        from datetime import datetime, timezone
-
         return {
             "why": f"{d.disk} full", "reason": d.reason,
             "since": datetime.fromtimestamp(d.since, timezone.utc).isoformat(timespec="seconds"),

@@ -10,6 +10,7 @@ overran ``--timeout`` are killed; the status file is rewritten every second.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import signal
 import socket
@@ -51,8 +52,6 @@ def _flock(path: Any, cfg: WatchConfig) -> int:
     WatchError
         The lock is held by another daemon, or the file cannot be made.
     """
-    import fcntl
-
     for _ in range(5):  # a file replaced between our open and our lock is locked again
         try:
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -22,10 +22,12 @@ import signal
 from pathlib import Path
 from typing import Any
 
+from vigproc.frontends.batch_worker import warm_up
 from vigproc.pipeline.faults import DEFAULT_MIN_FREE, PERMANENT, classify_error
-from vigproc.pipeline.processor import output_location
+from vigproc.pipeline.processor import SIDECAR_SUFFIX, Processor, Settings, output_location, safe_output
 from vigproc.processes import die_with_parent
 from vigproc.stores.journal import Fingerprint
+from vigproc.stores.opening import open_profile_store
 
 from .logs import configure_logging
 
@@ -89,12 +91,8 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
     wlog = logging.getLogger("vigproc.watch.worker")
     store = proc = None
     try:
-        from vigproc.pipeline.processor import SIDECAR_SUFFIX, Processor, Settings, safe_output
-
         s = Settings(**settings)
         if s.needs_store:
-            from vigproc.stores.opening import open_profile_store
-
             store = open_profile_store(profile_db, write=s.mode == "learn")
         proc = Processor(s, store=store)
     except Exception as exc:  # a worker that cannot start is fatal for the daemon: say why
@@ -153,8 +151,6 @@ def _warm(wlog: logging.Logger) -> None:
     fatal: what fails now fails again, and is reported, on a file.  (Its exiftool
     processes start with the first file and persist: a hung exiftool is then charged to
     the file that met it, with the worker's timeout.)"""
-    from vigproc.frontends.batch import warm_up
-
     threads = os.environ.get("NUMBA_NUM_THREADS", "")  # set per worker by the scheduler
     try:
         warm_up(int(threads) if threads.isdigit() else None)
