@@ -237,7 +237,8 @@ def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rou
                 os.environ.pop("VIGPROC_PROFILE_DB", None)
             else:
                 os.environ["VIGPROC_PROFILE_DB"] = env_db
-    return ScalingResult(len(master), max(1, copies) * sum(p.megapixels for p in photos), max(1, rounds), len(os.sched_getaffinity(0)),
+    return ScalingResult(len(master), max(1, copies) * sum(p.megapixels for p in photos), max(1, rounds),
+                         len(os.sched_getaffinity(0)),
                          load_before,
                          os.getloadavg(), runs)
 
