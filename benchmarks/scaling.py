@@ -78,6 +78,40 @@ class ScalingResult:
         return self.photos / r.median_wall
 
 
+def distinct_copy(src: Path, dst: Path, n: int) -> Path:
+    """Copy the JPEG ``src`` to ``dst`` with a comment segment (``COM``, "vigproc bench
+    copy n") after its application segments: the same pixels and tags, other bytes, so
+    the copy is a frame of its own to every content hash (the journal, learning's frame
+    ids) and the work per copy is the original's.
+
+    Raises
+    ------
+    VigprocError
+        ``src`` is not a JPEG whose segments can be walked.
+    """
+    data = src.read_bytes()
+    if data[:2] != b"\xff\xd8":
+        raise VigprocError(f"bench scaling: {src} is not a JPEG")
+    at = 2
+    while at + 4 <= len(data) and data[at] == 0xFF and 0xE0 <= data[at + 1] <= 0xEF:  # APP0..APP15
+        at += 2 + int.from_bytes(data[at + 2:at + 4], "big")
+    if at + 2 > len(data) or data[at] != 0xFF:
+        raise VigprocError(f"bench scaling: cannot walk the segments of {src}")
+    text = f"vigproc bench copy {n}".encode()
+    dst.write_bytes(data[:at] + b"\xff\xfe" + (len(text) + 2).to_bytes(2, "big") + text + data[at:])
+    return dst
+
+
+def stage_copies(photos: Sequence[Photo], into: Path, copies: int) -> list[Path]:
+    """:func:`benchmarks.throughput.stage`, and ``copies - 1`` more of each photograph
+    under distinct names and bytes (:func:`distinct_copy`), so that a run has enough
+    work for the workers' steady state to show."""
+    out = stage(photos, into)
+    for c in range(1, max(1, copies)):
+        out += [distinct_copy(p, into / f"c{c}-{p.name}", c) for p in out[:len(photos)]]
+    return out
+
+
 def _wait_done(journal: Path, job: str, n: int, proc: subprocess.Popen, timeout: float) -> list[float]:
     """Poll the daemon's journal until ``n`` entries are done; their completion times
     (epoch seconds, the journal's own timestamps), sorted.
@@ -161,9 +195,11 @@ def batch_round(src: Path, n: int, workers: int, root: Path) -> float:
 
 
 def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rounds: int = 2,
-                frontends: Sequence[str] = ("watch", "batch"), workdir: Path | None = None) -> ScalingResult:
+                frontends: Sequence[str] = ("watch", "batch"), workdir: Path | None = None,
+                copies: int = 1) -> ScalingResult:
     """Time ``watch`` and ``batch`` on copies of ``photos`` at each worker count,
-    ``rounds`` times, interleaved (the order rotates each round).
+    ``rounds`` times, interleaved (the order rotates each round). ``copies``: each
+    photograph is staged that many times (:func:`stage_copies`).
 
     Raises
     ------
@@ -179,14 +215,15 @@ def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rou
         root = Path(tmp)
         os.environ["VIGPROC_PROFILE_DB"] = str(root / "profiles.sqlite")  # never the user's store
         try:
-            master = stage(photos, root / "master")
+            master = stage_copies(photos, root / "master", copies)
             for r in range(max(1, rounds)):
                 order = runs[r % len(runs):] + runs[:r % len(runs)]
                 for run in order:
                     here = root / f"r{r}-{run.frontend}-{run.workers}"
                     if run.frontend == "watch":
-                        files = stage(photos, here / "stage")
-                        warm = [shutil.copyfile(master[i % len(master)], here / "stage" / f"warm{i}.jpg")
+                        files = stage_copies(photos, here / "stage", copies)
+                        # distinct bytes: a warm-up file is never the content of a timed one
+                        warm = [distinct_copy(master[i % len(master)], here / "stage" / f"warm{i}.jpg", -1 - i)
                                 for i in range(run.workers)]
                         wall, steady = watch_round(files, [Path(p) for p in warm], run.workers, here / "run")
                         run.steady.append(steady)
@@ -200,7 +237,8 @@ def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rou
                 os.environ.pop("VIGPROC_PROFILE_DB", None)
             else:
                 os.environ["VIGPROC_PROFILE_DB"] = env_db
-    return ScalingResult(len(photos), sum(p.megapixels for p in photos), max(1, rounds), len(os.sched_getaffinity(0)),
+    return ScalingResult(len(master), max(1, copies) * sum(p.megapixels for p in photos), max(1, rounds),
+                         len(os.sched_getaffinity(0)),
                          load_before,
                          os.getloadavg(), runs)
 

@@ -85,10 +85,13 @@ class ThroughputResult:
     tools: list[ToolTiming]
     skipped: dict[str, str]
 
-    def rows(self) -> list[tuple[str, float, float, float, int]]:
-        """(tool, median seconds, MP/s, ratio to the floor, outputs) per tool."""
+    def rows(self) -> list[tuple[str, float, float, float, int, float]]:
+        """(tool, median seconds, MP/s, ratio to the floor, outputs, ratio to the
+        overlapped floor or NaN) per tool."""
         floor = next(t.median for t in self.tools if t.name == "floor")
-        return [(t.name, t.median, self.megapixels / t.median, t.median / floor, t.outputs) for t in self.tools]
+        lap = next((t.median for t in self.tools if t.name == "floor-overlap"), float("nan"))
+        return [(t.name, t.median, self.megapixels / t.median, t.median / floor, t.outputs, t.median / lap)
+                for t in self.tools]
 
 
 def select_photos(folder: Path, min_megapixels: float = 0.75, limit: int | None = None) -> tuple[list[Photo], dict]:
@@ -174,37 +177,65 @@ def stage(photos: Sequence[Photo], into: Path) -> list[Path]:
     return out
 
 
-def floor_run(src: Path, dst: Path) -> int:
+def floor_run(src: Path, dst: Path, overlap: bool = False) -> int:
     """The floor: every JPEG in ``src`` decoded and re-encoded by OpenImageIO at its own
     quality into ``dst`` (same name), then the sources' EXIF copied into them by one
-    exiftool call. Returns the number of images written."""
+    exiftool call. Returns the number of images written.
+
+    ``overlap``: the next file is decoded in one thread and the previous one encoded in
+    another while the current one is handed on, as ``vigproc correct`` overlaps its
+    stages (the floor such a design has to be compared with)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    dst.mkdir(parents=True, exist_ok=True)
+    files = [p for p in sorted(src.iterdir()) if p.suffix.lower() in JPEG_SUFFIXES]
+    if overlap:
+        with ThreadPoolExecutor(1) as reading, ThreadPoolExecutor(1) as writing:
+            ahead = [reading.submit(_floor_decode, p) for p in files[:2]]  # two frames held at most
+            writes = []
+            for k, p in enumerate(files):
+                spec, pixels = ahead.pop(0).result()
+                if k + 2 < len(files):
+                    ahead.append(reading.submit(_floor_decode, files[k + 2]))
+                if writes:
+                    writes.pop(0).result()  # one frame being encoded at most
+                writes.append(writing.submit(_floor_encode, p, dst, spec, pixels))
+            for w in writes:
+                w.result()
+    else:
+        for p in files:
+            _floor_encode(p, dst, *_floor_decode(p))
+    # one batch call: each output takes the tags of the source of its own name
+    from vigproc.io.metadata import exiftool_path
+
+    subprocess.run([exiftool_path(), "-q", "-q", "-overwrite_original", "-tagsFromFile", f"{src}/%f.%e",
+                    "-all:all", "--", str(dst)], check=True, stdin=subprocess.DEVNULL)
+    return len(files)
+
+
+def _floor_decode(p: Path):
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(p))
+    if inp is None:
+        raise VigprocError(f"floor: cannot open {p}: {oiio.geterror()}")
+    spec = inp.spec()
+    pixels = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
+    inp.close()
+    return spec, pixels
+
+
+def _floor_encode(p: Path, dst: Path, spec, pixels) -> None:
     import OpenImageIO as oiio
 
     from vigproc.io.images import DEFAULT_JPEG_QUALITY, jpeg_quality
-    from vigproc.io.metadata import exiftool_path
 
-    dst.mkdir(parents=True, exist_ok=True)
-    n = 0
-    for p in sorted(src.iterdir()):
-        if p.suffix.lower() not in JPEG_SUFFIXES:
-            continue
-        inp = oiio.ImageInput.open(str(p))
-        if inp is None:
-            raise VigprocError(f"floor: cannot open {p}: {oiio.geterror()}")
-        spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
-        inp.close()
-        out_spec = oiio.ImageSpec(spec.width, spec.height, spec.nchannels, "uint8")
-        out_spec.attribute("Compression", f"jpeg:{jpeg_quality(p) or DEFAULT_JPEG_QUALITY}")
-        out = oiio.ImageOutput.create(str(dst / p.name))
-        if out is None or not out.open(str(dst / p.name), out_spec) or not out.write_image(pixels):
-            raise VigprocError(f"floor: cannot write {dst / p.name}: {oiio.geterror()}")
-        out.close()
-        n += 1
-    # one batch call: each output takes the tags of the source of its own name
-    subprocess.run([exiftool_path(), "-q", "-q", "-overwrite_original", "-tagsFromFile", f"{src}/%f.%e",
-                    "-all:all", "--", str(dst)], check=True, stdin=subprocess.DEVNULL)
-    return n
+    out_spec = oiio.ImageSpec(spec.width, spec.height, spec.nchannels, "uint8")
+    out_spec.attribute("Compression", f"jpeg:{jpeg_quality(p) or DEFAULT_JPEG_QUALITY}")
+    out = oiio.ImageOutput.create(str(dst / p.name))
+    if out is None or not out.open(str(dst / p.name), out_spec) or not out.write_image(pixels):
+        raise VigprocError(f"floor: cannot write {dst / p.name}: {oiio.geterror()}")
+    out.close()
 
 
 def raw_floor_run(src: Path, dst: Path) -> int:
@@ -243,6 +274,10 @@ def _commands(indir: Path, outdir: Path, inputs: Sequence[Path], darktable: str 
     cmds = {
         "floor": [sys.executable, "-c", child_code("from benchmarks.throughput import main\nsys.exit(main())"),
                   "rawfloor" if raw else "floor", str(indir), str(outdir / "floor")],
+        # the same work with decode, hand-on and encode overlapped in threads (as vigproc correct)
+        **({} if raw else {"floor-overlap": [sys.executable, "-c", child_code(
+            "from benchmarks.throughput import main\nsys.exit(main())"), "floor-overlap", str(indir),
+            str(outdir / "floor-overlap")]}),
         # a RAW not corrected is still developed and written (what the floor does)
         "vigproc": [sys.executable, "-m", "vigproc.frontends.cli", "correct", "--unapplied", "write" if raw else "copy",
                     "-o", str(outdir / "vigproc"), "--", *map(str, inputs)],
@@ -327,19 +362,22 @@ def run_throughput(photos: Sequence[Photo], *, rounds: int = 3, darktable: bool 
 def format_result(r: ThroughputResult) -> list[str]:
     """The printed table: one line per tool, the floor first."""
     lines = [f"{len(r.photos)} photographs, {r.megapixels:.1f} MP, median of {r.rounds} rounds (interleaved)",
-             f"{'tool':<16}{'seconds':>9}{'MP/s':>8}{'x floor':>9}"]
-    for name, sec, mps, ratio, _ in r.rows():
-        lines.append(f"{name:<16}{sec:>9.2f}{mps:>8.1f}{ratio:>9.2f}")
+             f"{'tool':<16}{'seconds':>9}{'MP/s':>8}{'x floor':>9}{'x overlapped floor':>20}"]
+    for name, sec, mps, ratio, _, lap in r.rows():
+        lines.append(f"{name:<16}{sec:>9.2f}{mps:>8.1f}{ratio:>9.2f}" + (f"{lap:>20.2f}" if lap == lap else ""))
     return lines
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m benchmarks.throughput floor|rawfloor IN OUT``: the floor on its own."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if len(args) != 3 or args[0] not in ("floor", "rawfloor"):
-        print("usage: python -m benchmarks.throughput floor|rawfloor IN OUT", file=sys.stderr)
+    if len(args) != 3 or args[0] not in ("floor", "floor-overlap", "rawfloor"):
+        print("usage: python -m benchmarks.throughput floor|floor-overlap|rawfloor IN OUT", file=sys.stderr)
         return 2
-    (raw_floor_run if args[0] == "rawfloor" else floor_run)(Path(args[1]), Path(args[2]))
+    if args[0] == "rawfloor":
+        raw_floor_run(Path(args[1]), Path(args[2]))
+    else:
+        floor_run(Path(args[1]), Path(args[2]), overlap=args[0] == "floor-overlap")
     return 0
 
 

@@ -50,23 +50,27 @@ def test_the_floor_reencodes_at_each_files_quality_and_copies_its_exif(photos, t
     staged = T.stage(chosen, tmp_path / "in")
     assert [p.name for p in staged] == ["000_a.jpg", "001_b_b.JPG"]
     assert T.floor_run(tmp_path / "in", tmp_path / "out") == 2
+    assert T.floor_run(tmp_path / "in", tmp_path / "lap", overlap=True) == 2
     for p in staged:
         out = tmp_path / "out" / p.name
         assert jpeg_quality(out) == jpeg_quality(p)
         make = subprocess.run([exiftool_path(), "-s3", "-Make", str(out)], capture_output=True, text=True).stdout
         assert make.strip() == subprocess.run([exiftool_path(), "-s3", "-Make", str(p)], capture_output=True,
                                               text=True).stdout.strip()
+        # the overlapped floor does the same work: the same pixels and file
+        assert (tmp_path / "lap" / p.name).read_bytes() == out.read_bytes()
 
 
 def test_a_run_times_every_tool_and_checks_their_outputs(photos, tmp_path):
     chosen, skipped = T.select_photos(photos, min_megapixels=0.0)
     r = T.run_throughput(chosen, rounds=1, darktable=False, workdir=tmp_path, skipped=skipped)
-    assert [t.name for t in r.tools] == ["floor", "vigproc"]
+    assert [t.name for t in r.tools] == ["floor", "floor-overlap", "vigproc"]
     assert all(len(t.seconds) == 1 and t.seconds[0] > 0 and t.outputs == 2 for t in r.tools)
     rows = r.rows()
-    assert rows[0][3] == 1.0 and rows[1][3] == pytest.approx(rows[1][1] / rows[0][1])
+    assert rows[0][3] == 1.0 and rows[2][3] == pytest.approx(rows[2][1] / rows[0][1])
+    assert rows[1][5] == 1.0 and rows[2][5] == pytest.approx(rows[2][1] / rows[1][1])
     lines = T.format_result(r)
-    assert lines[2].startswith("floor") and lines[3].startswith("vigproc")
+    assert lines[2].startswith("floor") and lines[3].startswith("floor-overlap") and lines[4].startswith("vigproc")
     assert json.loads(json.dumps(asdict(r)))["photos"] == [str(p.path) for p in chosen]
 
 

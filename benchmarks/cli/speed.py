@@ -94,6 +94,9 @@ def scaling_arguments(bp: argparse.ArgumentParser) -> None:
                     help="what to time (default both)")
     bp.add_argument("--rounds", type=number(1, 100, integer=True), default=2,
                     help="timing rounds, interleaved (default %(default)s)")
+    bp.add_argument("--copies", type=number(1, 1000, integer=True), default=1,
+                    help="stage each photograph this many times, under distinct names and bytes (more work per "
+                         "round, so the steady state shows; default %(default)s)")
     bp.add_argument("--tmp", help="folder for the temporary files (default: the system's)")
     bp.add_argument("--json", help="write the figures as JSON")
     bp.set_defaults(fn=cmd_bench_scaling)
@@ -290,7 +293,7 @@ def cmd_bench_scaling(args: argparse.Namespace) -> int:
 
     photos, _ = T.select_photos(Path(args.images), args.min_mp, args.limit)
     r = S.run_scaling(photos, workers=args.workers, rounds=args.rounds, frontends=args.frontends,
-                      workdir=Path(args.tmp) if args.tmp else None)
+                      workdir=Path(args.tmp) if args.tmp else None, copies=args.copies)
     print("\n".join(S.format_result(r)))
     write_json_result(args.json, asdict(r))
     return 0

@@ -289,6 +289,7 @@ def _worker_state(spec: JobSpec) -> _WorkerState:
     elif spec.store_snapshot is not None:
         store = open_profile_store(_materialise(spec.store_snapshot))
     st = _WorkerState(token, Processor(settings, store=store), store, evidence, pooled)
+    st.processor.prepare()  # exiftool's start beside the first file's read, not before it
     _thread.state = st
     return st
 

@@ -18,7 +18,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Container
+from typing import Any, Callable, Container
 
 from vigproc.errors import ImageReadError, ModelError, VigprocError
 from vigproc.io.formats import IMAGE_SUFFIXES, WRITE_EXT_FORMAT  # noqa: F401  (IMAGE_SUFFIXES: re-exported)
@@ -103,6 +103,12 @@ class Frame:
     captured: float | None = None
 
 
+def _identity(path: str) -> tuple[int, int, int, int]:
+    """What says a file is still the one read ahead: device, inode, size, modification time."""
+    st = os.stat(path)
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
+
 def images_in(folder: Path, limit: int | None = None) -> list[Path]:
     """Image files under ``folder`` (recursive, sorted)."""
     if not folder.is_dir():
@@ -172,6 +178,8 @@ class Processor:
         self._own_reader = reader is None
         self._sources = sources
         self._steady = None  # learning as you go: the trusted profiles this processor applies
+        self._reading = None  # the thread that decodes files ahead (read_ahead)
+        self._ahead: list[tuple[str, tuple[int, int, int, int], Any]] = []  # (path, identity, future)
 
     @property
     def sources(self) -> dict:
@@ -221,7 +229,57 @@ class Processor:
         ahead: the decisions and their order are the same."""
         self.reader.prefetch(path)
 
+    #: Files :meth:`read_ahead` holds decoded or decoding at most (each one frame's codes).
+    AHEAD = 2
+
+    def read_ahead(self, path: str | os.PathLike[str]) -> None:
+        """Decode ``path``'s pixels now, in a thread of this processor, while the caller
+        works on the file before it (OpenImageIO's decode releases the GIL).
+
+        Only a later :meth:`read_frame` of the same path takes them, and only if the file
+        is still the one asked about (same device, inode, size and modification time);
+        a decode that failed is done again there, so what a file gets, and the error
+        it raises, are as without this. Bounded: at most :data:`AHEAD` files are held
+        (the oldest unclaimed one is dropped). Correct, estimate and learn modes only
+        (the modes that read a file's codes).
+        """
+        if self.settings.mode not in ("correct", "estimate", "learn"):
+            return
+        from vigproc.io.images import read_encoded
+
+        key = os.fspath(path)
+        try:
+            ident = _identity(key)
+        except OSError:
+            return  # read_frame reports it
+        if self._reading is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._reading = ThreadPoolExecutor(1, thread_name_prefix="vigproc-read")
+        while len(self._ahead) >= self.AHEAD:
+            self._ahead.pop(0)[2].cancel()
+        self._ahead.append((key, ident, self._reading.submit(read_encoded, key, transfer=self.settings.transfer)))
+
+    def _read_ahead_of(self, path: Path):
+        """The pixels :meth:`read_ahead` decoded for ``path`` if the file is unchanged, else None."""
+        key = os.fspath(path)
+        for i, (p, ident, fut) in enumerate(self._ahead):
+            if p != key:
+                continue
+            del self._ahead[i]
+            try:
+                got = fut.result()
+                same = _identity(key) == ident
+            except Exception:  # read again where it is needed: the same error, raised in order
+                return None
+            return got if same else None
+        return None
+
     def close(self) -> None:
+        self._ahead.clear()
+        if self._reading is not None:
+            self._reading.shutdown(wait=True, cancel_futures=True)
+            self._reading = None
         if self._own_reader and self._reader is not None:
             self._reader.close()
             self._reader = None
@@ -500,6 +558,27 @@ class Processor:
         ImageWriteError
             Also when an output would replace ``path`` or a protected file.
         """
+        return self.begin_file(path, outdir, stem, extra=extra, frame_id=frame_id, protect=protect,
+                               unapplied=unapplied, like=like)()
+
+    def begin_file(self, path: str | os.PathLike[str], outdir: str | os.PathLike[str], stem: str | None = None,
+                   *, extra: dict[str, Any] | None = None, frame_id: str | None = None,
+                   protect: Container[Any] = (), unapplied: str | None = None,
+                   like: str | os.PathLike[str] | None = None) -> Callable[[], FrameResult]:
+        """:meth:`process_file` in two steps: read and process ``path`` now (every
+        decision, and learning as you go, is made here), and return the step that writes
+        its outputs (encode, metadata, sidecar) and returns the record.
+
+        The writing step touches nothing this processor reads, so a caller may run it in
+        another thread while the next file is read (``vigproc correct``); it must be
+        called once, and before the next writing step of the same folder, to keep the
+        outputs' order. Raises as :meth:`process_file` does, each step for its own part.
+
+        Returns
+        -------
+        callable
+            ``finish() -> FrameResult``.
+        """
         from vigproc.atomic import atomic_write_text
 
         s = self.settings
@@ -529,36 +608,40 @@ class Processor:
         out, res, img, info, fmt = self._process_path(path, frame_id, lambda info: output_format_for(
             s.output_format, path, info, like=like))
         del img  # not needed once processed: freed before the output is encoded (peak memory)
-        if out is not None and (res.applied or policy == "write" or (policy == "keep" and not as_is)):
-            from vigproc.io.metadata import make_record, write_corrected
 
-            if fmt.format == "dng":  # the raw pixels untouched, the correction as an opcode
-                from vigproc.io.dng_vignette import write_dng_correction
+        def finish() -> FrameResult:
+            if out is not None and (res.applied or policy == "write" or (policy == "keep" and not as_is)):
+                from vigproc.io.metadata import make_record, write_corrected
 
-                res.extra["dng_opcode"] = write_dng_correction(path, dst, res.model, strength=s.strength)
-            else:  # the source's EXIF/XMP plus an XMP record of the correction
-                # display-encoded in, display-encoded out: the source's colour space stays true
-                keep_colour = fmt.transfer == "srgb" and getattr(info, "transfer", None) == "srgb"
-                write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=fmt.depth,
-                                format=fmt.format, transfer=fmt.transfer, quality=fmt.quality,
-                                keep_colour=keep_colour, source_read=True)  # decoded above, its EXIF read
-            res.output = str(dst)
-        if out is not None and not res.applied:  # said whatever was written
-            res.extra["not_applied"] = "strength 0" if s.strength == 0 else not_applied_reason(res.model)
-            res.extra.setdefault("not_applied_rule", "strength-0" if s.strength == 0 else "estimator")
-            if as_is:
-                keep_original(path, dst)
+                if fmt.format == "dng":  # the raw pixels untouched, the correction as an opcode
+                    from vigproc.io.dng_vignette import write_dng_correction
+
+                    res.extra["dng_opcode"] = write_dng_correction(path, dst, res.model, strength=s.strength)
+                else:  # the source's EXIF/XMP plus an XMP record of the correction
+                    # display-encoded in, display-encoded out: the source's colour space stays true
+                    keep_colour = fmt.transfer == "srgb" and getattr(info, "transfer", None) == "srgb"
+                    write_corrected(dst, out, path, make_record(res.model, strength=s.strength), bit_depth=fmt.depth,
+                                    format=fmt.format, transfer=fmt.transfer, quality=fmt.quality,
+                                    keep_colour=keep_colour, source_read=True)  # decoded above, its EXIF read
                 res.output = str(dst)
-            if kept is not None and policy in ("copy", "link"):
-                keep_original(path, kept, link=policy == "link")
-                res.output = str(kept)
-        if s.picture and res.model is not None:
-            self._picture(path, outdir, stem, res)
-        if extra:
-            res.extra.update(extra)
-        res.seconds = round(time.perf_counter() - t0, 4)
-        atomic_write_text(sidecar, json.dumps(res.to_dict(), indent=1) + "\n")
-        return res
+            if out is not None and not res.applied:  # said whatever was written
+                res.extra["not_applied"] = "strength 0" if s.strength == 0 else not_applied_reason(res.model)
+                res.extra.setdefault("not_applied_rule", "strength-0" if s.strength == 0 else "estimator")
+                if as_is:
+                    keep_original(path, dst)
+                    res.output = str(dst)
+                if kept is not None and policy in ("copy", "link"):
+                    keep_original(path, kept, link=policy == "link")
+                    res.output = str(kept)
+            if s.picture and res.model is not None:
+                self._picture(path, outdir, stem, res)
+            if extra:
+                res.extra.update(extra)
+            res.seconds = round(time.perf_counter() - t0, 4)
+            atomic_write_text(sidecar, json.dumps(res.to_dict(), indent=1) + "\n")
+            return res
+
+        return finish
 
     def process_unwritten(self, path: str | os.PathLike[str], *, frame_id: str | None = None) -> FrameResult:
         """Check or estimate a file without writing anything (a host asking for the
@@ -609,8 +692,9 @@ class Processor:
         s = self.settings
         path = Path(path)
         # correct, estimate and learn take a JPEG's or PNG's code values as they are (pipeline.encoded)
-        img, info = (read_encoded if s.mode in ("correct", "estimate", "learn") else read_image)(
-            path, transfer=s.transfer, raw_half_size=raw_half_size)
+        got = self._read_ahead_of(path) if self._ahead and not raw_half_size else None
+        img, info = got if got is not None else (read_encoded if s.mode in ("correct", "estimate", "learn") else
+                                                  read_image)(path, transfer=s.transfer, raw_half_size=raw_half_size)
         # a host's stand-in reader may not offer the one read of the whole file
         read_file = getattr(self.reader, "read_file", None)
         tags = read_file(path) if read_file is not None else self.reader

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import sys
+from concurrent.futures import Future, ThreadPoolExecutor
 from importlib import resources
 from pathlib import Path
 
@@ -53,6 +54,54 @@ def cmd_correct(args: argparse.Namespace) -> int:
         store = open_profile_store(args.profile_db, write=True)
     else:
         store = open_profile_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
+    # Writing (encode, metadata copy, sidecar) runs in one thread beside the next file's
+    # read, estimate and correction: OpenImageIO's codecs, exiftool's pipe and Numba's
+    # kernels release the GIL, so two cores overlap. One file is written while one is
+    # worked on (one frame's codes more in memory); lines, records and outputs keep
+    # their order. Learning as you go stays one file at a time: a file is pooled only
+    # once the file before it is written.
+    overlap = not settings.learn and len(files) > 1
+    writer = ThreadPoolExecutor(1, thread_name_prefix="vigproc-write") if overlap else None
+    pending: tuple[Path, Future] | None = None  # the file being written, and its result
+
+    def report(f: Path, rec: dict) -> None:
+        nonlocal unapplied
+        results.append(rec)
+        unapplied += not rec.get("applied")
+        if not args.json:
+            lens = display_lens_id(rec["lens"]["lens_id"])
+            if rec.get("applied"):
+                tag = f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed"
+            else:
+                tag = f"not corrected: {rec.get('not_applied', 'nothing applied')}"
+            if rec.get("learned"):  # learning as you go: where the frame went
+                tag += f"; {rec['learned']['summary']}"
+            where = _as_given(rec["output"], outdir) if rec.get("output") else \
+                "no image written (see its .vigproc.json)"
+            print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))
+
+    def fail(f: Path, exc: VigprocError) -> bool:
+        """Record a file's failure; True when the run must stop (the output disk is full)."""
+        nonlocal failed, full
+        failed += 1
+        results.append(failure_record(f, exc))
+        print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
+        full = classify_error(exc, outdir)
+        return full.kind == DISK_FULL  # the machine's fault: every further file would fail the same way
+
+    def settle() -> bool:
+        """Wait for the file being written and report it; True when the run must stop."""
+        nonlocal pending
+        if pending is None:
+            return False
+        f, fut = pending
+        pending = None
+        try:
+            report(f, fut.result().to_dict())
+        except VigprocError as exc:
+            return fail(f, exc)
+        return False
+
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
             proc.prepare()  # Numba's set-up and exiftool's start beside the first file's read
@@ -60,33 +109,34 @@ def cmd_correct(args: argparse.Namespace) -> int:
                 try:
                     if k == 0:
                         proc.prefetch(f)
-                    if k + 1 < len(files):  # exiftool reads the next file's EXIF while this one is processed
+                        proc.read_ahead(f)
+                    if k + 1 < len(files):  # the next file's EXIF and pixels read while this one is processed
                         proc.prefetch(files[k + 1])
-                    rec = proc.process_file(f, outdir, stem, protect=inputs).to_dict()
-                    results.append(rec)
-                    unapplied += not rec.get("applied")
-                    if not args.json:
-                        lens = display_lens_id(rec["lens"]["lens_id"])
-                        if rec.get("applied"):
-                            tag = f"{rec['source']}: {_applied_ev(rec):.2f} EV fall-off removed"
-                        else:
-                            tag = f"not corrected: {rec.get('not_applied', 'nothing applied')}"
-                        if rec.get("learned"):  # learning as you go: where the frame went
-                            tag += f"; {rec['learned']['summary']}"
-                        where = _as_given(rec["output"], outdir) if rec.get("output") else \
-                            "no image written (see its .vigproc.json)"
-                        print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))
+                        proc.read_ahead(files[k + 1])
+                    finish = proc.begin_file(f, outdir, stem, protect=inputs)
                 except VigprocError as exc:
-                    failed += 1
-                    results.append(failure_record(f, exc))
-                    print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
-                    full = classify_error(exc, outdir)
-                    if full.kind == DISK_FULL:  # the machine's fault: every further file would fail the same way
+                    if settle() or fail(f, exc):
                         break
+                    continue
+                if settle():  # the file before stopped the run: this one counts as not started
+                    break
+                if writer is None:
+                    try:
+                        report(f, finish().to_dict())
+                    except VigprocError as exc:
+                        if fail(f, exc):
+                            break
+                else:
+                    pending = (f, writer.submit(finish))
+            settle()
     except KeyboardInterrupt:  # Ctrl-C (SIGTERM alike): what was done, in one line; exit 130 (143)
+        with contextlib.suppress(KeyboardInterrupt):  # a file being written is finished and counted
+            settle()
         return interrupted("correct", f"{len(results) - failed - unapplied} corrected, {unapplied} not corrected, "
                            f"{failed} failed, {len(files) - len(results)} not started; outputs in {outdir}")
     finally:
+        if writer is not None:
+            writer.shutdown(wait=True)
         if store is not None:
             store.close()
     not_started = len(files) - len(results)

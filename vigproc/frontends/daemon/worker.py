@@ -98,6 +98,9 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
     except Exception as exc:  # a worker that cannot start is fatal for the daemon: say why
         conn.send(("fatal", None, f"{type(exc).__name__}: {exc}"))
         return
+    # exiftool's start (Perl loading its modules) beside the warm-up, not waited for: one
+    # that cannot start is reported by the first file that needs it, as before
+    proc.prepare()
     _warm(wlog)
     try:
         conn.send(("ready", None, os.getpid()))

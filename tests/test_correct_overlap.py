@@ -1,0 +1,131 @@
+"""``vigproc correct`` overlaps its stages: the next file is decoded ahead
+(:meth:`Processor.read_ahead`) and the previous one written (:meth:`Processor.begin_file`'s
+second step) in threads. What a file gets, the order of lines and records, typed
+errors per file and Ctrl-C must be as when the files are taken one at a time."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import textured
+
+REPO = Path(__file__).resolve().parents[1]
+PROFILE = REPO / "profiles" / "examples" / "sony-rx100-10.4mm-f1.8.json"  # 3:2 frames
+
+
+def _photo(path: Path, seed: int, *, gain: float = 1.0) -> Path:
+    from vigproc.io.images import write_image
+
+    img = np.stack([textured(64, 96, seed=seed + c) for c in range(3)], -1) * gain
+    write_image(path, np.clip(img, 0, 1).astype(np.float32), bit_depth="uint8", transfer="srgb")
+    return path
+
+
+def _settings(**kw):
+    from vigproc.pipeline.processor import Settings
+
+    return Settings(mode="correct", profile=str(PROFILE), **kw)
+
+
+def test_a_frame_read_ahead_is_the_frame_read(tmp_path):
+    from vigproc.pipeline.processor import Processor
+
+    a = _photo(tmp_path / "a.png", 1)
+    with Processor(_settings()) as proc:
+        plain = proc.read_frame(a)
+        proc.read_ahead(a)
+        ahead = proc.read_frame(a)
+        assert not proc._ahead  # taken
+    assert np.array_equal(np.asarray(plain.img.codes), np.asarray(ahead.img.codes))
+
+
+def test_a_file_changed_after_its_read_ahead_is_read_again(tmp_path):
+    from vigproc.pipeline.processor import Processor
+
+    a = _photo(tmp_path / "a.png", 1)
+    with Processor(_settings()) as proc:
+        proc.read_ahead(a)
+        proc._ahead[0][2].result()  # decoded before the file changes
+        _photo(tmp_path / "b.png", 7, gain=0.5)
+        os.replace(tmp_path / "b.png", a)  # another file under the same name
+        got = proc.read_frame(a)
+    with Processor(_settings()) as proc:
+        fresh = proc.read_frame(a)
+    assert np.array_equal(np.asarray(got.img.codes), np.asarray(fresh.img.codes))
+
+
+def test_a_read_ahead_that_fails_raises_where_the_file_is_read(tmp_path):
+    from vigproc.errors import ImageReadError
+    from vigproc.pipeline.processor import Processor
+
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n not a png")
+    with Processor(_settings()) as proc:
+        proc.read_ahead(bad)
+        with pytest.raises(ImageReadError):
+            proc.read_frame(bad)
+
+
+def test_read_ahead_holds_at_most_two_files(tmp_path):
+    from vigproc.pipeline.processor import Processor
+
+    files = [_photo(tmp_path / f"{i}.png", i) for i in range(4)]
+    with Processor(_settings()) as proc:
+        for f in files:
+            proc.read_ahead(f)
+        assert [p for p, _, _ in proc._ahead] == [os.fspath(f) for f in files[-Processor.AHEAD:]]
+
+
+def test_correct_overlapped_gives_each_file_what_one_at_a_time_gives(tmp_path, capsys):
+    """Outputs, records and lines in order, a bad file's typed error in its place."""
+    from vigproc.frontends.cli import main
+    from vigproc.pipeline.processor import Processor, output_stems
+
+    files = [_photo(tmp_path / f"{n}.png", i) for i, n in enumerate("abcd")]
+    bad = tmp_path / "c.png"
+    bad.write_bytes(b"not an image")
+    rc = main(["correct", "-o", str(tmp_path / "lap"), "--profile", str(PROFILE), "--json", *map(str, files)])
+    cap = capsys.readouterr()
+    assert rc != 0 and "Traceback" not in cap.err and "c.png" in cap.err
+    doc = json.loads(cap.out)
+    recs = doc["results"] if isinstance(doc, dict) else doc
+    assert [Path(r["file"]).name for r in recs] == ["a.png", "b.png", "c.png", "d.png"]
+    assert "error" in recs[2] and all(r.get("applied") for r in recs[:2] + recs[3:])
+    one = tmp_path / "one"
+    one.mkdir()
+    with Processor(_settings()) as proc:  # one file at a time, no threads
+        for f, stem in zip(files, output_stems(files)):
+            if f != bad:
+                proc.process_file(f, one, stem)
+    made = sorted(p.name for p in (tmp_path / "lap").iterdir())
+    assert made == sorted(p.name for p in one.iterdir()) and any(n.endswith(".corrected.png") for n in made)
+    for n in made:
+        if not n.endswith(".json"):
+            assert (tmp_path / "lap" / n).read_bytes() == (one / n).read_bytes(), n
+
+
+def test_ctrl_c_while_a_file_is_written_finishes_and_counts_it(tmp_path, monkeypatch, capsys):
+    from vigproc.frontends.cli import main
+    from vigproc.pipeline.processor import Processor
+
+    files = [_photo(tmp_path / f"{n}.png", i) for i, n in enumerate("abc")]
+    real = Processor.begin_file
+    calls = []
+
+    def begin(self, path, *a, **kw):
+        calls.append(path)
+        if len(calls) == 2:  # the first file is being written now
+            raise KeyboardInterrupt
+        return real(self, path, *a, **kw)
+
+    monkeypatch.setattr(Processor, "begin_file", begin)
+    rc = main(["correct", "-o", str(tmp_path / "out"), "--profile", str(PROFILE), *map(str, files)])
+    err = capsys.readouterr().err
+    assert rc == 130 and "1 corrected, 0 not corrected, 0 failed, 2 not started" in err, err
+    assert (tmp_path / "out" / "a.png.vigproc.json").exists() and (tmp_path / "out" / "a.corrected.png").exists()
+    assert not list((tmp_path / "out").glob(".*tmp*"))  # nothing half-written
