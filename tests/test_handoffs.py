@@ -30,3 +30,89 @@ def test_a_described_lens_never_pools_into_the_profile_of_unknown_lenses(tmp_pat
         assert store.lookup(unknown, 3000, 2000) is not None
         assert store.key_for(described, 3000, 2000).lens_id == described.lens_id()
         assert store.lookup(described, 3000, 2000) is None
+
+
+def _textured_jpeg(path, w: int = 360, h: int = 240, *tags: str, seed: int = 3):
+    """A textured JPEG with a radial fall-off, its EXIF written by the exiftool program."""
+    import subprocess
+
+    import OpenImageIO as oiio
+
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w]
+    r2 = ((x - w / 2) ** 2 + (y - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+    base = 0.55 + 0.25 * rng.random((h, w, 1)) + 0.1 * np.sin(x / 7.0)[..., None]
+    arr = np.clip(255 * base * (1 - 0.35 * r2)[..., None], 0, 255).astype(np.uint8).repeat(3, axis=2)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(w, h, 3, "uint8")), out.geterror()
+    assert out.write_image(arr) and out.close()
+    if tags:
+        subprocess.run(["exiftool", "-q", "-m", "-overwrite_original", *tags, str(path)], check=True,
+                       capture_output=True)
+    return path
+
+
+def _cli(*args: str, env: dict | None = None):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    full = {**os.environ, "PYTHONPATH": str(root), "VIGPROC_HOOK_SERVER": "off", **(env or {})}
+    return subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", *args], capture_output=True,
+                          text=True, env=full, timeout=600)
+
+
+@pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
+def test_profile_learn_refuses_an_unnamed_lens_on_an_interchangeable_lens_body(tmp_path) -> None:
+    """`profile learn` pooled frames whose EXIF names no lens on an EOS 6D under
+    "canon|canon eos 6d|?", a profile of every lens that body wore, which `correct` then
+    applied to any of them once trusted; the hot folder refuses such frames. Learn mode
+    now refuses them too, with the reason, and pools nothing; a named lens still learns."""
+    from vigproc.stores.profiles import ProfileStore
+
+    body = ("-Make=Canon", "-Model=Canon EOS 6D", "-FocalLength=50", "-FNumber=2.8")
+    bare = _textured_jpeg(tmp_path / "bare.jpg", 360, 240, *body)
+    named = _textured_jpeg(tmp_path / "named.jpg", 360, 240, *body, "-LensModel=EF50mm f/1.8 STM")
+    db = tmp_path / "p.sqlite"
+    p = _cli("profile", "--profile-db", str(db), "learn", str(bare), str(named))
+    assert p.returncode == 1, p.stdout + p.stderr
+    assert "interchangeable lenses" in p.stderr and "Traceback" not in p.stderr
+    assert "1 frame learned, 1 failed" in p.stdout
+    with ProfileStore(db) as store:
+        ids = {pr.key.lens_id for pr in store.list()}
+    assert ids == {"canon|canon eos 6d|ef50mm f/1.8 stm"}
+
+
+# ------------------------------------------------------------------ profiles that travel
+@pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
+@pytest.mark.xfail(strict=True, reason="open bug: ProfileStore.learn refits from the evidence this store holds "
+                   "only, dropping an imported profile's frames; the information form alone is no fix (the "
+                   "import fixes the geometry a frame's information frees: sigma 1.4 EV)")
+def test_an_imported_trusted_profile_keeps_its_frames_when_it_learns_one_more(tmp_path) -> None:
+    """A trusted profile exported from one store and imported into another is the prior
+    of the frames learned there: one more frame of the lens left it as one frame's
+    estimate (untrusted, σ of a single frame) because the pooled refit saw only the frames
+    whose evidence the new store holds. It must learn as the original store learns."""
+    from vigproc.stores.profiles import ProfileStore
+
+    tags = ("-Make=Canon", "-Model=Canon EOS 6D", "-LensModel=EF50mm f/1.8 STM", "-FocalLength=50",
+            "-FNumber=2.8")
+    frames = [str(_textured_jpeg(tmp_path / f"f{i}.jpg", 360, 240, *tags, seed=i)) for i in range(4)]
+    extra = str(_textured_jpeg(tmp_path / "extra.jpg", 360, 240, *tags, seed=99))
+    a, b, exported = tmp_path / "a.sqlite", tmp_path / "b.sqlite", tmp_path / "lens.json"
+    assert _cli("profile", "--profile-db", str(a), "learn", *frames).returncode == 0
+    with ProfileStore(a) as store:
+        (before,) = store.list()
+    assert before.trusted, before
+    assert _cli("profile", "--profile-db", str(a), "export", "0", str(exported)).returncode == 0
+    assert _cli("profile", "--profile-db", str(b), "import", str(exported)).returncode == 0
+    for db in (a, b):
+        p = _cli("profile", "--profile-db", str(db), "learn", extra)
+        assert p.returncode == 0, p.stderr
+    with ProfileStore(a) as sa, ProfileStore(b) as sb:
+        (here,), (there,) = sa.list(), sb.list()
+    assert here.n_frames == there.n_frames == 5
+    assert there.trusted, there
+    assert there.field_sigma_ev < 2 * here.field_sigma_ev

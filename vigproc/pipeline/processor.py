@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Container
 
-from vigproc.errors import ImageReadError, ModelError, VigprocError
+from vigproc.errors import ImageReadError, MetadataError, ModelError, VigprocError
 from vigproc.io.formats import IMAGE_SUFFIXES, WRITE_EXT_FORMAT  # noqa: F401  (IMAGE_SUFFIXES: re-exported)
 # the pieces a frame's path uses, in their own modules; re-exported here, where callers import them
 from vigproc.pipeline.choice import WEAK_EVIDENCE, choose_model, lens_hint, not_applied_reason  # noqa: F401
@@ -368,6 +368,12 @@ class Processor:
             raise VigprocError("learn mode needs a profile store")
         if lens_key is None:
             raise VigprocError("cannot learn: the frame's lens is unknown (no usable EXIF)")
+        if lens_key.lens is None and lens_key.make and lens_key.model:
+            # the hot folder's rule: an unnamed lens pools under "?" with the body's other lenses
+            from vigproc.pipeline.learning import pooling_refusal
+
+            if why := pooling_refusal(lens_key):
+                raise MetadataError(f"cannot learn: {why}")
         h, w = img.shape[:2]
         from vigproc.stores.profiles import ProfileKey
 
