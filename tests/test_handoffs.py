@@ -116,3 +116,35 @@ def test_an_imported_trusted_profile_keeps_its_frames_when_it_learns_one_more(tm
     assert here.n_frames == there.n_frames == 5
     assert there.trusted, there
     assert there.field_sigma_ev < 2 * here.field_sigma_ev
+
+
+# ------------------------------------------------------------------ metadata kept
+@pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
+@pytest.mark.parametrize("fmt, ext", [("auto", ".jpg"), ("tiff16", ".tif")])
+def test_an_output_vigproc_corrected_is_not_corrected_again(tmp_path, fmt, ext) -> None:
+    """An output of `correct` fed back in (a hot folder whose output lies in its input, a
+    user correcting a folder twice) had its fall-off removed a second time: its own
+    XMP-vigproc record says it was corrected, and is now read as the camera's flags are.
+    lensfun's calibration of the sample's lens was applied twice (0.70 EV, then 0.70 EV)."""
+    import json
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "vigproc/data/samples/kodim13_vignetted.jpg"
+    first = _cli("correct", str(sample), "-o", str(tmp_path / "a"), "--output-format", fmt, "--profile", "lensfun",
+                 env={"VIGPROC_PROFILE_DB": str(tmp_path / "p.sqlite")})
+    assert first.returncode == 0 and "fall-off removed" in first.stdout, first.stdout + first.stderr
+    (out,) = (tmp_path / "a").glob(f"*.corrected{ext}")
+    again = _cli("correct", str(out), "-o", str(tmp_path / "b"), "--output-format", fmt, "--profile", "lensfun",
+                 env={"VIGPROC_PROFILE_DB": str(tmp_path / "p.sqlite")})
+    assert again.returncode == 0, again.stderr
+    assert "not corrected: vigproc already corrected" in again.stdout, again.stdout
+    (record,) = (tmp_path / "b").glob("*.vigproc.json")
+    assert json.loads(record.read_text())["applied"] is False
+
+
+def test_the_vigproc_record_is_read_like_a_cameras_flag() -> None:
+    from vigproc.io.incamera import from_tags
+
+    assert from_tags({"Make": "Canon", "XMP:Applied": True}).evidence == "XMP-vigproc:Applied"
+    assert from_tags({"Make": "Canon", "XMP:Applied": False}) is None
+    assert from_tags({"Make": "Canon"}) is None
