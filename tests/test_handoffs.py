@@ -148,3 +148,29 @@ def test_the_vigproc_record_is_read_like_a_cameras_flag() -> None:
     assert from_tags({"Make": "Canon", "XMP:Applied": True}).evidence == "XMP-vigproc:Applied"
     assert from_tags({"Make": "Canon", "XMP:Applied": False}) is None
     assert from_tags({"Make": "Canon"}) is None
+
+
+@pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
+def test_profile_learn_refuses_frames_already_corrected(tmp_path) -> None:
+    """`profile learn` pooled a phone's JPEG and an output vigproc had corrected (their
+    fall-off is gone: they pull the profile towards a flat field), which the hot folder
+    refuses; learn mode now refuses them too, with the reason."""
+    import subprocess
+
+    from vigproc.io.exiftool_process import CONFIG_FILE
+    from vigproc.stores.profiles import ProfileStore
+
+    phone = _textured_jpeg(tmp_path / "phone.jpg", 360, 240, "-Make=Apple", "-Model=iPhone 6",
+                           "-LensModel=iPhone 6 back camera 4.15mm f/2.2", "-FocalLength=4.15", "-FNumber=2.2")
+    body = ("-Make=Canon", "-Model=Canon EOS 6D", "-LensModel=EF50mm f/1.8 STM", "-FocalLength=50", "-FNumber=2.8")
+    done = _textured_jpeg(tmp_path / "done.jpg", 360, 240, *body)
+    subprocess.run(["exiftool", "-config", str(CONFIG_FILE), "-q", "-overwrite_original", "-XMP-vigproc:Applied=True",
+                    str(done)], check=True, capture_output=True)  # the record correct writes
+    fine = _textured_jpeg(tmp_path / "fine.jpg", 360, 240, *body, seed=5)
+    db = tmp_path / "p.sqlite"
+    p = _cli("profile", "--profile-db", str(db), "learn", str(phone), str(done), str(fine))
+    assert p.returncode == 1, p.stdout + p.stderr
+    assert "a phone's JPEG" in p.stderr and "vigproc already corrected it" in p.stderr, p.stderr
+    assert "1 frame learned, 2 failed" in p.stdout
+    with ProfileStore(db) as store:
+        assert [pr.n_frames for pr in store.list()] == [1]

@@ -295,6 +295,8 @@ class Processor:
             res.source = "estimate"
             res.model = getattr(verdict, "estimate", None)
         elif s.mode == "learn":
+            if in_camera is not None:  # the hot folder's rule: its fall-off is gone, it would flatten the profile
+                raise MetadataError(f"cannot learn: {in_camera.reason}")
             res.model, res.source, res.profile = self._learn(checked, lens_key, frame_id, estimated)
         else:
             warnings: list[str] = []
@@ -627,7 +629,7 @@ class Processor:
 
             embedded = calibration_for(path, s.profile, tags)
         in_camera = None
-        if s.in_camera == "respect" and (s.mode == "correct" or (s.mode == "estimate" and self.judge_estimates)):
+        if s.in_camera == "respect" and (s.mode in ("correct", "learn") or (s.mode == "estimate" and self.judge_estimates)):
             from vigproc.io.incamera import read_in_camera
 
             in_camera = read_in_camera(path, tags)
