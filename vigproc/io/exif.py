@@ -91,8 +91,8 @@ _TAGS: tuple[str, ...] = _LENS_RANGE_TAGS + (
     "-FocusDistanceLower#", "-SubjectDistance#",
     "-Composite:ImageSize#",
     # vigproc's own correction record (metadata.py) has a Model tag, the model JSON:
-    # it is not the camera's Model
-    "--XMP-vigproc:all",
+    # it is not the camera's Model. Its Applied flag is read (incamera.py: no second pass).
+    "--XMP-vigproc:Model", "-XMP-vigproc:Applied",
 ) + (
     # Read in the same command so that each file is read once (FileTags): the capture date
     # and serials of a check's provenance (provenance.py), the in-camera correction flags
@@ -114,7 +114,7 @@ RECORD_TAGS: frozenset[str] = frozenset({
     "EXIF:DateTimeOriginal", "EXIF:OffsetTimeOriginal", "EXIF:Make", "EXIF:Model", "EXIF:SerialNumber",
     "EXIF:LensModel", "EXIF:LensSerialNumber",
     "XMP:DateTimeOriginal", "XMP:SerialNumber", "XMP:LensModel", "XMP:Lens", "XMP:LensSerialNumber",
-    "MakerNotes:SerialNumber", "MakerNotes:InternalSerialNumber",
+    "MakerNotes:SerialNumber", "MakerNotes:InternalSerialNumber", "XMP:Applied",
 })
 _FAMILY0 = frozenset({"EXIF", "XMP", "MakerNotes", "File", "Composite", "IPTC", "ICC_Profile", "QuickTime"})
 # What every record needs for _check_record (file type, exiftool's own error and warning).

@@ -23,6 +23,9 @@ ShadingCompensation            Olympus/OM System, Panasonic                ≠ 0
 A JPEG from a phone is taken as corrected in camera: its Make is one of
 :data:`PHONE_MAKES` (Samsung only for its phone models, ``SM-``/``GT-``/… or Galaxy;
 Sony only for Xperia). An explicit Off flag of a camera is what it says.
+
+A file of any format that vigproc itself corrected (its ``XMP-vigproc:Applied`` record,
+read as ``XMP:Applied``) is corrected already too: an output fed back in is left alone.
 """
 
 from __future__ import annotations
@@ -62,7 +65,9 @@ _SAMSUNG_PHONE = re.compile(r"^(sm-|gt-|sgh-|sch-|sph-|shv-|galaxy)", re.IGNOREC
 #: Suffixes of JPEG files (the only outputs of a camera's image processor vigproc reads as such).
 JPEG_SUFFIXES = frozenset(READ_SUFFIXES["jpeg"])
 #: Tags read: the flags, and the make and model for phones.
-TAGS = ("Make", "Model", *FLAG_TAGS)
+TAGS = ("Make", "Model", *FLAG_TAGS, "XMP:Applied")
+#: vigproc's own record that it corrected the file (metadata.py writes it).
+_VIGPROC_APPLIED = "XMP:Applied"
 
 
 @dataclass(frozen=True)
@@ -117,6 +122,8 @@ def from_tags(tags: Mapping[str, Any]) -> InCamera | None:
     >>> from_tags({"Make": "OLYMPUS IMAGING CORP.", "ShadingCompensation": 0}) is None
     True
     """
+    if tags.get(_VIGPROC_APPLIED) in (True, 1, "True", "true"):
+        return InCamera("XMP-vigproc:Applied", "vigproc already corrected it (the file's XMP-vigproc record)")
     for name, on in FLAG_TAGS.items():
         v = _int(tags.get(name))
         if v is None:
@@ -146,11 +153,12 @@ def read_in_camera(path: str | os.PathLike[str], reader) -> InCamera | None:
         metadata cannot be read (logged), or one whose metadata says nothing.
     """
     read_tags = getattr(reader, "read_tags", None)  # a host's stand-in reader may have none
-    if read_tags is None or Path(path).suffix.lower() not in JPEG_SUFFIXES:
+    if read_tags is None:
         return None
+    jpeg = Path(path).suffix.lower() in JPEG_SUFFIXES
     try:
-        tags = read_tags(path, TAGS)
+        tags = read_tags(path, TAGS if jpeg else (_VIGPROC_APPLIED,))
     except VigprocError as exc:  # the lens read already reported it; the frame is estimated as before
         log.debug("%s: in-camera correction flags not read: %s", os.fspath(path), exc)
         return None
-    return from_tags(tags)
+    return from_tags(tags)  # any other format: only vigproc's own record is read

@@ -756,8 +756,10 @@ def _lens_identity(make: str | None, model: str | None, lens: str | None, lens_s
         candidates = stripped
     described = bool(lens_source and lens_source.endswith("(description)"))
     old: list[str | None] = []
+    # A described lens has no earlier id of its own: earlier versions keyed it "?", with
+    # every other undescribed lens of the body, a profile of several lenses.
     if described:
-        old.append(None)  # earlier versions keyed an undescribed lens "?"
+        pass
     elif keyed != lens:
         old.append(lens)
     elif (brand := make_brand(make)) and _LENS_LINE.match(lens):

@@ -139,7 +139,8 @@ def pooling_refusal(lens_key, in_camera=None) -> str | None:
     if lens_key is None:
         return "the frame's lens is unknown (no usable EXIF)"
     if in_camera is not None:
-        return f"the camera already corrected its vignetting ({in_camera.reason})"
+        return (in_camera.reason if in_camera.evidence == "XMP-vigproc:Applied"
+                else f"the camera already corrected its vignetting ({in_camera.reason})")
     if getattr(lens_key, "lens_problem", None):
         return f"the lens its EXIF names cannot have taken it ({lens_key.lens_problem})"
     if not lens_key.make or not lens_key.model:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Container
 
-from vigproc.errors import ImageReadError, ModelError, VigprocError
+from vigproc.errors import ImageReadError, MetadataError, ModelError, VigprocError
 from vigproc.io.formats import IMAGE_SUFFIXES, WRITE_EXT_FORMAT  # noqa: F401  (IMAGE_SUFFIXES: re-exported)
 # the pieces a frame's path uses, in their own modules; re-exported here, where callers import them
 from vigproc.pipeline.choice import WEAK_EVIDENCE, choose_model, lens_hint, not_applied_reason  # noqa: F401
@@ -353,6 +353,8 @@ class Processor:
             res.source = "estimate"
             res.model = getattr(verdict, "estimate", None)
         elif s.mode == "learn":
+            if in_camera is not None:  # the hot folder's rule: its fall-off is gone, it would flatten the profile
+                raise MetadataError(f"cannot learn: {in_camera.reason}")
             res.model, res.source, res.profile = self._learn(checked, lens_key, frame_id, estimated)
         else:
             warnings: list[str] = []
@@ -426,6 +428,12 @@ class Processor:
             raise VigprocError("learn mode needs a profile store")
         if lens_key is None:
             raise VigprocError("cannot learn: the frame's lens is unknown (no usable EXIF)")
+        if lens_key.lens is None and lens_key.make and lens_key.model:
+            # the hot folder's rule: an unnamed lens pools under "?" with the body's other lenses
+            from vigproc.pipeline.learning import pooling_refusal
+
+            if why := pooling_refusal(lens_key):
+                raise MetadataError(f"cannot learn: {why}")
         h, w = img.shape[:2]
         from vigproc.stores.profiles import ProfileKey
 
@@ -705,7 +713,7 @@ class Processor:
 
             embedded = calibration_for(path, s.profile, tags)
         in_camera = None
-        if s.in_camera == "respect" and (s.mode == "correct" or (s.mode == "estimate" and self.judge_estimates)):
+        if s.in_camera == "respect" and (s.mode in ("correct", "learn") or (s.mode == "estimate" and self.judge_estimates)):
             from vigproc.io.incamera import read_in_camera
 
             in_camera = read_in_camera(path, tags)

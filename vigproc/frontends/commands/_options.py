@@ -99,7 +99,7 @@ def add_output(sp: argparse.ArgumentParser, *, picture: bool = True) -> None:
                          "original as NAME.uncorrected.EXT, or write the frame as read under the output's name")
     sp.add_argument("--in-camera", choices=list(IN_CAMERA_POLICIES), default="respect",
                     help="respect (default): a JPEG whose camera already corrected its vignetting (maker-note "
-                         "flag, or a phone's) is left alone; ignore: correct it anyway")
+                         "flag, or a phone's), or a file vigproc corrected, is left alone; ignore: correct it anyway")
     sp.add_argument("--strength", type=number(0.0, 2.0), default=1.0,
                     help="fraction of the fall-off removed, 0 to 2 (default 1)")
     if picture:
