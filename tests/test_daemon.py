@@ -638,7 +638,7 @@ def test_bad_arguments_are_refused_with_one_line(tmp_path, monkeypatch):
 
 
 def no_daemon_here(self) -> int:
-    """``Daemon.run`` in a test that runs ``vigproc watch`` in its own process: the
+    """``Daemon.run`` for a test that runs ``vigproc watch`` in the test process: the
     arguments were to be refused, so reaching the daemon's loop fails the test."""
     raise AssertionError("the arguments were accepted: a daemon would start in the test process")
 
@@ -678,10 +678,11 @@ def test_learn_mode_pools_each_frame_once_across_a_kill(tmp_path):
         make_dng(in_dir / f"frame {i}.dng", width=192, height=128, field=truth.field(),
                  scene=textured(128, 192, seed=i, contrast=0.2), seed=i)
     args = ("--mode", "learn", "--profile-db", str(db), "--settle", "0.2")
-    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args).start()
+    # one worker: the kill is the point (two workers pooling at once: test_learn_as_you_go's watch and batch)
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args, workers=1).start()
     d.wait_for("one frame learned", lambda: len(sidecars(out_dir)) >= 1, timeout=120)
     d.kill9()
-    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args).start()
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args, workers=1).start()
     d.wait_for("all frames learned", lambda: sum(e.state == "done" for e in journal_entries(out_dir).values()) == n,
                timeout=180)
     assert d.stop() == 0
