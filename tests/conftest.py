@@ -45,9 +45,13 @@ def pytest_configure(config):
                                  cwd=Path(__file__).parent, env=env)
     try:
         img = textured(96, 144, seed=0, contrast=0.1)
-        for method in ("default", "robust", "lens-family", "flat-field", "ga"):
+        # the default method fits the fall-off's centre (the geometry kernels) only where the
+        # fall-off is deep enough (here 2.1 EV at the corners): else each worker compiled them
+        deep = img * vigproc.VignettingModel(144, 96, p=(6e-4, 0.0, 6e-4)).field()
+        for method, frame in (("default", img), ("default", deep), ("robust", img), ("lens-family", img),
+                              ("flat-field", img), ("ga", textured(64, 96))):
             try:
-                vigproc.estimate(img if method != "ga" else textured(64, 96), method, channel_axis=None)
+                vigproc.estimate(frame, method, channel_axis=None)
             except vigproc.VigprocError:  # warm-up only: the tests judge the estimators
                 pass
         vigproc.correct(np.repeat(img[..., None], 3, axis=2).astype(np.float32),

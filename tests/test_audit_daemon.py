@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import photo_like
+from conftest import photo_like, run_cli
 from vigproc.frontends import hookserver
 from vigproc.io.images import write_image
 
@@ -57,11 +57,25 @@ def _wait_started(proc, log, timeout=90):
 
 
 def _second(in_dir, out_dir, *extra, env):
-    return subprocess.run([*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--profile", str(PROFILE), *extra],
-                          capture_output=True, text=True, timeout=90, env=env)
+    """A second ``vigproc watch`` on the job, in this process (``env`` is this process's
+    environment, set by the ``env`` fixture): refused, or the test fails (not_here)."""
+    return run_cli("watch", in_dir, "-o", out_dir, "--profile", PROFILE, *extra)
 
 
-def test_a_second_daemon_on_the_same_folders_is_refused_in_every_variant(tmp_path, env):
+@pytest.fixture
+def not_here(monkeypatch):
+    """The daemon's loop (after its lock) must not start in the test process: a refusal
+    that let a second daemon through fails the test (exit 70, no "already running")
+    instead of hanging it."""
+    from vigproc.frontends.daemon import Daemon
+
+    def loop(self) -> int:
+        raise AssertionError("a second daemon was let through")
+
+    monkeypatch.setattr(Daemon, "_run", loop)
+
+
+def test_a_second_daemon_on_the_same_folders_is_refused_in_every_variant(tmp_path, env, not_here):
     in_dir, out_dir = tmp_path / "in", tmp_path / "out"
     in_dir.mkdir()
     log = tmp_path / "d1.log"

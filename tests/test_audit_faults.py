@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import textured
+from conftest import run_cli, textured
 from benchmarks.faults import _Watch, _results, why_not
 
 REPO = Path(__file__).resolve().parents[1]
@@ -229,9 +229,7 @@ def test_a_corrupt_file_named_like_a_full_disk_is_the_files_fault(tmp_path):
     files = _photos(tmp_path, 1)
     bad = tmp_path / "IMG_0001 no space left on device.jpg"
     bad.write_bytes(os.urandom(5000))
-    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "correct", "--profile", str(PROFILE),
-                        "-o", str(tmp_path / "out"), str(bad), str(files[0])], capture_output=True, text=True,
-                       env=_env(), timeout=120)
+    r = run_cli("correct", "--profile", PROFILE, "-o", tmp_path / "out", bad, files[0])  # in this process
     assert r.returncode == 1 and "disk full" not in r.stderr, r.stderr
     assert "1 corrected" in r.stdout or "1 not corrected" in r.stdout, r.stdout
 

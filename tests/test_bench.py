@@ -2,8 +2,6 @@
 
 import json
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -14,8 +12,6 @@ from vigproc.io.images import write_image
 from vigproc.stores.lensfun import diverse_lenses, pa_field
 
 from conftest import run_cli, textured
-
-VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
 def _gain_free_ev(a: np.ndarray, b: np.ndarray) -> float:
@@ -63,7 +59,7 @@ def test_rgs_cannot_follow_off_centre_vignetting():
 
 def _bench(*args):
     """``vigproc bench ARGS`` in this process (not about the process: main() gives the same
-    exit codes and output; the scene-scatter command below runs as a new process)."""
+    exit codes and output; a bench through a new process: test_bench_entry)."""
     return run_cli("bench", *args)
 
 
@@ -333,8 +329,7 @@ def test_bench_scene_scatter_writes_what_pooling_reads(tmp_path):
         write_image(folder / f"f{i}_linear.tif", textured(700, 1050, seed=60 + i, contrast=0.1).astype(np.float32),
                     bit_depth="float")
     out = tmp_path / "scatter.json"
-    r = subprocess.run(VIGPROC + ["bench", "scene-scatter", "-o", str(out), "--images", str(folder)],
-                       capture_output=True, text=True)
+    r = _bench("scene-scatter", "-o", out, "--images", folder)
     assert r.returncode == 0, r.stderr
     doc = json.loads(out.read_text())
     assert doc["frames"] == 10 and "bench scene-scatter" in doc["source"]
@@ -344,15 +339,13 @@ def test_bench_scene_scatter_writes_what_pooling_reads(tmp_path):
     np.testing.assert_allclose(C, fam.components, atol=1e-7)
     assert S.shape == (3, 3) and np.all(np.linalg.eigvalsh(S) > 0)
     (folder / "f9_linear.tif").unlink()
-    r = subprocess.run(VIGPROC + ["bench", "scene-scatter", "-o", str(tmp_path / "few.json"), "--images",
-                                  str(folder)], capture_output=True, text=True)
+    r = _bench("scene-scatter", "-o", tmp_path / "few.json", "--images", folder)
     assert r.returncode != 0 and "at least 10" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_bench_learn_command_prints_and_writes_its_figures(tmp_path):
     out = tmp_path / "learn.json"
-    r = subprocess.run(VIGPROC + ["bench", "learn", "--stored", "2", "--rounds", "1", "--json", str(out)],
-                       capture_output=True, text=True)
+    r = _bench("learn", "--stored", "2", "--rounds", "1", "--json", out)
     assert r.returncode == 0, r.stderr
     assert "new process, the learn" in r.stdout
     doc = json.loads(out.read_text())

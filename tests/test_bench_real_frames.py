@@ -4,7 +4,6 @@ a series through the profile store (benchmarks.real_frames_lensfun)."""
 import math
 import shutil
 import subprocess
-import sys
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,10 +13,9 @@ from benchmarks import real_frames_lensfun as rfl
 from vigproc.io.images import write_image
 from vigproc.stores.lensfun import pa_poly
 
-from conftest import coloured_scene
+from conftest import coloured_scene, run_cli
 
 needs_exiftool = pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool program not installed")
-VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
 
 #: The Olympus PEN E-P3's lens (lensfun: Olympus M.Zuiko Digital 17mm f/1.8, crop 2), wide open.
 E_P3 = dict(make="olympus imaging corp.", model="e-p3", lens="m.zuiko digital 17mm f1.8", focal_mm=17.0,
@@ -152,9 +150,8 @@ def test_run_lensfun_finds_the_lens_of_a_real_jpeg_and_the_cli_prints_it(tmp_pat
     assert row.lens == truth.lens and row.truth_holds and s.truth_frames == 1
     assert row.truth_corner_ev == pytest.approx(truth.corner_ev)
     assert row.uncorrected_ev == pytest.approx(rfl._ev(truth.log_field(rfl.grid_shape(480, 360))))
-    out = subprocess.run(VIGPROC + ["bench", "real-frames", "--images", str(frames), "--min-long-side", "300",
-                                    "--no-harm", "--json", str(tmp_path / "r.json")],
-                         capture_output=True, text=True, timeout=600)
+    out = run_cli("bench", "real-frames", "--images", frames, "--min-long-side", "300", "--no-harm", "--json",
+                  tmp_path / "r.json")  # in this process
     assert out.returncode == 0, out.stderr
     assert "lensfun-known lenses: 1 frames, the truth holds on 1" in out.stdout
     import json
@@ -164,8 +161,7 @@ def test_run_lensfun_finds_the_lens_of_a_real_jpeg_and_the_cli_prints_it(tmp_pat
 
 
 def test_cli_refuses_a_folder_without_frames(tmp_path):
-    out = subprocess.run(VIGPROC + ["bench", "real-frames", "--images", str(tmp_path)], capture_output=True, text=True,
-                         timeout=300)
+    out = run_cli("bench", "real-frames", "--images", tmp_path)
     assert out.returncode == 2 and "no JPEG" in out.stdout and "Traceback" not in out.stderr
 
 

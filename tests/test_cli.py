@@ -108,17 +108,17 @@ def test_hostile_names_stay_inside_output(tmp_path, vignetted_tiff):
     weird = tmp_path / "a b 'q' \"dq\" ; $(rm -rf x) \u00e9\n.tif"
     weird.write_bytes(path.read_bytes())
     out = tmp_path / "out"
-    r = run_process("correct", weird, "-o", out)
+    r = run("correct", weird, "-o", out)  # names in stderr, as a process: test_file_names_cannot_forge_message_lines
     assert r.returncode == 0, r.stderr
     produced = list(out.iterdir())
     assert len(produced) == 2 and all(p.parent == out for p in produced)
 
 
-@pytest.mark.parametrize("content,code", [(b"", 4), (b"not an image at all", 4)])
-def test_bad_files_exit_nonzero_without_traceback(tmp_path, content, code):
+@pytest.mark.parametrize("content,code,runner", [(b"", 4, run_process), (b"not an image at all", 4, run)])
+def test_bad_files_exit_nonzero_without_traceback(tmp_path, content, code, runner):
     bad = tmp_path / "bad.jpg"
     bad.write_bytes(content)
-    r = run_process("estimate", bad)
+    r = runner("estimate", bad)
     assert r.returncode == code
     assert "Traceback" not in r.stderr and "bad.jpg" in r.stderr
 

@@ -3,8 +3,6 @@ placed; a centred one is not flagged; its calibration and AUC are what they say.
 
 import json
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -118,6 +116,5 @@ def test_a_known_profile_places_the_centre_of_its_own_lens():
 
 
 def test_bench_crops_calibrates_only_the_tests_own_statistic(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "bench", "crops", "--statistic",
-                        "known-profile", "--calibrate", str(tmp_path / "c.json")], capture_output=True, text=True)
+    r = run_cli("bench", "crops", "--statistic", "known-profile", "--calibrate", tmp_path / "c.json")
     assert r.returncode == 2 and "needs --statistic shift" in r.stderr and not (tmp_path / "c.json").exists()

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import textured
+from conftest import run_cli, textured
 from vigproc.frontends.daemon import (
     DISK_FULL,
     PERMANENT,
@@ -489,9 +489,8 @@ def test_daemon_end_to_end_kill9_restart_and_drain(tmp_path):
     # no temporary leftovers in the output folder
     assert [p.name for p in out_dir.iterdir() if ".tmp" in p.name] == []
     assert n_after_kill >= 5
-    # --status: a stopped daemon, with the journal's counts
-    st = subprocess.run([*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--profile", str(PROFILE),
-                         "--status", "--json"], capture_output=True, text=True, timeout=60)
+    # --status: a stopped daemon, with the journal's counts (asked in this process)
+    st = run_cli("watch", in_dir, "-o", out_dir, "--profile", PROFILE, "--status", "--json")
     assert st.returncode == 3, st.stderr
     status = json.loads(st.stdout)
     assert status["running"] is False
@@ -619,21 +618,29 @@ def test_worker_crash_hang_and_full_disk(tmp_path):
     assert sum(ev.get("event") == "timeout" for ev in d.events()) == 2
 
 
-def test_bad_arguments_are_refused_with_one_line(tmp_path):
+def test_bad_arguments_are_refused_with_one_line(tmp_path, monkeypatch):
     """(A second daemon on the same folders, and ``--status`` of a running one:
     test_audit_daemon.test_a_second_daemon_on_the_same_folders_is_refused_in_every_variant.)"""
+    from vigproc.frontends.daemon import Daemon as D
+
     in_dir, out_dir = tmp_path / "in", tmp_path / "out"
     in_dir.mkdir()
+    monkeypatch.setattr(D, "run", no_daemon_here)
     # (--workers 0 is a usage error, exit 2, with the other bad option values in test_cli)
     for args, msg in [
         ([str(tmp_path / "missing"), "-o", str(out_dir)], "does not exist"),
         ([str(in_dir), "-o", str(in_dir)], "cannot be the watch folder"),
         ([str(in_dir), "-o", str(out_dir), "--profile", str(tmp_path / "nope.json")], "nope.json"),
     ]:
-        # a new process with a timeout: run in this one, a check that let one through would start a daemon here
-        r = subprocess.run([*VIGPROC, "watch", *args], capture_output=True, text=True, timeout=60)
+        r = run_cli("watch", *args)  # in this process: a check that let one through fails the test, not hangs it
         assert r.returncode != 0 and msg in r.stderr and "Traceback" not in r.stderr, (args, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1
+
+
+def no_daemon_here(self) -> int:
+    """``Daemon.run`` for a test that runs ``vigproc watch`` in the test process: the
+    arguments were to be refused, so reaching the daemon's loop fails the test."""
+    raise AssertionError("the arguments were accepted: a daemon would start in the test process")
 
 
 def test_a_profile_source_is_not_a_profile_file(tmp_path):
@@ -644,8 +651,8 @@ def test_a_profile_source_is_not_a_profile_file(tmp_path):
     in_dir.mkdir()
     make_good(in_dir, "a.png", 0)
     db = ("--profile-db", str(tmp_path / "p.sqlite"))
-    b = subprocess.run([*VIGPROC, "batch", str(in_dir), "--mode", "correct", "-o", str(tmp_path / "batch"),
-                        "--profile", "source:foo", *db], capture_output=True, text=True, timeout=120)
+    b = run_cli("batch", in_dir, "--mode", "correct", "-o", tmp_path / "batch", "--profile", "source:foo", *db,
+                "--workers", "1")
     assert b.returncode == 1 and "a.png: unknown profile source 'foo'" in b.stdout + b.stderr, b.stderr
     d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--profile", "source:foo", "--settle", "0.2", *db,
                workers=1).start()
@@ -671,10 +678,11 @@ def test_learn_mode_pools_each_frame_once_across_a_kill(tmp_path):
         make_dng(in_dir / f"frame {i}.dng", width=192, height=128, field=truth.field(),
                  scene=textured(128, 192, seed=i, contrast=0.2), seed=i)
     args = ("--mode", "learn", "--profile-db", str(db), "--settle", "0.2")
-    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args).start()
+    # one worker: the kill is the point (two workers pooling at once: test_learn_as_you_go's watch and batch)
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args, workers=1).start()
     d.wait_for("one frame learned", lambda: len(sidecars(out_dir)) >= 1, timeout=120)
     d.kill9()
-    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args).start()
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args, workers=1).start()
     d.wait_for("all frames learned", lambda: sum(e.state == "done" for e in journal_entries(out_dir).values()) == n,
                timeout=180)
     assert d.stop() == 0

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import time
 from pathlib import Path
 
 import pytest
 
-from test_daemon import (VIGPROC, Daemon, journal_entries, make_good, out_sidecar, output_files, output_stem, sha,
+from conftest import run_cli
+from test_daemon import (Daemon, journal_entries, make_good, out_sidecar, output_files, output_stem, sha,
                          sidecars, sitecustomize)
 
 _FAULTS = sitecustomize("vigproc.io.metadata", r'''
@@ -119,8 +119,7 @@ def test_a_full_output_disk_pauses_the_daemon_and_quarantines_nothing(tmp_path, 
     d.wait_for("the daemon paused for the full disk",
                lambda: _status(out_dir).get("state") == "paused"
                and any("output disk full" in (e.reason or "") for e in journal_entries(out_dir).values()), timeout=90)
-    st = subprocess.run([*VIGPROC, "watch", str(in_dir), "-o", str(out_dir), "--status"], capture_output=True,
-                        text=True, timeout=60)
+    st = run_cli("watch", in_dir, "-o", out_dir, "--status")  # asked in this process
     assert "PAUSED: output disk full" in st.stdout and "nothing is quarantined" in st.stdout, st.stdout
     paused = _status(out_dir)["paused"]
     assert paused["why"] == "output disk full" and paused["free_bytes"] == 1_000_000 and paused["files_waiting"] >= 1

@@ -72,8 +72,6 @@ def test_a_copy_without_pairs_has_no_advantage():
 
 def test_the_cli_and_the_sidecar_say_a_glow_was_left_alone(tmp_path):
     import json
-    import subprocess
-    import sys
 
     from vigproc.io.images import write_image
 
@@ -81,9 +79,7 @@ def test_the_cli_and_the_sidecar_say_a_glow_was_left_alone(tmp_path):
     src = tmp_path / "sunset.tif"
     write_image(src, np.repeat(frame[..., None], 3, axis=2).astype(np.float32), bit_depth="float")
 
-    def vigproc(*args):
-        return subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", *map(str, args)], capture_output=True,
-                              text=True, timeout=300)
+    from conftest import run_cli as vigproc  # in this process: the messages, not the process, are tested
 
     est = vigproc("estimate", src)
     assert est.returncode == 0, est.stderr

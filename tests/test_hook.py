@@ -18,7 +18,7 @@ from vigproc.core.model import VignettingModel
 from vigproc.frontends.cli import main
 from vigproc.io.images import read_image, write_image
 
-from conftest import textured
+from conftest import run_cli as in_process, textured
 from test_api import ESTIMATORS, PLUGIN_CODE, install_plugin
 
 VIGPROC = [sys.executable, "-m", "vigproc.frontends.cli"]
@@ -90,7 +90,7 @@ def test_correct_answers_json_and_writes_outputs(frame, tmp_path):
     assert corrected[-3, -3, 0] / corrected[80, 120, 0] > 2.5 * src[-3, -3, 0] / src[80, 120, 0]  # 4.2 in truth
 
 
-def test_request_on_stdin_with_host_lens_and_exact_output(frame, tmp_path):
+def test_request_on_stdin_with_host_lens_and_exact_output(frame, tmp_path, capsys, monkeypatch):
     target = tmp_path / "dk" / "BatchTool-1.digikamtempfile.tif"
     target.parent.mkdir()
     req = {"mode": "correct", "output_format": "tiff16", "files": [
@@ -100,9 +100,8 @@ def test_request_on_stdin_with_host_lens_and_exact_output(frame, tmp_path):
         {"path": str(frame), "output": str(tmp_path / "dk" / "x.jpg")},  # wrong suffix for TIFF
         {"path": str(frame), "output": str(frame)},  # never overwrite the input
     ]}
-    code, stdout, stderr = run_cli("hook", "--request", "-", stdin=json.dumps(req).encode())
-    answer = json.loads(stdout)
-    assert code == 1 and answer["ok"] == 1, stderr
+    code, answer = hook(capsys, monkeypatch, "--request", "-", stdin=json.dumps(req).encode())
+    assert code == 1 and answer["ok"] == 1, answer
     ok, bad_suffix, onto_input = answer["results"]
     assert ok["status"] == "ok" and ok["output"] == str(target)
     assert ok["lens"]["lens_id"] == "nikon|nikon d700|af-s 24-70mm f/2.8g"  # the host's lens, not the file's
@@ -211,7 +210,8 @@ def test_output_file_and_output_folder_exclude_each_other(frame, tmp_path, capsy
 def test_file_names_cannot_forge_stderr_lines(tmp_path):
     bad = tmp_path / "x\nvigproc: FAKE\r.tif"
     bad.write_bytes(b"not an image")
-    code, stdout, stderr = run_cli("hook", "--mode", "estimate", "--", bad, tmp_path / "nope\n.tif")
+    r = in_process("hook", "--mode", "estimate", "--", bad, tmp_path / "nope\n.tif")
+    code, stdout, stderr = r.returncode, r.stdout, r.stderr
     assert code == 4 and json.loads(stdout)["results"][0]["file"] == str(bad)
     lines = stderr.splitlines()
     assert len(lines) == 2 and all(ln.startswith("vigproc: '") for ln in lines), stderr

@@ -3,7 +3,6 @@ exactly once per file content; once the profile is trusted it corrects the serie
 field; frames that would mix lenses are not pooled, and the record says why."""
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -365,16 +364,12 @@ def test_frames_of_an_unnamed_lens_on_an_interchangeable_body_are_corrected_not_
 
 
 # ------------------------------------------------------------------ front ends
-def _run(*args, env=None, timeout=900):
-    return subprocess.run([*VIGPROC, *map(str, args)], capture_output=True, text=True, timeout=timeout, env=env)
-
-
-def test_batch_learns_by_default_with_two_workers_and_a_rerun_pools_nothing(series, tmp_path):
+def test_batch_learns_by_default_with_two_workers_and_a_rerun_pools_nothing(series, tmp_path, monkeypatch):
     paths, _ = series
-    env = dict(os.environ, VIGPROC_PROFILE_DB=str(tmp_path / "p.sqlite"))
+    # the command in this process (its two workers are processes of their own)
+    monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path / "p.sqlite"))
     out = tmp_path / "out"
-    r = _run("batch", paths[0].parent, "--mode", "correct", "-o", out, "--workers", "2", "--no-progress", "--json",
-             env=env)
+    r = run_cli("batch", paths[0].parent, "--mode", "correct", "-o", out, "--workers", "2", "--no-progress", "--json")
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["processed"] == len(paths)
@@ -391,16 +386,17 @@ def test_batch_learns_by_default_with_two_workers_and_a_rerun_pools_nothing(seri
             used = _log2_field(rec)
             now = final.model(W, H)
             assert np.sqrt(np.mean((used - now.log_field((H, W)) / np.log(2.0)) ** 2)) < 0.04
-    # a new job over the same files (other output folder): every content is pooled already
-    r = _run("batch", paths[0].parent, "--mode", "correct", "-o", tmp_path / "out2", "--workers", "2",
-             "--no-progress", env=env)
+    # a new job over the same files (other output folder): every content is pooled already (the
+    # store keys frames by content, whichever worker asks: one here, no pool of processes again)
+    r = run_cli("batch", paths[0].parent, "--mode", "correct", "-o", tmp_path / "out2", "--workers", "1",
+                "--no-progress")
     assert r.returncode == 0, r.stderr
     with ProfileStore(tmp_path / "p.sqlite") as store:
         assert [p.n_frames for p in store.list()] == [len(paths)]
     # --no-learn: nothing pooled, nothing said about it
-    env2 = dict(os.environ, VIGPROC_PROFILE_DB=str(tmp_path / "q.sqlite"))
-    r = _run("batch", paths[0].parent, "--mode", "correct", "-o", tmp_path / "out3", "--workers", "1",
-             "--no-progress", "--no-learn", env=env2)
+    monkeypatch.setenv("VIGPROC_PROFILE_DB", str(tmp_path / "q.sqlite"))
+    r = run_cli("batch", paths[0].parent, "--mode", "correct", "-o", tmp_path / "out3", "--workers", "1",
+                "--no-progress", "--no-learn")
     assert r.returncode == 0, r.stderr
     with ProfileStore(tmp_path / "q.sqlite") as store:
         assert store.list() == []

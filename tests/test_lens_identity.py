@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -288,9 +287,11 @@ def test_lensfun_match_picks_a_calibration_that_covers_the_frame(focal35, crop) 
 
 # ------------------------------------------------------------------ commands
 def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin", "HOME": str(cwd)}
-    return subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", *args], capture_output=True, text=True,
-                          cwd=cwd, env=env, timeout=300)
+    """``vigproc ARGS`` in this process (conftest.run_cli), from ``cwd``; the profile store
+    is the test's own (conftest), as a HOME of ``cwd`` made it for a new process."""
+    from conftest import run_cli as in_process
+
+    return in_process(*args, cwd=cwd)
 
 
 def test_correct_with_lensfun_estimates_a_contradictory_lens_and_says_why(frames, tmp_path: Path) -> None:

@@ -5,12 +5,11 @@ size before it is read and by its element count while it is parsed (issue 37).""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from conftest import run_cli
 from test_lcp import HEAD, TAIL, entry_attrs
 from vigproc.errors import ModelError
 from vigproc.stores import xmlsafe
@@ -75,7 +74,6 @@ def test_the_fit_lens_family_command_refuses_a_huge_database_quickly_and_clearly
     big = tmp_path / "huge.xml"
     with open(big, "wb") as fh:
         fh.truncate(100 << 20)
-    r = subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", "prior", "fit-lens-family", "--db", str(big),
-                        "-o", str(tmp_path / "fam.json")], capture_output=True, text=True, timeout=120)
+    r = run_cli("prior", "fit-lens-family", "--db", big, "-o", tmp_path / "fam.json")  # in this process
     assert r.returncode != 0 and "too large for a lensfun database file" in r.stderr
     assert "Traceback" not in r.stderr and not (tmp_path / "fam.json").exists()
