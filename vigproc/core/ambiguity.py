@@ -168,7 +168,7 @@ def shrunk_fit(lum: np.ndarray, fit: FamilyFit, amb: Ambiguity, hint: LensHint |
 
 
 def estimate_shrunk(lum: np.ndarray, mask: np.ndarray | None = None, hint: LensHint | None = None,
-                    family=None, colour: np.ndarray | None = None) -> VignettingModel:
+                    family=None, colour: np.ndarray | None = None, base=None) -> VignettingModel:
     """:func:`vigproc.core.estimate.estimate_default`, its centred lens-family fit shrunk
     toward the EXIF population by the frame's ambiguity (module doc).
 
@@ -180,14 +180,18 @@ def estimate_shrunk(lum: np.ndarray, mask: np.ndarray | None = None, hint: LensH
     ----------
     lum, mask, hint, family, colour
         As :func:`~vigproc.core.estimate.estimate_default` takes them.
+    base : callable, optional
+        The default estimator itself (``estimate_default`` when None): for a caller that
+        stands this function in for it.
 
     Returns
     -------
     VignettingModel
     """
-    from vigproc.core.estimate import estimate_default
+    if base is None:
+        from vigproc.core.estimate import estimate_default as base
 
-    model = estimate_default(lum, mask, hint, family, colour)
+    model = base(lum, mask, hint, family, colour)
     if hint is None or hint.focal35 is None or hint.fnumber is None:
         return model
     fit = fit_family(lum, FamilySettings(), mask, family, hint, colour)
