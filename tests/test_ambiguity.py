@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from vigproc.core.ambiguity import ambiguity, estimate_shrunk, shrunk_fit
+from vigproc.core.ambiguity import Ambiguity, ambiguity, estimate_shrunk, shrunk_fit
 from vigproc.core.estimate import estimate_default
 from vigproc.core.family_fit import FamilySettings, LensHint, family_for, fit_family
 from vigproc.core.lensfamily import profile_family
@@ -53,9 +53,9 @@ def test_a_one_sided_scene_falloff_is_read_as_ambiguity():
 def test_the_weight_moves_the_field_between_the_fit_and_the_population():
     lum = textured(H, W, seed=6, contrast=0.2) * _lens()
     fit, amb = _fit_and_amb(lum)
-    assert shrunk_fit(lum, fit, amb.__class__(amb.disagreement_ev, amb.prior_spread_ev, 1.0, 4), HINT) is fit.model
-    pop = shrunk_fit(lum, fit, amb.__class__(math.inf, amb.prior_spread_ev, 0.0, 4), HINT)
-    half = shrunk_fit(lum, fit, amb.__class__(amb.prior_spread_ev, amb.prior_spread_ev, 0.5, 4), HINT)
+    assert shrunk_fit(lum, fit, Ambiguity(amb.disagreement_ev, amb.prior_spread_ev, 1.0, 4), HINT) is fit.model
+    pop = shrunk_fit(lum, fit, Ambiguity(math.inf, amb.prior_spread_ev, 0.0, 4), HINT)
+    half = shrunk_fit(lum, fit, Ambiguity(amb.prior_spread_ev, amb.prior_spread_ev, 0.5, 4), HINT)
     fit_log = fit.model.log_field((H, W))
     pop_log = pop.log_field((H, W))
     half_log = half.log_field((H, W))
