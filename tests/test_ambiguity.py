@@ -40,6 +40,9 @@ def test_a_lens_field_on_a_plain_scene_is_kept():
     # the halves see one field: little disagreement, the fit is mostly kept
     assert amb.disagreement_ev < 0.5 * amb.prior_spread_ev
     assert amb.weight > 0.8
+    # the whole disagreement holds the halves' own noise too: never less than the scene's part
+    raw = ambiguity(lum, fit, None, HINT, subtract_noise=False)
+    assert raw.disagreement_ev >= amb.disagreement_ev and raw.weight <= amb.weight
 
 
 def test_a_one_sided_scene_falloff_is_read_as_ambiguity():

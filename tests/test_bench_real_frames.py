@@ -247,7 +247,7 @@ def test_ambiguity_shrink_scores_the_experiment_and_then_restores_the_default(tm
 
     monkeypatch.setattr(A, "estimate_shrunk", counted)
     orig = E.estimate_default
-    s = rfl.run_lensfun([frames / "P1.jpg"], shrink=True)
+    s = rfl.run_lensfun([frames / "P1.jpg"], shrink="scene")
     assert len(s.rows) == 1 and math.isfinite(s.rows[0].candidate_error_ev)
     # the pipeline's estimate went through the experiment, told the real default as its base
     assert calls and all(b is orig for b in calls)

@@ -7,11 +7,14 @@ dark board) and a lens's fall-off look alike to the whole-frame fit, and its jac
 the same centred scene. Fits of the frame's halves do: top, bottom, left and right see the
 scene's fall-off from different sides, while a lens's field is the same in each. Their
 disagreement with the whole-frame fit, D (EV, the gain-free RMS over the frame of the
-fields' log2 ratio, averaged in square over the halves), is read as the fit's scene
-error; the fit is then combined with the EXIF population (the prior of the calibrations
+fields' log2 ratio, averaged in square over the halves), less the part the fit's own noise
+explains, is read as the fit's scene error: a half holds half the pairs, so its fit's
+variance about the truth is about twice the whole frame's, σ² (the fit's calibrated σ), and
+its variance about the whole frame's fit about σ² (2σ² − σ², the whole being the halves'
+mean); D_scene² = max(0, D² − σ²). The fit is then combined with the EXIF population (the prior of the calibrations
 nearest the frame's focal length and f-number, field spread s) by their inverse
-variances, w = s² / (s² + D²), c = μ + w (ĉ − μ). Nothing is tuned: D and s are both read,
-the frame's own and the population's.
+variances, w = s² / (s² + D_scene²), c = μ + w (ĉ − μ). Nothing is tuned: D, σ and s are
+all read, the frame's own and the population's.
 
 References
 ----------
@@ -48,12 +51,13 @@ class Ambiguity:
     Attributes
     ----------
     disagreement_ev : float
-        D: RMS over the halves of the gain-free field RMS (EV) between a half's fit and the
+        D_scene (EV): D less the fit's own noise σ, in square (module doc); D itself with
+        ``subtract_noise`` False. D: RMS over the halves of the gain-free field RMS (EV) between a half's fit and the
         whole frame's. NaN when fewer than two halves could be fitted.
     prior_spread_ev : float
         s: the field spread (EV) of the EXIF prior the fit is shrunk toward.
     weight : float
-        w = s² / (s² + D²): the share of the fit kept (1: the fit, 0: the population mean).
+        w = s² / (s² + D_scene²): the share of the fit kept (1: the fit, 0: the population mean).
     halves : int
         How many halves were fitted.
     """
@@ -82,7 +86,7 @@ def _gain_free_rms(x: np.ndarray) -> float:
 
 def ambiguity(lum: np.ndarray, fit: FamilyFit, mask: np.ndarray | None = None, hint: LensHint | None = None,
               family=None, colour: np.ndarray | None = None,
-              settings: FamilySettings = FamilySettings()) -> Ambiguity:
+              settings: FamilySettings = FamilySettings(), subtract_noise: bool = True) -> Ambiguity:
     """Measure the frame's ambiguity between scene and lens (module doc).
 
     Parameters
@@ -92,6 +96,9 @@ def ambiguity(lum: np.ndarray, fit: FamilyFit, mask: np.ndarray | None = None, h
         The whole frame's :func:`~vigproc.core.family_fit.fit_family` result.
     mask, hint, family, colour, settings
         As given to that fit.
+    subtract_noise : bool
+        False: D itself, the noise of the halves' fits included (the first form tried;
+        docs/benchmarks/real-frames.md).
 
     Returns
     -------
@@ -117,7 +124,12 @@ def ambiguity(lum: np.ndarray, fit: FamilyFit, mask: np.ndarray | None = None, h
         sq.append(_gain_free_rms(_log2_field(pf, part.coefficients, rho) - whole) ** 2)
     if len(sq) < 2:
         return Ambiguity(math.nan, s, 1.0, len(sq))
-    d = math.sqrt(float(np.mean(sq)))
+    d2 = float(np.mean(sq))
+    m = fit.model.candidate if fit.model.candidate is not None else fit.model
+    sigma = m.quality.field_sigma_ev if m.quality is not None else math.nan
+    if subtract_noise and math.isfinite(sigma):
+        d2 = max(0.0, d2 - sigma * sigma)
+    d = math.sqrt(d2)
     wgt = s * s / (s * s + d * d) if s > 0 else 1.0
     return Ambiguity(d, s, wgt, len(sq))
 
@@ -168,7 +180,8 @@ def shrunk_fit(lum: np.ndarray, fit: FamilyFit, amb: Ambiguity, hint: LensHint |
 
 
 def estimate_shrunk(lum: np.ndarray, mask: np.ndarray | None = None, hint: LensHint | None = None,
-                    family=None, colour: np.ndarray | None = None, base=None) -> VignettingModel:
+                    family=None, colour: np.ndarray | None = None, base=None,
+                    subtract_noise: bool = True) -> VignettingModel:
     """:func:`vigproc.core.estimate.estimate_default`, its centred lens-family fit shrunk
     toward the EXIF population by the frame's ambiguity (module doc).
 
@@ -183,6 +196,8 @@ def estimate_shrunk(lum: np.ndarray, mask: np.ndarray | None = None, hint: LensH
     base : callable, optional
         The default estimator itself (``estimate_default`` when None): for a caller that
         stands this function in for it.
+    subtract_noise : bool
+        As :func:`ambiguity` takes it.
 
     Returns
     -------
@@ -200,4 +215,5 @@ def estimate_shrunk(lum: np.ndarray, mask: np.ndarray | None = None, hint: LensH
         and model.alpha == fit.model.alpha)
     if not same:
         return model
-    return shrunk_fit(lum, fit, ambiguity(lum, fit, mask, hint, family, colour), hint, family)
+    amb = ambiguity(lum, fit, mask, hint, family, colour, subtract_noise=subtract_noise)
+    return shrunk_fit(lum, fit, amb, hint, family)
