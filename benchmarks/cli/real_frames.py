@@ -26,10 +26,11 @@ def real_frames_arguments(bp: argparse.ArgumentParser) -> None:
     bp.add_argument("--shipped-family", action="store_true",
                     help="part (a): the default estimate's prior from the shipped lens family, which holds "
                          "the measured lenses' own calibrations (default: lensfun's family without them)")
-    bp.add_argument("--ambiguity-shrink", nargs="?", const="scene", choices=["scene", "all"],
+    bp.add_argument("--ambiguity-shrink", nargs="?", const="scene", choices=["scene", "scene3", "all"],
                     help="part (a): score the experiment of vigproc.core.ambiguity (the fit shrunk toward the "
                          "EXIF population by its half fits' disagreement: 'scene', less the fit's own noise, "
-                         "the default; 'all', the whole disagreement) instead of the default estimate")
+                         "the default; 'scene3', less three times it; 'all', the whole disagreement) instead of the default "
+                         "estimate")
     bp.add_argument("--lensfun-series", type=number(0, 1000, integer=True), default=0, metavar="N",
                     help="also a series of N frames per lensfun-known lens setting learned through a profile "
                          "store: vignetting-free bases x lensfun's field (default 0: none)")

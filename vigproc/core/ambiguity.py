@@ -86,7 +86,8 @@ def _gain_free_rms(x: np.ndarray) -> float:
 
 def ambiguity(lum: np.ndarray, fit: FamilyFit, mask: np.ndarray | None = None, hint: LensHint | None = None,
               family=None, colour: np.ndarray | None = None,
-              settings: FamilySettings = FamilySettings(), subtract_noise: bool = True) -> Ambiguity:
+              settings: FamilySettings = FamilySettings(), subtract_noise: bool = True,
+              noise_factor: float = 1.0) -> Ambiguity:
     """Measure the frame's ambiguity between scene and lens (module doc).
 
     Parameters
@@ -99,6 +100,9 @@ def ambiguity(lum: np.ndarray, fit: FamilyFit, mask: np.ndarray | None = None, h
     subtract_noise : bool
         False: D itself, the noise of the halves' fits included (the first form tried;
         docs/benchmarks/real-frames.md).
+    noise_factor : float
+        D_scene² = max(0, D² − noise_factor·σ²): 1 if a half's error and the whole's are
+        nested (the whole the halves' mean), 3 if they were independent (2σ² + σ²).
 
     Returns
     -------
@@ -128,7 +132,7 @@ def ambiguity(lum: np.ndarray, fit: FamilyFit, mask: np.ndarray | None = None, h
     m = fit.model.candidate if fit.model.candidate is not None else fit.model
     sigma = m.quality.field_sigma_ev if m.quality is not None else math.nan
     if subtract_noise and math.isfinite(sigma):
-        d2 = max(0.0, d2 - sigma * sigma)
+        d2 = max(0.0, d2 - noise_factor * sigma * sigma)
     d = math.sqrt(d2)
     wgt = s * s / (s * s + d * d) if s > 0 else 1.0
     return Ambiguity(d, s, wgt, len(sq))
@@ -181,7 +185,7 @@ def shrunk_fit(lum: np.ndarray, fit: FamilyFit, amb: Ambiguity, hint: LensHint |
 
 def estimate_shrunk(lum: np.ndarray, mask: np.ndarray | None = None, hint: LensHint | None = None,
                     family=None, colour: np.ndarray | None = None, base=None,
-                    subtract_noise: bool = True) -> VignettingModel:
+                    subtract_noise: bool = True, noise_factor: float = 1.0) -> VignettingModel:
     """:func:`vigproc.core.estimate.estimate_default`, its centred lens-family fit shrunk
     toward the EXIF population by the frame's ambiguity (module doc).
 
@@ -196,8 +200,8 @@ def estimate_shrunk(lum: np.ndarray, mask: np.ndarray | None = None, hint: LensH
     base : callable, optional
         The default estimator itself (``estimate_default`` when None): for a caller that
         stands this function in for it.
-    subtract_noise : bool
-        As :func:`ambiguity` takes it.
+    subtract_noise, noise_factor
+        As :func:`ambiguity` takes them.
 
     Returns
     -------
@@ -215,5 +219,5 @@ def estimate_shrunk(lum: np.ndarray, mask: np.ndarray | None = None, hint: LensH
         and model.alpha == fit.model.alpha)
     if not same:
         return model
-    amb = ambiguity(lum, fit, mask, hint, family, colour, subtract_noise=subtract_noise)
+    amb = ambiguity(lum, fit, mask, hint, family, colour, subtract_noise=subtract_noise, noise_factor=noise_factor)
     return shrunk_fit(lum, fit, amb, hint, family)
