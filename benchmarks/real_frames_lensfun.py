@@ -48,9 +48,10 @@ import logging
 import math
 import re
 import tempfile
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -288,7 +289,30 @@ def without_lenses(found: Sequence[tuple[Path, Any, Truth, dict, Any]]):
     return lensfun_family(exclude=names, n_components=PROFILE_COMPONENTS)
 
 
-def run_lensfun(files: Sequence[Path], family: Any = "exclude") -> LensfunSummary:
+@contextmanager
+def ambiguity_shrink(subtract_noise: bool = True, noise_factor: float = 1.0) -> Iterator[None]:
+    """Within the block, the pipeline's default estimate is
+    :func:`vigproc.core.ambiguity.estimate_shrunk` (the centred fit shrunk toward the EXIF
+    population by the frame's half-fit disagreement, less the fit's own noise unless
+    ``subtract_noise`` is False, ``noise_factor`` times its variance): an experiment scored as the default is, never the
+    pipeline's own setting. Process-wide, one block at a time."""
+    import vigproc.core.estimate as E
+    from vigproc.core.ambiguity import estimate_shrunk
+
+    orig = E.estimate_default
+
+    def shrunk(lum, mask=None, hint=None, family=None, colour=None, rule=None):
+        return estimate_shrunk(lum, mask, hint, family, colour, base=orig, subtract_noise=subtract_noise,
+                               noise_factor=noise_factor)
+
+    E.estimate_default = shrunk
+    try:
+        yield
+    finally:
+        E.estimate_default = orig
+
+
+def run_lensfun(files: Sequence[Path], family: Any = "exclude", shrink: str | None = None) -> LensfunSummary:
     """Part (a) on one frame each: every file whose lens lensfun calibrated.
 
     Parameters
@@ -300,6 +324,9 @@ def run_lensfun(files: Sequence[Path], family: Any = "exclude") -> LensfunSummar
         "exclude" builds lensfun's without the lenses of these frames
         (:func:`without_lenses`; the shipped family holds every lensfun lens, the
         measured ones too); None: the shipped family, as a user's ``correct`` runs.
+    shrink : {None, "scene", "scene3", "all"}
+        Score :func:`ambiguity_shrink`'s estimate instead of the default ("all": its
+        ``subtract_noise`` False; "scene3": its ``noise_factor`` 3).
 
     Returns
     -------
@@ -316,6 +343,7 @@ def run_lensfun(files: Sequence[Path], family: Any = "exclude") -> LensfunSummar
         family = without_lenses(found) if found else None
     rows = []
     with shipped_family_replaced(family) if family is not None else nullcontext(), \
+            ambiguity_shrink(shrink != "all", 3.0 if shrink == "scene3" else 1.0) if shrink else nullcontext(), \
             Processor(Settings(mode="correct", profile="estimate"), plausibility=True) as proc:
         for p, k, truth, tags, ic in found:
             try:

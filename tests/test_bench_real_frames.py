@@ -224,3 +224,27 @@ def test_part_a_prior_holds_no_calibration_of_the_lens_measured():
     field = lambda m: (m.candidate or m).log_field((24, 32))  # noqa: E731
     assert np.allclose(field(inside), field(given))
     assert not np.allclose(field(inside), field(outside))
+
+
+@needs_exiftool
+def test_ambiguity_shrink_scores_the_experiment_and_then_restores_the_default(tmp_path, monkeypatch):
+    import vigproc.core.ambiguity as A
+    import vigproc.core.estimate as E
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    _lens_jpeg(frames / "P1.jpg", _key())
+    calls = []
+    real = A.estimate_shrunk
+
+    def counted(*a, **kw):
+        calls.append(kw.get("base"))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(A, "estimate_shrunk", counted)
+    orig = E.estimate_default
+    s = rfl.run_lensfun([frames / "P1.jpg"], shrink="scene")
+    assert len(s.rows) == 1 and math.isfinite(s.rows[0].candidate_error_ev)
+    # the pipeline's estimate went through the experiment, told the real default as its base
+    assert calls and all(b is orig for b in calls)
+    assert E.estimate_default is orig

@@ -26,6 +26,11 @@ def real_frames_arguments(bp: argparse.ArgumentParser) -> None:
     bp.add_argument("--shipped-family", action="store_true",
                     help="part (a): the default estimate's prior from the shipped lens family, which holds "
                          "the measured lenses' own calibrations (default: lensfun's family without them)")
+    bp.add_argument("--ambiguity-shrink", nargs="?", const="scene", choices=["scene", "scene3", "all"],
+                    help="part (a): score the experiment of vigproc.core.ambiguity (the fit shrunk toward the "
+                         "EXIF population by its half fits' disagreement: 'scene', less the fit's own noise, "
+                         "the default; 'scene3', less three times it; 'all', the whole disagreement) instead of the default "
+                         "estimate")
     bp.add_argument("--lensfun-series", type=number(0, 1000, integer=True), default=0, metavar="N",
                     help="also a series of N frames per lensfun-known lens setting learned through a profile "
                          "store: vignetting-free bases x lensfun's field (default 0: none)")
@@ -88,7 +93,8 @@ def cmd_bench_real_frames(args: argparse.Namespace) -> int:
     if not args.no_lensfun or args.lensfun_series:
         found, _other = rfl.lensfun_frames(files)
         if not args.no_lensfun:
-            lf = rfl.run_lensfun([p for p, *_ in found], family=None if args.shipped_family else "exclude")
+            lf = rfl.run_lensfun([p for p, *_ in found], family=None if args.shipped_family else "exclude",
+                                 shrink=args.ambiguity_shrink)
             _print_lensfun(lf)
             result["lensfun"] = rfl.as_dict(lf)
         if args.lensfun_series and found:
