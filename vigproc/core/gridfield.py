@@ -32,6 +32,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from vigproc.core.fieldjson import check_field_dict, field_to_dict
 from vigproc.errors import InvalidImageError, ModelError
 
 SCHEMA = "vigproc.grid/1"
@@ -125,13 +126,9 @@ class GridField:
         return top * (1 - fy)[:, None, None] + bot * fy[:, None, None]
 
     def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"schema": SCHEMA, "width": self.width, "height": self.height,
-                             "channels": ["R", "G", "B"], "log_field": self.log_field.tolist()}
-        if self.sigma is not None:
-            d["sigma"] = self.sigma.tolist()
-        if self.source:
-            d["source"] = self.source
-        return d
+        return field_to_dict(SCHEMA, self.width, self.height,
+                             {"channels": ["R", "G", "B"], "log_field": self.log_field.tolist()},
+                             self.sigma, self.source)
 
     @classmethod
     def from_dict(cls, d: Any) -> GridField:
@@ -142,14 +139,8 @@ class GridField:
         ModelError
             Unknown schema, missing or malformed fields.
         """
-        if not isinstance(d, dict):
-            raise ModelError("a grid field must be a JSON object")
-        if d.get("schema") != SCHEMA:
-            raise ModelError(f"unknown grid field schema {d.get('schema')!r} (expected {SCHEMA!r})")
-        missing = [k for k in ("width", "height", "log_field") if k not in d]
-        if missing:
-            raise ModelError(f"grid field is missing {missing[0]!r}")
-        return cls(d["width"], d["height"], d["log_field"], d.get("sigma"), str(d.get("source", "")))
+        sigma, source = check_field_dict(d, "grid field", SCHEMA, ("width", "height", "log_field"))
+        return cls(d["width"], d["height"], d["log_field"], sigma, source)
 
 
 def fit_grid(log_values: np.ndarray, rx: np.ndarray, ry: np.ndarray, nx: int, ny: int, width: int, height: int,
