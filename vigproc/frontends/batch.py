@@ -406,9 +406,9 @@ class _Evidence:
         self.items: list[tuple[Any, ...]] = []
 
     def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
-              evidence: bytes | None = None, lens_key=None):
+              evidence: bytes | None = None, lens_key=None, grid=None):
         # the client pools under the fingerprint it journals (same content id)
-        self.items.append((key, model, evidence, lens_key))
+        self.items.append((key, model, evidence, lens_key, grid))
         return _Learned(key)
 
     def close(self) -> None:
@@ -472,8 +472,8 @@ class _ClientPooled:
         return self.snapshot.holds_frame(key, frame_id)  # pooled in this job: the client's learn() knows
 
     def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
-              evidence: bytes | None = None, lens_key=None):
-        self.items.append((key, model, evidence, lens_key))
+              evidence: bytes | None = None, lens_key=None, grid=None):
+        self.items.append((key, model, evidence, lens_key, grid))
         known = self.get(key)
         return _Pending(key, (known.n_frames if known is not None else 0) + 1,
                         bool(known is not None and known.trusted))
@@ -1025,9 +1025,10 @@ class _Run:
             self.learn_on_client(res)
         result = _journal_result(res.record or {}, res.worker)
         if self.steady is None and self.store is not None:  # learn: pool here, the one writer of the store
-            for key, model, evidence, lens_key in res.evidence:
+            for key, model, evidence, lens_key, *grid in res.evidence:
                 # keyed by content: a frame pooled before a crash, then redone, is not pooled twice
-                p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key)
+                p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key,
+                                     grid=grid[0] if grid else None)
                 s.profiles[str(p.key)] = {"n_frames": p.n_frames, "trusted": p.trusted,
                                           "field_sigma_ev": p.field_sigma_ev}
         learned = (res.record or {}).get("learned") or {}
@@ -1056,10 +1057,11 @@ class _Run:
         fid = res.fingerprint.sha256
         applied, latest = dict(self.handout.applied), dict(self.handout.latest)
         learned = None
-        for key, model, evidence, lens_key in res.evidence:
+        for key, model, evidence, lens_key, *grid in res.evidence:
             try:
                 known = self.store.holds_frame(key, fid)
-                p = self.store.learn(key, model, frame_id=fid, evidence=evidence, lens_key=lens_key)
+                p = self.store.learn(key, model, frame_id=fid, evidence=evidence, lens_key=lens_key,
+                                     grid=grid[0] if grid else None)
             except ProfileStoreError as exc:
                 if getattr(exc, "transient", False) or getattr(exc, "sqlite_errorcode", None) is not None:
                     raise  # the store itself: the job stops, the frame is not journaled and is redone

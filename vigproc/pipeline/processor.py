@@ -376,7 +376,15 @@ class Processor:
         key_for = getattr(self.store, "key_for", None)
         key = key_for(lens_key, w, h) if key_for is not None else ProfileKey.from_lens(lens_key, w, h)
         fit, evidence = self._pool_fit(img, checked=True, estimated=estimated)
-        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key)
+        grid = None
+        if self.settings.method == "flat-field":  # a flat frame measures its field: the profile keeps it
+            from vigproc.pipeline.flat_grid import frame_grid
+
+            if estimated is not None:
+                log.info("a RAW flat frame measured on its CFA planes keeps no grid field")
+            else:
+                grid = frame_grid(img.linear() if hasattr(img, "linear") else img, fit)
+        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key, grid=grid)
         return fit, "estimate", str(p.key)
 
     def _pool_fit(self, img, *, checked: bool, estimated=None):
