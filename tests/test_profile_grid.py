@@ -231,3 +231,36 @@ def test_grid_model_writes_per_plane_gain_maps_that_read_back():
         for c in range(3):
             got = -cal.log_gain(W, H, c)
             assert np.abs(got - want[..., c]).max() / math.log(2) < 0.005
+
+
+def test_dng_output_of_a_grid_profile_reads_back(tmp_path):
+    """What ``correct --output-format dng`` writes for a profile with a grid
+    (:func:`write_dng_correction` of the profile's model): per-phase GainMaps in
+    OpcodeList2 that vigproc's DNG reader gives back as the grid, each colour its plane."""
+    import shutil
+
+    from test_colour_dng import CFA_DNG
+
+    if not CFA_DNG.exists():
+        pytest.skip(f"{CFA_DNG} is absent (the shared data set)")
+    from vigproc.io.dng_vignette import read_embedded, write_dng_correction
+    from vigproc.io.metadata import exiftool_path
+
+    try:
+        exiftool_path()
+    except Exception as exc:  # noqa: BLE001 - any reason exiftool cannot run
+        pytest.skip(f"exiftool unavailable: {exc}")
+    w, h = 1734, 1156  # the frame rawpy develops
+    grid = GridField(w, h, lens_field(w // 10, h // 10)[::4, ::4], None, "flat-field:grid")
+    src = tmp_path / "in.dng"
+    shutil.copyfile(CFA_DNG, src)
+    before = src.read_bytes()
+    info = write_dng_correction(src, tmp_path / "out.dng", GridFieldModel(w, h, grid=grid))
+    assert src.read_bytes() == before
+    assert info["list"] == "OpcodeList2" and info["opcode"]["maps"] == 4
+    cal = read_embedded(tmp_path / "out.dng")
+    rel = ((np.arange(h // 8) + 0.5) / (h // 8), (np.arange(w // 8) + 0.5) / (w // 8))
+    want = grid.log_fields_rel(*rel)
+    for c in range(3):
+        got = -cal.log_gain(w, h, c, rel=rel)
+        assert np.abs(got - want[..., c]).max() / math.log(2) < 0.005
