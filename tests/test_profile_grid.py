@@ -264,3 +264,17 @@ def test_dng_output_of_a_grid_profile_reads_back(tmp_path):
     for c in range(3):
         got = -cal.log_gain(w, h, c, rel=rel)
         assert np.abs(got - want[..., c]).max() / math.log(2) < 0.005
+
+
+def test_grey_flat_frames_give_a_grid_of_one_field(tmp_path):
+    db = tmp_path / "grey.sqlite"
+    learn(db, [f[..., 1].copy() for f in flat_frames(seed=4)])
+    with ProfileStore(db) as st:
+        (p,) = st.list()
+    g = p.grid.field(W, H)
+    np.testing.assert_array_equal(g.log_field[..., 0], g.log_field[..., 2])
+    scene = np.full((H, W), 0.3)
+    vig = (scene * np.exp(lens_field()[..., 1])).astype(np.float32)
+    out = p.model(W, H).correct_image(vig, channel_axis=None)
+    assert out.shape == (H, W)
+    assert residual_ev(np.repeat(out[..., None], 3, 2), scene[..., None]).max() < 0.003

@@ -54,7 +54,8 @@ def frame_grid(img: np.ndarray, model: VignettingModel, *, source: str = "flat-f
     Parameters
     ----------
     img : ndarray
-        H×W×C linear flat frame (C ≥ 3; channels last).
+        H×W or H×W×C linear flat frame (channels last; a grey frame's grid has its one
+        field in every channel).
     model : VignettingModel
         Its flat-field estimate (any resolution of the frame): the optical centre is the
         colour field's where it has one, else the luminance model's.
@@ -62,13 +63,16 @@ def frame_grid(img: np.ndarray, model: VignettingModel, *, source: str = "flat-f
     Returns
     -------
     GridField or None
-        None for a grey frame (fewer than 3 channels) or one too small for a grid
-        (logged).
+        None for a frame too small for a grid (logged).
     """
     a = np.asarray(img)
-    if a.ndim != 3 or a.shape[2] < 3:
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] < 1:
         return None
     h, w = a.shape[:2]
+    if a.shape[2] < 3:  # a grey frame (or grey and alpha): one field, the same in every channel
+        a = np.broadcast_to(a[..., :1], (h, w, 3))
     k = max(1, math.ceil(max(h, w) / WORK_SIDE))
     small = _binned(a, k) if k > 1 else np.asarray(a[..., :3], dtype=np.float64)
     sh, sw = small.shape[:2]
