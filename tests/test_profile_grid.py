@@ -278,3 +278,30 @@ def test_grey_flat_frames_give_a_grid_of_one_field(tmp_path):
     out = p.model(W, H).correct_image(vig, channel_axis=None)
     assert out.shape == (H, W)
     assert residual_ev(np.repeat(out[..., None], 3, 2), scene[..., None]).max() < 0.003
+
+
+def test_correct_command_applies_a_grid_profile_file(learned, tmp_path):
+    """``vigproc correct --profile FILE`` with a ``/4`` file: the output is the frame divided
+    by the grid (the model's correct_image), not by the Kang-Weiss fit; the input untouched."""
+    from conftest import run_cli
+
+    from vigproc.io.image_write import write_image
+    from vigproc.io.images import read_image
+
+    with ProfileStore(learned) as st:
+        (p,) = st.list()
+    f = tmp_path / "lens.json"
+    export_profile(p, f)
+    scene = np.full((H, W, 3), 0.3)
+    vig = (scene * np.exp(lens_field())).astype(np.float32)
+    src = tmp_path / "in.tif"
+    write_image(src, vig, bit_depth="float")
+    before = src.read_bytes()
+    r = run_cli("correct", src, "--profile", f, "--output-format", "tiff-float", "-o", tmp_path / "out")
+    assert r.returncode == 0, r.stderr
+    assert src.read_bytes() == before
+    (out_path,) = (tmp_path / "out").glob("in*.tif")
+    out = read_image(out_path)[0]
+    want = p.model(W, H).correct_image(read_image(src)[0])
+    np.testing.assert_allclose(out, want, rtol=1e-6, atol=1e-7)
+    assert residual_ev(out, scene).max() < 0.003
