@@ -305,3 +305,28 @@ def test_correct_command_applies_a_grid_profile_file(learned, tmp_path):
     want = p.model(W, H).correct_image(read_image(src)[0])
     np.testing.assert_allclose(out, want, rtol=1e-6, atol=1e-7)
     assert residual_ev(out, scene).max() < 0.003
+
+
+def test_profiles_between_focal_lengths_interpolate_their_grids_and_lensfun_says_so(learned):
+    from dataclasses import replace
+
+    from vigproc.stores import lensfun_io
+    from vigproc.stores.profiles import focal_bin, interpolate_profiles
+
+    with ProfileStore(learned) as st:
+        (p,) = st.list()
+    wide = replace(p, key=replace(p.key, focal_bin=focal_bin(20.0)))
+    other = GridPool.of(GridField(W, H, 0.5 * p.grid.field(W, H).log_field, np.full(p.grid.info.shape, 0.001)))
+    tele = replace(p, key=replace(p.key, focal_bin=focal_bin(28.0)), grid=other)
+    mid = interpolate_profiles([wide, tele], replace(p.key, focal_bin=focal_bin(24.0)), 23.5, 2.8)
+    assert mid is not None and mid.grid is not None
+    t = (math.log2(23.5) - math.log2(float(wide.key.focal_bin[2:-2]))) / \
+        (math.log2(float(tele.key.focal_bin[2:-2])) - math.log2(float(wide.key.focal_bin[2:-2])))
+    assert 0 < t < 1
+    want = (1 - t) * p.grid.field(W, H).log_field + t * other.field(W, H).log_field
+    np.testing.assert_allclose(mid.grid.field(W, H).log_field, want, atol=1e-9)
+    assert isinstance(mid.model(W, H), GridFieldModel)
+    # one bin without a grid: the interpolated profile has none
+    assert interpolate_profiles([wide, replace(tele, grid=None)], mid.key, 23.5, 2.8).grid is None
+    notes = lensfun_io.colour_notes([p])
+    assert len(notes) == 1 and "grid field" in notes[0] and "cannot be expressed" in notes[0]
