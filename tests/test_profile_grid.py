@@ -330,3 +330,34 @@ def test_profiles_between_focal_lengths_interpolate_their_grids_and_lensfun_says
     assert interpolate_profiles([wide, replace(tele, grid=None)], mid.key, 23.5, 2.8).grid is None
     notes = lensfun_io.colour_notes([p])
     assert len(notes) == 1 and "grid field" in notes[0] and "cannot be expressed" in notes[0]
+
+
+def test_batch_learn_carries_each_flat_frames_grid_to_the_store(tmp_path):
+    """``vigproc batch --mode learn --method flat-field``: workers measure each frame's grid
+    and the client pools it (the workers never write the store)."""
+    import shutil
+    import subprocess
+
+    from vigproc.frontends import backends as BK
+    from vigproc.frontends import batch as B
+    from vigproc.io.image_write import write_image
+
+    et = shutil.which("exiftool")
+    if et is None:
+        pytest.skip("exiftool is needed to give the frames a lens")
+    root = tmp_path / "flats"
+    root.mkdir()
+    for i, f in enumerate(flat_frames(seed=7)):
+        write_image(root / f"flat{i}.tif", f, bit_depth="float")
+    subprocess.run([et, "-q", "-overwrite_original", "-Make=Cam", "-Model=X1", "-LensModel=Wide 24mm",
+                    "-FocalLength=24", "-FNumber=2.8", *map(str, sorted(root.glob("*.tif")))], check=True)
+    items, _ = B.collect(root, tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    spec = B.JobSpec(settings=Settings(mode="learn", method="flat-field"), outdir=str(out))
+    with ProfileStore(tmp_path / "p.sqlite") as store:
+        s = B.run_batch(items, spec, BK.local_backend(1), journal_path=out / B.JOURNAL_NAME, job="t",
+                        progress=False, store=store)
+        assert s.processed == 3
+        (p,) = store.list()
+    assert p.n_frames == 3 and p.grid is not None and p.grid.n == 3

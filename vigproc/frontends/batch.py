@@ -408,7 +408,8 @@ class _Evidence:
     def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
               evidence: bytes | None = None, lens_key=None, grid=None):
         # the client pools under the fingerprint it journals (same content id)
-        self.items.append((key, model, evidence, lens_key, grid))
+        # a flat frame's grid field rides along only when there is one (the 4-tuple stays)
+        self.items.append((key, model, evidence, lens_key) + ((grid,) if grid is not None else ()))
         return _Learned(key)
 
     def close(self) -> None:
@@ -473,7 +474,7 @@ class _ClientPooled:
 
     def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
               evidence: bytes | None = None, lens_key=None, grid=None):
-        self.items.append((key, model, evidence, lens_key, grid))
+        self.items.append((key, model, evidence, lens_key) + ((grid,) if grid is not None else ()))
         known = self.get(key)
         return _Pending(key, (known.n_frames if known is not None else 0) + 1,
                         bool(known is not None and known.trusted))
