@@ -297,8 +297,10 @@ def test_correct_command_applies_a_grid_profile_file(learned, tmp_path):
     src = tmp_path / "in.tif"
     write_image(src, vig, bit_depth="float")
     before = src.read_bytes()
-    r = run_cli("correct", src, "--profile", f, "--output-format", "tiff-float", "-o", tmp_path / "out")
+    r = run_cli("correct", src, "--profile", f, "--output-format", "tiff-float", "-o", tmp_path / "out", "--json")
     assert r.returncode == 0, r.stderr
+    (doc,) = json.loads(r.stdout)["results"]
+    assert doc["grid_field"] == {"nodes": [33, 22], "source": "flat-field:grid"}  # the record says what divided
     assert src.read_bytes() == before
     (out_path,) = (tmp_path / "out").glob("in*.tif")
     out = read_image(out_path)[0]

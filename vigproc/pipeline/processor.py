@@ -353,6 +353,8 @@ class Processor:
                     _note_clipping(img, out, where, fmt, source_white=source_white)
                 res.applied = m.candidate is None and s.strength > 0
                 res.strength = s.strength
+                if res.applied and getattr(m, "grid", None) is not None:  # the record's θ is not what divided
+                    res.extra["grid_field"] = {"nodes": list(m.grid.nodes), "source": m.grid.source}
                 if used is not None and res.applied:  # which revision corrected it: one per series
                     res.extra["profile_applied"] = {"profile": str(used.key), "frames": used.n_frames,
                                                     "updated": used.updated}
