@@ -9,8 +9,8 @@ frames' grids node by node (:mod:`vigproc.stores.profile_grid`) and corrects by 
 The frame is first averaged down to at most :data:`WORK_SIDE` px on its long side (in
 bands of rows: one float64 copy of a camera frame would be half a gigabyte); the grid
 averages blocks of about 1/64 of the long side anyway, so nothing it uses is lost.
-A RAW's flat frame, measured on its CFA planes, keeps no grid yet (the planes' grid is
-not the developed frame's: logged).
+A RAW's flat frame is measured on its CFA planes (:func:`vigproc.pipeline.cfa_flat.cfa_flat_field`
+with ``with_grid``), its grid in relative coordinates like the developed frame's.
 
 References
 ----------

@@ -286,7 +286,7 @@ class Processor:
         if raw_path is not None and s.method == "flat-field" and s.mode in ("correct", "estimate", "learn"):
             from vigproc.pipeline.cfa_flat import cfa_flat_field
 
-            estimated = cfa_flat_field(raw_path, checked.shape[1], checked.shape[0])
+            estimated = cfa_flat_field(raw_path, checked.shape[1], checked.shape[0], with_grid=s.mode == "learn")
         if s.mode == "check":
             from vigproc.forensics.check import forensic_check  # noqa: PLC0415 - only check mode needs it
 
@@ -382,8 +382,8 @@ class Processor:
         if self.settings.method == "flat-field":  # a flat frame measures its field: the profile keeps it
             from vigproc.pipeline.flat_grid import frame_grid
 
-            if estimated is not None:
-                log.info("a RAW flat frame measured on its CFA planes keeps no grid field")
+            if estimated is not None:  # a RAW's: measured on its CFA planes
+                grid = getattr(estimated, "grid", None)
             else:
                 grid = frame_grid(img.linear() if hasattr(img, "linear") else img, fit)
         p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key, grid=grid)
