@@ -386,3 +386,21 @@ def test_raw_flat_frames_keep_their_cfa_planes_grid(tmp_path):
     d = (m.grid.log_fields(C.W, C.H) - C.plane_log_fields()) / math.log(2)
     d -= d.mean(axis=(0, 1))
     assert np.sqrt(np.mean(d * d, axis=(0, 1))).max() < 0.002  # 0.0004-0.0008 EV measured
+
+
+def test_grid_model_checks_its_input_and_without_a_grid_is_the_plain_model():
+    from vigproc.core.correct import correct
+    from vigproc.errors import InvalidImageError
+
+    plain = GridFieldModel(W, H, p=(1 / 250**2, 0.0, 1 / 250**2))
+    img = np.full((H, W, 3), 0.5, np.float32)
+    np.testing.assert_array_equal(plain.correct_image(img), correct(img, plain))
+    m = GridFieldModel(W, H, grid=GridField(W, H, lens_field()[::10, ::10]))
+    for bad in (np.full((H, W, 3), "x"), np.full((H, W, 3), np.nan, np.float32)):
+        with pytest.raises(InvalidImageError):
+            m.correct_image(bad)
+    with pytest.raises(Exception, match="strength"):
+        m.correct_image(img, strength=5.0)
+    # channels first, as the API allows: the same pixels
+    np.testing.assert_array_equal(np.moveaxis(m.correct_image(np.moveaxis(img, -1, 0), channel_axis=0), 0, -1),
+                                  m.correct_image(img))

@@ -340,19 +340,19 @@ class GridFieldModel(VignettingModel):
         layout); a grey frame (or fewer than 3 channels) by the luminance of the
         channels' fields (Rec. 709 weights, in log); channels after the third (alpha) too.
 
+        Without a grid: :func:`vigproc.core.correct.correct` of the Kang-Weiss model.
+
         Raises
         ------
         InvalidImageError
             Bad strength or layout, or the result is not finite.
-        ModelError
-            The model carries no grid.
         """
         from vigproc.core.colour import LUMA
-        from vigproc.core.correct import _check_clip, _check_strength  # its Numba kernels: only when used
+        from vigproc.core.correct import _check_clip, _check_strength, correct  # Numba kernels: only when used
         from vigproc.core.pixels import as_channels_last
 
         if self.grid is None:
-            raise ModelError("this grid-field model carries no grid")
+            return correct(img, self, channel_axis=channel_axis, strength=strength, clip=clip)
         s = _check_strength(strength)
         c = _check_clip(clip)
         a = np.asarray(img)
