@@ -37,10 +37,12 @@ and colour) is then
   correction and uncorrected; and the same with the corner's luminance equalised to
   the centre's (the tint alone).
 
-The same frames also give a **grid field** (:func:`vigproc.core.gridfield.flat_grid`: each
-frame's gradient removed about its optical centre, the log blocks averaged and fitted by a
-33-node bilinear grid per channel), compared and applied the same way: what a flat-field
-profile holding the measured field, not a Kang-Weiss fit of it, would give.
+The profile also holds the frames' **grid field** (:mod:`vigproc.pipeline.flat_grid`: each
+frame's gradient removed about its optical centre, its log blocks fitted by a 33-node
+bilinear grid per channel; pooled node by node in the store, :mod:`vigproc.stores.profile_grid`),
+compared the same way and applied as the profile's model corrects
+(:meth:`vigproc.core.gridfield.GridFieldModel.correct_image`); the Kang-Weiss columns apply
+the same profile's θ and colour field (:func:`vigproc.core.correct.correct`).
 
 DNG part: vigproc's correction by the GainMap (:class:`vigproc.io.dng_vignette.GainFieldModel`)
 against an independent implementation of the DNG specification's interpolation
@@ -145,9 +147,12 @@ def flat_frames(lens: ColourLens, n: int, rng: np.random.Generator) -> list[np.n
 
 def learn_profile(frames: Sequence[np.ndarray]) -> tuple[VignettingModel, list[tuple[float, float]]]:
     """The flat frames' profile model, as ``vigproc profile learn --method flat-field``
-    pools them (a temporary store), and each frame's optical centre as its estimate
-    placed it (its tint's centre, else its fall-off's)."""
+    pools them (a temporary store: θ, colour field and each frame's grid field,
+    :func:`vigproc.pipeline.flat_grid.frame_grid`), and each frame's optical centre as its
+    estimate placed it (its tint's centre, else its fall-off's). The model is a
+    :class:`vigproc.core.gridfield.GridFieldModel`: its ``grid`` is the store's pooled grid."""
     from vigproc.core.estimate import estimate
+    from vigproc.pipeline.flat_grid import frame_grid
     from vigproc.stores.profiles import ProfileKey, ProfileStore, aspect_label
 
     h, w = frames[0].shape[:2]
@@ -159,7 +164,7 @@ def learn_profile(frames: Sequence[np.ndarray]) -> tuple[VignettingModel, list[t
         for i, f in enumerate(frames):
             m = estimate(f, "flat-field")
             fit = m if m.candidate is None else replace(m.candidate, colour=m.colour)
-            p = st.learn(key, fit, frame_id=f"shot{i}")
+            p = st.learn(key, fit, frame_id=f"shot{i}", grid=frame_grid(f, fit))
             centres.append(m.colour.center if m.colour is not None else fit.center)
         return p.model(w, h), centres
 
@@ -207,7 +212,7 @@ class FlatRow:
     de_corrected: tuple[float, float]
     colour_found: bool
     sigma_ev: float = math.nan
-    grid_ev: list[float] = field(default_factory=list)  # the grid field's error (flat_grid), EV per channel
+    grid_ev: list[float] = field(default_factory=list)  # the profile's pooled grid field's error, EV per channel
     grid_bases_ev: list[float] = field(default_factory=list)
     de_grid: tuple[float, float] = (math.nan, math.nan)
     extra: dict = field(default_factory=dict)
@@ -217,7 +222,6 @@ def run_flat(lenses: Sequence[ColourLens], bases: Sequence[np.ndarray], frames: 
              seed: int = 0) -> list[FlatRow]:
     """The flat part of the protocol (module docstring) for each of ``lenses``."""
     from vigproc.core.correct import correct
-    from vigproc.core.gridfield import correct_with_grid, flat_grid
 
     rng = np.random.default_rng(seed)
     rows = []
@@ -225,9 +229,8 @@ def run_flat(lenses: Sequence[ColourLens], bases: Sequence[np.ndarray], frames: 
         h, w = lens.log_fields.shape[:2]
         shots = flat_frames(lens, frames, rng)
         m, centres = learn_profile(shots)
-        grid = flat_grid(shots, centres)
-        est_grid = grid.log_fields(w, h)
-        est = m.channel_log_fields((h, w))
+        est_grid = m.grid.log_fields(w, h)  # the profile's pooled grid, as its correct_image divides
+        est = m.channel_log_fields((h, w))  # its Kang-Weiss θ and colour field (correct() applies these)
         lum_only = VignettingModel(m.width, m.height, m.center, m.p, m.alpha)
         est_lum = lum_only.channel_log_fields((h, w))
         truth = lens.log_fields
@@ -242,7 +245,7 @@ def run_flat(lenses: Sequence[ColourLens], bases: Sequence[np.ndarray], frames: 
         for b in bases:
             vig = b * np.exp(truth)
             bases_err.append(base_ev(correct(vig, m), b))
-            grid_err.append(base_ev(correct_with_grid(vig, grid), b))
+            grid_err.append(base_ev(m.correct_image(vig), b))
         rows.append(FlatRow(
             name=lens.name, note=lens.note,
             truth_ev=channel_ev(truth).tolist(),

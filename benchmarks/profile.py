@@ -402,6 +402,7 @@ class FlatFieldRow:
     uncorrected_ev: float
     sigma_ev: float
     trusted: bool
+    grid_error_ev: float = math.nan  # the same for the profile's grid field (flat-field: what it corrects by)
 
 
 def run_flat_field(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], methods: Sequence[str] = ("flat-field",
@@ -421,6 +422,7 @@ def run_flat_field(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], methods:
 
     from benchmarks.real import _blocks
     from vigproc.core.estimate import EVIDENCE_METHODS, estimate, estimate_with_evidence
+    from vigproc.pipeline.flat_grid import frame_grid
     from vigproc.stores.profiles import ProfileKey, ProfileStore, aspect_label
 
     rng = np.random.default_rng(seed)
@@ -447,10 +449,19 @@ def run_flat_field(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], methods:
                     else:
                         m, evidence = estimate(shot, method, channel_axis=None), None
                     fit = m.candidate if m.candidate is not None else m
-                    p = st.learn(key, fit, frame_id=f"shot{i}", evidence=evidence)
-                est = np.log2(np.maximum(_blocks(p.model(w, h).field((h, w))), 1e-12))
+                    # as learn mode does: a flat-field frame's grid field goes with it
+                    grid = frame_grid(shot, fit) if method == "flat-field" else None
+                    p = st.learn(key, fit, frame_id=f"shot{i}", evidence=evidence, grid=grid)
+                model = p.model(w, h)
+                est = np.log2(np.maximum(_blocks(model.field((h, w))), 1e-12))
+                grid_err = math.nan
+                if getattr(model, "grid", None) is not None:  # the field the profile corrects by
+                    g = _blocks(np.exp(model.grid.log_fields(w, h)[..., 1]))
+                    dg = np.log2(np.maximum(g, 1e-12))[ok] - true[ok]
+                    grid_err = float(np.sqrt(np.mean((dg - dg.mean()) ** 2)))
             d = est[ok] - true[ok]
             t = true[ok] - true[ok].mean()
             out.append(FlatFieldRow(name, method, float(np.sqrt(np.mean((d - d.mean()) ** 2))),
-                                    float(np.sqrt(np.mean(t * t))), float(p.field_sigma_ev or math.nan), p.trusted))
+                                    float(np.sqrt(np.mean(t * t))), float(p.field_sigma_ev or math.nan), p.trusted,
+                                    grid_err))
     return out

@@ -6,13 +6,15 @@ OpcodeList2 GainMaps only when they span its whole raw image, margins included; 
 specification puts them on the active area; with no margins the two agree) gets two
 corrections written by :func:`vigproc.io.dng_vignette.write_dng_correction`: ``lum``, a
 fall-off with the same gain in every CFA phase, and ``col``, the same with a colour field
-(R falls faster, B slower: four per-phase maps of different gains). Each is exported
+(R falls faster, B slower: four per-phase maps of different gains), and ``grid``, a
+profile's measured grid field (:class:`vigproc.core.gridfield.GridFieldModel`: a lopsided
+per-channel field no radial model holds, 33×22 nodes). Each is exported
 headless with ``darktable-cli`` (workflow "none", linear Rec.709 float TIFF), as is the
 file without opcodes; what darktable applied is the ratio of the two exports, in 16×16 px
 blocks where both are exposed (0.01..0.9) and unclipped.
 
 * ``lum``: the exports' ratio per channel against the written gain (EV).
-* ``col``: darktable's output is a linear mix of camera RGB (its camera matrix, white
+* ``col`` and ``grid``: darktable's output is a linear mix of camera RGB (its camera matrix, white
   balance), so the per-plane gains are compared in camera space: N = M⁻¹ is the 3×3 that
   makes each row's ratio n_i·B / n_i·A equal gain g_i (the null vector of the stacked
   B − g_i·A over all blocks: six unknowns against thousands of blocks); the figure is the
@@ -61,6 +63,7 @@ def main() -> int:
         print("skipped: darktable-cli, exiftool or the test DNG is missing")
         return 0
     from vigproc.core.colour import ColourField
+    from vigproc.core.gridfield import GridField, GridFieldModel
     from vigproc.core.model import VignettingModel
     from vigproc.io.dng_vignette import write_dng_correction
 
@@ -75,17 +78,24 @@ def main() -> int:
                           colour=ColourField(W, H, (0, 0), [[1e-4, 0, 0], [0, 0, 0], [0, 0, 0]]))
     col = VignettingModel(W, H, center=(60, -30), p=(1 / 1100**2, 0, 1 / 1100**2), method="flat-field",
                           colour=ColourField(W, H, (0, 0), [[0.3, 0, 0], [0, 0, 0], [-0.3, 0, 0]]))
+    # a lopsided fall-off, stronger to the left and the bottom, R faster and B slower
+    ny, nx = 22, 33
+    x, y = np.meshgrid(np.linspace(-0.5, 0.5, nx), np.linspace(-0.5, 0.5, ny))
+    base = -1.2 * (x * x + y * y) - 0.6 * np.maximum(-x, 0) ** 2 - 0.4 * np.maximum(y, 0) ** 2
+    grid = GridFieldModel(W, H, method="flat-field",
+                          grid=GridField(W, H, np.stack([1.3 * base, base, 0.7 * base], axis=-1)))
     cfg = work / "cfg"
     a = export(dt, full, work / "full.tif", cfg)
     out = {}
-    for name, m in (("lum", lum), ("col", col)):
+    for name, m in (("lum", lum), ("col", col), ("grid", grid)):
         write_dng_correction(full, work / f"{name}.dng", m)
         b = export(dt, work / f"{name}.dng", work / f"{name}.tif", cfg)
         A, B = blocks(a), blocks(b)
-        G = np.exp(blocks(-m.channel_log_fields((H, W))))
+        lf = m.grid.log_fields(W, H) if name == "grid" else m.channel_log_fields((H, W))
+        G = np.exp(blocks(-lf))
         ok = np.all((A > 0.01) & (A < 0.9) & (B > 0.01) & (B < 0.95), axis=2)
         A, B, G = A[ok], B[ok], G[ok]
-        if name == "col":
+        if name in ("col", "grid"):
             rows = []
             for i in range(3):
                 x = (B - G[:, i:i + 1] * A) / np.linalg.norm(A, axis=1, keepdims=True)

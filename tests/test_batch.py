@@ -254,7 +254,7 @@ def test_learn_pools_exactly_once_across_a_crash(archive, tmp_path):
     settings = Settings(mode="learn")
     res = B.run_task(B.Task(items[0].path, items[0].rel), B.JobSpec(settings=settings, outdir=str(out)))
     assert res.status == "done" and len(res.evidence) == 1
-    key, model, evidence, _ = res.evidence[0]
+    key, model, evidence, _, extra = res.evidence[0]
     assert evidence is not None  # the default method ships the frame's data for the joint refit
     with ProfileStore(tmp_path / "p.sqlite") as store, Journal(jpath, job="test") as j:
         assert j.claim(items[0].path, res.fingerprint, worker="crashed")

@@ -23,7 +23,7 @@ PROFILE_CLEAN_TABLE = Table((("method", "<24"), ("frames", ">7"), ("lenses", ">8
 PROFILE_INTERP_TABLE = Table((("method", "<24"), ("between", "<10"), ("points", ">7"), ("median EV", ">11.4f"),
                               ("p90 EV", ">9.4f"), ("<=1sd", ">7.2f"), ("<=2sd", ">7.2f")))
 PROFILE_FLAT_TABLE = Table((("frame", "<20"), ("method", "<12"), ("error EV", ">9.3f"), ("uncorr", ">8.3f"),
-                            ("sigma", ">7.3f"), ("trusted", ">9")))
+                            ("sigma", ">7.3f"), ("trusted", ">9"), ("grid EV", ">9.3f")))
 
 
 def profile_arguments(bp: argparse.ArgumentParser) -> None:
@@ -174,8 +174,8 @@ def cmd_bench_profile_flat(args: argparse.Namespace) -> int:
     rows = B.run_flat_field([f for f in frames if f[0].shape == f[1].shape], args.methods)
     print(f"flat-field profiles: {len(pairs)} white pairs under {args.images}, 3 unevenly lit shots of each "
           f"learned into a store (input transfer {args.input_transfer}); error = RMS of log2(profile/true field) "
-          "about its mean (EV)")
+          "about its mean (EV); grid: the same for the profile's grid field, which it corrects by (flat-field)")
     PROFILE_FLAT_TABLE.print_rows((r.name, r.method, r.error_ev, r.uncorrected_ev, r.sigma_ev,
-                                   "yes" if r.trusted else "no") for r in rows)
+                                   "yes" if r.trusted else "no", r.grid_error_ev) for r in rows)
     write_json_result(args.json, [asdict(r) for r in rows])
     return 0

@@ -46,6 +46,7 @@ import logging
 
 import numpy as np
 
+from vigproc.core.fieldjson import check_field_dict, field_to_dict
 from vigproc.errors import ModelError
 
 logger = logging.getLogger(__name__)
@@ -211,35 +212,25 @@ class ColourField:
 
     # ---------------------------------------------------------- serialising
     def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"schema": SCHEMA, "width": self.width, "height": self.height,
-                             "center": list(self.center), "powers": list(POWERS),
-                             "channels": list(CHANNELS), "coeffs": self.coeffs.tolist()}
-        if self.sigma is not None:
-            d["sigma"] = self.sigma.tolist()
-        if self.source:
-            d["source"] = self.source
-        return d
+        return field_to_dict(SCHEMA, self.width, self.height,
+                             {"center": list(self.center), "powers": list(POWERS), "channels": list(CHANNELS),
+                              "coeffs": self.coeffs.tolist()}, self.sigma, self.source)
 
     @classmethod
     def from_dict(cls, d: Any) -> ColourField:
-        """The field of a :meth:`to_dict` mapping.
+        """The field of a :meth:`to_dict` mapping (one without ``schema`` is read as
+        ``vigproc.colour/1``).
 
         Raises
         ------
         ModelError
             Unknown schema, missing or malformed fields.
         """
-        if not isinstance(d, dict):
-            raise ModelError("a colour field must be a JSON object")
-        if d.get("schema", SCHEMA) != SCHEMA:
-            raise ModelError(f"unknown colour field schema {d.get('schema')!r} (expected {SCHEMA!r})")
+        sigma, source = check_field_dict(d, "colour field", SCHEMA, ("width", "height", "coeffs"),
+                                         schema_optional=True)
         if d.get("powers", list(POWERS)) != list(POWERS) or d.get("channels", list(CHANNELS)) != list(CHANNELS):
             raise ModelError(f"colour field must have powers {list(POWERS)} and channels {list(CHANNELS)}")
-        missing = [k for k in ("width", "height", "coeffs") if k not in d]
-        if missing:
-            raise ModelError(f"colour field is missing {missing[0]!r}")
-        return cls(d["width"], d["height"], tuple(d.get("center", (0.0, 0.0))), d["coeffs"], d.get("sigma"),
-                   str(d.get("source", "")))
+        return cls(d["width"], d["height"], tuple(d.get("center", (0.0, 0.0))), d["coeffs"], sigma, source)
 
 
 # --------------------------------------------------------------------------- #

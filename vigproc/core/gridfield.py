@@ -27,11 +27,13 @@ gradient distribution symmetries", IEEE TPAMI 35(6), 2013 (flat-field calibratio
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 
+from vigproc.core.fieldjson import check_field_dict, field_to_dict
+from vigproc.core.model import VignettingModel
 from vigproc.errors import InvalidImageError, ModelError
 
 SCHEMA = "vigproc.grid/1"
@@ -56,6 +58,29 @@ def _hat(t: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     u = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0) * (n - 1)
     i0 = np.minimum(np.floor(u).astype(int), n - 2) if n > 1 else np.zeros(u.shape, int)
     return i0, np.minimum(i0 + 1, n - 1), u - i0
+
+
+def bilinear(nodes: np.ndarray, rv: np.ndarray, rh: np.ndarray) -> np.ndarray:
+    """Values on ny×nx×C nodes spanning the frame (0 and 1 at its edges) at relative
+    positions: rows ``rv`` down, columns ``rh`` across; len(rv)×len(rh)×C.
+
+    Parameters
+    ----------
+    nodes : ndarray (ny, nx, C)
+    rv, rh : ndarray
+        Relative positions, clamped to 0..1.
+
+    Returns
+    -------
+    ndarray
+    """
+    g = np.asarray(nodes, dtype=np.float64)
+    ny, nx = g.shape[:2]
+    j0, j1, fy = _hat(np.asarray(rv, dtype=np.float64), ny)
+    i0, i1, fx = _hat(np.asarray(rh, dtype=np.float64), nx)
+    top = g[j0][:, i0] * (1 - fx)[None, :, None] + g[j0][:, i1] * fx[None, :, None]
+    bot = g[j1][:, i0] * (1 - fx)[None, :, None] + g[j1][:, i1] * fx[None, :, None]
+    return top * (1 - fy)[:, None, None] + bot * fy[:, None, None]
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,23 +140,25 @@ class GridField:
         w = self.width if width is None else int(width)
         h = self.height if height is None else int(height)
         rv = (np.arange(h) + 0.5) / h if rows is None else (np.asarray(rows) + 0.5) / h
-        rh = (np.arange(w) + 0.5) / w
-        ny, nx = self.log_field.shape[:2]
-        j0, j1, fy = _hat(rv, ny)
-        i0, i1, fx = _hat(rh, nx)
-        g = self.log_field
-        top = g[j0][:, i0] * (1 - fx)[None, :, None] + g[j0][:, i1] * fx[None, :, None]
-        bot = g[j1][:, i0] * (1 - fx)[None, :, None] + g[j1][:, i1] * fx[None, :, None]
-        return top * (1 - fy)[:, None, None] + bot * fy[:, None, None]
+        return self.log_fields_rel(rv, (np.arange(w) + 0.5) / w)
+
+    def log_fields_rel(self, rv: np.ndarray, rh: np.ndarray) -> np.ndarray:
+        """ln φ_c at relative frame positions: rows ``rv`` down, columns ``rh`` across
+        (0 and 1 at the frame's edges), len(rv)×len(rh)×3, bilinear as a DNG GainMap."""
+        return bilinear(self.log_field, rv, rh)
+
+    def centred(self, center: tuple[float, float]) -> GridField:
+        """The same field with every channel 0 at ``center`` (px from the frame centre):
+        a correction by it leaves that point as it is, as a Kang-Weiss model with a colour
+        field leaves its optical centre (a per-channel constant is white balance)."""
+        at = self.log_fields_rel(np.array([center[1] / self.height + 0.5]),
+                                 np.array([center[0] / self.width + 0.5]))[0, 0]
+        return GridField(self.width, self.height, self.log_field - at, self.sigma, self.source)
 
     def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"schema": SCHEMA, "width": self.width, "height": self.height,
-                             "channels": ["R", "G", "B"], "log_field": self.log_field.tolist()}
-        if self.sigma is not None:
-            d["sigma"] = self.sigma.tolist()
-        if self.source:
-            d["source"] = self.source
-        return d
+        return field_to_dict(SCHEMA, self.width, self.height,
+                             {"channels": ["R", "G", "B"], "log_field": self.log_field.tolist()},
+                             self.sigma, self.source)
 
     @classmethod
     def from_dict(cls, d: Any) -> GridField:
@@ -142,14 +169,8 @@ class GridField:
         ModelError
             Unknown schema, missing or malformed fields.
         """
-        if not isinstance(d, dict):
-            raise ModelError("a grid field must be a JSON object")
-        if d.get("schema") != SCHEMA:
-            raise ModelError(f"unknown grid field schema {d.get('schema')!r} (expected {SCHEMA!r})")
-        missing = [k for k in ("width", "height", "log_field") if k not in d]
-        if missing:
-            raise ModelError(f"grid field is missing {missing[0]!r}")
-        return cls(d["width"], d["height"], d["log_field"], d.get("sigma"), str(d.get("source", "")))
+        sigma, source = check_field_dict(d, "grid field", SCHEMA, ("width", "height", "log_field"))
+        return cls(d["width"], d["height"], d["log_field"], sigma, source)
 
 
 def fit_grid(log_values: np.ndarray, rx: np.ndarray, ry: np.ndarray, nx: int, ny: int, width: int, height: int,
@@ -293,3 +314,78 @@ def correct_with_grid(img: np.ndarray, grid: GridField, *, strength: float = 1.0
     if not np.all(np.isfinite(out)):
         raise InvalidImageError("the corrected image has NaN or Inf values")
     return out
+
+
+@dataclass(frozen=True)
+class GridFieldModel(VignettingModel):
+    """A profile's measured grid field as a model: Kang-Weiss parameters (the profile's
+    θ and colour field, for records, pictures, lensfun export and comparisons) and the
+    grid itself (for correcting), as :class:`vigproc.io.dng_vignette.GainFieldModel`
+    holds a DNG's maps.
+
+    :meth:`correct_image` divides each of R, G, B by its own grid field; everything
+    else sees an ordinary :class:`VignettingModel`.
+
+    Attributes
+    ----------
+    grid : GridField or None
+        ln φ_c of the frame (any resolution of it is corrected at its pixel centres).
+    """
+
+    grid: GridField | None = field(default=None, repr=False, compare=False)
+
+    def correct_image(self, img: np.ndarray, *, channel_axis: int | None = -1, strength: float = 1.0,
+                      clip: float | None = None) -> np.ndarray:
+        """``img / φ_c^strength`` with φ_c the grid's field per channel (float32, ``img``'s
+        layout); a grey frame (or fewer than 3 channels) by the luminance of the
+        channels' fields (Rec. 709 weights, in log); channels after the third (alpha) too.
+
+        Without a grid: :func:`vigproc.core.correct.correct` of the Kang-Weiss model.
+
+        Raises
+        ------
+        InvalidImageError
+            Bad strength or layout, or the result is not finite.
+        """
+        from vigproc.core.colour import LUMA
+        from vigproc.core.correct import _check_clip, _check_strength, correct  # Numba kernels: only when used
+        from vigproc.core.pixels import as_channels_last
+
+        if self.grid is None:
+            return correct(img, self, channel_axis=channel_axis, strength=strength, clip=clip)
+        s = _check_strength(strength)
+        c = _check_clip(clip)
+        a = np.asarray(img)
+        if a.dtype.kind not in "fiu":
+            raise InvalidImageError(f"image must be real numbers, got dtype {a.dtype}")
+        x = as_channels_last(a, None if a.ndim == 2 else channel_axis)
+        x = x[..., None] if x.ndim == 2 else x
+        h, w, ch = x.shape
+        out = np.empty(x.shape, dtype=np.float32)
+        g = self.grid.log_field
+        ny, nx = g.shape[:2]
+        # separable: the node rows interpolated across the image's columns once (ny×W), then
+        # each image row between its two node rows; float32 (a gain's rounding: 1e-7)
+        i0, i1, fx = _hat((np.arange(w) + 0.5) / w, nx)
+        across = (g[:, i0] * (1 - fx)[None, :, None] + g[:, i1] * fx[None, :, None]) * -s
+        across = np.concatenate([across, (across @ LUMA)[..., None]], axis=2).astype(np.float32)
+        j0, j1, fy = _hat((np.arange(h) + 0.5) / h, ny)
+        fy = fy.astype(np.float32)
+        band = max(1, (1 << 19) // max(w, 1))  # about half a million pixels at a time
+        for r0 in range(0, h, band):
+            r1 = min(h, r0 + band)
+            t = fy[r0:r1, None, None]
+            gain = across[j0[r0:r1]] * (1 - t) + across[j1[r0:r1]] * t  # rows×W×4: R, G, B, luminance
+            np.exp(gain, out=gain)
+            for k in range(ch):
+                np.multiply(x[r0:r1, :, k], gain[..., k if ch >= 3 and k < 3 else 3], out=out[r0:r1, :, k],
+                            casting="unsafe")
+        if c > 0:
+            np.minimum(out, np.float32(c), out=out)
+        if not np.all(np.isfinite(out)):
+            raise InvalidImageError("the corrected image has NaN or Inf values (NaN/Inf in the input, or values "
+                                    "too large for float32 once corrected)")
+        out = out[..., 0] if a.ndim == 2 else out
+        if a.ndim == 3 and channel_axis not in (None, -1, 2):
+            out = np.moveaxis(out, -1, channel_axis)
+        return out

@@ -461,9 +461,10 @@ class _Run:
             self.learn_on_client(res)
         result = _journal_result(res.record or {}, res.worker)
         if self.steady is None and self.store is not None:  # learn: pool here, the one writer of the store
-            for key, model, evidence, lens_key in res.evidence:
+            for key, model, evidence, lens_key, extra in res.evidence:
                 # keyed by content: a frame pooled before a crash, then redone, is not pooled twice
-                p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key)
+                p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key,
+                                     **extra)
                 s.profiles[str(p.key)] = {"n_frames": p.n_frames, "trusted": p.trusted,
                                           "field_sigma_ev": p.field_sigma_ev}
         learned = (res.record or {}).get("learned") or {}
@@ -491,10 +492,10 @@ class _Run:
         fid = res.fingerprint.sha256
         applied, latest = dict(self.handout.applied), dict(self.handout.latest)
         learned = None
-        for key, model, evidence, lens_key in res.evidence:
+        for key, model, evidence, lens_key, extra in res.evidence:
             try:
                 known = self.store.holds_frame(key, fid)
-                p = self.store.learn(key, model, frame_id=fid, evidence=evidence, lens_key=lens_key)
+                p = self.store.learn(key, model, frame_id=fid, evidence=evidence, lens_key=lens_key, **extra)
             except ProfileStoreError as exc:
                 if getattr(exc, "transient", False) or getattr(exc, "sqlite_errorcode", None) is not None:
                     raise  # the store itself: the job stops, the frame is not journaled and is redone

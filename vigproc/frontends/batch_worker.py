@@ -140,7 +140,9 @@ class Outcome:
     status: str
     fingerprint: Any = None
     record: dict[str, Any] | None = None
-    evidence: list[tuple[Any, ...]] = field(default_factory=list)  # (ProfileKey, VignettingModel, bytes|None, LensKey|None)
+    #: (ProfileKey, VignettingModel, bytes|None, LensKey|None, dict): the last item holds
+    #: ``ProfileStore.learn``'s optional keywords the frame has (``grid``, ``cast``)
+    evidence: list[tuple[Any, ...]] = field(default_factory=list)
     frame: tuple[Any, int, int] | None = None  # client_learns: (LensKey, width, height) the profiles were read for
     captured: float | None = None  # client_learns: the frame's capture time (None: the client's clock)
     error: str | None = None
@@ -151,6 +153,12 @@ class Outcome:
     seconds: float = 0.0
 
 
+def _item(key, model, evidence, lens_key, extra: dict) -> tuple[Any, ...]:
+    """One frame's material for the client to pool: ``learn``'s optional keywords
+    (a flat frame's ``grid``, a colour-cast record ``cast``) only where the frame has them."""
+    return (key, model, evidence, lens_key, {k: v for k, v in extra.items() if v is not None})
+
+
 class _Evidence:
     """Stands in for the profile store of a learn-mode Processor on a worker: keeps
     each frame's (key, model) for the client to pool; workers never write the store."""
@@ -158,10 +166,13 @@ class _Evidence:
     def __init__(self) -> None:
         self.items: list[tuple[Any, ...]] = []
 
+    #: the frame's colour-cast record travels with its evidence (ProfileStore.learn's ``cast``)
+    records_casts = True
+
     def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
-              evidence: bytes | None = None, lens_key=None):
+              evidence: bytes | None = None, lens_key=None, **extra):
         # the client pools under the fingerprint it journals (same content id)
-        self.items.append((key, model, evidence, lens_key))
+        self.items.append(_item(key, model, evidence, lens_key, extra))
         return _Learned(key)
 
     def close(self) -> None:
@@ -224,9 +235,11 @@ class _ClientPooled:
     def holds_frame(self, key, frame_id: str) -> bool:
         return self.snapshot.holds_frame(key, frame_id)  # pooled in this job: the client's learn() knows
 
+    records_casts = True
+
     def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
-              evidence: bytes | None = None, lens_key=None):
-        self.items.append((key, model, evidence, lens_key))
+              evidence: bytes | None = None, lens_key=None, **extra):
+        self.items.append(_item(key, model, evidence, lens_key, extra))
         known = self.get(key)
         return _Pending(key, (known.n_frames if known is not None else 0) + 1,
                         bool(known is not None and known.trusted))

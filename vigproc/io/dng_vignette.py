@@ -617,7 +617,8 @@ def model_to_gain_maps(model: VignettingModel, *, strength: float = 1.0,
                        cfa_pattern: tuple[tuple[int, ...], ...] | None = None,
                        points: int = WRITE_MAP_POINTS) -> list[GainMap]:
     """Per-plane DNG GainMaps that remove ``model``'s fall-off, each colour plane by its
-    own field 1/(φ·ρ_c)^strength (:attr:`VignettingModel.colour`).
+    own field 1/(φ·ρ_c)^strength (:attr:`VignettingModel.colour`); a model with a measured
+    grid (:class:`vigproc.core.gridfield.GridFieldModel`) by the grid's field, 1/φ_c^strength.
 
     With ``cfa_pattern`` (a CFA DNG): one map per phase of the pattern (pitch = the
     pattern's size), of its colour, for OpcodeList2 (before demosaicing, as phones
@@ -636,9 +637,13 @@ def model_to_gain_maps(model: VignettingModel, *, strength: float = 1.0,
     w, h = model.width, model.height
     rel = np.linspace(0.0, 1.0, points)
     X, Y = np.meshgrid(rel * w - w / 2.0, rel * h - h / 2.0)
-    lf = model.log_field_at(X, Y)
-    lr = model.colour.log_ratios_at(X, Y) if model.colour is not None else np.zeros(X.shape + (3,))
-    gains = np.exp(-strength * (lf[..., None] + lr))  # points × points × 3
+    grid = getattr(model, "grid", None)
+    if grid is not None:  # a measured grid (a profile's, GridFieldModel): its own field, not the fit
+        lg = grid.log_fields_rel(rel, rel)
+    else:
+        lr = model.colour.log_ratios_at(X, Y) if model.colour is not None else np.zeros(X.shape + (3,))
+        lg = model.log_field_at(X, Y)[..., None] + lr
+    gains = np.exp(-strength * lg)  # points × points × 3
     if gains.min() < GAIN_RANGE[0] or gains.max() > GAIN_RANGE[1]:
         raise ModelError(f"gains {gains.min():.3g}..{gains.max():.3g} are outside {GAIN_RANGE}")
     sp = 1.0 / (points - 1)
@@ -838,7 +843,7 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
                          strength: float = 1.0) -> dict[str, Any]:
     """Write a copy of the DNG ``src`` to ``dst`` whose OpcodeList3 carries ``model``'s
     correction as a FixVignetteRadial; the pixels and every other tag are untouched.
-    A model with a colour field is written as per-plane GainMaps instead
+    A model with a colour field or a measured grid is written as per-plane GainMaps instead
     (:func:`model_to_gain_maps`): one per CFA phase in OpcodeList2 of a CFA DNG, one of
     three planes in OpcodeList3 otherwise.
 
@@ -886,8 +891,8 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
         info["opcode"] = None
         info["note"] = "the correction is the file's own calibration: nothing added"
         new = existing
-    elif model.colour is not None:
-        # a colour field: per-plane GainMaps (a FixVignetteRadial has one gain for all planes)
+    elif model.colour is not None or getattr(model, "grid", None) is not None:
+        # a colour field or a measured grid: per-plane GainMaps (a FixVignetteRadial has one gain for all planes)
         pattern = _cfa_pattern(groups.get(raw, {}))
         name = "OpcodeList2" if pattern else "OpcodeList3"
         existing = lists.get(name, OpcodeList())

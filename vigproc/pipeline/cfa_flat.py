@@ -6,7 +6,8 @@ camera-to-sRGB matrix, demosaicing), so ``--method flat-field`` on a RAW measure
 planes themselves (:func:`vigproc.io.images.read_cfa_planes`: black-subtracted, the two
 greens averaged, one pixel per 2×2 cell), and the model found there (luminance fall-off
 and per-plane colour field, :func:`vigproc.core.estimate.estimate`) is scaled to the
-developed frame, which LibRaw leaves in sensor order.
+developed frame, which LibRaw leaves in sensor order. In learn mode the planes' grid field
+goes with it (``with_grid``).
 
 References
 ----------
@@ -29,7 +30,8 @@ log = logging.getLogger(__name__)
 METHOD = "flat-field"
 
 
-def cfa_flat_field(path: str | os.PathLike[str], width: int, height: int) -> VignettingModel | None:
+def cfa_flat_field(path: str | os.PathLike[str], width: int, height: int, *,
+                   with_grid: bool = False) -> VignettingModel | None:
     """The flat-field estimate of a Bayer RAW measured on its CFA planes, for its
     developed ``width``×``height`` frame.
 
@@ -39,6 +41,10 @@ def cfa_flat_field(path: str | os.PathLike[str], width: int, height: int) -> Vig
         The RAW (read again for its mosaic; the file is not modified).
     width, height : int
         The developed frame's size (LibRaw's, sensor order).
+    with_grid : bool
+        Also measure the planes' grid field (:func:`vigproc.pipeline.flat_grid.frame_grid`,
+        for the developed frame's size): the model is then a
+        :class:`vigproc.core.gridfield.GridFieldModel` (learn mode: the profile keeps it).
 
     Returns
     -------
@@ -74,4 +80,14 @@ def cfa_flat_field(path: str | os.PathLike[str], width: int, height: int) -> Vig
         cf = replace(out.colour, source="flat-field:cfa")
         cand = replace(out.candidate, colour=cf) if out.candidate is not None else None
         out = replace(out, colour=cf, candidate=cand)
+    if with_grid:
+        from dataclasses import fields
+
+        from vigproc.core.gridfield import GridField, GridFieldModel
+        from vigproc.pipeline.flat_grid import frame_grid
+
+        g = frame_grid(planes, m.candidate if m.candidate is not None else m, source="flat-field:cfa-grid")
+        if g is not None:  # the planes' grid is the developed frame's, in relative coordinates
+            kw = {f.name: getattr(out, f.name) for f in fields(VignettingModel)}
+            out = GridFieldModel(**kw, grid=GridField(width, height, g.log_field, g.sigma, g.source))
     return out

@@ -344,7 +344,7 @@ class Processor:
         if raw_path is not None and s.method == "flat-field" and s.mode in ("correct", "estimate", "learn"):
             from vigproc.pipeline.cfa_flat import cfa_flat_field
 
-            estimated = cfa_flat_field(raw_path, checked.shape[1], checked.shape[0])
+            estimated = cfa_flat_field(raw_path, checked.shape[1], checked.shape[0], with_grid=s.mode == "learn")
         if s.mode == "check":
             from vigproc.forensics.check import forensic_check  # noqa: PLC0415 - only check mode needs it
 
@@ -413,6 +413,8 @@ class Processor:
                     _note_clipping(img, out, where, fmt, source_white=source_white)
                 res.applied = m.candidate is None and s.strength > 0
                 res.strength = s.strength
+                if res.applied and getattr(m, "grid", None) is not None:  # the record's θ is not what divided
+                    res.extra["grid_field"] = {"nodes": list(m.grid.nodes), "source": m.grid.source}
                 if used is not None and res.applied:  # which revision corrected it: one per series
                     res.extra["profile_applied"] = {"profile": str(used.key), "frames": used.n_frames,
                                                     "updated": used.updated}
@@ -442,7 +444,15 @@ class Processor:
         key_for = getattr(self.store, "key_for", None)
         key = key_for(lens_key, w, h) if key_for is not None else ProfileKey.from_lens(lens_key, w, h)
         fit, evidence = self._pool_fit(img, checked=True, estimated=estimated)
-        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key)
+        grid = None
+        if self.settings.method == "flat-field":  # a flat frame measures its field: the profile keeps it
+            from vigproc.pipeline.flat_grid import frame_grid
+
+            if estimated is not None:  # a RAW's: measured on its CFA planes
+                grid = getattr(estimated, "grid", None)
+            else:
+                grid = frame_grid(img.linear() if hasattr(img, "linear") else img, fit)
+        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key, grid=grid)
         return fit, "estimate", str(p.key)
 
     def _pool_fit(self, img, *, checked: bool, estimated=None):

@@ -742,11 +742,20 @@ def _profile_names(profile: Profile) -> tuple[tuple[str | None, ...], tuple[str 
 
 
 def colour_notes(profiles: Iterable[Profile]) -> list[str]:
-    """One sentence per profile with a colour field: lensfun's vignetting model is one
-    field for all channels, so only its luminance part is exported."""
-    return [f"{p.key}: its colour shading (per-channel field, {p.colour.n} frames) cannot be expressed in "
-            "lensfun's vignetting model: only the luminance fall-off is exported" for p in profiles
-            if getattr(p, "colour", None) is not None]
+    """One sentence per profile with a colour field or a measured grid field: lensfun's
+    vignetting model is one radial field for all channels, so only the profile's
+    luminance part (its Kang-Weiss fit) is exported."""
+    out = []
+    for p in profiles:
+        colour, grid = getattr(p, "colour", None), getattr(p, "grid", None)
+        if colour is None and grid is None:
+            continue
+        what = " and ".join(w for w in (
+            f"its colour shading (per-channel field, {colour.n} frames)" if colour is not None else "",
+            f"its measured grid field ({grid.n} flat frames, per channel)" if grid is not None else "") if w)
+        out.append(f"{p.key}: {what} cannot be expressed in lensfun's vignetting model: only the luminance "
+                   "fall-off (the profile's Kang-Weiss fit) is exported")
+    return out
 
 
 def warn_colour(profiles: Iterable[Profile]) -> list[str]:

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import math
 import unicodedata
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Sequence
 
 import numpy as np
 
 from vigproc.core.colour import ColourPool
+from vigproc.core.gridfield import GridFieldModel
 from vigproc.core.information import _Exact, _Welford
 from vigproc.core.model import FitQuality, VignettingModel
 from vigproc.core.normalised import (
@@ -23,6 +24,7 @@ from vigproc.core.normalised import (
 )
 from vigproc.errors import ModelError, ProfileStoreError
 from vigproc.io.exif import LensKey
+from vigproc.stores.profile_grid import GridPool
 from vigproc.stores.profile_key import (
     ANY,
     INTERPOLATION_REACH,
@@ -210,6 +212,10 @@ class Profile:
         The frames' colour fields pooled (:class:`vigproc.core.colour.ColourPool`):
         per-channel shading a flat-field or a DNG's per-plane maps measured; None:
         colourless.
+    grid : GridPool or None
+        The flat frames' measured grid fields pooled node by node
+        (:class:`vigproc.stores.profile_grid.GridPool`); None: none measured. When
+        present, :meth:`model` corrects by it.
     shots : Shots or None
         How the frames were shot (their real focal lengths, crop factor and names as
         EXIF spelt them); None when unknown (a store or file from before schema v10/2).
@@ -231,6 +237,7 @@ class Profile:
     notes: str = ""
     shots: Shots | None = None
     colour: ColourPool | None = None
+    grid: GridPool | None = None
     _exact: tuple[_Exact, _Exact] | None = field(default=None, repr=False)
     _welford: _Welford | None = field(default=None, repr=False)
 
@@ -275,6 +282,11 @@ class Profile:
     def model(self, width: int, height: int) -> VignettingModel:
         """The profile as a :class:`VignettingModel` for a ``width``×``height`` frame.
 
+        With a grid field (:attr:`grid`): a :class:`vigproc.core.gridfield.GridFieldModel`
+        whose parameters are the profile's θ and colour field (records, lensfun export,
+        comparisons) and whose :meth:`~vigproc.core.gridfield.GridFieldModel.correct_image`
+        divides each channel by the pooled grid, 0 at the optical centre.
+
         Raises
         ------
         ProfileStoreError
@@ -296,7 +308,14 @@ class Profile:
             snr=ev_rms / sigma if sigma else math.inf,
         )
         m = denormalise(self.theta, self.covariance, width, height, method=f"profile:{self.provenance}", quality=q)
-        return m if self.colour is None else replace(m, colour=self.colour.field(width, height))
+        m = m if self.colour is None else replace(m, colour=self.colour.field(width, height))
+        if self.grid is None:
+            return m
+        # the grid corrects; the Kang-Weiss θ and colour field stay for records and exports.
+        # Centred on the optical centre, which a correction leaves as it is, as the model's would
+        grid = self.grid.field(width, height).centred(m.colour.center if m.colour is not None else m.center)
+        kw = {f.name: getattr(m, f.name) for f in fields(VignettingModel)}
+        return GridFieldModel(**kw, grid=grid)
 
 
 def _profile_stats(theta: np.ndarray, cov: np.ndarray | None, aspect: float,
@@ -405,4 +424,5 @@ def interpolate_profiles(profiles: Sequence[Profile], key: ProfileKey, focal_mm:
         trusted=all(p.trusted for p, _ in weights) and sigma is not None and sigma < TRUSTED_SIGMA_EV,
         field_sigma_ev=sigma, notes=f"interpolated from {parts}",
         colour=ColourPool.blend([(p.colour, wt) for p, wt in weights]),
+        grid=GridPool.blend([(p.grid, wt) for p, wt in weights]),
     )

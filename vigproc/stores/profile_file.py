@@ -1,4 +1,4 @@
-"""Human-readable profile files: JSON of schema ``vigproc.profile/1``, ``/2`` and ``/3``
+"""Human-readable profile files: JSON of schema ``vigproc.profile/1``, ``/2``, ``/3`` and ``/4``
 (documented in ``profiles/README.md``; examples in ``profiles/examples/``)."""
 
 from __future__ import annotations
@@ -21,10 +21,12 @@ from vigproc.core.normalised import N_PARAMS, denormalise
 from vigproc.errors import ModelError, ProfileStoreError
 from vigproc.io.exif import LensKey, normalise_text, unescape_key_part
 from vigproc.stores.profile import Profile, Shots, _is_trusted, _profile_stats
+from vigproc.stores.profile_grid import GridPool
 from vigproc.stores.profile_key import (
     FILE_SCHEMA,
     FILE_SCHEMAS,
     FILE_SCHEMA_COLOUR,
+    FILE_SCHEMA_GRID,
     MAX_ABS_ALPHA,
     MAX_ABS_CENTER,
     MAX_FALLOFF_EV,
@@ -103,6 +105,10 @@ def profile_to_dict(profile: Profile) -> dict[str, Any]:
         # a colour field needs a reader that knows it: /3 (a colourless profile stays /2)
         d["schema"] = FILE_SCHEMA_COLOUR
         d["colour"] = profile.colour.to_json()
+    if profile.grid is not None:
+        # a grid needs a reader that knows it: /4 (one without stays /2 or /3)
+        d["schema"] = FILE_SCHEMA_GRID
+        d["grid"] = profile.grid.to_json()
     return d
 
 
@@ -274,12 +280,21 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
     shots = None if d.get("shots") is None else Shots.from_json(d["shots"], where)
     colour = None
     if d.get("colour") is not None:
-        if schema != FILE_SCHEMA_COLOUR:
-            raise ProfileStoreError(f"{where}: a colour field needs schema {FILE_SCHEMA_COLOUR!r}, got {schema!r}")
+        if schema not in (FILE_SCHEMA_COLOUR, FILE_SCHEMA_GRID):
+            raise ProfileStoreError(f"{where}: a colour field needs schema {FILE_SCHEMA_COLOUR!r} or "
+                                    f"{FILE_SCHEMA_GRID!r}, got {schema!r}")
         try:
             colour = ColourPool.from_json(d["colour"])
         except ModelError as exc:
             raise ProfileStoreError(f"{where}: colour: {exc}") from None
+    grid = None
+    if d.get("grid") is not None:
+        if schema != FILE_SCHEMA_GRID:
+            raise ProfileStoreError(f"{where}: a grid field needs schema {FILE_SCHEMA_GRID!r}, got {schema!r}")
+        try:
+            grid = GridPool.from_json(d["grid"])
+        except ModelError as exc:
+            raise ProfileStoreError(f"{where}: grid: {exc}") from None
     created = _timestamp(d, "created", where)
     updated = _timestamp(d, "updated", where)
 
@@ -299,7 +314,7 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
         key=key, theta=theta, covariance=cov_a, info_matrix=lam, info_vector=eta, n_frames=n_frames,
         provenance=prov, created=created, updated=updated or created, trusted=trusted,
         field_sigma_ev=pooled, cov_sigma_ev=cov_sigma, scatter_sigma_ev=None, notes=notes, shots=shots,
-        colour=colour, _exact=exact,
+        colour=colour, grid=grid, _exact=exact,
     )
 
 

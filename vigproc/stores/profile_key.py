@@ -28,7 +28,11 @@ FILE_SCHEMA = "vigproc.profile/2"
 FILE_SCHEMA_COLOUR = "vigproc.profile/3"
 #: Schema tags vigproc reads (``/1``: a 12×12 covariance; an all-zero row and column
 #: there is a fixed parameter, as learned profiles exported before ``/2`` wrote it).
-FILE_SCHEMAS = ("vigproc.profile/1", FILE_SCHEMA, FILE_SCHEMA_COLOUR)
+#: Schema of a profile file with a measured grid field (``grid``: a pooled
+#: :class:`vigproc.stores.profile_grid.GridPool`); one without is still ``/2`` or ``/3``.
+#: vigproc before ``/4`` refuses such a file ("schema must be one of ...").
+FILE_SCHEMA_GRID = "vigproc.profile/4"
+FILE_SCHEMAS = ("vigproc.profile/1", FILE_SCHEMA, FILE_SCHEMA_COLOUR, FILE_SCHEMA_GRID)
 #: Where a profile came from.
 PROVENANCES = ("learned", "lensfun", "user")
 #: Bin label for a focal length / aperture the metadata does not give.

@@ -33,6 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from vigproc.core.colour import ColourPool
+from vigproc.core.gridfield import GridField
 from vigproc.core.information import _Exact, _Welford, _check_covariance, _scaled_pinv, frame_information
 from vigproc.core.model import VignettingModel
 from vigproc.core.normalised import FIELD_GRID, N_PARAMS, _field_and_jacobian, normalise
@@ -47,6 +48,7 @@ from vigproc.stores.profile import (
     _valid_theta,
     interpolate_profiles,
 )
+from vigproc.stores.profile_grid import GridPool, grid_from_column, grid_to_column, migration_grid
 from vigproc.stores.profile_file import import_profile, profile_from_dict, profile_to_dict
 from vigproc.stores.profile_key import (
     DB_ENV,
@@ -81,7 +83,7 @@ _COLUMNS = (
     "lens_id", "focal_bin", "aperture_bin", "aspect", "theta", "covariance", "info_exact",
     "info_matrix", "info_vector", "n_frames", "n_scatter", "theta_mean", "theta_m2",
     "field_mean", "field_m2", "provenance", "created", "updated", "trusted",
-    "field_sigma_ev", "cov_sigma_ev", "scatter_sigma_ev", "notes", "shots", "colour",
+    "field_sigma_ev", "cov_sigma_ev", "scatter_sigma_ev", "notes", "shots", "colour", "grid",
 )
 
 
@@ -241,7 +243,7 @@ MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _m
                                                                  _migration_4, _migration_5, _migration_6,
                                                                  _migration_7, _migration_8, _migration_9,
                                                                  _migration_10, _migration_11, _migration_12,
-                                                                 _migration_13)
+                                                                 _migration_13, migration_grid)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
@@ -308,6 +310,7 @@ class _Frame:
     size: tuple[int, int] | None
     shots: Shots | None
     colour: Any  # the estimate's colour field (VignettingModel.colour), pooled as a ColourPool
+    grid: Any = None  # the frame's grid field (a flat frame's GridField), pooled as a GridPool
 
 
 def _pool_frame(old: Profile | None, key: ProfileKey, frame: _Frame, notes: str | None, now: str) -> Profile:
@@ -381,12 +384,16 @@ def _pool_frame(old: Profile | None, key: ProfileKey, frame: _Frame, notes: str 
     if frame.colour is not None:
         mine = ColourPool.of(frame.colour)
         colour = mine if colour is None else colour.add(mine)
+    grid = old.grid if old is not None else None
+    if frame.grid is not None:
+        mine_g = GridPool.of(frame.grid)
+        grid = mine_g if grid is None else grid.add(mine_g)
     return Profile(
         key=key, theta=theta, covariance=cov, info_matrix=lam, info_vector=eta,
         n_frames=n_frames, provenance="learned", created=created, updated=now,
         trusted=_is_trusted(n_frames, pooled), field_sigma_ev=pooled, cov_sigma_ev=cov_sigma,
         scatter_sigma_ev=scatter, notes="\n".join(note_parts)[:MAX_NOTES], shots=shots, colour=colour,
-        _exact=exact, _welford=welford,
+        grid=grid, _exact=exact, _welford=welford,
     )
 
 
@@ -553,6 +560,7 @@ class ProfileStore(SQLiteFile):
                 notes=str(d["notes"]),
                 shots=None if d["shots"] is None else Shots.from_json(json.loads(d["shots"]), "shots"),
                 colour=None if d["colour"] is None else ColourPool.from_json(json.loads(d["colour"])),
+                grid=grid_from_column(d["grid"]),
                 _exact=exact,
                 _welford=welford,
             )
@@ -579,6 +587,7 @@ class ProfileStore(SQLiteFile):
             p.field_sigma_ev, p.cov_sigma_ev, p.scatter_sigma_ev, p.notes,
             None if p.shots is None else json.dumps(p.shots.to_json(), ensure_ascii=False, separators=(",", ":")),
             None if p.colour is None else json.dumps(p.colour.to_json(), separators=(",", ":")),
+            grid_to_column(p.grid),
         )
 
     def _select(self, where: str, args: tuple) -> builtins.list[Profile]:
@@ -756,7 +765,7 @@ class ProfileStore(SQLiteFile):
 
     def learn(self, key: ProfileKey, model: VignettingModel, *, notes: str | None = None,
               frame_id: str | None = None, evidence: bytes | None = None,
-              lens_key: LensKey | None = None) -> Profile:
+              lens_key: LensKey | None = None, grid: GridField | None = None) -> Profile:
         """Pool one frame's estimate into the profile under ``key``; returns the new profile.
 
         The frame adds Λ_i = Σ_i⁻¹ and η_i = Λ_i θ_i (normalised units) to the
@@ -797,6 +806,10 @@ class ProfileStore(SQLiteFile):
         lens_key : LensKey, optional
             The frame's EXIF: its focal length, crop factor and names as spelt are
             added to the profile's :attr:`Profile.shots`.
+        grid : GridField, optional
+            The frame's measured grid field (a flat frame's,
+            :func:`vigproc.core.gridfield.flat_grid`), pooled node by node into the
+            profile's :attr:`Profile.grid` (:mod:`vigproc.stores.profile_grid`).
 
         Raises
         ------
@@ -806,6 +819,13 @@ class ProfileStore(SQLiteFile):
             database locked or corrupt.
         """
         frame = self._learn_inputs(key, model, notes, frame_id, evidence, lens_key)
+        if grid is not None:
+            if not isinstance(grid, GridField):
+                raise ProfileStoreError(f"grid must be a GridField, got {type(grid).__name__}")
+            if aspect_label(grid.width / grid.height) != key.aspect:
+                raise ProfileStoreError(f"a {grid.width}x{grid.height} grid field cannot refine the {key.aspect} "
+                                        f"profile {key}")
+            frame = replace(frame, grid=grid)
 
         def body(con: sqlite3.Connection) -> tuple[Profile | None, Profile]:
             old = self._get(key)
