@@ -402,13 +402,16 @@ class _Evidence:
     """Stands in for the profile store of a learn-mode Processor on a worker: keeps
     each frame's (key, model) for the client to pool; workers never write the store."""
 
+    #: the frame's colour-cast record travels with its evidence (ProfileStore.learn's ``cast``)
+    records_casts = True
+
     def __init__(self) -> None:
         self.items: list[tuple[Any, ...]] = []
 
     def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
-              evidence: bytes | None = None, lens_key=None):
+              evidence: bytes | None = None, lens_key=None, cast: dict | None = None):
         # the client pools under the fingerprint it journals (same content id)
-        self.items.append((key, model, evidence, lens_key))
+        self.items.append((key, model, evidence, lens_key, cast))
         return _Learned(key)
 
     def close(self) -> None:
@@ -471,9 +474,11 @@ class _ClientPooled:
     def holds_frame(self, key, frame_id: str) -> bool:
         return self.snapshot.holds_frame(key, frame_id)  # pooled in this job: the client's learn() knows
 
+    records_casts = True
+
     def learn(self, key, model, *, notes: str | None = None, frame_id: str | None = None,
-              evidence: bytes | None = None, lens_key=None):
-        self.items.append((key, model, evidence, lens_key))
+              evidence: bytes | None = None, lens_key=None, cast: dict | None = None):
+        self.items.append((key, model, evidence, lens_key, cast))
         known = self.get(key)
         return _Pending(key, (known.n_frames if known is not None else 0) + 1,
                         bool(known is not None and known.trusted))
@@ -1025,9 +1030,9 @@ class _Run:
             self.learn_on_client(res)
         result = _journal_result(res.record or {}, res.worker)
         if self.steady is None and self.store is not None:  # learn: pool here, the one writer of the store
-            for key, model, evidence, lens_key in res.evidence:
+            for key, model, evidence, lens_key, cast in res.evidence:
                 # keyed by content: a frame pooled before a crash, then redone, is not pooled twice
-                p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key)
+                p = self.store.learn(key, model, frame_id=fp.sha256, evidence=evidence, lens_key=lens_key, cast=cast)
                 s.profiles[str(p.key)] = {"n_frames": p.n_frames, "trusted": p.trusted,
                                           "field_sigma_ev": p.field_sigma_ev}
         learned = (res.record or {}).get("learned") or {}
@@ -1056,10 +1061,10 @@ class _Run:
         fid = res.fingerprint.sha256
         applied, latest = dict(self.handout.applied), dict(self.handout.latest)
         learned = None
-        for key, model, evidence, lens_key in res.evidence:
+        for key, model, evidence, lens_key, cast in res.evidence:
             try:
                 known = self.store.holds_frame(key, fid)
-                p = self.store.learn(key, model, frame_id=fid, evidence=evidence, lens_key=lens_key)
+                p = self.store.learn(key, model, frame_id=fid, evidence=evidence, lens_key=lens_key, cast=cast)
             except ProfileStoreError as exc:
                 if getattr(exc, "transient", False) or getattr(exc, "sqlite_errorcode", None) is not None:
                     raise  # the store itself: the job stops, the frame is not journaled and is redone

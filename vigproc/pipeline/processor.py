@@ -395,12 +395,11 @@ class Processor:
 
     def _cast_of(self, img, fit) -> dict:
         """``learn``'s ``cast`` argument: the frame's colour-cast record for its profile's
-        cast (:mod:`vigproc.stores.cast_store`), when the store is a database (a cluster
-        worker's stand-in does not carry it to the client) and the frame has one."""
+        cast (:mod:`vigproc.stores.cast_store`), when the store records them (a profile
+        store, or a batch worker's stand-in that hands it to the client) and the frame has one."""
         from vigproc.pipeline.cast import frame_cast_record
-        from vigproc.stores.profile_store import ProfileStore
 
-        if not isinstance(self.store, ProfileStore):
+        if not getattr(self.store, "records_casts", False):
             return {}
         rec = frame_cast_record(img, fit)
         return {} if rec is None else {"cast": rec}

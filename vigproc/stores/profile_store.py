@@ -444,6 +444,9 @@ class ProfileStore(SQLiteFile):
                 "exported profiles with 'vigproc profile import FILE'; meanwhile '--profile estimate' or "
                 "'--profile lensfun' correct without a store")
 
+    #: :meth:`learn` takes a frame's colour-cast record (``cast``)
+    records_casts = True
+
     def __init__(self, path: str | os.PathLike[str] | None = None, *, timeout: float = DEFAULT_TIMEOUT,
                  family: Any = None) -> None:
         # SHA-256 of a frame's evidence -> its lens-family fit: a long-lived learner fits each frame once
