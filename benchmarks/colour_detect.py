@@ -26,6 +26,7 @@ from typing import Sequence
 
 import numpy as np
 
+from vigproc.core.cast_series import SeriesSettings, pool_cast
 from vigproc.core.colour_cast import CastSettings, detect_colour_cast
 from vigproc.core.colour_difference import grey_cast_de
 
@@ -97,6 +98,11 @@ class RateRow:
     #: where it could not judge) and the index of the base it was rendered on
     scores: list[float] = field(default_factory=list)
     base_index: list[int] = field(default_factory=list)
+    #: per frame: which cast (or luminance field) of the row it was rendered under, and
+    #: the detector's per-quadrant shifts and standard errors (4×2 each; None where it
+    #: could not judge): what a series pools (:func:`series_rates`); not in the JSON
+    cast_index: list[int] = field(default_factory=list)
+    sectors: list = field(default_factory=list)
 
 
 @dataclass
@@ -111,13 +117,22 @@ class DetectionResult:
     settings: dict = field(default_factory=dict)
     #: :func:`split_calibrated` of this result (two folds)
     split: list[dict] = field(default_factory=list)
+    #: :func:`series_rates` per series length (``--frames``)
+    series: list[dict] = field(default_factory=list)
 
 
 def _row(label: str, flags: list[bool], des: list[float], names: list[str],
-         scores: list[float] = (), idx: list[int] = ()) -> RateRow:
+         scores: list[float] = (), idx: list[int] = (), cast_idx: list[int] = (), sectors: list = ()) -> RateRow:
     n, k = len(flags), int(sum(flags))
     return RateRow(label, n, k, k / n if n else math.nan, float(np.median(des)) if des else math.nan,
-                   sorted({nm for nm, f in zip(names, flags) if f}), list(scores), list(idx))
+                   sorted({nm for nm, f in zip(names, flags) if f}), list(scores), list(idx), list(cast_idx),
+                   list(sectors))
+
+
+def _sectors(ev):
+    if len(ev.sector_shift) != 4 or len(ev.sector_se) != 4:
+        return None
+    return np.asarray(ev.sector_shift, dtype=np.float64), np.asarray(ev.sector_se, dtype=np.float64)
 
 
 def _score(ev) -> float:
@@ -164,10 +179,101 @@ def split_calibrated(result: "DetectionResult", false_rate: float = 0.05) -> lis
     return folds
 
 
+def _series_stats(row: RateRow, allowed: set[int], n: int, count: int, rng: np.random.Generator,
+                   settings: SeriesSettings) -> list[tuple[float, bool, bool]]:
+    """``count`` series of ``n`` frames of different bases from ``allowed`` under one cast
+    (or field) of ``row``, each pooled by :func:`pool_cast`: (score, detected, decisive)."""
+    by_cast: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for b, c, sec in zip(row.base_index, row.cast_index, row.sectors):
+        if b in allowed and sec is not None:  # a frame the detector could not judge adds nothing
+            by_cast.setdefault(c, []).append(sec)
+    pools = [v for v in by_cast.values() if len(v) >= n]
+    out = []
+    for _ in range(count if pools else 0):
+        frames = pools[rng.integers(len(pools))]
+        pick = rng.choice(len(frames), size=n, replace=False)
+        sc = pool_cast(np.stack([frames[i][0] for i in pick]), np.stack([frames[i][1] for i in pick]), settings)
+        out.append((sc.score, sc.detected, sc.decisive))
+    return out
+
+
+def series_rates(result: "DetectionResult", n: int, *, count: int = 400, seed: int = 0,
+                 false_rate: float = 0.05, settings: SeriesSettings = SeriesSettings()) -> dict:
+    """Detection and false rates of series of ``n`` frames of one lens setting.
+
+    A series is ``n`` different bases under the same cast (or the same luminance-only
+    field, or none), each frame's per-quadrant shifts pooled as the profile store pools
+    them (:func:`vigproc.core.cast_series.pool_cast`). Two rules are counted:
+
+    - the store's fixed rule (``detected``: score ≥ 1; ``decisive``), on series drawn
+      from all bases;
+    - out of sample, as :func:`split_calibrated`: the threshold on the series' score set
+      on clean series from one half of the bases (at most ``false_rate`` called), the rates
+      counted on series from the other half; both folds.
+
+    Parameters
+    ----------
+    result : DetectionResult
+        From :func:`detection_rates` (its rows carry the frames' quadrant shifts).
+    n : int
+        Frames per series (at most the bases in one half).
+    count : int
+        Series drawn per row (and per fold).
+    seed : int
+        Of the draws.
+    false_rate : float
+        Allowed share of clean calibration series called cast.
+    settings : SeriesSettings
+        The pooling and the store's rule.
+
+    Returns
+    -------
+    dict
+        ``frames``, ``fixed`` (per row: ``detected`` and ``decisive`` rates) and ``split``
+        (per fold: ``threshold``, ``clean``, ``luminance_only``, ``by_target``).
+
+    Raises
+    ------
+    ValueError
+        ``n`` < 1.
+    """
+    if n < 1:
+        raise ValueError(f"a series needs at least one frame, got {n}")
+    rng = np.random.default_rng(seed)
+    everything = set(range(result.n_bases))
+    rows = [result.clean, result.luminance_only] + list(result.by_target)
+    labels = ["clean", "luminance_only"] + [r.label for r in result.by_target]
+
+    def rates(stats: list, k: int) -> float:
+        return float(np.mean([s[k] for s in stats])) if stats else math.nan
+
+    fixed = {}
+    for lab, row in zip(labels, rows):
+        st = _series_stats(row, everything, n, count, rng, settings)
+        fixed[lab] = {"detected": rates(st, 1), "decisive": rates(st, 2), "series": len(st)}
+    folds = []
+    for cal in (0, 1):
+        half = {i for i in everything if i % 2 == cal}
+        other = everything - half
+        cs = np.sort([s[0] for s in _series_stats(result.clean, half, n, count, rng, settings)])[::-1]
+        if cs.size == 0:
+            continue
+        k = int(math.floor(false_rate * cs.size))
+        thr = float(np.nextafter(cs[k], math.inf)) if k < cs.size else -math.inf
+        ev = {lab: float(np.mean([s[0] >= thr for s in st])) if st else math.nan
+              for lab, row in zip(labels, rows)
+              for st in [_series_stats(row, other, n, count, rng, settings)]}
+        folds.append({"calibrated_on": "even" if cal == 0 else "odd", "threshold": thr,
+                      "clean": ev["clean"], "luminance_only": ev["luminance_only"],
+                      "by_target": {lab: ev[lab] for lab in labels[2:]}})
+    return {"frames": n, "fixed": fixed, "split": folds}
+
+
 def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
                     names: Sequence[str] | None = None,
                     luminance_fields: Sequence[tuple[str, np.ndarray]] = (),
-                    settings: CastSettings = CastSettings()) -> DetectionResult:
+                    settings: CastSettings = CastSettings(), frames: Sequence[int] = (),
+                    series_count: int = 400) -> DetectionResult:
     """Detection rates of casts rendered on ``bases`` and false detections without one.
 
     Parameters
@@ -182,6 +288,10 @@ def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
         Luminance-only fall-offs, each applied to every base (all channels alike).
     settings : CastSettings
         The detector's.
+    frames : sequence of int
+        Series lengths for :func:`series_rates` (``result.series``).
+    series_count : int
+        Series drawn per row, fold and length.
 
     Returns
     -------
@@ -200,9 +310,10 @@ def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
 
     clean = [run(b) for b in bases]
     clean_row = _row("clean", [e.detected for e in clean], [e.delta_e for e in clean], names,
-                     [_score(e) for e in clean], list(range(len(bases))))
-    lf, ld, ln, ls, li = [], [], [], [], []
-    for fname, lfield in luminance_fields:
+                     [_score(e) for e in clean], list(range(len(bases))), [0] * len(bases),
+                     [_sectors(e) for e in clean])
+    lf, ld, ln, ls, li, lc, lsec = [], [], [], [], [], [], []
+    for j, (fname, lfield) in enumerate(luminance_fields):
         for i, (b, nm) in enumerate(zip(bases, names)):
             e = run(b * np.exp(lfield)[..., None])
             lf.append(e.detected)
@@ -210,11 +321,13 @@ def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
             ln.append(f"{nm} x {fname}")
             ls.append(_score(e))
             li.append(i)
-    lum_row = _row("luminance only", lf, ld, ln, ls, li)
+            lc.append(j)
+            lsec.append(_sectors(e))
+    lum_row = _row("luminance only", lf, ld, ln, ls, li, lc, lsec)
     groups: dict[float, tuple[list, ...]] = {}
     cache: dict[tuple[tuple[int, int], Cast], np.ndarray] = {}
-    for c in casts:
-        g = groups.setdefault(c.target_de, ([], [], [], [], []))
+    for j, c in enumerate(casts):
+        g = groups.setdefault(c.target_de, ([], [], [], [], [], [], []))
         for i, (b, nm) in enumerate(zip(bases, names)):
             key = (b.shape[:2], c)
             if key not in cache:
@@ -225,6 +338,8 @@ def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
             g[2].append(f"{nm} x {c.name}")
             g[3].append(_score(e))
             g[4].append(i)
+            g[5].append(j)
+            g[6].append(_sectors(e))
         cache.clear()
     rows = [_row(f"dE {t:g}", *groups[t]) for t in sorted(groups)]
     big = [f for t in groups if t >= 5 for f in groups[t][0]]
@@ -233,4 +348,9 @@ def detection_rates(bases: Sequence[np.ndarray], casts: Sequence[Cast], *,
                           {k: getattr(settings, k) for k in settings.__dataclass_fields__})
     if len(bases) >= 2:
         res.split = split_calibrated(res)
+    for n in frames:
+        if n > (len(bases) + 1) // 2:
+            log.warning("series of %d frames: more than the %d bases of a half; left out", n, (len(bases) + 1) // 2)
+            continue
+        res.series.append(series_rates(res, int(n), count=series_count))
     return res

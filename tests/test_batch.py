@@ -255,14 +255,18 @@ def test_learn_pools_exactly_once_across_a_crash(archive, tmp_path):
     res = B.run_task(B.Task(items[0].path, items[0].rel), B.JobSpec(settings=settings, outdir=str(out)))
     assert res.status == "done" and len(res.evidence) == 1
     key, model, evidence, _, extra = res.evidence[0]
+    cast = extra.get("cast")
     assert evidence is not None  # the default method ships the frame's data for the joint refit
     with ProfileStore(tmp_path / "p.sqlite") as store, Journal(jpath, job="test") as j:
         assert j.claim(items[0].path, res.fingerprint, worker="crashed")
-        store.learn(key, model, frame_id=res.fingerprint.sha256, evidence=evidence)  # ... and the client dies here
+        # ... and the client dies here
+        store.learn(key, model, frame_id=res.fingerprint.sha256, evidence=evidence, cast=cast)
     with ProfileStore(tmp_path / "p.sqlite") as store:
         s = _run(items, settings, out, BK.local_backend(1), store=store)
         assert s.processed == 2
         assert store.get(key).n_frames == 2  # f0 once (not twice), f1 once
+        assert cast is not None  # a colour frame: its colour-cast record travels with its evidence, pooled once too
+        assert store.cast_report(key).n_frames == 2
     with Journal(jpath, job="test") as j:
         assert j.counts()["done"] == 2 and fingerprint(items[0].path).same_content(
             j.lookup(items[0].path).fingerprint)

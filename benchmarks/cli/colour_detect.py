@@ -29,6 +29,11 @@ def colour_detect_arguments(bp: argparse.ArgumentParser) -> None:
     bp.add_argument("--lenses", type=number(0, 100, integer=True), default=10,
                     help="lensfun lenses whose luminance-only fall-off must not be called a cast "
                          "(default %(default)s)")
+    bp.add_argument("--frames", type=number(1, 100, integer=True), nargs="+", default=None,
+                    help="also series of N frames of different bases under one cast, pooled as the profile "
+                         "store pools a lens's frames (e.g. 1 3 5 9 15)")
+    bp.add_argument("--series", type=number(10, 100000, integer=True), default=400,
+                    help="series drawn per row, fold and length with --frames (default %(default)s)")
     bp.add_argument("--json", help="write the figures as JSON")
     bp.set_defaults(fn=cmd_bench_colour_detect)
 
@@ -73,7 +78,8 @@ def bench_detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
     if lenses:
         lf, _ = C.lens_fields(lenses)
         fields = [(f.name, f.log_field) for f in lf]
-    r = D.detection_rates(bases, casts, names=names, luminance_fields=fields)
+    r = D.detection_rates(bases, casts, names=names, luminance_fields=fields,
+                          frames=getattr(args, "frames", None) or (), series_count=getattr(args, "series", 400))
     print(f"colour-cast detection on {r.n_bases} clean colour bases (480x320, linear), casts cos^k_c(theta) at "
           f"{', '.join(f'{t:g}' for t in (theta_max or D.THETA_MAX))} deg corner angles x {directions} "
           f"hues; {r.ms_per_frame:.0f} ms/frame")
@@ -90,4 +96,19 @@ def bench_detect_report(args: argparse.Namespace) -> tuple[int, dict | None]:
         print(f"threshold from the {f['calibrated_on']} bases (score >= {f['threshold']:.3g}; the detector's "
               f"own is 1), rates on the others: clean {_pct(f['clean'])}, luminance only "
               f"{_pct(f['luminance_only'])}; {curve}")
-    return 0, asdict(r)
+    for sr in r.series:
+        fx = sr["fixed"]
+        curve = ", ".join(f"{k} {_pct(v['detected'])}" for k, v in fx.items() if k.startswith("dE"))
+        print(f"series of {sr['frames']} frames, the store's rule (score >= 1): clean {_pct(fx['clean']['detected'])}, "
+              f"luminance only {_pct(fx['luminance_only']['detected'])}; {curve}; decisive: clean "
+              f"{_pct(fx['clean']['decisive'])}, luminance only {_pct(fx['luminance_only']['decisive'])}, "
+              + ", ".join(f"{k} {_pct(v['decisive'])}" for k, v in fx.items() if k.startswith("dE")))
+        for f in sr["split"]:
+            curve = ", ".join(f"{k} {_pct(v)}" for k, v in f["by_target"].items())
+            print(f"series of {sr['frames']} frames, threshold from the {f['calibrated_on']} bases (score >= "
+                  f"{f['threshold']:.3g}), rates on the others: clean {_pct(f['clean'])}, luminance only "
+                  f"{_pct(f['luminance_only'])}; {curve}")
+    data = asdict(r)
+    for row in [data["clean"], data["luminance_only"]] + data["by_target"]:
+        row.pop("sectors", None)  # arrays per frame: what the series pooled, not figures
+    return 0, data

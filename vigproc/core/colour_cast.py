@@ -132,6 +132,9 @@ class ColourCastEvidence:
         The decision statistic, min(weakest quadrant ΔE / ``min_sector_de``, weakest z /
         ``min_sector_z``): a cast is reported at ≥ 1. NaN when the frame could not be
         judged. Benchmarks calibrate a threshold on it (``benchmarks.colour_detect``).
+    sector_se : tuple of (float, float)
+        Standard errors of ``sector_shift`` (what a series of frames pools:
+        :mod:`vigproc.core.cast_series`).
     """
 
     detected: bool
@@ -144,6 +147,7 @@ class ColourCastEvidence:
     n_samples: int = 0
     reason: str = ""
     score: float = math.nan
+    sector_se: tuple[tuple[float, float], ...] = field(default_factory=tuple)
 
     @property
     def weakest_de(self) -> float:
@@ -362,7 +366,8 @@ def detect_colour_cast(img: np.ndarray, *, channel_axis: int | None = -1, lumina
     log.debug("colour cast: shift %s, dE %.2f, sectors %s (z %s)", shift, delta_e, sector_de, sector_z)
     return ColourCastEvidence(detected, confidence, (float(shift[0]), float(shift[1])), delta_e,
                               tuple((float(u), float(v)) for u, v in est), tuple(float(d) for d in sector_de),
-                              tuple(float(z) for z in sector_z), n, reason, float(score))
+                              tuple(float(z) for z in sector_z), n, reason, float(score),
+                              tuple((float(u), float(v)) for u, v in se))
 
 
 def _replace(ev: ColourCastEvidence, **kw) -> ColourCastEvidence:

@@ -420,6 +420,9 @@ class Processor:
                                                     "updated": used.updated}
                     if steady.revision is not None:  # the store's applied revision, shared by all workers
                         res.extra["profile_applied"]["revision"] = steady.revision
+                    cast = self._profile_cast(used.key)
+                    if cast is not None:  # reported, never applied; grows with the frames, unlike the revision
+                        res.extra["lens_colour_cast"] = cast
         res.seconds = round(time.perf_counter() - t0, 4)
         return out, res
 
@@ -452,8 +455,30 @@ class Processor:
                 grid = getattr(estimated, "grid", None)
             else:
                 grid = frame_grid(img.linear() if hasattr(img, "linear") else img, fit)
-        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key, grid=grid)
+        p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key, grid=grid,
+                             **self._cast_of(img, fit))
         return fit, "estimate", str(p.key)
+
+    def _profile_cast(self, key) -> dict | None:
+        """The colour cast pooled from the frames of the profile under ``key``
+        (:meth:`ProfileStore.cast_report`) as a record reports it; None without one."""
+        from vigproc.stores.profile_store import ProfileStore
+
+        if not isinstance(self.store, ProfileStore):
+            return None
+        rep = self.store.cast_report(key)
+        return None if rep is None else rep.to_dict()
+
+    def _cast_of(self, img, fit) -> dict:
+        """``learn``'s ``cast`` argument: the frame's colour-cast record for its profile's
+        cast (:mod:`vigproc.stores.cast_store`), when the store records them (a profile
+        store, or a batch worker's stand-in that hands it to the client) and the frame has one."""
+        from vigproc.pipeline.cast import frame_cast_record
+
+        if not getattr(self.store, "records_casts", False):
+            return {}
+        rec = frame_cast_record(img, fit)
+        return {} if rec is None else {"cast": rec}
 
     def _pool_fit(self, img, *, checked: bool, estimated=None):
         """What learn mode pools of a frame: its estimate (the candidate of one too weak
@@ -535,7 +560,8 @@ class Processor:
             except (ModelError, VigprocError) as exc:  # nothing to pool; the correction stands
                 log.info("%s: not learned: %s", where, exc)
                 return Learned(False, reason=f"no fit to pool: {exc}")
-            p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key)
+            p = self.store.learn(key, fit, frame_id=frame_id, evidence=evidence, lens_key=lens_key,
+                                 **self._cast_of(img, fit))
         except ProfileStoreError as exc:
             if getattr(exc, "transient", False) or getattr(exc, "sqlite_errorcode", None) is not None:
                 raise  # a locked store or its full disk: the frame is tried again

@@ -39,6 +39,7 @@ from vigproc.core.model import VignettingModel
 from vigproc.core.normalised import FIELD_GRID, N_PARAMS, _field_and_jacobian, normalise
 from vigproc.errors import ModelError, ProfileStoreError, VigprocError
 from vigproc.io.exif import LensKey, unescape_key_part
+from vigproc.stores.cast_store import migration_cast_frames, read_cast, record_cast
 from vigproc.stores.db import SQLiteFile
 from vigproc.stores.profile import (
     Profile,
@@ -243,7 +244,8 @@ MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _m
                                                                  _migration_4, _migration_5, _migration_6,
                                                                  _migration_7, _migration_8, _migration_9,
                                                                  _migration_10, _migration_11, _migration_12,
-                                                                 _migration_13, migration_grid)
+                                                                 _migration_13, migration_grid,
+                                                                 migration_cast_frames)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
@@ -450,6 +452,9 @@ class ProfileStore(SQLiteFile):
                 "exported profiles with 'vigproc profile import FILE'; meanwhile '--profile estimate' or "
                 "'--profile lensfun' correct without a store")
 
+    #: :meth:`learn` takes a frame's colour-cast record (``cast``)
+    records_casts = True
+
     def __init__(self, path: str | os.PathLike[str] | None = None, *, timeout: float = DEFAULT_TIMEOUT,
                  family: Any = None) -> None:
         # SHA-256 of a frame's evidence -> its lens-family fit: a long-lived learner fits each frame once
@@ -635,6 +640,20 @@ class ProfileStore(SQLiteFile):
         with self._errors(f"reading {key}"):
             return self._get(key)
 
+    def cast_report(self, key: ProfileKey):
+        """The colour cast pooled from the frames of the profile under ``key``
+        (:class:`vigproc.core.cast_series.SeriesCast`), or None when none was recorded.
+
+        Raises
+        ------
+        ProfileStoreError
+            ``key`` is not a :class:`ProfileKey`, or the store cannot be read.
+        """
+        _check_key(key, "cast_report")
+        with self._errors(f"reading {key}'s colour cast"):
+            row_id = self._row_id(self.con, key)
+            return None if row_id is None else read_cast(self.con, row_id)
+
     def holds_frame(self, key: ProfileKey, frame_id: str) -> bool:
         """Whether the frame with content id ``frame_id`` was pooled into the profile
         stored under ``key`` (a forensic check must not use a frame's own evidence).
@@ -765,7 +784,8 @@ class ProfileStore(SQLiteFile):
 
     def learn(self, key: ProfileKey, model: VignettingModel, *, notes: str | None = None,
               frame_id: str | None = None, evidence: bytes | None = None,
-              lens_key: LensKey | None = None, grid: GridField | None = None) -> Profile:
+              lens_key: LensKey | None = None, grid: GridField | None = None,
+              cast: dict | None = None) -> Profile:
         """Pool one frame's estimate into the profile under ``key``; returns the new profile.
 
         The frame adds Λ_i = Σ_i⁻¹ and η_i = Λ_i θ_i (normalised units) to the
@@ -810,6 +830,10 @@ class ProfileStore(SQLiteFile):
             The frame's measured grid field (a flat frame's,
             :func:`vigproc.core.gridfield.flat_grid`), pooled node by node into the
             profile's :attr:`Profile.grid` (:mod:`vigproc.stores.profile_grid`).
+        cast : dict, optional
+            The frame's colour-cast record (:func:`vigproc.core.cast_series.frame_record`),
+            pooled into the profile's cast (:meth:`cast_report`) with the frame, once.
+            Needs ``frame_id`` (or ``evidence``).
 
         Raises
         ------
@@ -826,6 +850,13 @@ class ProfileStore(SQLiteFile):
                 raise ProfileStoreError(f"a {grid.width}x{grid.height} grid field cannot refine the {key.aspect} "
                                         f"profile {key}")
             frame = replace(frame, grid=grid)
+        if cast is not None:
+            from vigproc.core.cast_series import check_record
+
+            try:
+                check_record(cast)
+            except ValueError as exc:
+                raise ProfileStoreError(f"cast: {exc}") from None
 
         def body(con: sqlite3.Connection) -> tuple[Profile | None, Profile]:
             old = self._get(key)
@@ -843,6 +874,8 @@ class ProfileStore(SQLiteFile):
                             "VALUES (?, ?, ?, ?, ?)", (frame.frame_id, row_id, now, frame.evidence,
                                                        None if frame.evidence is None else
                                                        _fit_blob(frame.fit, frame.size)))
+                if cast is not None:
+                    record_cast(con, row_id, frame.frame_id, cast, now)
             if frame.evidence is not None:
                 refit = self._pooled_refit(con, row_id, key, frame.size)
                 if refit is not None:

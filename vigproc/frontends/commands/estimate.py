@@ -5,13 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-
-from vigproc.core.colour_cast import CastSettings, detect_colour_cast
 from vigproc.errors import VigprocError, one_line
 from vigproc.frontends.commands._options import failure_record, files_exit_code, print_json_results
-from vigproc.io.images import EncodedImage
 from vigproc.io.lensident import display_lens_id
+from vigproc.pipeline.cast import frame_cast
 from vigproc.pipeline.processor import Processor, Settings
 
 
@@ -77,15 +74,6 @@ def _estimate_file(args: argparse.Namespace, file: str, proc: Processor) -> dict
 
 
 def _colour_cast(img, m) -> dict:
-    """The frame's colour-cast report (:func:`vigproc.core.colour_cast.detect_colour_cast`)."""
-    if img.ndim != 3 or img.shape[2] < 3:
-        return {"detected": False, "reason": "a grey frame has no colour"}
-    usable, settings = None, CastSettings()
-    if isinstance(img, EncodedImage):
-        long_side = max(img.shape[:2])
-        if img.codes.dtype == np.uint8:
-            # 8-bit codes quantise the chroma of dark pixels, which pulls the fit towards no
-            # cast: each working pixel averages at least 5x5 of them
-            settings = CastSettings(work_long_side=int(max(48, min(settings.work_long_side, long_side / 5))))
-        img, usable = img.reduced(max(1, long_side // 480))
-    return detect_colour_cast(img, luminance_model=m, usable=usable, settings=settings).to_dict()
+    """The frame's colour-cast report (:func:`vigproc.pipeline.cast.frame_cast`)."""
+    ev = frame_cast(img, m)
+    return {"detected": False, "reason": "a grey frame has no colour"} if ev is None else ev.to_dict()

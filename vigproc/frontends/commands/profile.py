@@ -107,6 +107,7 @@ def _show(args: argparse.Namespace, store) -> int:
     p = _pick_profile(store, args.id)
     width, height = _profile_frame(p.key.aspect_ratio, args.width, args.height)
     m = p.model(width, height)
+    cast = store.cast_report(p.key)  # pooled from the lens's learned frames; reported, never applied
     if args.json:  # the profile's record, its model for the frame inside
         sigma = p.field_sigma_ev
         print(json.dumps({
@@ -114,7 +115,7 @@ def _show(args: argparse.Namespace, store) -> int:
             "aperture_bin": p.key.aperture_bin, "aspect": p.key.aspect, "frames": p.n_frames,
             "trusted": bool(p.trusted), "field_sigma_ev": sigma if sigma is None or math.isfinite(sigma) else None,
             "provenance": p.provenance, "updated": p.updated, "width": width, "height": height,
-            "model": m.to_dict()}, indent=1))
+            "model": m.to_dict(), **({"colour_cast": cast.to_dict()} if cast is not None else {})}, indent=1))
     else:
         q = m.quality
         print(_profile_line(0, p).split("] ", 1)[1])
@@ -122,6 +123,8 @@ def _show(args: argparse.Namespace, store) -> int:
         print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
         print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame"
               + (f", ±{q.field_sigma_ev:.3f} EV" if q and math.isfinite(q.field_sigma_ev) else ""))
+        if cast is not None:
+            print(f"  colour cast {cast.describe()}; reported, not corrected")
         print("  (--json prints the whole model)")
     if args.plot:
         write_image(args.plot, falloff_figure(m, title=str(p.key)), bit_depth="uint8", transfer="srgb")
