@@ -87,9 +87,6 @@ def test_profile_learn_refuses_an_unnamed_lens_on_an_interchangeable_lens_body(t
 
 # ------------------------------------------------------------------ profiles that travel
 @pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
-@pytest.mark.xfail(strict=True, reason="open bug: ProfileStore.learn refits from the evidence this store holds "
-                   "only, dropping an imported profile's frames; the information form alone is no fix (the "
-                   "import fixes the geometry a frame's information frees: sigma 1.4 EV)")
 def test_an_imported_trusted_profile_keeps_its_frames_when_it_learns_one_more(tmp_path) -> None:
     """A trusted profile exported from one store and imported into another is the prior
     of the frames learned there: one more frame of the lens left it as one frame's

@@ -82,6 +82,7 @@ def _later_copy(path: Path, folder: Path, *, days: int) -> Path:
 @dataclass
 class _InCamera:
     reason: str
+    evidence: str = "CanonCustom:PeripheralIlluminationCorr"
 
 
 def _key(**kw) -> LensKey:

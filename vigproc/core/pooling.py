@@ -232,8 +232,78 @@ def coefficients_model(c: np.ndarray, width: int, height: int, family: LensFamil
                             width, height)[0]
 
 
+def prior_coefficients(theta: np.ndarray, cov: np.ndarray, aspect: float,
+                       family: LensFamily | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A profile known without its frames (imported from a file, another store or a
+    calibration) as family coefficients with their covariance: what it adds to the
+    frames pooled after it (:func:`pool_family`'s ``prior``).
+
+    Its ln φ on the normalised field grid (:data:`vigproc.core.normalised.FIELD_GRID`²
+    points over a frame of aspect ``aspect``) is projected by least squares onto the
+    family's components at each point's ρ; the covariance follows to first order,
+    C = A J Σ Jᵀ Aᵀ (A the projection, J = ∂ ln φ / ∂θ̃). A centred, circular profile
+    (vigproc's own exports, lensfun's "pa" fields) is a point of the family and comes
+    back as the coefficients it was written from; an off-centre one is read as its
+    nearest radial field.
+
+    Parameters
+    ----------
+    theta : ndarray (12,)
+        Normalised parameters (:func:`vigproc.core.normalised.normalise`).
+    cov : ndarray (12, 12)
+        Their covariance; parameters an import fixed (zero variance) add no spread.
+    aspect : float
+        W/H of the profile's frames.
+    family : LensFamily, optional
+        Default: :func:`vigproc.core.lensfamily.profile_family`.
+
+    Returns
+    -------
+    coefficients : ndarray (K,)
+    covariance : ndarray (K, K)
+
+    Raises
+    ------
+    ModelError
+        θ or its covariance not finite, or G ≤ 0 on the frame.
+    """
+    from vigproc.core.normalised import _field_grid, log_field_and_jacobian
+
+    fam = family or profile_family()
+    theta = np.asarray(theta, dtype=np.float64)
+    cov = np.asarray(cov, dtype=np.float64)
+    if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(cov))):
+        raise ModelError("a prior profile needs finite parameters and covariance")
+    xs, ys = _field_grid(aspect)
+    F, J, gmin = log_field_and_jacobian(theta, xs, ys)
+    if not gmin > 0:
+        raise ModelError(f"the prior profile's geometric factor G falls to {gmin:.3g} inside the frame")
+    rho = np.hypot(*np.meshgrid(xs, ys)).ravel()
+    mean, basis = fam.profiles(rho)
+    A = np.linalg.pinv(basis)
+    c = A @ (F - mean)
+    AJ = A @ J
+    cov_c = AJ @ cov @ AJ.T
+    return c, 0.5 * (cov_c + cov_c.T)
+
+
+def _with_prior(c: np.ndarray, cov: np.ndarray, prior: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The frames' pooled coefficients ``(c, cov)`` combined with a prior profile's, both
+    Gaussian, in information form: Λ = Σ₀⁻¹ + Σ⁻¹, c = Λ⁻¹(Σ₀⁻¹c₀ + Σ⁻¹c). Directions the
+    prior does not constrain (zero information) are the frames' alone."""
+    c0, cov0 = (np.asarray(a, dtype=np.float64) for a in prior)
+    if c0.shape != c.shape or cov0.shape != cov.shape:
+        raise ModelError(f"a prior of {c0.size} coefficients cannot join {c.size}")
+    lam0 = np.linalg.pinv(0.5 * (cov0 + cov0.T), rcond=1e-10, hermitian=True)
+    lam = np.linalg.inv(cov)
+    total = lam0 + lam
+    out_cov = np.linalg.inv(total)
+    return out_cov @ (lam0 @ c0 + lam @ c), 0.5 * (out_cov + out_cov.T)
+
+
 def pool_family(fits: Sequence[FrameCoefficients], width: int, height: int,
-                family: LensFamily | None = None) -> VignettingModel:
+                family: LensFamily | None = None,
+                prior: tuple[np.ndarray, np.ndarray] | None = None) -> VignettingModel:
     """The profile of a lens from its frames' lens-family fits.
 
     Parameters
@@ -244,6 +314,12 @@ def pool_family(fits: Sequence[FrameCoefficients], width: int, height: int,
         Frame the returned model refers to.
     family : LensFamily, optional
         Default: :func:`vigproc.core.lensfamily.profile_family`.
+    prior : (ndarray (K,), ndarray (K, K)), optional
+        What was known of the lens before these frames (an imported profile,
+        :func:`prior_coefficients`): joined to the frames' robust centre in information
+        form, so an imported profile's frames keep their weight when the store learns
+        more of the lens (Bishop, *Pattern Recognition and Machine Learning*, 2006,
+        Eq. 2.116–2.117: the posterior of a Gaussian mean).
 
     Returns
     -------
@@ -263,6 +339,8 @@ def pool_family(fits: Sequence[FrameCoefficients], width: int, height: int,
         raise ModelError(f"fits with {np.asarray(fits[0].coefficients).size} coefficients cannot pool in a "
                          f"{fam.n_components}-component family")
     c, cov_c = pooled_coefficients(fits, scene_scatter(fam))
+    if prior is not None:
+        c, cov_c = _with_prior(c, cov_c, prior)
     model = coefficients_model(c, width, height, fam)
     theta = normalise(model)[0]
     # the model's parameters move with the coefficients through a least-squares fit:

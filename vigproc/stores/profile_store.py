@@ -50,6 +50,7 @@ from vigproc.stores.profile import (
     interpolate_profiles,
 )
 from vigproc.stores.profile_grid import GridPool, grid_from_column, grid_to_column, migration_grid
+from vigproc.stores.profile_prior import migration_profile_priors, read_prior, write_prior
 from vigproc.stores.profile_file import import_profile, profile_from_dict, profile_to_dict
 from vigproc.stores.profile_key import (
     DB_ENV,
@@ -245,7 +246,7 @@ MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _m
                                                                  _migration_7, _migration_8, _migration_9,
                                                                  _migration_10, _migration_11, _migration_12,
                                                                  _migration_13, migration_grid,
-                                                                 migration_cast_frames)
+                                                                 migration_cast_frames, migration_profile_priors)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
@@ -772,6 +773,9 @@ class ProfileStore(SQLiteFile):
             row_id = self._upsert(con, profile)
             # the stored evidence was replaced: no frame is pooled into it any more
             con.execute("DELETE FROM pooled_frames WHERE profile_id = ?", (row_id,))
+            # ... but what it says of the lens is the prior of the frames learned next
+            write_prior(con, row_id, profile.theta, profile.covariance, profile.n_frames, profile.provenance,
+                        _now())
             _drop_applied(con, profile.key)
 
         self._transact(f"storing {profile.key}", body)
@@ -799,8 +803,10 @@ class ProfileStore(SQLiteFile):
         frames is used, else the previous θ is kept; a warning is logged.
 
         Learning onto an imported profile: a profile with a covariance acts as prior
-        evidence; one without (no information) is superseded by the learned frames
-        (provenance becomes "learned"; the notes say so).
+        evidence, in the information sums and in the pooled refit of the frames'
+        evidence (:mod:`vigproc.stores.profile_prior`); one without (no information)
+        is superseded by the learned frames (provenance becomes "learned"; the notes
+        say so).
 
         Parameters
         ----------
@@ -1030,8 +1036,17 @@ class ProfileStore(SQLiteFile):
             fits.append(fit)
         if not fits:
             return None
+        prior = read_prior(con, row_id)
+        if prior is not None:  # an imported profile: its frames are not here, its information is
+            from vigproc.core.pooling import prior_coefficients
+
+            try:
+                prior = prior_coefficients(prior[0], prior[1], key.aspect_ratio, family)
+            except ModelError as exc:
+                logger.warning("profile %s: its imported profile cannot join the frames (%s)", key, exc)
+                prior = None
         try:
-            m = pool_family(fits, *frame_size, family=family)
+            m = pool_family(fits, *frame_size, family=family, prior=prior)
         except ModelError as exc:
             logger.warning("profile %s: pooling the frames failed (%s); keeping the pooled estimate", key, exc)
             return None
@@ -1287,7 +1302,8 @@ class ProfileStore(SQLiteFile):
         with self._errors("checking integrity"):
             rows = [str(r[0]) for r in self.con.execute("PRAGMA integrity_check(100)").fetchall()]
             if rows != ["ok"]:
-                problems.extend(line for r in rows for line in r.splitlines() if line.strip())
+                # damaged pages: reading the tables (the checks below) would fail on them
+                return [line for r in rows for line in r.splitlines() if line.strip()]
             problems.extend(f"foreign key violation: {r}" for r in self.con.execute("PRAGMA foreign_key_check").fetchall())
             if not problems:
                 for row in self.con.execute(f"SELECT {', '.join(_COLUMNS)} FROM profiles").fetchall():
