@@ -100,6 +100,24 @@ def test_store_pools_each_frame_once_and_reports(tmp_path):
     con.close()
 
 
+def test_the_report_follows_the_records_another_connection_adds(tmp_path):
+    """Each corrected frame of a trusted lens asks for the cast: the report is kept until
+    the lens's records change, here or in another process (a second store object)."""
+    rng = np.random.default_rng(5)
+    x, se = _frames(rng, 8)
+    db = tmp_path / "p.sqlite"
+    with ProfileStore(db) as reader, ProfileStore(db) as writer:
+        for i in range(5):
+            writer.learn(_key(), _model(), frame_id=f"f{i}", cast=_record(x[i], se[i]))
+        first = reader.cast_report(_key())
+        assert reader.cast_report(_key()) is first  # unchanged records: not pooled again
+        writer.learn(_key(), _model(), frame_id="f5", cast=_record(x[5], se[5]))
+        assert reader.cast_report(_key()).n_frames == first.n_frames + 1 == 6
+        plan = reader.con.execute("EXPLAIN QUERY PLAN SELECT frame, record FROM cast_frames WHERE profile_id = 1 "
+                                  "ORDER BY frame").fetchall()
+        assert any("cast_frames_by_profile" in str(row) for row in plan), plan
+
+
 def test_a_store_from_before_cast_records_opens_and_migrates(tmp_path):
     from vigproc.stores.profiles import SCHEMA_VERSION
 
@@ -107,7 +125,7 @@ def test_a_store_from_before_cast_records_opens_and_migrates(tmp_path):
     with ProfileStore(db) as st:
         st.learn(_key(), _model(), frame_id="old")
     con = sqlite3.connect(db)  # as vigproc left it before the cast records
-    con.execute("DROP TABLE cast_frames")
+    con.execute("DROP TABLE cast_frames")  # its index goes with it
     con.execute("DELETE FROM schema_version WHERE version > 14")
     con.commit()
     con.close()

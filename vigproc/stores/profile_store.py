@@ -239,6 +239,14 @@ def _migration_13(con: sqlite3.Connection) -> None:
             con.execute(f"ALTER TABLE applied_profiles ADD COLUMN {col} {kind}")
 
 
+def _migration_17(con: sqlite3.Connection) -> None:
+    """v17: the frames and cast records of a profile found by its id (the pooled refit,
+    the cast report and a profile's delete read them by profile; their primary keys
+    start with the frame)."""
+    con.execute("CREATE INDEX IF NOT EXISTS pooled_frames_by_profile ON pooled_frames (profile_id, frame)")
+    con.execute("CREATE INDEX IF NOT EXISTS cast_frames_by_profile ON cast_frames (profile_id, frame)")
+
+
 #: Numbered migrations: MIGRATIONS[i] brings the schema from version i to i + 1.
 #: Append a function for the next version; never edit a released one.
 MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _migration_2, _migration_3,
@@ -246,7 +254,8 @@ MIGRATIONS: tuple[Callable[[sqlite3.Connection], None], ...] = (_migration_1, _m
                                                                  _migration_7, _migration_8, _migration_9,
                                                                  _migration_10, _migration_11, _migration_12,
                                                                  _migration_13, migration_grid,
-                                                                 migration_cast_frames, migration_profile_priors)
+                                                                 migration_cast_frames, migration_profile_priors,
+                                                                 _migration_17)
 #: A profile is pooled from at most this many frames (:mod:`vigproc.core.pooling`): those
 #: with the smallest frame ids (content hashes, so a random sample that does not
 #: depend on the order frames arrive in).  Every frame refines the profile up to
@@ -460,6 +469,8 @@ class ProfileStore(SQLiteFile):
                  family: Any = None) -> None:
         # SHA-256 of a frame's evidence -> its lens-family fit: a long-lived learner fits each frame once
         self._fit_cache: dict[bytes, Any] = {}
+        # profile row id -> (what its cast records were when pooled, the pooled cast)
+        self._cast_cache: dict[int, tuple[tuple, Any]] = {}
         # the lens family profiles pool in (None: the shipped one); a benchmark passes
         # one without its test lenses
         self._family = family
@@ -653,7 +664,17 @@ class ProfileStore(SQLiteFile):
         _check_key(key, "cast_report")
         with self._errors(f"reading {key}'s colour cast"):
             row_id = self._row_id(self.con, key)
-            return None if row_id is None else read_cast(self.con, row_id)
+            if row_id is None:
+                return None
+            # every corrected frame of a trusted lens asks: pooled again only when its records changed
+            seen = tuple(self.con.execute("SELECT count(*), max(pooled), max(frame) FROM cast_frames "
+                                          "WHERE profile_id = ?", (row_id,)).fetchone())
+            cached = self._cast_cache.get(row_id)
+            if cached is not None and cached[0] == seen:
+                return cached[1]
+            report = read_cast(self.con, row_id)
+            self._cast_cache[row_id] = (seen, report)
+            return report
 
     def holds_frame(self, key: ProfileKey, frame_id: str) -> bool:
         """Whether the frame with content id ``frame_id`` was pooled into the profile
