@@ -12,7 +12,7 @@ import pytest
 
 from vigproc.core.pixels import (LOG_FLOOR, LUMA_709, NEGATIVE_FRACTION, as_channels_last, bin_mean, binned_coords,
                                  binned_log_copy, check_image, log_image, luminance)
-from vigproc.core.resample import area_matrix, resize_area
+from vigproc.core.resample import area_matrix, resize_area, resize_area_sums
 from vigproc.errors import InvalidImageError
 
 
@@ -147,3 +147,14 @@ def test_resize_area_keeps_means_and_box_averages():
     odd = resize_area(a, 3, 4)
     assert odd.shape == (3, 4) and odd.mean() == pytest.approx(a.mean())
     np.testing.assert_allclose(resize_area(np.full((5, 7), 2.5), 2, 3), 2.5)
+
+
+@pytest.mark.parametrize("shape, out", [((500, 333, 3), (240, 160)), ((7, 5), (3, 2)), ((101, 37, 2), (50, 36)),
+                                        ((9, 9), (9, 9)), ((3, 4), (8, 5))])
+def test_running_sums_resize_as_the_area_matrices_do(shape, out):
+    a = np.random.default_rng(4).random(shape) * 100
+    got = resize_area_sums(a, *out)
+    want = (resize_area(a, *out) if a.ndim == 2 else
+            np.stack([resize_area(a[..., c], *out) for c in range(a.shape[2])], axis=-1))
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)

@@ -44,7 +44,7 @@ import numpy as np
 
 from vigproc.core.colour_difference import grey_cast_de
 from vigproc.core.pixels import as_channels_last, require_size
-from vigproc.core.resample import resize_area
+from vigproc.core.resample import resize_area_sums
 from vigproc.errors import InvalidImageError
 
 log = logging.getLogger(__name__)
@@ -181,7 +181,7 @@ def _working_copy(img: np.ndarray, long_side: int) -> np.ndarray:
     if k <= 1:
         return np.asarray(a, dtype=np.float64)
     hh, ww = max(8, int(round(h / k))), max(8, int(round(w / k)))
-    return np.stack([resize_area(a[..., c], hh, ww) for c in range(3)], axis=-1)
+    return resize_area_sums(a, hh, ww)
 
 
 def _cauchy_slope(x: np.ndarray, y: np.ndarray, scale: float, c: float, iters: int) -> tuple[float, float]:
@@ -267,7 +267,7 @@ def detect_colour_cast(img: np.ndarray, *, channel_axis: int | None = -1, lumina
     if usable is not None:
         um = np.asarray(usable, dtype=np.float64)
         if um.shape != (h, w):
-            um = resize_area(um, h, w)
+            um = resize_area_sums(um, h, w)
         ok &= um > 0.999
     lg = np.log(np.maximum(wc, 1e-12))
     chroma = (lg[..., 0] - lg[..., 1], lg[..., 2] - lg[..., 1])
