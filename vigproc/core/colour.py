@@ -47,7 +47,7 @@ import logging
 import numpy as np
 
 from vigproc.core.fieldjson import check_field_dict, field_to_dict
-from vigproc.errors import ModelError
+from vigproc.errors import InvalidImageError, ModelError
 
 logger = logging.getLogger(__name__)
 
@@ -361,8 +361,6 @@ def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), 
     InvalidImageError
         Not H×W×3 (or more channels), or frames of different sizes.
     """
-    from vigproc.errors import InvalidImageError
-
     frames = list(img) if isinstance(img, (list, tuple)) else [img]
     shapes = {np.shape(f) for f in frames}
     if len(shapes) != 1:
@@ -445,8 +443,6 @@ def cfa_rgb(raw: np.ndarray, pattern: np.ndarray, colours: Sequence[str], black:
     InvalidImageError
         Not a 2×2 pattern of R, G and B phases (an X-Trans or a four-colour sensor).
     """
-    from vigproc.errors import InvalidImageError
-
     pat = np.asarray(pattern)
     names = [str(c).upper() for c in colours]
     if pat.shape != (2, 2) or any(not (0 <= int(i) < len(names)) for i in pat.ravel()):

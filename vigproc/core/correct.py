@@ -14,9 +14,10 @@ import numpy as np
 
 from vigproc.core._kernels.codes import correct_codes as correct_codes_rows
 from vigproc.core._kernels.correct import correct_rows
+from vigproc.core._kernels.field import log_field_grid
 from vigproc.errors import InvalidImageError
 from vigproc.core.pixels import as_channels_last
-from vigproc.core.model import VignettingModel, blackout_error
+from vigproc.core.model import VignettingModel, blackout_error, frame_coords
 
 
 #: Largest strength: 2 removes the fall-off twice over (the command line's bound too).
@@ -129,9 +130,6 @@ def gain_step(model: VignettingModel, width: int, height: int, tol: float = GAIN
 
 
 def _sample_rows(m: VignettingModel, width: int, height: int, rows: np.ndarray) -> np.ndarray:
-    from vigproc.core._kernels.field import log_field_grid
-    from vigproc.core.model import frame_coords
-
     out = np.empty((rows.shape[0], width))
     ys = frame_coords(height)[rows]
     log_field_grid(frame_coords(width), ys, m.center[0], m.center[1], *m.p,

@@ -32,8 +32,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from vigproc.core.colour import LUMA, planar_gradient
 from vigproc.core.fieldjson import check_field_dict, field_to_dict
 from vigproc.core.model import VignettingModel
+from vigproc.core.pixels import as_channels_last, luminance
 from vigproc.errors import InvalidImageError, ModelError
 
 SCHEMA = "vigproc.grid/1"
@@ -264,9 +266,6 @@ def flat_grid(frames: Sequence[np.ndarray], centers: Sequence[tuple[float, float
     InvalidImageError
         Frames of different sizes or not H×W×3.
     """
-    from vigproc.core.colour import planar_gradient
-    from vigproc.core.pixels import luminance
-
     frames = list(frames)
     shapes = {np.shape(f) for f in frames}
     if len(shapes) != 1 or len(next(iter(shapes))) != 3 or next(iter(shapes))[2] < 3:
@@ -347,9 +346,7 @@ class GridFieldModel(VignettingModel):
         InvalidImageError
             Bad strength or layout, or the result is not finite.
         """
-        from vigproc.core.colour import LUMA
         from vigproc.core.correct import _check_clip, _check_strength, correct  # Numba kernels: only when used
-        from vigproc.core.pixels import as_channels_last
 
         if self.grid is None:
             return correct(img, self, channel_axis=channel_axis, strength=strength, clip=clip)

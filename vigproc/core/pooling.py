@@ -65,7 +65,7 @@ from vigproc.core.family_fit import EVIDENCE_SETTINGS, FamilySettings, FrameCoef
     frame_coefficients, profile_to_model
 from vigproc.core.lensfamily import LensFamily, profile_family
 from vigproc.core.model import FitQuality, VignettingModel
-from vigproc.core.normalised import denormalise, normalise
+from vigproc.core.normalised import _field_grid, denormalise, log_field_and_jacobian, normalise
 from vigproc.core.robust import RobustWorkingCopy
 
 #: Method name of pooled profiles.
@@ -267,8 +267,6 @@ def prior_coefficients(theta: np.ndarray, cov: np.ndarray, aspect: float,
     ModelError
         θ or its covariance not finite, or G ≤ 0 on the frame.
     """
-    from vigproc.core.normalised import _field_grid, log_field_and_jacobian
-
     fam = family or profile_family()
     theta = np.asarray(theta, dtype=np.float64)
     cov = np.asarray(cov, dtype=np.float64)

@@ -32,6 +32,8 @@ least-squares", Comm. Statist. 1977 (IRLS).
 
 from __future__ import annotations
 
+import io
+import json
 import logging
 import math
 import time
@@ -52,6 +54,7 @@ from vigproc.core._kernels.field import log_field_grid
 from vigproc.core.pixels import binned_coords, binned_log_channels, binned_log_copy
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel, kw_field_and_jacobian
 from vigproc.core.scene import SceneFalloff, default_scene_falloff
+from vigproc.errors import InvalidImageError
 
 log = logging.getLogger(__name__)
 
@@ -641,8 +644,6 @@ def fit_joint(wcs: list[RobustWorkingCopy], settings: RobustSettings) -> tuple[n
     InvalidImageError
         No frames, frames of different bin grids, or too few usable bins.
     """
-    from vigproc.errors import InvalidImageError
-
     if not wcs:
         raise InvalidImageError("a joint fit needs at least one frame")
     if any(wc.L.shape != wcs[0].L.shape for wc in wcs):
@@ -677,8 +678,6 @@ def estimate_robust_joint(lums: list[np.ndarray], settings: RobustSettings = Rob
     InvalidImageError
         No frames, frames of different sizes, or too few usable pixels.
     """
-    from vigproc.errors import InvalidImageError
-
     if lums and any(lum.shape != lums[0].shape for lum in lums):
         raise InvalidImageError("a joint fit needs frames of one size")
     return joint_model([_scene_divided(lum, settings) for lum in lums], settings)
@@ -725,9 +724,6 @@ def reduced_luminance_evidence(lum: np.ndarray, d: int, width: int, height: int,
 
 
 def _evidence_bytes(wc: RobustWorkingCopy) -> bytes:
-    import io
-    import json
-
     buf = io.BytesIO()
     meta = json.dumps({"format": EVIDENCE_FORMAT, "radius": wc.radius, "width": wc.width, "height": wc.height})
     extra = {} if wc.channels is None else {"C": wc.channels.astype(np.float32), "Cvalid": wc.channels_valid}
@@ -748,9 +744,6 @@ def evidence_copy(blob: bytes) -> RobustWorkingCopy:
     ValueError
         Not such a blob, or inconsistent arrays.
     """
-    import io
-    import json
-
     try:
         with np.load(io.BytesIO(blob), allow_pickle=False) as z:
             meta = json.loads(bytes(z["meta"]).decode())

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import replace
+from dataclasses import fields, replace
 
+from vigproc.core.gridfield import GridField, GridFieldModel
 from vigproc.core.model import VignettingModel
 from vigproc.errors import InvalidImageError, ModelError
+from vigproc.pipeline.flat_grid import frame_grid
 
 log = logging.getLogger(__name__)
 
@@ -81,10 +83,6 @@ def cfa_flat_field(path: str | os.PathLike[str], width: int, height: int, *,
         cand = replace(out.candidate, colour=cf) if out.candidate is not None else None
         out = replace(out, colour=cf, candidate=cand)
     if with_grid:
-        from dataclasses import fields
-
-        from vigproc.core.gridfield import GridField, GridFieldModel
-        from vigproc.pipeline.flat_grid import frame_grid
 
         g = frame_grid(planes, m.candidate if m.candidate is not None else m, source="flat-field:cfa-grid")
         if g is not None:  # the planes' grid is the developed frame's, in relative coordinates

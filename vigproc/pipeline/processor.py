@@ -20,7 +20,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Container
 
+from vigproc.atomic import atomic_write_text
+from vigproc.core.preload import preload_numba
 from vigproc.errors import ImageReadError, MetadataError, ModelError, VigprocError
+from vigproc.io.incamera import read_in_camera
+from vigproc.io.provenance import read_provenance
+from vigproc.pipeline import learning
+from vigproc.pipeline.learning import (Learned, SteadyProfiles, capture_time, pooled_of, pooling_refusal,
+                                       prefer_profile)
 from vigproc.io.formats import IMAGE_SUFFIXES, WRITE_EXT_FORMAT  # noqa: F401  (IMAGE_SUFFIXES: re-exported)
 # the pieces a frame's path uses, in their own modules; re-exported here, where callers import them
 from vigproc.pipeline.choice import WEAK_EVIDENCE, choose_model, lens_hint, not_applied_reason  # noqa: F401
@@ -207,8 +214,6 @@ class Processor:
         here: a start that fails is met again, and reported, where the first file
         needs it.
         """
-        from vigproc.core.preload import preload_numba
-
         try:  # launched before the preloading thread runs: exiftool's launch forks
             if self._reader is None:
                 from vigproc.io.exif import ExifReader
@@ -368,8 +373,6 @@ class Processor:
                                          estimated=estimated)
             own = m if s.learn and res.source == "estimate" else None  # pooled as it is: not estimated twice
             if own is not None and steady is not None:
-                from vigproc.pipeline.learning import prefer_profile
-
                 m, chosen = prefer_profile(m, steady.latest, checked.shape[1], checked.shape[0])
                 if chosen is not None:  # before trust, the profile so far is surer than the frame
                     res.source, res.extra["profile_evidence"] = "profile-evidence", {**chosen, "own": own.to_dict()}
@@ -435,7 +438,6 @@ class Processor:
             raise VigprocError("cannot learn: the frame's lens is unknown (no usable EXIF)")
         if lens_key.lens is None and lens_key.make and lens_key.model:
             # the hot folder's rule: an unnamed lens pools under "?" with the body's other lenses
-            from vigproc.pipeline.learning import pooling_refusal
 
             if why := pooling_refusal(lens_key):
                 raise MetadataError(f"cannot learn: {why}")
@@ -516,8 +518,6 @@ class Processor:
     def _steady_profiles(self):
         """The store as correct mode reads it while learning: one revision of a trusted
         profile per series (:class:`vigproc.pipeline.learning.SteadyProfiles`)."""
-        from vigproc.pipeline.learning import SteadyProfiles
-
         if self.store is None:
             raise VigprocError("learning as you go needs a profile store")
         if self._steady is None or self._steady.store is not self.store:
@@ -534,7 +534,6 @@ class Processor:
         A frame the store cannot pool (too few usable bins, an invalid fit) is recorded as
         not pooled; a locked store, or a full disk under it, raises (the frame is tried
         again, and a frame pooled before is not pooled twice: ``frame_id``)."""
-        from vigproc.pipeline.learning import SETTLED_FRAMES, Learned, pooled_of, pooling_refusal
         from vigproc.stores.profiles import ProfileStoreError
 
         if self.store is None:
@@ -546,7 +545,7 @@ class Processor:
         h, w = img.shape[:2]
         try:
             key = self.store.key_for(lens_key, w, h)
-            if used is not None and used.key == key and used.n_frames >= SETTLED_FRAMES:
+            if used is not None and used.key == key and used.n_frames >= learning.SETTLED_FRAMES:  # read when used
                 return Learned.of(used, pooled=False, reason=f"the profile is settled ({used.n_frames} frames)")
             if frame_id is not None and self.store.holds_frame(key, frame_id):  # a rerun, a copy, a retry
                 done = Learned.of(self.store.get(key), pooled=False, reason="this content is already pooled")
@@ -623,8 +622,6 @@ class Processor:
         callable
             ``finish() -> FrameResult``.
         """
-        from vigproc.atomic import atomic_write_text
-
         s = self.settings
         t0 = time.perf_counter()
         path = Path(path)
@@ -750,14 +747,11 @@ class Processor:
             embedded = calibration_for(path, s.profile, tags)
         in_camera = None
         if s.in_camera == "respect" and (s.mode in ("correct", "learn") or (s.mode == "estimate" and self.judge_estimates)):
-            from vigproc.io.incamera import read_in_camera
-
             in_camera = read_in_camera(path, tags)
         if (s.mode in ("learn", "check") or s.learn) and frame_id is None and self.store is not None:
             frame_id = file_sha256(path)  # learn: pooled once; check: never its own reference
         captured = None
         if s.learn:  # where a series of the lens setting begins (pipeline.learning)
-            from vigproc.pipeline.learning import capture_time
 
             captured = capture_time(path, tags)
         return Frame(path, img, info, tags, lens_key, lens, frame_id, embedded, in_camera, captured)
@@ -794,7 +788,6 @@ class Processor:
             if refusal is not None:
                 res.extra["not_applied_rule"] = refusal.rule
         if s.mode == "check":  # what an examiner files beside the verdict (vigproc.io.provenance)
-            from vigproc.io.provenance import read_provenance
 
             whole = frame.tags is not self.reader  # else a host's stand-in reader
             res.extra["provenance"] = read_provenance(frame.path, frame.tags if whole else getattr(

@@ -26,15 +26,18 @@ import math
 import numbers
 import os
 import sqlite3
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
+from vigproc.core.cast_series import check_record
 from vigproc.core.colour import ColourPool
 from vigproc.core.gridfield import GridField
 from vigproc.core.information import _Exact, _Welford, _check_covariance, _scaled_pinv, frame_information
+from vigproc.core.lensfamily import profile_family
 from vigproc.core.model import VignettingModel
 from vigproc.core.normalised import FIELD_GRID, N_PARAMS, _field_and_jacobian, normalise
 from vigproc.errors import ModelError, ProfileStoreError, VigprocError
@@ -878,8 +881,6 @@ class ProfileStore(SQLiteFile):
                                         f"profile {key}")
             frame = replace(frame, grid=grid)
         if cast is not None:
-            from vigproc.core.cast_series import check_record
-
             try:
                 check_record(cast)
             except ValueError as exc:
@@ -1029,7 +1030,6 @@ class ProfileStore(SQLiteFile):
         frames' lens-family fits by :mod:`vigproc.core.pooling`, and how many frames it
         pooled; None when no frame's evidence gives a fit or the pooled model is not
         valid (the θ pooled from the frames' estimates stays)."""
-        from vigproc.core.lensfamily import profile_family
         from vigproc.core.pooling import pool_family
 
         family = self._family or profile_family()
@@ -1213,8 +1213,6 @@ class ProfileStore(SQLiteFile):
         ProfileStoreError
             Bad arguments, or the store cannot be read or written.
         """
-        import time
-
         _check_key(key, "series_revision")
         if profile is not None and (not isinstance(profile, Profile) or profile.key != key):
             raise ProfileStoreError(f"series_revision() needs a Profile of {key}")
