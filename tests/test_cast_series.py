@@ -118,6 +118,23 @@ def test_the_report_follows_the_records_another_connection_adds(tmp_path):
         assert any("cast_frames_by_profile" in str(row) for row in plan), plan
 
 
+def test_an_import_replacing_the_profile_drops_its_frames_casts(tmp_path):
+    """An import replaces the profile and drops its pooled frames: their cast records go
+    with them (a cast reported beside a profile none of its frames made is wrong)."""
+    from vigproc.stores.profile_file import profile_from_dict, profile_to_dict
+
+    rng = np.random.default_rng(6)
+    x, se = _frames(rng, 3)
+    with ProfileStore(tmp_path / "p.sqlite") as st:
+        for i in range(3):
+            st.learn(_key(), _model(), frame_id=f"f{i}", cast=_record(x[i], se[i]))
+        assert st.cast_report(_key()).n_frames == 3
+        st.put(profile_from_dict(profile_to_dict(st.get(_key()))))
+        assert st.cast_report(_key()) is None
+        st.learn(_key(), _model(), frame_id="f0", cast=_record(x[0], se[0]))  # learned again: counted again
+        assert st.cast_report(_key()).n_frames == 1
+
+
 def test_a_store_from_before_cast_records_opens_and_migrates(tmp_path):
     from vigproc.stores.profiles import SCHEMA_VERSION
 

@@ -797,6 +797,7 @@ class ProfileStore(SQLiteFile):
             row_id = self._upsert(con, profile)
             # the stored evidence was replaced: no frame is pooled into it any more
             con.execute("DELETE FROM pooled_frames WHERE profile_id = ?", (row_id,))
+            con.execute("DELETE FROM cast_frames WHERE profile_id = ?", (row_id,))  # their casts with them
             # ... but what it says of the lens is the prior of the frames learned next
             write_prior(con, row_id, profile.theta, profile.covariance, profile.n_frames, profile.provenance,
                         _now())
