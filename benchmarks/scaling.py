@@ -12,6 +12,12 @@ folder at once and the round is timed from the drop to the last ``done`` in the
 daemon's journal (its records, polled: no sleeping for a guessed time).  The
 *steady* rate leaves the first file per worker out (from the N-th done to the last).
 
+*Cores busy*: the CPU seconds of the daemon's whole process tree (the daemon, its workers,
+their exiftool processes and threads; ``/proc``) over the timed window, per second of it;
+for batch, the command's children's (``getrusage``). One worker already keeps more than
+one core busy (exiftool runs beside it, decode and encode overlap in threads), so N
+workers on a machine of C cores can gain at most about C / (one worker's cores busy).
+
 Batch: ``vigproc batch IN --mode correct -o OUT --workers N`` as a new process,
 timed whole (its pool's start-up included: what a user waits).
 """
@@ -20,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import os
+import resource
 import shutil
 import signal
 import subprocess
@@ -50,6 +57,7 @@ class Rounds:
     workers: int
     wall: list[float] = field(default_factory=list)
     steady: list[float] = field(default_factory=list)  # photos per second, first per worker left out
+    cores: list[float] = field(default_factory=list)  # CPU seconds per second of the round, its processes'
 
     @property
     def median_wall(self) -> float:
@@ -58,6 +66,10 @@ class Rounds:
     @property
     def median_steady(self) -> float:
         return float(np.median(self.steady)) if self.steady else float("nan")
+
+    @property
+    def median_cores(self) -> float:
+        return float(np.median(self.cores)) if self.cores else float("nan")
 
 
 @dataclass
@@ -140,13 +152,36 @@ def _wait_done(journal: Path, job: str, n: int, proc: subprocess.Popen, timeout:
     raise VigprocError(f"bench scaling: the daemon did not finish {n} files within {timeout:.0f} s")
 
 
+def tree_cpu_seconds(pid: int) -> float:
+    """CPU seconds (user + system) used so far by process ``pid`` and all its descendants,
+    the children they reaped included (Linux ``/proc``; ``proc(5)``, stat fields 14-17)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    stats: dict[int, tuple[int, float]] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # gone meanwhile
+            continue
+        stats[int(d.name)] = (int(fields[1]), sum(int(v) for v in fields[11:15]) / tick)
+    mine, grown = {pid}, True
+    while grown:
+        more = {p for p, (ppid, _) in stats.items() if ppid in mine and p not in mine}
+        mine |= more
+        grown = bool(more)
+    return sum(stats[p][1] for p in mine if p in stats)
+
+
 def _cli() -> list[str]:
     return [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
-def watch_round(files: Sequence[Path], warm: Sequence[Path], workers: int, root: Path) -> tuple[float, float]:
+def watch_round(files: Sequence[Path], warm: Sequence[Path], workers: int,
+                root: Path) -> tuple[float, float, float]:
     """One timed round of the daemon: (seconds from the drop to the last done, steady
-    photos per second). ``files`` and ``warm`` are moved into its folder (renames)."""
+    photos per second, cores busy). ``files`` and ``warm`` are moved into its folder
+    (renames)."""
     in_dir, out_dir, journal = root / "in", root / "out", root / "journal.sqlite"
     in_dir.mkdir(parents=True)
     cmd = [*_cli(), "watch", str(in_dir), "-o", str(out_dir), "--workers", str(workers), "--settle", "0.2",
@@ -159,10 +194,11 @@ def watch_round(files: Sequence[Path], warm: Sequence[Path], workers: int, root:
             for f in warm:
                 os.rename(f, in_dir / f.name)
             _wait_done(journal, "bench", k, proc, timeout=600 + PER_PHOTO_TIMEOUT * k)
-            t_drop = time.time()
+            cpu0, t_drop = tree_cpu_seconds(proc.pid), time.time()
             for f in files:
                 os.rename(f, in_dir / f.name)
             done = _wait_done(journal, "bench", n + k, proc, timeout=600 + PER_PHOTO_TIMEOUT * n)
+            cores = (tree_cpu_seconds(proc.pid) - cpu0) / max(time.time() - t_drop, 1e-9)
             proc.send_signal(signal.SIGTERM)
             proc.wait(timeout=120)
             proc = None
@@ -174,24 +210,28 @@ def watch_round(files: Sequence[Path], warm: Sequence[Path], workers: int, root:
     wall = mine[-1] - t_drop
     steady = (n - workers) / (mine[-1] - mine[workers - 1]) if n > workers and mine[-1] > mine[workers - 1] \
         else float("nan")
-    return wall, steady
+    return wall, steady, cores
 
 
-def batch_round(src: Path, n: int, workers: int, root: Path) -> float:
-    """One timed ``vigproc batch`` of the folder ``src`` (``n`` photographs): seconds."""
+def batch_round(src: Path, n: int, workers: int, root: Path) -> tuple[float, float]:
+    """One timed ``vigproc batch`` of the folder ``src`` (``n`` photographs): seconds and
+    cores busy."""
     out = root / "out"
     cmd = [*_cli(), "batch", str(src), "--mode", "correct", "-o", str(out), "--workers", str(workers),
            "--unapplied", "copy", "--no-progress"]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     res = subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                          timeout=600 + PER_PHOTO_TIMEOUT * n)
     seconds = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     made = sum(1 for p in out.rglob("*.vigproc.json"))
     if res.returncode != 0 or made < n:
         tail = " / ".join(res.stderr.decode("utf-8", "replace").strip().splitlines()[-3:])
         raise VigprocError(f"bench scaling: batch --workers {workers} exited {res.returncode} with {made} of {n} "
                            f"sidecars: {tail}")
-    return seconds
+    return seconds, cpu / max(seconds, 1e-9)
 
 
 def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rounds: int = 2,
@@ -225,11 +265,13 @@ def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rou
                         # distinct bytes: a warm-up file is never the content of a timed one
                         warm = [distinct_copy(master[i % len(master)], here / "stage" / f"warm{i}.jpg", -1 - i)
                                 for i in range(run.workers)]
-                        wall, steady = watch_round(files, [Path(p) for p in warm], run.workers, here / "run")
+                        wall, steady, cores = watch_round(files, [Path(p) for p in warm], run.workers,
+                                                          here / "run")
                         run.steady.append(steady)
                     else:
-                        wall = batch_round(root / "master", len(master), run.workers, here)
+                        wall, cores = batch_round(root / "master", len(master), run.workers, here)
                     run.wall.append(wall)
+                    run.cores.append(cores)
                     log.info("round %d: %s --workers %d: %.2f s", r + 1, run.frontend, run.workers, wall)
                     shutil.rmtree(here, ignore_errors=True)
         finally:
@@ -248,11 +290,15 @@ def format_result(r: ScalingResult) -> list[str]:
     ratio to one worker."""
     lines = [f"{r.photos} photographs, {r.megapixels:.1f} MP, median of {r.rounds} rounds (interleaved); "
              f"{r.cores} cores; load {r.load_before[0]:.1f} before, {r.load_after[0]:.1f} after",
-             f"{'front end':<10}{'workers':>8}{'seconds':>9}{'photos/s':>10}{'x 1 worker':>12}{'steady/s':>10}"]
+             f"{'front end':<10}{'workers':>8}{'seconds':>9}{'photos/s':>10}{'x 1 worker':>12}{'steady/s':>10}"
+             f"{'cores busy':>12}{'at most':>9}"]
     for run in r.runs:
         one = next((x for x in r.runs if x.frontend == run.frontend and x.workers == 1), None)
         ratio = one.median_wall / run.median_wall if one is not None else float("nan")
         steady = f"{run.median_steady:>10.2f}" if run.steady else f"{'':>10}"
+        # what the cores allow: N workers busy N times one worker's cores, up to the machine's
+        bound = (min(run.workers * one.median_cores, r.cores) / one.median_cores
+                 if one is not None and one.median_cores > 0 else float("nan"))
         lines.append(f"{run.frontend:<10}{run.workers:>8}{run.median_wall:>9.2f}{r.photos / run.median_wall:>10.2f}"
-                     f"{ratio:>12.2f}{steady}")
+                     f"{ratio:>12.2f}{steady}{run.median_cores:>12.2f}{bound:>9.2f}")
     return lines

@@ -47,3 +47,41 @@ def test_a_file_that_is_not_a_jpeg_is_refused(tmp_path):
     (tmp_path / "x.jpg").write_bytes(b"GIF89a")
     with pytest.raises(VigprocError):
         distinct_copy(tmp_path / "x.jpg", tmp_path / "y.jpg", 1)
+
+
+def test_a_process_trees_cpu_counts_its_grandchildren(tmp_path):
+    """The daemon's CPU is its workers' and their exiftool's too: a grandchild that
+    burns 0.3 s of CPU is counted, a process outside the tree is not."""
+    import sys
+    import time
+
+    from benchmarks.scaling import tree_cpu_seconds
+
+    burn = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass\ntime.sleep(30)"
+    parent = subprocess.Popen([sys.executable, "-c", f"import subprocess, sys, time\n"
+                               f"subprocess.Popen([sys.executable, '-c', {burn!r}])\ntime.sleep(30)"])
+    outside = subprocess.Popen([sys.executable, "-c", burn.replace("0.3", "2.0")])
+    try:
+        deadline = time.time() + 30
+        while (tree_cpu_seconds(parent.pid) < 0.3 or tree_cpu_seconds(outside.pid) < 2.0) and time.time() < deadline:
+            time.sleep(0.1)
+        got = tree_cpu_seconds(parent.pid)
+        # the grandchild's 0.3 s and two interpreters' start-up, not the outsider's 2 s
+        assert 0.3 <= got < 0.3 + 1.5
+        assert tree_cpu_seconds(outside.pid) >= 2.0
+    finally:
+        for p in (parent, outside):
+            p.kill()
+            p.wait()
+
+
+def test_the_table_bounds_n_workers_by_one_workers_cores():
+    from benchmarks.scaling import Rounds, ScalingResult, format_result
+
+    runs = [Rounds("watch", 1, wall=[10.0], steady=[1.0], cores=[1.25]),
+            Rounds("watch", 2, wall=[6.5], steady=[1.6], cores=[1.9])]
+    lines = format_result(ScalingResult(10, 100.0, 1, 2, (0.1, 0.1, 0.1), (0.2, 0.2, 0.2), runs))
+    assert "cores busy" in lines[1] and "at most" in lines[1]
+    one, two = lines[2].split(), lines[3].split()
+    assert one[-2:] == ["1.25", "1.00"]
+    assert two[-2:] == ["1.90", "1.60"]  # 2 cores / 1.25 cores of one worker
