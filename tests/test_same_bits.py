@@ -177,3 +177,22 @@ def test_reduced_codes_are_numpys_to_the_bit(depth, channels, shape, k):
     np.testing.assert_array_equal(hot, hot0)
     np.testing.assert_array_equal(dark, dark0)
     assert hot.any() and dark.any()
+
+
+def test_the_guessed_interval_is_the_binary_searchs():
+    """fill_geometry_pairs finds each bin's radius interval from a guess on evenly spaced
+    radii (vigproc/core/_kernels/geometry.py): the binary search's interval, for radii on
+    and between the grid points, beyond it, NaN, and radii not quite even."""
+    from vigproc.core._kernels.geometry import _locate, _locate_near
+
+    rng = np.random.default_rng(7)
+    even = np.linspace(0.0, 1.0, 65)
+    uneven = np.sort(np.concatenate([[0.0], rng.uniform(0.0, 1.3, 40)]))
+    shifted = np.linspace(0.25, 1.5, 33)
+    for xp in (even, uneven, shifted):
+        inv = (xp.size - 1) / (xp[-1] - xp[0])
+        xs = np.concatenate([rng.uniform(xp[0], xp[-1] * 1.2, 3000), xp, np.nextafter(xp, 0.0),
+                             np.nextafter(xp, 2.0), [xp[-1] * 5, np.nan]])
+        xs = xs[~(xs < xp[0])]  # the kernel's radii are at least the first
+        for x in xs:
+            assert _locate_near(x, xp, inv) == _locate(x, xp), (x, xp[:3])
