@@ -135,3 +135,64 @@ def test_centred_field_rms_from_one_quadrant_is_the_whole_grids(size):
                 m.field_ev_rms()
             continue
         assert m.field_ev_rms() == float(np.sqrt(np.mean(lf * lf)))
+
+
+def _reduce_codes_numpy(codes, lut, k, hot_code):
+    """The code-domain kernel's sums (vigproc/core/_kernels/codes.py) as NumPy: each block's
+    float64 sum in its pixels' order (row by row, left to right), the counts per pixel."""
+    h, w, c = codes.shape
+    hb, wb = h // k, w // k
+    blocks = codes[: hb * k, : wb * k].reshape(hb, k, wb, k, c)
+    acc = np.zeros((hb, wb, c))
+    for dy in range(k):
+        for dx in range(k):
+            acc += lut[blocks[:, dy, :, dx]].astype(np.float64)
+    top = blocks.max(axis=-1)
+    hot = (top >= hot_code).sum(axis=(1, 3))
+    dark = (top == 0).sum(axis=(1, 3))
+    return acc.astype(np.float32) * np.float32(1.0 / (k * k)), hot, dark
+
+
+@pytest.mark.parametrize("depth", ["uint8", "uint16"])
+@pytest.mark.parametrize("channels", [1, 3, 4])
+@pytest.mark.parametrize("shape,k", [((97, 131), 3), ((250, 333), 7), ((96, 144), 24), ((61, 45), 1)])
+def test_reduced_codes_are_numpys_to_the_bit(depth, channels, shape, k):
+    from vigproc.core._kernels.codes import reduce_codes
+
+    rng = np.random.default_rng(sum(shape) + k + channels)
+    top = np.iinfo(depth).max
+    codes = rng.integers(0, top + 1, shape + (channels,)).astype(depth)
+    codes[: shape[0] // 3, : shape[1] // 4] = 0  # black pixels and a saturated corner: the counts show
+    codes[-5:, -7:] = top
+    codes[shape[0] // 2, ::2, 0] = top
+    # a steep table (gamma 2.4): values over many binades, as a 16-bit gamma file has
+    lut = ((np.arange(top + 1) / top) ** 2.4).astype(np.float32)
+    hot_code = int(0.97 * top)
+    out = np.empty((shape[0] // k, shape[1] // k, channels), np.float32)
+    hot = np.zeros(out.shape[:2], np.int64)
+    dark = np.zeros(out.shape[:2], np.int64)
+    reduce_codes(codes, lut, k, hot_code, out, hot, dark)
+    out0, hot0, dark0 = _reduce_codes_numpy(codes, lut, k, hot_code)
+    np.testing.assert_array_equal(out.view(np.uint32), out0.view(np.uint32))
+    np.testing.assert_array_equal(hot, hot0)
+    np.testing.assert_array_equal(dark, dark0)
+    assert hot.any() and dark.any()
+
+
+def test_the_guessed_interval_is_the_binary_searchs():
+    """fill_geometry_pairs finds each bin's radius interval from a guess on evenly spaced
+    radii (vigproc/core/_kernels/geometry.py): the binary search's interval, for radii on
+    and between the grid points, beyond it, NaN, and radii not quite even."""
+    from vigproc.core._kernels.geometry import _locate, _locate_near
+
+    rng = np.random.default_rng(7)
+    even = np.linspace(0.0, 1.0, 65)
+    uneven = np.sort(np.concatenate([[0.0], rng.uniform(0.0, 1.3, 40)]))
+    shifted = np.linspace(0.25, 1.5, 33)
+    for xp in (even, uneven, shifted):
+        inv = (xp.size - 1) / (xp[-1] - xp[0])
+        xs = np.concatenate([rng.uniform(xp[0], xp[-1] * 1.2, 3000), xp, np.nextafter(xp, 0.0),
+                             np.nextafter(xp, 2.0), [xp[-1] * 5, np.nan]])
+        xs = xs[~(xs < xp[0])]  # the kernel's radii are at least the first
+        for x in xs:
+            assert _locate_near(x, xp, inv) == _locate(x, xp), (x, xp[:3])

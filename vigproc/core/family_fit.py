@@ -1235,7 +1235,8 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     uncertainty : bool
         False: no jackknife (σ NaN) and no fall-back, for a fit that is only compared
         with another (the default estimator's choice between fits reads its field alone);
-        its IRLS is over-relaxed (:data:`COMPARISON_RELAXATION`).
+        its IRLS is over-relaxed (:data:`COMPARISON_RELAXATION`), and its quality's
+        ``field_ev_rms`` and ``objective`` are NaN (not worked out).
     ev_checks : tuple of float
         Levels (EV) a caller compares the field's RMS + 2σ with: σ comes from the
         linearised jackknife (:func:`linear_jackknife`) unless the SNR or one of these
@@ -1281,10 +1282,12 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     scale = settings.sigma_scale if weighted else settings.grey_sigma_scale
     min_snr = settings.min_snr if weighted else settings.grey_min_snr
     # the error and σ are about the frame mean (a gain is free), so is the signal
-    spread = float(np.std(fam.log_profile(c, grid))) / _LN2
+    # a fit only compared with another is read for its field (or its coefficients) alone:
+    # its signal, field RMS and loss are not worked out
+    spread = float(np.std(fam.log_profile(c, grid))) / _LN2 if uncertainty else math.nan
     try:
         fit, conv_ev = profile_to_model(fam.mean + c @ fam.components, fam.radii, w, h)
-        ev_rms = fit.field_ev_rms()
+        ev_rms = fit.field_ev_rms() if uncertainty else math.nan
     except ModelError:
         fit, conv_ev, ev_rms = None, math.nan, math.nan
     # without the uncertainty (a fit only compared with another): no jackknife, never a fall-back
@@ -1298,10 +1301,13 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     snr = spread / sigma if sigma > 0 else math.inf
     confidence = _confidence(snr, min_snr)
     accept = snr >= min_snr or not uncertainty
-    residual = d - np.einsum("ij,j->i", a, c)  # einsum: no BLAS threads, the same bits in every process
+    objective = math.nan
+    if uncertainty:
+        residual = d - np.einsum("ij,j->i", a, c)  # einsum: no BLAS threads, the same bits in every process
+        objective = mean_cauchy_loss(residual, settings.sigma, wt)
     q = FitQuality(confidence=confidence, field_ev_rms=math.nan, field_sigma_ev=sigma, snr=snr,
                    fallback=not accept,
-                   objective=mean_cauchy_loss(residual, settings.sigma, wt),
+                   objective=objective,
                    iterations=settings.iterations,
                    seconds=time.perf_counter() - t0)
     if fit is None:

@@ -606,7 +606,9 @@ def _select(wc: RobustWorkingCopy, s: RobustSettings) -> tuple[np.ndarray, np.nd
     ``centred_z`` standard deviations, refit with the centre (and ellipticity) held
     near the frame centre (a circle) by tight priors, from the neutral start
     (measured better than warm-starting at the free fit)."""
-    theta, cov, info = fit_robust(wc, s)
+    # both fits start from the same robust quadratic start: made once
+    start = quadratic_start(wc, np.asarray(s.steps, dtype=np.int64))
+    theta, cov, info = fit_robust(wc, s, start)
     if not math.isfinite(s.centred_z):
         return theta, cov, info
     if s.selection == "shape":
@@ -615,7 +617,7 @@ def _select(wc: RobustWorkingCopy, s: RobustSettings) -> tuple[np.ndarray, np.nd
     else:
         z = centre_z(theta, cov)
         held = replace(s, sigma_center=s.centred_sigma_center)
-    return fit_robust(wc, held) if z < s.centred_z else (theta, cov, info)
+    return fit_robust(wc, held, start) if z < s.centred_z else (theta, cov, info)
 
 
 def _scene_divided(lum: np.ndarray, settings: RobustSettings, mask: np.ndarray | None = None) -> RobustWorkingCopy:

@@ -15,37 +15,54 @@ from numba import njit, prange
 from vigproc.core._kernels.correct import row_gains
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _reduce_rows(codes, lut, k, hot_code, j, wb, c, acc, nh, nd):
+    # block row j's sums into acc (wb·c), its hot and black pixel counts into nh, nd. Each
+    # block's sum runs row by row, left to right (the order fixes the float rounding).
+    # Inlined with c a literal (see reduce_codes) so that the channel loop unrolls: with c
+    # known only at run time the loop costs twice the lookups and adds it does
+    for y in range(j * k, j * k + k):
+        row = codes[y].reshape(-1)  # one contiguous line of w·c codes
+        for i in range(wb):
+            a = nh[i]
+            b = nd[i]
+            for dx in range(k):
+                p = (i * k + dx) * c
+                top = 0
+                for ch in range(c):
+                    v = row[p + ch]
+                    acc[i * c + ch] += lut[v]
+                    top = max(top, np.int64(v))
+                a += top >= hot_code
+                b += top == 0
+            nh[i] = a
+            nd[i] = b
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def reduce_codes(codes, lut, k, hot_code, out, hot, dark):
     """out[j, i, c] = mean of lut[codes] over the k×k block (j, i) (remainder dropped).
 
-    ``codes``: h×w×C integers; ``lut``: float32 table code → linear; ``out``:
-    (h//k)×(w//k)×C float32. Means in linear light, as binning a decoded frame gives.
-    Per block, ``hot`` counts the pixels with a channel at or above ``hot_code`` and
-    ``dark`` those whose channels are all code 0 (what the estimators mask per pixel).
+    ``codes``: h×w×C integers, C-contiguous; ``lut``: float32 table code → linear;
+    ``out``: (h//k)×(w//k)×C float32. Means in linear light, as binning a decoded frame
+    gives. Per block, ``hot`` counts the pixels with a channel at or above ``hot_code``
+    and ``dark`` those whose channels are all code 0 (what the estimators mask per pixel).
     """
     hb, wb, c = out.shape
     inv = np.float32(1.0 / (k * k))
     for j in prange(hb):
         acc = np.zeros(wb * c, dtype=np.float64)
-        for y in range(j * k, j * k + k):
-            row = codes[y]
-            for i in range(wb):
-                nh = 0
-                nd = 0
-                for x in range(i * k, i * k + k):
-                    top = 0
-                    for ch in range(c):
-                        v = row[x, ch]
-                        acc[i * c + ch] += lut[v]
-                        top = max(top, np.int64(v))
-                    if top >= hot_code:
-                        nh += 1
-                    if top == 0:
-                        nd += 1
-                hot[j, i] += nh
-                dark[j, i] += nd
+        nh = np.zeros(wb, dtype=np.int64)
+        nd = np.zeros(wb, dtype=np.int64)
+        if c == 3:  # the usual frames: the channel count a constant the compiler unrolls
+            _reduce_rows(codes, lut, k, hot_code, j, wb, 3, acc, nh, nd)
+        elif c == 1:
+            _reduce_rows(codes, lut, k, hot_code, j, wb, 1, acc, nh, nd)
+        else:
+            _reduce_rows(codes, lut, k, hot_code, j, wb, c, acc, nh, nd)
         for i in range(wb):
+            hot[j, i] += nh[i]
+            dark[j, i] += nd[i]
             for ch in range(c):
                 out[j, i, ch] = np.float32(acc[i * c + ch]) * inv
 

@@ -8,6 +8,10 @@ Python loop it replaces (the same bits, ``tests/test_estimator_kernels.py``). Wh
 is the loop's own cost: the pairs' data, regressors and IRLS scratch (about 2 MB a step for
 a 96-px working copy) made once a fit rather than at every step, and a dozen small NumPy
 calls a step (about 5 % of the off-centre path's user time, docs/benchmarks/speed.md).
+
+Numba caches this kernel with :func:`~vigproc.core._kernels.geometry.fill_geometry_pairs`
+compiled into it, and checks only this file's time stamp: a change to geometry.py
+needs a change here too, or the old code stays cached.
 """
 
 from __future__ import annotations

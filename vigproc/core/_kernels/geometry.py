@@ -36,6 +36,24 @@ def _locate(x, xp):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _locate_near(x, xp, inv_dx):
+    """:func:`_locate` for ``xp`` strictly increasing and about evenly spaced (1 /
+    ``inv_dx`` apart): started at (x − xp[0])·inv_dx and walked to the interval that holds x,
+    the same index as the binary search (a strictly increasing ``xp`` has one such
+    interval) in a step or two instead of log₂ n."""
+    n = xp.shape[0]
+    if not x < xp[n - 1]:  # also NaN: where the binary search ends for it
+        return n - 1 if x >= xp[n - 1] else _locate(x, xp)
+    g = (x - xp[0]) * inv_dx
+    lo = 0 if not g > 0.0 else (int(g) if g < n - 2 else n - 2)
+    while lo > 0 and xp[lo] > x:
+        lo -= 1
+    while xp[lo + 1] <= x:
+        lo += 1
+    return lo
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _interp_at(lo, x, xp, fp):
     """``np.interp(x, xp, fp)`` in the interval :func:`_locate` found (NumPy's formula and
     branches: the same bits)."""
@@ -96,6 +114,14 @@ def fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, s
     comp_tail = np.empty(K)
     for k in range(K):
         comp_tail[k] = (comps[k, R - 1] - comps[k, R - 2]) / step_last
+    # the profile's slope past ρ = 1 (its value at 1), looked up once
+    slope_1 = _interp_at(_locate(1.0, radii), 1.0, radii, slope_profile)
+    # the radii of the lens family are evenly spaced: each bin's interval found from a guess
+    # (any strictly increasing radii: the same interval as the binary search)
+    even = R >= 2
+    for r in range(R - 1):
+        even = even and radii[r + 1] > radii[r]
+    inv_dr = (R - 1) / (radii[R - 1] - radii[0]) if even else 0.0
     elliptical = E == 4
     e1 = geo[2] if elliptical else 0.0
     e2 = geo[3] if elliptical else 0.0
@@ -114,13 +140,13 @@ def fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, s
                 gx = dx
                 gy = dy
             past = max(rho - rlast, 0.0)
-            lo = _locate(rho, radii)  # one search for every profile at this bin
+            # one search for every profile at this bin
+            lo = _locate_near(rho, radii, inv_dr) if even else _locate(rho, radii)
             M[b] = _interp_at(lo, rho, radii, mean) + past * mean_tail
             for k in range(K):
                 J[k, b] = _interp_at(lo, rho, radii, comps[k]) + past * comp_tail[k]
             # the slope at min(ρ, 1): past the last radius, its last value
-            slope = _interp_at(lo, rho, radii, slope_profile) if rho < 1.0 else \
-                _interp_at(_locate(1.0, radii), 1.0, radii, slope_profile)
+            slope = _interp_at(lo, rho, radii, slope_profile) if rho < 1.0 else slope_1
             J[K, b] = -slope * gx / rho
             J[K + 1, b] = -slope * gy / rho
             if elliptical:
