@@ -171,3 +171,55 @@ def test_profile_learn_refuses_frames_already_corrected(tmp_path) -> None:
     assert "1 frame learned, 2 failed" in p.stdout
     with ProfileStore(db) as store:
         assert [pr.n_frames for pr in store.list()] == [1]
+
+
+# ------------------------------------------------------------------ corrected files opened by the next tool
+def _vignetting_opcodes(path) -> list[tuple[str, str]]:
+    from vigproc.io.dng_vignette import read_opcode_lists
+
+    return [(name, type(op).__name__) for name, lst in read_opcode_lists(path) for _, op in lst.decoded()]
+
+
+@pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
+def test_a_dng_output_carries_one_vignetting_correction_not_the_cameras_and_ours(tmp_path) -> None:
+    """`correct --output-format dng` appended its correction to the DNG's own opcodes: a
+    camera's FixVignetteRadial stayed beside the stored profile's GainMaps, and an output fed
+    back in got a second set of GainMaps (8, then 12: a raw converter applies every one),
+    while the TIFF of the same frame is corrected once (LibRaw ignores the opcodes). The
+    new correction now replaces the file's vignetting opcodes; the camera's others stay."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from dngfixture import make_dng
+
+    from vigproc.core.model import VignettingModel
+    from vigproc.io.dng_opcodes import Opcode, OpcodeList
+    from vigproc.io.dng_vignette import model_to_radial, read_opcode_lists
+
+    w, h = 256, 192
+    f = 0.9 * np.hypot(w, h) / 2
+    lens = VignettingModel(w, h, center=(6, -4), p=(f**-2, 0, f**-2), alpha=(0.02, 0.01, 0, 0, 0, 0, 0))
+    y, x = np.mgrid[0:h, 0:w] / max(w, h)
+    for i, g in enumerate([(0.05, 0.0), (0.0, -0.04), (-0.03, 0.03)]):  # three walls, lit a little unevenly
+        make_dng(tmp_path / f"wall{i}.dng", width=w, height=h, field=lens.field(), noise=0.001, seed=i,
+                 scene=np.full((h, w), 0.55) * (1 + g[0] * (x - 0.5) + g[1] * (y - 0.4)))
+    camera = Opcode(77, 0x01040000, 1, b"camera's own")  # an opcode vigproc does not know: kept
+    shot = tmp_path / "shot.dng"
+    make_dng(shot, width=w, height=h, field=lens.field(), noise=0.001, seed=7, opcode_lists={
+        3: OpcodeList((camera, model_to_radial(lens).opcode.to_opcode())).to_bytes()})
+    db = tmp_path / "p.sqlite"
+    p = _cli("profile", "--profile-db", str(db), "learn", "--method", "flat-field", *map(str, sorted(tmp_path.glob("wall*.dng"))))
+    assert p.returncode == 0, p.stdout + p.stderr
+    out = _cli("correct", str(shot), "-o", str(tmp_path / "a"), "--profile-db", str(db), "--no-learn",
+               "--output-format", "dng")
+    assert out.returncode == 0 and "stored-profile" in out.stdout, out.stdout + out.stderr
+    (first,) = (tmp_path / "a").glob("*.dng")
+    ops = _vignetting_opcodes(first)
+    assert ops == [("OpcodeList2", "GainMap")] * 4, ops  # the profile's per-plane maps, and nothing else
+    assert camera.to_bytes() in [o.to_bytes() for o in dict(read_opcode_lists(first))["OpcodeList3"]]
+    again = _cli("correct", str(first), "-o", str(tmp_path / "b"), "--profile-db", str(db), "--no-learn",
+                 "--output-format", "dng")
+    assert again.returncode == 0, again.stdout + again.stderr
+    (second,) = (tmp_path / "b").glob("*.dng")
+    assert _vignetting_opcodes(second) == ops
