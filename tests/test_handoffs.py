@@ -223,3 +223,58 @@ def test_a_dng_output_carries_one_vignetting_correction_not_the_cameras_and_ours
     assert again.returncode == 0, again.stdout + again.stderr
     (second,) = (tmp_path / "b").glob("*.dng")
     assert _vignetting_opcodes(second) == ops
+
+
+# ------------------------------------------------------------------ hostile profile files
+def _grid_profile_file(tmp_path):
+    """A `vigproc.profile/4` file of a lens learned from three flat frames, and a frame of it."""
+    import json
+
+    import OpenImageIO as oiio
+    from test_profile_grid import LENS, flat_frames, learn, lens_field
+
+    from vigproc.stores.profiles import ProfileStore, export_profile
+
+    db = tmp_path / "grid.sqlite"
+    learn(db)
+    with ProfileStore(db) as st:
+        (p,) = st.list()
+    f = tmp_path / "lens.json"
+    export_profile(p, f)
+    h, w = lens_field().shape[:2]
+    frame = tmp_path / "frame.tif"
+    out = oiio.ImageOutput.create(str(frame))
+    assert out.open(str(frame), oiio.ImageSpec(w, h, 3, "float"))
+    assert out.write_image((0.3 * np.exp(lens_field())).astype(np.float32)) and out.close()
+    assert LENS and flat_frames
+    return json.loads(f.read_text()), frame
+
+
+@pytest.mark.parametrize("ny, nx, ok", [(22, 33, True), (21, 33, True), (33, 33, False), (33, 22, False),
+                                        (2, 129, False)])
+def test_a_profile_file_whose_grid_is_of_another_frame_shape_is_refused(tmp_path, ny, nx, ok) -> None:
+    """A `/4` file of a 3:2 profile whose grid has the nodes of a square, a portrait or a strip
+    frame was applied: the grid (nodes on the frame's edges) stretched over the 3:2 frame, a
+    wrong correction written with exit 0. Such a file is now refused, by `correct --profile
+    FILE` and by `profile import`, with the reason; a grid whose short side rounds one node
+    differently (a frame of the same aspect) is still resampled and applied."""
+    import json
+
+    d, frame = _grid_profile_file(tmp_path)
+    assert d["aspect"] == "3:2" and np.shape(d["grid"]["info"]) == (22, 33, 3)
+    for k in ("info", "weighted"):  # nearest node: the same field, other node counts
+        a = np.asarray(d["grid"][k])
+        d["grid"][k] = a[np.linspace(0, 21, ny).round().astype(int)][:, np.linspace(0, 32, nx).round().astype(int)].tolist()
+    bad = tmp_path / "odd.json"
+    bad.write_text(json.dumps(d))
+    p = _cli("correct", str(frame), "-o", str(tmp_path / "out"), "--profile", str(bad),
+             env={"VIGPROC_PROFILE_DB": str(tmp_path / "p.sqlite")})
+    i = _cli("profile", "--profile-db", str(tmp_path / "b.sqlite"), "import", str(bad))
+    if ok:
+        assert p.returncode == 0 and "fall-off removed" in p.stdout, p.stdout + p.stderr
+        assert i.returncode == 0, i.stderr
+        return
+    assert p.returncode != 0 and i.returncode != 0, p.stdout + p.stderr + i.stderr
+    for r in (p, i):
+        assert "grid" in r.stderr and "3:2" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not list((tmp_path / "out").glob("*.tif"))
