@@ -278,3 +278,44 @@ def test_a_profile_file_whose_grid_is_of_another_frame_shape_is_refused(tmp_path
     for r in (p, i):
         assert "grid" in r.stderr and "3:2" in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert not list((tmp_path / "out").glob("*.tif"))
+
+
+# ------------------------------------------------------------------ what `profile show` says
+@pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
+def test_profile_show_says_a_flat_field_profile_corrects_the_cast_its_walls_show(tmp_path) -> None:
+    """Three tinted wall frames learned with `--method flat-field`: `profile show` said
+    "this lens shows a corner cast ...; reported, not corrected" while `correct` divides
+    every channel by the profile's measured field, which removes that very cast (the
+    corrected frame's corners are one colour with its centre). It now says the profile
+    corrects it (`--json`: `colour_cast.corrected`)."""
+    import json
+    import subprocess
+
+    import OpenImageIO as oiio
+    from test_profile_grid import flat_frames, lens_field
+
+    tags = ("-Make=Canon", "-Model=Canon EOS 6D", "-LensModel=EF24mm f/2.8 IS USM", "-FocalLength=24", "-FNumber=2.8")
+
+    def tif(path, arr):
+        out = oiio.ImageOutput.create(str(path))
+        assert out.open(str(path), oiio.ImageSpec(arr.shape[1], arr.shape[0], 3, "float"))
+        assert out.write_image(arr.astype(np.float32)) and out.close()
+        subprocess.run(["exiftool", "-q", "-m", "-overwrite_original", *tags, str(path)], check=True, capture_output=True)
+        return str(path)
+
+    walls = [tif(tmp_path / f"wall{i}.tif", f) for i, f in enumerate(flat_frames())]
+    scene = tif(tmp_path / "scene.tif", 0.3 * np.exp(lens_field()))
+    db = str(tmp_path / "p.sqlite")
+    assert _cli("profile", "--profile-db", db, "learn", "--method", "flat-field", *walls).returncode == 0
+    show = _cli("profile", "--profile-db", db, "show", "0")
+    assert show.returncode == 0 and "this lens shows a corner cast" in show.stdout, show.stdout + show.stderr
+    p = _cli("correct", scene, "-o", str(tmp_path / "out"), "--profile-db", db, "--no-learn", "--output-format",
+             "tiff-float")
+    assert p.returncode == 0 and "stored-profile" in p.stdout, p.stdout + p.stderr
+    out = oiio.ImageBuf(str(tmp_path / "out" / "scene.corrected.tif")).get_pixels(oiio.FLOAT).astype(np.float64)
+    h, w = out.shape[:2]
+    tint = np.log(out[:12, :12].mean((0, 1)) / out[h // 2 - 6:h // 2 + 6, w // 2 - 6:w // 2 + 6].mean((0, 1)))
+    assert np.ptp(tint) < 0.01, tint  # the corner is the centre's colour: the cast was corrected
+    assert "reported, not corrected" not in show.stdout and "corrected by the profile" in show.stdout, show.stdout
+    js = json.loads(_cli("profile", "--profile-db", db, "show", "0", "--json").stdout)
+    assert js["colour_cast"]["corrected"] is True
