@@ -319,3 +319,49 @@ def test_profile_show_says_a_flat_field_profile_corrects_the_cast_its_walls_show
     assert "reported, not corrected" not in show.stdout and "corrected by the profile" in show.stdout, show.stdout
     js = json.loads(_cli("profile", "--profile-db", db, "show", "0", "--json").stdout)
     assert js["colour_cast"]["corrected"] is True
+
+
+# ------------------------------------------------------------------ the writer thread, interrupted
+def test_correct_run_again_after_a_kill_leaves_no_temporary_behind(tmp_path) -> None:
+    """`correct` killed (SIGKILL) while its writer thread wrote a TIFF left the writer's
+    hidden temporary (`.NAME.jpg.corrected.tif.tmp-XXXX.tif`, 0 bytes, seen on a real
+    run), and running the same command again left it there for good (`batch` and `watch`
+    sweep theirs). The rerun now removes its own files' temporaries, and no other file."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    srcs = [str(_textured_jpeg(tmp_path / f"f{i}.jpg", 600, 400, seed=i)) for i in range(6)]
+    out = tmp_path / "out"
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "VIGPROC_HOOK_SERVER": "off",
+           "VIGPROC_PROFILE_DB": str(tmp_path / "p.sqlite")}
+    args = [sys.executable, "-m", "vigproc.frontends.cli", "correct", *srcs, "-o", str(out), "--profile", "estimate",
+            "--output-format", "tiff16", "--unapplied", "write"]
+    left = []
+    for _ in range(20):  # kill it until a writer's temporary is caught (a few ms of each file's write)
+        p = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+        t0 = time.monotonic()
+        while p.poll() is None and time.monotonic() - t0 < 120:
+            left = [n for n in os.listdir(out)] if out.is_dir() else []
+            left = [n for n in left if n.startswith(".") and ".tmp-" in n]
+            if left:
+                os.kill(p.pid, signal.SIGKILL)
+                break
+            time.sleep(0.002)
+        p.wait()
+        if left and all((out / n).exists() for n in left):
+            break
+    if not left:
+        pytest.skip("no run was caught writing a temporary on this machine")
+    stranger = out / ".someone-else.tmp-1234.tif"  # not a temporary of this run's inputs
+    stranger.write_bytes(b"x")
+    again = _cli("correct", *srcs, "-o", str(out), "--profile", "estimate", "--output-format", "tiff16",
+                 "--unapplied", "write", env={"VIGPROC_PROFILE_DB": str(tmp_path / "p.sqlite")})
+    assert again.returncode == 0, again.stdout + again.stderr
+    names = sorted(os.listdir(out))
+    assert [n for n in names if n.startswith(".")] == [stranger.name], names
+    assert len([n for n in names if n.endswith(".corrected.tif")]) == 6

@@ -9,6 +9,7 @@ is applied; a corrected frame checked against what its format holds.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import logging
@@ -269,6 +270,33 @@ def sweep_temporaries(root: str | os.PathLike[str], rels: Iterable[str | os.Path
                         os.unlink(e.path)
                     except OSError:
                         continue
+                    removed += 1
+    return removed
+
+
+def sweep_flat_temporaries(outdir: str | os.PathLike[str], files: Sequence[Path], stems: Sequence[str]) -> int:
+    """Remove the temporaries killed writers left in ``outdir`` for the outputs of a flat
+    run (``correct``: every output in one folder, named from ``stems``, :func:`output_stems`).
+
+    Only hidden names carrying a temporary marker and made from one of these inputs'
+    :func:`temp_key` are removed. Call it only when nothing writes these outputs.
+
+    Returns
+    -------
+    int
+        Files removed.
+    """
+    keys = {temp_key(stem, f) for f, stem in zip(files, stems)}
+    removed = 0
+    try:
+        entries = os.scandir(outdir)
+    except OSError:
+        return 0
+    with entries:
+        for e in entries:
+            if temporary_keys(e.name) & keys and e.is_file(follow_symlinks=False):
+                with contextlib.suppress(OSError):
+                    os.unlink(e.path)
                     removed += 1
     return removed
 
