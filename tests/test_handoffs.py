@@ -365,3 +365,25 @@ def test_correct_run_again_after_a_kill_leaves_no_temporary_behind(tmp_path) -> 
     names = sorted(os.listdir(out))
     assert [n for n in names if n.startswith(".")] == [stranger.name], names
     assert len([n for n in names if n.endswith(".corrected.tif")]) == 6
+
+
+def test_profile_import_names_the_lens_as_profile_list_does(tmp_path) -> None:
+    """A lens whose EXIF name holds a "|" ("EF | 24mm") is stored escaped ("ef %7C 24mm",
+    so it cannot forge a key component); `profile list` shows it as the EXIF spells it,
+    `profile import` printed the escape."""
+    from vigproc.core.normalised import denormalise
+    from vigproc.stores.profiles import ProfileStore, export_profile
+
+    meta = {"EXIF:Make": "Canon", "EXIF:Model": "Canon EOS 6D", "EXIF:LensModel": "EF | 24mm", "EXIF:FocalLength": 24,
+            "EXIF:FNumber": 2.8}
+    theta = np.array([0.02, -0.01, 0.9, 0.02, 0.85, 0.05, 0.1, -0.05, 0.02, 0.0, 0.0, 0.0])
+    with ProfileStore(tmp_path / "a.sqlite") as store:
+        key = store.key_for(lens_key_from_metadata(meta), 3000, 2000)
+        assert "%7C" in key.lens_id
+        store.learn(key, denormalise(theta, np.diag(np.full(12, 1e-6)), 3000, 2000, method="robust"))
+        (p,) = store.list()
+        export_profile(p, tmp_path / "lens.json")
+    i = _cli("profile", "--profile-db", str(tmp_path / "b.sqlite"), "import", str(tmp_path / "lens.json"))
+    shown = _cli("profile", "--profile-db", str(tmp_path / "b.sqlite"), "list")
+    assert i.returncode == 0 and shown.returncode == 0, i.stderr + shown.stderr
+    assert "ef | 24mm" in shown.stdout and "ef | 24mm" in i.stdout and "%7C" not in i.stdout, i.stdout

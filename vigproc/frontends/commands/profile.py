@@ -169,7 +169,7 @@ def _learn(args: argparse.Namespace, store) -> int:
 def _import(args: argparse.Namespace, store) -> int:
     """``profile import FILE``: a profile file (JSON, profiles/README.md) into the store."""
     p = store.import_file(args.file)
-    print(f"imported {p.key}")
+    print(f"imported {str(p.key).replace(p.key.lens_id, display_lens_id(p.key.lens_id), 1)}")  # as list shows it
     return 0
 
 
