@@ -387,3 +387,20 @@ def test_profile_import_names_the_lens_as_profile_list_does(tmp_path) -> None:
     shown = _cli("profile", "--profile-db", str(tmp_path / "b.sqlite"), "list")
     assert i.returncode == 0 and shown.returncode == 0, i.stderr + shown.stderr
     assert "ef | 24mm" in shown.stdout and "ef | 24mm" in i.stdout and "%7C" not in i.stdout, i.stdout
+
+
+def test_the_sweep_after_correct_keeps_another_runs_temporaries(tmp_path) -> None:
+    """Phone names share long prefixes (IMG_20240101_...): a run's sweep must not take the
+    temporary another run is writing into the same folder now."""
+    from pathlib import Path
+
+    from vigproc.pipeline.outputs import sweep_flat_temporaries
+
+    mine = Path("IMG_20240101_101500.jpg")
+    (tmp_path / ".IMG_20240101_101500.jpg.corrected.tif.tmp-ab12cd.tif").write_bytes(b"")  # a killed run's, of mine
+    (tmp_path / "..IMG_20240101_101500.corrected.jpg.tmp-x.jpg.meta-y").write_bytes(b"")  # inside a temporary
+    other = tmp_path / ".IMG_20240101_101501.jpg.corrected.tif.tmp-ef34gh.tif"  # another run's, being written
+    other.write_bytes(b"")
+    (tmp_path / "IMG_20240101_101500.jpg.corrected.tif").write_bytes(b"x")  # an output is never a temporary
+    assert sweep_flat_temporaries(tmp_path, [mine], ["IMG_20240101_101500.jpg"]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == [other.name, "IMG_20240101_101500.jpg.corrected.tif"]
