@@ -404,3 +404,28 @@ def test_the_sweep_after_correct_keeps_another_runs_temporaries(tmp_path) -> Non
     (tmp_path / "IMG_20240101_101500.jpg.corrected.tif").write_bytes(b"x")  # an output is never a temporary
     assert sweep_flat_temporaries(tmp_path, [mine], ["IMG_20240101_101500.jpg"]) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == [other.name, "IMG_20240101_101500.jpg.corrected.tif"]
+
+
+def test_stacked_cfa_gain_maps_multiply_as_the_dng_specification_applies_them() -> None:
+    """Two sets of per-phase GainMaps in one OpcodeList2 (what `correct --output-format dng`
+    wrote for an output fed back in, before it replaced the file's maps) are applied one
+    after the other by a raw converter: their gains multiply. vigproc's reader averaged
+    every map of a colour, so it read two stacked corrections as one (0.51 EV for both)."""
+    from vigproc.core.colour import ColourField
+    from vigproc.core.model import VignettingModel
+    from vigproc.io.dng_opcodes import OpcodeList
+    from vigproc.io.dng_vignette import EmbeddedCalibration, model_to_gain_maps
+
+    w, h = 240, 160
+    f = 0.8 * np.hypot(w, h) / 2
+    m = VignettingModel(w, h, center=(5, -3), p=(f**-2, 0, f**-2), alpha=(0.02, 0.01, 0, 0, 0, 0, 0))
+    m = VignettingModel(w, h, center=m.center, p=m.p, alpha=m.alpha,
+                        colour=ColourField(w, h, center=(5, -3), coeffs=np.array([[-0.1, 0.0, 0.1]] + [[0.0] * 3] * 2)))
+    pattern = ((0, 1), (1, 2))
+    maps = [g.to_opcode() for g in model_to_gain_maps(m, cfa_pattern=pattern)]
+    one = EmbeddedCalibration.from_lists([("OpcodeList2", OpcodeList(tuple(maps)))], "one", cfa_pattern=pattern)
+    two = EmbeddedCalibration.from_lists([("OpcodeList2", OpcodeList(tuple(maps * 2)))], "two", cfa_pattern=pattern)
+    for c in (0, 1, 2, None):
+        g1, g2 = one.log_gain(w, h, c), two.log_gain(w, h, c)
+        assert np.abs(g1).max() > 0.1
+        np.testing.assert_allclose(g2, 2 * g1, atol=1e-9)

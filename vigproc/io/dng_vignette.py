@@ -294,9 +294,9 @@ class EmbeddedCalibration:
             centres here with the full frame's size.
 
         The opcodes multiply: their log gains add.  CFA GainMaps (pitch > 1, one per
-        Bayer phase) give each channel the mean of the phases of its colour (two
-        greens in a Bayer pattern) when the CFA pattern is known, else the mean of all
-        phases; an RGB GainMap gives each channel its plane.
+        Bayer phase; several of one phase multiply) give each channel the mean of the
+        phases of its colour (two greens in a Bayer pattern) when the CFA pattern is
+        known, else the mean of all phases; an RGB GainMap gives each channel its plane.
 
         Raises
         ------
@@ -325,8 +325,13 @@ class EmbeddedCalibration:
                 a = op.area
                 planes = [p for p in range(a.plane, a.plane + a.planes) if p < 3] or [a.plane]
                 out += sum(lg(eo, p) for p in planes) / len(planes)
+        phases: dict[tuple[int, int, int], np.ndarray] = {}  # maps of a phase multiply; phases average
         for eo in cfa:
-            out += lg(eo, eo.opcode.area.plane) / len(cfa)
+            a = eo.opcode.area
+            k = (a.top % a.row_pitch, a.left % a.col_pitch, a.plane)
+            phases[k] = phases.get(k, 0.0) + lg(eo, a.plane)
+        for v in phases.values():
+            out += v / len(phases)
         return out
 
     def phase_colour(self, op: GainMap) -> int | None:
@@ -849,13 +854,10 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
     (:func:`model_to_gain_maps`): one per CFA phase in OpcodeList2 of a CFA DNG, one of
     three planes in OpcodeList3 otherwise.
 
-    The opcode is appended to the raw IFD's existing list (a raw converter applies it
-    after the camera's own opcodes), and it *replaces* the file's own vignetting opcodes
-    (FixVignetteRadial, GainMap, in any of OpcodeList1-3): vigproc develops DNGs with
-    LibRaw, which ignores them, so the model corrects the whole fall-off, as it does in a
-    TIFF of the frame; kept, a raw converter would apply both (a camera's calibration and
-    the model, or an earlier output's correction and this one).  Other opcodes stay.
-    A model that *is* the DNG's own
+    The opcode is appended to the raw IFD's list, after the camera's other opcodes; it
+    *replaces* the file's own vignetting opcodes (in OpcodeList1-3): LibRaw, which vigproc
+    develops with, ignores them, so the model corrects the whole fall-off (as in a TIFF);
+    kept, a raw converter would correct twice.  A model that *is* the DNG's own
     calibration (``method`` ``dng:...``) adds nothing: the copy is written without a
     new opcode.  DNGBackwardVersion is raised to 1.3.0.0 when lower (the version that
     defines opcodes).  The copy is made in ``dst``'s folder, edited there by exiftool,
@@ -899,7 +901,6 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
         info["note"] = "the correction is the file's own calibration: nothing added"
         new = lists.get("OpcodeList3", OpcodeList())
     else:
-        # the file's own vignetting opcodes go: the model corrects the fall-off LibRaw left in
         kept = {n: OpcodeList(tuple(op for op in lst if op.opcode_id not in (FIX_VIGNETTE_RADIAL, GAIN_MAP)))
                 for n, lst in lists.items()}
         writes = {n: lst for n, lst in kept.items() if len(lst) != len(lists[n])}
