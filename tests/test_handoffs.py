@@ -226,8 +226,10 @@ def test_a_dng_output_carries_one_vignetting_correction_not_the_cameras_and_ours
 
 
 # ------------------------------------------------------------------ hostile profile files
-def _grid_profile_file(tmp_path):
+@pytest.fixture(scope="module")
+def grid_profile_file(tmp_path_factory):
     """A `vigproc.profile/4` file of a lens learned from three flat frames, and a frame of it."""
+    tmp_path = tmp_path_factory.mktemp("gridfile")
     import json
 
     import OpenImageIO as oiio
@@ -252,7 +254,8 @@ def _grid_profile_file(tmp_path):
 
 @pytest.mark.parametrize("ny, nx, ok", [(22, 33, True), (21, 33, True), (33, 33, False), (33, 22, False),
                                         (2, 129, False)])
-def test_a_profile_file_whose_grid_is_of_another_frame_shape_is_refused(tmp_path, ny, nx, ok) -> None:
+def test_a_profile_file_whose_grid_is_of_another_frame_shape_is_refused(grid_profile_file, tmp_path, ny, nx,
+                                                                         ok) -> None:
     """A `/4` file of a 3:2 profile whose grid has the nodes of a square, a portrait or a strip
     frame was applied: the grid (nodes on the frame's edges) stretched over the 3:2 frame, a
     wrong correction written with exit 0. Such a file is now refused, by `correct --profile
@@ -260,7 +263,8 @@ def test_a_profile_file_whose_grid_is_of_another_frame_shape_is_refused(tmp_path
     differently (a frame of the same aspect) is still resampled and applied."""
     import json
 
-    d, frame = _grid_profile_file(tmp_path)
+    d, frame = grid_profile_file
+    d = json.loads(json.dumps(d))  # this test's own copy
     assert d["aspect"] == "3:2" and np.shape(d["grid"]["info"]) == (22, 33, 3)
     for k in ("info", "weighted"):  # nearest node: the same field, other node counts
         a = np.asarray(d["grid"][k])
