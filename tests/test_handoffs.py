@@ -171,3 +171,265 @@ def test_profile_learn_refuses_frames_already_corrected(tmp_path) -> None:
     assert "1 frame learned, 2 failed" in p.stdout
     with ProfileStore(db) as store:
         assert [pr.n_frames for pr in store.list()] == [1]
+
+
+# ------------------------------------------------------------------ corrected files opened by the next tool
+def _vignetting_opcodes(path) -> list[tuple[str, str]]:
+    from vigproc.io.dng_vignette import read_opcode_lists
+
+    return [(name, type(op).__name__) for name, lst in read_opcode_lists(path) for _, op in lst.decoded()]
+
+
+@pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
+def test_a_dng_output_carries_one_vignetting_correction_not_the_cameras_and_ours(tmp_path) -> None:
+    """`correct --output-format dng` appended its correction to the DNG's own opcodes: a
+    camera's FixVignetteRadial stayed beside the stored profile's GainMaps, and an output fed
+    back in got a second set of GainMaps (8, then 12: a raw converter applies every one),
+    while the TIFF of the same frame is corrected once (LibRaw ignores the opcodes). The
+    new correction now replaces the file's vignetting opcodes; the camera's others stay."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from dngfixture import make_dng
+
+    from vigproc.core.model import VignettingModel
+    from vigproc.io.dng_opcodes import Opcode, OpcodeList
+    from vigproc.io.dng_vignette import model_to_radial, read_opcode_lists
+
+    w, h = 256, 192
+    f = 0.9 * np.hypot(w, h) / 2
+    lens = VignettingModel(w, h, center=(6, -4), p=(f**-2, 0, f**-2), alpha=(0.02, 0.01, 0, 0, 0, 0, 0))
+    y, x = np.mgrid[0:h, 0:w] / max(w, h)
+    for i, g in enumerate([(0.05, 0.0), (0.0, -0.04), (-0.03, 0.03)]):  # three walls, lit a little unevenly
+        make_dng(tmp_path / f"wall{i}.dng", width=w, height=h, field=lens.field(), noise=0.001, seed=i,
+                 scene=np.full((h, w), 0.55) * (1 + g[0] * (x - 0.5) + g[1] * (y - 0.4)))
+    camera = Opcode(77, 0x01040000, 1, b"camera's own")  # an opcode vigproc does not know: kept
+    shot = tmp_path / "shot.dng"
+    make_dng(shot, width=w, height=h, field=lens.field(), noise=0.001, seed=7, opcode_lists={
+        3: OpcodeList((camera, model_to_radial(lens).opcode.to_opcode())).to_bytes()})
+    db = tmp_path / "p.sqlite"
+    p = _cli("profile", "--profile-db", str(db), "learn", "--method", "flat-field", *map(str, sorted(tmp_path.glob("wall*.dng"))))
+    assert p.returncode == 0, p.stdout + p.stderr
+    out = _cli("correct", str(shot), "-o", str(tmp_path / "a"), "--profile-db", str(db), "--no-learn",
+               "--output-format", "dng")
+    assert out.returncode == 0 and "stored-profile" in out.stdout, out.stdout + out.stderr
+    (first,) = (tmp_path / "a").glob("*.dng")
+    ops = _vignetting_opcodes(first)
+    assert ops == [("OpcodeList2", "GainMap")] * 4, ops  # the profile's per-plane maps, and nothing else
+    assert camera.to_bytes() in [o.to_bytes() for o in dict(read_opcode_lists(first))["OpcodeList3"]]
+    again = _cli("correct", str(first), "-o", str(tmp_path / "b"), "--profile-db", str(db), "--no-learn",
+                 "--output-format", "dng")
+    assert again.returncode == 0, again.stdout + again.stderr
+    (second,) = (tmp_path / "b").glob("*.dng")
+    assert _vignetting_opcodes(second) == ops
+
+
+# ------------------------------------------------------------------ hostile profile files
+@pytest.fixture(scope="module")
+def grid_profile_file(tmp_path_factory):
+    """A `vigproc.profile/4` file of a lens learned from three flat frames, and a frame of it."""
+    tmp_path = tmp_path_factory.mktemp("gridfile")
+    import json
+
+    import OpenImageIO as oiio
+    from test_profile_grid import LENS, flat_frames, learn, lens_field
+
+    from vigproc.stores.profiles import ProfileStore, export_profile
+
+    db = tmp_path / "grid.sqlite"
+    learn(db)
+    with ProfileStore(db) as st:
+        (p,) = st.list()
+    f = tmp_path / "lens.json"
+    export_profile(p, f)
+    h, w = lens_field().shape[:2]
+    frame = tmp_path / "frame.tif"
+    out = oiio.ImageOutput.create(str(frame))
+    assert out.open(str(frame), oiio.ImageSpec(w, h, 3, "float"))
+    assert out.write_image((0.3 * np.exp(lens_field())).astype(np.float32)) and out.close()
+    assert LENS and flat_frames
+    return json.loads(f.read_text()), frame
+
+
+@pytest.mark.parametrize("ny, nx, ok", [(22, 33, True), (21, 33, True), (33, 33, False), (33, 22, False),
+                                        (2, 129, False)])
+def test_a_profile_file_whose_grid_is_of_another_frame_shape_is_refused(grid_profile_file, tmp_path, ny, nx,
+                                                                         ok) -> None:
+    """A `/4` file of a 3:2 profile whose grid has the nodes of a square, a portrait or a strip
+    frame was applied: the grid (nodes on the frame's edges) stretched over the 3:2 frame, a
+    wrong correction written with exit 0. Such a file is now refused, by `correct --profile
+    FILE` and by `profile import`, with the reason; a grid whose short side rounds one node
+    differently (a frame of the same aspect) is still resampled and applied."""
+    import json
+
+    d, frame = grid_profile_file
+    d = json.loads(json.dumps(d))  # this test's own copy
+    assert d["aspect"] == "3:2" and np.shape(d["grid"]["info"]) == (22, 33, 3)
+    for k in ("info", "weighted"):  # nearest node: the same field, other node counts
+        a = np.asarray(d["grid"][k])
+        d["grid"][k] = a[np.linspace(0, 21, ny).round().astype(int)][:, np.linspace(0, 32, nx).round().astype(int)].tolist()
+    bad = tmp_path / "odd.json"
+    bad.write_text(json.dumps(d))
+    p = _cli("correct", str(frame), "-o", str(tmp_path / "out"), "--profile", str(bad),
+             env={"VIGPROC_PROFILE_DB": str(tmp_path / "p.sqlite")})
+    i = _cli("profile", "--profile-db", str(tmp_path / "b.sqlite"), "import", str(bad))
+    if ok:
+        assert p.returncode == 0 and "fall-off removed" in p.stdout, p.stdout + p.stderr
+        assert i.returncode == 0, i.stderr
+        return
+    assert p.returncode != 0 and i.returncode != 0, p.stdout + p.stderr + i.stderr
+    for r in (p, i):
+        assert "grid" in r.stderr and "3:2" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not list((tmp_path / "out").glob("*.tif"))
+
+
+# ------------------------------------------------------------------ what `profile show` says
+@pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
+def test_profile_show_says_a_flat_field_profile_corrects_the_cast_its_walls_show(tmp_path) -> None:
+    """Three tinted wall frames learned with `--method flat-field`: `profile show` said
+    "this lens shows a corner cast ...; reported, not corrected" while `correct` divides
+    every channel by the profile's measured field, which removes that very cast (the
+    corrected frame's corners are one colour with its centre). It now says the profile
+    corrects it (`--json`: `colour_cast.corrected`)."""
+    import json
+    import subprocess
+
+    import OpenImageIO as oiio
+    from test_profile_grid import flat_frames, lens_field
+
+    tags = ("-Make=Canon", "-Model=Canon EOS 6D", "-LensModel=EF24mm f/2.8 IS USM", "-FocalLength=24", "-FNumber=2.8")
+
+    def tif(path, arr):
+        out = oiio.ImageOutput.create(str(path))
+        assert out.open(str(path), oiio.ImageSpec(arr.shape[1], arr.shape[0], 3, "float"))
+        assert out.write_image(arr.astype(np.float32)) and out.close()
+        subprocess.run(["exiftool", "-q", "-m", "-overwrite_original", *tags, str(path)], check=True, capture_output=True)
+        return str(path)
+
+    walls = [tif(tmp_path / f"wall{i}.tif", f) for i, f in enumerate(flat_frames())]
+    scene = tif(tmp_path / "scene.tif", 0.3 * np.exp(lens_field()))
+    db = str(tmp_path / "p.sqlite")
+    assert _cli("profile", "--profile-db", db, "learn", "--method", "flat-field", *walls).returncode == 0
+    show = _cli("profile", "--profile-db", db, "show", "0")
+    assert show.returncode == 0 and "this lens shows a corner cast" in show.stdout, show.stdout + show.stderr
+    p = _cli("correct", scene, "-o", str(tmp_path / "out"), "--profile-db", db, "--no-learn", "--output-format",
+             "tiff-float")
+    assert p.returncode == 0 and "stored-profile" in p.stdout, p.stdout + p.stderr
+    out = oiio.ImageBuf(str(tmp_path / "out" / "scene.corrected.tif")).get_pixels(oiio.FLOAT).astype(np.float64)
+    h, w = out.shape[:2]
+    tint = np.log(out[:12, :12].mean((0, 1)) / out[h // 2 - 6:h // 2 + 6, w // 2 - 6:w // 2 + 6].mean((0, 1)))
+    assert np.ptp(tint) < 0.01, tint  # the corner is the centre's colour: the cast was corrected
+    assert "reported, not corrected" not in show.stdout and "corrected by the profile" in show.stdout, show.stdout
+    js = json.loads(_cli("profile", "--profile-db", db, "show", "0", "--json").stdout)
+    assert js["colour_cast"]["corrected"] is True
+
+
+# ------------------------------------------------------------------ the writer thread, interrupted
+def test_correct_run_again_after_a_kill_leaves_no_temporary_behind(tmp_path) -> None:
+    """`correct` killed (SIGKILL) while its writer thread wrote a TIFF left the writer's
+    hidden temporary (`.NAME.jpg.corrected.tif.tmp-XXXX.tif`, 0 bytes, seen on a real
+    run), and running the same command again left it there for good (`batch` and `watch`
+    sweep theirs). The rerun now removes its own files' temporaries, and no other file."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    srcs = [str(_textured_jpeg(tmp_path / f"f{i}.jpg", 600, 400, seed=i)) for i in range(6)]
+    out = tmp_path / "out"
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "VIGPROC_HOOK_SERVER": "off",
+           "VIGPROC_PROFILE_DB": str(tmp_path / "p.sqlite")}
+    args = [sys.executable, "-m", "vigproc.frontends.cli", "correct", *srcs, "-o", str(out), "--profile", "estimate",
+            "--output-format", "tiff16", "--unapplied", "write"]
+    left = []
+    for _ in range(20):  # kill it until a writer's temporary is caught (a few ms of each file's write)
+        p = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+        t0 = time.monotonic()
+        while p.poll() is None and time.monotonic() - t0 < 120:
+            left = [n for n in os.listdir(out)] if out.is_dir() else []
+            left = [n for n in left if n.startswith(".") and ".tmp-" in n]
+            if left:
+                os.kill(p.pid, signal.SIGKILL)
+                break
+            time.sleep(0.002)
+        p.wait()
+        if left and all((out / n).exists() for n in left):
+            break
+    if not left:
+        pytest.skip("no run was caught writing a temporary on this machine")
+    stranger = out / ".someone-else.tmp-1234.tif"  # not a temporary of this run's inputs
+    stranger.write_bytes(b"x")
+    again = _cli("correct", *srcs, "-o", str(out), "--profile", "estimate", "--output-format", "tiff16",
+                 "--unapplied", "write", env={"VIGPROC_PROFILE_DB": str(tmp_path / "p.sqlite")})
+    assert again.returncode == 0, again.stdout + again.stderr
+    names = sorted(os.listdir(out))
+    assert [n for n in names if n.startswith(".")] == [stranger.name], names
+    assert len([n for n in names if n.endswith(".corrected.tif")]) == 6
+
+
+def test_profile_import_names_the_lens_as_profile_list_does(tmp_path) -> None:
+    """A lens whose EXIF name holds a "|" ("EF | 24mm") is stored escaped ("ef %7C 24mm",
+    so it cannot forge a key component); `profile list` shows it as the EXIF spells it,
+    `profile import` printed the escape."""
+    from vigproc.core.normalised import denormalise
+    from vigproc.stores.profiles import ProfileStore, export_profile
+
+    meta = {"EXIF:Make": "Canon", "EXIF:Model": "Canon EOS 6D", "EXIF:LensModel": "EF | 24mm", "EXIF:FocalLength": 24,
+            "EXIF:FNumber": 2.8}
+    theta = np.array([0.02, -0.01, 0.9, 0.02, 0.85, 0.05, 0.1, -0.05, 0.02, 0.0, 0.0, 0.0])
+    with ProfileStore(tmp_path / "a.sqlite") as store:
+        key = store.key_for(lens_key_from_metadata(meta), 3000, 2000)
+        assert "%7C" in key.lens_id
+        store.learn(key, denormalise(theta, np.diag(np.full(12, 1e-6)), 3000, 2000, method="robust"))
+        (p,) = store.list()
+        export_profile(p, tmp_path / "lens.json")
+    i = _cli("profile", "--profile-db", str(tmp_path / "b.sqlite"), "import", str(tmp_path / "lens.json"))
+    shown = _cli("profile", "--profile-db", str(tmp_path / "b.sqlite"), "list")
+    assert i.returncode == 0 and shown.returncode == 0, i.stderr + shown.stderr
+    assert "ef | 24mm" in shown.stdout and "ef | 24mm" in i.stdout and "%7C" not in i.stdout, i.stdout
+
+
+def test_the_sweep_after_correct_keeps_another_runs_temporaries(tmp_path) -> None:
+    """Phone names share long prefixes (IMG_20240101_...): a run's sweep must not take the
+    temporary another run is writing into the same folder now."""
+    from pathlib import Path
+
+    from vigproc.pipeline.outputs import sweep_flat_temporaries
+
+    mine = Path("IMG_20240101_101500.jpg")
+    (tmp_path / ".IMG_20240101_101500.jpg.corrected.tif.tmp-ab12cd.tif").write_bytes(b"")  # a killed run's, of mine
+    (tmp_path / "..IMG_20240101_101500.corrected.jpg.tmp-x.jpg.meta-y").write_bytes(b"")  # inside a temporary
+    other = tmp_path / ".IMG_20240101_101501.jpg.corrected.tif.tmp-ef34gh.tif"  # another run's, being written
+    other.write_bytes(b"")
+    (tmp_path / "IMG_20240101_101500.jpg.corrected.tif").write_bytes(b"x")  # an output is never a temporary
+    assert sweep_flat_temporaries(tmp_path, [mine], ["IMG_20240101_101500.jpg"]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == [other.name, "IMG_20240101_101500.jpg.corrected.tif"]
+
+
+def test_stacked_cfa_gain_maps_multiply_as_the_dng_specification_applies_them() -> None:
+    """Two sets of per-phase GainMaps in one OpcodeList2 (what `correct --output-format dng`
+    wrote for an output fed back in, before it replaced the file's maps) are applied one
+    after the other by a raw converter: their gains multiply. vigproc's reader averaged
+    every map of a colour, so it read two stacked corrections as one (0.51 EV for both)."""
+    from vigproc.core.colour import ColourField
+    from vigproc.core.model import VignettingModel
+    from vigproc.io.dng_opcodes import OpcodeList
+    from vigproc.io.dng_vignette import EmbeddedCalibration, model_to_gain_maps
+
+    w, h = 240, 160
+    f = 0.8 * np.hypot(w, h) / 2
+    m = VignettingModel(w, h, center=(5, -3), p=(f**-2, 0, f**-2), alpha=(0.02, 0.01, 0, 0, 0, 0, 0))
+    m = VignettingModel(w, h, center=m.center, p=m.p, alpha=m.alpha,
+                        colour=ColourField(w, h, center=(5, -3), coeffs=np.array([[-0.1, 0.0, 0.1]] + [[0.0] * 3] * 2)))
+    pattern = ((0, 1), (1, 2))
+    maps = [g.to_opcode() for g in model_to_gain_maps(m, cfa_pattern=pattern)]
+    one = EmbeddedCalibration.from_lists([("OpcodeList2", OpcodeList(tuple(maps)))], "one", cfa_pattern=pattern)
+    two = EmbeddedCalibration.from_lists([("OpcodeList2", OpcodeList(tuple(maps * 2)))], "two", cfa_pattern=pattern)
+    for c in (0, 1, 2, None):
+        g1, g2 = one.log_gain(w, h, c), two.log_gain(w, h, c)
+        assert np.abs(g1).max() > 0.1
+        np.testing.assert_allclose(g2, 2 * g1, atol=1e-9)

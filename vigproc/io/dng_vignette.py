@@ -63,6 +63,8 @@ from vigproc.atomic import publish, temporary_name
 from vigproc.io.dng_opcodes import (
     AreaSpec,
     DngOpcodeError,
+    FIX_VIGNETTE_RADIAL,
+    GAIN_MAP,
     FixVignetteRadial,
     GainMap,
     OpcodeList,
@@ -292,9 +294,9 @@ class EmbeddedCalibration:
             centres here with the full frame's size.
 
         The opcodes multiply: their log gains add.  CFA GainMaps (pitch > 1, one per
-        Bayer phase) give each channel the mean of the phases of its colour (two
-        greens in a Bayer pattern) when the CFA pattern is known, else the mean of all
-        phases; an RGB GainMap gives each channel its plane.
+        Bayer phase; several of one phase multiply) give each channel the mean of the
+        phases of its colour (two greens in a Bayer pattern) when the CFA pattern is
+        known, else the mean of all phases; an RGB GainMap gives each channel its plane.
 
         Raises
         ------
@@ -323,8 +325,13 @@ class EmbeddedCalibration:
                 a = op.area
                 planes = [p for p in range(a.plane, a.plane + a.planes) if p < 3] or [a.plane]
                 out += sum(lg(eo, p) for p in planes) / len(planes)
+        phases: dict[tuple[int, int, int], np.ndarray] = {}  # maps of a phase multiply; phases average
         for eo in cfa:
-            out += lg(eo, eo.opcode.area.plane) / len(cfa)
+            a = eo.opcode.area
+            k = (a.top % a.row_pitch, a.left % a.col_pitch, a.plane)
+            phases[k] = phases.get(k, 0.0) + lg(eo, a.plane)
+        for v in phases.values():
+            out += v / len(phases)
         return out
 
     def phase_colour(self, op: GainMap) -> int | None:
@@ -847,8 +854,10 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
     (:func:`model_to_gain_maps`): one per CFA phase in OpcodeList2 of a CFA DNG, one of
     three planes in OpcodeList3 otherwise.
 
-    The opcode is appended to the raw IFD's existing OpcodeList3 (a raw converter
-    applies it after the camera's own opcodes).  A model that *is* the DNG's own
+    The opcode is appended to the raw IFD's list, after the camera's other opcodes; it
+    *replaces* the file's own vignetting opcodes (in OpcodeList1-3): LibRaw, which vigproc
+    develops with, ignores them, so the model corrects the whole fall-off (as in a TIFF);
+    kept, a raw converter would correct twice.  A model that *is* the DNG's own
     calibration (``method`` ``dng:...``) adds nothing: the copy is written without a
     new opcode.  DNGBackwardVersion is raised to 1.3.0.0 when lower (the version that
     defines opcodes).  The copy is made in ``dst``'s folder, edited there by exiftool,
@@ -885,26 +894,33 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
     if raw is None:
         raise ImageReadError(f"{src_s!r}: no raw image IFD found (SubfileType 0)")
     lists = dict(read_opcode_lists(src_s))
-    existing = lists.get("OpcodeList3", OpcodeList())
     info: dict[str, Any] = {"ifd": raw, "list": "OpcodeList3"}
+    writes: dict[str, OpcodeList] = {}  # the lists that change
     if model.method.startswith("dng:"):
         info["opcode"] = None
         info["note"] = "the correction is the file's own calibration: nothing added"
-        new = existing
-    elif model.colour is not None or getattr(model, "grid", None) is not None:
-        # a colour field or a measured grid: per-plane GainMaps (a FixVignetteRadial has one gain for all planes)
-        pattern = _cfa_pattern(groups.get(raw, {}))
-        name = "OpcodeList2" if pattern else "OpcodeList3"
-        existing = lists.get(name, OpcodeList())
-        maps = model_to_gain_maps(model, strength=strength, cfa_pattern=pattern)
-        new = existing.appended(*(g.to_opcode() for g in maps))
-        info["list"] = name
-        info["opcode"] = {"kind": "GainMap", "maps": len(maps), "points": WRITE_MAP_POINTS,
-                          "cfa_pattern": [list(r) for r in pattern] if pattern else None, "strength": strength}
+        new = lists.get("OpcodeList3", OpcodeList())
     else:
-        fit = model_to_radial(model, strength=strength)
-        new = existing.appended(fit.opcode.to_opcode())
-        info["opcode"] = fit.to_dict()
+        kept = {n: OpcodeList(tuple(op for op in lst if op.opcode_id not in (FIX_VIGNETTE_RADIAL, GAIN_MAP)))
+                for n, lst in lists.items()}
+        writes = {n: lst for n, lst in kept.items() if len(lst) != len(lists[n])}
+        replaced = sum(len(lists[n]) - len(lst) for n, lst in writes.items())
+        if replaced:
+            info["replaced"] = replaced
+        if model.colour is not None or getattr(model, "grid", None) is not None:
+            # a colour field or a measured grid: per-plane GainMaps (a FixVignetteRadial has one gain for all planes)
+            pattern = _cfa_pattern(groups.get(raw, {}))
+            name = "OpcodeList2" if pattern else "OpcodeList3"
+            maps = model_to_gain_maps(model, strength=strength, cfa_pattern=pattern)
+            new = kept.get(name, OpcodeList()).appended(*(g.to_opcode() for g in maps))
+            info["list"] = name
+            info["opcode"] = {"kind": "GainMap", "maps": len(maps), "points": WRITE_MAP_POINTS,
+                              "cfa_pattern": [list(r) for r in pattern] if pattern else None, "strength": strength}
+        else:
+            fit = model_to_radial(model, strength=strength)
+            new = kept.get("OpcodeList3", OpcodeList()).appended(fit.opcode.to_opcode())
+            info["opcode"] = fit.to_dict()
+        writes[info["list"]] = new
     info["opcodes_in_list"] = len(new)
     try:
         tmp = temporary_name(dst_s, keep=60, suffix=".dng")
@@ -914,12 +930,17 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
     done = False
     try:
         shutil.copyfile(src_s, tmp)
-        if new is not existing:
+        if writes:
             with scratch("dng") as td:  # after a kill: removed by the next process's sweep
-                blob = os.path.join(td, "opcodelist.bin")
-                with open(blob, "wb") as fh:
-                    fh.write(new.to_bytes())
-                args = ["-q", "-q", "-m", "-overwrite_original", f"-{raw}:{info['list']}#<={blob}"]
+                args = ["-q", "-q", "-m", "-overwrite_original"]
+                for name, lst in sorted(writes.items()):
+                    if not len(lst):  # emptied of the file's vignetting opcodes: the tag goes
+                        args.append(f"-{raw}:{name}=")
+                        continue
+                    blob = os.path.join(td, f"{name}.bin")
+                    with open(blob, "wb") as fh:
+                        fh.write(lst.to_bytes())
+                    args.append(f"-{raw}:{name}#<={blob}")
                 backward = groups.get("IFD0", {}).get("DNGBackwardVersion")
                 if _version_tuple(backward) < (1, 3):
                     args.append("-IFD0:DNGBackwardVersion=1.3.0.0")
@@ -928,9 +949,10 @@ def write_dng_correction(src: str | os.PathLike[str], dst: str | os.PathLike[str
                 if res.status != 0:
                     err = one_line(res.stderr.decode("utf-8", "replace").strip())[:300]
                     raise ImageWriteError(f"cannot write {dst_s!r}: exiftool failed: {err or res.status}")
-            back = dict(read_opcode_lists(tmp)).get(info["list"])
-            if back is None or back.to_bytes() != new.to_bytes():
-                raise ImageWriteError(f"cannot write {dst_s!r}: its {info['list']} does not read back as written")
+            back = dict(read_opcode_lists(tmp))
+            for name, lst in writes.items():
+                if (back[name].to_bytes() if name in back else None) != (lst.to_bytes() if len(lst) else None):
+                    raise ImageWriteError(f"cannot write {dst_s!r}: its {name} does not read back as written")
         publish(tmp, dst_s)
         done = True
     except (ImageReadError, DngOpcodeError) as exc:  # reading our own copy back failed

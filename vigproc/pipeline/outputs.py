@@ -9,6 +9,7 @@ is applied; a corrected frame checked against what its format holds.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import logging
@@ -269,6 +270,41 @@ def sweep_temporaries(root: str | os.PathLike[str], rels: Iterable[str | os.Path
                         os.unlink(e.path)
                     except OSError:
                         continue
+                    removed += 1
+    return removed
+
+
+def sweep_flat_temporaries(outdir: str | os.PathLike[str], files: Sequence[Path], stems: Sequence[str]) -> int:
+    """Remove the temporaries killed writers left in ``outdir`` for the outputs of a flat
+    run (``correct``: every output in one folder, named from ``stems``, :func:`output_stems`).
+
+    Only hidden names carrying a temporary marker and starting with one of these inputs'
+    output base (``IMG_1.``, its first 40 bytes: every writer's temporary keeps at least
+    that much of the output's name) are removed, so another run's temporaries in a shared
+    folder stay unless their inputs share that much of a name. Call it only when nothing
+    writes these outputs.
+
+    Returns
+    -------
+    int
+        Files removed.
+    """
+    bases: dict[int, set[str]] = {}
+    for f, stem in zip(files, stems):
+        b = (_image_base(stem, Path(f)) + ".").encode("utf-8", "surrogateescape")[:40]
+        b = b.decode("utf-8", "ignore")
+        bases.setdefault(len(b), set()).add(b)
+    removed = 0
+    try:
+        entries = os.scandir(outdir)
+    except OSError:
+        return 0
+    with entries:
+        for e in entries:
+            ours = temporary_keys(e.name) and any(e.name[d:d + n] in bs for d in (1, 2) for n, bs in bases.items())
+            if ours and e.is_file(follow_symlinks=False):
+                with contextlib.suppress(OSError):
+                    os.unlink(e.path)
                     removed += 1
     return removed
 

@@ -293,6 +293,7 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
             raise ProfileStoreError(f"{where}: a grid field needs schema {FILE_SCHEMA_GRID!r}, got {schema!r}")
         try:
             grid = GridPool.from_json(d["grid"])
+            grid.check_aspect(key.aspect_ratio, key.aspect)
         except ModelError as exc:
             raise ProfileStoreError(f"{where}: grid: {exc}") from None
     created = _timestamp(d, "created", where)

@@ -102,6 +102,31 @@ class GridPool:
         """(nx, ny)."""
         return (self.info.shape[1], self.info.shape[0])
 
+    def check_aspect(self, aspect: float, label: str) -> None:
+        """Check that the nodes are those of a frame of ``aspect`` (width / height): the
+        short side's count within one node of the long side's in proportion, as
+        :func:`vigproc.core.gridfield.flat_grid` lays them out.  Nodes lie on the frame's
+        edges, so a grid of another frame shape would be stretched over this one.
+
+        Parameters
+        ----------
+        aspect : float
+            The profile's frame aspect ratio (width / height).
+        label : str
+            Its name, for the message (e.g. ``"3:2"``).
+
+        Raises
+        ------
+        ModelError
+            The nodes are not a grid of such a frame.
+        """
+        nx, ny = self.nodes
+        long_side, short = (nx, ny) if aspect >= 1 else (ny, nx)
+        expected = max(2, round(long_side * min(aspect, 1 / aspect)))
+        if abs(short - expected) > 1:
+            raise ModelError(f"a grid of {nx}x{ny} nodes is not one of a {label} frame "
+                             f"(about {long_side}x{expected} nodes, long side first)")
+
     @classmethod
     def of(cls, grid: GridField) -> GridPool:
         """One frame's grid as a pool."""

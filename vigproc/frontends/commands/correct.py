@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import sys
 from concurrent.futures import Future, ThreadPoolExecutor
 from importlib import resources
@@ -17,8 +18,11 @@ from vigproc.frontends.commands._options import (failure_record, files_exit_code
 from vigproc.frontends.commands._progress import _progress
 from vigproc.io.lensident import display_lens_id
 from vigproc.pipeline.faults import DISK_FULL, classify_error
+from vigproc.pipeline.outputs import sweep_flat_temporaries
 from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_folder, output_stems
 from vigproc.stores.opening import open_profile_store
+
+logger = logging.getLogger(__name__)
 
 
 def _applied_ev(rec: dict) -> float:
@@ -139,6 +143,10 @@ def cmd_correct(args: argparse.Namespace) -> int:
             writer.shutdown(wait=True)
         if store is not None:
             store.close()
+    # nothing writes now: what a killed run's writer left of these files' outputs goes
+    swept = sweep_flat_temporaries(outdir, files, output_stems(files))
+    if swept:
+        logger.info("removed %d temporary file(s) a killed run left in %s", swept, outdir)
     not_started = len(files) - len(results)
     failed += not_started
     stop = None

@@ -108,6 +108,8 @@ def _show(args: argparse.Namespace, store) -> int:
     width, height = _profile_frame(p.key.aspect_ratio, args.width, args.height)
     m = p.model(width, height)
     cast = store.cast_report(p.key)  # pooled from the lens's learned frames; reported, never applied
+    # ...unless the profile has a per-channel field (flat frames' colour or grid): correct divides it out
+    per_channel = p.colour is not None or p.grid is not None
     if args.json:  # the profile's record, its model for the frame inside
         sigma = p.field_sigma_ev
         print(json.dumps({
@@ -115,7 +117,8 @@ def _show(args: argparse.Namespace, store) -> int:
             "aperture_bin": p.key.aperture_bin, "aspect": p.key.aspect, "frames": p.n_frames,
             "trusted": bool(p.trusted), "field_sigma_ev": sigma if sigma is None or math.isfinite(sigma) else None,
             "provenance": p.provenance, "updated": p.updated, "width": width, "height": height,
-            "model": m.to_dict(), **({"colour_cast": cast.to_dict()} if cast is not None else {})}, indent=1))
+            "model": m.to_dict(),
+            **({"colour_cast": {**cast.to_dict(), "corrected": per_channel}} if cast is not None else {})}, indent=1))
     else:
         q = m.quality
         print(_profile_line(0, p).split("] ", 1)[1])
@@ -124,7 +127,8 @@ def _show(args: argparse.Namespace, store) -> int:
         print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame"
               + (f", ±{q.field_sigma_ev:.3f} EV" if q and math.isfinite(q.field_sigma_ev) else ""))
         if cast is not None:
-            print(f"  colour cast {cast.describe()}; reported, not corrected")
+            print(f"  colour cast {cast.describe()}; "
+                  + ("corrected by the profile's per-channel field" if per_channel else "reported, not corrected"))
         print("  (--json prints the whole model)")
     if args.plot:
         write_image(args.plot, falloff_figure(m, title=str(p.key)), bit_depth="uint8", transfer="srgb")
@@ -165,7 +169,7 @@ def _learn(args: argparse.Namespace, store) -> int:
 def _import(args: argparse.Namespace, store) -> int:
     """``profile import FILE``: a profile file (JSON, profiles/README.md) into the store."""
     p = store.import_file(args.file)
-    print(f"imported {p.key}")
+    print(f"imported {str(p.key).replace(p.key.lens_id, display_lens_id(p.key.lens_id), 1)}")  # as list shows it
     return 0
 
 
