@@ -272,10 +272,13 @@ def run(
                                       float(np.mean(lens_ok))))
 
     # ---- consistency check
-    resid = np.array([f.features - frame_features(classes[f.cls].true_model(w, h)) for f in tr])
+    # each class's lensfun model once (a least-squares fit each), not once per frame
+    truths = [c.true_model(w, h) for c in classes]
+    truth_features = [frame_features(m) for m in truths]
+    resid = np.array([f.features - truth_features[f.cls] for f in tr])
     cal = fit_calibration(resid, [f.image for f in tr], weak=[f.weak for f in tr], alpha=alpha,
                           source="vigproc bench forensics (training half)")
-    expected = [expected_from_field(c.true_model(w, h), cal, profile=c.label) for c in classes]
+    expected = [expected_from_field(m, cal, profile=c.label) for m, c in zip(truths, classes)]
     sep = np.array([[field_separation(a, b) for b in classes] for a in classes])
 
     def claims(fr: list[Frame], against: Callable[[int], Sequence[int]]):

@@ -37,19 +37,27 @@ def _cli(capsys, *args):
 
 
 @pytest.fixture
-def conflicted(tmp_path):
+def conflicted(tmp_path, _conflicted_bytes):
     """The 105 mm sample with a capture date, an offset and a serial, whose XMP gives
     another date, another lens and another focal length (an editor rewrote one side).
-    Its name is hostile HTML."""
+    Its name is hostile HTML.  Each test's own copy."""
+    path = tmp_path / "a<b>&'x.jpg"
+    path.write_bytes(_conflicted_bytes)
+    return path
+
+
+@pytest.fixture(scope="module")
+def _conflicted_bytes(tmp_path_factory):
+    """:func:`conflicted`'s file, tagged once (an exiftool run costs about 0.3 CPU s)."""
     if shutil.which("exiftool") is None:
         pytest.skip("exiftool is not installed")
-    path = tmp_path / "a<b>&'x.jpg"
+    path = tmp_path_factory.mktemp("conflicted") / "conflicted.jpg"
     shutil.copyfile(SAMPLE, path)
     subprocess.run(["exiftool", "-q", "-overwrite_original", "-EXIF:DateTimeOriginal=2021:05:06 07:08:09",
                     "-EXIF:OffsetTimeOriginal=+02:00", "-EXIF:SerialNumber=SN12345",
                     "-XMP:DateTimeOriginal=2022:01:01 10:00:00", "-XMP:LensModel=EF 50mm f/1.8",
                     "-XMP-exif:FocalLength=18", "--", str(path)], check=True, capture_output=True, timeout=60)
-    return path
+    return path.read_bytes()
 
 
 def test_the_report_and_json_hold_hash_dates_camera_conflicts_and_the_run(conflicted, tmp_path, capsys):

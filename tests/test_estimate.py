@@ -73,8 +73,10 @@ def test_ga_is_exact_for_a_gaussian_field():
 
 
 def test_lyu2010_runs_and_stays_valid():
-    truth = table1_model(2)
-    img = textured(320, 480, seed=5, contrast=0.1) * truth.field()
+    # half the side of table1's frames: the assertions are about validity, not accuracy
+    # (lyu2010's cost grows with the frame: 160x240 is half that of 320x480)
+    truth = table1_model(2).rescale(240, 160)
+    img = textured(160, 240, seed=5, contrast=0.1) * truth.field()
     m = vigproc.estimate(img, "lyu2010", channel_axis=None)
     assert m.method == "lyu2010"
     assert np.all(np.isfinite(m.field()))

@@ -48,11 +48,20 @@ def record() -> dict:
     return make_record(VignettingModel(64, 48, alpha=(0.01, 0, 0, 0, 0, 0, 0)))
 
 
+@pytest.fixture(scope="module")
+def _dng_bytes(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    """The camera DNG, made once (its EXIF by an exiftool run, about 0.3 CPU s)."""
+    path = tmp_path_factory.mktemp("dng") / "shot.dng"
+    make_dng(path, width=64, height=48, exif=CAMERA)
+    return path.read_bytes()
+
+
 @pytest.fixture
-def dng(tmp_path: Path) -> Path:
+def dng(tmp_path: Path, _dng_bytes: bytes) -> Path:
+    """Each test's own copy of the camera DNG."""
     path = tmp_path / "in" / "shot.dng"
     path.parent.mkdir()
-    make_dng(path, width=64, height=48, exif=CAMERA)
+    path.write_bytes(_dng_bytes)
     return path
 
 

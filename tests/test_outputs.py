@@ -29,13 +29,21 @@ def _vignetted(h=240, w=360, seed=3):
     return np.repeat((photo_like(h, w, seed=seed) * truth.field())[..., None], 3, axis=2).astype(np.float32)
 
 
-@pytest.fixture
-def camera_jpeg(tmp_path):
-    """A vignetted JPEG at quality 80 with camera EXIF written by exiftool."""
-    p = tmp_path / "IMG_0001.jpg"
+@pytest.fixture(scope="module")
+def _camera_jpeg_bytes(tmp_path_factory):
+    """The camera JPEG, made once (an exiftool run costs about 0.3 CPU s)."""
+    p = tmp_path_factory.mktemp("camera") / "IMG_0001.jpg"
     write_image(p, _vignetted(), transfer="srgb", quality=80)
     subprocess.run(["exiftool", "-q", "-overwrite_original", "-Make=Canon", "-Model=Canon EOS 600D",
                     "-LensModel=EF-S18-55mm f/3.5-5.6 IS II", "-FocalLength=18", "-FNumber=3.5", str(p)], check=True)
+    return p.read_bytes()
+
+
+@pytest.fixture
+def camera_jpeg(tmp_path, _camera_jpeg_bytes):
+    """A vignetted JPEG at quality 80 with camera EXIF written by exiftool: each test's own copy."""
+    p = tmp_path / "IMG_0001.jpg"
+    p.write_bytes(_camera_jpeg_bytes)
     return p
 
 

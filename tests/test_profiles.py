@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import multiprocessing
@@ -857,15 +858,22 @@ def test_junk_evidence_is_named_as_such(tmp_path):
 # ----------------------------------------------------------------------------- between bins
 
 
-def _pa_profile(lens_key, focal, fnumber, k1, w=180, h=120, sigma=0.01):
+@functools.lru_cache(maxsize=None)
+def _pa_theta(k1: float, w: int, h: int) -> tuple[float, ...]:
+    """Normalised θ of lensfun's pa field with this k1 (a least-squares fit each: once
+    per k1; on a 40×60 grid, which fit_model_to_field says is ample for a smooth field)."""
     from vigproc.stores.lensfun import pa_field
     from vigproc.core.normalised import fit_model_to_field, normalise
 
-    m, _ = fit_model_to_field(np.log(pa_field((64, 96), k1, 0.0, 0.0)), w, h)
+    m, _ = fit_model_to_field(np.log(pa_field((40, 60), k1, 0.0, 0.0)), w, h)
+    return tuple(normalise(m)[0])
+
+
+def _pa_profile(lens_key, focal, fnumber, k1, w=180, h=120, sigma=0.01):
     from dataclasses import replace
 
     key = ProfileKey.from_lens(replace(lens_key, focal_mm=focal, fnumber=fnumber), w, h)
-    return Profile(key=key, theta=normalise(m)[0], n_frames=5, trusted=True, field_sigma_ev=sigma)
+    return Profile(key=key, theta=np.array(_pa_theta(k1, w, h)), n_frames=5, trusted=True, field_sigma_ev=sigma)
 
 
 def test_lookup_interpolates_between_a_lenss_bins(tmp_path):
