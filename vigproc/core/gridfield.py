@@ -35,7 +35,7 @@ import numpy as np
 from vigproc.core.colour import LUMA, planar_gradient
 from vigproc.core.fieldjson import check_field_dict, field_to_dict
 from vigproc.core.model import VignettingModel
-from vigproc.core.pixels import as_channels_last, luminance
+from vigproc.core.pixels import as_channels_last, finish_corrected, luminance
 from vigproc.errors import InvalidImageError, ModelError
 
 SCHEMA = "vigproc.grid/1"
@@ -377,12 +377,4 @@ class GridFieldModel(VignettingModel):
             for k in range(ch):
                 np.multiply(x[r0:r1, :, k], gain[..., k if ch >= 3 and k < 3 else 3], out=out[r0:r1, :, k],
                             casting="unsafe")
-        if c > 0:
-            np.minimum(out, np.float32(c), out=out)
-        if not np.all(np.isfinite(out)):
-            raise InvalidImageError("the corrected image has NaN or Inf values (NaN/Inf in the input, or values "
-                                    "too large for float32 once corrected)")
-        out = out[..., 0] if a.ndim == 2 else out
-        if a.ndim == 3 and channel_axis not in (None, -1, 2):
-            out = np.moveaxis(out, -1, channel_axis)
-        return out
+        return finish_corrected(out, a.ndim, c, channel_axis)

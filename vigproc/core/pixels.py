@@ -276,3 +276,24 @@ def reduce_codes(codes: np.ndarray, decode: np.ndarray, k: int, clip_level: floa
     if hot.sum() >= clip_fraction * h * w:
         usable &= hot == 0
     return (out[..., 0] if a.ndim == 2 else out), (None if usable.all() else usable)
+
+
+def finish_corrected(out: np.ndarray, ndim: int, clip: float, channel_axis: int | None) -> np.ndarray:
+    """The last steps of a per-plane correction (``out``: H×W×C float32, corrected in
+    place): the clip (``clip`` > 0), the check that every value is finite, and the
+    input's layout back (``ndim`` 2: one plane; ``channel_axis``).
+
+    Raises
+    ------
+    InvalidImageError
+        NaN or Inf in the result.
+    """
+    if clip > 0:
+        np.minimum(out, np.float32(clip), out=out)
+    if not np.all(np.isfinite(out)):
+        raise InvalidImageError("the corrected image has NaN or Inf values (NaN/Inf in the input, or values "
+                                "too large for float32 once corrected)")
+    out = out[..., 0] if ndim == 2 else out
+    if ndim == 3 and channel_axis not in (None, -1, 2):
+        out = np.moveaxis(out, -1, channel_axis)
+    return out

@@ -77,7 +77,7 @@ from vigproc.scratch import scratch
 from vigproc.core.colour import ColourField, fit_gain_planes
 from vigproc.core.model import FitQuality, VignettingModel, frame_coords
 from vigproc.core.normalised import fit_model_to_field
-from vigproc.core.pixels import as_channels_last
+from vigproc.core.pixels import as_channels_last, finish_corrected
 
 __all__ = [
     "EmbeddedCalibration",
@@ -492,15 +492,7 @@ class GainFieldModel(VignettingModel):
         for k in range(ch):  # one plane's field at a time: memory of one H×W float64
             lg = self.calibration.log_gain(self.width, self.height, k if ch > 1 else None, rel=rel)
             np.multiply(x[..., k], np.exp(s * lg), out=out[..., k], casting="unsafe")
-        if c > 0:
-            np.minimum(out, np.float32(c), out=out)
-        if not np.all(np.isfinite(out)):
-            raise InvalidImageError("the corrected image has NaN or Inf values (NaN/Inf in the input, or values "
-                                    "too large for float32 once corrected)")
-        out = out[..., 0] if a.ndim == 2 else out
-        if a.ndim == 3 and channel_axis not in (None, -1, 2):
-            out = np.moveaxis(out, -1, channel_axis)
-        return out
+        return finish_corrected(out, a.ndim, c, channel_axis)
 
 
 # --------------------------------------------------------------------------- #
