@@ -135,6 +135,48 @@ def test_an_import_replacing_the_profile_drops_its_frames_casts(tmp_path):
         assert st.cast_report(_key()).n_frames == 1
 
 
+def test_the_cast_travels_with_an_exported_profile(tmp_path):
+    """`profile export` then `profile import` in another store: the lens reports the same
+    cast there, and frames learned later pool with the imported records (each once)."""
+    rng = np.random.default_rng(7)
+    x, se = _frames(rng, 14)
+    with ProfileStore(tmp_path / "a.sqlite") as a:
+        for i in range(12):
+            a.learn(_key(), _model(), frame_id=f"f{i}", cast=_record(x[i], se[i]))
+        rep_a = a.cast_report(_key())
+        a.export_file(_key(), tmp_path / "lens.json")
+    d = json.loads((tmp_path / "lens.json").read_text())
+    assert len(d["cast"]["frames"]) == 12
+    with ProfileStore(tmp_path / "b.sqlite") as b:
+        b.import_file(tmp_path / "lens.json")
+        rep_b = b.cast_report(_key())
+        assert rep_b is not None and rep_b.n_frames == 12 and rep_b.detected == rep_a.detected
+        np.testing.assert_allclose(rep_b.shift, rep_a.shift, atol=1e-9)
+        assert rep_b.delta_e == pytest.approx(rep_a.delta_e, abs=1e-9)
+        b.import_file(tmp_path / "lens.json")  # imported again: replaced, not doubled
+        assert b.cast_report(_key()).n_frames == 12
+        for i in (12, 13):
+            b.learn(_key(), _model(), frame_id=f"f{i}", cast=_record(x[i], se[i]))
+        b.learn(_key(), _model(), frame_id="f13", cast=_record(x[13], se[13]))
+        assert b.cast_report(_key()).n_frames == 14
+
+
+@pytest.mark.parametrize("bad", [{"frames": "x"}, [], {"frames": [{"shift": [[0, 0]] * 3, "se": [[0, 0]] * 3}]},
+                                 {"frames": [{"shift": [[0, 0]] * 4, "se": [[-1, 0]] * 4}]}])
+def test_a_profile_file_with_a_damaged_cast_is_refused(tmp_path, bad):
+    with ProfileStore(tmp_path / "a.sqlite") as a:
+        x, se = _frames(np.random.default_rng(8), 1)
+        a.learn(_key(), _model(), frame_id="f0", cast=_record(x[0], se[0]))
+        a.export_file(_key(), tmp_path / "lens.json")
+    d = json.loads((tmp_path / "lens.json").read_text())
+    d["cast"] = bad
+    (tmp_path / "bad.json").write_text(json.dumps(d))
+    with ProfileStore(tmp_path / "b.sqlite") as b:
+        with pytest.raises(ProfileStoreError, match="cast"):
+            b.import_file(tmp_path / "bad.json")
+        assert b.get(_key()) is None  # nothing stored
+
+
 def test_a_store_from_before_cast_records_opens_and_migrates(tmp_path):
     from vigproc.stores.profiles import SCHEMA_VERSION
 

@@ -89,8 +89,10 @@ def test_an_exported_learned_profile_is_used_elsewhere_with_the_same_field_and_t
     again = tmp_path / "again.json"
     assert run("profile", "--profile-db", other, "export", "0", again).returncode == 0
     a, b = json.loads(out.read_text()), json.loads(again.read_text())
-    for k in ("model", "fixed", "covariance", "trusted", "field_sigma_ev", "n_frames"):
+    assert a["scatter_sigma_ev"] is not None  # four frames: their spread is known
+    for k in ("model", "fixed", "covariance", "trusted", "field_sigma_ev", "scatter_sigma_ev", "n_frames"):
         assert a[k] == b[k], k
+    assert a.get("cast") == b.get("cast")
 
 
 def test_a_learned_profile_exported_as_schema_1_still_loads(learned, tmp_path):

@@ -463,12 +463,12 @@ class Processor:
 
     def _profile_cast(self, key) -> dict | None:
         """The colour cast pooled from the frames of the profile under ``key``
-        (:meth:`ProfileStore.cast_report`) as a record reports it; None without one."""
-        from vigproc.stores.profile_store import ProfileStore
-
-        if not isinstance(self.store, ProfileStore):
+        (:meth:`ProfileStore.cast_report`) as a record reports it; None without one
+        (or from a store that pools no casts: a batch worker's stand-in)."""
+        cast_report = getattr(self.store, "cast_report", None)
+        if cast_report is None:
             return None
-        rep = self.store.cast_report(key)
+        rep = cast_report(key)
         return None if rep is None else rep.to_dict()
 
     def _cast_of(self, img, fit) -> dict:

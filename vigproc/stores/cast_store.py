@@ -15,6 +15,7 @@ used: the records are small and read by profile).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import sqlite3
@@ -77,23 +78,48 @@ def record_cast(con: sqlite3.Connection, profile_id: int, frame_id: str, record:
     return cur.rowcount > 0
 
 
+def record_imported_casts(con: sqlite3.Connection, profile_id: int, records: list[dict], now: str) -> int:
+    """Store the cast records a profile file carried (``cast.frames``); returns how many.
+
+    They have no content id (the file does not name its frames): each is keyed
+    ``import:N:DIGEST``, so records of equal value stay distinct and never collide with
+    a frame's content id (a later frame of the same photograph is pooled again, as its
+    luminance is: the import replaced the stored evidence).
+    """
+    n = 0
+    for i, rec in enumerate(records[:MAX_CAST_FRAMES]):
+        text = json.dumps(rec, separators=(",", ":"), sort_keys=True)
+        frame_id = f"import:{i:06d}:{hashlib.sha256(text.encode()).hexdigest()[:16]}"
+        n += record_cast(con, profile_id, frame_id, rec, now)
+    return n
+
+
+def _valid_records(con: sqlite3.Connection, profile_id: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A profile's cast records as arrays, those pooled first (see :data:`MAX_CAST_FRAMES`);
+    a damaged record is skipped with a warning."""
+    rows = con.execute("SELECT frame, record FROM cast_frames WHERE profile_id = ? ORDER BY frame LIMIT ?",
+                       (profile_id, MAX_CAST_FRAMES)).fetchall()
+    out = []
+    for frame, rec in rows:
+        try:
+            out.append(check_record(json.loads(rec)))
+        except (ValueError, TypeError) as exc:
+            logger.warning("profile row %d: skipping frame %s's cast record: %s", profile_id, str(frame)[:16], exc)
+    return out
+
+
+def cast_records(con: sqlite3.Connection, profile_id: int) -> list[dict]:
+    """A profile's cast records as a profile file carries them (``{"shift", "se"}``, no frame ids)."""
+    return [{"shift": a.tolist(), "se": b.tolist()} for a, b in _valid_records(con, profile_id)]
+
+
 def read_cast(con: sqlite3.Connection, profile_id: int,
               settings: SeriesSettings = SeriesSettings()) -> SeriesCast | None:
     """The cast pooled from a profile's frames; None when none was recorded.
 
     A damaged record is skipped with a warning (the rest still pool).
     """
-    rows = con.execute("SELECT frame, record FROM cast_frames WHERE profile_id = ? ORDER BY frame LIMIT ?",
-                       (profile_id, MAX_CAST_FRAMES)).fetchall()
-    shifts, ses = [], []
-    for frame, rec in rows:
-        try:
-            a, b = check_record(json.loads(rec))
-        except (ValueError, TypeError) as exc:
-            logger.warning("profile row %d: skipping frame %s's cast record: %s", profile_id, str(frame)[:16], exc)
-            continue
-        shifts.append(a)
-        ses.append(b)
-    if not shifts:
+    recs = _valid_records(con, profile_id)
+    if not recs:
         return None
-    return pool_cast(np.stack(shifts), np.stack(ses), settings)
+    return pool_cast(np.stack([a for a, _ in recs]), np.stack([b for _, b in recs]), settings)

@@ -9,11 +9,12 @@ import math
 import os
 import stat
 from datetime import datetime
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
 from vigproc.atomic import atomic_write_text
+from vigproc.core.cast_series import check_record
 from vigproc.core.colour import ColourPool
 from vigproc.core.information import MAX_FILE_VARIANCE, _Exact, _check_covariance, _scaled_pinv, fixed_indices
 from vigproc.core.model import N_ALPHA, PARAM_NAMES
@@ -21,6 +22,7 @@ from vigproc.core.normalised import N_PARAMS, denormalise
 from vigproc.errors import ModelError, ProfileStoreError
 from vigproc.io.exif import LensKey, normalise_text, unescape_key_part
 from vigproc.stores.profile import Profile, Shots, _is_trusted, _profile_stats
+from vigproc.stores.cast_store import MAX_CAST_FRAMES
 from vigproc.stores.profile_grid import GridPool
 from vigproc.stores.profile_key import (
     FILE_SCHEMA,
@@ -68,8 +70,17 @@ def _split_lens_id(lens_id: str) -> dict[str, str | None]:
     return {}
 
 
-def profile_to_dict(profile: Profile) -> dict[str, Any]:
-    """The ``vigproc.profile/2`` JSON object of ``profile``."""
+def profile_to_dict(profile: Profile, cast_records: Sequence[dict] = ()) -> dict[str, Any]:
+    """The ``vigproc.profile/2`` JSON object of ``profile``.
+
+    Parameters
+    ----------
+    profile : Profile
+    cast_records : sequence of dict
+        The per-frame colour-cast records the store pooled for this profile
+        (:func:`vigproc.core.cast_series.frame_record`); written as ``cast.frames`` so
+        that the importing store reports the same cast.  Empty: no ``cast`` field.
+    """
     th = [float(v) for v in profile.theta]
     cov = profile.covariance
     fixed = fixed_indices(cov) if cov is not None else ()
@@ -109,18 +120,55 @@ def profile_to_dict(profile: Profile) -> dict[str, Any]:
         # a grid needs a reader that knows it: /4 (one without stays /2 or /3)
         d["schema"] = FILE_SCHEMA_GRID
         d["grid"] = profile.grid.to_json()
+    if cast_records:
+        # optional and ignored by readers that do not know it: no new schema
+        d["cast"] = {"frames": [{"shift": np.asarray(r["shift"], dtype=float).tolist(),
+                                 "se": np.asarray(r["se"], dtype=float).tolist()} for r in cast_records]}
     return d
 
 
-def export_profile(profile: Profile, path: str | os.PathLike[str]) -> None:
-    """Write ``profile`` as a ``vigproc.profile/2`` JSON file, atomically.
+def cast_records_from_dict(d: dict[str, Any], where: str = "profile") -> list[dict]:
+    """The per-frame colour-cast records of a profile file's ``cast.frames``, validated.
+
+    Returns
+    -------
+    list of dict
+        Each ``{"shift": 4×2, "se": 4×2}``; empty when the file has no ``cast`` field.
+
+    Raises
+    ------
+    ProfileStoreError
+        ``cast`` is not ``{"frames": [record, ...]}`` of at most
+        :data:`vigproc.stores.cast_store.MAX_CAST_FRAMES` valid records.
+    """
+    cast = d.get("cast")
+    if cast is None:
+        return []
+    frames = cast.get("frames") if isinstance(cast, dict) else None
+    if not isinstance(frames, list):
+        raise ProfileStoreError(f"{where}: cast must be an object with a list 'frames'")
+    if len(frames) > MAX_CAST_FRAMES:
+        raise ProfileStoreError(f"{where}: cast.frames holds {len(frames)} records (at most {MAX_CAST_FRAMES})")
+    out = []
+    for i, rec in enumerate(frames):
+        try:
+            a, b = check_record(rec)
+        except ValueError as exc:
+            raise ProfileStoreError(f"{where}: cast.frames[{i}]: {exc}") from None
+        out.append({"shift": a.tolist(), "se": b.tolist()})
+    return out
+
+
+def export_profile(profile: Profile, path: str | os.PathLike[str], cast_records: Sequence[dict] = ()) -> None:
+    """Write ``profile`` (and its frames' colour-cast records, if given) as a
+    ``vigproc.profile/2`` JSON file, atomically.
 
     Raises
     ------
     vigproc.errors.ImageWriteError
         If the file cannot be written (the old file, if any, is left intact).
     """
-    text = json.dumps(profile_to_dict(profile), indent=2, ensure_ascii=False, allow_nan=False) + "\n"
+    text = json.dumps(profile_to_dict(profile, cast_records), indent=2, ensure_ascii=False, allow_nan=False) + "\n"
     atomic_write_text(path, text)
 
 
@@ -277,6 +325,10 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
     if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))
                               or not (math.isfinite(sigma) and 0 <= sigma <= MAX_FALLOFF_EV)):
         raise ProfileStoreError(f"{where}: field_sigma_ev must be a number of EV in 0..{MAX_FALLOFF_EV:g} or null")
+    scatter = d.get("scatter_sigma_ev")
+    if scatter is not None and (isinstance(scatter, bool) or not isinstance(scatter, (int, float))
+                                or not (math.isfinite(scatter) and 0 <= scatter <= MAX_FALLOFF_EV)):
+        raise ProfileStoreError(f"{where}: scatter_sigma_ev must be a number of EV in 0..{MAX_FALLOFF_EV:g} or null")
     shots = None if d.get("shots") is None else Shots.from_json(d["shots"], where)
     colour = None
     if d.get("colour") is not None:
@@ -314,7 +366,9 @@ def profile_from_dict(d: Any, where: str = "profile") -> Profile:
     return Profile(
         key=key, theta=theta, covariance=cov_a, info_matrix=lam, info_vector=eta, n_frames=n_frames,
         provenance=prov, created=created, updated=updated or created, trusted=trusted,
-        field_sigma_ev=pooled, cov_sigma_ev=cov_sigma, scatter_sigma_ev=None, notes=notes, shots=shots,
+        field_sigma_ev=pooled, cov_sigma_ev=cov_sigma,
+        # the spread its frames showed, as the file states it (kept so that a re-export says it too)
+        scatter_sigma_ev=None if scatter is None else float(scatter), notes=notes, shots=shots,
         colour=colour, grid=grid, _exact=exact,
     )
 
@@ -357,6 +411,11 @@ def _file_covariance(d: dict[str, Any], schema: str, where: str) -> np.ndarray |
 
 
 def import_profile(path: str | os.PathLike[str]) -> Profile:
+    """Read and validate a profile file: :func:`read_profile_file`'s profile."""
+    return read_profile_file(path)[0]
+
+
+def read_profile_file(path: str | os.PathLike[str]) -> tuple[Profile, list[dict]]:
     """Read and validate a ``vigproc.profile/2`` (or ``/1``) file (does not touch any store).
 
     Checks: size, JSON syntax (NaN/Infinity and duplicate fields rejected), schema,
@@ -364,6 +423,12 @@ def import_profile(path: str | os.PathLike[str]) -> Profile:
     within sane bounds, P positive semi-definite, G > 0 and a plausible fall-off
     inside the frame, covariance symmetric PSD.  A ``trusted`` value in the file is
     honoured; without it, trust follows the rule of learned profiles.
+
+    Returns
+    -------
+    tuple of (Profile, list of dict)
+        The profile and the per-frame colour-cast records its ``cast`` field carries
+        (:func:`cast_records_from_dict`; empty without one).
 
     Raises
     ------
@@ -389,4 +454,5 @@ def import_profile(path: str | os.PathLike[str]) -> Profile:
         raise ProfileStoreError(f"{where}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     except (json.JSONDecodeError, ValueError, RecursionError) as exc:  # RecursionError: absurdly nested
         raise ProfileStoreError(f"{where}: not valid profile JSON: {exc}") from None
-    return profile_from_dict(d, where)
+    profile = profile_from_dict(d, where)
+    return profile, cast_records_from_dict(d, where)

@@ -42,7 +42,8 @@ from vigproc.core.model import VignettingModel
 from vigproc.core.normalised import FIELD_GRID, N_PARAMS, _field_and_jacobian, normalise
 from vigproc.errors import ModelError, ProfileStoreError, VigprocError
 from vigproc.io.exif import LensKey, unescape_key_part
-from vigproc.stores.cast_store import migration_cast_frames, read_cast, record_cast
+from vigproc.stores.cast_store import (cast_records, migration_cast_frames, read_cast, record_cast,
+                                      record_imported_casts)
 from vigproc.stores.db import SQLiteFile
 from vigproc.stores.profile import (
     Profile,
@@ -54,7 +55,7 @@ from vigproc.stores.profile import (
 )
 from vigproc.stores.profile_grid import GridPool, grid_from_column, grid_to_column, migration_grid
 from vigproc.stores.profile_prior import migration_profile_priors, read_prior, write_prior
-from vigproc.stores.profile_file import import_profile, profile_from_dict, profile_to_dict
+from vigproc.stores.profile_file import export_profile, profile_from_dict, profile_to_dict, read_profile_file
 from vigproc.stores.profile_key import (
     DB_ENV,
     DEFAULT_TIMEOUT,
@@ -782,8 +783,12 @@ class ProfileStore(SQLiteFile):
         logger.debug("no profile for %s; using neighbouring focal bin %s", key, best.key.focal_bin)
         return best
 
-    def put(self, profile: Profile) -> None:
-        """Insert or replace ``profile`` (imports; replaces any profile under its key)."""
+    def put(self, profile: Profile, cast_records: list[dict] = ()) -> None:
+        """Insert or replace ``profile`` (imports; replaces any profile under its key).
+
+        ``cast_records``: the per-frame colour-cast records a profile file carried
+        (:func:`vigproc.stores.profile_file.cast_records_from_dict`), stored as the
+        profile's cast evidence in place of what the key held."""
         if not isinstance(profile, Profile):
             raise ProfileStoreError(f"put() needs a Profile, got {type(profile).__name__}")
         if not _valid_theta(profile.theta, profile.key.aspect_ratio):
@@ -798,6 +803,8 @@ class ProfileStore(SQLiteFile):
             # the stored evidence was replaced: no frame is pooled into it any more
             con.execute("DELETE FROM pooled_frames WHERE profile_id = ?", (row_id,))
             con.execute("DELETE FROM cast_frames WHERE profile_id = ?", (row_id,))  # their casts with them
+            # ... and the file's own frames' casts in their place, so the lens reports the same cast here
+            record_imported_casts(con, row_id, list(cast_records), _now())
             # ... but what it says of the lens is the prior of the frames learned next
             write_prior(con, row_id, profile.theta, profile.covariance, profile.n_frames, profile.provenance,
                         _now())
@@ -806,9 +813,32 @@ class ProfileStore(SQLiteFile):
         self._transact(f"storing {profile.key}", body)
 
     def import_file(self, path: str | os.PathLike[str]) -> Profile:
-        """:func:`import_profile` then :meth:`put`; returns the stored profile."""
-        p = import_profile(path)
-        self.put(p)
+        """:func:`read_profile_file` then :meth:`put` (with the file's cast records);
+        returns the stored profile."""
+        p, casts = read_profile_file(path)
+        self.put(p, casts)
+        return p
+
+    def export_file(self, key: ProfileKey, path: str | os.PathLike[str]) -> Profile:
+        """Write the profile under ``key`` as a profile file with its frames' cast
+        records (:func:`export_profile`), so that :meth:`import_file` in another store
+        gives the same profile and the same :meth:`cast_report`; returns the profile.
+
+        Raises
+        ------
+        ProfileStoreError
+            No profile under ``key``, or the store cannot be read.
+        vigproc.errors.ImageWriteError
+            The file cannot be written.
+        """
+        _check_key(key, "export_file")
+        with self._errors(f"reading {key}"):
+            p = self._get(key)
+            row_id = self._row_id(self.con, key)
+            casts = cast_records(self.con, row_id) if (p is not None and row_id is not None) else []
+        if p is None:
+            raise ProfileStoreError(f"no profile under {key}")
+        export_profile(p, path, casts)
         return p
 
     def learn(self, key: ProfileKey, model: VignettingModel, *, notes: str | None = None,

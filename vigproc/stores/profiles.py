@@ -142,9 +142,11 @@ from vigproc.stores.profile_file import (  # noqa: F401
     _split_lens_id,
     _timestamp,
     export_profile,
+    cast_records_from_dict,
     import_profile,
     profile_from_dict,
     profile_to_dict,
+    read_profile_file,
 )
 from vigproc.stores.profile_store import (  # noqa: F401
     MAX_POOLED_FRAMES,
@@ -199,6 +201,7 @@ __all__ = [
     "focal_bin",
     "frame_information",
     "import_profile",
+    "read_profile_file",
     "normalise",
     "pool_information",
     "pool_mean",

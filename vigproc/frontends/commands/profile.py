@@ -20,7 +20,7 @@ from vigproc.stores.lcp import import_lcp, lcp_files
 from vigproc.stores.lensfun_io import colour_notes, export_lensfun_xml, import_lensfun, lensfun_entries
 from vigproc.stores.opening import open_profile_store
 from vigproc.stores.profiles import (Profile, ProfileKey, ProfileStoreError, _aspect_value, _canonical_aspect,
-                                     aperture_bin, aspect_label, export_profile, focal_bin, normalise)
+                                     aperture_bin, aspect_label, focal_bin, normalise)
 
 
 def _profile_line(i: int, p) -> str:
@@ -188,7 +188,7 @@ def _apply(args: argparse.Namespace, store) -> int:
 
 def _export(args: argparse.Namespace, store) -> int:
     """``profile export ID FILE``: a stored profile as a profile file."""
-    export_profile(_pick_profile(store, args.id), args.file)
+    store.export_file(_pick_profile(store, args.id).key, args.file)  # with its frames' colour casts
     print(f"exported -> {args.file}")
     return 0
 
