@@ -117,3 +117,12 @@ def test_help_imports_only_the_command_asked_about(argv, loaded, not_loaded):
         assert m in modules, modules
     for m in not_loaded:
         assert m not in modules, modules
+
+
+def test_python_dash_m_vigproc_is_the_command(tmp_path):
+    """``python -m vigproc`` runs the ``vigproc`` command (where the scripts folder is not on
+    PATH), with its exit codes: a missing input is a failed file (4), not a traceback."""
+    r = subprocess.run([sys.executable, "-m", "vigproc", "correct", str(tmp_path / "missing.jpg"), "-o",
+                        str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 4, r.stderr
+    assert "file not found" in r.stderr and "Traceback" not in r.stderr

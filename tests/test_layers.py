@@ -51,7 +51,8 @@ LAYERS = (
     ("vigproc.stores",),
     ("vigproc.forensics",),
     ("vigproc.pipeline",),
-    ("vigproc.frontends", "vigproc.api"),  # vigproc.api: the stable API's old name
+    # vigproc.api: the stable API's old name; vigproc.__main__: `python -m vigproc`, the command
+    ("vigproc.frontends", "vigproc.api", "vigproc.__main__"),
 )
 
 
