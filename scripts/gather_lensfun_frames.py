@@ -22,14 +22,11 @@ Run from the repository root:
 
 from __future__ import annotations
 
-import argparse
-import csv
-import hashlib
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gather_real_frames import _blob, _snapshot  # noqa: E402
+from gather_real_frames import gather, parse_args  # noqa: E402
 
 _DC = ("drewnoakes/digicam_corpus", "6385e5eacf2dd242ff71e5828ff56ed691bfdc77", "CC0-1.0 (the repository's LICENSE)")
 _EX = ("ianare/exif-samples", "5332a9cf0220e9c6c93f88a187daa90808051e10",
@@ -49,34 +46,8 @@ FRAMES = [
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("out", type=Path, help="folder to fill (never inside the repository)")
-    ap.add_argument("--snapshot", action="append", default=[], metavar="OWNER/NAME=DIR",
-                    help="a repository's snapshot (bare git dir or work tree)")
-    args = ap.parse_args(argv)
-    given = dict(s.split("=", 1) for s in args.snapshot)
-    args.out.mkdir(parents=True, exist_ok=True)
-    rows, missing = [], 0
-    for repo, commit, licence, path, what in FRAMES:
-        snap = _snapshot(repo, given)
-        got = _blob(snap, commit, path) if snap else None
-        if got is None:
-            print(f"missing: {repo}:{path} (no snapshot or blob)", file=sys.stderr)
-            missing += 1
-            continue
-        oid, data = got
-        dest = args.out / f"{repo.split('/')[1]}__{path.replace('/', '_')}"
-        tmp = dest.with_name(dest.name + ".part")
-        tmp.write_bytes(data)
-        tmp.replace(dest)
-        rows.append({"file": dest.name, "repository": f"https://github.com/{repo}", "path": path, "commit": commit,
-                     "blob": oid, "sha256": hashlib.sha256(data).hexdigest(), "licence": licence, "what": what})
-    with (args.out / "manifest.csv").open("w", newline="", encoding="utf-8") as fh:
-        wr = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["file"])
-        wr.writeheader()
-        wr.writerows(rows)
-    print(f"{len(rows)} frames in {args.out} ({missing} missing); manifest {args.out / 'manifest.csv'}")
-    return 0 if rows else 1
+    return gather(*parse_args(__doc__, argv),
+                  [(repo, commit, path, licence, what, "") for repo, commit, licence, path, what in FRAMES])
 
 
 if __name__ == "__main__":

@@ -84,16 +84,23 @@ def _left_half(data: bytes, dest: Path) -> None:
             raise OSError(half.geterror())
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def parse_args(doc: str, argv: list[str] | None) -> tuple[Path, dict[str, str]]:
+    """The gather scripts' command line: the folder to fill and the ``--snapshot`` map."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("out", type=Path, help="folder to fill (never inside the repository)")
     ap.add_argument("--snapshot", action="append", default=[], metavar="OWNER/NAME=DIR",
                     help="a repository's snapshot (bare git dir or work tree)")
     args = ap.parse_args(argv)
-    given = dict(s.split("=", 1) for s in args.snapshot)
-    args.out.mkdir(parents=True, exist_ok=True)
+    return args.out, dict(s.split("=", 1) for s in args.snapshot)
+
+
+def gather(out: Path, given: dict[str, str], frames) -> int:
+    """Take each of ``frames`` — (repository, commit, path, licence, what, cut) — out of its
+    snapshot into ``out`` (``cut == "left"``: the left half, re-encoded) and write
+    ``out/manifest.csv``; returns the exit status (1 when nothing was gathered)."""
+    out.mkdir(parents=True, exist_ok=True)
     rows, missing = [], 0
-    for repo, commit, path, licence, what, cut in FRAMES:
+    for repo, commit, path, licence, what, cut in frames:
         snap = _snapshot(repo, given)
         got = _blob(snap, commit, path) if snap else None
         if got is None:
@@ -102,20 +109,26 @@ def main(argv: list[str] | None = None) -> int:
             continue
         oid, data = got
         name = f"{repo.split('/')[1]}__{path.replace('/', '_')}"
-        dest = args.out / (name.rsplit(".", 1)[0] + ".left.jpg" if cut == "left" else name)
+        dest = out / (name.rsplit(".", 1)[0] + ".left.jpg" if cut == "left" else name)
         if cut == "left":
             _left_half(data, dest)
         else:
-            dest.write_bytes(data)
+            tmp = dest.with_name(dest.name + ".part")
+            tmp.write_bytes(data)
+            tmp.replace(dest)
         rows.append({"file": dest.name, "repository": f"https://github.com/{repo}", "path": path, "commit": commit,
                      "blob": oid, "sha256": hashlib.sha256(data).hexdigest(), "licence": licence, "what": what,
                      "derived": "left half, re-encoded JPEG q95, no EXIF" if cut else ""})
-    with (args.out / "manifest.csv").open("w", newline="", encoding="utf-8") as fh:
+    with (out / "manifest.csv").open("w", newline="", encoding="utf-8") as fh:
         wr = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["file"])
         wr.writeheader()
         wr.writerows(rows)
-    print(f"{len(rows)} frames in {args.out} ({missing} missing); manifest {args.out / 'manifest.csv'}")
+    print(f"{len(rows)} frames in {out} ({missing} missing); manifest {out / 'manifest.csv'}")
     return 0 if rows else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    return gather(*parse_args(__doc__, argv), FRAMES)
 
 
 if __name__ == "__main__":
