@@ -141,9 +141,12 @@ def test_the_fits_the_choice_weighs_state_their_own_field_rms():
         assert m.quality.field_ev_rms == m.field_ev_rms() > 0.5
 
 
-def _geometry_fit_reference(index, X, Y, fam, c, pm, pinv, settings, elliptical, iterations, tolerance=1e-3):
+def _geometry_fit_reference(index, X, Y, fam, c, pm, pinv, settings, elliptical, iterations, tolerance=1e-3,
+                            field_tolerance=0.0):
     """The Gauss-Newton loop in Python over _geometry_pairs and _solve (what the compiled
-    loop replaced), step for step."""
+    loop replaced), step for step; with ``field_tolerance``, it also stops when the step
+    moves the log field (its first-order change over the bins, RMS about its mean) by
+    less than that many EV."""
     from vigproc.core.family_fit import MAX_ELLIPTICITY, _solve
 
     K = fam.n_components
@@ -169,14 +172,22 @@ def _geometry_fit_reference(index, X, Y, fam, c, pm, pinv, settings, elliptical,
             size = float(np.hypot(*e))
             if size > MAX_ELLIPTICITY:
                 step[2:] = e * (MAX_ELLIPTICITY / size) - geo[2:]
-        geo = geo + step
+        start, geo = geo, geo + step
         if float(np.max(np.abs(sol[K:]))) < tolerance:
             break
+        if field_tolerance > 0:
+            # the field's derivatives at the step's start, at every bin (not only the pairs')
+            gx, gy = np.meshgrid(xs, ys)
+            _, J = _geometry_columns(fam, x0[:K], start, gx, gy)
+            change = J.reshape(-1, K + E) @ np.concatenate([sol[:K] - x0[:K], step])
+            if float(np.std(change)) / math.log(2.0) < field_tolerance:
+                break
     return coef, geo, d, a, sol, pm_it, steps
 
 
-@pytest.mark.parametrize("elliptical, iterations", [(False, 12), (True, 30), (True, 3)])
-def test_geometry_fit_in_one_compiled_loop_is_the_python_loop(elliptical, iterations):
+@pytest.mark.parametrize("elliptical, iterations, field_tolerance",
+                         [(False, 12, 0.0), (True, 30, 0.0), (True, 3, 0.0), (True, 30, 0.01)])
+def test_geometry_fit_in_one_compiled_loop_is_the_python_loop(elliptical, iterations, field_tolerance):
     """The compiled Gauss-Newton loop (the centre test's circular fit, the off-centre fit's
     elliptical one, and one stopped by its step limit) takes the Python loop's steps: the
     same number, and every output equal to 1e-12 (relative; the two loops differ only in
@@ -193,11 +204,52 @@ def test_geometry_fit_in_one_compiled_loop_is_the_python_loop(elliptical, iterat
     radius = corner_radius(W, H)
     pm, pinv = _prior_with_geometry(fam, LensHint(), 4 if elliptical else 2, 0.5)
     args = (index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv, s, elliptical, iterations)
-    got = _geometry_fit(*args)
-    want = _geometry_fit_reference(*args)
+    got = _geometry_fit(*args, field_tolerance=field_tolerance)
+    want = _geometry_fit_reference(*args, field_tolerance=field_tolerance)
     assert got[6] == want[6] >= min(iterations, 3)
     for g, w in zip(got[:6], want[:6]):
         np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12 * float(np.max(np.abs(w))))
+
+
+def test_off_centre_fit_stops_once_its_field_settles():
+    """The off-centre fit stops when a step moves its field by less than
+    OFF_CENTRE_FIELD_TOLERANCE, in fewer steps than its geometry's own stop takes, and
+    off_centre_fit reports those steps."""
+    from vigproc.core.family_fit import OFF_CENTRE_FIELD_TOLERANCE, OFF_CENTRE_ITERATIONS, _geometry_fit, \
+        _prior_with_geometry, LensHint
+
+    assert OFF_CENTRE_FIELD_TOLERANCE > 0
+    frame = _table1_colour_frame()
+    s = OffCentreRule().settings
+    lum = luminance(frame)
+    c = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    L, valid, xs, ys, C, _ = with_colour(luminance_copy(lum, s, None), frame, s)
+    index = settings_index(L, valid, C, s)
+    fam = profile_family().truncated(len(c))
+    radius = corner_radius(W, H)
+    pm, pinv = _prior_with_geometry(fam, LensHint(), 4, 0.5)
+    args = (index, xs[None, :] / radius, ys[:, None] / radius, fam, c, pm, pinv, s, True, OFF_CENTRE_ITERATIONS)
+    settled = _geometry_fit(*args, field_tolerance=OFF_CENTRE_FIELD_TOLERANCE)[6]
+    assert 1 <= settled < _geometry_fit(*args)[6]
+    assert off_centre_fit(lum, c, s, colour=frame).field.quality.iterations == settled
+
+
+def test_comparison_fit_started_from_a_fit_ends_where_it_ends_from_the_prior():
+    """The luminance's comparison fit started from the colour fit's coefficients (as the
+    default estimator starts it) reaches the fit it reaches from the prior mean, to the
+    IRLS's own tolerance."""
+    frame = _table1_colour_frame()
+    lum = luminance(frame)
+    s = OffCentreRule().settings
+    coef = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    work = luminance_copy(lum, s, None)
+    cold = fit_family(lum, s, uncertainty=False, copy=work)
+    warm = fit_family(lum, s, uncertainty=False, copy=work, start=coef)
+    assert len(coef) > len(warm.coefficients)  # the colour fit has a component more: the first ones start
+    assert not np.array_equal(warm.coefficients, cold.coefficients)
+    np.testing.assert_allclose(warm.coefficients, cold.coefficients, atol=20 * s.tolerance)
+    again = fit_family(lum, s, uncertainty=False, copy=work, start=warm.coefficients)
+    np.testing.assert_allclose(again.coefficients, warm.coefficients, atol=2 * s.tolerance)
 
 
 def test_pair_losses_read_the_pairs_listed_for_the_fit_they_judge():

@@ -541,7 +541,8 @@ COVARIATE_RELAXATION = 1.6
 
 
 def _fit_with_chroma(d, a, index: PairIndex, wt, pmean, pinv, s: FamilySettings,
-                     iterations: int, relaxation: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int, relaxation: float = 1.0, start: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """The field's coefficients (K = a's columns) fitted with the pairs' chroma changes as
     covariates (module doc, step 3; ``s.chroma_covariate`` the s.d. of their centred prior),
     and the pairs' data with the covariates' part taken out: a jackknife refits the field
@@ -551,7 +552,8 @@ def _fit_with_chroma(d, a, index: PairIndex, wt, pmean, pinv, s: FamilySettings,
     by ``relaxation``, :func:`irls`) and ``d`` itself."""
     K = a.shape[1]
     if s.chroma_covariate <= 0 or not index.chroma.size or float(np.max(np.abs(index.chroma))) <= 1e-9:
-        return _solve(d, a, wt, pmean, pmean, pinv, s, iterations, relaxation=relaxation), d
+        return _solve(d, a, wt, pmean if start is None else start, pmean, pinv, s, iterations,
+                      relaxation=relaxation), d
     pm = np.concatenate([pmean, np.zeros(2)])
     prec = np.block([[pinv, np.zeros((K, 2))], [np.zeros((2, K)), np.eye(2) / s.chroma_covariate**2]])
     # rows stacked, then seen as columns: irls reads the rows without a copy
@@ -842,12 +844,16 @@ def _geometry_pairs(index: PairIndex, xs: np.ndarray, ys: np.ndarray, fam: LensF
 
 
 def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings: FamilySettings,
-                  elliptical: bool, iterations: int, tolerance: float = 1e-3):
+                  elliptical: bool, iterations: int, tolerance: float = 1e-3, field_tolerance: float = 0.0):
     """Gauss-Newton on the fall-off's centre u (and, ``elliptical``, its shape (e1, e2)),
     four IRLS steps of the family coefficients inside each (:func:`_geometry_columns`;
     a step is shortened so that |e| stays within :data:`MAX_ELLIPTICITY`): one compiled
     loop (:mod:`vigproc.core._kernels.gauss_newton`) over :func:`_geometry_pairs` and
     :func:`_solve`'s steps.
+
+    It stops when no geometry parameter moves by ``tolerance`` (half-diagonals) or, with
+    ``field_tolerance`` > 0, when a step moves the log field by less than that many EV
+    (RMS over the bins about its mean, to first order).
 
     Returns the coefficients, the geometry (u, or u and e), the last step's pairs,
     solution and prior mean (for the jackknife), and the number of steps taken.
@@ -869,7 +875,8 @@ def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings
         np.ascontiguousarray(grads[1], dtype=f64), index.first, index.second, index.inv_step, index.dlog,
         np.ascontiguousarray(index.weight, dtype=f64), coef, np.ascontiguousarray(pm, dtype=f64),
         np.ascontiguousarray(pinv, dtype=f64), 1.0 / (settings.sigma * settings.sigma * settings.kappa),
-        1.0 / settings.sigma, 4, float(settings.tolerance), int(iterations), float(tolerance), MAX_ELLIPTICITY)
+        1.0 / settings.sigma, 4, float(settings.tolerance), int(iterations), float(tolerance), MAX_ELLIPTICITY,
+        float(field_tolerance))
     return coef, geo, d, at.T, sol, pm_it, int(steps)
 
 
@@ -925,6 +932,13 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
 OFF_CENTRE_METHOD = "lens-family-off-centre"
 #: Most Gauss-Newton steps of :func:`fit_off_centre`.
 OFF_CENTRE_ITERATIONS = 30
+#: :func:`fit_off_centre` also stops when a Gauss-Newton step moves its log field by less
+#: than this (EV, RMS over the working copy's bins about its mean, to first order; 0 for
+#: none). Its geometry creeps about 0.001 half-diagonals a step, or cycles, long after the
+#: field has settled: on the clean bases' Table 1 settings 2 and 3 the fit took 5-30 steps
+#: (median 10, mean 13.4) and takes 5-30 (median 7, mean 9.3) with this stop, the errors'
+#: medians 0.2555 / 0.2847 -> 0.2581 / 0.2787 EV, no choice changed (docs/benchmarks/speed.md).
+OFF_CENTRE_FIELD_TOLERANCE = 0.01
 #: The prior s.d. of :func:`fit_off_centre`'s centre (half-diagonals) and shape (e1, e2).
 OFF_CENTRE_SPREAD = 0.5
 
@@ -1013,7 +1027,8 @@ def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 4, OFF_CENTRE_SPREAD)
     index = settings_index(L, valid, C, settings)
     coef, geo, d, a, sol, pm_it, steps = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c,
-                                                       pm, pinv, settings, True, OFF_CENTRE_ITERATIONS)
+                                                       pm, pinv, settings, True, OFF_CENTRE_ITERATIONS,
+                                                       field_tolerance=OFF_CENTRE_FIELD_TOLERANCE)
     if d is None or d.size < MIN_VALID_BINS or not np.all(np.isfinite(geo)) \
             or float(np.hypot(geo[2], geo[3])) >= MAX_ELLIPTICITY - 1e-9:
         return None  # no pairs, or a shape held at the bound: no fit
@@ -1208,7 +1223,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
                hint: LensHint | None = None,
                colour: np.ndarray | None = None, copy: FamilyWorkingCopy | None = None,
                uncertainty: bool = True, ev_checks: tuple[float, ...] = (),
-               index: PairIndex | None = None) -> FamilyFit:
+               index: PairIndex | None = None, start: np.ndarray | None = None) -> FamilyFit:
     """Estimate a centred lens fall-off from an H×W linear luminance image.
 
     Parameters
@@ -1245,6 +1260,10 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     index : PairIndex, optional
         The pairs of ``copy`` with ``settings`` (:func:`settings_index`), when the caller
         lists them once for this fit and another use (:func:`pair_losses`).
+    start : ndarray, optional
+        Where the IRLS starts (its first K entries; default: the prior mean): the
+        default estimator starts the luminance's comparison fit from the colour fit's
+        coefficients. Only a fit without chroma covariates reads it.
 
     Returns
     -------
@@ -1275,8 +1294,9 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
     pinv = np.linalg.inv(pcov)
     n = d.size
+    c0 = None if start is None else np.asarray(start, dtype=np.float64)[:K]
     c, d = _fit_with_chroma(d, a, index, wt, pmean, pinv, settings, settings.iterations,
-                            1.0 if uncertainty else COMPARISON_RELAXATION)
+                            1.0 if uncertainty else COMPARISON_RELAXATION, c0)
     grid = frame_rho_grid(w, h)
     # a fit that does not weigh its pairs by colour is calibrated on its own
     scale = settings.sigma_scale if weighted else settings.grey_sigma_scale
