@@ -844,16 +844,12 @@ def _geometry_pairs(index: PairIndex, xs: np.ndarray, ys: np.ndarray, fam: LensF
 
 
 def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings: FamilySettings,
-                  elliptical: bool, iterations: int, tolerance: float = 1e-3, field_tolerance: float = 0.0):
+                  elliptical: bool, iterations: int, tolerance: float = 1e-3):
     """Gauss-Newton on the fall-off's centre u (and, ``elliptical``, its shape (e1, e2)),
     four IRLS steps of the family coefficients inside each (:func:`_geometry_columns`;
     a step is shortened so that |e| stays within :data:`MAX_ELLIPTICITY`): one compiled
     loop (:mod:`vigproc.core._kernels.gauss_newton`) over :func:`_geometry_pairs` and
     :func:`_solve`'s steps.
-
-    It stops when no geometry parameter moves by ``tolerance`` (half-diagonals) or, with
-    ``field_tolerance`` > 0, when a step moves the log field by less than that many EV
-    (RMS over the bins about its mean, to first order).
 
     Returns the coefficients, the geometry (u, or u and e), the last step's pairs,
     solution and prior mean (for the jackknife), and the number of steps taken.
@@ -875,8 +871,7 @@ def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings
         np.ascontiguousarray(grads[1], dtype=f64), index.first, index.second, index.inv_step, index.dlog,
         np.ascontiguousarray(index.weight, dtype=f64), coef, np.ascontiguousarray(pm, dtype=f64),
         np.ascontiguousarray(pinv, dtype=f64), 1.0 / (settings.sigma * settings.sigma * settings.kappa),
-        1.0 / settings.sigma, 4, float(settings.tolerance), int(iterations), float(tolerance), MAX_ELLIPTICITY,
-        float(field_tolerance))
+        1.0 / settings.sigma, 4, float(settings.tolerance), int(iterations), float(tolerance), MAX_ELLIPTICITY)
     return coef, geo, d, at.T, sol, pm_it, int(steps)
 
 
@@ -932,13 +927,6 @@ def fit_centre(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Family
 OFF_CENTRE_METHOD = "lens-family-off-centre"
 #: Most Gauss-Newton steps of :func:`fit_off_centre`.
 OFF_CENTRE_ITERATIONS = 30
-#: :func:`fit_off_centre` also stops when a Gauss-Newton step moves its log field by less
-#: than this (EV, RMS over the working copy's bins about its mean, to first order; 0 for
-#: none). Its geometry creeps about 0.001 half-diagonals a step, or cycles, long after the
-#: field has settled: on the clean bases' Table 1 settings 2 and 3 the fit took 5-30 steps
-#: (median 10, mean 13.4) and takes 5-30 (median 7, mean 9.3) with this stop, the errors'
-#: medians 0.2555 / 0.2847 -> 0.2581 / 0.2787 EV, no choice changed (docs/benchmarks/speed.md).
-OFF_CENTRE_FIELD_TOLERANCE = 0.01
 #: The prior s.d. of :func:`fit_off_centre`'s centre (half-diagonals) and shape (e1, e2).
 OFF_CENTRE_SPREAD = 0.5
 
@@ -1027,8 +1015,7 @@ def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 4, OFF_CENTRE_SPREAD)
     index = settings_index(L, valid, C, settings)
     coef, geo, d, a, sol, pm_it, steps = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c,
-                                                       pm, pinv, settings, True, OFF_CENTRE_ITERATIONS,
-                                                       field_tolerance=OFF_CENTRE_FIELD_TOLERANCE)
+                                                       pm, pinv, settings, True, OFF_CENTRE_ITERATIONS)
     if d is None or d.size < MIN_VALID_BINS or not np.all(np.isfinite(geo)) \
             or float(np.hypot(geo[2], geo[3])) >= MAX_ELLIPTICITY - 1e-9:
         return None  # no pairs, or a shape held at the bound: no fit

@@ -26,27 +26,9 @@ from vigproc.core._kernels.irls import irls_into
 
 
 @njit(cache=True, nogil=True)
-def _field_change_ev(J, delta, inv_ln2):
-    """RMS over the bins, about its mean, of the log field's first-order change J·delta
-    (J: (K + E, bins), the field's derivatives by every parameter), in EV."""
-    nc, nb = J.shape
-    s = 0.0
-    s2 = 0.0
-    for b in range(nb):
-        v = 0.0
-        for k in range(nc):
-            v += J[k, b] * delta[k]
-        s += v
-        s2 += v * v
-    mean = s / nb
-    var = max(s2 / nb - mean * mean, 0.0)
-    return math.sqrt(var) * inv_ln2
-
-
-@njit(cache=True, nogil=True)
 def geometry_gauss_newton(xs, ys, geo0, radii, mean, comps, grad_mean, grad_comps, first, second, inv_step, dlog,
                           weight, coef0, pm, pinv, scale, inv_s, inner, inner_tolerance, iterations, tolerance,
-                          max_ellipticity, field_tolerance=0.0):
+                          max_ellipticity):
     """Gauss-Newton on the fall-off's centre (and, with a four-entry ``geo0``, its shape),
     the family coefficients by ``inner`` IRLS steps inside each step.
 
@@ -78,10 +60,6 @@ def geometry_gauss_newton(xs, ys, geo0, radii, mean, comps, grad_mean, grad_comp
         Stop when no geometry parameter moves by this much in a step.
     max_ellipticity : float
         A step is shortened so that |(e1, e2)| stays within it.
-    field_tolerance : float
-        Also stop when a step moves the log field by less than this (EV, RMS over the
-        bins about its mean; to first order: the step times the field's derivatives at
-        its start); 0: the geometry's ``tolerance`` alone.
 
     Returns
     -------
@@ -114,8 +92,6 @@ def geometry_gauss_newton(xs, ys, geo0, radii, mean, comps, grad_mean, grad_comp
     geo = geo0.copy()
     coef = coef0.copy()
     sol = np.full(nc, np.nan)
-    delta = np.empty(nc)
-    inv_ln2 = 1.0 / math.log(2.0)
     steps = 0
     for _ in range(iterations):
         slope = grad_mean + np.dot(coef, grad_comps)
@@ -142,16 +118,10 @@ def geometry_gauss_newton(xs, ys, geo0, radii, mean, comps, grad_mean, grad_comp
             if size > max_ellipticity:  # along the step, to the largest shape allowed
                 step[2] = e1 * (max_ellipticity / size) - geo[2]
                 step[3] = e2 * (max_ellipticity / size) - geo[3]
-        for k in range(K):
-            delta[k] = sol[k] - x0[k]
-        for k in range(E):
-            delta[K + k] = step[k]
         geo = geo + step
         move = 0.0
         for k in range(E):
             move = max(move, abs(sol[K + k]))
         if move < tolerance:
-            break
-        if field_tolerance > 0.0 and _field_change_ev(J, delta, inv_ln2) < field_tolerance:
             break
     return coef, geo, d, at, sol, pm_it, steps
