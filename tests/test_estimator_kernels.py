@@ -200,6 +200,24 @@ def test_geometry_fit_in_one_compiled_loop_is_the_python_loop(elliptical, iterat
         np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12 * float(np.max(np.abs(w))))
 
 
+def test_comparison_fit_started_from_a_fit_ends_where_it_ends_from_the_prior():
+    """The luminance's comparison fit started from the colour fit's coefficients (as the
+    default estimator starts it) reaches the fit it reaches from the prior mean, to the
+    IRLS's own tolerance."""
+    frame = _table1_colour_frame()
+    lum = luminance(frame)
+    s = OffCentreRule().settings
+    coef = fit_family(lum, FamilySettings(), colour=frame).coefficients
+    work = luminance_copy(lum, s, None)
+    cold = fit_family(lum, s, uncertainty=False, copy=work)
+    warm = fit_family(lum, s, uncertainty=False, copy=work, start=coef)
+    assert len(coef) > len(warm.coefficients)  # the colour fit has a component more: the first ones start
+    assert not np.array_equal(warm.coefficients, cold.coefficients)
+    np.testing.assert_allclose(warm.coefficients, cold.coefficients, atol=20 * s.tolerance)
+    again = fit_family(lum, s, uncertainty=False, copy=work, start=warm.coefficients)
+    np.testing.assert_allclose(again.coefficients, warm.coefficients, atol=2 * s.tolerance)
+
+
 def test_pair_losses_read_the_pairs_listed_for_the_fit_they_judge():
     """The comparison's losses from the pairs listed for the luminance's fit (jackknife
     labels and all) are the losses of the pairs it lists for itself, to the bit."""

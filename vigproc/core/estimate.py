@@ -651,11 +651,13 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
     if not (alt.candidate or alt).quality.field_ev_rms >= rule.keep_min_ev:
         return model
     # the luminance's, as the comparison reads (its field alone: no jackknife); its pairs
-    # listed once for the fit and the comparison
+    # listed once for the fit and the comparison; its IRLS started from the centred colour
+    # fit's coefficients (the same fixed point, fewer steps than from the prior mean)
     if work is None:
         work = luminance_copy(lum, s, mask)
     index = settings_index(work.L, work.valid, None, s)
-    grey = fit_family(lum, s, mask, family, hint, uncertainty=False, copy=work, index=index).model
+    grey = fit_family(lum, s, mask, family, hint, uncertainty=False, copy=work, index=index,
+                      start=coef).model
     loss_family, loss_alt = pair_losses(lum, [grey.candidate or grey, alt.candidate or alt], s, mask, work, index)
     if loss_alt < loss_family - s.select_margin:
         if off is not None:

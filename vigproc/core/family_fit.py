@@ -541,7 +541,8 @@ COVARIATE_RELAXATION = 1.6
 
 
 def _fit_with_chroma(d, a, index: PairIndex, wt, pmean, pinv, s: FamilySettings,
-                     iterations: int, relaxation: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int, relaxation: float = 1.0, start: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """The field's coefficients (K = a's columns) fitted with the pairs' chroma changes as
     covariates (module doc, step 3; ``s.chroma_covariate`` the s.d. of their centred prior),
     and the pairs' data with the covariates' part taken out: a jackknife refits the field
@@ -551,7 +552,8 @@ def _fit_with_chroma(d, a, index: PairIndex, wt, pmean, pinv, s: FamilySettings,
     by ``relaxation``, :func:`irls`) and ``d`` itself."""
     K = a.shape[1]
     if s.chroma_covariate <= 0 or not index.chroma.size or float(np.max(np.abs(index.chroma))) <= 1e-9:
-        return _solve(d, a, wt, pmean, pmean, pinv, s, iterations, relaxation=relaxation), d
+        return _solve(d, a, wt, pmean if start is None else start, pmean, pinv, s, iterations,
+                      relaxation=relaxation), d
     pm = np.concatenate([pmean, np.zeros(2)])
     prec = np.block([[pinv, np.zeros((K, 2))], [np.zeros((2, K)), np.eye(2) / s.chroma_covariate**2]])
     # rows stacked, then seen as columns: irls reads the rows without a copy
@@ -1208,7 +1210,7 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
                hint: LensHint | None = None,
                colour: np.ndarray | None = None, copy: FamilyWorkingCopy | None = None,
                uncertainty: bool = True, ev_checks: tuple[float, ...] = (),
-               index: PairIndex | None = None) -> FamilyFit:
+               index: PairIndex | None = None, start: np.ndarray | None = None) -> FamilyFit:
     """Estimate a centred lens fall-off from an H×W linear luminance image.
 
     Parameters
@@ -1245,6 +1247,10 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     index : PairIndex, optional
         The pairs of ``copy`` with ``settings`` (:func:`settings_index`), when the caller
         lists them once for this fit and another use (:func:`pair_losses`).
+    start : ndarray, optional
+        Where the IRLS starts (its first K entries; default: the prior mean): the
+        default estimator starts the luminance's comparison fit from the colour fit's
+        coefficients. Only a fit without chroma covariates reads it.
 
     Returns
     -------
@@ -1275,8 +1281,9 @@ def fit_family(lum: np.ndarray, settings: FamilySettings = FamilySettings(),
     pmean, pcov = fam.prior(hint.focal35, hint.fnumber)
     pinv = np.linalg.inv(pcov)
     n = d.size
+    c0 = None if start is None else np.asarray(start, dtype=np.float64)[:K]
     c, d = _fit_with_chroma(d, a, index, wt, pmean, pinv, settings, settings.iterations,
-                            1.0 if uncertainty else COMPARISON_RELAXATION)
+                            1.0 if uncertainty else COMPARISON_RELAXATION, c0)
     grid = frame_rho_grid(w, h)
     # a fit that does not weigh its pairs by colour is calibrated on its own
     scale = settings.sigma_scale if weighted else settings.grey_sigma_scale
