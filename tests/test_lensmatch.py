@@ -163,6 +163,24 @@ def test_pooled_null_is_the_set_by_set_null_bit_for_bit(n, shift_spread):
         assert np.array_equal(stat(stack), [stat(s) for s in stack])
 
 
+@pytest.mark.parametrize("photos, n, most", [(30, 30, 1), (7, 2, 1), (200, 5, 6), (10_000, 9, 3), (10_001, 4, 2)])
+def test_the_draw_kernel_gives_numpys_choice_and_integers(photos, n, most):
+    # the kernel follows NumPy's Generator.choice (Floyd, then a shuffle) and integers
+    # (Lemire) on the raw stream; above 10 000 photographs NumPy's own calls are used
+    from vigproc.forensics.lensmatch import _distinct_group_rows
+
+    rs = np.random.default_rng(photos + n)
+    sizes = rs.integers(1, most + 1, photos).astype(np.int64)
+    first = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    members = rs.permutation(int(sizes.sum())).astype(np.int64)
+    rng = np.random.default_rng(7)
+    want = np.empty((150, n), np.int64)
+    for i in range(150):
+        picks = rng.choice(photos, n, replace=False)
+        want[i] = members[first[picks] + rng.integers(sizes[picks])]
+    assert np.array_equal(_distinct_group_rows(sizes, first, members, n, 7, 150), want)
+
+
 def test_shipped_calibration_is_for_the_shipped_family():
     cal = default_match_calibration()
     cal.check_family(default_family())

@@ -223,13 +223,7 @@ def pooled_null(z: np.ndarray, groups: np.ndarray, n_frames: int, statistic, *, 
     sizes = np.array([b.size for b in by_group], dtype=np.int64)
     first = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     members = np.concatenate(by_group)
-    rng = np.random.default_rng(seed)
-    # the photographs and their rows are drawn set by set, in the order of the stream
-    # the draws were defined with (a choice, then one integer per photograph)
-    rows = np.empty((draws, n_frames), dtype=np.int64)
-    for i in range(draws):
-        picks = rng.choice(uniq.size, n_frames, replace=False)
-        rows[i] = members[first[picks] + rng.integers(sizes[picks])]
+    rows = _distinct_group_rows(sizes, first, members, n_frames, seed, draws)
     sample = z[rows]
     if shift_spread > 0:
         # one K-vector per set, consecutive in the stream: the same values as K at a time
@@ -238,6 +232,47 @@ def pooled_null(z: np.ndarray, groups: np.ndarray, n_frames: int, statistic, *, 
     out = np.asarray(statistic(sample), dtype=np.float64)
     out.sort()
     return out
+
+
+#: Photographs above which NumPy's ``choice`` shuffles a tail instead of Floyd's
+#: algorithm (:mod:`vigproc.core._kernels.draws` follows Floyd's only).
+_FLOYD_MAX = 10_000
+
+
+def _distinct_group_rows(sizes: np.ndarray, first: np.ndarray, members: np.ndarray, n_frames: int, seed: int,
+                         draws: int) -> np.ndarray:
+    """The rows of :func:`pooled_null`'s sets: per set, ``rng.choice(P, n_frames,
+    replace=False)`` photographs, then ``rng.integers(sizes[picks])`` for one row of
+    each, ``rng = default_rng(seed)`` -- the same numbers, drawn by a Numba kernel from
+    the generator's raw outputs (NumPy's own calls above :data:`_FLOYD_MAX` photographs).
+
+    Parameters
+    ----------
+    sizes, first : ndarray of int64 (P,)
+        Each photograph's number of rows and the index of its first in ``members``.
+    members : ndarray of int64
+        Row indices, photograph by photograph.
+    n_frames, seed, draws : int
+        As :func:`pooled_null`'s.
+
+    Returns
+    -------
+    ndarray of int64 (draws, n_frames)
+    """
+    rows = np.empty((draws, n_frames), dtype=np.int64)
+    if sizes.size > _FLOYD_MAX:
+        rng = np.random.default_rng(seed)
+        for i in range(draws):
+            picks = rng.choice(sizes.size, n_frames, replace=False)
+            rows[i] = members[first[picks] + rng.integers(sizes[picks])]
+        return rows
+    from vigproc.core._kernels.draws import distinct_group_rows  # Numba: not at import
+
+    need = draws * (2 * n_frames + 2) + 64  # 32-bit draws per set: about 3 n, two a raw output
+    while not distinct_group_rows(np.random.default_rng(seed).bit_generator.random_raw(need), sizes, first,
+                                  members, n_frames, rows):
+        need *= 2  # many rejections: rare
+    return rows
 
 
 def empirical_p(null: np.ndarray, statistic: float) -> float:
