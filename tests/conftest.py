@@ -56,6 +56,10 @@ def pytest_configure(config):
                 pass
         vigproc.correct(np.repeat(img[..., None], 3, axis=2).astype(np.float32),
                         vigproc.VignettingModel(144, 96, p=(1e-4, 0.0, 1e-4)))
+        # the pooled nulls' draws (forensics): a kernel of its own
+        from vigproc.forensics.lensmatch import pooled_d2, pooled_null
+
+        pooled_null(np.zeros((4, 1)), np.arange(4), 2, pooled_d2, seed=0, draws=2)
     finally:
         if child is not None:
             child.wait()

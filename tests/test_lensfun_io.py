@@ -113,6 +113,24 @@ def test_kw_from_pa_flat_and_invalid() -> None:
         kw_from_pa(-0.3, 0.0, 0.0, 0, H)
 
 
+def test_kw_from_pa_fits_a_lens_once_per_frame_size(monkeypatch) -> None:
+    # a lens checked frame after frame: one least-squares fit per (pa, size), not one a call
+    import vigproc.stores.lensfun_io as lio
+
+    calls = []
+    real = lio.least_squares
+    monkeypatch.setattr(lio, "least_squares", lambda *a, **kw: calls.append(1) or real(*a, **kw))
+    ks = (-0.412345, 0.0317, -0.0051)  # no other test's lens: not fitted before
+    first = kw_from_pa(*ks, 300, 200)
+    n_fit = len(calls)
+    assert n_fit >= 1
+    again = kw_from_pa(np.float64(ks[0]), ks[1], ks[2], 300, 200)
+    assert len(calls) == n_fit and again == first
+    other = kw_from_pa(*ks, 200, 300)  # another size is another fit
+    assert len(calls) > n_fit and other.width == 200 and other.height == 300
+    assert kw_from_pa(*ks, 300, 200, method="lensfun-x").method == "lensfun-x"
+
+
 @pytest.mark.parametrize(
     "alpha",
     [

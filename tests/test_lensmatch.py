@@ -23,6 +23,7 @@ from vigproc.forensics.lensmatch import (
     whiten,
     luminance_family_fit,
     pooled_d2,
+    pooled_null,
     reference_coefficients,
 )
 
@@ -127,6 +128,57 @@ def test_pooled_statistic_is_a_median():
     z = np.array([[0.1, 0.0], [0.2, -0.1], [0.0, 0.1], [0.1, 0.0], [40.0, 40.0]])
     assert pooled_d2(z) < 0.2  # one fooled frame moves the median by one rank, not by its error
     assert pooled_d2(z[:1]) == pytest.approx(0.01)
+
+
+def _pooled_null_set_by_set(z, g, n, statistic, seed, draws, shift_spread):
+    """pooled_null's definition, one set at a time: the stream its p-values were made with."""
+    uniq = np.unique(g)
+    by_group = [np.flatnonzero(g == u) for u in uniq]
+    rng, shifts = np.random.default_rng(seed), np.random.default_rng(seed + 1)
+    out = []
+    for _ in range(draws):
+        picks = rng.choice(uniq.size, n, replace=False)
+        sample = z[[by_group[p][rng.integers(by_group[p].size)] for p in picks]]
+        if shift_spread > 0:
+            sample = sample + shifts.normal(0.0, shift_spread, sample.shape[1])
+        out.append(statistic(sample))
+    return np.sort(out)
+
+
+@pytest.mark.parametrize("n, shift_spread", [(2, 0.0), (5, 0.3), (8, 0.1)])
+def test_pooled_null_is_the_set_by_set_null_bit_for_bit(n, shift_spread):
+    # the sets are drawn in one stack: the same draws and the same statistics as one
+    # set at a time (uneven photographs, unsorted groups), so shipped p-values stay put
+    from vigproc.forensics.rings import _mean_d2
+
+    rng = np.random.default_rng(n)
+    g = np.repeat(rng.permutation(90)[:30], rng.integers(1, 6, 30))
+    rng.shuffle(g)
+    z = rng.normal(size=(g.size, 3))
+    for stat in (pooled_d2, _mean_d2):
+        got = pooled_null(z, g, n, stat, seed=11 * n, draws=300, shift_spread=shift_spread)
+        want = _pooled_null_set_by_set(z, g, n, stat, 11 * n, 300, shift_spread)
+        assert got.shape == (300,) and np.array_equal(got, want)
+        stack = z[rng.integers(0, g.size, (7, n))]
+        assert np.array_equal(stat(stack), [stat(s) for s in stack])
+
+
+@pytest.mark.parametrize("photos, n, most", [(30, 30, 1), (7, 2, 1), (200, 5, 6), (10_000, 9, 3), (10_001, 4, 2)])
+def test_the_draw_kernel_gives_numpys_choice_and_integers(photos, n, most):
+    # the kernel follows NumPy's Generator.choice (Floyd, then a shuffle) and integers
+    # (Lemire) on the raw stream; above 10 000 photographs NumPy's own calls are used
+    from vigproc.forensics.lensmatch import _distinct_group_rows
+
+    rs = np.random.default_rng(photos + n)
+    sizes = rs.integers(1, most + 1, photos).astype(np.int64)
+    first = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    members = rs.permutation(int(sizes.sum())).astype(np.int64)
+    rng = np.random.default_rng(7)
+    want = np.empty((150, n), np.int64)
+    for i in range(150):
+        picks = rng.choice(photos, n, replace=False)
+        want[i] = members[first[picks] + rng.integers(sizes[picks])]
+    assert np.array_equal(_distinct_group_rows(sizes, first, members, n, 7, 150), want)
 
 
 def test_shipped_calibration_is_for_the_shipped_family():

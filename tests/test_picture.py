@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from benchmarks.synthetic import table1_model
 from vigproc.core.model import VignettingModel
@@ -40,3 +41,21 @@ def test_a_rejected_fit_is_shown_as_such_and_axes_need_a_centre_in_the_frame():
     left = fig[40:40 + 280, 10:10 + 420]
     for col in _AXIS_COLOURS:
         assert not _has_colour(left, col)
+
+
+@pytest.mark.parametrize("x, y, size, text", [
+    (10, 40, 13, "contours:"), (-30, 12, 15, "NOT APPLIED: the evidence was too weak"),
+    (250, 118, 24, "gjpqy 写真"), (5, 3, 13, "a\nb"), (290, 60, 40, "W" * 20), (400, 400, 13, "off the picture"),
+])
+def test_text_draws_the_pixels_it_draws_into_the_whole_picture(x, y, size, text):
+    # _text renders only the text's box: the same pixels as rendering into the whole array
+    import OpenImageIO as oiio
+
+    from vigproc.io.picture import _text
+
+    img = np.random.default_rng(size).random((120, 300, 3)).astype(np.float32)
+    whole = oiio.ImageBuf(np.ascontiguousarray(img))
+    oiio.ImageBufAlgo.render_text(whole, x, y, text, size, "", (0.9, 0.2, 0.4))
+    got = img.copy()
+    _text(got, x, y, text, size, (0.9, 0.2, 0.4))
+    assert np.array_equal(got, whole.get_pixels(oiio.FLOAT).reshape(img.shape))

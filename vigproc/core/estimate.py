@@ -5,20 +5,23 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vigproc.errors import InvalidImageError, ModelError
-from vigproc.core.family_fit import EVIDENCE_FIT, FamilySettings, LensHint, colour_of
-from vigproc.core.glow import GlowTest
+from vigproc.core import family_fit, robust  # three calls go through the module: tests replace them there
+from vigproc.core.colour import fit_colour_field, planar_gradient, symmetric_centre, white_balance
+from vigproc.core.family_fit import CENTRE_WORK_SIZE, EVIDENCE_FIT, FamilySettings, LensHint, colour_of, \
+    estimate_family, fit_family, luminance_copy, off_centre_fit, same_copy, settings_index, \
+    with_colour
+from vigproc.core.glow import GlowTest, glow_advantage
+from vigproc.core.lensfamily import profile_family
 from vigproc.core.methods import EVIDENCE_METHODS, METHODS, ROBUST_METHODS  # noqa: F401  (re-exported)
 from vigproc.core.pixels import LUMA_709, bin_mean, check_image, log_image, luminance, require_size
-from vigproc.core.model import VignettingModel
-from vigproc.core.robust import RobustSettings, estimate_robust
-
-if TYPE_CHECKING:
-    from vigproc.core.prior import NaturalPrior
+from vigproc.core.model import VignettingModel, frame_coords
+from vigproc.core.prior import NaturalPrior, default_prior
+from vigproc.core.robust import REAL_LENS_SHAPE_RATIO, RobustSettings, estimate_robust, fit_with_evidence, \
+    luminance_evidence, reduced_luminance_evidence, reduced_working_copy
 
 log = logging.getLogger(__name__)
 
@@ -232,8 +235,6 @@ def reduced_evidence(small: np.ndarray, k: int, width: int, height: int, method:
         As :func:`estimate`; also a ``method`` not in :data:`EVIDENCE_METHODS`, or a
         ``small`` that is not the frame binned by ``k``.
     """
-    from vigproc.core.robust import reduced_luminance_evidence
-
     if method not in EVIDENCE_METHODS:
         raise InvalidImageError(f"frame evidence comes with {', '.join(EVIDENCE_METHODS)}, not {method!r}")
     a = check_image(small, -1 if np.ndim(small) == 3 else None)
@@ -256,8 +257,6 @@ def reduced_estimate_with_evidence(small: np.ndarray, k: int, width: int, height
     InvalidImageError
         As :func:`reduced_evidence`.
     """
-    from vigproc.core.robust import fit_with_evidence, reduced_working_copy
-
     if method not in EVIDENCE_METHODS:
         raise InvalidImageError(f"frame evidence comes with {', '.join(EVIDENCE_METHODS)}, not {method!r}")
     a = check_image(small, -1 if np.ndim(small) == 3 else None)
@@ -278,8 +277,6 @@ def _named(model: VignettingModel, method: str) -> VignettingModel:
 
 def _robust_settings(method: str, settings: RobustSettings | None) -> RobustSettings:
     """The robust estimator's settings for ``method`` (one of :data:`ROBUST_METHODS`)."""
-    from vigproc.core.robust import REAL_LENS_SHAPE_RATIO
-
     s = settings or RobustSettings()
     if method == "real-lens":
         return replace(s, max_shape_ratio=REAL_LENS_SHAPE_RATIO)
@@ -449,13 +446,9 @@ def estimate_checked(
             m = _about_symmetric_centre(m, a, lum, settings)
         return m
     if method == "lens-family":
-        from vigproc.core.family_fit import estimate_family
-
         return estimate_family(lum, mask=keep, family=family, hint=hint, colour=colour_of(a))
 
     from vigproc.core.lyu2010 import estimate_lyu2010
-
-    from vigproc.core.prior import default_prior  # the paper's methods only
 
     k = max(1, -(-max(h, w) // LYU_WORK_SIZE))
     work, _ = bin_mean(lum, k)
@@ -490,9 +483,6 @@ def _without_gradient(m: VignettingModel, a: np.ndarray, lum: np.ndarray, center
                       settings: RobustSettings | None, why: str) -> VignettingModel:
     """``m`` fitted again to the flat frame's luminance with the wall's planar gradient
     about ``center`` (the optical centre) divided out (:func:`planar_gradient`)."""
-    from vigproc.core.colour import planar_gradient
-    from vigproc.core.model import frame_coords
-
     g = planar_gradient(lum, center)
     h, w = lum.shape
     tilt = np.exp(-(g[0] * frame_coords(w)[None, :] + g[1] * frame_coords(h)[:, None]))
@@ -506,8 +496,6 @@ def _about_symmetric_centre(m: VignettingModel, a: np.ndarray, lum: np.ndarray,
     """``m`` refitted without the wall's gradient, removed about the point where the flat
     frame's fall-off is even (:func:`vigproc.core.colour.symmetric_centre`); ``m`` itself
     when the fall-off is too weak to place it."""
-    from vigproc.core.colour import symmetric_centre
-
     ref = m.candidate if m.candidate is not None else m
     sym = symmetric_centre(lum, ref.center)
     return m if sym is None else _without_gradient(m, a, lum, sym[0], settings, "the fall-off's centre")
@@ -520,8 +508,6 @@ def with_flat_colour(m: VignettingModel, a: np.ndarray, settings: RobustSettings
     fitted again without the wall's planar gradient, removed about the optical centre:
     the tint's centre, or for a colourless lens the point about which the fall-off is
     even (:func:`vigproc.core.colour.symmetric_centre`)."""
-    from vigproc.core.colour import fit_colour_field, white_balance
-
     ref = m.candidate if m.candidate is not None else m
     cf = fit_colour_field(a, ref.center, max_residual=FLAT_MAX_RESIDUAL)
     if cf is None:  # a frame with colours of its own (a scene): no tint is read from it
@@ -567,10 +553,6 @@ def estimate_default(lum: np.ndarray, mask: np.ndarray | None = None,
     how alike its channels change; the centre must move for the luminance and for the
     colour-weighted pairs; the choice between the fits reads the luminance.
     """
-    from vigproc.core.family_fit import fit_family, luminance_copy, same_copy, with_colour
-    from vigproc.core.glow import glow_advantage
-    from vigproc.core.lensfamily import profile_family
-
     fs = FamilySettings()
     # one binning of the luminance for the fit (its colour copies added) and the glow test
     work = luminance_copy(lum, fs, mask)
@@ -601,9 +583,6 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
     (:class:`vigproc.core.family_fit.FamilyFit`) and an off-centre fit: ``fit.model`` itself
     when the centred fit is kept. ``copies``: the frame's luminance and colour working
     copies at ``rule.settings``' size, when the caller has them."""
-    from vigproc.core.family_fit import CENTRE_WORK_SIZE, fit_centre, fit_family, luminance_copy, off_centre_fit, \
-        pair_losses, settings_index, with_colour
-
     model, coef, weighted = fit
     q = (model.candidate or model).quality
     if coef is None or q.field_ev_rms + 2.0 * q.field_sigma_ev < rule.any_min_ev:
@@ -621,13 +600,13 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
     # (the shift is all the test reads: no jackknife of the centre)
     # one binning of the luminance for both centre fits
     centre_copy = luminance_copy(lum, replace(s, work_size=CENTRE_WORK_SIZE), mask)
-    centre = fit_centre(lum, coef, s, mask, family, hint, uncertainty=False, copy=centre_copy)
+    centre = family_fit.fit_centre(lum, coef, s, mask, family, hint, uncertainty=False, copy=centre_copy)
     if not centre.off_centre(s.off_centre_shift):
         return model
     centre_colour = None
     if colour is not None:
-        centre_colour = fit_centre(lum, coef, s, mask, family, hint, uncertainty=False,
-                                   copy=with_colour(centre_copy, colour, s))
+        centre_colour = family_fit.fit_centre(lum, coef, s, mask, family, hint, uncertainty=False,
+                                              copy=with_colour(centre_copy, colour, s))
         if not centre_colour.off_centre(s.off_centre_shift):
             return model
     work, work_colour = copies if copies is not None else (None, None)
@@ -658,7 +637,8 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
     index = settings_index(work.L, work.valid, None, s)
     grey = fit_family(lum, s, mask, family, hint, uncertainty=False, copy=work, index=index,
                       start=coef).model
-    loss_family, loss_alt = pair_losses(lum, [grey.candidate or grey, alt.candidate or alt], s, mask, work, index)
+    loss_family, loss_alt = family_fit.pair_losses(lum, [grey.candidate or grey, alt.candidate or alt], s, mask, work,
+                                                   index)
     if loss_alt < loss_family - s.select_margin:
         if off is not None:
             alt = off.with_uncertainty()
@@ -687,10 +667,8 @@ def frame_evidence(img: np.ndarray, channel_axis: int | None = -1,
     InvalidImageError
         As :func:`estimate`.
     """
-    from vigproc.core.robust import luminance_evidence as _evidence
-
     a = check_image(img, channel_axis)
-    return _evidence(luminance(a), settings or RobustSettings(), clipped_mask(a), colour_of(a))
+    return luminance_evidence(luminance(a), settings or RobustSettings(), clipped_mask(a), colour_of(a))
 
 
 def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
@@ -707,16 +685,14 @@ def estimate_with_evidence(img: np.ndarray, channel_axis: int | None = -1,
     InvalidImageError
         As :func:`estimate`.
     """
-    from vigproc.core.robust import estimate_robust_with_evidence
-
     if method not in EVIDENCE_METHODS:
         from vigproc.core.extensions import UnknownMethodError
 
         raise UnknownMethodError(f"frame evidence comes with {', '.join(EVIDENCE_METHODS)}, not {method!r}")
     a = img if checked else check_image(img, channel_axis)
     require_size(a)
-    m, evidence = estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings), clipped_mask(a),
-                                                colour_of(a))
+    m, evidence = robust.estimate_robust_with_evidence(luminance(a), _robust_settings(method, settings),
+                                                       clipped_mask(a), colour_of(a))
     return _named(m, method), evidence
 
 

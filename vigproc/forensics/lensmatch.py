@@ -191,22 +191,88 @@ def pooled_null(z: np.ndarray, groups: np.ndarray, n_frames: int, statistic, *, 
 
     ``shift_spread``: each set is shifted by one draw of N(0, shift_spread²) per
     coordinate (its own stream, ``seed + 1``): an error that every frame of a set shares,
-    such as the calibration centre's sampling error, which n frames do not average away."""
+    such as the calibration centre's sampling error, which n frames do not average away.
+
+    Parameters
+    ----------
+    z : ndarray (N, K)
+        The whitened null rows.
+    groups : ndarray (N,)
+        The photograph of each row.
+    n_frames : int
+        Rows per set.
+    statistic : callable
+        Called once with the stack of all sets, shape (draws, n_frames, K); returns one
+        value per set, shape (draws,) (:func:`pooled_d2` and the ring test's mean D²
+        take a stack).
+    seed : int
+        The draws' seed.
+    draws : int
+        Number of sets.
+    shift_spread : float
+        See above; 0 adds no shift.
+
+    Returns
+    -------
+    ndarray (draws,)
+        The statistics, sorted.
+    """
     g = np.asarray(groups)
     uniq = np.unique(g)
     by_group = [np.flatnonzero(g == u) for u in uniq]
-    rng = np.random.default_rng(seed)
-    shifts = np.random.default_rng(seed + 1) if shift_spread > 0 else None
-    out = np.empty(draws)
-    for i in range(draws):
-        picks = rng.choice(uniq.size, n_frames, replace=False)
-        rows = [by_group[p][rng.integers(by_group[p].size)] for p in picks]
-        sample = z[rows]
-        if shifts is not None:
-            sample = sample + shifts.normal(0.0, shift_spread, sample.shape[1])
-        out[i] = statistic(sample)
+    sizes = np.array([b.size for b in by_group], dtype=np.int64)
+    first = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    members = np.concatenate(by_group)
+    rows = _distinct_group_rows(sizes, first, members, n_frames, seed, draws)
+    sample = z[rows]
+    if shift_spread > 0:
+        # one K-vector per set, consecutive in the stream: the same values as K at a time
+        shifts = np.random.default_rng(seed + 1).normal(0.0, shift_spread, (draws, z.shape[1]))
+        sample = sample + shifts[:, None, :]
+    out = np.asarray(statistic(sample), dtype=np.float64)
     out.sort()
     return out
+
+
+#: Photographs above which NumPy's ``choice`` shuffles a tail instead of Floyd's
+#: algorithm (:mod:`vigproc.core._kernels.draws` follows Floyd's only).
+_FLOYD_MAX = 10_000
+
+
+def _distinct_group_rows(sizes: np.ndarray, first: np.ndarray, members: np.ndarray, n_frames: int, seed: int,
+                         draws: int) -> np.ndarray:
+    """The rows of :func:`pooled_null`'s sets: per set, ``rng.choice(P, n_frames,
+    replace=False)`` photographs, then ``rng.integers(sizes[picks])`` for one row of
+    each, ``rng = default_rng(seed)`` -- the same numbers, drawn by a Numba kernel from
+    the generator's raw outputs (NumPy's own calls above :data:`_FLOYD_MAX` photographs).
+
+    Parameters
+    ----------
+    sizes, first : ndarray of int64 (P,)
+        Each photograph's number of rows and the index of its first in ``members``.
+    members : ndarray of int64
+        Row indices, photograph by photograph.
+    n_frames, seed, draws : int
+        As :func:`pooled_null`'s.
+
+    Returns
+    -------
+    ndarray of int64 (draws, n_frames)
+    """
+    rows = np.empty((draws, n_frames), dtype=np.int64)
+    if sizes.size > _FLOYD_MAX:
+        rng = np.random.default_rng(seed)
+        for i in range(draws):
+            picks = rng.choice(sizes.size, n_frames, replace=False)
+            rows[i] = members[first[picks] + rng.integers(sizes[picks])]
+        return rows
+    from vigproc.core._kernels.draws import distinct_group_rows  # Numba: not at import
+
+    need = draws * (2 * n_frames + 2) + 64  # 32-bit draws per set: about 3 n, two a raw output
+    while not distinct_group_rows(np.random.default_rng(seed).bit_generator.random_raw(need), sizes, first,
+                                  members, n_frames, rows):
+        need *= 2  # many rejections: rare
+    return rows
 
 
 def empirical_p(null: np.ndarray, statistic: float) -> float:
@@ -434,9 +500,25 @@ def beyond_scene_limit(scene: float | None, limit: float | None) -> bool:
     return scene is not None and limit is not None and scene > limit
 
 
-def pooled_d2(z: np.ndarray) -> float:
-    """n·|coordinate-wise median of the n whitened residuals|² (one row per frame)."""
-    z = np.atleast_2d(np.asarray(z, dtype=np.float64))
+def pooled_d2(z: np.ndarray):
+    """n·|coordinate-wise median of the n whitened residuals|² (one row per frame).
+
+    Parameters
+    ----------
+    z : ndarray (n, K) or (m, n, K)
+        One set of rows, or a stack of ``m`` sets.
+
+    Returns
+    -------
+    float or ndarray (m,)
+        The statistic of the set, or of each set of the stack.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if z.ndim == 3:
+        med = np.median(z, axis=1)
+        n = z.shape[1]
+        return np.array([float(n * m @ m) for m in med])
+    z = np.atleast_2d(z)
     med = np.median(z, axis=0)
     return float(z.shape[0] * med @ med)
 

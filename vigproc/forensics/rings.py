@@ -410,8 +410,22 @@ def _null_d2(cal: Calibration, n_frames: int, decided: bool) -> np.ndarray:
     return out
 
 
-def _mean_d2(z: np.ndarray) -> float:
-    """n·|mean of the n whitened residuals|² (one row per frame): D² of their mean."""
+def _mean_d2(z: np.ndarray):
+    """n·|mean of the n whitened residuals|² (one row per frame): D² of their mean.
+
+    Parameters
+    ----------
+    z : ndarray (n, K) or (m, n, K)
+        One set of rows, or a stack of ``m`` sets.
+
+    Returns
+    -------
+    float or ndarray (m,)
+        The statistic of the set, or of each set of the stack.
+    """
+    if z.ndim == 3:
+        n = z.shape[1]
+        return np.array([n * float(m @ m) for m in z.mean(axis=1)])
     zm = z.mean(axis=0)
     return z.shape[0] * float(zm @ zm)
 

@@ -46,6 +46,7 @@ References
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import re
@@ -344,11 +345,33 @@ def kw_from_pa(
     (a non-monotone entry, k1 = +2.17); 13 entries whose pa polynomial reaches
     zero inside the frame (compact cameras, fisheyes) are refused.
 
+    The fit is a pure function of its arguments, so its results are kept (the
+    last 256; a model is immutable): a lens's model is fitted once per frame
+    size, not once per frame checked. ``quality.seconds`` is the first fit's time.
+
     References
     ----------
     .. [1] lensfun, "Vignetting models", ``LF_VIGNETTING_MODEL_PA``,
        https://lensfun.github.io/manual/latest/group__Lens.html
     .. [2] S. Lyu, ACM MM&Sec 2010, Eq. (2) (generalised Kang-Weiss model).
+    """
+    return _kw_from_pa(float(k1), float(k2), float(k3), width, height, float(corner_rho), method)
+
+
+@functools.lru_cache(maxsize=256, typed=True)
+def _kw_from_pa(k1: float, k2: float, k3: float, width: int, height: int, corner_rho: float,
+                method: str) -> VignettingModel:
+    """:func:`kw_from_pa`'s fit, cached by its arguments.
+
+    Parameters
+    ----------
+    k1, k2, k3, width, height, corner_rho, method
+        As :func:`kw_from_pa`'s (the floats already converted).
+
+    Returns
+    -------
+    VignettingModel
+        As :func:`kw_from_pa`.
     """
     t0 = time.perf_counter()
     ks = tuple(float(k) for k in (k1, k2, k3))
