@@ -148,11 +148,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     def interrupt_writes() -> None:
         """Ctrl-C: the files waiting for the writer are not started; the one being
         written is finished and reported."""
-        for _, fut in reversed(pending):  # newest first: what is cancelled is a run of the last files
-            if fut.cancel():
-                pending.pop()
-            else:
-                break
+        while pending and pending[-1][1].cancel():  # newest first: what is cancelled is a run of the last files
+            pending.pop()
         settle()
 
     try:
