@@ -266,3 +266,20 @@ def test_a_frame_read_ahead_comes_with_its_reduced_copy_and_counts(tmp_path):
     assert (usable is None and enc._reduced[2] is None) or np.array_equal(enc._reduced[2], usable)
     assert enc._counts == {"range": (int(enc.codes.min()), int(enc.codes.max())),
                            "top": int(np.count_nonzero(enc.codes == 255))}
+
+
+def test_correct_with_a_writer_thread_starts_the_metadata_writer_only_to_write(tmp_path, monkeypatch, capsys):
+    """With a writer thread, ``correct`` does not launch the metadata writer's exiftool up
+    front (it would take a core from Numba's set-up): a run that corrects nothing never
+    starts it; one file alone (written in the main thread) still launches it early."""
+    import vigproc.io.metadata as M
+    from vigproc.frontends.cli import main
+
+    files = [_photo(tmp_path / f"{n}.png", i) for i, n in enumerate("ab")]
+    spawned = []
+    monkeypatch.setattr(M, "spawn_exiftool", lambda: spawned.append(1))
+    assert main(["correct", "-o", str(tmp_path / "out"), "--profile", str(PROFILE), "--strength", "0",
+                 "--unapplied", "copy", *map(str, files)]) == 0
+    assert spawned == []
+    assert main(["correct", "-o", str(tmp_path / "one"), "--profile", str(PROFILE), str(files[0])]) == 0
+    assert spawned == [1]

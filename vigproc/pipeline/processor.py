@@ -231,7 +231,7 @@ class Processor:
             self._reader = ExifReader().start()
         return self._reader
 
-    def prepare(self) -> None:
+    def prepare(self, *, metadata_writer: bool = True) -> None:
         """Start now the one-off set-up the first file would otherwise wait for.
 
         The EXIF reader's exiftool and, when images are written, the metadata writer's
@@ -240,13 +240,22 @@ class Processor:
         (:func:`vigproc.core.preload.preload_numba`). Optional, and nothing is decided
         here: a start that fails is met again, and reported, where the first file
         needs it.
+
+        Parameters
+        ----------
+        metadata_writer : bool
+            Launch the metadata writer's exiftool too. False for a caller that writes in
+            a thread of its own (``vigproc correct``): the writer's exiftool then starts
+            with the first corrected frame's write, in that thread, instead of taking a
+            core from Numba's set-up, which the first estimate waits for (and not at all
+            when no frame is corrected).
         """
         try:  # launched before the preloading thread runs: exiftool's launch forks
             if self._reader is None:
                 from vigproc.io.exif import ExifReader
 
                 self._reader = ExifReader().spawn()
-            if self.settings.mode == "correct":
+            if self.settings.mode == "correct" and metadata_writer:
                 from vigproc.io.metadata import spawn_exiftool
 
                 spawn_exiftool()

@@ -154,7 +154,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
 
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
-            proc.prepare()  # Numba's set-up and exiftool's start beside the first file's read
+            # Numba's set-up and exiftool's start beside the first file's read; with a writer
+            # thread, the metadata writer's exiftool starts there, at the first corrected frame
+            proc.prepare(metadata_writer=writer is None)
             for k, (f, stem) in enumerate(_progress(list(zip(files, output_stems(files))), "correcting")):
                 try:
                     if k == 0:
