@@ -129,3 +129,157 @@ def test_ctrl_c_while_a_file_is_written_finishes_and_counts_it(tmp_path, monkeyp
     assert rc == 130 and "1 corrected, 0 not corrected, 0 failed, 2 not started" in err, err
     assert (tmp_path / "out" / "a.png.vigproc.json").exists() and (tmp_path / "out" / "a.corrected.png").exists()
     assert not list((tmp_path / "out").glob(".*tmp*"))  # nothing half-written
+
+
+def test_a_slow_write_does_not_hold_back_the_next_files(tmp_path, capsys, monkeypatch):
+    """Files are read and worked on while an earlier one is still being written (a queue
+    of writes, :data:`WRITE_QUEUE`); lines and outputs still come in input order."""
+    import threading
+
+    from vigproc.frontends.cli import main
+    from vigproc.frontends.commands import correct as C
+    from vigproc.pipeline.processor import Processor
+
+    files = [_photo(tmp_path / f"{n}.png", i) for i, n in enumerate("abcd")]
+    third = threading.Event()
+    waited = []
+    real = Processor.begin_file
+
+    def begin(self, path, *a, **kw):
+        finish = real(self, path, *a, **kw)
+        if Path(path).name == "c.png":
+            third.set()
+        if Path(path).name != "a.png":
+            return finish
+
+        def slow():  # a's write lasts until c has been worked on
+            waited.append(third.wait(timeout=20))
+            return finish()
+
+        slow.encodes = finish.encodes
+        return slow
+
+    monkeypatch.setattr(Processor, "begin_file", begin)
+    monkeypatch.setattr(C, "WRITE_FRAMES", 3)  # every file here is corrected: each holds a frame
+    rc = main(["correct", "-o", str(tmp_path / "out"), "--profile", str(PROFILE), *map(str, files)])
+    out = capsys.readouterr().out.splitlines()
+    assert rc == 0 and waited == [True]
+    assert [ln.split(" -> ")[0] for ln in out[:4]] == [str(f) for f in files]
+
+
+def test_writes_wait_for_room_when_frames_are_held(tmp_path, monkeypatch):
+    """At most WRITE_FRAMES queued writes hold a frame: with one, the file after the
+    next is not worked on while the first is still being written."""
+    import threading
+
+    from vigproc.frontends.cli import main
+    from vigproc.frontends.commands import correct as C
+    from vigproc.pipeline.processor import Processor
+
+    files = [_photo(tmp_path / f"{n}.png", i) for i, n in enumerate("abcd")]
+    third = threading.Event()
+    waited = []
+    real = Processor.begin_file
+
+    def begin(self, path, *a, **kw):
+        if Path(path).name == "c.png":
+            third.set()
+        finish = real(self, path, *a, **kw)
+        if Path(path).name != "a.png":
+            return finish
+
+        def slow():  # a's write: c must not be begun meanwhile
+            waited.append(third.wait(timeout=1.5))
+            return finish()
+
+        slow.encodes = finish.encodes
+        return slow
+
+    monkeypatch.setattr(Processor, "begin_file", begin)
+    monkeypatch.setattr(C, "WRITE_FRAMES", 1)
+    assert main(["correct", "-o", str(tmp_path / "out"), "--profile", str(PROFILE), *map(str, files)]) == 0
+    assert waited == [False]
+
+
+def test_ctrl_c_cancels_the_writes_not_started(tmp_path, monkeypatch, capsys):
+    """Ctrl-C: the file being written is finished and counted, those waiting for the
+    writer are not started (nothing of them written)."""
+    import threading
+
+    from vigproc.frontends.cli import main
+    from vigproc.frontends.commands import correct as C
+    from vigproc.pipeline.processor import Processor
+
+    files = [_photo(tmp_path / f"{n}.png", i) for i, n in enumerate("abcd")]
+    release = threading.Event()
+    real = Processor.begin_file
+
+    def begin(self, path, *a, **kw):
+        name = Path(path).name
+        if name == "d.png":  # a is being written, b and c wait for the writer
+            release.set()
+            raise KeyboardInterrupt
+        finish = real(self, path, *a, **kw)
+        if name != "a.png":
+            return finish
+
+        def slow():
+            release.wait(timeout=20)
+            return finish()
+
+        slow.encodes = finish.encodes
+        return slow
+
+    monkeypatch.setattr(Processor, "begin_file", begin)
+    monkeypatch.setattr(C, "WRITE_FRAMES", 4)
+    rc = main(["correct", "-o", str(tmp_path / "out"), "--profile", str(PROFILE), *map(str, files)])
+    err = capsys.readouterr().err
+    assert rc == 130
+    done = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert "a.corrected.png" in done and "a.png.vigproc.json" in done
+    n = sum(f"{x}.corrected.png" in done for x in "bc")  # b, c: written or not started, never half
+    assert f"{1 + n} corrected, 0 not corrected, 0 failed, {3 - n} not started" in err, err
+    assert all((f"{x}.png.vigproc.json" in done) == (f"{x}.corrected.png" in done) for x in "bc")
+    assert not list((tmp_path / "out").glob(".*tmp*"))
+
+
+def test_a_frame_read_ahead_comes_with_its_reduced_copy_and_counts(tmp_path):
+    """The read-ahead thread makes the passes over the codes the frame's path makes (the
+    reduced copy the estimate reads, the code range, the white samples): the same values."""
+    from vigproc.core.estimate import reduction_factor
+    from vigproc.core.pixels import reduce_codes
+    from vigproc.core.preload import preload_numba
+    from vigproc.io.images import write_image
+    from vigproc.pipeline.processor import Processor, Settings
+
+    img = np.stack([textured(720, 1080, seed=c) for c in range(3)], -1)
+    a = tmp_path / "big.png"
+    write_image(a, np.clip(img, 0, 1).astype(np.float32), bit_depth="uint8", transfer="srgb")
+    preload_numba().join()
+    with Processor(Settings(mode="correct")) as proc:
+        proc.read_ahead(a)
+        enc = proc.read_frame(a).img
+    k = reduction_factor(1080, 720)
+    assert k > 1 and enc._reduced and enc._reduced[0] == k  # made in the reading thread
+    small, usable = reduce_codes(enc.codes, enc.decode_table(), k)
+    assert np.array_equal(enc._reduced[1], small)
+    assert (usable is None and enc._reduced[2] is None) or np.array_equal(enc._reduced[2], usable)
+    assert enc._counts == {"range": (int(enc.codes.min()), int(enc.codes.max())),
+                           "top": int(np.count_nonzero(enc.codes == 255))}
+
+
+def test_correct_with_a_writer_thread_starts_the_metadata_writer_only_to_write(tmp_path, monkeypatch, capsys):
+    """With a writer thread, ``correct`` does not launch the metadata writer's exiftool up
+    front (it would take a core from Numba's set-up): a run that corrects nothing never
+    starts it; one file alone (written in the main thread) still launches it early."""
+    import vigproc.io.metadata as M
+    from vigproc.frontends.cli import main
+
+    files = [_photo(tmp_path / f"{n}.png", i) for i, n in enumerate("ab")]
+    spawned = []
+    monkeypatch.setattr(M, "spawn_exiftool", lambda: spawned.append(1))
+    assert main(["correct", "-o", str(tmp_path / "out"), "--profile", str(PROFILE), "--strength", "0",
+                 "--unapplied", "copy", *map(str, files)]) == 0
+    assert spawned == []
+    assert main(["correct", "-o", str(tmp_path / "one"), "--profile", str(PROFILE), str(files[0])]) == 0
+    assert spawned == [1]

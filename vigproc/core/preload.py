@@ -43,6 +43,18 @@ def _load() -> None:
         logger.debug("Numba preload failed", exc_info=True)
 
 
+def numba_ready() -> bool:
+    """Whether no preloading thread is still running (:func:`preload_numba` never
+    started, or done): a kernel called now does not wait for Numba's set-up.
+
+    Returns
+    -------
+    bool
+    """
+    with _lock:
+        return not _started or not _started[0].is_alive()
+
+
 def preload_numba() -> threading.Thread:
     """Start importing Numba and refreshing its target context in a daemon thread.
 

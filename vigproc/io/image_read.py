@@ -153,6 +153,8 @@ class EncodedImage:
     # the last reduced copy (k, binned, usable): the estimate and the learning's evidence
     # read the same one, made once
     _reduced: list = field(default_factory=list, init=False, repr=False, compare=False)
+    # what is counted over every code, once: "range" (lowest, highest), "top" (samples at the top code)
+    _counts: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -196,9 +198,39 @@ class EncodedImage:
         self._reduced[:] = [k, small, usable]
         return small, usable
 
+    def code_range(self) -> tuple[int, int]:
+        """The lowest and highest code of the frame, counted once (kept, as :meth:`reduced`).
+
+        Returns
+        -------
+        (int, int)
+        """
+        got = self._counts.get("range")
+        if got is None:
+            got = self._counts["range"] = (int(self.codes.min()), int(self.codes.max()))
+        return got
+
+    def top_count(self) -> int:
+        """How many samples hold the top code of the frame's depth (its white point),
+        counted once (kept, as :meth:`reduced`), in bands of rows: a full-frame boolean
+        temporary would be a third of an 8-bit frame.
+
+        Returns
+        -------
+        int
+        """
+        got = self._counts.get("top")
+        if got is None:
+            a, top = self.codes, np.iinfo(self.codes.dtype).max
+            got = self._counts["top"] = sum(int(np.count_nonzero(a[r:r + 256] == top))
+                                            for r in range(0, max(a.shape[0], 1), 256))
+        return got
+
     def forget_reduced(self) -> None:
-        """Drop the kept reduced copy (:meth:`reduced`): the codes are about to change."""
+        """Drop the kept reduced copy (:meth:`reduced`) and counts (:meth:`code_range`,
+        :meth:`top_count`): the codes are about to change."""
         self._reduced.clear()
+        self._counts.clear()
 
 
 def _q(path: str) -> str:

@@ -28,8 +28,7 @@ def check_encoded(enc: EncodedImage) -> EncodedImage:
     ------
     InvalidImageError
     """
-    codes = enc.codes
-    hi, lo = int(codes.max()), int(codes.min())
+    lo, hi = enc.code_range()
     if not enc.decode_table()[hi] > 0:
         raise InvalidImageError("image has no positive pixel: linear intensities must be > 0")
     if lo == hi:
@@ -57,15 +56,51 @@ def _reduced_or_decoded(enc: EncodedImage, method: str, on_reduced, on_frame):
     -------
     What the chosen callable returns.
     """
+    k = _reduction(enc, method)
+    if k is not None:
+        small, usable = enc.reduced(k)
+        h, w = enc.shape[:2]
+        return on_reduced(small, k, w, h, usable)
+    img = enc.linear()
+    return on_frame(img, -1 if img.ndim == 3 else None)
+
+
+def _reduction(enc: EncodedImage, method: str) -> int | None:
+    """The factor by which an estimate by ``method`` reads ``enc`` reduced, or None
+    when it reads the decoded frame (a method that reads more than binned copies, or
+    a frame too small to be reduced)."""
     from vigproc.core.estimate import REDUCIBLE_METHODS, reduction_factor
 
     h, w = enc.shape[:2]
     k = reduction_factor(w, h)
-    if method in REDUCIBLE_METHODS and k > 1:
-        small, usable = enc.reduced(k)
-        return on_reduced(small, k, w, h, usable)
-    img = enc.linear()
-    return on_frame(img, -1 if img.ndim == 3 else None)
+    return k if method in REDUCIBLE_METHODS and k > 1 else None
+
+
+def prepare_encoded(enc: EncodedImage, method: str | None) -> EncodedImage:
+    """Count now, in the caller's thread, what the per-frame path asks of ``enc``'s
+    codes: their range (:func:`check_encoded`), the samples at the white point
+    (:func:`white_samples`) and, with ``method``, the reduced copy an estimate by it
+    reads (:meth:`EncodedImage.reduced`). Each is kept on ``enc`` and read there, so
+    what the frame gets is the same; a thread that reads frames ahead
+    (:meth:`vigproc.pipeline.processor.Processor.read_ahead`) takes these passes over
+    the frame off the thread that estimates and corrects. Returns ``enc``.
+
+    Parameters
+    ----------
+    enc : EncodedImage
+    method : str or None
+        The estimator, or None when no estimate is expected (nothing reduced).
+
+    Returns
+    -------
+    EncodedImage
+    """
+    enc.code_range()
+    enc.top_count()
+    k = _reduction(enc, method) if method is not None else None
+    if k is not None and k <= min(enc.shape[:2]):
+        enc.reduced(k)
+    return enc
 
 
 def estimate_encoded(enc: EncodedImage, method: str, *, hint=None, seed: int | None = None):
@@ -163,9 +198,8 @@ def white_samples(x, *, source: bool = False) -> int:
     """Samples at the white point: of a corrected frame (at or above 1.0, or the top
     code), or with ``source`` of the frame as read (exactly 1.0, or the top code)."""
     # in bands of rows: a full-frame boolean temporary is a third of an 8-bit frame
-    if isinstance(x, EncodedImage):
-        a, top = x.codes, np.iinfo(x.codes.dtype).max
-        return sum(int(np.count_nonzero(a[r:r + _BAND] == top)) for r in range(0, max(a.shape[0], 1), _BAND))
+    if isinstance(x, EncodedImage):  # counted once per frame (EncodedImage.top_count)
+        return x.top_count()
     a = np.asarray(x)
     if a.ndim == 0:
         return int(a == 1.0 if source else a >= 1.0)

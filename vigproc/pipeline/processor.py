@@ -116,6 +116,33 @@ def _identity(path: str) -> tuple[int, int, int, int]:
     return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
 
 
+def _read_counted(path: str, transfer: str, method: str | None):
+    """:func:`vigproc.io.images.read_encoded` of ``path`` for a thread that reads ahead:
+    a JPEG's or PNG's codes come with the passes the frame's path makes over them already
+    made and kept (:func:`vigproc.pipeline.encoded.prepare_encoded`: their range, the
+    white samples and, with ``method``, the reduced copy the estimate reads), once Numba
+    is ready (:func:`vigproc.core.preload.numba_ready`: a read ahead does not wait for its
+    set-up). What cannot be counted here is counted, and reported, where the frame is
+    processed.
+
+    Returns
+    -------
+    (EncodedImage or ndarray, ImageInfo)
+    """
+    from vigproc.core.preload import numba_ready
+    from vigproc.io.images import EncodedImage, read_encoded
+
+    img, info = read_encoded(path, transfer=transfer)
+    if isinstance(img, EncodedImage):
+        from vigproc.pipeline.encoded import prepare_encoded
+
+        try:
+            prepare_encoded(img, method if numba_ready() else None)
+        except VigprocError as exc:  # met again where the frame is processed
+            log.debug("%s: not counted ahead: %s", path, exc)
+    return img, info
+
+
 def images_in(folder: Path, limit: int | None = None) -> list[Path]:
     """Image files under ``folder`` (recursive, sorted)."""
     if not folder.is_dir():
@@ -204,7 +231,7 @@ class Processor:
             self._reader = ExifReader().start()
         return self._reader
 
-    def prepare(self) -> None:
+    def prepare(self, *, metadata_writer: bool = True) -> None:
         """Start now the one-off set-up the first file would otherwise wait for.
 
         The EXIF reader's exiftool and, when images are written, the metadata writer's
@@ -213,13 +240,22 @@ class Processor:
         (:func:`vigproc.core.preload.preload_numba`). Optional, and nothing is decided
         here: a start that fails is met again, and reported, where the first file
         needs it.
+
+        Parameters
+        ----------
+        metadata_writer : bool
+            Launch the metadata writer's exiftool too. False for a caller that writes in
+            a thread of its own (``vigproc correct``): the writer's exiftool then starts
+            with the first corrected frame's write, in that thread, instead of taking a
+            core from Numba's set-up, which the first estimate waits for (and not at all
+            when no frame is corrected).
         """
         try:  # launched before the preloading thread runs: exiftool's launch forks
             if self._reader is None:
                 from vigproc.io.exif import ExifReader
 
                 self._reader = ExifReader().spawn()
-            if self.settings.mode == "correct":
+            if self.settings.mode == "correct" and metadata_writer:
                 from vigproc.io.metadata import spawn_exiftool
 
                 spawn_exiftool()
@@ -250,8 +286,6 @@ class Processor:
         """
         if self.settings.mode not in ("correct", "estimate", "learn"):
             return
-        from vigproc.io.images import read_encoded
-
         key = os.fspath(path)
         try:
             ident = _identity(key)
@@ -263,7 +297,10 @@ class Processor:
             self._reading = ThreadPoolExecutor(1, thread_name_prefix="vigproc-read")
         while len(self._ahead) >= self.AHEAD:
             self._ahead.pop(0)[2].cancel()
-        self._ahead.append((key, ident, self._reading.submit(read_encoded, key, transfer=self.settings.transfer)))
+        s = self.settings
+        # the reduced copy an estimate reads, when one is expected (a stored profile may still answer)
+        method = s.method if s.mode == "learn" or s.profile in ("auto", "estimate") else None
+        self._ahead.append((key, ident, self._reading.submit(_read_counted, key, s.transfer, method)))
 
     def _read_ahead_of(self, path: Path):
         """The pixels :meth:`read_ahead` decoded for ``path`` if the file is unchanged, else None."""
@@ -620,7 +657,9 @@ class Processor:
         Returns
         -------
         callable
-            ``finish() -> FrameResult``.
+            ``finish() -> FrameResult``; its attribute ``encodes`` says whether it
+            encodes an image (it then holds the frame's codes until it runs; a step that
+            only copies the input and writes the sidecar holds no pixels).
         """
         s = self.settings
         t0 = time.perf_counter()
@@ -649,9 +688,13 @@ class Processor:
         out, res, img, info, fmt = self._process_path(path, frame_id, lambda info: output_format_for(
             s.output_format, path, info, like=like))
         del img  # not needed once processed: freed before the output is encoded (peak memory)
+        made = out is not None  # correct mode: an output frame was made (written or not)
+        encodes = made and (res.applied or policy == "write" or (policy == "keep" and not as_is))
+        if not encodes:
+            out = None  # the frame is not written: a write waiting in a queue does not hold it
 
         def finish() -> FrameResult:
-            if out is not None and (res.applied or policy == "write" or (policy == "keep" and not as_is)):
+            if encodes:
                 from vigproc.io.metadata import make_record, write_corrected
 
                 if fmt.format == "dng":  # the raw pixels untouched, the correction as an opcode
@@ -665,7 +708,7 @@ class Processor:
                                     format=fmt.format, transfer=fmt.transfer, quality=fmt.quality,
                                     keep_colour=keep_colour, source_read=True)  # decoded above, its EXIF read
                 res.output = str(dst)
-            if out is not None and not res.applied:  # said whatever was written
+            if made and not res.applied:  # said whatever was written
                 res.extra["not_applied"] = "strength 0" if s.strength == 0 else not_applied_reason(res.model)
                 res.extra.setdefault("not_applied_rule", "strength-0" if s.strength == 0 else "estimator")
                 if as_is:
@@ -682,6 +725,7 @@ class Processor:
             atomic_write_text(sidecar, json.dumps(res.to_dict(), indent=1) + "\n")
             return res
 
+        finish.encodes = encodes  # type: ignore[attr-defined]  # holds a frame until it runs
         return finish
 
     def process_unwritten(self, path: str | os.PathLike[str], *, frame_id: str | None = None) -> FrameResult:

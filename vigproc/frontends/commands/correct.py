@@ -7,6 +7,8 @@ import argparse
 import contextlib
 import logging
 import sys
+import threading
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from importlib import resources
 from pathlib import Path
@@ -23,6 +25,15 @@ from vigproc.pipeline.processor import InputFiles, Processor, Settings, output_f
 from vigproc.stores.opening import open_profile_store
 
 logger = logging.getLogger(__name__)
+
+#: Files whose outputs are being written or wait for the writer thread, at most. A file
+#: whose write is slow (a corrected frame: its encode and exiftool's metadata copy) no
+#: longer stops the next files' reading and estimating; lines and records still come
+#: in input order, as each file is written.
+WRITE_QUEUE = 6
+#: Of those, at most this many hold a frame to encode (one frame's codes each: the
+#: memory bound); a file not corrected holds none (its input is copied).
+WRITE_FRAMES = 2
 
 
 def _applied_ev(rec: dict) -> float:
@@ -58,15 +69,33 @@ def cmd_correct(args: argparse.Namespace) -> int:
         store = open_profile_store(args.profile_db, write=True)
     else:
         store = open_profile_store(args.profile_db) if settings.needs_store else None  # reads only: may be absent
-    # Writing (encode, metadata copy, sidecar) runs in one thread beside the next file's
+    # Writing (encode, metadata copy, sidecar) runs in one thread beside the next files'
     # read, estimate and correction: OpenImageIO's codecs, exiftool's pipe and Numba's
-    # kernels release the GIL, so two cores overlap. One file is written while one is
-    # worked on (one frame's codes more in memory); lines, records and outputs keep
-    # their order. Learning as you go stays one file at a time: a file is pooled only
-    # once the file before it is written.
+    # kernels release the GIL, so two cores overlap. Up to WRITE_QUEUE files are being
+    # written or wait for the writer, WRITE_FRAMES of them with a frame to encode (that
+    # many frames' codes more in memory); lines, records and outputs keep their order.
+    # Learning as you go stays one file at a time: a file is pooled only once the file
+    # before it is written.
     overlap = not settings.learn and len(files) > 1
     writer = ThreadPoolExecutor(1, thread_name_prefix="vigproc-write") if overlap else None
-    pending: tuple[Path, Future] | None = None  # the file being written, and its result
+    # the files being written or waiting for the writer, oldest first: (file, result of
+    # written()); reported in this order once written
+    pending: deque[tuple[Path, Future]] = deque()
+    stopped = threading.Event()  # a write met a full output disk: the writer takes no more
+
+    def written(finish) -> tuple:
+        """The writer thread's step for one file: ``(record, None)``, ``(None, (error,
+        fault))``, or ``(None, None)`` when a write before it met a full disk (the file
+        is then not started: nothing of it is written)."""
+        if stopped.is_set():
+            return None, None
+        try:
+            return finish(), None
+        except VigprocError as exc:
+            fault = classify_error(exc, outdir)  # judged at once, as the file fails
+            if fault.kind == DISK_FULL:
+                stopped.set()
+            return None, (exc, fault)
 
     def report(f: Path, rec: dict) -> None:
         nonlocal unapplied
@@ -84,31 +113,50 @@ def cmd_correct(args: argparse.Namespace) -> int:
                 "no image written (see its .vigproc.json)"
             print(one_line(f"{f} -> {where}  [{tag}; lens {lens}]"))
 
-    def fail(f: Path, exc: VigprocError) -> bool:
+    def fail(f: Path, exc: VigprocError, fault=None) -> bool:
         """Record a file's failure; True when the run must stop (the output disk is full)."""
         nonlocal failed, full
         failed += 1
         results.append(failure_record(f, exc))
         print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
-        full = classify_error(exc, outdir)
+        full = fault if fault is not None else classify_error(exc, outdir)
         return full.kind == DISK_FULL  # the machine's fault: every further file would fail the same way
 
-    def settle() -> bool:
-        """Wait for the file being written and report it; True when the run must stop."""
-        nonlocal pending
-        if pending is None:
-            return False
-        f, fut = pending
-        pending = None
-        try:
-            report(f, fut.result().to_dict())
-        except VigprocError as exc:
-            return fail(f, exc)
+    def settle(keep: int = 0, frames: int | None = None) -> bool:
+        """Wait for the oldest files being written and report them, in order, until at
+        most ``keep`` are pending and, with ``frames``, at most ``frames`` of them hold
+        a frame to encode; True when the run must stop (the files still pending are
+        then not started: the writer skips them)."""
+        while pending and (len(pending) > keep or
+                           (frames is not None and sum(fut.encodes for _, fut in pending) > frames)):
+            f, fut = pending[0]
+            rec, err = fut.result()
+            pending.popleft()
+            if rec is None and err is None:  # a write before it stopped the run
+                stop = True
+            elif err is not None:
+                stop = fail(f, *err)
+            else:
+                report(f, rec.to_dict())
+                stop = False
+            if stop:
+                while pending:  # skipped by the writer (stopped), or cancelled before it starts
+                    pending.pop()[1].cancel()
+                return True
         return False
+
+    def interrupt_writes() -> None:
+        """Ctrl-C: the files waiting for the writer are not started; the one being
+        written is finished and reported."""
+        while pending and pending[-1][1].cancel():  # newest first: what is cancelled is a run of the last files
+            pending.pop()
+        settle()
 
     try:
         with Processor(settings, store=store) as proc:  # one exiftool process for the whole batch
-            proc.prepare()  # Numba's set-up and exiftool's start beside the first file's read
+            # Numba's set-up and exiftool's start beside the first file's read; with a writer
+            # thread, the metadata writer's exiftool starts there, at the first corrected frame
+            proc.prepare(metadata_writer=writer is None)
             for k, (f, stem) in enumerate(_progress(list(zip(files, output_stems(files))), "correcting")):
                 try:
                     if k == 0:
@@ -122,20 +170,25 @@ def cmd_correct(args: argparse.Namespace) -> int:
                     if settle() or fail(f, exc):
                         break
                     continue
-                if settle():  # the file before stopped the run: this one counts as not started
-                    break
                 if writer is None:
                     try:
                         report(f, finish().to_dict())
                     except VigprocError as exc:
                         if fail(f, exc):
                             break
-                else:
-                    pending = (f, writer.submit(finish))
+                    continue
+                encodes = getattr(finish, "encodes", True)
+                # room in the writer's queue; a file before this one that stopped the run
+                # makes this one not started
+                if settle(keep=WRITE_QUEUE - 1, frames=WRITE_FRAMES - encodes):
+                    break
+                fut = writer.submit(written, finish)
+                fut.encodes = encodes
+                pending.append((f, fut))
             settle()
     except KeyboardInterrupt:  # Ctrl-C (SIGTERM alike): what was done, in one line; exit 130 (143)
         with contextlib.suppress(KeyboardInterrupt):  # a file being written is finished and counted
-            settle()
+            interrupt_writes()
         return interrupted("correct", f"{len(results) - failed - unapplied} corrected, {unapplied} not corrected, "
                            f"{failed} failed, {len(files) - len(results)} not started; outputs in {outdir}")
     finally:
