@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Callable, Container
 
 from vigproc.atomic import atomic_write_text
-from vigproc.core.preload import preload_numba
+from vigproc.core.preload import numba_ready, preload_numba
 from vigproc.errors import ImageReadError, MetadataError, ModelError, VigprocError
 from vigproc.io.incamera import read_in_camera
 from vigproc.io.provenance import read_provenance
@@ -129,7 +129,6 @@ def _read_counted(path: str, transfer: str, method: str | None):
     -------
     (EncodedImage or ndarray, ImageInfo)
     """
-    from vigproc.core.preload import numba_ready
     from vigproc.io.images import EncodedImage, read_encoded
 
     img, info = read_encoded(path, transfer=transfer)
