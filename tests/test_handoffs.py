@@ -53,15 +53,25 @@ def _textured_jpeg(path, w: int = 360, h: int = 240, *tags: str, seed: int = 3):
 
 
 def _cli(*args: str, env: dict | None = None):
+    """``vigproc ARGS`` run in this process (conftest's ``run_cli``: its exit code, stdout and
+    stderr as a subprocess's), ENV set for the call: these tests are about what the commands
+    write and read, not about the process (a new one costs about a second of start-up); the
+    one test about a killed process starts its own."""
     import os
-    import subprocess
-    import sys
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
-    full = {**os.environ, "PYTHONPATH": str(root), "VIGPROC_HOOK_SERVER": "off", **(env or {})}
-    return subprocess.run([sys.executable, "-m", "vigproc.frontends.cli", *args], capture_output=True,
-                          text=True, env=full, timeout=600)
+    from conftest import run_cli
+
+    env = {"VIGPROC_HOOK_SERVER": "off", **(env or {})}
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        return run_cli(*args)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 @pytest.mark.skipif(__import__("shutil").which("exiftool") is None, reason="exiftool program not installed")
