@@ -52,6 +52,15 @@ def _textured_jpeg(path, w: int = 360, h: int = 240, *tags: str, seed: int = 3):
     return path
 
 
+def _tag(paths, *tags: str) -> list[str]:
+    """TAGS written into every one of PATHS by one exiftool run (one start, not one a file)."""
+    import subprocess
+
+    paths = [str(p) for p in paths]
+    subprocess.run(["exiftool", "-q", "-m", "-overwrite_original", *tags, *paths], check=True, capture_output=True)
+    return paths
+
+
 def _cli(*args: str, env: dict | None = None):
     """``vigproc ARGS`` run in this process (conftest's ``run_cli``: its exit code, stdout and
     stderr as a subprocess's), ENV set for the call: these tests are about what the commands
@@ -106,8 +115,8 @@ def test_an_imported_trusted_profile_keeps_its_frames_when_it_learns_one_more(tm
 
     tags = ("-Make=Canon", "-Model=Canon EOS 6D", "-LensModel=EF50mm f/1.8 STM", "-FocalLength=50",
             "-FNumber=2.8")
-    frames = [str(_textured_jpeg(tmp_path / f"f{i}.jpg", 360, 240, *tags, seed=i)) for i in range(4)]
-    extra = str(_textured_jpeg(tmp_path / "extra.jpg", 360, 240, *tags, seed=99))
+    *frames, extra = _tag([_textured_jpeg(tmp_path / f"f{i}.jpg", 360, 240, seed=i) for i in range(4)]
+                          + [_textured_jpeg(tmp_path / "extra.jpg", 360, 240, seed=99)], *tags)
     a, b, exported = tmp_path / "a.sqlite", tmp_path / "b.sqlite", tmp_path / "lens.json"
     assert _cli("profile", "--profile-db", str(a), "learn", *frames).returncode == 0
     with ProfileStore(a) as store:
@@ -303,7 +312,6 @@ def test_profile_show_says_a_flat_field_profile_corrects_the_cast_its_walls_show
     corrected frame's corners are one colour with its centre). It now says the profile
     corrects it (`--json`: `colour_cast.corrected`)."""
     import json
-    import subprocess
 
     import OpenImageIO as oiio
     from test_profile_grid import flat_frames, lens_field
@@ -314,11 +322,10 @@ def test_profile_show_says_a_flat_field_profile_corrects_the_cast_its_walls_show
         out = oiio.ImageOutput.create(str(path))
         assert out.open(str(path), oiio.ImageSpec(arr.shape[1], arr.shape[0], 3, "float"))
         assert out.write_image(arr.astype(np.float32)) and out.close()
-        subprocess.run(["exiftool", "-q", "-m", "-overwrite_original", *tags, str(path)], check=True, capture_output=True)
-        return str(path)
+        return path
 
-    walls = [tif(tmp_path / f"wall{i}.tif", f) for i, f in enumerate(flat_frames())]
-    scene = tif(tmp_path / "scene.tif", 0.3 * np.exp(lens_field()))
+    *walls, scene = _tag([tif(tmp_path / f"wall{i}.tif", f) for i, f in enumerate(flat_frames())]
+                         + [tif(tmp_path / "scene.tif", 0.3 * np.exp(lens_field()))], *tags)
     db = str(tmp_path / "p.sqlite")
     assert _cli("profile", "--profile-db", db, "learn", "--method", "flat-field", *walls).returncode == 0
     show = _cli("profile", "--profile-db", db, "show", "0")
