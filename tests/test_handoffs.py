@@ -61,6 +61,17 @@ def _tag(paths, *tags: str) -> list[str]:
     return paths
 
 
+def _tag_each(*jobs, config=None) -> None:
+    """Each job's (PATHS, TAGS) written by one exiftool run for all the jobs (``-execute``
+    between them), CONFIG its tag definitions."""
+    import subprocess
+
+    args = ["exiftool", *(["-config", str(config)] if config else [])]
+    for i, (paths, tags) in enumerate(jobs):
+        args += [*(["-execute"] if i else []), *tags, *map(str, paths)]
+    subprocess.run([*args, "-common_args", "-q", "-m", "-overwrite_original"], check=True, capture_output=True)
+
+
 def _cli(*args: str, env: dict | None = None):
     """``vigproc ARGS`` run in this process (conftest's ``run_cli``: its exit code, stdout and
     stderr as a subprocess's), ENV set for the call: these tests are about what the commands
@@ -92,8 +103,9 @@ def test_profile_learn_refuses_an_unnamed_lens_on_an_interchangeable_lens_body(t
     from vigproc.stores.profiles import ProfileStore
 
     body = ("-Make=Canon", "-Model=Canon EOS 6D", "-FocalLength=50", "-FNumber=2.8")
-    bare = _textured_jpeg(tmp_path / "bare.jpg", 360, 240, *body)
-    named = _textured_jpeg(tmp_path / "named.jpg", 360, 240, *body, "-LensModel=EF50mm f/1.8 STM")
+    bare = _textured_jpeg(tmp_path / "bare.jpg", 360, 240)
+    named = _textured_jpeg(tmp_path / "named.jpg", 360, 240)
+    _tag_each(([bare], body), ([named], (*body, "-LensModel=EF50mm f/1.8 STM")))
     db = tmp_path / "p.sqlite"
     p = _cli("profile", "--profile-db", str(db), "learn", str(bare), str(named))
     assert p.returncode == 1, p.stdout + p.stderr
@@ -171,18 +183,17 @@ def test_profile_learn_refuses_frames_already_corrected(tmp_path) -> None:
     """`profile learn` pooled a phone's JPEG and an output vigproc had corrected (their
     fall-off is gone: they pull the profile towards a flat field), which the hot folder
     refuses; learn mode now refuses them too, with the reason."""
-    import subprocess
-
     from vigproc.io.exiftool_process import CONFIG_FILE
     from vigproc.stores.profiles import ProfileStore
 
-    phone = _textured_jpeg(tmp_path / "phone.jpg", 360, 240, "-Make=Apple", "-Model=iPhone 6",
-                           "-LensModel=iPhone 6 back camera 4.15mm f/2.2", "-FocalLength=4.15", "-FNumber=2.2")
+    phone = _textured_jpeg(tmp_path / "phone.jpg", 360, 240)
     body = ("-Make=Canon", "-Model=Canon EOS 6D", "-LensModel=EF50mm f/1.8 STM", "-FocalLength=50", "-FNumber=2.8")
-    done = _textured_jpeg(tmp_path / "done.jpg", 360, 240, *body)
-    subprocess.run(["exiftool", "-config", str(CONFIG_FILE), "-q", "-overwrite_original", "-XMP-vigproc:Applied=True",
-                    str(done)], check=True, capture_output=True)  # the record correct writes
-    fine = _textured_jpeg(tmp_path / "fine.jpg", 360, 240, *body, seed=5)
+    done = _textured_jpeg(tmp_path / "done.jpg", 360, 240)
+    fine = _textured_jpeg(tmp_path / "fine.jpg", 360, 240, seed=5)
+    _tag_each(([phone], ("-Make=Apple", "-Model=iPhone 6", "-LensModel=iPhone 6 back camera 4.15mm f/2.2",
+                         "-FocalLength=4.15", "-FNumber=2.2")),
+              ([done], (*body, "-XMP-vigproc:Applied=True")),  # the record correct writes
+              ([fine], body), config=CONFIG_FILE)
     db = tmp_path / "p.sqlite"
     p = _cli("profile", "--profile-db", str(db), "learn", str(phone), str(done), str(fine))
     assert p.returncode == 1, p.stdout + p.stderr
