@@ -139,6 +139,27 @@ def _score(ev) -> float:
     return float(ev.score) if math.isfinite(ev.score) else -math.inf
 
 
+def threshold_at_false_rate(clean_scores, false_rate: float = 0.05) -> float:
+    """The lowest score threshold at which at most ``floor(false_rate * N)`` of the N
+    clean frames' scores reach it: just above the (k+1)-th highest (-inf when every
+    frame may).
+
+    Parameters
+    ----------
+    clean_scores : array_like
+        The clean frames' detection scores.
+    false_rate : float
+        The share of clean frames allowed at or above the threshold.
+
+    Returns
+    -------
+    float
+    """
+    cs = np.sort(np.asarray(clean_scores, dtype=np.float64))[::-1]
+    k = int(math.floor(false_rate * cs.size))  # frames allowed above the threshold
+    return float(np.nextafter(cs[k], math.inf)) if k < cs.size else -math.inf
+
+
 def split_calibrated(result: "DetectionResult", false_rate: float = 0.05) -> list[dict]:
     """Detection curve with the decision threshold calibrated out of sample.
 
@@ -167,10 +188,8 @@ def split_calibrated(result: "DetectionResult", false_rate: float = 0.05) -> lis
 
     folds = []
     for cal in (0, 1):
-        cs = np.sort([sc for sc, b in zip(result.clean.scores, result.clean.base_index) if b % 2 == cal])[::-1]
-        k = int(math.floor(false_rate * len(cs)))  # frames allowed above the threshold
-        # just above the (k+1)-th highest score: at most k calibration frames reach it
-        thr = float(np.nextafter(cs[k], math.inf)) if k < len(cs) else -math.inf
+        thr = threshold_at_false_rate([sc for sc, b in zip(result.clean.scores, result.clean.base_index)
+                                       if b % 2 == cal], false_rate)
         ev = 1 - cal
         folds.append({"calibrated_on": "even" if cal == 0 else "odd", "threshold": thr,
                       "clean_calibration": rate(result.clean, cal, thr), "clean": rate(result.clean, ev, thr),
@@ -255,11 +274,10 @@ def series_rates(result: "DetectionResult", n: int, *, count: int = 400, seed: i
     for cal in (0, 1):
         half = {i for i in everything if i % 2 == cal}
         other = everything - half
-        cs = np.sort([s[0] for s in _series_stats(result.clean, half, n, count, rng, settings)])[::-1]
-        if cs.size == 0:
+        cs = [s[0] for s in _series_stats(result.clean, half, n, count, rng, settings)]
+        if not cs:
             continue
-        k = int(math.floor(false_rate * cs.size))
-        thr = float(np.nextafter(cs[k], math.inf)) if k < cs.size else -math.inf
+        thr = threshold_at_false_rate(cs, false_rate)
         ev = {lab: float(np.mean([s[0] >= thr for s in st])) if st else math.nan
               for lab, row in zip(labels, rows)
               for st in [_series_stats(row, other, n, count, rng, settings)]}

@@ -37,7 +37,7 @@ import math
 import numpy as np
 
 from benchmarks import clean as C
-from benchmarks.colour_detect import cast_for
+from benchmarks.colour_detect import cast_for, threshold_at_false_rate
 from vigproc.core.colour_cast import CastSettings, _cauchy_fit, _working_copy, detect_colour_cast
 from vigproc.core.colour_difference import MID_GREY, grey_cast_de
 
@@ -153,13 +153,11 @@ def designs(bs: dict) -> dict[str, float]:
 
 def _rates(name: str, clean, lum, cast, ci, li, ki) -> str:
     cl = np.asarray(clean)
-    k = int(math.floor(0.05 * cl.size))
-    thr = float(np.nextafter(np.sort(cl)[::-1][k], math.inf))
+    thr = threshold_at_false_rate(cl)
     line = (f"| {name} | {thr:.3g} | {int((cl >= thr).sum())}/{cl.size} | {int((lum >= thr).sum())}/{lum.size} | "
             f"{int((cast >= thr).sum())}/{cast.size} = {np.mean(cast >= thr):.1%} |")
     for cal in (0, 1):
-        c = np.sort(cl[ci % 2 == cal])[::-1]
-        t = float(np.nextafter(c[int(math.floor(0.05 * c.size))], math.inf))
+        t = threshold_at_false_rate(cl[ci % 2 == cal])
         ev = 1 - cal
         line += (f" {t:.3g}: {np.mean(cl[ci % 2 == ev] >= t):.1%} / {np.mean(lum[li % 2 == ev] >= t):.1%} / "
                  f"{np.mean(cast[ki % 2 == ev] >= t):.1%} |")

@@ -19,7 +19,7 @@ from dataclasses import replace
 import numpy as np
 
 from benchmarks import clean as C
-from benchmarks.colour_detect import cast_for
+from benchmarks.colour_detect import cast_for, threshold_at_false_rate
 from vigproc.core.colour_cast import CastSettings, detect_colour_cast
 
 
@@ -46,13 +46,12 @@ def main() -> None:
                    for t in [np.exp(cast_for(5.0, 45.0 * j, 40.0).log_transmission(bases[0].shape[:2]))]
                    for b in bases])
     li, ki = np.tile(idx, len(fields)), np.tile(idx, 8)
-    thr = float(np.nextafter(np.sort(cl)[::-1][int(math.floor(0.05 * cl.size))], math.inf))
+    thr = threshold_at_false_rate(cl)
     out = (f"{args.settings}: fixed (score >= 1) clean {int((cl >= 1).sum())}/{cl.size}, luminance only "
            f"{int((lu >= 1).sum())}/{lu.size}, dE 5 {int((c5 >= 1).sum())}/{c5.size} ({np.mean(c5 >= 1):.1%}) | "
            f"in sample (score >= {thr:.3g}): luminance only {np.mean(lu >= thr):.1%}, dE 5 {np.mean(c5 >= thr):.1%} |")
     for cal in (0, 1):
-        c = np.sort(cl[idx % 2 == cal])[::-1]
-        t = float(np.nextafter(c[int(math.floor(0.05 * c.size))], math.inf))
+        t = threshold_at_false_rate(cl[idx % 2 == cal])
         ev = 1 - cal
         out += (f" {'even' if cal == 0 else 'odd'} half's threshold {t:.3g}: clean {np.mean(cl[idx % 2 == ev] >= t):.1%}, "
                 f"luminance only {np.mean(lu[li % 2 == ev] >= t):.1%}, dE 5 {np.mean(c5[ki % 2 == ev] >= t):.1%};")
