@@ -130,6 +130,9 @@ class ImageInfo:
     quality: int | None = None
 
 
+#: Rows per band where a count over a whole frame needs no whole-frame temporary.
+COUNT_BAND = 256
+
 @dataclass(frozen=True, eq=False)
 class EncodedImage:
     """A display-encoded frame as its file stores it: integer code values and the
@@ -222,8 +225,8 @@ class EncodedImage:
         got = self._counts.get("top")
         if got is None:
             a, top = self.codes, np.iinfo(self.codes.dtype).max
-            got = self._counts["top"] = sum(int(np.count_nonzero(a[r:r + 256] == top))
-                                            for r in range(0, max(a.shape[0], 1), 256))
+            got = self._counts["top"] = sum(int(np.count_nonzero(a[r:r + COUNT_BAND] == top))
+                                            for r in range(0, max(a.shape[0], 1), COUNT_BAND))
         return got
 
     def forget_reduced(self) -> None:

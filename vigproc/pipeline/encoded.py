@@ -13,10 +13,8 @@ import numpy as np
 
 from vigproc.core.pixels import check_image
 from vigproc.errors import InvalidImageError
+from vigproc.io.image_read import COUNT_BAND as _BAND  # rows per band: no whole-frame temporary
 from vigproc.io.images import EncodedImage, encode_steps
-
-#: Rows per band where a whole-frame temporary is not needed.
-_BAND = 256
 
 
 def check_encoded(enc: EncodedImage) -> EncodedImage:
