@@ -19,6 +19,7 @@ import hashlib
 import json
 import logging
 import sqlite3
+from typing import Sequence
 
 import numpy as np
 
@@ -78,7 +79,7 @@ def record_cast(con: sqlite3.Connection, profile_id: int, frame_id: str, record:
     return cur.rowcount > 0
 
 
-def record_imported_casts(con: sqlite3.Connection, profile_id: int, records: list[dict], now: str) -> int:
+def record_imported_casts(con: sqlite3.Connection, profile_id: int, records: Sequence[dict], now: str) -> int:
     """Store the cast records a profile file carried (``cast.frames``); returns how many.
 
     They have no content id (the file does not name its frames): each is keyed

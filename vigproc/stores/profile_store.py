@@ -29,7 +29,7 @@ import sqlite3
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -783,7 +783,7 @@ class ProfileStore(SQLiteFile):
         logger.debug("no profile for %s; using neighbouring focal bin %s", key, best.key.focal_bin)
         return best
 
-    def put(self, profile: Profile, cast_records: list[dict] = ()) -> None:
+    def put(self, profile: Profile, cast_records: Sequence[dict] = ()) -> None:
         """Insert or replace ``profile`` (imports; replaces any profile under its key).
 
         ``cast_records``: the per-frame colour-cast records a profile file carried
@@ -804,7 +804,7 @@ class ProfileStore(SQLiteFile):
             con.execute("DELETE FROM pooled_frames WHERE profile_id = ?", (row_id,))
             con.execute("DELETE FROM cast_frames WHERE profile_id = ?", (row_id,))  # their casts with them
             # ... and the file's own frames' casts in their place, so the lens reports the same cast here
-            record_imported_casts(con, row_id, list(cast_records), _now())
+            record_imported_casts(con, row_id, cast_records, _now())
             # ... but what it says of the lens is the prior of the frames learned next
             write_prior(con, row_id, profile.theta, profile.covariance, profile.n_frames, profile.provenance,
                         _now())
@@ -835,7 +835,7 @@ class ProfileStore(SQLiteFile):
         with self._errors(f"reading {key}"):
             p = self._get(key)
             row_id = self._row_id(self.con, key)
-            casts = cast_records(self.con, row_id) if (p is not None and row_id is not None) else []
+            casts = cast_records(self.con, row_id) if p is not None else []
         if p is None:
             raise ProfileStoreError(f"no profile under {key}")
         export_profile(p, path, casts)
