@@ -13,7 +13,10 @@ Rec. 709 luminance is compared:
    0.25-EV bins of L_raw; s(L) is the local slope (a line fitted over +-0.75 EV), i.e. how
    many JPEG-EV one RAW-EV becomes at that brightness.  Reported at the corners' median
    brightness (r > 0.8 of the half-diagonal), at the centre's (r < 0.2) and as one line over
-   the 5-95 % range of L_raw.
+   the 5-95 % range of L_raw.  *inj*: a 1-EV fall-off (2**-r**2) multiplied into the RAW and
+   rendered through the measured curve: the JPEG-EV per RAW-EV it keeps at r = 0.8-1 (the
+   curve's chord from each corner cell's brightness down by its fall-off), with the curve
+   held at its end values beyond the measured range.
 2. *radial ratio*: the same scene's radial profile in both (median log2 L by radius, 0 at
    r < 0.2) and, at r = 0.8-1.0, the JPEG's drop divided by the RAW's.
 3. *vigproc's estimate*: ``vigproc.estimate`` (method ``--method``, no EXIF hint) of the
@@ -171,6 +174,12 @@ def measure(path: str, grid: int, method: str, curves: bool) -> dict:
     p5, p95 = np.percentile(lr, [5, 95])
     mid = (lr >= p5) & (lr <= p95)
     s_all = float(np.polyfit(lr[mid], lj[mid], 1)[0])
+    # a 1-EV corner fall-off (2**-r**2) added to the RAW and rendered through the global curve:
+    # the JPEG-EV it becomes per RAW-EV, at r 0.8-1 (the curve's chord over each corner cell)
+    rr = r[ok]
+    outer = rr >= 0.8
+    fall = -rr[outer] ** 2
+    inj = float(np.median((np.interp(lr[outer] + fall, cen, med) - np.interp(lr[outer], cen, med)) / fall))
     # the global curve's prediction of each cell, and what is left: a spatial (local) rendering
     res = np.full(LR.shape, np.nan)
     res[ok] = lj - np.interp(lr, cen, med)
@@ -188,7 +197,7 @@ def measure(path: str, grid: int, method: str, curves: bool) -> dict:
     out = dict(file=os.path.basename(path), jpeg=f"{jw}x{jh}", raw=f"{raw_lin.shape[1]}x{raw_lin.shape[0]}",
                grid=f"{w}x{h}", shift=shift, used=float(ok.mean()), L_corner=L_corner - L_centre,
                s_corner=slope_at(cen, med, cnt, L_corner), s_centre=slope_at(cen, med, cnt, L_centre),
-               s_all=s_all, prof=prof, est_jpeg=ev_j, est_raw=ev_r,
+               s_all=s_all, inj=inj, prof=prof, est_jpeg=ev_j, est_raw=ev_r,
                est_ratio=ev_j / ev_r if abs(ev_r) > 0.02 else float("nan"))
     if curves:
         print(f"# {out['file']}: log2 L_raw bin, median log2 L_jpeg, count, local slope")
@@ -216,17 +225,18 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as e:  # one bad file does not stop the table
             print(f"{p}: skipped ({type(e).__name__}: {e})", file=sys.stderr)
     print("# Lcorn: corners' log2 L_raw - centre's (EV); s_*: JPEG-EV per RAW-EV at the corners' /\n"
-          "# centre's brightness / one line over 5-95 %; edge: log2 L(r 0.8-1) - log2 L(r < 0.2), EV;\n"
+          "# centre's brightness / one line over 5-95 %; inj: a 1-EV corner fall-off added to the RAW,\n"
+          "# rendered through the global curve, per RAW-EV (r 0.8-1); edge: log2 L(r 0.8-1) - log2 L(r < 0.2), EV;\n"
           "# local: the JPEG's edge minus what the global curve predicts from the RAW (a local operator), EV;\n"
           "# est: vigproc.estimate corner fall-off, EV; shift: best whole-cell offset of JPEG vs RAW, corr.")
-    print("file                      jpeg      grid     shift      used  Lcorn  s_corn s_cent s_all "
+    print("file                      jpeg      grid     shift      used  Lcorn  s_corn s_cent s_all  inj  "
           "| edge RAW edge JPEG ratio  local | est RAW est JPEG ratio")
     for o in rows:
         _, _, dr, dj, dres = o["prof"][-1]
         ratio = dj / dr if abs(dr) > 0.02 else float("nan")
         dy, dx, c = o["shift"]
         print(f"{o['file'][:25]:25s} {o['jpeg']:9s} {o['grid']:8s} {dy:+d},{dx:+d} {c:.3f} {o['used']:4.2f} {o['L_corner']:6.2f} "
-              f"{o['s_corner']:6.2f} {o['s_centre']:6.2f} {o['s_all']:5.2f} | {dr:8.3f} {dj:9.3f} {ratio:5.2f} {dres:6.3f}"
+              f"{o['s_corner']:6.2f} {o['s_centre']:6.2f} {o['s_all']:5.2f} {o['inj']:5.2f} | {dr:8.3f} {dj:9.3f} {ratio:5.2f} {dres:6.3f}"
               f" | {o['est_raw']:7.3f} {o['est_jpeg']:8.3f} {o['est_ratio']:5.2f}")
     return 0 if rows else 1
 
