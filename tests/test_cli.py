@@ -143,7 +143,7 @@ class Teardown:
         write(2, b"TEARDOWN\\n")
 
 mark = Teardown()  # freed by the interpreter's teardown, not before
-atexit.register(sys.stderr.write, "ATEXIT\\n")
+atexit.register(lambda: sys.stderr.write(f"ATEXIT {os.environ.get('OMP_WAIT_POLICY')}\\n"))
 if "--thread" in sys.argv:  # a thread still running once main() has returned
     import vigproc.frontends.cli as cli
     sys.argv.remove("--thread")
@@ -155,27 +155,29 @@ sys.exit(run())
 """
 
 
-def _program(*args) -> subprocess.CompletedProcess:
+def _program(*args, env=None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", _PROGRAM, *map(str, args)], capture_output=True, text=True,
-                          timeout=300)
+                          timeout=300, env={k: v for k, v in {**os.environ, **(env or {})}.items() if v is not None})
 
 
 def test_correct_ends_its_process_without_the_teardown_and_loses_nothing(tmp_path, vignetted_tiff):
     path, _ = vignetted_tiff
-    r = _program("correct", path, tmp_path / "missing.tif", "-o", tmp_path / "o")
+    r = _program("correct", path, tmp_path / "missing.tif", "-o", tmp_path / "o", env={"OMP_WAIT_POLICY": None})
     assert r.returncode == 1, r.stderr  # one file failed: the exit code as main() returned it
     assert r.stdout.endswith(f" 1 failed; outputs in {tmp_path / 'o'}\n")  # flushed
-    assert "missing.tif" in r.stderr and "ATEXIT" in r.stderr  # atexit callbacks ran (the shared exiftool's close)
+    assert "missing.tif" in r.stderr
+    assert "ATEXIT PASSIVE" in r.stderr  # atexit callbacks ran (the shared exiftool's close); OpenMP's workers slept
     assert "TEARDOWN" not in r.stderr  # ... and no teardown after them
     assert sorted(f.name for f in (tmp_path / "o").iterdir()) == ["frame.corrected.tif", "frame.tif.vigproc.json"]
 
 
-def test_other_commands_and_running_threads_keep_the_interpreters_exit(tmp_path, vignetted_tiff):
-    r = _program("plugins")  # not a quick-exit command
-    assert r.returncode == 0 and "ATEXIT" in r.stderr and "TEARDOWN" in r.stderr, r.stderr
+def test_other_commands_and_running_threads_keep_the_interpreters_exit_and_a_set_policy(tmp_path, vignetted_tiff):
+    r = _program("plugins", env={"OMP_WAIT_POLICY": None})  # not a quick-exit command
+    assert r.returncode == 0 and "ATEXIT None" in r.stderr and "TEARDOWN" in r.stderr, r.stderr
     path, _ = vignetted_tiff
-    r = _program("correct", path, "-o", tmp_path / "o", "--thread")  # the exit waits for the thread
-    assert r.returncode == 0 and "THREAD DONE" in r.stderr and "TEARDOWN" in r.stderr, r.stderr
+    r = _program("correct", path, "-o", tmp_path / "o", "--thread", env={"OMP_WAIT_POLICY": "ACTIVE"})  # the user's
+    assert r.returncode == 0 and "THREAD DONE" in r.stderr and "TEARDOWN" in r.stderr, r.stderr  # exit waits
+    assert "ATEXIT ACTIVE" in r.stderr
     assert (tmp_path / "o" / "frame.corrected.tif").exists()
 
 

@@ -56,11 +56,16 @@ COMMANDS: dict[str, Command] = {
                      add_help=False),  # its --help lists the checkout's benchmarks
 }
 
-#: Commands whose process ends without the interpreter's teardown once :func:`main` has
-#: returned (:func:`run`): they finish what they open themselves (outputs renamed into
-#: place, exiftool closed, thread pools shut down), and the teardown, the garbage
-#: collector's passes over what Numba loaded, cost 0.15-0.3 s after the last output.
+#: Commands run by :func:`run` as a program of their own: their process ends without the
+#: interpreter's teardown once :func:`main` has returned (they finish what they open
+#: themselves: outputs renamed into place, exiftool closed, thread pools shut down; the
+#: teardown, the garbage collector's passes over what Numba loaded, cost 0.15-0.3 s after
+#: the last output), and their idle OpenMP workers sleep (:data:`OMP_WAIT`).
 QUICK_EXIT_COMMANDS = frozenset({"correct", "demo"})
+#: The OpenMP wait policy of :data:`QUICK_EXIT_COMMANDS` unless the environment sets one:
+#: passive, so that Numba's idle workers sleep instead of spinning between parallel
+#: kernels; the command's own threads (reading ahead, writing behind) want those cores.
+OMP_WAIT = ("OMP_WAIT_POLICY", "PASSIVE")
 
 
 # ------------------------------------------------------------------ parser
@@ -188,11 +193,15 @@ def _run(args: argparse.Namespace, terminated) -> int:
 
 def run() -> int:
     """The ``vigproc`` program (its console script, ``python -m vigproc``): :func:`main`
-    on ``sys.argv``; a command of :data:`QUICK_EXIT_COMMANDS` then ends the process at
-    once (:func:`_quick_exit`). Returns the exit code when the process goes on."""
+    on ``sys.argv``; a command of :data:`QUICK_EXIT_COMMANDS` runs with :data:`OMP_WAIT`
+    and then ends the process at once (:func:`_quick_exit`). Returns the exit code when
+    the process goes on."""
     argv = sys.argv[1:]
+    quick = chosen_command(argv) in QUICK_EXIT_COMMANDS
+    if quick:  # read by OpenMP when Numba first loads it, later
+        os.environ.setdefault(*OMP_WAIT)
     code = main(argv)
-    if chosen_command(argv) in QUICK_EXIT_COMMANDS:
+    if quick:
         _quick_exit(code)
     return code
 
