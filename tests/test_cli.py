@@ -131,6 +131,56 @@ def test_missing_file_and_partial_failure(tmp_path, vignetted_tiff):
     assert (tmp_path / "o" / "frame.corrected.tif").exists()
 
 
+# A child that runs the program's entry (vigproc.frontends.cli.run) as the console script
+# does, with marks of what the interpreter's exit does: an atexit callback, a finaliser
+# run by the teardown, and optionally a thread that is not a daemon, still running.
+_PROGRAM = """\
+import atexit, os, sys, threading, time
+from vigproc.frontends.cli import run
+
+class Teardown:
+    def __del__(self, write=os.write):  # the file descriptor: sys.stderr may be gone by then
+        write(2, b"TEARDOWN\\n")
+
+mark = Teardown()  # freed by the interpreter's teardown, not before
+atexit.register(lambda: sys.stderr.write(f"ATEXIT {os.environ.get('OMP_WAIT_POLICY')}\\n"))
+if "--thread" in sys.argv:  # a thread still running once main() has returned
+    import vigproc.frontends.cli as cli
+    sys.argv.remove("--thread")
+    returned, main = threading.Event(), cli.main
+    cli.main = lambda argv: (main(argv), returned.set())[0]
+    threading.Thread(target=lambda: (returned.wait(), time.sleep(0.5), sys.stderr.write("THREAD DONE\\n"))).start()
+sys.argv[0] = "vigproc"
+sys.exit(run())
+"""
+
+
+def _program(*args, env=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", _PROGRAM, *map(str, args)], capture_output=True, text=True,
+                          timeout=300, env={k: v for k, v in {**os.environ, **(env or {})}.items() if v is not None})
+
+
+def test_correct_ends_its_process_without_the_teardown_and_loses_nothing(tmp_path, vignetted_tiff):
+    path, _ = vignetted_tiff
+    r = _program("correct", path, tmp_path / "missing.tif", "-o", tmp_path / "o", env={"OMP_WAIT_POLICY": None})
+    assert r.returncode == 1, r.stderr  # one file failed: the exit code as main() returned it
+    assert r.stdout.endswith(f" 1 failed; outputs in {tmp_path / 'o'}\n")  # flushed
+    assert "missing.tif" in r.stderr
+    assert "ATEXIT PASSIVE" in r.stderr  # atexit callbacks ran (the shared exiftool's close); OpenMP's workers slept
+    assert "TEARDOWN" not in r.stderr  # ... and no teardown after them
+    assert sorted(f.name for f in (tmp_path / "o").iterdir()) == ["frame.corrected.tif", "frame.tif.vigproc.json"]
+
+
+def test_other_commands_and_running_threads_keep_the_interpreters_exit_and_a_set_policy(tmp_path, vignetted_tiff):
+    r = _program("plugins", env={"OMP_WAIT_POLICY": None})  # not a quick-exit command
+    assert r.returncode == 0 and "ATEXIT None" in r.stderr and "TEARDOWN" in r.stderr, r.stderr
+    path, _ = vignetted_tiff
+    r = _program("correct", path, "-o", tmp_path / "o", "--thread", env={"OMP_WAIT_POLICY": "ACTIVE"})  # the user's
+    assert r.returncode == 0 and "THREAD DONE" in r.stderr and "TEARDOWN" in r.stderr, r.stderr  # exit waits
+    assert "ATEXIT ACTIVE" in r.stderr
+    assert (tmp_path / "o" / "frame.corrected.tif").exists()
+
+
 def test_constant_image_is_a_clear_error(tmp_path):
     p = tmp_path / "flat.tif"
     write_image(p, np.full((64, 64, 3), 0.5, np.float32), bit_depth="float")

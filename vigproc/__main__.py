@@ -1,6 +1,6 @@
 """``python -m vigproc ARGS``: the ``vigproc`` command (for an environment whose scripts
 folder is not on PATH)."""
 
-from vigproc.frontends.cli import main
+from vigproc.frontends.cli import run
 
-raise SystemExit(main())
+raise SystemExit(run())
