@@ -25,6 +25,7 @@ def pytest_configure(config):
     compiling its own kernels only, so that no two processes write one kernel's cache."""
     if hasattr(config, "workerinput"):  # a worker: the main process has done it
         return
+    _blas_threads_for_workers(config)
     import vigproc
     from vigproc.core._kernels import codes, field
 
@@ -63,6 +64,17 @@ def pytest_configure(config):
     finally:
         if child is not None:
             child.wait()
+
+
+def _blas_threads_for_workers(config) -> None:
+    """Give each pytest-xdist worker's BLAS (OpenBLAS, under NumPy and SciPy) its share of
+    the cores, in the environment the workers and the processes they start inherit: an
+    OpenBLAS thread waits for work by spinning, so two workers each with a thread per
+    core took the cores from each other (docs/benchmarks/tests.md: "BLAS threads").  A
+    value the caller set is kept; a run in one process is left alone."""
+    workers = len(config.getoption("tx", None) or []) if config.getoption("dist", "no") != "no" else 0
+    if workers:
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // workers)))
 
 
 def _warm_codes() -> None:

@@ -33,19 +33,16 @@ N = 10
 def series(tmp_path_factory) -> list[Path]:
     """``N`` DNG frames of one lens setting, a minute apart (one series), carrying a
     lensfun lens's fall-off."""
-    from dngfixture import make_dng
+    from dngfixture import make_dngs
 
     from vigproc.stores.lensfun import diverse_lenses, pa_field
 
     folder = tmp_path_factory.mktemp("series")
     _, pa = diverse_lenses(1)[0]
     field = pa_field((H, W), pa.k1, pa.k2, pa.k3)
-    paths = []
-    for i in range(N):
-        p = folder / f"frame {i:02d}.dng"
-        make_dng(p, width=W, height=H, field=field, scene=photo_like(H, W, seed=20 + i),
-                 exif={"DateTimeOriginal": f"2024:05:06 07:{i:02d}:00", **D70_EXIF})
-        paths.append(p)
+    paths = [folder / f"frame {i:02d}.dng" for i in range(N)]
+    make_dngs([(p, dict(width=W, height=H, field=field, scene=photo_like(H, W, seed=20 + i),
+                        exif={"DateTimeOriginal": f"2024:05:06 07:{i:02d}:00", **D70_EXIF})) for i, p in enumerate(paths)])
     return paths
 
 

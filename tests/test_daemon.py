@@ -665,7 +665,7 @@ def test_a_profile_source_is_not_a_profile_file(tmp_path):
 
 @pytest.mark.skipif(shutil.which("exiftool") is None, reason="the DNG fixture needs exiftool for its EXIF")
 def test_learn_mode_pools_each_frame_once_across_a_kill(tmp_path):
-    from dngfixture import make_dng
+    from dngfixture import make_dngs
 
     from benchmarks.synthetic import table1_model
     from vigproc.stores.profiles import ProfileStore
@@ -674,9 +674,9 @@ def test_learn_mode_pools_each_frame_once_across_a_kill(tmp_path):
     in_dir.mkdir()
     truth = table1_model(1).rescale(192, 128)
     n = 4
-    for i in range(n):
-        make_dng(in_dir / f"frame {i}.dng", width=192, height=128, field=truth.field(),
-                 scene=textured(128, 192, seed=i, contrast=0.2), seed=i)
+    make_dngs([(in_dir / f"frame {i}.dng", dict(width=192, height=128, field=truth.field(),
+                                               scene=textured(128, 192, seed=i, contrast=0.2), seed=i))
+               for i in range(n)])
     args = ("--mode", "learn", "--profile-db", str(db), "--settle", "0.2")
     # one worker: the kill is the point (two workers pooling at once: test_learn_as_you_go's watch and batch)
     d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args, workers=1).start()

@@ -34,20 +34,17 @@ H, W = 256, 384
 def _frames(folder: Path, n: int, exif=D70_EXIF, seed: int = 20, power: float = 1.0) -> tuple[list[Path], np.ndarray]:
     """``n`` DNG frames of one lens setting carrying a lensfun lens's fall-off (to the
     ``power``: a stronger one): the paths and the true log2 field."""
-    from dngfixture import make_dng
+    from dngfixture import make_dngs
 
     from vigproc.stores.lensfun import diverse_lenses, pa_field
 
     _, pa = diverse_lenses(1)[0]
     field = pa_field((H, W), pa.k1, pa.k2, pa.k3) ** power
     folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for i in range(n):
-        p = folder / f"frame {i:02d}.dng"
-        # one shoot: a frame a minute (a series of its lens setting, pipeline.learning)
-        make_dng(p, width=W, height=H, field=field, scene=photo_like(H, W, seed=seed + i),
-                 exif={"DateTimeOriginal": f"2024:05:06 07:{i:02d}:00", **exif})
-        paths.append(p)
+    paths = [folder / f"frame {i:02d}.dng" for i in range(n)]
+    # one shoot: a frame a minute (a series of its lens setting, pipeline.learning)
+    make_dngs([(p, dict(width=W, height=H, field=field, scene=photo_like(H, W, seed=seed + i),
+                        exif={"DateTimeOriginal": f"2024:05:06 07:{i:02d}:00", **exif})) for i, p in enumerate(paths)])
     return paths, np.log2(field)
 
 

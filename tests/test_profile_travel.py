@@ -29,18 +29,15 @@ def run(*args):
 def learned(tmp_path_factory):
     """Four DNG frames of one lens carrying a lensfun calibration's fall-off, learned into a
     store through the command line: (folder, store, frames, the field's pa coefficients)."""
-    from dngfixture import make_dng
+    from dngfixture import make_dngs
 
     from vigproc.stores.lensfun import diverse_lenses, pa_field
 
     _, pa = diverse_lenses(1)[0]
     d = tmp_path_factory.mktemp("travel")
-    frames = []
-    for i in range(4):
-        p = d / f"d70_{i}.dng"
-        make_dng(p, width=W, height=H, field=pa_field((H, W), pa.k1, pa.k2, pa.k3),
-                 scene=photo_like(H, W, seed=20 + i), exif=D70_EXIF)
-        frames.append(p)
+    frames = [d / f"d70_{i}.dng" for i in range(4)]
+    make_dngs([(p, dict(width=W, height=H, field=pa_field((H, W), pa.k1, pa.k2, pa.k3),
+                        scene=photo_like(H, W, seed=20 + i), exif=D70_EXIF)) for i, p in enumerate(frames)])
     store = d / "learned.sqlite"
     r = run("profile", "--profile-db", store, "learn", *frames)
     assert r.returncode == 0, r.stderr
