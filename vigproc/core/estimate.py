@@ -36,55 +36,41 @@ class OffCentreRule:
     """When vigproc's default estimate (:func:`estimate_default`) tries an off-centre fit,
     which one, and when it keeps it. Each threshold was measured on the clean protocol
     (``vigproc bench clean``: vignetting-free camera frames × 20 lensfun lenses, and Lyu's
-    Table 1 fields; docs/benchmarks/clean.md), where every base is an uncropped centre crop,
-    so any off-centre fit kept on a real lens's frame is wrong.
+    Table 1 fields), where every base is an uncropped centre crop, so any off-centre fit
+    kept on a real lens's frame is wrong; the measurements that chose each value are in
+    docs/benchmarks/clean.md, "How the default's off-centre rule was chosen".
 
     Attributes
     ----------
     any_min_ev : float
-        No off-centre fit at all when the centred fit rules out a fall-off of this much (EV
-        RMS: its candidate's fall-off plus 2σ is below it): a fall-off strong enough for a
-        free fit to place shows in the centred fit too, and where the centred fit surely
-        sees almost none, a free fit's twelve parameters follow the scene's own light. A
-        Canon IXUS 400 JPEG (a museum room lit from above) had 1.32 EV removed at confidence
-        1.00 by the free fit where the centred fit saw 0.02 ± 0.10 EV. Without the 2σ one
-        Table 1 frame, whose centred fit sees 0.10 ± 0.77 EV, lost its free fit.
+        EV RMS over the frame. No off-centre fit at all when the centred fit rules out a
+        fall-off of this much (its candidate's fall-off plus 2σ is below it): a fall-off
+        strong enough for a free fit to place shows in the centred fit too, and where the
+        centred fit surely sees almost none, a free fit's twelve parameters follow the
+        scene's own light.
     grey_min_ev : float
-        A fit whose pairs are not weighted by colour (a grey frame, or one whose channels
-        change alike) is tried off-centre only when its centred fall-off is at least this
-        strong: without the colour weights a scene's shading moves a weaker fall-off's
-        centre, and the free fit, which follows it, won the comparison on 41 of 1020
-        real-lens frames given their luminance (median error 0.081 EV). Session 17, a script
-        (clean luminance × 20 lenses, median EV; BSDS × lensfun fields, gain-free; Table 1
-        settings 2 / 3 restored on the clean bases, dB): 0.8 EV: 0.076, 0.0702, 24.3 / 24.5;
-        0.9: 0.0755, 0.0679, 24.2 / 24.3; 1.0: 0.074, 0.0679, 23.7 / 23.1. 0.9 is the
-        strongest gate that keeps Table 1 restored to 24 dB.
+        EV RMS. A fit whose pairs are not weighted by colour (a grey frame, or one whose
+        channels change alike) is tried off-centre only when its centred fall-off is at
+        least this strong: without the colour weights a scene's shading moves a weaker
+        fall-off's centre, and the free fit follows it.
     family_shift, family_min_ev : float
-        A colour frame's fall-off is fitted in the lens family off-centre and elliptical
-        (:func:`vigproc.core.family_fit.fit_off_centre`) rather than by the free Kang-Weiss
-        fit when the centre tests put the centre at least ``family_shift`` half-diagonals
-        off and the centred fit's fall-off is at least ``family_min_ev``: a fall-off's shape
-        and place can be read only when it is strong. Without these gates the off-centre
-        family fit was taken on many real-lens frames (0.044 -> 0.048 EV, session 15); with
-        them Table 1 settings 2 / 3 went 0.565 / 0.775 -> 0.293 / 0.465 EV.
+        Half-diagonals; EV RMS. A colour frame's fall-off is fitted in the lens family
+        off-centre and elliptical (:func:`vigproc.core.family_fit.fit_off_centre`) rather
+        than by the free Kang-Weiss fit when the centre tests put the centre at least
+        ``family_shift`` off and the centred fit's fall-off is at least ``family_min_ev``:
+        a fall-off's shape and place can be read only when it is strong.
     free_min_ev : float
-        From this centred fall-off on, the free fit is made with ``free_settings``, below it
-        with the robust estimator's own.
+        EV RMS. From this centred fall-off on, the free fit is made with ``free_settings``,
+        below it with the robust estimator's own.
     keep_min_ev : float
-        An off-centre fit that explains the frame better is kept only when the fall-off it
-        finds is at least this strong (EV RMS of log2 φ over the frame): a scene's own
-        shading makes weaker off-centre fits win. The fall-offs of the (wrong) off-centre
-        fits that won on real-lens frames spread over 0.74-1.58 EV (10th-90th percentile; 33
-        of 1020 frames), Table 1 settings 2-3's over 1.78-2.64 EV (a script, session 17). At
-        1.5 the real lenses went 0.0412 -> 0.0406 EV with Table 1 unchanged; at 1.7 setting 3
-        went 0.325 -> 0.452 EV. On 123 camera frames this was not tuned on
-        (``scripts/heldout_frames.sh``): 0.0436 -> 0.0407 EV, no-harm worst 0.832 -> 0.644.
+        EV RMS of log2 φ over the frame. An off-centre fit that explains the frame better is
+        kept only when the fall-off it finds is at least this strong: a scene's own shading
+        makes weaker off-centre fits win.
     settings : FamilySettings
         The centre tests, the off-centre family fit, the centred fit they are compared with,
-        and the comparison: the lens-family fit's settings before session 15 retuned them for
-        centred fits (with the retuned ones here too, Table 1 setting 3 went 0.34 -> 0.52
-        EV). The off-centre fit's σ reads their jackknife with the single-frame scale and
-        floor.
+        and the comparison: the lens-family fit's evidence settings (``EVIDENCE_FIT``), not
+        the ones retuned for centred fits. The off-centre fit's σ reads their jackknife
+        with the single-frame scale and floor.
     glow : GlowTest
         When the centred fit the default would apply is asked whether its fall-off is a
         light source's glow rather than a lens's (:mod:`vigproc.core.glow`): a sunset with
@@ -95,11 +81,7 @@ class OffCentreRule:
         the mean scene of centred photographs divided out) are overruled: the centre and
         shape priors are widened (0.15 -> 0.5 half-diagonals, ellipticity 0.3 -> 1.0), no
         scene prior is divided out, and the pairs weigh more against the α prior (n_eff
-        400 -> 1600, Cauchy scale 0.2 -> 0.1). On the clean bases' luminance, Table 1
-        settings 2 / 3 went 21.1 / 19.5 -> 24.3 / 24.5 dB (with the fall-back rule of
-        :func:`estimate_default`; scripts, session 17). With these settings for every free
-        fit, the free fit won on 117 of 1020 real-lens frames (14 before; 0.041 -> 0.050
-        EV); from 0.5 EV, 0.042; from 0.8, 0.041.
+        400 -> 1600, Cauchy scale 0.2 -> 0.1).
     """
 
     any_min_ev: float = 0.25

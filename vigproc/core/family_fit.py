@@ -200,17 +200,12 @@ class FamilySettings:
 
 #: The jackknife and σ of a single frame's estimate (:class:`FamilySettings`' defaults):
 #: 3×3 blocks, refits of at most 5 steps (the chroma covariates held at the full fit's),
-#: σ = hypot(1.6·σ_jackknife, 0.005 EV). Session 18, with the chroma covariates (a script,
-#: the colour-weighted fits without fall-back): within 1σ / 2σ on 71 % / 91 % of the clean
-#: protocol's frames (20 lenses × 51 bases) and 72 % / 92 % of 123 held-out camera frames'
-#: (2.1, the scale before them, gave 77 % / 94 % and 81 % / 94 %). The 2×2 jackknife, whatever its scale, gave no better than 76 %
-#: within 1σ when 90.5 % were within 2σ: four refits measure a frame's spread too
-#: noisily, and the errors over σ had a heavy tail. Nine refits of 5 steps cost less
-#: than four of 30 (4.1 against 5.7 ms a frame).
+#: σ = hypot(1.6·σ_jackknife, 0.005 EV); how the scale and the 3×3 blocks were chosen:
+#: docs/benchmarks/clean.md, "How the lens-family fit's settings were chosen".
 #:
 #: Profile pooling, the lens-match test and the crop test were calibrated (their
-#: shipped scene scatter and null tables) on fits made with the settings before session
-#: 15 (a 2×2 jackknife of 30-step refits, σ scale 2.25 and floor 0.01, Cauchy scale
+#: shipped scene scatter and null tables) on fits made with the earlier single-frame
+#: settings (a 2×2 jackknife of 30-step refits, σ scale 2.25 and floor 0.01, Cauchy scale
 #: 0.01, κ = 0.3, τ = 0.003), and keep them: :data:`EVIDENCE_SETTINGS`.
 #:
 #: The fit those settings make (Cauchy scale, κ, tolerance, τ), apart from its jackknife

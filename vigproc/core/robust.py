@@ -333,7 +333,7 @@ def _radii(theta: np.ndarray, wc: RobustWorkingCopy, n: int = 24, edges: bool = 
 #: :func:`shape_ratio` above which ``method="real-lens"`` does not apply a fit.  Of the
 #: 23 495 "pa" calibrations in lensfun's database 96 % lie below it (median 0.23, 95th
 #: percentile 0.375); the default estimator's fits to vignetting-free BSDS train photos
-#: have a median of 0.30.  Measured on the 200 BSDS train photos (session 5): it nearly
+#: have a median of 0.30.  Measured on the 200 BSDS train photos: it nearly
 #: halves the correction applied to clean photos (mean 0.169 → 0.106 EV) at no cost on
 #: the lensfun protocol (0.302 → 0.303 EV), but Lyu's Table 1 fields are as broad
 #: (0.37–0.45), so it is not the default.
@@ -673,7 +673,7 @@ def estimate_robust_joint(lums: list[np.ndarray], settings: RobustSettings = Rob
 
     This is the "joint multi-frame fit" of the profile protocol (``vigproc bench
     profile``), measured against pooling per-frame estimates (the profile store's
-    rule until session 4; it now pools centred fits, :mod:`vigproc.core.pooling`).
+    rule once; it now pools centred fits, :mod:`vigproc.core.pooling`).
 
     Raises
     ------
@@ -701,8 +701,8 @@ def joint_model(wcs: list[RobustWorkingCopy], settings: RobustSettings = RobustS
 
 #: Format tag of :func:`luminance_evidence` blobs: the working copy before the scene
 #: division, with the colour channels' copies when the frame has them.  Format 1
-#: (vigproc ≤ session 4) stored it after the division by the scene prior shipped at
-#: the time; format 2 (≤ session 11) held the luminance copy only.
+#: stored it after the division by the scene prior shipped with the writing version;
+#: format 2 held the luminance copy only.
 EVIDENCE_FORMAT = "vigproc.robust-evidence/3"
 _EVIDENCE_V1 = "vigproc.robust-evidence/1"
 _EVIDENCE_V2 = "vigproc.robust-evidence/2"
