@@ -82,6 +82,10 @@ def test_a_second_daemon_on_the_same_folders_is_refused_in_every_variant(tmp_pat
     d1 = _watch(in_dir, out_dir, log, env=env)
     try:
         _wait_started(d1, log)
+        # --status asks the running one, is not refused; asked as soon as the start is logged,
+        # it finds the status file (written before the start line, not at the loop's first tick)
+        st = _second(in_dir, out_dir, "--status", env=env)
+        assert st.returncode == 0 and "running, pid" in st.stdout, (st.stdout, st.stderr)
         # the same folders, as given and through another spelling of them
         for args in ([in_dir, out_dir], [tmp_path / "in" / ".." / "in", out_dir],
                      # its own journal elsewhere: the folders are still taken
@@ -91,8 +95,6 @@ def test_a_second_daemon_on_the_same_folders_is_refused_in_every_variant(tmp_pat
             assert r.returncode == 1 and "already running" in r.stderr, (args, r.stderr)
             assert "Traceback" not in r.stderr
         assert not (tmp_path / "elsewhere.sqlite").exists()
-        st = _second(in_dir, out_dir, "--status", env=env)  # --status asks the running one, is not refused
-        assert st.returncode == 0 and "running, pid" in st.stdout, st.stderr
         # the output folder deleted under the daemon: the lock is not in it, so a second daemon
         # is still refused while the first lives (stopped here so that it cannot react yet) ...
         d1.send_signal(signal.SIGSTOP)

@@ -166,6 +166,9 @@ class Daemon:
                 self.scheduler.start_worker(i)
             self.watcher.start_observer(self._wake_w)
             self.watcher.rescan()
+            # the status file before the start is announced: `--status` asked right after it
+            # would otherwise find no file for up to STATUS_EVERY (running, but no pid)
+            self._write_status()
             log.info("watching %s -> %s (%s mode, %d worker(s), %s, settle %.3g s)", cfg.in_dir, cfg.out_dir,
                      cfg.settings.get("mode"), cfg.workers,
                      f"polling every {cfg.poll:g} s" if cfg.poll else "native events", cfg.settle,
