@@ -160,6 +160,22 @@ def threshold_at_false_rate(clean_scores, false_rate: float = 0.05) -> float:
     return float(np.nextafter(cs[k], math.inf)) if k < cs.size else -math.inf
 
 
+def half_threshold(clean_scores, base_index, half: int, false_rate: float = 0.05) -> float:
+    """:func:`threshold_at_false_rate` of the clean frames rendered on bases of one index
+    parity (``half``: 0 even, 1 odd): the threshold calibrated on that half."""
+    s, b = np.asarray(clean_scores, dtype=np.float64), np.asarray(base_index)
+    return threshold_at_false_rate(s[b % 2 == half], false_rate)
+
+
+def half_rate(scores, base_index, half: int, threshold: float) -> float:
+    """The share of the frames on bases of index parity ``half`` whose score reaches
+    ``threshold`` (nan when that half holds none): a rate counted out of sample when the
+    threshold came from the other half (:func:`half_threshold`)."""
+    s, b = np.asarray(scores, dtype=np.float64), np.asarray(base_index)
+    s = s[b % 2 == half]
+    return float(np.mean(s >= threshold)) if s.size else math.nan
+
+
 def split_calibrated(result: "DetectionResult", false_rate: float = 0.05) -> list[dict]:
     """Detection curve with the decision threshold calibrated out of sample.
 
@@ -183,13 +199,11 @@ def split_calibrated(result: "DetectionResult", false_rate: float = 0.05) -> lis
         (``{"dE 5": rate, ...}``), rates on the evaluation half.
     """
     def rate(row: RateRow, half: int, thr: float) -> float:
-        s = [sc for sc, b in zip(row.scores, row.base_index) if b % 2 == half]
-        return float(np.mean([sc >= thr for sc in s])) if s else math.nan
+        return half_rate(row.scores, row.base_index, half, thr)
 
     folds = []
     for cal in (0, 1):
-        thr = threshold_at_false_rate([sc for sc, b in zip(result.clean.scores, result.clean.base_index)
-                                       if b % 2 == cal], false_rate)
+        thr = half_threshold(result.clean.scores, result.clean.base_index, cal, false_rate)
         ev = 1 - cal
         folds.append({"calibrated_on": "even" if cal == 0 else "odd", "threshold": thr,
                       "clean_calibration": rate(result.clean, cal, thr), "clean": rate(result.clean, ev, thr),

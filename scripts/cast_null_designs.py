@@ -37,7 +37,7 @@ import math
 import numpy as np
 
 from benchmarks import clean as C
-from benchmarks.colour_detect import cast_for, threshold_at_false_rate
+from benchmarks.colour_detect import cast_for, half_rate, half_threshold, threshold_at_false_rate
 from vigproc.core.colour_cast import CastSettings, _cauchy_fit, _working_copy, detect_colour_cast
 from vigproc.core.colour_difference import MID_GREY, grey_cast_de
 
@@ -157,10 +157,10 @@ def _rates(name: str, clean, lum, cast, ci, li, ki) -> str:
     line = (f"| {name} | {thr:.3g} | {int((cl >= thr).sum())}/{cl.size} | {int((lum >= thr).sum())}/{lum.size} | "
             f"{int((cast >= thr).sum())}/{cast.size} = {np.mean(cast >= thr):.1%} |")
     for cal in (0, 1):
-        t = threshold_at_false_rate(cl[ci % 2 == cal])
+        t = half_threshold(cl, ci, cal)
         ev = 1 - cal
-        line += (f" {t:.3g}: {np.mean(cl[ci % 2 == ev] >= t):.1%} / {np.mean(lum[li % 2 == ev] >= t):.1%} / "
-                 f"{np.mean(cast[ki % 2 == ev] >= t):.1%} |")
+        line += (f" {t:.3g}: {half_rate(cl, ci, ev, t):.1%} / {half_rate(lum, li, ev, t):.1%} / "
+                 f"{half_rate(cast, ki, ev, t):.1%} |")
     return line
 
 

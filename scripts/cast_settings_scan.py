@@ -19,7 +19,7 @@ from dataclasses import replace
 import numpy as np
 
 from benchmarks import clean as C
-from benchmarks.colour_detect import cast_for, threshold_at_false_rate
+from benchmarks.colour_detect import cast_for, half_rate, half_threshold, threshold_at_false_rate
 from vigproc.core.colour_cast import CastSettings, detect_colour_cast
 
 
@@ -51,10 +51,10 @@ def main() -> None:
            f"{int((lu >= 1).sum())}/{lu.size}, dE 5 {int((c5 >= 1).sum())}/{c5.size} ({np.mean(c5 >= 1):.1%}) | "
            f"in sample (score >= {thr:.3g}): luminance only {np.mean(lu >= thr):.1%}, dE 5 {np.mean(c5 >= thr):.1%} |")
     for cal in (0, 1):
-        t = threshold_at_false_rate(cl[idx % 2 == cal])
+        t = half_threshold(cl, idx, cal)
         ev = 1 - cal
-        out += (f" {'even' if cal == 0 else 'odd'} half's threshold {t:.3g}: clean {np.mean(cl[idx % 2 == ev] >= t):.1%}, "
-                f"luminance only {np.mean(lu[li % 2 == ev] >= t):.1%}, dE 5 {np.mean(c5[ki % 2 == ev] >= t):.1%};")
+        out += (f" {'even' if cal == 0 else 'odd'} half's threshold {t:.3g}: clean {half_rate(cl, idx, ev, t):.1%}, "
+                f"luminance only {half_rate(lu, li, ev, t):.1%}, dE 5 {half_rate(c5, ki, ev, t):.1%};")
     print(out)
 
 
