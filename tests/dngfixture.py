@@ -263,7 +263,7 @@ def make_dng(
     sig = truth * gain + (rng.normal(scale=noise, size=truth.shape) if noise > 0 else 0.0)
     raw = np.clip(np.rint(black + sig * (white - black)), 0, white).astype("<u2")
 
-    tags = DEFAULT_EXIF if exif is None else exif
+    tags = _exif_tags(exif)
     make = str(tags.get("Make", "Vigproc"))
     model = str(tags.get("Model", "Synthetic DNG"))
     entries: list[tuple[int, int, Any]] = [
@@ -310,12 +310,17 @@ def make_dng(
     return truth
 
 
+def _exif_tags(exif: Mapping[str, Any] | None) -> Mapping[str, Any]:
+    """The tags a DNG of :func:`make_dng` gets: ``exif``, or :data:`DEFAULT_EXIF` when None."""
+    return DEFAULT_EXIF if exif is None else exif
+
+
 def make_dngs(frames: Sequence[tuple[str | os.PathLike[str], Mapping[str, Any]]]) -> list[np.ndarray]:
     """:func:`make_dng` of each ``(path, keyword arguments)``, their EXIF written by one
     exiftool run (:func:`write_exif`): one exiftool start, not one a frame (about 0.2 CPU s
     each).  The same files; returns each frame's linear truth, as :func:`make_dng` does."""
     truths = [make_dng(path, **kw, _untagged=True) for path, kw in frames]
-    write_exif([(path, DEFAULT_EXIF if kw.get("exif") is None else kw["exif"]) for path, kw in frames])
+    write_exif([(path, _exif_tags(kw.get("exif"))) for path, kw in frames])
     return truths
 
 
