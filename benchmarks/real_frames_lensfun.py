@@ -227,18 +227,31 @@ def _truth_holds(tags: dict[str, Any], ic, corner_rho: float = 1.0,
     return True, ("flags off: " + ", ".join(flags)) if flags else "no in-camera flag recorded"
 
 
-def frame_row(path: Path, proc, truth: Truth, lens_key, tags: dict[str, Any], ic) -> LensfunRow:
-    """The default correction of one frame against lensfun's field (module doc)."""
-    from vigproc.core.plausible import corner_ev
+def corrected(path: Path, proc) -> tuple[Any, np.ndarray]:
+    """One file through the default correction as ``vigproc correct`` runs it (``proc``: a
+    :class:`~vigproc.pipeline.processor.Processor`): its result and its linear image."""
     from vigproc.pipeline.processor import output_format_for
 
     _out, res, img, _info, _fmt = proc._process_path(path, None, lambda info: output_format_for("auto", path, info))
+    return res, img
+
+
+def candidate_of(model):
+    """The estimator's fit before the gate: the model itself, or the candidate an identity keeps."""
+    return None if model is None else (model.candidate if model.candidate is not None else model)
+
+
+def frame_row(path: Path, proc, truth: Truth, lens_key, tags: dict[str, Any], ic) -> LensfunRow:
+    """The default correction of one frame against lensfun's field (module doc)."""
+    from vigproc.core.plausible import corner_ev
+
+    res, img = corrected(path, proc)
     h, w = img.shape[:2]
     shape = grid_shape(w, h)
     true_log = truth.log_field(shape)
     m = res.model
     applied = bool(res.applied) and m is not None and not m.is_identity
-    cand = None if m is None else (m.candidate if m.candidate is not None else m)
+    cand = candidate_of(m)
     est = m.log_field(shape) if applied else np.zeros(shape)
     cand_log = cand.log_field(shape) if cand is not None and not cand.is_identity else np.zeros(shape)
     holds, why = _truth_holds(tags, ic, truth.corner_rho, (w, h))
