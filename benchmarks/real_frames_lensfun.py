@@ -123,7 +123,7 @@ def lensfun_truth(lens_key) -> tuple[Truth | None, str]:
     reason (no lens named, no calibration, settings lensfun declines to interpolate)."""
     from vigproc.errors import ModelError
     from vigproc.stores.lensfun import interpolate_pa
-    from vigproc.stores.lensfun_match import _crop_of, match_lens
+    from vigproc.stores.lensfun_match import frame_crop, match_lens
 
     if lens_key is None or lens_key.focal_mm is None or lens_key.fnumber is None:
         return None, "no focal length or f-number in the EXIF"
@@ -136,7 +136,7 @@ def lensfun_truth(lens_key) -> tuple[Truth | None, str]:
         pa = interpolate_pa(lens, lens_key.focal_mm, lens_key.fnumber, dist)
     except ModelError as exc:
         return None, str(exc)
-    crop = _crop_of(lens_key)
+    crop = frame_crop(lens_key)
     rho = lens.crop_factor / crop if crop else 1.0
     return Truth(found.name or "?", float(lens_key.focal_mm), float(lens_key.fnumber), float(dist), float(rho),
                  (float(pa.k1), float(pa.k2), float(pa.k3))), found.reason

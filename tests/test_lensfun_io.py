@@ -412,3 +412,43 @@ def test_cli_exports_learned_profiles_of_any_aspect_with_their_lens_names(tmp_pa
     # the same fall-off, whatever the aspect: lensfun's radius is 1 at the corner
     k1 = {name: float(v.get("k1")) for name, v in found.items()}
     assert all(v < 0 for v in k1.values())
+
+
+def _d90(**kw):
+    from vigproc.io.exif import LensKey
+
+    # a DX body (lensfun: crop 1.523) behind a full-frame lens (calibrated on crop 1), wide open;
+    # its EXIF writes the nominal 35-mm focal length, 1.5 x 50 mm
+    d = dict(make="nikon corporation", model="nikon d90", lens="af-s nikkor 50mm f/1.8g", focal_mm=50.0,
+             fnumber=1.8, focus_distance_m=0.84, focal_35mm=75.0, width=4288, height=2848)
+    return LensKey(**{**d, **kw})
+
+
+def test_lensfun_model_ends_the_calibration_where_the_frames_sensor_ends():
+    # lensfun's rule: the frame's corner at ρ = calibration crop / frame crop. A full-frame
+    # lens's field on a DX frame is its inner 0.66, not the whole of it stretched over the frame
+    # (which applied 1.9 EV at the corners where the lens puts 0.86).
+    from vigproc.core.plausible import corner_ev
+    from vigproc.stores.lensfun import pa_poly
+    from vigproc.stores.lensfun_io import lensfun_model
+    from vigproc.stores.lensfun_match import match_lens
+
+    key = _d90()
+    lens = match_lens(key).lens
+    assert lens is not None and lens.crop_factor == pytest.approx(1.0)
+    pa = interpolate_pa(lens, 50.0, 1.8, 0.84)
+    rho2 = (1.0 / 1.523) ** 2
+    want = -math.log2(pa_poly(np.array(rho2), pa.k1, pa.k2, pa.k3))
+    got = corner_ev(lensfun_model(key, W, H))[1]
+    assert got == pytest.approx(want, abs=0.01)
+    assert -math.log2(1 + pa.k1 + pa.k2 + pa.k3) > got + 0.5  # the whole field: not this
+
+
+def test_frame_crop_is_the_sensors_unless_the_frame_is_a_crop_of_it():
+    from vigproc.stores.lensfun_match import frame_crop
+
+    assert frame_crop(_d90()) == pytest.approx(1.523, abs=1e-3)  # EXIF's nominal 1.5: the sensor's
+    assert frame_crop(_d90(focal_35mm=None)) == pytest.approx(1.523, abs=1e-3)
+    assert frame_crop(_d90(focal_35mm=100.0)) == pytest.approx(2.0)  # a 2x crop of the sensor: the EXIF's
+    assert frame_crop(_d90(model="no camera lensfun knows")) == pytest.approx(1.5)
+    assert frame_crop(_d90(model=None, focal_35mm=None)) is None

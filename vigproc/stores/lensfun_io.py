@@ -64,7 +64,7 @@ from vigproc.atomic import atomic_write_text
 from vigproc.errors import ModelError
 from vigproc.stores.lensfun import LensfunLens, find_camera, interpolate_pa, load_lenses, pa_poly
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
-from vigproc.stores.lensfun_match import match_lens
+from vigproc.stores.lensfun_match import frame_crop, match_lens
 
 if TYPE_CHECKING:
     from vigproc.io.exif import LensKey
@@ -629,7 +629,9 @@ def import_lensfun(
 
 def lensfun_model(lens_key: LensKey | None, width: int, height: int) -> VignettingModel:
     """The lensfun calibration of a frame's lens at its focal length, aperture and focus
-    distance (infinity when the EXIF gives none), for a ``width`` x ``height`` frame.
+    distance (infinity when the EXIF gives none), for a ``width`` x ``height`` frame, its
+    corner at ρ = calibration crop / frame crop (:func:`~vigproc.stores.lensfun_match.frame_crop`;
+    lensfun's rule for another sensor size).
 
     The lens is found by :func:`vigproc.stores.lensfun_match.match_lens` (names compared
     by their tokens, the match verified against the shot's focal length); a lens whose
@@ -648,8 +650,10 @@ def lensfun_model(lens_key: LensKey | None, width: int, height: int) -> Vignetti
     if found.lens is None:
         raise ModelError(f"no lensfun calibration for this lens: {found.reason}")
     distance = lens_key.focus_distance_m if lens_key.focus_distance_m not in (None, float("inf")) else 1000.0
+    # the calibration's corner where the frame's sensor ends (a DX frame behind a full-frame lens:
+    # its inner 0.66); a frame of unknown size is taken to be the calibration's
     return import_lensfun(found.lens, None, lens_key.focal_mm, lens_key.fnumber, distance,
-                          width=width, height=height)
+                          width=width, height=height, crop_factor=frame_crop(lens_key))
 
 
 # --------------------------------------------------------------------------

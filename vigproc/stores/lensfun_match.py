@@ -43,7 +43,7 @@ from pathlib import Path
 from vigproc.io.lensident import make_brand
 from vigproc.stores.lensfun import LensfunLens, load_lenses
 
-__all__ = ["LensfunMatch", "SOFT_WORDS", "lens_tokens", "match_lens", "match_name"]
+__all__ = ["CROP_MODE", "LensfunMatch", "SOFT_WORDS", "frame_crop", "lens_tokens", "match_lens", "match_name"]
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +55,10 @@ _FOCAL_SLACK = 0.06
 #: A calibration covers a frame when its crop factor is at most the frame's times this
 #: (the EXIF's 35-mm focal lengths are rounded: 1.62 against a 1.6 body still covers it).
 _COVER_SLACK = 1.02
+#: A frame whose EXIF 35-mm focal length says a crop factor this much (relative) off its
+#: camera's sensor is a crop of the sensor (:func:`frame_crop`); nominal factors are
+#: within 4 % of the sensors' (Nikon DX 1.5 against 1.52-1.56, Canon 1.6 against 1.61-1.62).
+CROP_MODE = 0.10
 
 _APERTURE = re.compile(r"(?:\bf\s*/?\s*|\b1:)(\d+(?:\.\d+)?(?:\s*-\s*\d+(?:\.\d+)?)?)")
 _FOCAL = re.compile(r"(\d+(?:\.\d+)?(?:\s*-\s*\d+(?:\.\d+)?)?)\s*mm\b")
@@ -200,11 +204,24 @@ def _lensfun_db():
     return lensfunpy.Database()
 
 
-def _crop_of(lens_key) -> float | None:
+def frame_crop(lens_key) -> float | None:
+    """The crop factor of a frame (35-mm film's diagonal over the frame's), where lensfun's
+    ρ = calibration crop / frame crop puts the calibration's corner.
+
+    The camera's sensor as lensfun's database gives it; the EXIF's 35-mm focal length over
+    its focal length where lensfun does not know the camera, or where the two differ by
+    more than :data:`CROP_MODE` (the frame is a crop of the sensor: a DX crop on an FX body,
+    a 1:1 or 16:9 frame). Cameras write the 35-mm focal length with a nominal factor
+    (Nikon's DX bodies 1.5 for sensors of 1.52-1.56), which read as the frame's puts a DX
+    lens's calibrated corner beyond the frame's (ρ = 1.02) and an FX lens's inside too
+    far. None when neither is known.
+    """
     f, f35 = getattr(lens_key, "focal_mm", None), getattr(lens_key, "focal_35mm", None)
-    if f and f35 and f35 > 0:
-        return f35 / f
-    return _camera_crop(lens_key.make, lens_key.model)
+    exif = f35 / f if f and f35 and f > 0 and f35 > 0 else None
+    camera = _camera_crop(getattr(lens_key, "make", None), getattr(lens_key, "model", None))
+    if camera is None or (exif is not None and abs(math.log(exif / camera)) > math.log1p(CROP_MODE)):
+        return exif
+    return camera
 
 
 def match_lens(lens_key, *, db_paths: Iterable[str | Path] | None = None) -> LensfunMatch:
@@ -242,7 +259,7 @@ def match_lens(lens_key, *, db_paths: Iterable[str | Path] | None = None) -> Len
                                   f"the frame was shot at {focal:g} mm")
     chosen = lenses[0]
     if len(lenses) > 1:
-        crop = _crop_of(lens_key)
+        crop = frame_crop(lens_key)
         if crop is None:  # no sensor size known: the calibration with the most data
             chosen = max(lenses, key=lambda lz: (len(lz.vignetting), -lz.crop_factor))
         else:
