@@ -16,6 +16,8 @@ calibrated; :func:`benchmarks.real_frames_lensfun.lensfun_frames`), with the ben
   default fits with (:meth:`vigproc.core.lensfamily.LensFamily.prior` at the frame's 35-mm
   focal length and f-number), and the error of that prior's mean field (the population
   alone);
+* *--profile lensfun*: the field ``correct --profile lensfun`` applies, and lensfun's whole
+  field stretched over the frame (ρ = 1 at its corner): corner fall-off and error of each;
 * *scene*: ``vigproc.estimate`` (the public API on the linear frame, box-averaged to a long
   side of at most 1500 px, with the frame's EXIF hint) of the frame as it is and of the frame
   with lensfun's field divided out. The second sees the scene alone: its field (RMS about the
@@ -106,6 +108,23 @@ def scene_fits(path: Path, truth, lens_key) -> tuple[float, float, float, float]
     return (_ev(log_of(frame_m) - true_g), corner_ev(frame_m)[1], _ev(log_of(scene_m)), corner_ev(scene_m)[1])
 
 
+def lensfun_applied(lens_key, truth, width: int, height: int) -> tuple[float, float, float, float]:
+    """What ``correct --profile lensfun`` applies (:func:`vigproc.stores.lensfun_io.lensfun_model`)
+    and lensfun's whole field stretched over the frame (ρ = 1 at its corner, whatever its
+    sensor): corner fall-off (EV) and error against the truth of each."""
+    from vigproc.core.plausible import corner_ev
+    from vigproc.stores.lensfun_io import import_lensfun, lensfun_model
+    from vigproc.stores.lensfun_match import match_lens
+
+    g = grid_shape(width, height)
+    true_log = truth.log_field(g)
+    applied = lensfun_model(lens_key, width, height)
+    whole = import_lensfun(match_lens(lens_key).lens, None, truth.focal_mm, truth.fnumber, truth.distance_m,
+                           width=width, height=height)
+    return (corner_ev(applied)[1], _ev(applied.log_field(g) - true_log),
+            corner_ev(whole)[1], _ev(whole.log_field(g) - true_log))
+
+
 def prior_check(family, true_c: np.ndarray, lens_key, rho: np.ndarray, true_log: np.ndarray) -> tuple[float, float]:
     """Mahalanobis distance of the truth's coefficients from the frame's EXIF prior, and the
     error of the prior mean's field (NaN without a 35-mm focal length and f-number)."""
@@ -143,12 +162,15 @@ def main(argv: list[str] | None = None) -> int:
             floors = {n: family_floor(true_log, rho, fam, n) for n in (2, 3)}
             maha, prior_err = prior_check(fam, floors[3][1], k, rho, true_log)
             api_err, api_corner, scene_rms, scene_corner = scene_fits(p, truth, k)
+            lf_corner, lf_err, whole_corner, whole_err = lensfun_applied(k, truth, img.shape[1], img.shape[0])
             print(f"\n{p.name}  rho {truth.corner_rho:.2f}  truth {truth.corner_ev:.2f} EV"
                   f"\n  error: cand {_ev(cand_log - true_log):.3f}  floor2 {_ev(floors[2][0] - true_log):.3f}"
                   f"  floor3 {_ev(floors[3][0] - true_log):.3f}  none {_ev(true_log):.3f}"
                   f"\n  prior: Mahalanobis {maha:.2f}, prior mean's error {prior_err:.3f}"
                   f"\n  API estimate: frame {api_corner:.2f} EV, error {api_err:.3f} | scene alone {scene_corner:.2f} EV,"
-                  f" field RMS {scene_rms:.3f}")
+                  f" field RMS {scene_rms:.3f}"
+                  f"\n  --profile lensfun: {lf_corner:.2f} EV, error {lf_err:.3f} | whole field over the frame"
+                  f" {whole_corner:.2f} EV, error {whole_err:.3f}")
             print(f"  rho    {head}")
             for name, f in (("truth", true_log), ("cand", cand_log), ("floor2", floors[2][0]), ("floor3", floors[3][0])):
                 print(f"  {name:6s} " + "".join(f"{v:6.2f}" for v in diagonal(f)))
