@@ -925,6 +925,9 @@ def test_temporaries_of_killed_writers_are_removed(tmp_path):
     assert foreign <= set(p.name for p in out_dir.iterdir())
     first = _temps(out_dir) - foreign
     assert first, "the file in progress is being written to a temporary"
+    # the daemon logs a worker's "ready" when its loop reads the message, which under load can
+    # come after the worker has already taken the file and written its temporary
+    d.wait_for("the worker's ready event", lambda: any(ev.get("event") == "worker-ready" for ev in d.events()))
     worker = [ev["worker_pid"] for ev in d.events() if ev.get("event") == "worker-ready"][0]
     for m in marks.iterdir():
         m.unlink()
