@@ -292,3 +292,49 @@ def test_a_v9_store_migrates_and_learns_how_its_frames_were_shot(tmp_path):
         p = st.learn(key, m, frame_id="b", lens_key=lens)
         assert p.shots.focal_mm == ((70.0, 1),) and p.shots.names[1] == "NIKON D70"
         assert st.get(key).shots == p.shots and st.check() == []
+
+
+def test_export_lensfun_of_frames_shot_in_a_crop_mode_is_written_at_the_frames_crop(tmp_path):
+    """An FX body (lensfun: a D800, crop 1.0) shooting in its DX crop mode (EXIF 35-mm focal
+    length 1.5 x): the frames are the sensor's inner 0.66, and a host applying the profile
+    at their crop factor (darktable takes it from the EXIF) must get vigproc's field, not
+    the inner 0.66 of it (the written crop factor the sensor's 1.0: ρ = 1 / 1.5 at the
+    corner)."""
+    import xml.etree.ElementTree as ET
+
+    from dngfixture import make_dngs
+
+    from vigproc.stores.lensfun import diverse_lenses, pa_field
+
+    lensfunpy = pytest.importorskip("lensfunpy")
+    exif = {"Make": "NIKON CORPORATION", "Model": "NIKON D800", "LensMake": "Nikon",
+            "LensModel": "AF-S Nikkor 50mm f/1.8G", "FocalLength": 50, "FNumber": 1.8,
+            "FocalLengthIn35mmFormat": 75}
+    _, pa = diverse_lenses(1)[0]
+    frames = [tmp_path / f"d800dx_{i}.dng" for i in range(4)]
+    make_dngs([(p, dict(width=W, height=H, field=pa_field((H, W), pa.k1, pa.k2, pa.k3),
+                        scene=photo_like(H, W, seed=40 + i), exif=exif)) for i, p in enumerate(frames)])
+    store = tmp_path / "dx.sqlite"
+    r = run("profile", "--profile-db", store, "learn", *frames)
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "lens.xml"
+    r = run("profile", "--profile-db", store, "export-lensfun", out)
+    assert r.returncode == 0, r.stderr
+    [el] = ET.parse(out).getroot().iter("lens")
+    assert float(el.findtext("cropfactor")) == pytest.approx(1.5)  # the frames', not the sensor's 1.0
+
+    with ProfileStore(store) as st:
+        [p] = st.list()
+    w, h = 600, 400
+    ours = _field(p.model(w, h))
+    db = lensfunpy.Database(paths=[str(out)], load_common=False, load_bundled=False)
+    [lens] = db.lenses
+    mod = lensfunpy.Modifier(lens, 1.5, w, h)  # the frames' crop factor, as their EXIF gives it
+    mod.initialize(50.0, 1.8, 1000.0, pixel_format=np.float64, flags=lensfunpy.ModifyFlags.VIGNETTING,
+                   reverse=True)
+    img = np.ones((h, w, 3))
+    assert mod.apply_color_modification(img)
+    theirs = np.log2(img[..., 1])
+    print(f"corner fall-off: vigproc {ours[0, 0]:.3f} EV, lensfun at crop 1.5 {theirs[0, 0]:.3f} EV")
+    assert ours[0, 0] < -0.3  # a fall-off worth comparing
+    assert np.sqrt(np.mean((theirs - ours) ** 2)) < 0.01

@@ -43,7 +43,7 @@ from pathlib import Path
 from vigproc.io.lensident import make_brand
 from vigproc.stores.lensfun import LensfunLens, load_lenses
 
-__all__ = ["CROP_MODE", "LensfunMatch", "SOFT_WORDS", "frame_crop", "lens_tokens", "match_lens", "match_name"]
+__all__ = ["CROP_MODE", "LensfunMatch", "SOFT_WORDS", "crop_of", "frame_crop", "lens_tokens", "match_lens", "match_name"]
 
 logger = logging.getLogger(__name__)
 
@@ -218,7 +218,13 @@ def frame_crop(lens_key) -> float | None:
     """
     f, f35 = getattr(lens_key, "focal_mm", None), getattr(lens_key, "focal_35mm", None)
     exif = f35 / f if f and f35 and f > 0 and f35 > 0 else None
-    camera = _camera_crop(getattr(lens_key, "make", None), getattr(lens_key, "model", None))
+    return crop_of(_camera_crop(getattr(lens_key, "make", None), getattr(lens_key, "model", None)), exif)
+
+
+def crop_of(camera: float | None, exif: float | None) -> float | None:
+    """:func:`frame_crop`'s rule: the camera's sensor (lensfun's crop factor of the body),
+    the EXIF's 35-mm ratio where the camera's is unknown or more than :data:`CROP_MODE`
+    away from it (a crop mode); None when neither is known."""
     if camera is None or (exif is not None and abs(math.log(exif / camera)) > math.log1p(CROP_MODE)):
         return exif
     return camera
