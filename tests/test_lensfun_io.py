@@ -483,3 +483,27 @@ def test_import_lensfun_under_a_bodys_lens_id_ends_the_calibration_where_its_sen
     with ProfileStore(db) as store:
         whole = corner_ev(store.lookup(key, W, H).model(W, H))[1]
     assert whole > want + 0.5
+
+
+def test_import_lensfun_picks_the_calibration_that_covers_the_bodys_sensor(tmp_path):
+    # lensfun calibrated the EF 70-200mm f/2.8L IS USM on full frame and on APS-C (1.62); an
+    # APS-H 1D Mark III (1.282) is nearer 1.62 in log, but that calibration ends inside its
+    # frame (ρ = 1.26 at the corner, extrapolated): import-lensfun takes what --profile lensfun
+    # takes, the full-frame one
+    from conftest import run_cli
+
+    from vigproc.core.plausible import corner_ev
+    from vigproc.io.exif import LensKey
+    from vigproc.stores.lensfun_io import lensfun_model
+    from vigproc.stores.profiles import ProfileStore
+
+    assert find_lens("Canon", "Canon EF 70-200mm f/2.8L IS USM", crop_factor=1.282).crop_factor == 1.0
+    key = LensKey(make="canon", model="canon eos-1d mark iii", lens="ef70-200mm f/2.8l is usm", focal_mm=200.0,
+                  fnumber=2.8)
+    db = tmp_path / "p.sqlite"
+    r = run_cli("profile", "--profile-db", db, "import-lensfun", "Canon", "Canon EF 70-200mm f/2.8L IS USM",
+                "--focal", "200", "--aperture", "2.8", "--lens-id", key.lens_id())
+    assert r.returncode == 0, r.stderr
+    with ProfileStore(db) as store:
+        got = corner_ev(store.lookup(key, W, H).model(W, H))[1]
+    assert got == pytest.approx(corner_ev(lensfun_model(key, W, H))[1], abs=0.01)

@@ -64,7 +64,7 @@ from vigproc.atomic import atomic_write_text
 from vigproc.errors import ModelError
 from vigproc.stores.lensfun import LensfunLens, find_camera, interpolate_pa, load_lenses, pa_poly
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
-from vigproc.stores.lensfun_match import crop_of, frame_crop, match_lens
+from vigproc.stores.lensfun_match import calibration_for, crop_of, frame_crop, match_lens
 
 if TYPE_CHECKING:
     from vigproc.io.exif import LensKey
@@ -464,7 +464,7 @@ def _pick_calibration(matches: list[LensfunLens], crop_factor: float | None) -> 
             f"lens {matches[0].maker} / {matches[0].model} is calibrated for several sensors "
             f"(crop factors {crops}); pass the image's crop factor to choose"
         )
-    return min(matches, key=lambda m: (abs(math.log(m.crop_factor / crop_factor)), m.crop_factor))
+    return calibration_for(matches, crop_factor)  # as --profile lensfun picks: one that covers the frame
 
 
 def find_lens(
@@ -487,7 +487,8 @@ def find_lens(
         Lens model, whole or a distinctive part.
     crop_factor : float, optional
         Crop factor of the image; chooses among calibrations of the same lens on
-        several sensors (nearest crop factor).
+        several sensors (:func:`~vigproc.stores.lensfun_match.calibration_for`: the
+        nearest that covers the image).
     db_paths : iterable of str or Path, optional
         Passed to :func:`vigproc.stores.lensfun.load_lenses` (default: lensfunpy's
         bundled database).
