@@ -360,3 +360,31 @@ def test_a_plugin_is_found_by_a_separate_process(frame, tmp_path):
                                    env={"PYTHONPATH": str(site)})
     assert code == 0, stderr
     assert json.loads(stdout)["results"][0]["model"]["method"] == "centre-only"
+
+
+def test_a_hosts_lens_keeps_the_frames_crop_factor(frame, tmp_path, capsys, monkeypatch):
+    """darktable's script sends the lens, camera, focal length and f-number but no 35-mm focal
+    length: a D800 frame shot in its DX crop mode (EXIF 75 mm for 50) then read as the full
+    sensor's, so check's lensfun reference put the FX 50mm's whole field over the DX frame
+    (1.37 EV at ring 0.85 where the frame's own EXIF gives 0.65)."""
+    dx = tmp_path / "in" / "dx.tif"
+    subprocess.run(["exiftool", "-q", "-o", str(dx), "-Make=NIKON CORPORATION", "-Model=NIKON D800",
+                    "-LensModel=AF-S Nikkor 50mm f/1.8G", "-FocalLength=50", "-FNumber=1.8",
+                    "-FocalLengthIn35mmFormat=75", str(frame)], check=True)
+    plain = tmp_path / "in" / "plain.tif"
+    shutil.copyfile(dx, plain)
+    lens = {"make": "NIKON CORPORATION", "model": "NIKON D800", "lens": "AF-S Nikkor 50mm f/1.8G",
+            "focal_mm": 50, "fnumber": 1.8}  # what plugins/darktable/vigproc.lua sends
+    req = {"mode": "check", "files": [{"path": str(dx), "lens": lens}, str(plain)]}
+    code, answer = hook(capsys, monkeypatch, "--request", "-", stdin=json.dumps(req).encode())
+    assert code == 0, answer
+    host, own = answer["results"]
+    assert host["lens"]["key"]["focal_35mm"] == own["lens"]["key"]["focal_35mm"] == 75.0
+    want = own["verdict"]["evidence"]["expected_falloff_ev"]
+    assert host["verdict"]["evidence"]["expected_falloff_ev"] == pytest.approx(want, abs=0.01)
+    assert want[-1] > -0.8  # the inner 0.66 of the lens's field
+    # a host's lens of another shot than the file's (another camera) takes nothing from it
+    other = {**lens, "model": "NIKON D700"}
+    req = {"mode": "check", "files": [{"path": str(dx), "lens": other}]}
+    code, answer = hook(capsys, monkeypatch, "--request", "-", stdin=json.dumps(req).encode())
+    assert answer["results"][0]["lens"]["key"]["focal_35mm"] is None

@@ -452,3 +452,58 @@ def test_frame_crop_is_the_sensors_unless_the_frame_is_a_crop_of_it():
     assert frame_crop(_d90(focal_35mm=100.0)) == pytest.approx(2.0)  # a 2x crop of the sensor: the EXIF's
     assert frame_crop(_d90(model="no camera lensfun knows")) == pytest.approx(1.5)
     assert frame_crop(_d90(model=None, focal_35mm=None)) is None
+
+
+def test_import_lensfun_under_a_bodys_lens_id_ends_the_calibration_where_its_sensor_ends(tmp_path):
+    # a user imports lensfun's full-frame 50mm f/1.8G under the lens id 'vigproc estimate'
+    # printed for their D90 (no --crop-factor): the D90's frames then get the profile, so it
+    # must be the lens's inner 0.66 (lensfun's ρ = 1 / 1.523), not its whole field stretched
+    from conftest import run_cli
+
+    from vigproc.core.plausible import corner_ev
+    from vigproc.stores.lensfun_io import lensfun_model
+    from vigproc.stores.profiles import ProfileStore
+
+    key = _d90(focus_distance_m=None)
+    db = tmp_path / "p.sqlite"
+    r = run_cli("profile", "--profile-db", db, "import-lensfun", "Nikon", "Nikon AF-S Nikkor 50mm f/1.8G",
+                "--focal", "50", "--aperture", "1.8", "--lens-id", key.lens_id(), "--width", "4288",
+                "--height", "2848")
+    assert r.returncode == 0, r.stderr
+    assert "crop 1.523" in r.stdout, r.stdout  # says which sensor it ends at
+    with ProfileStore(db) as store:
+        p = store.lookup(key, W, H)  # a D90 frame finds it
+    assert p is not None
+    got, want = corner_ev(p.model(W, H))[1], corner_ev(lensfun_model(key, W, H))[1]
+    assert got == pytest.approx(want, abs=0.01)  # what --profile lensfun applies to this frame
+    # --crop-factor still says it outright
+    r = run_cli("profile", "--profile-db", db, "import-lensfun", "Nikon", "Nikon AF-S Nikkor 50mm f/1.8G",
+                "--focal", "50", "--aperture", "1.8", "--lens-id", key.lens_id(), "--crop-factor", "1")
+    assert r.returncode == 0 and "crop 1" in r.stdout, r.stdout
+    with ProfileStore(db) as store:
+        whole = corner_ev(store.lookup(key, W, H).model(W, H))[1]
+    assert whole > want + 0.5
+
+
+def test_import_lensfun_picks_the_calibration_that_covers_the_bodys_sensor(tmp_path):
+    # lensfun calibrated the EF 70-200mm f/2.8L IS USM on full frame and on APS-C (1.62); an
+    # APS-H 1D Mark III (1.282) is nearer 1.62 in log, but that calibration ends inside its
+    # frame (ρ = 1.26 at the corner, extrapolated): import-lensfun takes what --profile lensfun
+    # takes, the full-frame one
+    from conftest import run_cli
+
+    from vigproc.core.plausible import corner_ev
+    from vigproc.io.exif import LensKey
+    from vigproc.stores.lensfun_io import lensfun_model
+    from vigproc.stores.profiles import ProfileStore
+
+    assert find_lens("Canon", "Canon EF 70-200mm f/2.8L IS USM", crop_factor=1.282).crop_factor == 1.0
+    key = LensKey(make="canon", model="canon eos-1d mark iii", lens="ef70-200mm f/2.8l is usm", focal_mm=200.0,
+                  fnumber=2.8)
+    db = tmp_path / "p.sqlite"
+    r = run_cli("profile", "--profile-db", db, "import-lensfun", "Canon", "Canon EF 70-200mm f/2.8L IS USM",
+                "--focal", "200", "--aperture", "2.8", "--lens-id", key.lens_id())
+    assert r.returncode == 0, r.stderr
+    with ProfileStore(db) as store:
+        got = corner_ev(store.lookup(key, W, H).model(W, H))[1]
+    assert got == pytest.approx(corner_ev(lensfun_model(key, W, H))[1], abs=0.01)

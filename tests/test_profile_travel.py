@@ -29,19 +29,41 @@ def run(*args):
 def learned(tmp_path_factory):
     """Four DNG frames of one lens carrying a lensfun calibration's fall-off, learned into a
     store through the command line: (folder, store, frames, the field's pa coefficients)."""
+    d = tmp_path_factory.mktemp("travel")
+    return (d, *_learn(d, "d70", D70_EXIF, seed=20))
+
+
+def _learn(d, name: str, exif: dict, seed: int):
+    """Four DNG frames ``d/<name>_<i>.dng`` of one lens with ``exif``, carrying a lensfun
+    calibration's fall-off, learned into ``d/<name>.sqlite`` through the command line:
+    (store, frames, the field's pa coefficients)."""
     from dngfixture import make_dngs
 
     from vigproc.stores.lensfun import diverse_lenses, pa_field
 
     _, pa = diverse_lenses(1)[0]
-    d = tmp_path_factory.mktemp("travel")
-    frames = [d / f"d70_{i}.dng" for i in range(4)]
+    frames = [d / f"{name}_{i}.dng" for i in range(4)]
     make_dngs([(p, dict(width=W, height=H, field=pa_field((H, W), pa.k1, pa.k2, pa.k3),
-                        scene=photo_like(H, W, seed=20 + i), exif=D70_EXIF)) for i, p in enumerate(frames)])
-    store = d / "learned.sqlite"
+                        scene=photo_like(H, W, seed=seed + i), exif=exif)) for i, p in enumerate(frames)])
+    store = d / f"{name}.sqlite"
     r = run("profile", "--profile-db", store, "learn", *frames)
     assert r.returncode == 0, r.stderr
-    return d, store, frames, pa
+    return store, frames, pa
+
+
+def _lensfun_applies(xml, crop: float, focal: float, aperture: float, w: int, h: int) -> np.ndarray:
+    """log2 of the field lensfunpy applies from the lensfun file ``xml`` (its one lens) to a
+    ``w`` x ``h`` frame of crop factor ``crop``: a host's view."""
+    import lensfunpy
+
+    db = lensfunpy.Database(paths=[str(xml)], load_common=False, load_bundled=False)
+    [lens] = db.lenses
+    mod = lensfunpy.Modifier(lens, crop, w, h)
+    mod.initialize(focal, aperture, 1000.0, pixel_format=np.float64, flags=lensfunpy.ModifyFlags.VIGNETTING,
+                   reverse=True)
+    img = np.ones((h, w, 3))
+    assert mod.apply_color_modification(img)
+    return np.log2(img[..., 1])
 
 
 def _field(model: VignettingModel) -> np.ndarray:
@@ -125,7 +147,7 @@ def test_export_lensfun_is_applied_by_lensfun_at_the_cameras_crop_factor_as_vigp
     length; a host applying it at the D70's crop factor (1.525) got a third of the fall-off."""
     import xml.etree.ElementTree as ET
 
-    lensfunpy = pytest.importorskip("lensfunpy")
+    pytest.importorskip("lensfunpy")
     d, store, _, _ = learned
     out = tmp_path / "lens.xml"
     r = run("profile", "--profile-db", store, "export-lensfun", out)
@@ -143,14 +165,7 @@ def test_export_lensfun_is_applied_by_lensfun_at_the_cameras_crop_factor_as_vigp
         [p] = st.list()
     w, h = 600, 400
     ours = _field(p.model(w, h))
-    db = lensfunpy.Database(paths=[str(out)], load_common=False, load_bundled=False)
-    [lens] = db.lenses
-    mod = lensfunpy.Modifier(lens, 1.525, w, h)  # a host's view: the D70's real crop factor
-    mod.initialize(70.0, 4.5, 1000.0, pixel_format=np.float64, flags=lensfunpy.ModifyFlags.VIGNETTING,
-                   reverse=True)
-    img = np.ones((h, w, 3))
-    assert mod.apply_color_modification(img)
-    theirs = np.log2(img[..., 1])
+    theirs = _lensfun_applies(out, 1.525, 70.0, 4.5, w, h)  # a host's view: the D70's real crop factor
     corners = [(0, 0), (0, -1), (-1, 0), (-1, -1)]
     print(f"corner fall-off: vigproc {ours[0, 0]:.3f} EV, lensfun at crop 1.525 {theirs[0, 0]:.3f} EV")
     assert ours[0, 0] < -0.3  # a fall-off worth comparing
@@ -292,3 +307,32 @@ def test_a_v9_store_migrates_and_learns_how_its_frames_were_shot(tmp_path):
         p = st.learn(key, m, frame_id="b", lens_key=lens)
         assert p.shots.focal_mm == ((70.0, 1),) and p.shots.names[1] == "NIKON D70"
         assert st.get(key).shots == p.shots and st.check() == []
+
+
+def test_export_lensfun_of_frames_shot_in_a_crop_mode_is_written_at_the_frames_crop(tmp_path):
+    """An FX body (lensfun: a D800, crop 1.0) shooting in its DX crop mode (EXIF 35-mm focal
+    length 1.5 x): the frames are the sensor's inner 0.66, and a host applying the profile
+    at their crop factor (darktable takes it from the EXIF) must get vigproc's field, not
+    the inner 0.66 of it (the written crop factor the sensor's 1.0: ρ = 1 / 1.5 at the
+    corner)."""
+    import xml.etree.ElementTree as ET
+
+    pytest.importorskip("lensfunpy")
+    exif = {"Make": "NIKON CORPORATION", "Model": "NIKON D800", "LensMake": "Nikon",
+            "LensModel": "AF-S Nikkor 50mm f/1.8G", "FocalLength": 50, "FNumber": 1.8,
+            "FocalLengthIn35mmFormat": 75}
+    store, _, _ = _learn(tmp_path, "d800dx", exif, seed=40)
+    out = tmp_path / "lens.xml"
+    r = run("profile", "--profile-db", store, "export-lensfun", out)
+    assert r.returncode == 0, r.stderr
+    [el] = ET.parse(out).getroot().iter("lens")
+    assert float(el.findtext("cropfactor")) == pytest.approx(1.5)  # the frames', not the sensor's 1.0
+
+    with ProfileStore(store) as st:
+        [p] = st.list()
+    w, h = 600, 400
+    ours = _field(p.model(w, h))
+    theirs = _lensfun_applies(out, 1.5, 50.0, 1.8, w, h)  # the frames' crop factor, as their EXIF gives it
+    print(f"corner fall-off: vigproc {ours[0, 0]:.3f} EV, lensfun at crop 1.5 {theirs[0, 0]:.3f} EV")
+    assert ours[0, 0] < -0.3  # a fall-off worth comparing
+    assert np.sqrt(np.mean((theirs - ours) ** 2)) < 0.01

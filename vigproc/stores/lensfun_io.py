@@ -64,7 +64,7 @@ from vigproc.atomic import atomic_write_text
 from vigproc.errors import ModelError
 from vigproc.stores.lensfun import LensfunLens, find_camera, interpolate_pa, load_lenses, pa_poly
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
-from vigproc.stores.lensfun_match import frame_crop, match_lens
+from vigproc.stores.lensfun_match import calibration_for, crop_of, frame_crop, match_lens
 
 if TYPE_CHECKING:
     from vigproc.io.exif import LensKey
@@ -464,7 +464,7 @@ def _pick_calibration(matches: list[LensfunLens], crop_factor: float | None) -> 
             f"lens {matches[0].maker} / {matches[0].model} is calibrated for several sensors "
             f"(crop factors {crops}); pass the image's crop factor to choose"
         )
-    return min(matches, key=lambda m: (abs(math.log(m.crop_factor / crop_factor)), m.crop_factor))
+    return calibration_for(matches, crop_factor)  # as --profile lensfun picks: one that covers the frame
 
 
 def find_lens(
@@ -487,7 +487,8 @@ def find_lens(
         Lens model, whole or a distinctive part.
     crop_factor : float, optional
         Crop factor of the image; chooses among calibrations of the same lens on
-        several sensors (nearest crop factor).
+        several sensors (:func:`~vigproc.stores.lensfun_match.calibration_for`: the
+        nearest that covers the image).
     db_paths : iterable of str or Path, optional
         Passed to :func:`vigproc.stores.lensfun.load_lenses` (default: lensfunpy's
         bundled database).
@@ -802,7 +803,9 @@ def lensfun_entries(profiles: Iterable[Profile], *, crop_factor: float | None = 
 
     * crop factor and mount: the lensfun database's entry for the camera (by its maker
       and model), else the crop factor the frames' EXIF gave (35-mm focal length over
-      focal length) and ``mount``, else ``crop_factor`` (then "Generic");
+      focal length) and ``mount``, else ``crop_factor`` (then "Generic"); the EXIF's crop
+      factor too where it is more than :data:`~vigproc.stores.lensfun_match.CROP_MODE` off
+      the camera's (frames of a crop mode: :func:`~vigproc.stores.lensfun_match.crop_of`);
     * lens maker and model as EXIF spelt them (a compact's lens under its camera's name);
     * the focal length the frames were shot at (their median), not the profile's bin;
     * pa coefficients fitted with rho = 1 at the frame's corner: lensfun's rho is 1 at
@@ -838,7 +841,9 @@ def lensfun_entries(profiles: Iterable[Profile], *, crop_factor: float | None = 
                            "interchangeable lenses")
             continue
         shots_crop = p.shots.crop_factor if p.shots is not None else None
-        crop = camera.crop_factor if camera is not None else shots_crop or crop_factor
+        # the frames' sensor: the camera's, unless the frames are a crop of it (a DX crop mode
+        # on an FX body), whose corner a host (darktable: the EXIF's crop) puts at ρ = 1
+        crop = crop_of(camera.crop_factor if camera is not None else None, shots_crop) or crop_factor
         if crop is None:
             skipped.append(f"{p.key}: the camera's crop factor is unknown (lensfun does not know the camera "
                            "and the frames' EXIF gave no 35-mm focal length): pass --crop-factor")
@@ -862,8 +867,8 @@ def lensfun_entries(profiles: Iterable[Profile], *, crop_factor: float | None = 
             aperture=float(p.key.aperture_bin[2:]), distance=1000.0, k1=k1, k2=k2, k3=k3))
         warn_colour([p])  # the luminance part only: lensfun has no per-channel vignetting
         logger.info("%s -> lensfun %s / %s, crop %.3f (%s), %g mm, pa misfit %.1e EV", p.key, entries[-1].maker,
-                    entries[-1].model, crop, "lensfun's camera" if camera is not None else
-                    "EXIF" if shots_crop else "--crop-factor", entries[-1].focal, rms)
+                    entries[-1].model, crop, "lensfun's camera" if camera is not None and crop == camera.crop_factor
+                    else "EXIF" if shots_crop else "--crop-factor", entries[-1].focal, rms)
     return entries, skipped
 
 

@@ -36,14 +36,14 @@ import functools
 import logging
 import math
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from vigproc.io.lensident import make_brand
 from vigproc.stores.lensfun import LensfunLens, load_lenses
 
-__all__ = ["CROP_MODE", "LensfunMatch", "SOFT_WORDS", "frame_crop", "lens_tokens", "match_lens", "match_name"]
+__all__ = ["CROP_MODE", "LensfunMatch", "SOFT_WORDS", "calibration_for", "crop_of", "frame_crop", "lens_tokens", "match_lens", "match_name"]
 
 logger = logging.getLogger(__name__)
 
@@ -218,10 +218,27 @@ def frame_crop(lens_key) -> float | None:
     """
     f, f35 = getattr(lens_key, "focal_mm", None), getattr(lens_key, "focal_35mm", None)
     exif = f35 / f if f and f35 and f > 0 and f35 > 0 else None
-    camera = _camera_crop(getattr(lens_key, "make", None), getattr(lens_key, "model", None))
+    return crop_of(_camera_crop(getattr(lens_key, "make", None), getattr(lens_key, "model", None)), exif)
+
+
+def crop_of(camera: float | None, exif: float | None) -> float | None:
+    """:func:`frame_crop`'s rule: the camera's sensor (lensfun's crop factor of the body),
+    the EXIF's 35-mm ratio where the camera's is unknown or more than :data:`CROP_MODE`
+    away from it (a crop mode); None when neither is known."""
     if camera is None or (exif is not None and abs(math.log(exif / camera)) > math.log1p(CROP_MODE)):
         return exif
     return camera
+
+
+def calibration_for(lenses: Sequence[LensfunLens], crop: float) -> LensfunLens:
+    """Of one lens's calibrations on several sensors, the one for a frame of crop factor
+    ``crop``: the nearest whose sensor is no smaller than the frame's (else the nearest).
+
+    A calibration on a smaller sensor than the frame's is extrapolated at its corners (an
+    APS-C calibration on an APS-H body: ρ = 1.26); one that covers the frame is not.
+    """
+    covering = [lz for lz in lenses if lz.crop_factor <= crop * _COVER_SLACK] or list(lenses)
+    return min(covering, key=lambda lz: (abs(math.log(lz.crop_factor / crop)), lz.crop_factor))
 
 
 def match_lens(lens_key, *, db_paths: Iterable[str | Path] | None = None) -> LensfunMatch:
@@ -263,10 +280,7 @@ def match_lens(lens_key, *, db_paths: Iterable[str | Path] | None = None) -> Len
         if crop is None:  # no sensor size known: the calibration with the most data
             chosen = max(lenses, key=lambda lz: (len(lz.vignetting), -lz.crop_factor))
         else:
-            # a calibration on a smaller sensor than the frame's is extrapolated at its corners
-            # (an APS-C calibration on an APS-H body: ρ = 1.26); one that covers it is not
-            covering = [lz for lz in lenses if lz.crop_factor <= crop * _COVER_SLACK] or lenses
-            chosen = min(covering, key=lambda lz: (abs(math.log(lz.crop_factor / crop)), lz.crop_factor))
+            chosen = calibration_for(lenses, crop)
     logger.debug("lensfun match (%s): %r -> %s / %s (crop %g)", how, lens_key.lens, chosen.maker, chosen.model,
                  chosen.crop_factor)
     return LensfunMatch(chosen, how)

@@ -87,7 +87,8 @@ def profile(sp: argparse.ArgumentParser) -> None:
     q.add_argument("--lens-id", help="store under this lens id: the 'lens' line that 'vigproc estimate' "
                    "prints for your camera (default: 'maker|model')")
     q.add_argument("--crop-factor", type=number(0.0, 100.0, open_lo=True),
-                   help="the camera's crop factor (lenses calibrated on several sensors)")
+                   help="the crop factor of your frames: the calibration ends where their sensor ends "
+                   "(default: the camera --lens-id names, from lensfun's database; else the calibration's)")
     q.set_defaults(fn="profile:cmd_profile")
     q = psub.add_parser("import-lcp", help="store the vignetting of Adobe lens profiles (.lcp) as profiles, keyed "
                                            "like the EXIF of the camera and lens they name")

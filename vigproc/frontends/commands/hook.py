@@ -59,6 +59,7 @@ stderr); 70 an internal error outside any file; 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import logging
@@ -190,9 +191,15 @@ class _HostLens:
 
     def read(self, path):
         key = self.given.get(str(path))
-        if key is not None:
+        if key is None:
+            return self.exif.read(path)
+        if key.focal_35mm is not None:
             return key
-        return self.exif.read(path)
+        try:  # the frame's crop factor is the file's: lensfun's ρ and the lens-family prior read it
+            return with_files_35mm(key, self.exif.read(path))
+        except VigprocError as exc:
+            log.debug("%s: no 35-mm focal length from the file: %s", path, exc)
+            return key
 
     def read_tags(self, path, tags):
         """Other tags (in-camera correction flags) from the file itself."""
@@ -202,6 +209,18 @@ class _HostLens:
         if self._reader is not None:
             self._reader.close()
             self._reader = None
+
+
+def with_files_35mm(host, own):
+    """The host's lens key with the 35-mm focal length of the file's own EXIF (``own``)
+    where the host gave none and the file is the same shot (its camera and focal length):
+    hosts send the lens, camera, focal length and f-number, and without the 35-mm focal
+    length a frame of a crop mode (a DX crop on an FX body) would be read as the sensor's."""
+    same = ((host.make, host.model) == (own.make, own.model) and host.focal_mm is not None
+            and own.focal_mm is not None and abs(host.focal_mm - own.focal_mm) <= 0.01 * own.focal_mm)
+    if host.focal_35mm is not None or own.focal_35mm is None or not same:
+        return host
+    return dataclasses.replace(host, focal_35mm=own.focal_35mm)
 
 
 # ------------------------------------------------------------------ one file

@@ -196,16 +196,33 @@ def _export(args: argparse.Namespace, store) -> int:
 def _import_lensfun(args: argparse.Namespace, store) -> int:
     """``profile import-lensfun MAKER MODEL``: lensfun's calibration of a lens at one focal
     length and aperture, stored as a trusted profile."""
-    m = import_lensfun(args.maker, args.model, args.focal, args.aperture, args.distance,
-                       width=args.width, height=args.height, crop_factor=args.crop_factor)
-    theta, _, aspect = normalise(m)
     # escaped as lens ids from EXIF are: a "|" in a name must not forge a component
     lens_id = args.lens_id or f"{escape_key_part(args.maker)}|{escape_key_part(args.model)}"
+    # the profile serves the frames of the body its lens id names: the calibration ends where
+    # that body's sensor ends (lensfun's rule), not stretched over its frame
+    crop = args.crop_factor if args.crop_factor is not None else _body_crop(lens_id, args.focal)
+    m = import_lensfun(args.maker, args.model, args.focal, args.aperture, args.distance,
+                       width=args.width, height=args.height, crop_factor=crop)
+    theta, _, aspect = normalise(m)
     key = ProfileKey(casefold_lens_id(lens_id), focal_bin(args.focal), aperture_bin(args.aperture), aspect_label(aspect))
     store.put(Profile(key=key, theta=theta, covariance=None, provenance="lensfun", trusted=True,
                       notes=f"lensfun {args.maker} {args.model} at {args.focal} mm f/{args.aperture}"))
-    print(f"imported from lensfun: {key}")
+    print(f"imported from lensfun: {key}"
+          + (f" (crop {crop:.4g})" if crop is not None else " (the calibration's own sensor)"))
     return 0
+
+
+def _body_crop(lens_id: str, focal: float) -> float | None:
+    """The crop factor of the camera a lens id (``make|model|lens``) names, as
+    :func:`~vigproc.stores.lensfun_match.frame_crop` gives it; None for an id naming no
+    body lensfun knows (``maker|model``, import-lensfun's default)."""
+    from vigproc.io.exif import LensKey, unescape_key_part
+    from vigproc.stores.lensfun_match import frame_crop
+
+    parts = [unescape_key_part(v) for v in lens_id.split("|")]
+    if len(parts) < 3:  # not a camera's id: no body to end at
+        return None
+    return frame_crop(LensKey(make=parts[0], model=parts[1], lens=parts[2], focal_mm=focal))
 
 
 def _export_lensfun(args: argparse.Namespace, store) -> int:
