@@ -24,7 +24,9 @@ estimator), ``--centre-steps`` (their Gauss-Newton steps, 12), ``--offcentre-siz
 (the off-centre fit's and the comparison's working copy, 96), ``--sigma-factor``
 (their Cauchy scale times this), ``--fit-size`` (the off-centre fit alone on its own
 copy), ``--compare-colour-fit`` (the comparison reads the centred colour fit instead of
-refitting the luminance) and ``--select-margin`` (the comparison's margin, 0.01). Run from outside the tree, e.g.::
+refitting the luminance), ``--select-margin`` (the comparison's margin, 0.01) and
+``--colour-test-steps`` (``OffCentreRule.colour_test_steps``, 8; 0: the circular colour
+centre test, then the full off-centre fit). Run from outside the tree, e.g.::
 
     OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 PYTHONPATH=TREE python TREE/scripts/offcentre_designs.py \\
         accuracy --images ../shared/data/jpeg_exif ../shared/data/natural --centre-size 32 --json out.json
@@ -35,7 +37,6 @@ from __future__ import annotations
 import argparse
 import collections
 import json
-import logging
 import math
 import sys
 import time
@@ -43,17 +44,17 @@ from dataclasses import replace
 
 import numpy as np
 
-log = logging.getLogger("offcentre_designs")
-
 
 def apply_design(centre_size: int, centre_steps: int, offcentre_size: int, sigma_factor: float,
                  fit_size: int | None = None, compare_colour_fit: bool = False,
-                 select_margin: float | None = None) -> None:
+                 select_margin: float | None = None, colour_test_steps: int | None = None) -> None:
     """Change the default estimator's off-centre path in this process: the centre tests'
     copy and steps, the off-centre fit's (and the comparison's) copy and Cauchy scale;
     ``fit_size``: the off-centre family fit alone on its own copy; ``compare_colour_fit``:
     the comparison reads the centred colour fit's field instead of refitting the
-    luminance; ``select_margin``: the comparison's margin (0.01 in the estimator)."""
+    luminance; ``select_margin``: the comparison's margin (0.01 in the estimator);
+    ``colour_test_steps``: ``OffCentreRule.colour_test_steps`` (0: the colour-weighted
+    pairs' circular centre test, then the full off-centre fit)."""
     from vigproc.core import estimate as E
     from vigproc.core import family_fit as F
 
@@ -88,59 +89,9 @@ def apply_design(centre_size: int, centre_steps: int, offcentre_size: int, sigma
     s = replace(s, work_size=offcentre_size, sigma=s.sigma * sigma_factor, grey_sigma=s.grey_sigma * sigma_factor,
                 select_margin=s.select_margin if select_margin is None else select_margin)
     defaults = list(E.estimate_default.__defaults__)
-    defaults[-1] = replace(rule, settings=s)
+    steps = rule.colour_test_steps if colour_test_steps is None else colour_test_steps
+    defaults[-1] = replace(rule, settings=s, colour_test_steps=steps)
     E.estimate_default.__defaults__ = tuple(defaults)
-
-
-def fit_decides(steps: int, min_shift: float = 0.0, luminance_test: bool = False) -> None:
-    """Design (C), the off-centre fit as its own centre test: a colour frame whose centred
-    fall-off is strong enough for the family's off-centre fit (``OffCentreRule.family_min_ev``,
-    pairs weighted by colour) gets that fit at once, capped at ``steps`` Gauss-Newton steps,
-    and the fitted centre's shift answers both centre tests (no circular 60-px fits); the
-    comparison, ``keep_min_ev`` and the rest of the choice are the estimator's. Other
-    frames (grey, weaker), and those whose off-centre fit fails, keep the estimator's path.
-    ``min_shift`` (half-diagonals): a fitted centre nearer the frame's than this answers as
-    centred. ``luminance_test``: the estimator's luminance centre test stays the gate (a
-    centred frame pays no more than today) and the fit answers only the colour test."""
-    from vigproc.core import estimate as E
-    from vigproc.core import family_fit as F
-
-    F.OFF_CENTRE_ITERATIONS = steps  # read at call time by off_centre_fit
-    choice, off_centre_fit, fit_centre = E._off_centre_choice, E.off_centre_fit, F.fit_centre
-    luminance_copy, with_colour = E.luminance_copy, E.with_colour
-
-    def decided(lum, mask, hint, family, colour, rule, fit, copies=None):
-        model, coef, weighted = fit
-        q = (model.candidate or model).quality
-        if coef is None or colour is None or copies is None or not weighted or q.field_ev_rms < rule.family_min_ev \
-                or q.field_ev_rms + 2.0 * q.field_sigma_ev < rule.any_min_ev:
-            return choice(lum, mask, hint, family, colour, rule, fit, copies)
-        answers = []
-        if luminance_test:  # the estimator's own first test, as it makes it
-            s = rule.settings
-            test = fit_centre(lum, coef, s, mask, family, hint, uncertainty=False,
-                              copy=luminance_copy(lum, replace(s, work_size=E.CENTRE_WORK_SIZE), mask))
-            if not test.off_centre(s.off_centre_shift):
-                return model
-            answers.append(test)
-        off = off_centre_fit(lum, coef, rule.settings, mask, family, hint, colour, copies[1])
-        if off is None:  # no family fit off-centre (a shape at its bound): the estimator's tests and free fit
-            return choice(lum, mask, hint, family, colour, rule, fit, copies)
-        h, w = lum.shape
-        shift = float(np.hypot(*off.field.center)) / F.corner_radius(w, h)
-        shift = shift if shift >= min_shift else 0.0
-        log.debug("fit-decides: fitted shift %.3f", shift)
-        answers += [F.CentreFit(off.field.center, np.full((2, 2), math.nan), math.nan, shift)] * 2
-        try:  # the estimator's choice, its centre tests answered by the fit (no copies made for them)
-            F.fit_centre = lambda *a, **k: answers.pop(0)
-            E.off_centre_fit = lambda *a, **k: off
-            E.luminance_copy = E.with_colour = lambda *a, **k: None
-            return choice(lum, mask, hint, family, colour, rule, fit, copies)
-        finally:
-            F.fit_centre, E.off_centre_fit = fit_centre, off_centre_fit
-            E.luminance_copy, E.with_colour = luminance_copy, with_colour
-
-    E._off_centre_choice = decided
 
 
 def stages(images: list[str], limit: int, case: str, rounds: int) -> None:
@@ -304,19 +255,12 @@ def main() -> int:
     ap.add_argument("--compare-colour-fit", action="store_true",
                     help="the comparison reads the centred colour fit instead of refitting the luminance")
     ap.add_argument("--select-margin", type=float, help="the comparison's margin (0.01 in the estimator)")
-    ap.add_argument("--fit-decides", type=int, metavar="STEPS",
-                    help="design (C): a strong colour frame's off-centre fit (at most STEPS Gauss-Newton steps) "
-                         "is its own centre test")
-    ap.add_argument("--fit-shift", type=float, default=0.0,
-                    help="with --fit-decides: a fitted centre nearer than this (half-diagonals) answers as centred")
-    ap.add_argument("--luminance-test", action="store_true",
-                    help="with --fit-decides: the luminance centre test stays; the fit answers the colour one")
+    ap.add_argument("--colour-test-steps", type=int,
+                    help="OffCentreRule.colour_test_steps (0: a circular colour centre test, then the full fit)")
     ap.add_argument("--json", help="accuracy: write the figures here")
     a = ap.parse_args()
     apply_design(a.centre_size, a.centre_steps, a.offcentre_size, a.sigma_factor, a.fit_size, a.compare_colour_fit,
-                 a.select_margin)
-    if a.fit_decides:
-        fit_decides(a.fit_decides, a.fit_shift, a.luminance_test)
+                 a.select_margin, a.colour_test_steps)
     if a.what == "stages":
         stages(a.images, a.limit, a.case, a.rounds)
     elif a.what == "accuracy":
