@@ -24,7 +24,9 @@ estimator), ``--centre-steps`` (their Gauss-Newton steps, 12), ``--offcentre-siz
 (the off-centre fit's and the comparison's working copy, 96), ``--sigma-factor``
 (their Cauchy scale times this), ``--fit-size`` (the off-centre fit alone on its own
 copy), ``--compare-colour-fit`` (the comparison reads the centred colour fit instead of
-refitting the luminance) and ``--select-margin`` (the comparison's margin, 0.01). Run from outside the tree, e.g.::
+refitting the luminance), ``--select-margin`` (the comparison's margin, 0.01) and
+``--colour-test-steps`` (``OffCentreRule.colour_test_steps``, 8; 0: the circular colour
+centre test, then the full off-centre fit). Run from outside the tree, e.g.::
 
     OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 PYTHONPATH=TREE python TREE/scripts/offcentre_designs.py \\
         accuracy --images ../shared/data/jpeg_exif ../shared/data/natural --centre-size 32 --json out.json
@@ -45,12 +47,14 @@ import numpy as np
 
 def apply_design(centre_size: int, centre_steps: int, offcentre_size: int, sigma_factor: float,
                  fit_size: int | None = None, compare_colour_fit: bool = False,
-                 select_margin: float | None = None) -> None:
+                 select_margin: float | None = None, colour_test_steps: int | None = None) -> None:
     """Change the default estimator's off-centre path in this process: the centre tests'
     copy and steps, the off-centre fit's (and the comparison's) copy and Cauchy scale;
     ``fit_size``: the off-centre family fit alone on its own copy; ``compare_colour_fit``:
     the comparison reads the centred colour fit's field instead of refitting the
-    luminance; ``select_margin``: the comparison's margin (0.01 in the estimator)."""
+    luminance; ``select_margin``: the comparison's margin (0.01 in the estimator);
+    ``colour_test_steps``: ``OffCentreRule.colour_test_steps`` (0: the colour-weighted
+    pairs' circular centre test, then the full off-centre fit)."""
     from vigproc.core import estimate as E
     from vigproc.core import family_fit as F
 
@@ -85,7 +89,8 @@ def apply_design(centre_size: int, centre_steps: int, offcentre_size: int, sigma
     s = replace(s, work_size=offcentre_size, sigma=s.sigma * sigma_factor, grey_sigma=s.grey_sigma * sigma_factor,
                 select_margin=s.select_margin if select_margin is None else select_margin)
     defaults = list(E.estimate_default.__defaults__)
-    defaults[-1] = replace(rule, settings=s)
+    steps = rule.colour_test_steps if colour_test_steps is None else colour_test_steps
+    defaults[-1] = replace(rule, settings=s, colour_test_steps=steps)
     E.estimate_default.__defaults__ = tuple(defaults)
 
 
@@ -250,10 +255,12 @@ def main() -> int:
     ap.add_argument("--compare-colour-fit", action="store_true",
                     help="the comparison reads the centred colour fit instead of refitting the luminance")
     ap.add_argument("--select-margin", type=float, help="the comparison's margin (0.01 in the estimator)")
+    ap.add_argument("--colour-test-steps", type=int,
+                    help="OffCentreRule.colour_test_steps (0: a circular colour centre test, then the full fit)")
     ap.add_argument("--json", help="accuracy: write the figures here")
     a = ap.parse_args()
     apply_design(a.centre_size, a.centre_steps, a.offcentre_size, a.sigma_factor, a.fit_size, a.compare_colour_fit,
-                 a.select_margin)
+                 a.select_margin, a.colour_test_steps)
     if a.what == "stages":
         stages(a.images, a.limit, a.case, a.rounds)
     elif a.what == "accuracy":

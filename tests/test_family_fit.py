@@ -468,22 +468,30 @@ def test_a_fit_no_model_can_hold_falls_back(monkeypatch):
     assert c is not None and m.quality.snr > 0
 
 
-def test_the_default_asks_the_centre_and_the_choice_of_the_luminance(monkeypatch):
+@pytest.mark.parametrize("colour_test_steps", [8, 0])
+def test_the_default_asks_the_centre_and_the_choice_of_the_luminance(monkeypatch, colour_test_steps):
     """A colour frame's centre must move for the luminance and for the colour-weighted
     pairs; which fit explains the frame better is asked of the luminance alone: the free
     Kang-Weiss fit does not weigh pairs by colour, and a loss weighted by colour would
     favour the fit that does. An off-centre, elliptical fall-off (Table 1 setting 2)
-    still goes to an off-centre fit."""
+    still goes to an off-centre fit. The colour-weighted pairs' centre is the off-centre
+    family fit's own (OffCentreRule.colour_test_steps), or with 0 steps a circular centre
+    test's, the off-centre fit made after it."""
     from benchmarks.synthetic import table1_model
+    from vigproc.core import estimate as est
     from vigproc.core import family_fit
 
     seen = []
-    real_centre, real_losses = family_fit.fit_centre, family_fit.pair_losses
+    real_centre, real_losses, real_off = family_fit.fit_centre, family_fit.pair_losses, est.off_centre_fit
 
     def centre(*a, **k):
         # colour given, or a working copy that weighs pairs by it
         seen.append(("centre", k.get("colour") if k.get("copy") is None else k["copy"].C))
         return real_centre(*a, **k)
+
+    def off(*a, **k):
+        seen.append(("off-centre", a[7].C if len(a) > 7 and a[7] is not None else a[6]))
+        return real_off(*a, **k)
 
     def losses(*a, **k):
         seen.append(("losses", None if np.ndim(a[0]) == 2 else "a colour frame"))  # the luminance, H×W
@@ -491,10 +499,47 @@ def test_the_default_asks_the_centre_and_the_choice_of_the_luminance(monkeypatch
 
     monkeypatch.setattr(family_fit, "fit_centre", centre)
     monkeypatch.setattr(family_fit, "pair_losses", losses)
+    monkeypatch.setattr(est, "off_centre_fit", off)
     img = _colour_texture() * table1_model(2).field()[..., None]
-    m = estimate_default(vigproc.core.pixels.luminance(img), colour=img)
+    rule = est.OffCentreRule(colour_test_steps=colour_test_steps)
+    m = estimate_default(vigproc.core.pixels.luminance(img), colour=img, rule=rule)
     assert m.method == "lens-family-off-centre"
-    assert [(what, c is not None) for what, c in seen] == [("centre", False), ("centre", True), ("losses", False)]
+    expected = [("centre", False), ("off-centre", True), ("losses", False)]
+    if not colour_test_steps:
+        expected.insert(1, ("centre", True))
+    assert [(what, c is not None) for what, c in seen] == expected
+
+
+def test_a_colour_shift_that_would_send_a_frame_to_the_free_fit_is_the_circular_tests(monkeypatch):
+    """The off-centre family fit answers the colour-weighted pairs' centre test only where its
+    answer keeps the frame in the family: a shift short of OffCentreRule.family_shift (the
+    free fit's band) is asked of the circular test, as before (the elliptical fit's centre
+    passed a vignetting-free frame's scene light, and the free fit then applied 2.2 EV)."""
+    from dataclasses import replace
+
+    from benchmarks.synthetic import table1_model
+    from vigproc.core import estimate as est
+    from vigproc.core import family_fit
+
+    seen, real_centre, real_off = [], family_fit.fit_centre, est.off_centre_fit
+    rule = est.OffCentreRule()
+
+    def centre(*a, **k):
+        seen.append(k["copy"].C is not None)
+        return real_centre(*a, **k)
+
+    def off(lum, *a, **k):  # the fit, its centre moved into the free fit's band
+        fit = real_off(lum, *a, **k)
+        shift = 0.5 * (rule.settings.off_centre_shift + rule.family_shift)
+        ux, uy = fit.field.center
+        scale = shift / fit.shift(lum.shape)
+        return replace(fit, field=replace(fit.field, center=(ux * scale, uy * scale)))
+
+    monkeypatch.setattr(family_fit, "fit_centre", centre)
+    monkeypatch.setattr(est, "off_centre_fit", off)
+    img = _colour_texture() * table1_model(2).field()[..., None]
+    estimate_default(vigproc.core.pixels.luminance(img), colour=img, rule=rule)
+    assert seen == [False, True]  # the luminance's test, then the colour-weighted pairs' circular one
 
 
 def test_a_channel_too_dark_to_use_makes_a_grey_fit():

@@ -82,6 +82,13 @@ class OffCentreRule:
         shape priors are widened (0.15 -> 0.5 half-diagonals, ellipticity 0.3 -> 1.0), no
         scene prior is divided out, and the pairs weigh more against the α prior (n_eff
         400 -> 1600, Cauchy scale 0.2 -> 0.1).
+    colour_test_steps : int
+        Gauss-Newton steps. A colour frame whose pairs are weighted by colour and whose
+        centred fall-off is at least ``family_min_ev``, once its luminance's centre moves,
+        is fitted off-centre in the family at once, in at most this many steps, and that
+        fit's centre is the colour-weighted pairs' centre test (and, when the test passes,
+        the fit the choice reads); 0: a circular centre test of the colour-weighted pairs,
+        then the family fit of up to ``family_fit.OFF_CENTRE_ITERATIONS`` steps.
     """
 
     any_min_ev: float = 0.25
@@ -94,6 +101,7 @@ class OffCentreRule:
     glow: GlowTest = GlowTest()
     free_settings: RobustSettings = RobustSettings(sigma_center=0.5, sigma_ellipticity=1.0, scene_prior=False,
                                                    n_eff=1600.0, sigma_scale=0.1)
+    colour_test_steps: int = 8
 
 
 def clipped_mask(img: np.ndarray) -> np.ndarray | None:
@@ -585,23 +593,39 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
     centre = family_fit.fit_centre(lum, coef, s, mask, family, hint, uncertainty=False, copy=centre_copy)
     if not centre.off_centre(s.off_centre_shift):
         return model
-    centre_colour = None
+    work, work_colour = copies if copies is not None else (None, None)
+    strong = q.field_ev_rms >= rule.family_min_ev
+    centre_colour = off = None
+    # a colour frame that would be fitted off-centre in the family asks that fit for the
+    # colour-weighted pairs' centre: one elliptical fit instead of a circular test and then
+    # the fit (OffCentreRule.colour_test_steps; docs/benchmarks/clean.md)
+    tried = colour is not None and strong and weighted and rule.colour_test_steps > 0
+    if tried:
+        off = off_centre_fit(lum, coef, s, mask, family, hint, colour, work_colour, rule.colour_test_steps)
+        if off is not None:
+            centre_colour = family_fit.CentreFit(off.field.center, np.full((2, 2), math.nan), math.nan,
+                                                 off.shift(lum.shape))
     if colour is not None:
-        centre_colour = family_fit.fit_centre(lum, coef, s, mask, family, hint, uncertainty=False,
-                                              copy=with_colour(centre_copy, colour, s))
+        if centre_colour is not None and centre_colour.off_centre(s.off_centre_shift) \
+                and min(centre.shift, centre_colour.shift) < rule.family_shift:
+            # a shift that would send the frame to the free fit is the circular test's to give, as
+            # before: the elliptical fit's centre passed a clean frame's scene light (2.2 EV applied)
+            centre_colour = None
+        if centre_colour is None:  # no family fit off-centre (its shape at the bound): a circular test
+            centre_colour = family_fit.fit_centre(lum, coef, s, mask, family, hint, uncertainty=False,
+                                                  copy=with_colour(centre_copy, colour, s))
         if not centre_colour.off_centre(s.off_centre_shift):
             return model
-    work, work_colour = copies if copies is not None else (None, None)
     shift = centre.shift if colour is None else min(centre.shift, centre_colour.shift)
-    strong = q.field_ev_rms >= rule.family_min_ev
-    alt = off = None
+    alt = None
     # a grey frame's off-centre family fit is fitted on the very pairs that judge it, and
     # wins too easily (BSDS x lensfun fields, grey: 0.086 EV with it, 0.074 without); a
     # colour frame's is fitted on colour-weighted pairs and judged on the luminance's. A
     # grey frame, or one stored as R = G = B, is fitted as grey and goes the same way.
     if shift >= rule.family_shift and strong and weighted:
         # its σ (a jackknife) only for a fit that is kept: the choice reads its field alone
-        off = off_centre_fit(lum, coef, s, mask, family, hint, colour, work_colour)
+        if not tried:
+            off = off_centre_fit(lum, coef, s, mask, family, hint, colour, work_colour)
         alt = None if off is None else off.field
     if alt is None:
         off = None

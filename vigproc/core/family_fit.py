@@ -970,6 +970,11 @@ class OffCentreFit:
     _jackknife: tuple
     _t0: float
 
+    def shift(self, shape: tuple[int, int]) -> float:
+        """The fitted centre's distance from the frame's, in half-diagonals of an H×W
+        (``shape``) frame (:class:`CentreFit`'s ``shift``)."""
+        return float(np.hypot(*self.field.center)) / corner_radius(shape[1], shape[0])
+
     def with_uncertainty(self) -> VignettingModel:
         """The model :func:`fit_off_centre` returns: σ from the jackknife (as :func:`fit_family`'s:
         linearised unless near the threshold), and the identity
@@ -997,9 +1002,10 @@ class OffCentreFit:
 def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = FamilySettings(),
                    mask: np.ndarray | None = None, family: LensFamily | None = None,
                    hint: LensHint | None = None, colour: np.ndarray | None = None,
-                   copy: FamilyWorkingCopy | None = None) -> OffCentreFit | None:
-    """:func:`fit_off_centre` up to its uncertainty (:class:`OffCentreFit`); parameters
-    and None as there."""
+                   copy: FamilyWorkingCopy | None = None,
+                   iterations: int = OFF_CENTRE_ITERATIONS) -> OffCentreFit | None:
+    """:func:`fit_off_centre` up to its uncertainty (:class:`OffCentreFit`), in at most
+    ``iterations`` Gauss-Newton steps; parameters and None as there."""
     t0 = time.perf_counter()
     fam = _in_components(family or profile_family(), len(c))
     h, w = lum.shape
@@ -1010,7 +1016,7 @@ def off_centre_fit(lum: np.ndarray, c: np.ndarray, settings: FamilySettings = Fa
     pm, pinv = _prior_with_geometry(fam, hint or LensHint(), 4, OFF_CENTRE_SPREAD)
     index = settings_index(L, valid, C, settings)
     coef, geo, d, a, sol, pm_it, steps = _geometry_fit(index, xs[None, :] / radius, ys[:, None] / radius, fam, c,
-                                                       pm, pinv, settings, True, OFF_CENTRE_ITERATIONS)
+                                                       pm, pinv, settings, True, iterations)
     if d is None or d.size < MIN_VALID_BINS or not np.all(np.isfinite(geo)) \
             or float(np.hypot(geo[2], geo[3])) >= MAX_ELLIPTICITY - 1e-9:
         return None  # no pairs, or a shape held at the bound: no fit
