@@ -633,7 +633,9 @@ def lensfun_model(lens_key: LensKey | None, width: int, height: int) -> Vignetti
     """The lensfun calibration of a frame's lens at its focal length, aperture and focus
     distance (infinity when the EXIF gives none), for a ``width`` x ``height`` frame, its
     corner at ρ = calibration crop / frame crop (:func:`~vigproc.stores.lensfun_match.frame_crop`;
-    lensfun's rule for another sensor size).
+    lensfun's rule for another sensor size) where the frame is a smaller sensor's, else at the
+    calibration's own corner (:func:`frame_crop_for`: a sensor within rounding of the
+    calibration's, an unknown one, or a larger one, logged: the calibration is not extrapolated).
 
     The lens is found by :func:`vigproc.stores.lensfun_match.match_lens` (names compared
     by their tokens, the match verified against the shot's focal length); a lens whose
