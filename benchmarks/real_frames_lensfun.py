@@ -139,7 +139,8 @@ def lensfun_truth(lens_key) -> tuple[Truth | None, str]:
     crop = frame_crop(lens_key)
     # the frame's corner as --profile lensfun puts it (a sensor within rounding of the calibration's
     # is its own, rho = 1); past the calibrated corner, where it is extrapolated, as far as it lies
-    rho = corner_rho(lens.crop_factor, crop) if crop is None or covers(lens.crop_factor, crop) else lens.crop_factor / crop
+    covered = crop is None or covers(lens.crop_factor, crop)
+    rho = corner_rho(lens.crop_factor, crop) if covered else lens.crop_factor / crop
     return Truth(found.name or "?", float(lens_key.focal_mm), float(lens_key.fnumber), float(dist), float(rho),
                  (float(pa.k1), float(pa.k2), float(pa.k3))), found.reason
 

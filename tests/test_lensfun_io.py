@@ -570,8 +570,8 @@ def test_import_lensfun_under_a_lens_id_of_the_calibrations_sensor_is_its_whole_
     key = LensKey(make="nikon corporation", model="nikon d70", lens="af-s dx zoom-nikkor 18-70mm f/3.5-4.5g if-ed",
                   focal_mm=18.0, fnumber=3.5)
     db = tmp_path / "p.sqlite"
-    r = run_cli("profile", "--profile-db", db, "import-lensfun", "Nikon", "AF-S DX Zoom-Nikkor 18-70mm f/3.5-4.5G IF-ED",
-                "--focal", "18", "--aperture", "3.5", "--lens-id", key.lens_id())
+    r = run_cli("profile", "--profile-db", db, "import-lensfun", "Nikon",
+                "AF-S DX Zoom-Nikkor 18-70mm f/3.5-4.5G IF-ED", "--focal", "18", "--aperture", "3.5", "--lens-id", key.lens_id())
     assert r.returncode == 0, r.stderr
     assert "the calibration's own sensor" in r.stdout, r.stdout
     lens = find_lens("Nikon", "AF-S DX Zoom-Nikkor 18-70mm f/3.5-4.5G IF-ED")

@@ -43,8 +43,8 @@ from pathlib import Path
 from vigproc.io.lensident import make_brand
 from vigproc.stores.lensfun import LensfunLens, load_lenses
 
-__all__ = ["CROP_MODE", "LensfunMatch", "SOFT_WORDS", "calibration_for", "corner_rho", "covers", "crop_of", "frame_crop",
-           "lens_tokens", "match_lens", "match_name"]
+__all__ = ["CROP_MODE", "LensfunMatch", "SOFT_WORDS", "calibration_for", "corner_rho", "covers", "crop_of",
+           "frame_crop", "lens_tokens", "match_lens", "match_name"]
 
 logger = logging.getLogger(__name__)
 
