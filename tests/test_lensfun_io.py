@@ -581,3 +581,13 @@ def test_import_lensfun_under_a_lens_id_of_the_calibrations_sensor_is_its_whole_
     assert r.returncode == 0, r.stderr
     with ProfileStore(db) as store, ProfileStore(tmp_path / "own.sqlite") as own:
         assert np.array_equal(store.lookup(key, W, H).theta, own.lookup(key, W, H).theta)
+
+
+def test_import_lensfun_says_when_a_crop_factor_given_extrapolates_the_calibration(caplog):
+    # an explicit crop factor is lensfun's rule to the letter, past the calibrated corner too, not silently
+    lens = find_lens("Nikon", "AF-S DX Nikkor 35mm f/1.8G")
+    with caplog.at_level(logging.WARNING, logger="vigproc.stores.lensfun_io"):
+        import_lensfun(lens, None, 35.0, 2.8, width=W, height=H, crop_factor=lens.crop_factor)
+        assert "extrapolated" not in caplog.text
+        import_lensfun(lens, None, 35.0, 2.8, width=W, height=H, crop_factor=1.0)
+    assert "extrapolated to rho = 1.53" in caplog.text

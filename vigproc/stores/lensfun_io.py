@@ -619,6 +619,10 @@ def import_lensfun(
         if not (math.isfinite(crop) and crop > 0):
             raise ModelError(f"crop factor must be positive and finite, got {crop_factor!r}")
         corner_rho = lens.crop_factor / crop
+        if not covers(lens.crop_factor, crop):
+            logger.warning("%s covers a sensor of crop factor %g, not the frame's %g: its field is extrapolated "
+                           "to rho = %.2f at the frame's corner (lensfun's rule)", _describe(lens), lens.crop_factor,
+                           crop, corner_rho)
     f_lo, f_hi = lens.focal_range
     if not f_lo <= float(focal) <= f_hi:
         logger.info("%s: %g mm is outside the calibrated %g-%g mm; lensfun-style extrapolation",
