@@ -591,3 +591,10 @@ def test_import_lensfun_says_when_a_crop_factor_given_extrapolates_the_calibrati
         assert "extrapolated" not in caplog.text
         import_lensfun(lens, None, 35.0, 2.8, width=W, height=H, crop_factor=1.0)
     assert "extrapolated to rho = 1.53" in caplog.text
+
+
+@pytest.mark.parametrize("crop", [0.0, -1.0, math.nan])
+def test_a_crop_factor_that_is_no_size_is_refused_for_a_lens_of_several_calibrations(crop):
+    # choosing among the EF 70-200mm's calibrations divided by it (ZeroDivisionError, a math domain error)
+    with pytest.raises(ModelError, match="crop factor must be positive"):
+        import_lensfun("Canon", "Canon EF 70-200mm f/2.8L IS USM", 200.0, 2.8, width=W, height=H, crop_factor=crop)

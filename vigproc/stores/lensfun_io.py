@@ -457,6 +457,8 @@ def _describe(lens: LensfunLens) -> str:
 
 def _pick_calibration(matches: list[LensfunLens], crop_factor: float | None) -> LensfunLens:
     """One lens of a single (maker, model) name, calibrated on possibly several sensors."""
+    if crop_factor is not None and not (math.isfinite(crop_factor) and crop_factor > 0):
+        raise ModelError(f"crop factor must be positive and finite, got {crop_factor!r}")
     if len(matches) == 1:
         return matches[0]
     if crop_factor is None:
