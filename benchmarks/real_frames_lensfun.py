@@ -123,7 +123,7 @@ def lensfun_truth(lens_key) -> tuple[Truth | None, str]:
     reason (no lens named, no calibration, settings lensfun declines to interpolate)."""
     from vigproc.errors import ModelError
     from vigproc.stores.lensfun import interpolate_pa
-    from vigproc.stores.lensfun_match import frame_crop, match_lens
+    from vigproc.stores.lensfun_match import corner_rho, covers, frame_crop, match_lens
 
     if lens_key is None or lens_key.focal_mm is None or lens_key.fnumber is None:
         return None, "no focal length or f-number in the EXIF"
@@ -137,7 +137,10 @@ def lensfun_truth(lens_key) -> tuple[Truth | None, str]:
     except ModelError as exc:
         return None, str(exc)
     crop = frame_crop(lens_key)
-    rho = lens.crop_factor / crop if crop else 1.0
+    # the frame's corner as --profile lensfun puts it (a sensor within rounding of the calibration's
+    # is its own, rho = 1); past the calibrated corner, where it is extrapolated, as far as it lies
+    covered = crop is None or covers(lens.crop_factor, crop)
+    rho = corner_rho(lens.crop_factor, crop) if covered else lens.crop_factor / crop
     return Truth(found.name or "?", float(lens_key.focal_mm), float(lens_key.fnumber), float(dist), float(rho),
                  (float(pa.k1), float(pa.k2), float(pa.k3))), found.reason
 

@@ -248,3 +248,18 @@ def test_ambiguity_shrink_scores_the_experiment_and_then_restores_the_default(tm
     # the pipeline's estimate went through the experiment, told the real default as its base
     assert calls and all(b is orig for b in calls)
     assert E.estimate_default is orig
+
+
+def test_the_truths_corner_is_where_profile_lensfun_puts_it():
+    # a D70 (lensfun 1.525) behind its DX kit lens, calibrated at 1.528: one sensor, rho = 1,
+    # as --profile lensfun applies it; a full-frame D800 frame behind it lies past the
+    # calibration (rho = 1.53), which the truth says (_truth_holds refuses it)
+    from vigproc.io.exif import LensKey
+
+    lens = "af-s dx zoom-nikkor 18-70mm f/3.5-4.5g if-ed"
+    d70, _ = rfl.lensfun_truth(LensKey(make="nikon corporation", model="nikon d70", lens=lens, focal_mm=18.0,
+                                       fnumber=3.5, focal_35mm=27.0))
+    assert d70.corner_rho == 1.0
+    d800, _ = rfl.lensfun_truth(LensKey(make="nikon corporation", model="nikon d800", lens=lens, focal_mm=18.0,
+                                        fnumber=3.5, focal_35mm=18.0))
+    assert d800.corner_rho == pytest.approx(1.528)

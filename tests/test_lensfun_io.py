@@ -507,3 +507,94 @@ def test_import_lensfun_picks_the_calibration_that_covers_the_bodys_sensor(tmp_p
     with ProfileStore(db) as store:
         got = corner_ev(store.lookup(key, W, H).model(W, H))[1]
     assert got == pytest.approx(corner_ev(lensfun_model(key, W, H))[1], abs=0.01)
+
+
+def _theta(m):
+    return (tuple(m.alpha), tuple(m.p), tuple(m.center))
+
+
+def test_a_frame_of_the_calibrations_sensor_gets_the_calibrations_whole_field_as_before():
+    # lensfun's crop factors of a body and of a lens calibrated on its sensor class are rounded
+    # differently (the D70 1.525, its DX 18-70mm's calibration 1.528; Canon's 1.6 and 1.62):
+    # lensfun's rule read literally put the corner at rho = 1.002, just past the calibration,
+    # and changed --profile lensfun on the very bodies it was calibrated for
+    from vigproc.io.exif import LensKey
+    from vigproc.stores.lensfun_io import lensfun_model
+    from vigproc.stores.lensfun_match import match_lens
+
+    key = LensKey(make="nikon corporation", model="nikon d70", lens="af-s dx zoom-nikkor 18-70mm f/3.5-4.5g if-ed",
+                  focal_mm=18.0, fnumber=3.5, focal_35mm=27.0)
+    lens = match_lens(key).lens
+    assert lens is not None and lens.crop_factor != pytest.approx(1.525, abs=1e-4)
+    own = import_lensfun(lens, None, 18.0, 3.5, width=W, height=H)  # rho = 1 at the corner
+    assert _theta(lensfun_model(key, W, H)) == _theta(own)
+    from vigproc.stores.lensfun_match import corner_rho
+
+    assert corner_rho(1.6, 1.62) == corner_rho(1.62, 1.6) == corner_rho(1.0, None) == 1.0
+    assert corner_rho(1.0, 1.523) == pytest.approx(1 / 1.523)  # a smaller sensor: its inner part
+
+
+def test_a_frame_larger_than_the_calibrated_sensor_is_not_extrapolated(caplog):
+    # a full-frame D800 (no DX crop: its EXIF's 35-mm focal length is the focal length) behind
+    # DX lenses lensfun calibrated on a 1.528 sensor: rho = 1.53 at the corner, past the
+    # calibration. The pa polynomial extrapolated there fell to zero (the 18-70mm at 18 mm:
+    # no model, the file failed) or brightened the corners (the 35mm f/1.8G: -0.13 EV);
+    # the calibration's whole field is put over the frame, as before, and the log says so
+    from vigproc.core.plausible import corner_ev
+    from vigproc.io.exif import LensKey
+    from vigproc.stores.lensfun_io import lensfun_model
+    from vigproc.stores.lensfun_match import match_lens
+
+    for name, focal, fno in [("af-s dx zoom-nikkor 18-70mm f/3.5-4.5g if-ed", 18.0, 3.5),
+                             ("af-s dx nikkor 35mm f/1.8g", 35.0, 1.8)]:
+        key = LensKey(make="nikon corporation", model="nikon d800", lens=name, focal_mm=focal, fnumber=fno,
+                      focal_35mm=focal)
+        lens = match_lens(key).lens
+        assert lens is not None and lens.crop_factor > 1.5
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="vigproc.stores.lensfun_io"):
+            m = lensfun_model(key, W, H)
+        assert _theta(m) == _theta(import_lensfun(lens, None, focal, fno, width=W, height=H))
+        assert corner_ev(m)[1] > 0.3
+        assert "not extrapolated" in caplog.text
+
+
+def test_import_lensfun_under_a_lens_id_of_the_calibrations_sensor_is_its_whole_field(tmp_path):
+    # as --profile lensfun: a D70 (1.525) and lensfun's 1.528 calibration of its DX kit lens are
+    # one sensor; the profile imported under the D70's lens id is the calibration's own field
+    from conftest import run_cli
+
+    from vigproc.io.exif import LensKey
+    from vigproc.stores.profiles import ProfileStore
+
+    key = LensKey(make="nikon corporation", model="nikon d70", lens="af-s dx zoom-nikkor 18-70mm f/3.5-4.5g if-ed",
+                  focal_mm=18.0, fnumber=3.5)
+    db = tmp_path / "p.sqlite"
+    r = run_cli("profile", "--profile-db", db, "import-lensfun", "Nikon",
+                "AF-S DX Zoom-Nikkor 18-70mm f/3.5-4.5G IF-ED", "--focal", "18", "--aperture", "3.5", "--lens-id", key.lens_id())
+    assert r.returncode == 0, r.stderr
+    assert "the calibration's own sensor" in r.stdout, r.stdout
+    lens = find_lens("Nikon", "AF-S DX Zoom-Nikkor 18-70mm f/3.5-4.5G IF-ED")
+    r = run_cli("profile", "--profile-db", tmp_path / "own.sqlite", "import-lensfun", "Nikon",
+                "AF-S DX Zoom-Nikkor 18-70mm f/3.5-4.5G IF-ED", "--focal", "18", "--aperture", "3.5", "--lens-id",
+                key.lens_id(), "--crop-factor", str(lens.crop_factor))  # the calibration's own sensor, said outright
+    assert r.returncode == 0, r.stderr
+    with ProfileStore(db) as store, ProfileStore(tmp_path / "own.sqlite") as own:
+        assert np.array_equal(store.lookup(key, W, H).theta, own.lookup(key, W, H).theta)
+
+
+def test_import_lensfun_says_when_a_crop_factor_given_extrapolates_the_calibration(caplog):
+    # an explicit crop factor is lensfun's rule to the letter, past the calibrated corner too, not silently
+    lens = find_lens("Nikon", "AF-S DX Nikkor 35mm f/1.8G")
+    with caplog.at_level(logging.WARNING, logger="vigproc.stores.lensfun_io"):
+        import_lensfun(lens, None, 35.0, 2.8, width=W, height=H, crop_factor=lens.crop_factor)
+        assert "extrapolated" not in caplog.text
+        import_lensfun(lens, None, 35.0, 2.8, width=W, height=H, crop_factor=1.0)
+    assert "extrapolated to rho = 1.53" in caplog.text
+
+
+@pytest.mark.parametrize("crop", [0.0, -1.0, math.nan])
+def test_a_crop_factor_that_is_no_size_is_refused_for_a_lens_of_several_calibrations(crop):
+    # choosing among the EF 70-200mm's calibrations divided by it (ZeroDivisionError, a math domain error)
+    with pytest.raises(ModelError, match="crop factor must be positive"):
+        import_lensfun("Canon", "Canon EF 70-200mm f/2.8L IS USM", 200.0, 2.8, width=W, height=H, crop_factor=crop)

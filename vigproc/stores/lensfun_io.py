@@ -64,7 +64,7 @@ from vigproc.atomic import atomic_write_text
 from vigproc.errors import ModelError
 from vigproc.stores.lensfun import LensfunLens, find_camera, interpolate_pa, load_lenses, pa_poly
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
-from vigproc.stores.lensfun_match import calibration_for, crop_of, frame_crop, match_lens
+from vigproc.stores.lensfun_match import calibration_for, corner_rho, covers, crop_of, frame_crop, match_lens
 
 if TYPE_CHECKING:
     from vigproc.io.exif import LensKey
@@ -76,6 +76,7 @@ __all__ = [
     "PaFit",
     "export_lensfun_xml",
     "find_lens",
+    "frame_crop_for",
     "import_lensfun",
     "lensfun_entries",
     "kw_from_pa",
@@ -456,6 +457,8 @@ def _describe(lens: LensfunLens) -> str:
 
 def _pick_calibration(matches: list[LensfunLens], crop_factor: float | None) -> LensfunLens:
     """One lens of a single (maker, model) name, calibrated on possibly several sensors."""
+    if crop_factor is not None and not (math.isfinite(crop_factor) and crop_factor > 0):
+        raise ModelError(f"crop factor must be positive and finite, got {crop_factor!r}")
     if len(matches) == 1:
         return matches[0]
     if crop_factor is None:
@@ -618,6 +621,10 @@ def import_lensfun(
         if not (math.isfinite(crop) and crop > 0):
             raise ModelError(f"crop factor must be positive and finite, got {crop_factor!r}")
         corner_rho = lens.crop_factor / crop
+        if not covers(lens.crop_factor, crop):
+            logger.warning("%s covers a sensor of crop factor %g, not the frame's %g: its field is extrapolated "
+                           "to rho = %.2f at the frame's corner (lensfun's rule)", _describe(lens), lens.crop_factor,
+                           crop, corner_rho)
     f_lo, f_hi = lens.focal_range
     if not f_lo <= float(focal) <= f_hi:
         logger.info("%s: %g mm is outside the calibrated %g-%g mm; lensfun-style extrapolation",
@@ -632,7 +639,9 @@ def lensfun_model(lens_key: LensKey | None, width: int, height: int) -> Vignetti
     """The lensfun calibration of a frame's lens at its focal length, aperture and focus
     distance (infinity when the EXIF gives none), for a ``width`` x ``height`` frame, its
     corner at ρ = calibration crop / frame crop (:func:`~vigproc.stores.lensfun_match.frame_crop`;
-    lensfun's rule for another sensor size).
+    lensfun's rule for another sensor size) where the frame is a smaller sensor's, else at the
+    calibration's own corner (:func:`frame_crop_for`: a sensor within rounding of the
+    calibration's, an unknown one, or a larger one, logged: the calibration is not extrapolated).
 
     The lens is found by :func:`vigproc.stores.lensfun_match.match_lens` (names compared
     by their tokens, the match verified against the shot's focal length); a lens whose
@@ -651,10 +660,22 @@ def lensfun_model(lens_key: LensKey | None, width: int, height: int) -> Vignetti
     if found.lens is None:
         raise ModelError(f"no lensfun calibration for this lens: {found.reason}")
     distance = lens_key.focus_distance_m if lens_key.focus_distance_m not in (None, float("inf")) else 1000.0
-    # the calibration's corner where the frame's sensor ends (a DX frame behind a full-frame lens:
-    # its inner 0.66); a frame of unknown size is taken to be the calibration's
     return import_lensfun(found.lens, None, lens_key.focal_mm, lens_key.fnumber, distance,
-                          width=width, height=height, crop_factor=frame_crop(lens_key))
+                          width=width, height=height, crop_factor=frame_crop_for(found.lens, frame_crop(lens_key)))
+
+
+def frame_crop_for(lens: LensfunLens, crop: float | None) -> float | None:
+    """The crop factor :func:`import_lensfun` is given for a frame of crop factor ``crop``
+    behind ``lens``'s calibration: ``crop`` where the frame's corner lies inside the
+    calibrated field (:func:`~vigproc.stores.lensfun_match.corner_rho`: a DX frame behind a
+    full-frame lens, its inner 0.66), else None, the calibration's own frame (a frame of
+    unknown size or of the calibration's sensor; a frame larger than the calibrated field,
+    which is logged: its corners are not extrapolated)."""
+    if crop is not None and not covers(lens.crop_factor, crop):
+        logger.warning("%s covers a sensor of crop factor %g, not the frame's %g (its corner at rho = %.2f): "
+                       "lensfun's calibration is not extrapolated, its whole field is put over the frame",
+                       _describe(lens), lens.crop_factor, crop, lens.crop_factor / crop)
+    return crop if corner_rho(lens.crop_factor, crop) != 1.0 else None
 
 
 # --------------------------------------------------------------------------

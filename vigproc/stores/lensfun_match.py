@@ -43,7 +43,8 @@ from pathlib import Path
 from vigproc.io.lensident import make_brand
 from vigproc.stores.lensfun import LensfunLens, load_lenses
 
-__all__ = ["CROP_MODE", "LensfunMatch", "SOFT_WORDS", "calibration_for", "crop_of", "frame_crop", "lens_tokens", "match_lens", "match_name"]
+__all__ = ["CROP_MODE", "LensfunMatch", "SOFT_WORDS", "calibration_for", "corner_rho", "covers", "crop_of",
+           "frame_crop", "lens_tokens", "match_lens", "match_name"]
 
 logger = logging.getLogger(__name__)
 
@@ -230,6 +231,31 @@ def crop_of(camera: float | None, exif: float | None) -> float | None:
     return camera
 
 
+def covers(calibration: float, frame: float) -> bool:
+    """Whether a calibration on a sensor of crop factor ``calibration`` holds the whole of a
+    frame of crop factor ``frame`` (rounded crop factors: 1.62 against a 1.6 body does)."""
+    return calibration <= frame * _COVER_SLACK
+
+
+def corner_rho(calibration: float, frame: float | None) -> float:
+    """lensfun's ρ at the corner of a frame of crop factor ``frame`` for a calibration on a
+    sensor of crop factor ``calibration``: calibration / frame where the frame is a smaller
+    sensor's (a DX frame behind a full-frame lens: 0.66), else 1, the calibration's own frame:
+
+    * the frame's crop unknown (None);
+    * within :data:`_COVER_SLACK` of the calibration's: the same sensor, its crop factor
+      rounded otherwise (a 1.6 calibration on a 1.62 body, lensfun's 1.528 DX calibration
+      on its 1.525 D70), whose frames get exactly what they got before lensfun's rule;
+    * a larger sensor than the calibration's (:func:`covers` False: an APS-C calibration
+      on a full-frame body): its corners lie past the calibrated field, where the pa
+      polynomial is not a measurement (extrapolated to ρ = 1.5 a third of the DX
+      calibrations fall to zero, others brighten the corners or darken them by 5 EV).
+    """
+    if frame is None or not covers(calibration, frame) or calibration * _COVER_SLACK >= frame:
+        return 1.0
+    return calibration / frame
+
+
 def calibration_for(lenses: Sequence[LensfunLens], crop: float) -> LensfunLens:
     """Of one lens's calibrations on several sensors, the one for a frame of crop factor
     ``crop``: the nearest whose sensor is no smaller than the frame's (else the nearest).
@@ -237,7 +263,7 @@ def calibration_for(lenses: Sequence[LensfunLens], crop: float) -> LensfunLens:
     A calibration on a smaller sensor than the frame's is extrapolated at its corners (an
     APS-C calibration on an APS-H body: ρ = 1.26); one that covers the frame is not.
     """
-    covering = [lz for lz in lenses if lz.crop_factor <= crop * _COVER_SLACK] or list(lenses)
+    covering = [lz for lz in lenses if covers(lz.crop_factor, crop)] or list(lenses)
     return min(covering, key=lambda lz: (abs(math.log(lz.crop_factor / crop)), lz.crop_factor))
 
 

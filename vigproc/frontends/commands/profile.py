@@ -17,7 +17,8 @@ from vigproc.io.lensident import display_lens_id
 from vigproc.io.picture import falloff_figure
 from vigproc.pipeline.processor import Processor, Settings
 from vigproc.stores.lcp import import_lcp, lcp_files
-from vigproc.stores.lensfun_io import colour_notes, export_lensfun_xml, import_lensfun, lensfun_entries
+from vigproc.stores.lensfun_io import (colour_notes, export_lensfun_xml, find_lens, frame_crop_for, import_lensfun,
+                                      lensfun_entries)
 from vigproc.stores.opening import open_profile_store
 from vigproc.stores.profiles import (Profile, ProfileKey, ProfileStoreError, _aspect_value, _canonical_aspect,
                                      aperture_bin, aspect_label, focal_bin, normalise)
@@ -199,9 +200,12 @@ def _import_lensfun(args: argparse.Namespace, store) -> int:
     # escaped as lens ids from EXIF are: a "|" in a name must not forge a component
     lens_id = args.lens_id or f"{escape_key_part(args.maker)}|{escape_key_part(args.model)}"
     # the profile serves the frames of the body its lens id names: the calibration ends where
-    # that body's sensor ends (lensfun's rule), not stretched over its frame
-    crop = args.crop_factor if args.crop_factor is not None else _body_crop(lens_id, args.focal)
-    m = import_lensfun(args.maker, args.model, args.focal, args.aperture, args.distance,
+    # that body's sensor ends (lensfun's rule, as --profile lensfun applies it), not stretched over its frame
+    lens, crop = args.maker, args.crop_factor
+    if crop is None and (body := _body_crop(lens_id, args.focal)) is not None:
+        found = find_lens(args.maker, args.model, crop_factor=body)  # the calibration that covers the body
+        lens, crop = (args.maker, body) if found is None else (found, frame_crop_for(found, body))
+    m = import_lensfun(lens, args.model, args.focal, args.aperture, args.distance,
                        width=args.width, height=args.height, crop_factor=crop)
     theta, _, aspect = normalise(m)
     key = ProfileKey(casefold_lens_id(lens_id), focal_bin(args.focal), aperture_bin(args.aperture), aspect_label(aspect))
