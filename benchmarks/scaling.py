@@ -270,18 +270,24 @@ def batch_round(src: Path, n: int, workers: int, root: Path) -> tuple[float, flo
 
 
 @contextlib.contextmanager
-def private_profile_db(path: Path) -> Iterator[None]:
-    """``VIGPROC_PROFILE_DB`` set to ``path`` for the commands started meanwhile (never
-    the user's store), restored after."""
-    env_db = os.environ.get("VIGPROC_PROFILE_DB")
-    os.environ["VIGPROC_PROFILE_DB"] = str(path)
+def exported(name: str, value: str | None) -> Iterator[None]:
+    """The environment variable ``name`` set to ``value`` for the commands started
+    meanwhile (None: left as it is), restored after."""
+    old = os.environ.get(name)
+    if value is not None:
+        os.environ[name] = value
     try:
         yield
     finally:
-        if env_db is None:
-            os.environ.pop("VIGPROC_PROFILE_DB", None)
+        if old is None:
+            os.environ.pop(name, None)
         else:
-            os.environ["VIGPROC_PROFILE_DB"] = env_db
+            os.environ[name] = old
+
+
+def private_profile_db(path: Path) -> contextlib.AbstractContextManager[None]:
+    """``VIGPROC_PROFILE_DB`` set to ``path`` meanwhile: never the user's store."""
+    return exported("VIGPROC_PROFILE_DB", str(path))
 
 
 def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rounds: int = 2,

@@ -41,7 +41,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.scaling import _cli, distinct_copy, private_profile_db, stage_copies, watch_daemons  # noqa: E402
+from benchmarks.scaling import _cli, distinct_copy, exported, private_profile_db, stage_copies, watch_daemons  # noqa: E402
 from benchmarks.throughput import Photo, select_photos  # noqa: E402
 
 log = logging.getLogger("scaling_ceiling")
@@ -154,6 +154,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--kinds", default="watch,correct,numba,numpy",
                     help="comma-separated: watch, correct, numba, numpy (default %(default)s)")
     ap.add_argument("--tmp", help="folder for the staged files (default: the system's)")
+    ap.add_argument("--pair-threads", type=int,
+                    help="NUMBA_NUM_THREADS for each of the two daemons or processes (default: as they set "
+                         "it, the cores each: two one-worker daemons then run twice the threads there are cores; "
+                         "1 is what one daemon's two workers take)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     photos, _ = select_photos(Path(args.images), args.min_mp, args.limit)
@@ -182,7 +186,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 here = root / f"r{r}-{k}-{n}"
                 here.mkdir()
                 load0, busy0, own0, t0 = os.getloadavg()[0], machine_busy(), _own_cpu(), time.monotonic()
-                wall, cpu = fn(here)
+                threads = args.pair_threads if n == 2 and k in ("watch", "correct") else None
+                with exported("NUMBA_NUM_THREADS", None if threads is None else str(threads)):
+                    wall, cpu = fn(here)
                 # what else ran meanwhile: the machine's busy CPU less ours, per second
                 others = (machine_busy() - busy0 - (_own_cpu() - own0)) / (time.monotonic() - t0)
                 walls[(k, n)].append(wall)
