@@ -24,6 +24,7 @@ timed whole (its pool's start-up included: what a user waits).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import resource
@@ -36,7 +37,7 @@ import time
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -177,40 +178,74 @@ def _cli() -> list[str]:
     return [sys.executable, "-m", "vigproc.frontends.cli"]
 
 
+def watch_command(in_dir: Path, out_dir: Path, journal: Path, workers: int) -> list[str]:
+    """The daemon the bench times: ``vigproc watch IN -o OUT --workers N`` with a short
+    settle, its own journal and no rescans."""
+    return [*_cli(), "watch", str(in_dir), "-o", str(out_dir), "--workers", str(workers), "--settle", "0.2",
+            "--journal", str(journal), "--job", "bench", "--unapplied", "copy", "--rescan", "3600"]
+
+
+def watch_daemons(parts: Sequence[tuple[Sequence[Path], Sequence[Path]]], workers: int,
+                  root: Path) -> tuple[list[float], float, float, float]:
+    """Daemons started side by side, one per ``(files, warm)`` part (each its own in,
+    out and journal under ``root / f"d{i}"``): every daemon is warmed with its ``warm``
+    files and waited for, then every part's ``files`` are renamed in at once.
+
+    Returns
+    -------
+    (done, t_drop, cpu, t_cpu)
+        The completion times of the dropped files (epoch seconds, the journals' own,
+        sorted, all daemons together), the epoch second of the drop, the CPU seconds the
+        daemons' process trees used from the drop until all were seen done, and the
+        epoch second that CPU was read.
+    """
+    procs: list[subprocess.Popen] = []
+    dirs = []
+    try:
+        for i, (_files, warm) in enumerate(parts):
+            d = root / f"d{i}" if len(parts) > 1 else root
+            in_dir, journal = d / "in", d / "journal.sqlite"
+            in_dir.mkdir(parents=True)
+            with open(d / "daemon.log", "wb") as logf:
+                procs.append(subprocess.Popen(watch_command(in_dir, d / "out", journal, workers),
+                                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=logf))
+            dirs.append((in_dir, journal))
+            for f in warm:
+                os.rename(f, in_dir / f.name)
+        for (_files, warm), (_in, journal), proc in zip(parts, dirs, procs):
+            _wait_done(journal, "bench", len(warm), proc, timeout=600 + PER_PHOTO_TIMEOUT * len(warm))
+        cpu0, t_drop = sum(tree_cpu_seconds(p.pid) for p in procs), time.time()
+        for (files, _warm), (in_dir, _j) in zip(parts, dirs):
+            for f in files:
+                os.rename(f, in_dir / f.name)
+        done: list[float] = []
+        for (files, warm), (_in, journal), proc in zip(parts, dirs, procs):
+            k, n = len(warm), len(files)
+            done += _wait_done(journal, "bench", n + k, proc, timeout=600 + PER_PHOTO_TIMEOUT * n)[k:]
+        cpu, t_cpu = sum(tree_cpu_seconds(p.pid) for p in procs) - cpu0, time.time()
+        for proc in procs:
+            proc.send_signal(signal.SIGTERM)
+        for proc in procs:
+            proc.wait(timeout=120)
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    return sorted(done), t_drop, cpu, t_cpu
+
+
 def watch_round(files: Sequence[Path], warm: Sequence[Path], workers: int,
                 root: Path) -> tuple[float, float, float]:
     """One timed round of the daemon: (seconds from the drop to the last done, steady
     photos per second, cores busy). ``files`` and ``warm`` are moved into its folder
     (renames)."""
-    in_dir, out_dir, journal = root / "in", root / "out", root / "journal.sqlite"
-    in_dir.mkdir(parents=True)
-    cmd = [*_cli(), "watch", str(in_dir), "-o", str(out_dir), "--workers", str(workers), "--settle", "0.2",
-           "--journal", str(journal), "--job", "bench", "--unapplied", "copy", "--rescan", "3600"]
-    n, k = len(files), len(warm)
-    proc = None
-    with open(root / "daemon.log", "wb") as logf:
-        try:
-            proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=logf)
-            for f in warm:
-                os.rename(f, in_dir / f.name)
-            _wait_done(journal, "bench", k, proc, timeout=600 + PER_PHOTO_TIMEOUT * k)
-            cpu0, t_drop = tree_cpu_seconds(proc.pid), time.time()
-            for f in files:
-                os.rename(f, in_dir / f.name)
-            done = _wait_done(journal, "bench", n + k, proc, timeout=600 + PER_PHOTO_TIMEOUT * n)
-            cores = (tree_cpu_seconds(proc.pid) - cpu0) / max(time.time() - t_drop, 1e-9)
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(timeout=120)
-            proc = None
-        finally:
-            if proc is not None and proc.poll() is None:
-                proc.kill()
-                proc.wait()
-    mine = done[k:]  # the warm files were done before the drop
+    mine, t_drop, cpu, t_cpu = watch_daemons([(files, warm)], workers, root)
+    n = len(files)
     wall = mine[-1] - t_drop
     steady = (n - workers) / (mine[-1] - mine[workers - 1]) if n > workers and mine[-1] > mine[workers - 1] \
         else float("nan")
-    return wall, steady, cores
+    return wall, steady, cpu / max(t_cpu - t_drop, 1e-9)
 
 
 def batch_round(src: Path, n: int, workers: int, root: Path) -> tuple[float, float]:
@@ -234,6 +269,27 @@ def batch_round(src: Path, n: int, workers: int, root: Path) -> tuple[float, flo
     return seconds, cpu / max(seconds, 1e-9)
 
 
+@contextlib.contextmanager
+def exported(name: str, value: str | None) -> Iterator[None]:
+    """The environment variable ``name`` set to ``value`` for the commands started
+    meanwhile (None: left as it is), restored after."""
+    old = os.environ.get(name)
+    if value is not None:
+        os.environ[name] = value
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = old
+
+
+def private_profile_db(path: Path) -> contextlib.AbstractContextManager[None]:
+    """``VIGPROC_PROFILE_DB`` set to ``path`` meanwhile: never the user's store."""
+    return exported("VIGPROC_PROFILE_DB", str(path))
+
+
 def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rounds: int = 2,
                 frontends: Sequence[str] = ("watch", "batch"), workdir: Path | None = None,
                 copies: int = 1) -> ScalingResult:
@@ -250,11 +306,9 @@ def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rou
         raise VigprocError("bench scaling: no photographs")
     load_before = os.getloadavg()
     runs = [Rounds(f, w) for f in frontends for w in workers]
-    env_db = os.environ.get("VIGPROC_PROFILE_DB")
     with tempfile.TemporaryDirectory(prefix="vigproc-scaling-", dir=workdir) as tmp:
         root = Path(tmp)
-        os.environ["VIGPROC_PROFILE_DB"] = str(root / "profiles.sqlite")  # never the user's store
-        try:
+        with private_profile_db(root / "profiles.sqlite"):
             master = stage_copies(photos, root / "master", copies)
             for r in range(max(1, rounds)):
                 order = runs[r % len(runs):] + runs[:r % len(runs)]
@@ -274,11 +328,6 @@ def run_scaling(photos: Sequence[Photo], *, workers: Sequence[int] = (1, 2), rou
                     run.cores.append(cores)
                     log.info("round %d: %s --workers %d: %.2f s", r + 1, run.frontend, run.workers, wall)
                     shutil.rmtree(here, ignore_errors=True)
-        finally:
-            if env_db is None:
-                os.environ.pop("VIGPROC_PROFILE_DB", None)
-            else:
-                os.environ["VIGPROC_PROFILE_DB"] = env_db
     return ScalingResult(len(master), max(1, copies) * sum(p.megapixels for p in photos), max(1, rounds),
                          len(os.sched_getaffinity(0)),
                          load_before,

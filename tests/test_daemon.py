@@ -542,7 +542,7 @@ def _patch(module):
 
     def process_file(self, path, *a, **kw):
         name = os.path.basename(str(path))
-        if "CRASH" in name:
+        if "CRASH" in name or "DECODE" in name:
             os._exit(3)  # as a decoder segfault would
         if "HANG" in name:
             time.sleep(3600)
@@ -558,7 +558,27 @@ def _patch(module):
         return orig(self, path, *a, **kw)
 
     module.Processor.process_file = process_file
+    read_counted = module._read_counted
+
+    def _read_counted(path, *a, **kw):  # the read ahead, in a worker's thread
+        if "DECODE" in os.path.basename(str(path)):
+            os._exit(3)
+        return read_counted(path, *a, **kw)
+
+    module._read_counted = _read_counted
 ''')
+
+
+def _faulty_folders(tmp_path: Path) -> tuple[Path, Path, Path, dict[str, str]]:
+    """tmp_path's stage, in and out folders, and the environment of a daemon whose
+    processes run with the faults of ``_FAULTS``."""
+    stage, in_dir, out_dir = (tmp_path / n for n in ("stage", "in", "out"))
+    for d in (stage, in_dir, tmp_path / "site"):
+        d.mkdir()
+    (tmp_path / "site" / "sitecustomize.py").write_text(_FAULTS)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), os.environ.get("PYTHONPATH", "")]),
+           "VIGPROC_TEST_FAULT_DIR": str(tmp_path)}
+    return stage, in_dir, out_dir, env
 
 
 def test_worker_crash_hang_and_full_disk(tmp_path):
@@ -568,12 +588,7 @@ def test_worker_crash_hang_and_full_disk(tmp_path):
     wall clock, so a good file beside it could overrun any timeout on a loaded machine
     and be charged a crash (4 s did, on a fresh clone under load).  Nothing here waits
     for a time to pass: every step waits for what the daemon records."""
-    stage, in_dir, out_dir = (tmp_path / n for n in ("stage", "in", "out"))
-    for d in (stage, in_dir, tmp_path / "site"):
-        d.mkdir()
-    (tmp_path / "site" / "sitecustomize.py").write_text(_FAULTS)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), os.environ.get("PYTHONPATH", "")]),
-           "VIGPROC_TEST_FAULT_DIR": str(tmp_path)}
+    stage, in_dir, out_dir, env = _faulty_folders(tmp_path)
     names = ["a CRASH.png", "c FULL.png", "d ok.png", "e ok.tif", "f ok.png"]
     for i, n in enumerate([*names, "b HANG.png"]):
         make_good(stage, n, i)
@@ -613,9 +628,38 @@ def test_worker_crash_hang_and_full_disk(tmp_path):
     # (issue 37), and restarts its worker too -- but only once per pause: as the probe, or a
     # second time, the crash is the file's (else it could be probed, uncharged, for ever: 8
     # restarts were seen).  4 restarts, one more for each of the (at most two) pauses it fell in
+    # -- and one more for each death with a file read ahead beside the crashing one (not charged)
     pauses = sum(ev.get("event") == "disk-full" for ev in d.events())
-    assert e["a CRASH.png"].crashes == 2 and 4 <= len(restarts) <= 4 + pauses
+    shared = sum(ev.get("event") == "worker-died-open" for ev in d.events())
+    assert e["a CRASH.png"].crashes == 2 and 4 + shared <= len(restarts) <= 4 + shared + pauses
     assert sum(ev.get("event") == "timeout" for ev in d.events()) == 2
+
+
+def test_a_worker_killed_by_the_file_it_reads_ahead_charges_no_other_file(tmp_path):
+    """A worker reads its next file ahead while it processes one (a core to spare): a
+    file whose decoding kills its worker, there or when processed, is charged its
+    crashes (quarantined after --max-crashes) and the files open beside it are not:
+    each death with two files open charges neither, and both are tried again alone."""
+    stage, in_dir, out_dir, env = _faulty_folders(tmp_path)
+    names = ["a ok.png", "b ok.png", "c DECODE.png", "d ok.png", "e ok.png"]
+    for i, n in enumerate(names):
+        make_good(stage, n, i)
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.3", "--workers", "1", "--max-crashes", "2",
+               env=env).start()
+    for n in names:
+        shutil.copyfile(stage / n, in_dir / n)
+
+    def finished() -> bool:
+        e = journal_entries(out_dir)
+        return len(e) == len(names) and all(x.state in ("done", "quarantined") for x in e.values())
+
+    d.wait_for("all files finished", finished, timeout=150)
+    assert d.stop() == 0
+    e = {Path(p).name: x for p, x in journal_entries(out_dir).items()}
+    assert e["c DECODE.png"].state == "quarantined" and e["c DECODE.png"].crashes == 2
+    for n in names:
+        if n != "c DECODE.png":
+            assert e[n].state == "done" and e[n].crashes == 0 and e[n].attempts == 0, (n, e[n])
 
 
 def test_bad_arguments_are_refused_with_one_line(tmp_path, monkeypatch):

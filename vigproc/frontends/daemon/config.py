@@ -245,3 +245,4 @@ class _Task:
     fp: Fingerprint
     started: float | None = None  # monotonic, when the worker said it began
     probe: bool = False  # sent while paused for a full disk, to see whether there is room again
+    ahead: bool = False  # its worker is reading it ahead, while the task before it runs

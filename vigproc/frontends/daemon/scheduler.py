@@ -4,11 +4,16 @@ worker, what comes back, retries, timeouts and the pause for a full output disk.
 A file the watcher offers (:attr:`~.watcher.Watcher.ready`) is fingerprinted and
 claimed in the journal here (:meth:`Scheduler.prepare`), in the daemon's process: a
 path whose content is already done or quarantined is not sent again.  Each worker
-has at most :attr:`Scheduler.PER_WORKER` files queued (one running, one ready).  What
+has at most :attr:`Scheduler.per_worker` files queued (one running, one or two ready).  What
 a worker says is turned into a record by the recorder: done, a failed attempt (retried
 after a backoff, or quarantined), a crash (its worker died or hung while the daemon
 lives), or given back uncharged (the input changed while it was processed, the disk
 is full, the daemon is stopping).
+
+A worker with a core to spare reads its next file ahead while it processes one
+(:func:`.worker._read_next`): when it dies with two files open, either may have killed
+it, so neither is charged; both are tried again *alone* (not read ahead, nothing read
+ahead beside them), where a crash names its file.
 
 A full output disk (:data:`~vigproc.pipeline.faults.DISK_FULL`) *pauses* the
 scheduler: the file goes back without an attempt counted, nothing more is handed out,
@@ -92,7 +97,8 @@ class Scheduler:
     """
 
     #: Tasks queued per worker (one running + one ready, so the worker never waits for
-    #: the main process to fingerprint and claim its next file).
+    #: the main process to fingerprint and claim its next file); one more where workers
+    #: read ahead (:attr:`read_ahead`), so the file after the running one is there to be read.
     PER_WORKER = 2
     #: Seconds between looks at the free space while paused for a full disk.
     LOOK_EVERY = 1.0
@@ -112,6 +118,11 @@ class Scheduler:
         self._pause_until = 0.0
         self.disk: _DiskPause | None = None  # paused: the output disk is full
         self.disk_ready: set[str] = set()  # given back for the disk, due again now that there is room
+        self.alone: set[str] = set()  # open together when their worker died: each is run alone until it ends
+        # a worker with a core to spare reads its next file ahead; with a core a worker (or
+        # fewer) it would only take time from the other workers (measured: issue 39)
+        self.read_ahead = (os.cpu_count() or 1) // cfg.workers >= 2
+        self.per_worker = self.PER_WORKER + self.read_ahead
 
     @property
     def journal(self) -> Any:
@@ -161,8 +172,9 @@ class Scheduler:
         else:
             self.workers.append(w)
 
-    def _worker_gone(self, index: int, why: str) -> None:
-        """A worker died or was killed: its running file failed, its queued files go back."""
+    def _worker_gone(self, index: int, why: str, culprit: bool = False) -> None:
+        """A worker died or was killed: its running file failed, its queued files go back.
+        ``culprit``: the running file is known to be the cause (it overran its timeout)."""
         w = self.workers[index]
         with contextlib.suppress(OSError):
             w.conn.close()
@@ -177,11 +189,17 @@ class Scheduler:
                 raise WatchError(f"worker processes die while starting ({why}, exit code {code}); see the log")
         else:
             self._early_deaths = 0
+        open_ = [t for t in w.tasks if t.started is not None or (t.ahead and not culprit)]
+        if len(open_) > 1:  # which of them killed it is unknown: neither is charged, each runs alone
+            self.alone.update(t.path for t in open_)
+            log.warning("%s %s with %d files open (%s); each is tried again alone", w.name, why, len(open_),
+                        ", ".join(t.rel for t in open_), extra=_ev("worker-died-open", worker=w.name, why=why,
+                                                                  files=[t.path for t in open_]))
         for t in w.tasks:
             self.inflight.pop(t.path, None)
             if t.probe and self.disk is not None:
                 self.disk.probing = False
-            if t.started is not None:
+            if t.started is not None and len(open_) == 1:
                 self._died_on(t, f"{why} (worker exit code {code})")
             else:
                 self.recorder.release(t)
@@ -252,13 +270,13 @@ class Scheduler:
                           extra=_ev("timeout", file=t.path, worker=w.name))
                 _kill_group(w.process)
                 w.process.join(timeout=5)
-                self._worker_gone(i, f"timed out after {self.cfg.timeout:.0f} s")
+                self._worker_gone(i, f"timed out after {self.cfg.timeout:.0f} s", culprit=True)
 
     # ---------------------------------------------------------- dispatch
     def _idle_worker(self) -> _Worker | None:
         best = None
         for w in self.workers:
-            if w.ready and not w.stopping and len(w.tasks) < self.PER_WORKER:
+            if w.ready and not w.stopping and len(w.tasks) < self.per_worker:
                 if best is None or len(w.tasks) < len(best.tasks):
                     best = w
         return best
@@ -298,7 +316,8 @@ class Scheduler:
             try:
                 w.conn.send(("task", task.id, task.path, str(self.cfg.out_dir), task.stem, task.fp.to_dict(),
                              {"input": task.rel, "input_sha256": task.fp.sha256, "input_size": task.fp.size,
-                              "settings": self.cfg.settings, "watch_job": self.cfg.job}))
+                              "settings": self.cfg.settings, "watch_job": self.cfg.job},
+                             path in self.alone or not self.read_ahead))
             except (OSError, ValueError):  # the worker just died: the next wait() sees it
                 self.recorder.release(task)
                 self.watcher.hand_back(path)
@@ -425,6 +444,9 @@ class Scheduler:
         task = next((t for t in w.tasks if t.id == task_id), None)
         if task is None:
             return
+        if kind == "ahead":
+            task.ahead = True
+            return
         if kind == "start":
             task.started = time.monotonic()
             try:  # from now on a death of its worker charges this file a crash (_worker_gone)
@@ -434,6 +456,7 @@ class Scheduler:
             return
         w.tasks.remove(task)
         self.inflight.pop(task.path, None)
+        self.alone.discard(task.path)  # ended: what it did is its own
         if task.probe and self.disk is not None:
             self.disk.probing = False
         if self._changed(task):

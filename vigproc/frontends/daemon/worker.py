@@ -5,14 +5,17 @@ Workers are processes (``spawn``), not threads: a decoder crash on a hostile fil
 kills one worker, not the daemon.  Each leads a process group of its own, ignores
 SIGINT/SIGTERM (the daemon drains it), dies with the daemon and raises its OOM score.
 
-The messages, daemon to worker: ``("task", id, path, out_root, rel, fingerprint, extra)``
-and ``("stop",)``; worker to daemon: ``("ready", None, pid)``, ``("fatal", None, why)``,
-``("start", id, None)``, ``("ok", id, summary)``, ``("error", id, {kind, reason, type,
-disk, free_bytes})``.
+The messages, daemon to worker: ``("task", id, path, out_root, rel, fingerprint, extra,
+alone)`` and ``("stop",)``; worker to daemon: ``("ready", None, pid)``, ``("fatal", None,
+why)``, ``("start", id, None)``, ``("ahead", id, None)`` (its file is being read ahead,
+while the task before it runs), ``("ok", id, summary)``, ``("error", id, {kind, reason,
+type, disk, free_bytes})``.  A task ``alone`` is neither read ahead nor run beside a
+read ahead.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import logging
@@ -104,15 +107,19 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
     _warm(wlog)
     try:
         conn.send(("ready", None, os.getpid()))
+        queued: collections.deque = collections.deque()  # received, not begun: at most the next task
         while True:
             try:
-                msg = conn.recv()
+                msg = queued.popleft() if queued else conn.recv()
             except (EOFError, OSError):
                 break
             if msg[0] == "stop":
                 break
-            _, task_id, path, out_root, rel, fpd, extra = msg
+            _, task_id, path, out_root, rel, fpd, extra, alone = msg
             conn.send(("start", task_id, None))
+            if not alone and not queued and conn.poll():
+                queued.append(conn.recv())
+                _read_next(conn, proc, queued[0])
             fp = Fingerprint.from_dict(fpd)
             outdir = Path(out_root)  # judged on the output root until its sub-folder is made
             try:
@@ -145,6 +152,20 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
         if store is not None:
             with contextlib.suppress(Exception):
                 store.close()
+
+
+def _read_next(conn: mpc.Connection, proc: Processor, msg: tuple) -> None:
+    """Read the next queued task's file ahead (its EXIF by exiftool, its pixels in a
+    thread: :meth:`Processor.prefetch`, :meth:`Processor.read_ahead`) while this one is
+    processed, so the worker does not wait for them (issue 39).  The daemon is told
+    first (``ahead``): a worker that dies now may have died of either file, and the
+    daemon charges neither but tries both again alone.  A task sent ``alone`` is
+    not read ahead."""
+    if msg[0] != "task" or msg[7]:
+        return
+    conn.send(("ahead", msg[1], None))
+    proc.prefetch(msg[2])
+    proc.read_ahead(msg[2])
 
 
 def _warm(wlog: logging.Logger) -> None:
