@@ -200,7 +200,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"{len(master)} photographs; {len(os.sched_getaffinity(0))} cores; rounds {args.rounds}; 'quiet': the rounds "
           f"in which other processes kept under {QUIET} core busy in both runs")
     print(f"{'kind':<9}{'one s':>8}{'two s':>8}{'one/two median':>16}{'min':>7}{'max':>7}{'CPU one':>9}{'CPU two':>9}"
-          f"{'others max':>11}{'quiet rounds':>14}{'quiet one/two':>15}")
+          f"{'others max':>11}{'quiet rounds':>14} {'quiet one/two':>17}")
     for k in kinds:
         one, two = np.array(walls[(k, 1)]), np.array(walls[(k, 2)])
         ratio = one / two  # paired by round
@@ -208,7 +208,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         q = f"{np.median(quiet):.2f} ({quiet.min():.2f}-{quiet.max():.2f})" if quiet.size else "-"
         print(f"{k:<9}{np.median(one):>8.2f}{np.median(two):>8.2f}{np.median(ratio):>16.2f}{ratio.min():>7.2f}"
               f"{ratio.max():>7.2f}{np.median(cpus[(k, 1)]):>9.2f}{np.median(cpus[(k, 2)]):>9.2f}"
-              f"{max(other[(k, 1)] + other[(k, 2)]):>11.2f}{quiet.size:>14}{q:>15}")
+              f"{max(other[(k, 1)] + other[(k, 2)]):>11.2f}{quiet.size:>14} {q:>17}")
     return 0
 
 
