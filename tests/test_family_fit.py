@@ -542,6 +542,42 @@ def test_a_colour_shift_that_would_send_a_frame_to_the_free_fit_is_the_circular_
     assert seen == [False, True]  # the luminance's test, then the colour-weighted pairs' circular one
 
 
+def test_a_fit_refused_as_the_colour_test_is_not_the_fit_the_choice_reads(monkeypatch):
+    """When the off-centre fit's centre is refused as the colour-weighted pairs' test (its
+    shift in the free fit's band) and the circular test then sends the frame to the family's
+    off-centre fit, that fit is made as before (up to OFF_CENTRE_ITERATIONS steps): the
+    refused fit of OffCentreRule.colour_test_steps steps, whose centre the circular test
+    contradicts, is not applied."""
+    from dataclasses import replace
+
+    from benchmarks.synthetic import table1_model
+    from vigproc.core import estimate as est
+    from vigproc.core import family_fit
+
+    calls, real_off = [], est.off_centre_fit
+    rule = est.OffCentreRule()
+    moved = []
+
+    def off(lum, *a, **k):  # the short fit, its centre moved into the free fit's band
+        steps = a[7] if len(a) > 7 else k.get("iterations", family_fit.OFF_CENTRE_ITERATIONS)
+        calls.append(steps)
+        fit = real_off(lum, *a, **k)
+        if steps != rule.colour_test_steps:
+            return fit
+        shift = 0.5 * (rule.settings.off_centre_shift + rule.family_shift)
+        ux, uy = fit.field.center
+        scale = shift / fit.shift(lum.shape)
+        moved.append((ux * scale, uy * scale))
+        return replace(fit, field=replace(fit.field, center=moved[-1]))
+
+    monkeypatch.setattr(est, "off_centre_fit", off)
+    img = _colour_texture() * table1_model(2).field()[..., None]
+    m = estimate_default(vigproc.core.pixels.luminance(img), colour=img, rule=rule)
+    assert calls == [rule.colour_test_steps, family_fit.OFF_CENTRE_ITERATIONS]
+    assert m.method == "lens-family-off-centre"
+    assert not np.allclose(m.center, moved[0])
+
+
 def test_a_channel_too_dark_to_use_makes_a_grey_fit():
     """A frame whose blue is too dark to read everywhere (an empty channel, sodium
     light) is fitted as a grey frame, not dropped for want of pixels."""

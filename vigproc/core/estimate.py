@@ -88,7 +88,9 @@ class OffCentreRule:
         is fitted off-centre in the family at once, in at most this many steps, and that
         fit's centre is the colour-weighted pairs' centre test (and, when the test passes,
         the fit the choice reads); 0: a circular centre test of the colour-weighted pairs,
-        then the family fit of up to ``family_fit.OFF_CENTRE_ITERATIONS`` steps.
+        then the family fit of up to ``family_fit.OFF_CENTRE_ITERATIONS`` steps. A fit
+        whose shift, or the luminance's, is short of ``family_shift`` (the free fit's
+        band) is refused as the test, and the frame then goes as with 0.
     """
 
     any_min_ev: float = 0.25
@@ -609,8 +611,11 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
         if centre_colour is not None and centre_colour.off_centre(s.off_centre_shift) \
                 and min(centre.shift, centre_colour.shift) < rule.family_shift:
             # a shift that would send the frame to the free fit is the circular test's to give, as
-            # before: the elliptical fit's centre passed a clean frame's scene light (2.2 EV applied)
-            centre_colour = None
+            # before: the elliptical fit's centre passed a clean frame's scene light (2.2 EV applied);
+            # that fit, refused as the test, is not the fit the choice reads either: a frame the
+            # circular test sends to the family is fitted there as before (up to 30 steps)
+            centre_colour = off = None
+            tried = False
         if centre_colour is None:  # no family fit off-centre (its shape at the bound): a circular test
             centre_colour = family_fit.fit_centre(lum, coef, s, mask, family, hint, uncertainty=False,
                                                   copy=with_colour(centre_copy, colour, s))
