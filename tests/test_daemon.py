@@ -566,6 +566,14 @@ def _patch(module):
         return read_counted(path, *a, **kw)
 
     module._read_counted = _read_counted
+    prefetch = module.Processor.prefetch
+
+    def prefetch_(self, path, *a, **kw):  # the read ahead's EXIF, in the worker's own thread
+        if "AHEADHANG" in os.path.basename(str(path)):
+            time.sleep(3600)  # as an exiftool stuck on it would hold the running file's reads
+        return prefetch(self, path, *a, **kw)
+
+    module.Processor.prefetch = prefetch_
 ''')
 
 
@@ -660,6 +668,33 @@ def test_a_worker_killed_by_the_file_it_reads_ahead_charges_no_other_file(tmp_pa
     for n in names:
         if n != "c DECODE.png":
             assert e[n].state == "done" and e[n].crashes == 0 and e[n].attempts == 0, (n, e[n])
+
+
+def test_a_file_that_hangs_its_worker_when_read_ahead_charges_no_other_file(tmp_path):
+    """A hang while a file is read ahead is not the running file's: the worker is stopped
+    at the running file's --timeout, but either file may have held it (an exiftool stuck
+    on the one read ahead holds the running file's reads), so neither is charged and both
+    are tried again alone, where the hung file is timed out and charged on its own."""
+    stage, in_dir, out_dir, env = _faulty_folders(tmp_path)
+    names = ["a ok.png", "b AHEADHANG.png", "c ok.png"]
+    for i, n in enumerate(names):
+        make_good(stage, n, i)
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.3", "--workers", "1", "--max-crashes", "2",
+               "--timeout", "6", env=env).start()
+    for n in names:
+        shutil.copyfile(stage / n, in_dir / n)
+
+    def finished() -> bool:
+        e = journal_entries(out_dir)
+        return len(e) == len(names) and all(x.state in ("done", "quarantined") for x in e.values())
+
+    d.wait_for("all files finished", finished, timeout=240)
+    assert d.stop() == 0
+    e = {Path(p).name: x for p, x in journal_entries(out_dir).items()}
+    hung = e["b AHEADHANG.png"]
+    assert hung.state == "quarantined" and hung.crashes == 2 and "timed out" in hung.reason, hung
+    for n in ("a ok.png", "c ok.png"):
+        assert e[n].state == "done" and e[n].crashes == 0 and e[n].attempts == 0, (n, e[n])
 
 
 def test_bad_arguments_are_refused_with_one_line(tmp_path, monkeypatch):

@@ -11,9 +11,9 @@ lives), or given back uncharged (the input changed while it was processed, the d
 is full, the daemon is stopping).
 
 A worker with a core to spare reads its next file ahead while it processes one
-(:func:`.worker._read_next`): when it dies with two files open, either may have killed
-it, so neither is charged; both are tried again *alone* (not read ahead, nothing read
-ahead beside them), where a crash names its file.
+(:func:`.worker._read_next`): when it dies or hangs with two files open, either may have
+killed or held it, so neither is charged; both are tried again *alone* (not read ahead,
+nothing read ahead beside them), where a crash or a timeout names its file.
 
 A full output disk (:data:`~vigproc.pipeline.faults.DISK_FULL`) *pauses* the
 scheduler: the file goes back without an attempt counted, nothing more is handed out,
@@ -172,9 +172,11 @@ class Scheduler:
         else:
             self.workers.append(w)
 
-    def _worker_gone(self, index: int, why: str, culprit: bool = False) -> None:
-        """A worker died or was killed: its running file failed, its queued files go back.
-        ``culprit``: the running file is known to be the cause (it overran its timeout)."""
+    def _worker_gone(self, index: int, why: str) -> None:
+        """A worker died or was killed (it overran its timeout): its running file failed,
+        its queued files go back.  With a file read ahead beside the running one, which of
+        the two did it is unknown, a hang as much as a crash (an exiftool stuck on the file
+        read ahead holds the running file's reads): neither is charged, each runs alone."""
         w = self.workers[index]
         with contextlib.suppress(OSError):
             w.conn.close()
@@ -189,7 +191,7 @@ class Scheduler:
                 raise WatchError(f"worker processes die while starting ({why}, exit code {code}); see the log")
         else:
             self._early_deaths = 0
-        open_ = [t for t in w.tasks if t.started is not None or (t.ahead and not culprit)]
+        open_ = [t for t in w.tasks if t.started is not None or t.ahead]
         if len(open_) > 1:  # which of them killed it is unknown: neither is charged, each runs alone
             self.alone.update(t.path for t in open_)
             log.warning("%s %s with %d files open (%s); each is tried again alone", w.name, why, len(open_),
@@ -270,7 +272,7 @@ class Scheduler:
                           extra=_ev("timeout", file=t.path, worker=w.name))
                 _kill_group(w.process)
                 w.process.join(timeout=5)
-                self._worker_gone(i, f"timed out after {self.cfg.timeout:.0f} s", culprit=True)
+                self._worker_gone(i, f"timed out after {self.cfg.timeout:.0f} s")
 
     # ---------------------------------------------------------- dispatch
     def _idle_worker(self) -> _Worker | None:
