@@ -146,3 +146,51 @@ def test_the_done_line_says_when_a_frame_was_not_corrected(make, caplog):
     with caplog.at_level("INFO", logger="vigproc.watch"):
         d.recorder.done(task, _summary({"output": "/out/d.corrected.png", "applied": True}, Path("/x.json")), "w")
     assert "not corrected" not in [r for r in caplog.records if r.getMessage().startswith("done ")][-1].getMessage()
+
+
+class _DeadWorker:
+    """A worker process that is gone (what _worker_gone asks of one)."""
+
+    pid = None
+    exitcode = 3
+
+    def join(self, timeout=None):
+        pass
+
+    def kill(self):
+        pass
+
+    def close(self):
+        pass
+
+
+def test_files_open_together_when_their_worker_died_run_alone_after_a_restart(make):
+    """A worker reading ahead dies with two files open: neither is charged, both are to
+    run alone (nothing read ahead beside them), where a crash names its file.  That holds
+    after a restart of the daemon too (the journal says it), else a poison file read ahead
+    again beside a good one gets another uncharged death at each start; and a file that
+    has crashed a worker before runs alone from the start."""
+    from vigproc.frontends.daemon.scheduler import _Worker
+
+    class _Conn:
+        def close(self):
+            pass
+
+    d = make()
+    a, b = _claimed(d, "a.png", b"\x89PNG a"), _claimed(d, "b.png", b"\x89PNG b")
+    c = _claimed(d, "c.png", b"\x89PNG c")
+    for t in (a, b, c):
+        d.journal.start(t.path, t.fp)
+    d.journal.crashed(c.path, c.fp, "died (worker exit code 3)", max_crashes=3, now=0.0)  # due at once
+    a.started, b.ahead = 1.0, True
+    d.scheduler.workers = [_Worker("worker-0", _DeadWorker(), _Conn(), ready=True, tasks=[a, b])]
+    d.flags.stop = "SIGTERM"  # no new worker started here
+    d.scheduler._worker_gone(0, "died")
+    assert d.scheduler.alone == {a.path, b.path}
+    for t in (a, b):
+        e = d.journal.lookup(t.path)
+        assert e.state == "pending" and e.crashes == 0 and e.attempts == 0, e
+    d2 = make()  # the daemon restarted before they were tried again
+    for t in (a, b, c):
+        assert d2.scheduler.prepare(t.path) is not None
+    assert d2.scheduler.alone == {a.path, b.path, c.path}

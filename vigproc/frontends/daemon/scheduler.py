@@ -13,7 +13,9 @@ is full, the daemon is stopping).
 A worker with a core to spare reads its next file ahead while it processes one
 (:func:`.worker._read_next`): when it dies or hangs with two files open, either may have
 killed or held it, so neither is charged; both are tried again *alone* (not read ahead,
-nothing read ahead beside them), where a crash or a timeout names its file.
+nothing read ahead beside them), where a crash or a timeout names its file.  The journal
+says so (:data:`ALONE` in the reason), and a file that has crashed a worker before runs
+alone too, so a restart of the daemon does not give a poison file another uncharged death.
 
 A full output disk (:data:`~vigproc.pipeline.faults.DISK_FULL`) *pauses* the
 scheduler: the file goes back without an attempt counted, nothing more is handed out,
@@ -44,6 +46,10 @@ from .watcher import Watcher
 from .worker import _kill_group, _worker_main
 
 __all__ = ["Scheduler"]
+
+#: What the journal's reason says of a file given back uncharged by a worker that died
+#: with two files open: it runs alone, after a restart of the daemon too.
+ALONE = "tried again alone"
 
 #: Errors that a truncated (still being written) file also gives.
 _READ_ERRORS = frozenset({"ImageReadError", "UnsupportedFormatError", "InvalidImageError"})
@@ -203,6 +209,8 @@ class Scheduler:
                 self.disk.probing = False
             if t.started is not None and len(open_) == 1:
                 self._died_on(t, f"{why} (worker exit code {code})")
+            elif len(open_) > 1 and t in open_:
+                self.recorder.release(t, reason=f"{why} with {len(open_)} files open (exit code {code}): {ALONE}")
             else:
                 self.recorder.release(t)
         self.recorder.remove_temps([t.path for t in w.tasks], keep=self.inflight)
@@ -360,6 +368,9 @@ class Scheduler:
             self.recorder.known[path] = (fp.size, fp.mtime_ns)
             self.recorder.after_finished(path, fp, entry.state, entry.reason)
             return None
+        if entry is not None and entry.fingerprint.same_content(fp) \
+                and (entry.crashes > 0 or ALONE in (entry.reason or "")):
+            self.alone.add(path)  # it died with a file beside it or crashed before (this run or an earlier one)
         # a file given back for a full disk is due as soon as there is room, whatever its retry time
         now = float("inf") if path in self.disk_ready else None
         if not journal.claim(path, fp, worker=f"{os.uname().nodename}:{os.getpid()}", now=now):
