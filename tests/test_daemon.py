@@ -9,6 +9,7 @@ bad one quarantined with a reason, nothing lost, nothing done twice.
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import json
 import os
@@ -574,6 +575,14 @@ def _patch(module):
         return prefetch(self, path, *a, **kw)
 
     module.Processor.prefetch = prefetch_
+    read_ahead = module.Processor.read_ahead
+
+    def read_ahead_(self, path, *a, **kw):  # what the worker holds read ahead when it reads one more
+        with open(os.path.join(MARK, "ahead.log"), "a") as fh:
+            fh.write(repr([os.path.basename(p) for p, *_ in self._ahead]) + " " + os.path.basename(str(path)) + "\n")
+        return read_ahead(self, path, *a, **kw)
+
+    module.Processor.read_ahead = read_ahead_
 ''')
 
 
@@ -695,6 +704,39 @@ def test_a_file_that_hangs_its_worker_when_read_ahead_charges_no_other_file(tmp_
     assert hung.state == "quarantined" and hung.crashes == 2 and "timed out" in hung.reason, hung
     for n in ("a ok.png", "c ok.png"):
         assert e[n].state == "done" and e[n].crashes == 0 and e[n].attempts == 0, (n, e[n])
+
+
+def test_a_file_read_ahead_and_done_by_its_sidecar_is_not_held(tmp_path):
+    """A file read ahead whose task ends without reading it (an earlier run's sidecar
+    answers: done before a kill, not yet in the journal) leaves nothing read ahead behind:
+    the worker holds at most the running file's frame and the next one's, not a third."""
+    stage, in_dir, out_dir, env = _faulty_folders(tmp_path)
+    names = ["a ok.png", "b ok.png", "c ok.png", "d ok.png", "e ok.png"]
+    for i, n in enumerate(names):
+        make_good(stage, n, i)
+    args = ("--settle", "0.3", "--workers", "1")
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args, env=env).start()
+    shutil.copyfile(stage / "c ok.png", in_dir / "c ok.png")
+    d.wait_for("c done", lambda: any(x.state == "done" for x in journal_entries(out_dir).values()))
+    assert d.stop() == 0
+    for f in out_dir.glob(".vigproc-watch.sqlite*"):  # its sidecar stays: done, as if killed before the journal said so
+        f.unlink()
+    (in_dir / "c ok.png").unlink()  # copied again below, in its turn: read ahead while b runs
+    (tmp_path / "ahead.log").unlink(missing_ok=True)
+    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", *args, env=env).start()
+    for n in names:
+        shutil.copyfile(stage / n, in_dir / n)
+
+    def finished() -> bool:
+        e = journal_entries(out_dir)
+        return len(e) == len(names) and all(x.state == "done" for x in e.values())
+
+    d.wait_for("all files done", finished)
+    assert d.stop() == 0
+    held = (tmp_path / "ahead.log").read_text().splitlines()
+    assert any(line.endswith("] c ok.png") for line in held), held  # c was read ahead
+    for line in held:  # what it held before reading one more: the running file's frame at most
+        assert len(ast.literal_eval(line[:line.rindex("]") + 1])) <= 1, held
 
 
 def test_bad_arguments_are_refused_with_one_line(tmp_path, monkeypatch):

@@ -301,6 +301,16 @@ class Processor:
         method = s.method if s.mode == "learn" or s.profile in ("auto", "estimate") else None
         self._ahead.append((key, ident, self._reading.submit(_read_counted, key, s.transfer, method)))
 
+    def drop_read_ahead(self, path: str | os.PathLike[str]) -> None:
+        """Forget what :meth:`read_ahead` holds or decodes for ``path``: its turn came and
+        went without reading it (an earlier run's sidecar answered, or it failed before its
+        read), and its frame would be held beside the next ones (a decode under way runs to
+        its end, its pixels dropped)."""
+        key = os.fspath(path)
+        for i in reversed(range(len(self._ahead))):
+            if self._ahead[i][0] == key:
+                self._ahead.pop(i)[2].cancel()
+
     def _read_ahead_of(self, path: Path):
         """The pixels :meth:`read_ahead` decoded for ``path`` if the file is unchanged, else None."""
         key = os.fspath(path)

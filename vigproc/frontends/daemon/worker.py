@@ -144,6 +144,8 @@ def _worker_main(conn: mpc.Connection, settings: dict[str, Any], profile_db: str
                 conn.send(("error", task_id, {"kind": fault.kind, "reason": fault.reason, "type": type(exc).__name__,
                                               "disk": fault.disk,
                                               "free_bytes": fault.space.free_bytes if output_disk else None}))
+            finally:  # read ahead and not read (its sidecar answered, or it failed first): not held on
+                proc.drop_read_ahead(path)
     except (BrokenPipeError, EOFError, OSError):
         pass  # the daemon is gone
     finally:
