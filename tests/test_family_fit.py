@@ -578,6 +578,30 @@ def test_a_fit_refused_as_the_colour_test_is_not_the_fit_the_choice_reads(monkey
     assert not np.allclose(m.center, moved[0])
 
 
+def test_a_colour_test_fit_with_no_answer_leaves_the_fit_to_the_old_path(monkeypatch):
+    """When the off-centre fit of OffCentreRule.colour_test_steps steps gives no answer (None:
+    its shape at the bound within its steps), the circular test decides, and a frame it
+    sends to the family's off-centre fit gets that fit of up to OFF_CENTRE_ITERATIONS steps,
+    not the free fit at once."""
+    from benchmarks.synthetic import table1_model
+    from vigproc.core import estimate as est
+    from vigproc.core import family_fit
+
+    calls, real_off = [], est.off_centre_fit
+    rule = est.OffCentreRule()
+
+    def off(lum, *a, **k):  # the short fit gives no answer
+        steps = a[7] if len(a) > 7 else k.get("iterations", family_fit.OFF_CENTRE_ITERATIONS)
+        calls.append(steps)
+        return None if steps == rule.colour_test_steps else real_off(lum, *a, **k)
+
+    monkeypatch.setattr(est, "off_centre_fit", off)
+    img = _colour_texture() * table1_model(2).field()[..., None]
+    m = estimate_default(vigproc.core.pixels.luminance(img), colour=img, rule=rule)
+    assert calls == [rule.colour_test_steps, family_fit.OFF_CENTRE_ITERATIONS]
+    assert m.method == "lens-family-off-centre"
+
+
 def test_a_channel_too_dark_to_use_makes_a_grey_fit():
     """A frame whose blue is too dark to read everywhere (an empty channel, sodium
     light) is fitted as a grey frame, not dropped for want of pixels."""

@@ -607,6 +607,8 @@ def _off_centre_choice(lum: np.ndarray, mask: np.ndarray | None, hint: LensHint 
         if off is not None:
             centre_colour = family_fit.CentreFit(off.field.center, np.full((2, 2), math.nan), math.nan,
                                                  off.shift(lum.shape))
+        else:  # no answer in its steps: the circular test, and the fit of up to 30 steps, as before
+            tried = False
     if colour is not None:
         if centre_colour is not None and centre_colour.off_centre(s.off_centre_shift) \
                 and min(centre.shift, centre_colour.shift) < rule.family_shift:
