@@ -652,17 +652,15 @@ def test_worker_crash_hang_and_full_disk(tmp_path):
     assert sum(ev.get("event") == "timeout" for ev in d.events()) == 2
 
 
-def test_a_worker_killed_by_the_file_it_reads_ahead_charges_no_other_file(tmp_path):
-    """A worker reads its next file ahead while it processes one (a core to spare): a
-    file whose decoding kills its worker, there or when processed, is charged its
-    crashes (quarantined after --max-crashes) and the files open beside it are not:
-    each death with two files open charges neither, and both are tried again alone."""
+def _one_worker_run(tmp_path, names: list[str], *args: str, timeout: float) -> dict:
+    """Drop ``names`` (good PNGs; a name's marker makes the faulty exiftool misbehave on it)
+    into a one-worker daemon (--max-crashes 2, ``args``), wait until every file is done or
+    quarantined, stop it cleanly; the journal's entries by file name."""
     stage, in_dir, out_dir, env = _faulty_folders(tmp_path)
-    names = ["a ok.png", "b ok.png", "c DECODE.png", "d ok.png", "e ok.png"]
     for i, n in enumerate(names):
         make_good(stage, n, i)
     d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.3", "--workers", "1", "--max-crashes", "2",
-               env=env).start()
+               *args, env=env).start()
     for n in names:
         shutil.copyfile(stage / n, in_dir / n)
 
@@ -670,9 +668,18 @@ def test_a_worker_killed_by_the_file_it_reads_ahead_charges_no_other_file(tmp_pa
         e = journal_entries(out_dir)
         return len(e) == len(names) and all(x.state in ("done", "quarantined") for x in e.values())
 
-    d.wait_for("all files finished", finished, timeout=150)
+    d.wait_for("all files finished", finished, timeout=timeout)
     assert d.stop() == 0
-    e = {Path(p).name: x for p, x in journal_entries(out_dir).items()}
+    return {Path(p).name: x for p, x in journal_entries(out_dir).items()}
+
+
+def test_a_worker_killed_by_the_file_it_reads_ahead_charges_no_other_file(tmp_path):
+    """A worker reads its next file ahead while it processes one (a core to spare): a
+    file whose decoding kills its worker, there or when processed, is charged its
+    crashes (quarantined after --max-crashes) and the files open beside it are not:
+    each death with two files open charges neither, and both are tried again alone."""
+    names = ["a ok.png", "b ok.png", "c DECODE.png", "d ok.png", "e ok.png"]
+    e = _one_worker_run(tmp_path, names, timeout=150)
     assert e["c DECODE.png"].state == "quarantined" and e["c DECODE.png"].crashes == 2
     for n in names:
         if n != "c DECODE.png":
@@ -684,22 +691,8 @@ def test_a_file_that_hangs_its_worker_when_read_ahead_charges_no_other_file(tmp_
     at the running file's --timeout, but either file may have held it (an exiftool stuck
     on the one read ahead holds the running file's reads), so neither is charged and both
     are tried again alone, where the hung file is timed out and charged on its own."""
-    stage, in_dir, out_dir, env = _faulty_folders(tmp_path)
     names = ["a ok.png", "b AHEADHANG.png", "c ok.png"]
-    for i, n in enumerate(names):
-        make_good(stage, n, i)
-    d = Daemon(in_dir, out_dir, tmp_path / "daemon.log", "--settle", "0.3", "--workers", "1", "--max-crashes", "2",
-               "--timeout", "6", env=env).start()
-    for n in names:
-        shutil.copyfile(stage / n, in_dir / n)
-
-    def finished() -> bool:
-        e = journal_entries(out_dir)
-        return len(e) == len(names) and all(x.state in ("done", "quarantined") for x in e.values())
-
-    d.wait_for("all files finished", finished, timeout=240)
-    assert d.stop() == 0
-    e = {Path(p).name: x for p, x in journal_entries(out_dir).items()}
+    e = _one_worker_run(tmp_path, names, "--timeout", "6", timeout=240)
     hung = e["b AHEADHANG.png"]
     assert hung.state == "quarantined" and hung.crashes == 2 and "timed out" in hung.reason, hung
     for n in ("a ok.png", "c ok.png"):
