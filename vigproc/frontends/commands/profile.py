@@ -11,7 +11,7 @@ from pathlib import Path
 
 from vigproc.errors import VigprocError, one_line
 from vigproc.frontends.commands._progress import _progress
-from vigproc.io.exif import casefold_lens_id, escape_key_part
+from vigproc.io.exif import LensKey, casefold_lens_id, escape_key_part, unescape_key_part
 from vigproc.io.images import write_image
 from vigproc.io.lensident import display_lens_id
 from vigproc.io.picture import falloff_figure
@@ -19,6 +19,7 @@ from vigproc.pipeline.processor import Processor, Settings
 from vigproc.stores.lcp import import_lcp, lcp_files
 from vigproc.stores.lensfun_io import (colour_notes, export_lensfun_xml, find_lens, frame_crop_for, import_lensfun,
                                       lensfun_entries)
+from vigproc.stores.lensfun_match import frame_crop
 from vigproc.stores.opening import open_profile_store
 from vigproc.stores.profiles import (Profile, ProfileKey, ProfileStoreError, _aspect_value, _canonical_aspect,
                                      aperture_bin, aspect_label, focal_bin, normalise)
@@ -220,9 +221,6 @@ def _body_crop(lens_id: str, focal: float) -> float | None:
     """The crop factor of the camera a lens id (``make|model|lens``) names, as
     :func:`~vigproc.stores.lensfun_match.frame_crop` gives it; None for an id naming no
     body lensfun knows (``maker|model``, import-lensfun's default)."""
-    from vigproc.io.exif import LensKey, unescape_key_part
-    from vigproc.stores.lensfun_match import frame_crop
-
     parts = [unescape_key_part(v) for v in lens_id.split("|")]
     if len(parts) < 3:  # not a camera's id: no body to end at
         return None
