@@ -451,10 +451,20 @@ def _describe(lens: LensfunLens) -> str:
     return f"{lens.maker} / {lens.model} (crop {lens.crop_factor:g})"
 
 
+def _checked_crop(crop_factor: float | None) -> float | None:
+    """A caller's crop factor as a float (None kept); a :class:`ModelError` for one that is
+    not positive and finite (it divides lensfun's ρ and is the log of a ratio)."""
+    if crop_factor is None:
+        return None
+    crop = float(crop_factor)
+    if not (math.isfinite(crop) and crop > 0):
+        raise ModelError(f"crop factor must be positive and finite, got {crop_factor!r}")
+    return crop
+
+
 def _pick_calibration(matches: list[LensfunLens], crop_factor: float | None) -> LensfunLens:
     """One lens of a single (maker, model) name, calibrated on possibly several sensors."""
-    if crop_factor is not None and not (math.isfinite(crop_factor) and crop_factor > 0):
-        raise ModelError(f"crop factor must be positive and finite, got {crop_factor!r}")
+    crop_factor = _checked_crop(crop_factor)
     if len(matches) == 1:
         return matches[0]
     if crop_factor is None:
@@ -612,10 +622,8 @@ def import_lensfun(
             )
         lens = found
     corner_rho = 1.0
-    if crop_factor is not None:
-        crop = float(crop_factor)
-        if not (math.isfinite(crop) and crop > 0):
-            raise ModelError(f"crop factor must be positive and finite, got {crop_factor!r}")
+    crop = _checked_crop(crop_factor)
+    if crop is not None:
         corner_rho = lens.crop_factor / crop
         if not covers(lens.crop_factor, crop):
             logger.warning("%s covers a sensor of crop factor %g, not the frame's %g: its field is extrapolated "
