@@ -57,6 +57,9 @@ FRAMES = [
       for cam in ("D70_0_19445", "D70_0_19593", "D70_1_20543", "D70_1_20585", "D70_1_20749", "D70_1_20891",
                   "D70s_0_21853", "D70s_0_21989", "D70s_0_22115", "D70s_1_22750", "D70s_1_22760",
                   "D70s_1_22824", "D70s_1_22928", "D70s_1_23136")],
+    ("polimi-ispl/dip_prnu_anonymizer", "72912b8a249a4ce66f11646ad0aac197db4752ad",
+     "no licence in the repository; its README: an example dataset based on Dresden Image Database",
+     "dresden_sample/Nikon_D70_0/Nikon_D70_0_19639.JPG", "D70 + Sigma 18-200mm DC, natural scene (Dresden)"),
     # Dresden flat fields: a plain surface, ten frames a session at one setting (five sessions)
     *[(*_PR, f"test/data/ff-jpg/Nikon_{cam}_{n}.JPG", f"{what}, flat field (Dresden)")
       for cam, first, what in (("D200_1", 18178, "D200 + AF-S DX 18-135mm at 135 mm f/10"),
