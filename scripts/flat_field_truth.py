@@ -6,8 +6,10 @@ times the surface's own unevenness: read as ``vigproc`` reads any JPEG
 the bench's grid, is a direct measurement of the field ``bench real-frames`` part (a)
 takes from lensfun. Per frame whose lens lensfun calibrated
 (:func:`benchmarks.real_frames_lensfun.lensfun_frames`): lensfun's corner fall-off, the
-frame's own (the mean over r ≥ 0.95 of the half-diagonal against r ≤ 0.1, EV), and the RMS
-of their difference over the frame about its mean (``bench clean``'s metric).
+frame's own (the mean over r ≥ 0.95 of the half-diagonal against r ≤ 0.1, EV), the RMS
+of their difference over the frame about its mean (``bench clean``'s metric), and the frame's
+left eighth against its right and its top eighth against its bottom (EV; a centred lens
+field gives 0: lighting that falls across the surface does not).
 
     NUMBA_NUM_THREADS=1 python scripts/flat_field_truth.py DIR_OR_FILES...
 """
@@ -45,16 +47,25 @@ def corner_ev(log_field: np.ndarray) -> float:
     return float((log_field[r <= 0.1].mean() - log_field[r >= 0.95].mean()) / np.log(2))
 
 
+def sides_ev(log_field: np.ndarray) -> tuple[float, float]:
+    """(left − right, top − bottom): mean log2 of the outer eighths, EV."""
+    h, w = log_field.shape
+    lr = log_field[:, : w // 8].mean() - log_field[:, -(w // 8):].mean()
+    tb = log_field[: h // 8].mean() - log_field[-(h // 8):].mean()
+    return float(lr / np.log(2)), float(tb / np.log(2))
+
+
 def main(argv: list[str]) -> int:
     files = sorted(p for a in argv for p in (Path(a).iterdir() if Path(a).is_dir() else [Path(a)])
                    if p.suffix.lower() in (".jpg", ".jpeg"))
     found, _other = lensfun_frames(files)
-    print(f"{'file':34} {'lens':28} {'mm':>5} {'f/':>5} {'rho':>5} {'lensfun':>8} {'frame':>6} {'RMS diff':>8}")
+    print(f"{'file':34} {'lens':28} {'mm':>5} {'f/':>5} {'rho':>5} {'lensfun':>8} {'frame':>6} {'RMS diff':>8} {'L-R':>6} {'T-B':>6}")
     for path, _key, truth, _tags, _ic in found:
         own = frame_log_field(path)
         true = truth.log_field(own.shape)
         print(f"{path.name[:34]:34} {truth.lens[:28]:28} {truth.focal_mm:5.0f} {truth.fnumber:5.1f} "
-              f"{truth.corner_rho:5.2f} {truth.corner_ev:8.2f} {corner_ev(own):6.2f} {_ev(own - true):8.3f}")
+              f"{truth.corner_rho:5.2f} {truth.corner_ev:8.2f} {corner_ev(own):6.2f} {_ev(own - true):8.3f} "
+              f"{sides_ev(own)[0]:+6.2f} {sides_ev(own)[1]:+6.2f}")
     return 0
 
 
