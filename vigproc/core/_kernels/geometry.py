@@ -104,10 +104,30 @@ def fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, s
     """:func:`geometry_pairs` written into the caller's arrays: ``M`` (h·w,) and ``J``
     (K + E, h·w) scratch over the bins, ``d`` (n,) and ``at`` (K + E, n) the result (a
     Gauss-Newton loop reuses them at every step)."""
+    fill_geometry_bins(xs, ys, geo, radii, mean, comps, slope_profile, M, J)
+    difference_pairs(M, J, first, second, inv_step, dlog, d, at)
+
+
+@njit(cache=True, nogil=True)
+def difference_pairs(M, J, first, second, inv_step, dlog, d, at):
+    """Fill the pairs' data ``d`` (n,) (``dlog`` less the field ``M``'s difference per unit
+    step) and regressors ``at`` (K + E, n) (``J``'s rows differenced) from the bins' values."""
+    n = first.shape[0]
+    for p in range(n):
+        d[p] = dlog[p] - (M[second[p]] - M[first[p]]) * inv_step[p]
+    for c in range(J.shape[0]):  # a row at a time: each written in order
+        Jc = J[c]
+        for p in range(n):
+            at[c, p] = (Jc[second[p]] - Jc[first[p]]) * inv_step[p]
+
+
+@njit(cache=True, nogil=True)
+def fill_geometry_bins(xs, ys, geo, radii, mean, comps, slope_profile, M, J):
+    """The bins' part of :func:`fill_geometry_pairs`: the mean field ``M`` (h·w,) and the
+    derivatives ``J`` (K + E, h·w) by the coefficients and the geometry at each bin."""
     w, h = xs.shape[0], ys.shape[0]
     K, R = comps.shape
     E = geo.shape[0]
-    nc = K + E
     rlast = radii[R - 1]
     step_last = radii[R - 1] - radii[R - 2]
     mean_tail = (mean[R - 1] - mean[R - 2]) / step_last
@@ -152,10 +172,3 @@ def fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, s
             if elliptical:
                 J[K + 2, b] = slope * 0.5 * (dx * dx - dy * dy) / rho
                 J[K + 3, b] = slope * dx * dy / rho
-    n = first.shape[0]
-    for p in range(n):
-        d[p] = dlog[p] - (M[second[p]] - M[first[p]]) * inv_step[p]
-    for c in range(nc):  # a row at a time: each written in order
-        Jc = J[c]
-        for p in range(n):
-            at[c, p] = (Jc[second[p]] - Jc[first[p]]) * inv_step[p]

@@ -96,19 +96,27 @@ def irls_into(at, d, weight, c0, pinv, prior, scale, inv_s, iterations, toleranc
     c = c0.copy()
     for _ in range(iterations):
         weighted_normal(at, d, weight, c, inv_s, H, g, scratch)
-        A = H * scale + pinv
-        b = g * scale + prior
-        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
-            # what LAPACK gives for such a system, without its refusal here
-            c[:] = np.nan
-            break
-        c_new = np.linalg.solve(A, b)
-        if relaxation != 1.0:
-            c_new = c + relaxation * (c_new - c)
-        move = 0.0
-        for k in range(n_watch):
-            move = max(move, abs(c_new[k] - c[k]))
-        c = c_new
-        if move < tolerance:
+        c, move, finite = solved_step(H, g, c, pinv, prior, scale, n_watch, relaxation)
+        if not finite or move < tolerance:
             break
     return c
+
+
+@njit(cache=True, nogil=True)
+def solved_step(H, g, c, pinv, prior, scale, n_watch, relaxation):
+    """One IRLS step from its sums ``H``, ``g`` at ``c``: the solution of
+    (H·scale + Λ) c' = g·scale + Λμ (``pinv`` = Λ, ``prior`` = Λμ), moved ``relaxation`` times
+    as far from c, the largest move of its first ``n_watch`` coefficients, and whether the
+    system was finite (if not: NaNs, and the loop stops)."""
+    A = H * scale + pinv
+    b = g * scale + prior
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        # what LAPACK gives for such a system, without its refusal here
+        return np.full(c.shape[0], np.nan), np.nan, False
+    c_new = np.linalg.solve(A, b)
+    if relaxation != 1.0:
+        c_new = c + relaxation * (c_new - c)
+    move = 0.0
+    for k in range(n_watch):
+        move = max(move, abs(c_new[k] - c[k]))
+    return c_new, move, True
