@@ -87,7 +87,9 @@ def slot_data(M, offs, invs, dl, out):
             out[q, v] = 0.0
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+# error_model numpy: no zero test at each division (1 + r² ≥ 1), which kept the weights' loop
+# from being vectorised; the same bits
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def bin_normal(J, ds, wt, offs, invs, c, inv_s, H, g, scratch):
     """Fill ``H`` (K×K, symmetric) with Σ w·a·aᵀ and ``g`` (K) with Σ w·a·d over the pairs,
     w = wt / (1 + ((d − a·c)·inv_s)²), summed over the bins: H = Jᵀ·(L·J), g = Jᵀ·z.
