@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from vigproc.core._kernels.robust import CAUCHY, HUBER, normal_equations
+from vigproc.core._kernels.robust import CAUCHY, HUBER, POWER, normal_equations
 from vigproc.core.estimate import OffCentreRule, _off_centre_choice
 from vigproc.core.family_fit import (FamilySettings, _geometry_columns, _geometry_pairs, fit_family, fit_off_centre,
                                      corner_radius, luminance_copy, off_centre_fit, pairs_at, settings_index,
@@ -295,3 +295,20 @@ def test_normal_equations_over_bins_are_the_sums_over_pairs(geo):
     np.testing.assert_allclose(Hm, want_H, rtol=1e-12, atol=1e-12 * np.abs(want_H).max())
     np.testing.assert_allclose(g, want_g, rtol=1e-12, atol=1e-12 * np.abs(want_g).max())
     np.testing.assert_array_equal(Hm, Hm.T)
+
+
+@pytest.mark.parametrize("kind", [CAUCHY, HUBER, POWER])
+def test_robust_normal_equations_without_the_loss_are_the_same_system(kind):
+    """The system without its loss (what the Levenberg-Marquardt steps read) is the system
+    with it, bit for bit, and states no loss."""
+    rng = np.random.default_rng(5)
+    h, w, n = 19, 27, 12
+    L, F = rng.normal(size=(h, w)) * 0.05, rng.normal(size=(h, w)) * 0.05
+    J = rng.normal(size=(h, w, n))
+    valid = rng.random((h, w)) > 0.15
+    steps, sigma = np.array([1, 2, 4], dtype=np.int64), np.array([0.02, 0.03, 0.05])
+    H1, g1, loss, n1 = normal_equations(L, valid, F, J, steps, sigma, kind)
+    H2, g2, none, n2 = normal_equations(L, valid, F, J, steps, sigma, kind, False)
+    np.testing.assert_array_equal(H1, H2)
+    np.testing.assert_array_equal(g1, g2)
+    assert n1 == n2 > 0 and math.isfinite(loss) and math.isnan(none)
