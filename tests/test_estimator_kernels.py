@@ -312,3 +312,14 @@ def test_robust_normal_equations_without_the_loss_are_the_same_system(kind):
     np.testing.assert_array_equal(H1, H2)
     np.testing.assert_array_equal(g1, g2)
     assert n1 == n2 > 0 and math.isfinite(loss) and math.isnan(none)
+
+
+def test_robust_pair_count_is_the_loss_s():
+    """The pairs counted alone are the pairs the robust loss sums over."""
+    from vigproc.core._kernels.robust import count_pairs, robust_loss
+
+    rng = np.random.default_rng(6)
+    valid = rng.random((21, 33)) > 0.2
+    steps = np.array([1, 2, 4], dtype=np.int64)
+    L, F = rng.normal(size=valid.shape), rng.normal(size=valid.shape)
+    assert count_pairs(valid, steps) == robust_loss(L, valid, F, steps, np.full(3, 0.02))[1] > 0

@@ -46,6 +46,7 @@ from vigproc.core._kernels.robust import (
     HUBER,
     POWER,
     POWER_EXPONENT,
+    count_pairs,
     normal_equations,
     pair_residuals,
     robust_loss,
@@ -488,7 +489,7 @@ def fit_robust(wc: RobustWorkingCopy, s: RobustSettings,
     J = np.empty((h, w, 12))
     kw_field_and_jacobian(wc.xs, wc.ys, _to_model(phi), F, J)
     sigma = _robust_scales(wc, F, steps, s.sigma_scale)
-    _, npairs = robust_loss(wc.L, wc.valid, F, steps, sigma)
+    npairs = count_pairs(wc.valid, steps)
     scale = s.n_eff / max(npairs, 1)  # data worth n_eff independent observations
     if s.loss == "power":
         # hyper-Laplacian likelihood exp(−|e/λ|^p), smoothed below ε: ρ = (ε/λ)^p·(1+(e/ε)²)^(p/2)

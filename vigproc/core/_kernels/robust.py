@@ -73,6 +73,25 @@ def robust_loss(L, valid, F, steps, sigma, kind=CAUCHY):
     return loss, n
 
 
+@njit(cache=True, nogil=True)
+def count_pairs(valid, steps):
+    """The number of pairs :func:`robust_loss` sums over (it depends on the usable bins
+    alone: no residual, no logarithm)."""
+    h, w = valid.shape
+    n = 0
+    for si in range(steps.shape[0]):
+        s = steps[si]
+        for j in range(h):
+            for i in range(w):
+                if not valid[j, i]:
+                    continue
+                if i + s < w and valid[j, i + s]:
+                    n += 1
+                if j + s < h and valid[j + s, i]:
+                    n += 1
+    return n
+
+
 #: Pairs gathered before their products are summed (:func:`normal_equations`): their
 #: regressors' differences (12 × 256 floats) stay in the first-level cache.
 _CHUNK = 256
