@@ -154,19 +154,25 @@ def bin_normal(J, ds, wt, offs, invs, c, inv_s, H, g, scratch):
         for v in range(nb):
             LJ[v] = 0.0
         # (L·J_k)[v] = Σ over v's edges of their weight × (J_k[v] − J_k[the other end]),
-        # differences first: J's range across the frame is far larger than a step's change
+        # differences first: J's range across the frame is far larger than a step's change.
+        # Per offset one pass over the bins with an edge on both sides, the ends apart
         for q in range(Q):
             o = offs[q]
-            m = nb - o
-            Vq = V[q, :m]
-            Jlo = Jk[:m]
-            Jhi = Jk[o:]
-            Llo = LJ[:m]
-            Lhi = LJ[o:]
-            for v in range(m):
-                Llo[v] += Vq[v] * (Jlo[v] - Jhi[v])
-            for v in range(m):
-                Lhi[v] += Vq[v] * (Jhi[v] - Jlo[v])
+            Vq = V[q]
+            for v in range(min(o, nb - o)):  # no edge below
+                LJ[v] += Vq[v] * (Jk[v] - Jk[v + o])
+            for v in range(max(nb - o, o), nb):  # no edge above
+                LJ[v] += Vq[v - o] * (Jk[v] - Jk[v - o])
+            m = nb - 2 * o
+            if m > 0:
+                Lc = LJ[o:nb - o]
+                Jc = Jk[o:nb - o]
+                Jup = Jk[2 * o:]
+                Jdn = Jk[:m]
+                Vc = Vq[o:nb - o]
+                Vdn = Vq[:m]
+                for v in range(m):
+                    Lc[v] += Vc[v] * (Jc[v] - Jup[v]) + Vdn[v] * (Jc[v] - Jdn[v])
         for m in range(k, K):
             Jm = J[m]
             s = 0.0
