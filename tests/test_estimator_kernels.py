@@ -323,3 +323,32 @@ def test_robust_pair_count_is_the_loss_s():
     steps = np.array([1, 2, 4], dtype=np.int64)
     L, F = rng.normal(size=valid.shape), rng.normal(size=valid.shape)
     assert count_pairs(valid, steps) == robust_loss(L, valid, F, steps, np.full(3, 0.02))[1] > 0
+
+
+def test_normal_equations_over_bins_on_a_copy_shorter_than_two_steps():
+    """A working copy only 5 bins high with steps up to 4: most bins have an edge on one
+    side only or none (the ends of L·J's passes overlap); random regressors and weights,
+    some bins unusable: the sums over bins are still the sums over pairs."""
+    from vigproc.core._kernels.bin_normal import bin_normal, pair_slots, slot_data
+    from vigproc.core.family_fit import pair_index
+
+    rng = np.random.default_rng(7)
+    h, w, K = 5, 7, 4
+    L = 0.05 * rng.standard_normal((h, w))
+    valid = rng.random((h, w)) > 0.2
+    index = pair_index(L, valid, np.array([1, 2, 4]), np.zeros((h, w), dtype=np.int64), None, 0.0)
+    weight = rng.uniform(0.1, 1.0, index.first.size)
+    J, M = rng.standard_normal((K, h * w)), rng.standard_normal(h * w)
+    c = 0.1 * rng.standard_normal(K)
+    a = ((J[:, index.second] - J[:, index.first]) * index.inv_step).T
+    d = index.dlog - (M[index.second] - M[index.first]) * index.inv_step
+    wt = weight / (1.0 + ((d - a @ c) / 0.01) ** 2)
+    want_H, want_g = (a.T * wt) @ a, (a.T * wt) @ d
+    offs, invs, dl, sw = pair_slots(index.first, index.second, index.inv_step, index.dlog, weight, h * w)
+    assert max(offs) > h * w / 2
+    ds = np.empty(dl.shape)
+    slot_data(M, offs, invs, dl, ds)
+    Hm, g = np.full((K, K), np.nan), np.full(K, np.nan)
+    bin_normal(J, ds, sw, offs, invs, c, 100.0, Hm, g, np.empty((2 * offs.size + 3, h * w)))
+    np.testing.assert_allclose(Hm, want_H, rtol=1e-12, atol=1e-12 * np.abs(want_H).max())
+    np.testing.assert_allclose(g, want_g, rtol=1e-12, atol=1e-12 * np.abs(want_g).max())
