@@ -843,8 +843,9 @@ def _geometry_fit(index: PairIndex, X, Y, fam: LensFamily, c, pm, pinv, settings
     """Gauss-Newton on the fall-off's centre u (and, ``elliptical``, its shape (e1, e2)),
     four IRLS steps of the family coefficients inside each (:func:`_geometry_columns`;
     a step is shortened so that |e| stays within :data:`MAX_ELLIPTICITY`): one compiled
-    loop (:mod:`vigproc.core._kernels.gauss_newton`) over :func:`_geometry_pairs` and
-    :func:`_solve`'s steps.
+    loop (:mod:`vigproc.core._kernels.gauss_newton`) over :func:`_geometry_pairs`' values and
+    :func:`_solve`'s steps, each step's sums over the bins instead of the pairs
+    (:mod:`vigproc.core._kernels.bin_normal`: the same fit up to rounding).
 
     Returns the coefficients, the geometry (u, or u and e), the last step's pairs,
     solution and prior mean (for the jackknife), and the number of steps taken.

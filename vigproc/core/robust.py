@@ -46,6 +46,7 @@ from vigproc.core._kernels.robust import (
     HUBER,
     POWER,
     POWER_EXPONENT,
+    count_pairs,
     normal_equations,
     pair_residuals,
     robust_loss,
@@ -296,7 +297,7 @@ def quadratic_start(wc: RobustWorkingCopy, steps: np.ndarray, iters: int = 6) ->
     F = np.zeros_like(wc.L)
     sigma = _robust_scales(wc, F, steps)
     for it in range(iters):
-        H, g, _, n = normal_equations(wc.L, wc.valid, F, B, steps, sigma)
+        H, g, _, n = normal_equations(wc.L, wc.valid, F, B, steps, sigma, CAUCHY, False)
         if n == 0:
             break
         beta = beta + np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(5), g)
@@ -488,7 +489,7 @@ def fit_robust(wc: RobustWorkingCopy, s: RobustSettings,
     J = np.empty((h, w, 12))
     kw_field_and_jacobian(wc.xs, wc.ys, _to_model(phi), F, J)
     sigma = _robust_scales(wc, F, steps, s.sigma_scale)
-    _, npairs = robust_loss(wc.L, wc.valid, F, steps, sigma)
+    npairs = count_pairs(wc.valid, steps)
     scale = s.n_eff / max(npairs, 1)  # data worth n_eff independent observations
     if s.loss == "power":
         # hyper-Laplacian likelihood exp(−|e/λ|^p), smoothed below ε: ρ = (ε/λ)^p·(1+(e/ε)²)^(p/2)
@@ -503,7 +504,7 @@ def fit_robust(wc: RobustWorkingCopy, s: RobustSettings,
     for it in range(1, s.max_iter + 1):
         theta = _to_model(phi)
         kw_field_and_jacobian(wc.xs, wc.ys, theta, F, J)
-        Hd, gd, _, _ = normal_equations(wc.L, wc.valid, F, J, steps, sigma, _kind(s))
+        Hd, gd, _, _ = normal_equations(wc.L, wc.valid, F, J, steps, sigma, _kind(s), False)
         Hc, gc, _ = _constraint_system(theta, wc, penalty_w)
         T = _chain(phi)
         Hp, gp, _ = _prior_system(phi, s)
@@ -539,7 +540,7 @@ def fit_robust(wc: RobustWorkingCopy, s: RobustSettings,
     # parameters, mapped back through the chain rule).
     theta = _to_model(phi)
     kw_field_and_jacobian(wc.xs, wc.ys, theta, F, J)
-    Hd, _, _, _ = normal_equations(wc.L, wc.valid, F, J, steps, sigma, _kind(s))
+    Hd, _, _, _ = normal_equations(wc.L, wc.valid, F, J, steps, sigma, _kind(s), False)
     T = _chain(phi)
     Hp, _, _ = _prior_system(phi, s)
     info = T.T @ (scale * Hd) @ T + Hp

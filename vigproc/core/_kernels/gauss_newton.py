@@ -1,17 +1,19 @@
 """Numba kernel of the lens family's centre and shape fit: the whole Gauss-Newton loop of
 :func:`vigproc.core.family_fit._geometry_fit` in one compiled call.
 
-Each step is :func:`vigproc.core._kernels.geometry.fill_geometry_pairs` (the pairs' data and
-regressors at the current centre, shape and coefficients) and four IRLS steps
-(:func:`vigproc.core._kernels.irls.irls_into`), in the order and with the arithmetic of the
-Python loop it replaces (the same bits, ``tests/test_estimator_kernels.py``). What it saves
-is the loop's own cost: the pairs' data, regressors and IRLS scratch (about 2 MB a step for
-a 96-px working copy) made once a fit rather than at every step, and a dozen small NumPy
-calls a step (about 5 % of the off-centre path's user time, docs/benchmarks/speed.md).
+Each step is :func:`vigproc.core._kernels.geometry.fill_geometry_bins` (the field and its
+derivatives by the coefficients and the geometry at each bin, at the current centre, shape
+and coefficients) and four IRLS steps whose sums run over the bins
+(:func:`vigproc.core._kernels.bin_normal.bin_irls_into`), in the order of the Python loop
+it replaces: the same fit up to the rounding of those sums (``tests/test_estimator_kernels.py``).
+What it saves is the loop's own cost: the pairs as slots over the bins and the IRLS scratch
+made once a fit rather than at every step, and a dozen small NumPy calls a step; and,
+summed over bins, no K + E regressors per pair at each step (about 2 MB for a 96-px working
+copy), which only the last step's pairs are differenced into (for the jackknife).
 
-Numba caches this kernel with :func:`~vigproc.core._kernels.geometry.fill_geometry_pairs`
-compiled into it, and checks only this file's time stamp: a change to geometry.py
-needs a change here too, or the old code stays cached.
+Numba caches this kernel with :mod:`~vigproc.core._kernels.geometry`'s and
+:mod:`~vigproc.core._kernels.bin_normal`'s compiled into it, and checks only this file's
+time stamp: a change to either needs a change here too, or the old code stays cached.
 """
 
 from __future__ import annotations
@@ -21,8 +23,8 @@ import math
 import numpy as np
 from numba import njit
 
-from vigproc.core._kernels.geometry import fill_geometry_pairs
-from vigproc.core._kernels.irls import irls_into
+from vigproc.core._kernels.bin_normal import bin_irls_into, pair_slots, slot_data
+from vigproc.core._kernels.geometry import difference_pairs, fill_geometry_bins
 
 
 @njit(cache=True, nogil=True)
@@ -75,18 +77,18 @@ def geometry_gauss_newton(xs, ys, geo0, radii, mean, comps, grad_mean, grad_comp
         Steps taken (a step whose solution is not finite is not counted, and ends the loop).
     """
     K = comps.shape[0]
-    R = radii.shape[0]
     E = geo0.shape[0]
     nc = K + E
     n = first.shape[0]
     nb = xs.shape[0] * ys.shape[0]
     M = np.empty(nb)
     J = np.empty((nc, nb))
-    d = np.empty(n)
-    at = np.empty((nc, n))
+    # the pairs as slots over the bins: each step's sums over bins (bin_normal), not pairs
+    offs, invs, dl, wt = pair_slots(first, second, inv_step, dlog, weight, nb)
+    ds = np.empty(dl.shape)
     H = np.empty((nc, nc))
     g = np.empty(nc)
-    scratch = np.empty((2, n))
+    scratch = np.empty((2 * offs.shape[0] + 3, nb))
     x0 = np.zeros(nc)
     pm_it = pm.copy()
     geo = geo0.copy()
@@ -95,7 +97,8 @@ def geometry_gauss_newton(xs, ys, geo0, radii, mean, comps, grad_mean, grad_comp
     steps = 0
     for _ in range(iterations):
         slope = grad_mean + np.dot(coef, grad_comps)
-        fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope, first, second, inv_step, dlog, M, J, d, at)
+        fill_geometry_bins(xs, ys, geo, radii, mean, comps, slope, M, J)
+        slot_data(M, offs, invs, dl, ds)
         for k in range(K):
             x0[k] = coef[k]
         for k in range(K, nc):
@@ -104,8 +107,8 @@ def geometry_gauss_newton(xs, ys, geo0, radii, mean, comps, grad_mean, grad_comp
             pm_it[k] = pm[k]
         for k in range(E):
             pm_it[K + k] = -geo[k]  # the prior is on the geometry, not on the step
-        sol = irls_into(at, d, weight, x0, pinv, np.dot(pinv, pm_it), scale, inv_s, inner, inner_tolerance, nc, 1.0,
-                        H, g, scratch)
+        sol = bin_irls_into(J, ds, wt, offs, invs, x0, pinv, np.dot(pinv, pm_it), scale, inv_s, inner,
+                            inner_tolerance, nc, H, g, scratch)
         if not np.all(np.isfinite(sol)):
             break
         steps += 1
@@ -124,4 +127,8 @@ def geometry_gauss_newton(xs, ys, geo0, radii, mean, comps, grad_mean, grad_comp
             move = max(move, abs(sol[K + k]))
         if move < tolerance:
             break
+    # the last step's pairs, from its bins (M and J are still the last step's)
+    d = np.empty(n)
+    at = np.empty((nc, n))
+    difference_pairs(M, J, first, second, inv_step, dlog, d, at)
     return coef, geo, d, at, sol, pm_it, steps

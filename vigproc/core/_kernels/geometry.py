@@ -63,6 +63,26 @@ def _interp_at(lo, x, xp, fp):
     return slope * (x - xp[lo]) + fp[lo]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _interp_sloped(lo, x, xp, fp, slopes):
+    """:func:`_interp_at` with its interval's slope looked up in ``slopes``
+    (:func:`_interval_slopes`): the same bits, without a division."""
+    if lo == xp.shape[0] - 1 or xp[lo] == x:
+        return fp[lo]
+    return slopes[lo] * (x - xp[lo]) + fp[lo]
+
+
+@njit(cache=True, nogil=True)
+def _interval_slopes(xp, fp):
+    """Each interval's slope of ``fp`` over ``xp``, in :func:`_interp_at`'s arithmetic (as
+    ``np.interp`` tabulates them for many points)."""
+    n = xp.shape[0]
+    out = np.zeros(n)
+    for lo in range(n - 1):
+        out[lo] = (fp[lo + 1] - fp[lo]) / (xp[lo + 1] - xp[lo])
+    return out
+
+
 @njit(cache=True, nogil=True)
 def geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, second, inv_step, dlog):
     """The pairs' data and regressors of one Gauss-Newton step.
@@ -104,10 +124,30 @@ def fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, s
     """:func:`geometry_pairs` written into the caller's arrays: ``M`` (h·w,) and ``J``
     (K + E, h·w) scratch over the bins, ``d`` (n,) and ``at`` (K + E, n) the result (a
     Gauss-Newton loop reuses them at every step)."""
+    fill_geometry_bins(xs, ys, geo, radii, mean, comps, slope_profile, M, J)
+    difference_pairs(M, J, first, second, inv_step, dlog, d, at)
+
+
+@njit(cache=True, nogil=True)
+def difference_pairs(M, J, first, second, inv_step, dlog, d, at):
+    """Fill the pairs' data ``d`` (n,) (``dlog`` less the field ``M``'s difference per unit
+    step) and regressors ``at`` (K + E, n) (``J``'s rows differenced) from the bins' values."""
+    n = first.shape[0]
+    for p in range(n):
+        d[p] = dlog[p] - (M[second[p]] - M[first[p]]) * inv_step[p]
+    for c in range(J.shape[0]):  # a row at a time: each written in order
+        Jc = J[c]
+        for p in range(n):
+            at[c, p] = (Jc[second[p]] - Jc[first[p]]) * inv_step[p]
+
+
+@njit(cache=True, nogil=True)
+def fill_geometry_bins(xs, ys, geo, radii, mean, comps, slope_profile, M, J):
+    """The bins' part of :func:`fill_geometry_pairs`: the mean field ``M`` (h·w,) and the
+    derivatives ``J`` (K + E, h·w) by the coefficients and the geometry at each bin."""
     w, h = xs.shape[0], ys.shape[0]
     K, R = comps.shape
     E = geo.shape[0]
-    nc = K + E
     rlast = radii[R - 1]
     step_last = radii[R - 1] - radii[R - 2]
     mean_tail = (mean[R - 1] - mean[R - 2]) / step_last
@@ -122,6 +162,12 @@ def fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, s
     for r in range(R - 1):
         even = even and radii[r + 1] > radii[r]
     inv_dr = (R - 1) / (radii[R - 1] - radii[0]) if even else 0.0
+    # the profiles' slopes per interval, divided once a call rather than at every bin
+    mean_sl = _interval_slopes(radii, mean)
+    comp_sl = np.empty((K, R))
+    for k in range(K):
+        comp_sl[k] = _interval_slopes(radii, comps[k])
+    slope_sl = _interval_slopes(radii, slope_profile)
     elliptical = E == 4
     e1 = geo[2] if elliptical else 0.0
     e2 = geo[3] if elliptical else 0.0
@@ -142,20 +188,13 @@ def fill_geometry_pairs(xs, ys, geo, radii, mean, comps, slope_profile, first, s
             past = max(rho - rlast, 0.0)
             # one search for every profile at this bin
             lo = _locate_near(rho, radii, inv_dr) if even else _locate(rho, radii)
-            M[b] = _interp_at(lo, rho, radii, mean) + past * mean_tail
+            M[b] = _interp_sloped(lo, rho, radii, mean, mean_sl) + past * mean_tail
             for k in range(K):
-                J[k, b] = _interp_at(lo, rho, radii, comps[k]) + past * comp_tail[k]
+                J[k, b] = _interp_sloped(lo, rho, radii, comps[k], comp_sl[k]) + past * comp_tail[k]
             # the slope at min(ρ, 1): past the last radius, its last value
-            slope = _interp_at(lo, rho, radii, slope_profile) if rho < 1.0 else slope_1
+            slope = _interp_sloped(lo, rho, radii, slope_profile, slope_sl) if rho < 1.0 else slope_1
             J[K, b] = -slope * gx / rho
             J[K + 1, b] = -slope * gy / rho
             if elliptical:
                 J[K + 2, b] = slope * 0.5 * (dx * dx - dy * dy) / rho
                 J[K + 3, b] = slope * dx * dy / rho
-    n = first.shape[0]
-    for p in range(n):
-        d[p] = dlog[p] - (M[second[p]] - M[first[p]]) * inv_step[p]
-    for c in range(nc):  # a row at a time: each written in order
-        Jc = J[c]
-        for p in range(n):
-            at[c, p] = (Jc[second[p]] - Jc[first[p]]) * inv_step[p]

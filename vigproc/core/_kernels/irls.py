@@ -14,7 +14,9 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+# error_model numpy: no zero test at each division (1 + r² ≥ 1), which kept the weights' loop
+# from being vectorised; the same bits
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def weighted_normal(at, d, weight, c, inv_s, H, g, wa):
     """Fill ``H`` (K×K, symmetric) with Σ w·a·aᵀ and ``g`` (K) with Σ w·a·d, where
     w = weight / (1 + ((d − a·c)·inv_s)²).
@@ -96,19 +98,27 @@ def irls_into(at, d, weight, c0, pinv, prior, scale, inv_s, iterations, toleranc
     c = c0.copy()
     for _ in range(iterations):
         weighted_normal(at, d, weight, c, inv_s, H, g, scratch)
-        A = H * scale + pinv
-        b = g * scale + prior
-        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
-            # what LAPACK gives for such a system, without its refusal here
-            c[:] = np.nan
-            break
-        c_new = np.linalg.solve(A, b)
-        if relaxation != 1.0:
-            c_new = c + relaxation * (c_new - c)
-        move = 0.0
-        for k in range(n_watch):
-            move = max(move, abs(c_new[k] - c[k]))
-        c = c_new
-        if move < tolerance:
+        c, move, finite = solved_step(H, g, c, pinv, prior, scale, n_watch, relaxation)
+        if not finite or move < tolerance:
             break
     return c
+
+
+@njit(cache=True, nogil=True)
+def solved_step(H, g, c, pinv, prior, scale, n_watch, relaxation):
+    """One IRLS step from its sums ``H``, ``g`` at ``c``: the solution of
+    (H·scale + Λ) c' = g·scale + Λμ (``pinv`` = Λ, ``prior`` = Λμ), moved ``relaxation`` times
+    as far from c, the largest move of its first ``n_watch`` coefficients, and whether the
+    system was finite (if not: NaNs, and the loop stops)."""
+    A = H * scale + pinv
+    b = g * scale + prior
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        # what LAPACK gives for such a system, without its refusal here
+        return np.full(c.shape[0], np.nan), np.nan, False
+    c_new = np.linalg.solve(A, b)
+    if relaxation != 1.0:
+        c_new = c + relaxation * (c_new - c)
+    move = 0.0
+    for k in range(n_watch):
+        move = max(move, abs(c_new[k] - c[k]))
+    return c_new, move, True

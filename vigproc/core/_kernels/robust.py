@@ -28,14 +28,25 @@ POWER_EXPONENT = 0.8
 def _rho_w(u2, kind):
     """Loss ρ and IRLS weight w (with ρ'(u) ∝ w·u) for squared normalised residual u²."""
     if kind == CAUCHY:
-        return np.log1p(u2), 1.0 / (1.0 + u2)
+        return np.log1p(u2), _weight(u2, kind)
     if kind == POWER:
         t = (1.0 + u2) ** (0.5 * POWER_EXPONENT - 1.0)
-        return t * (1.0 + u2) - 1.0, 0.5 * POWER_EXPONENT * t
+        return t * (1.0 + u2) - 1.0, _weight(u2, kind)
     if u2 <= 1.0:
         return 0.5 * u2, 1.0
-    a = np.sqrt(u2)
-    return a - 0.5, 1.0 / a
+    return np.sqrt(u2) - 0.5, _weight(u2, kind)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _weight(u2, kind):
+    """:func:`_rho_w`'s weight alone (the loss's logarithm or power is most of its cost)."""
+    if kind == CAUCHY:
+        return 1.0 / (1.0 + u2)
+    if kind == POWER:
+        return 0.5 * POWER_EXPONENT * (1.0 + u2) ** (0.5 * POWER_EXPONENT - 1.0)
+    if u2 <= 1.0:
+        return 1.0
+    return 1.0 / np.sqrt(u2)
 
 
 @njit(cache=True, nogil=True)
@@ -60,6 +71,25 @@ def robust_loss(L, valid, F, steps, sigma, kind=CAUCHY):
                     loss += _rho_w(e * e * inv, kind)[0]
                     n += 1
     return loss, n
+
+
+@njit(cache=True, nogil=True)
+def count_pairs(valid, steps):
+    """The number of pairs :func:`robust_loss` sums over (it depends on the usable bins
+    alone: no residual, no logarithm)."""
+    h, w = valid.shape
+    n = 0
+    for si in range(steps.shape[0]):
+        s = steps[si]
+        for j in range(h):
+            for i in range(w):
+                if not valid[j, i]:
+                    continue
+                if i + s < w and valid[j, i + s]:
+                    n += 1
+                if j + s < h and valid[j + s, i]:
+                    n += 1
+    return n
 
 
 #: Pairs gathered before their products are summed (:func:`normal_equations`): their
@@ -89,7 +119,7 @@ def _flush(H, g, D, we, e, m):
 
 
 @njit(cache=True, nogil=True)
-def normal_equations(L, valid, F, J, steps, sigma, kind=CAUCHY):
+def normal_equations(L, valid, F, J, steps, sigma, kind=CAUCHY, with_loss=True):
     """IRLS Gauss-Newton system for the robust loss ``kind``.
 
     The pairs are gathered a chunk at a time and each sum is a reduction over the
@@ -100,7 +130,8 @@ def normal_equations(L, valid, F, J, steps, sigma, kind=CAUCHY):
     -------
     H : (n, n) Σ w/σ² j jᵀ over pairs (j = ΔJ), symmetric
     g : (n,)   Σ w/σ² j e
-    loss : Σ ρ(e)
+    loss : Σ ρ(e); NaN without ``with_loss`` (the Cauchy loss's logarithm at every pair
+        was a third of the time of a system whose loss the caller does not read)
     n_pairs : int
     """
     h, w = L.shape
@@ -128,8 +159,11 @@ def normal_equations(L, valid, F, J, steps, sigma, kind=CAUCHY):
                     if i2 >= w or j2 >= h or not valid[j2, i2]:
                         continue
                     e = (L[j2, i2] - L[j, i]) - (F[j2, i2] - F[j, i])
-                    rho, wt = _rho_w(e * e * inv, kind)
-                    loss += rho
+                    if with_loss:
+                        rho, wt = _rho_w(e * e * inv, kind)
+                        loss += rho
+                    else:
+                        wt = _weight(e * e * inv, kind)
                     npairs += 1
                     for a in range(n):
                         D[a, m] = J[j2, i2, a] - J[j, i, a]
@@ -144,7 +178,7 @@ def normal_equations(L, valid, F, J, steps, sigma, kind=CAUCHY):
     for a in range(n):
         for b in range(a):
             H[a, b] = H[b, a]
-    return H, g, loss, npairs
+    return H, g, loss if with_loss else np.nan, npairs
 
 
 @njit(cache=True, nogil=True)
