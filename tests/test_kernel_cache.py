@@ -57,6 +57,16 @@ def test_a_new_kernel_file_counts_as_a_change(tmp_path):
     assert guard.check_cache(str(src), str(cache)) and not (cache / CACHE_FILES[0]).exists()
 
 
+def test_a_cache_folder_not_made_yet_gets_the_stamp(tmp_path):
+    # a fresh install: Numba makes its folder at its first save, after the guard ran;
+    # without a stamp then, the next import would flush what the first one compiled
+    src, _ = _folders(tmp_path)
+    cache = tmp_path / "not-yet" / "__pycache__"
+    assert guard.check_cache(str(src), str(cache))
+    assert (cache / guard.STAMP).read_text().strip() == guard.sources_digest(guard.kernel_sources(str(src)))
+    assert not guard.check_cache(str(src), str(cache))
+
+
 def test_an_unwritable_cache_folder_does_not_raise(tmp_path, monkeypatch, caplog):
     src, cache = _folders(tmp_path)
     (src / "b.py").write_text("def b(x):\n    return x + 2\n")

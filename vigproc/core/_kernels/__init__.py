@@ -79,6 +79,9 @@ def flush_if_stale(folder: str, cache_dir: str) -> bool:
                 return False
     except FileNotFoundError:
         pass
+    # Numba makes the folder at its first save; a stamp written before that spares the
+    # kernels one needless recompilation at the next import
+    os.makedirs(cache_dir, exist_ok=True)
     with os.scandir(cache_dir) as entries:
         stale = [e.path for e in entries if e.name.endswith(CACHE_SUFFIXES)]
     for path in stale:
