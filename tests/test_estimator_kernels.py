@@ -325,18 +325,17 @@ def test_robust_pair_count_is_the_loss_s():
     assert count_pairs(valid, steps) == robust_loss(L, valid, F, steps, np.full(3, 0.02))[1] > 0
 
 
-def test_normal_equations_over_bins_on_a_copy_shorter_than_two_steps():
-    """A working copy only 5 bins high with steps up to 4: most bins have an edge on one
-    side only or none (the ends of L·J's passes overlap); random regressors and weights,
-    some bins unusable: the sums over bins are still the sums over pairs."""
+def _bins_against_pairs(h, w, steps, seed, K=4):
+    """The sums over bins of a random h×w copy's pairs with ``steps`` (random regressors,
+    weights and field, some bins unusable) against the sums over its pairs: (H, g) of both,
+    and the slots' offsets."""
     from vigproc.core._kernels.bin_normal import bin_normal, pair_slots, slot_data
     from vigproc.core.family_fit import pair_index
 
-    rng = np.random.default_rng(7)
-    h, w, K = 5, 7, 4
+    rng = np.random.default_rng(seed)
     L = 0.05 * rng.standard_normal((h, w))
     valid = rng.random((h, w)) > 0.2
-    index = pair_index(L, valid, np.array([1, 2, 4]), np.zeros((h, w), dtype=np.int64), None, 0.0)
+    index = pair_index(L, valid, np.array(steps), np.zeros((h, w), dtype=np.int64), None, 0.0)
     weight = rng.uniform(0.1, 1.0, index.first.size)
     J, M = rng.standard_normal((K, h * w)), rng.standard_normal(h * w)
     c = 0.1 * rng.standard_normal(K)
@@ -345,10 +344,39 @@ def test_normal_equations_over_bins_on_a_copy_shorter_than_two_steps():
     wt = weight / (1.0 + ((d - a @ c) / 0.01) ** 2)
     want_H, want_g = (a.T * wt) @ a, (a.T * wt) @ d
     offs, invs, dl, sw = pair_slots(index.first, index.second, index.inv_step, index.dlog, weight, h * w)
-    assert max(offs) > h * w / 2
     ds = np.empty(dl.shape)
     slot_data(M, offs, invs, dl, ds)
     Hm, g = np.full((K, K), np.nan), np.full(K, np.nan)
     bin_normal(J, ds, sw, offs, invs, c, 100.0, Hm, g, np.empty((2 * offs.size + 3, h * w)))
-    np.testing.assert_allclose(Hm, want_H, rtol=1e-12, atol=1e-12 * np.abs(want_H).max())
-    np.testing.assert_allclose(g, want_g, rtol=1e-12, atol=1e-12 * np.abs(want_g).max())
+    return (Hm, g), (want_H, want_g), offs
+
+
+def _assert_same_sums(got, want):
+    for x, y in zip(got, want):
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12 * np.abs(y).max())
+
+
+def test_normal_equations_over_bins_on_a_copy_shorter_than_two_steps():
+    """A working copy only 5 bins high with steps up to 4: most bins have an edge on one
+    side only or none (the ends of L·J's passes overlap); random regressors and weights,
+    some bins unusable: the sums over bins are still the sums over pairs."""
+    got, want, offs = _bins_against_pairs(5, 7, [1, 2, 4], 7)
+    assert max(offs) > 5 * 7 / 2
+    _assert_same_sums(got, want)
+
+
+def test_normal_equations_over_bins_count_a_step_given_twice_twice():
+    """Settings that list a step twice list its pairs twice (:func:`pair_index`), and the
+    sums over pairs, the jackknife's pairs and the centred fit count each twice: so do the
+    sums over bins (the repeated pair's slot was overwritten, counted once)."""
+    got, want, offs = _bins_against_pairs(9, 11, [1, 2, 1, 4, 4], 8)
+    assert sorted(offs) == [1, 2, 4, 11, 22, 44]
+    _assert_same_sums(got, want)
+
+
+def test_normal_equations_over_bins_with_more_than_64_offsets():
+    """Forty steps (eighty offsets) on a 45×50 copy: the slots are not capped at 64 offsets
+    (which raised a ValueError where the sums over pairs had none)."""
+    got, want, offs = _bins_against_pairs(45, 50, list(range(1, 41)), 9)
+    assert len(offs) == 80
+    _assert_same_sums(got, want)

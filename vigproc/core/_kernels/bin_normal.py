@@ -26,7 +26,9 @@ from vigproc.core._kernels.irls import solved_step
 @njit(cache=True, nogil=True)
 def pair_slots(first, second, inv_step, dlog, weight, nb):
     """The pairs laid out as slots: per offset q, ``dl[q, v]`` and ``wt[q, v]`` of the pair
-    (v, v + offs[q]) (0 and 0 where there is none).
+    (v, v + offs[q]) (0 and 0 where there is none). A pair listed more than once (settings
+    that give a step twice) counts as often as the sums over pairs count it: its slot's
+    weight is the sum of its weights (its data are the same each time).
 
     Parameters
     ----------
@@ -43,8 +45,9 @@ def pair_slots(first, second, inv_step, dlog, weight, nb):
     dl, wt : ndarray (Q, nb)
     """
     n = first.shape[0]
-    offs_all = np.empty(64, dtype=np.int64)
-    invs_all = np.empty(64)
+    # at most an offset per pair (not a fixed cap: every step gives two offsets)
+    offs_all = np.empty(max(n, 1), dtype=np.int64)
+    invs_all = np.empty(max(n, 1))
     q_of = np.empty(n, dtype=np.int64)
     Q = 0
     for p in range(n):
@@ -55,8 +58,6 @@ def pair_slots(first, second, inv_step, dlog, weight, nb):
         while q < Q and offs_all[q] != o:
             q += 1
         if q == Q:
-            if Q == 64:
-                raise ValueError("more than 64 pair offsets")
             offs_all[q] = o
             invs_all[q] = inv_step[p]
             Q += 1
@@ -65,10 +66,15 @@ def pair_slots(first, second, inv_step, dlog, weight, nb):
         q_of[p] = q
     dl = np.zeros((Q, nb))
     wt = np.zeros((Q, nb))
+    seen = np.zeros((Q, nb), dtype=np.bool_)
     for p in range(n):
         q = q_of[p]
-        dl[q, first[p]] = dlog[p]
-        wt[q, first[p]] = weight[p]
+        v = first[p]
+        if seen[q, v] and dl[q, v] != dlog[p]:
+            raise ValueError("one pair listed twice with different data")
+        seen[q, v] = True
+        dl[q, v] = dlog[p]
+        wt[q, v] += weight[p]
     return offs_all[:Q].copy(), invs_all[:Q].copy(), dl, wt
 
 

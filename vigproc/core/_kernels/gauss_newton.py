@@ -84,6 +84,7 @@ def geometry_gauss_newton(xs, ys, geo0, radii, mean, comps, grad_mean, grad_comp
     M = np.empty(nb)
     J = np.empty((nc, nb))
     # the pairs as slots over the bins: each step's sums over bins (bin_normal), not pairs
+    # (a pair listed twice, its slot's weight twice: the sums over pairs count it twice)
     offs, invs, dl, wt = pair_slots(first, second, inv_step, dlog, weight, nb)
     ds = np.empty(dl.shape)
     H = np.empty((nc, nc))
