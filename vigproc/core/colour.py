@@ -60,6 +60,10 @@ CHANNELS = ("R", "G", "B")
 SCHEMA = "vigproc.colour/1"
 #: Largest difference between channels at ρ = 1 accepted (EV).
 MAX_SPREAD_EV = 6.0
+#: Fewest usable blocks, and rows and columns of blocks, a flat frame's colour field is
+#: fitted from (its coefficients and centre need more points than they are; a strip of
+#: a frame a block high has none).
+MIN_COLOUR_BLOCKS, MIN_BLOCK_LINES = 16, 2
 _LN2 = math.log(2.0)
 
 
@@ -353,8 +357,9 @@ def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), 
     Returns
     -------
     ColourField or None
-        None when ``max_residual`` is exceeded, or the ratios are no lens's (channels
-        more than :data:`MAX_SPREAD_EV` apart in the corners).
+        None when ``max_residual`` is exceeded, the ratios are no lens's (channels
+        more than :data:`MAX_SPREAD_EV` apart in the corners), or the frame gives fewer
+        usable blocks than :data:`MIN_COLOUR_BLOCKS` (or fewer than two rows or columns).
 
     Raises
     ------
@@ -379,6 +384,9 @@ def fit_colour_field(img: np.ndarray, center: tuple[float, float] = (0.0, 0.0), 
         good = np.all(m > 0, axis=2)
         ok &= good
         acc += np.log(np.where(good[..., None], m, 1.0))
+    if hb < MIN_BLOCK_LINES or wb < MIN_BLOCK_LINES or int(ok.sum()) < MIN_COLOUR_BLOCKS:
+        logger.debug("no colour field: %d usable blocks of %d px in %d x %d", int(ok.sum()), k, wb, hb)
+        return None
     acc /= len(frames)
     # block centres in px from the frame centre
     xs = (np.arange(wb) * k + (k - 1) / 2.0) - (w - 1) / 2.0
