@@ -72,7 +72,9 @@ def test_family_round_trips_and_refuses_junk(tmp_path):
     np.testing.assert_allclose(back.coefficients, fam.coefficients, atol=1e-4)
     d = fam.to_dict()
     for bad in ({**d, "format": 99}, {**d, "mean": d["mean"][:-1]}, {**d, "components": "x"},
-                {k: v for k, v in d.items() if k != "radii"}, {**d, "mean": [math.nan] * N_RADII}):
+                {k: v for k, v in d.items() if k != "radii"}, {**d, "mean": [math.nan] * N_RADII},
+                # a radius twice: the centre fits divided by the gap between them (ZeroDivisionError)
+                {**d, "radii": [d["radii"][0]] + list(d["radii"][:-1])}):
         with pytest.raises(ModelError):
             LensFamily.from_dict(bad)
     with pytest.raises(ModelError):

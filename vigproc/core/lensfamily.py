@@ -216,6 +216,8 @@ class LensFamily:
                 or not all(np.all(np.isfinite(a)) for a in (fam.radii, fam.mean, fam.components,
                                                              fam.coefficients))):
             raise ModelError("lens family arrays have inconsistent shapes or non-finite values")
+        if not np.all(np.diff(fam.radii) > 0):  # the fits interpolate the profile between them
+            raise ModelError("lens family radii do not increase")
         return fam
 
     def save(self, path: str | Path) -> None:
