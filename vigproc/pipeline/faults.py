@@ -85,6 +85,9 @@ DEFAULT_MIN_FREE = 256 * 2**20
 
 _TRANSIENT_ERRNOS = frozenset(getattr(errno, n) for n in ("EAGAIN", "EBUSY", "ESTALE", "ETXTBSY", "EINTR", "ETIMEDOUT",
                                                          "EIO", "ENOLCK") if hasattr(errno, n))
+# errno values that name a write's cause other than room: a read-only file system, a
+# permission; a small or nearly full disk that refuses a write for one of these is not full
+_NOT_ROOM_ERRNOS = frozenset(getattr(errno, n) for n in ("EROFS", "EACCES", "EPERM") if hasattr(errno, n))
 # SQLite's result codes (sqlite3 errors carry them as ``sqlite_errorcode``, Python 3.11+)
 _SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_FULL = 5, 6, 13
 
@@ -284,7 +287,7 @@ def classify_error(exc: BaseException, out_dir: str | os.PathLike[str] | None = 
     if _output_side(exc, folder):
         found = look(folder) if folder is not None else None
         where = f" on {folder}" if folder is not None else ""
-        if found is not None and found.low(min_free):
+        if found is not None and found.low(min_free) and getattr(exc, "errno", None) not in _NOT_ROOM_ERRNOS:
             return Fault(DISK_FULL, f"output disk full ({found.describe()}{where}): {msg}", found)
         free = f"; {found.describe()}{where}" if found is not None else ""
         return Fault(OUTPUT, f"output write failed (not the photo's fault{free}): {msg}", found)
