@@ -188,6 +188,15 @@ def _apply(args: argparse.Namespace, store) -> int:
     return 0
 
 
+def _delete(args: argparse.Namespace, store) -> int:
+    """``profile delete ID``: a stored profile removed, with its pooled frames (they may be
+    learned again), its prior and its applied revision."""
+    p = _pick_profile(store, args.id)
+    store.delete(p.key)
+    print(f"deleted {_profile_line(0, p).split('] ', 1)[1]}")
+    return 0
+
+
 def _export(args: argparse.Namespace, store) -> int:
     """``profile export ID FILE``: a stored profile as a profile file."""
     store.export_file(_pick_profile(store, args.id).key, args.file)  # with its frames' colour casts
@@ -247,6 +256,7 @@ SUBCOMMANDS = {
     "show": _show,
     "learn": _learn,
     "apply": _apply,
+    "delete": _delete,
     "import": _import,
     "export": _export,
     "import-lensfun": _import_lensfun,
