@@ -28,11 +28,7 @@ from vigproc.stores.profiles import (Profile, ProfileKey, ProfileStoreError, _as
 def _profile_line(i: int, p) -> str:
     t = "trusted" if p.trusted else "learning"
     sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
-    # the focal lengths the frames were shot at, not the bin's label, once the store knows them
-    focal = p.shots.describe_focal() if p.shots is not None else None
-    lens = display_lens_id(p.key.lens_id)  # escapes are for storage
-    key = str(p.key).replace(p.key.lens_id, lens, 1) if focal is None else f"{lens} @ {focal} {p.key.aperture_bin} {p.key.aspect}"
-    return f"[{i}] {key}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
+    return f"[{i}] {p.label()}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
 
 
 def _pick_profile(store, ident: str):
