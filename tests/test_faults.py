@@ -296,6 +296,9 @@ def test_a_small_read_only_output_is_not_called_full(tmp_path, tmpfs):
         write_image(out / "refusing to pose.tif", _img())
     f = classify_error(e.value, str(out))  # the default room: 256 MiB, more than the mount
     assert f.kind == OUTPUT and "Read-only file system" in f.reason and "full" not in f.reason, f
+    # and a worker that died writing there (no exception to classify): the same answer
+    t = output_trouble(out)
+    assert t is not None and t.kind == OUTPUT and "read-only" in t.reason, t
 
 
 def test_output_trouble_sees_a_full_a_vanished_and_a_healthy_output(tmp_path, monkeypatch):

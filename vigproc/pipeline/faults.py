@@ -157,18 +157,23 @@ def output_trouble(out_dir: str | os.PathLike[str], min_free: int = DEFAULT_MIN_
     """
     folder = os.fspath(out_dir)
     found = (space or disk_space)(folder)
+    if os.path.isdir(folder):
+        try:
+            read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+        except (OSError, AttributeError):
+            read_only = False
+        # said before the room left: freeing space makes neither writable
+        if read_only or not os.access(folder, os.W_OK):
+            why = "on a read-only file system" if read_only else "not writable"
+            return Fault(OUTPUT, f"the output folder {folder} is {why}", found)
     if found is not None and found.low(min_free):
         return Fault(DISK_FULL, f"output disk full ({found.describe()} on {folder})", found)
     if not os.path.isdir(folder):
         return Fault(OUTPUT, f"the output folder {folder} is gone", found)
-    try:
-        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
-    except (OSError, AttributeError):
-        read_only = False
-    if read_only or not os.access(folder, os.W_OK):
-        why = "on a read-only file system" if read_only else "not writable"
-        return Fault(OUTPUT, f"the output folder {folder} is {why}", found)
     return None
+    if found is not None and found.low(min_free):
+        return Fault(DISK_FULL, f"output disk full ({found.describe()} on {folder})", found)
+    return gone
 
 
 @dataclass(frozen=True)
