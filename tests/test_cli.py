@@ -711,9 +711,9 @@ def test_output_folder_paths_are_taken_as_meant(tmp_path, vignetted_tiff):
 
 def test_correct_given_a_folder_says_how_a_folder_is_given(tmp_path):
     """The README's "Correct a folder of photos": `vigproc correct FOLDER -o OUT` said only
-    "is a directory"; it now names the two ways (its files, or `vigproc batch`)."""
+    "is a directory" and no more; it now names the two ways (its files, or `vigproc batch`)."""
     (tmp_path / "photos").mkdir()
     r = run("correct", str(tmp_path / "photos"), "-o", str(tmp_path / "out"))
     assert r.returncode == 4 and "Traceback" not in r.stderr
-    assert "is a folder" in r.stderr and "photos/*" in r.stderr and "vigproc batch" in r.stderr, r.stderr
+    assert "is a directory (give its photos" in r.stderr and "photos/*" in r.stderr and "vigproc batch" in r.stderr, r.stderr
     assert not (tmp_path / "out").exists()

@@ -274,7 +274,7 @@ def _check_regular_file(path: str) -> int:
         raise ImageReadError(f"cannot read image {_q(path)}: {exc}") from None
     if stat.S_ISDIR(st.st_mode):
         # `vigproc correct FOLDER`: say how a folder is given (the README's "Correct a folder")
-        raise ImageReadError(f"cannot read image {_q(path)}: is a folder (give its photos, "
+        raise ImageReadError(f"cannot read image {_q(path)}: is a directory (give its photos, "
                              f"{os.path.join(str(path), '*')}, or run 'vigproc batch' on it)")
     if not stat.S_ISREG(st.st_mode):
         # FIFOs/devices would block or stream forever.
