@@ -707,3 +707,13 @@ def test_output_folder_paths_are_taken_as_meant(tmp_path, vignetted_tiff):
     assert sorted(p.name for p in work.iterdir()) == [] and (tmp_path / "s" / "dots").is_dir()
     r = run("correct", path, "-o", tmp_path / "d", "--output-format", "dng")
     assert r.returncode == 5 and "needs a DNG input" in r.stderr, r.stderr
+
+
+def test_correct_given_a_folder_says_how_a_folder_is_given(tmp_path):
+    """The README's "Correct a folder of photos": `vigproc correct FOLDER -o OUT` said only
+    "is a directory" and no more; it now names the two ways (its files, or `vigproc batch`)."""
+    (tmp_path / "photos").mkdir()
+    r = run("correct", str(tmp_path / "photos"), "-o", str(tmp_path / "out"))
+    assert r.returncode == 4 and "Traceback" not in r.stderr
+    assert "is a directory (give its photos" in r.stderr and "photos/*" in r.stderr and "vigproc batch" in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()

@@ -283,6 +283,24 @@ def test_a_read_only_output_is_the_output_sides(tmp_path, tmpfs):
     assert t is not None and t.kind == OUTPUT and "read-only" in t.reason
 
 
+@needs_tmpfs
+def test_a_small_read_only_output_is_not_called_full(tmp_path, tmpfs):
+    """EROFS on a file system with less free room than ``min_free`` (it was: `vigproc
+    correct -o RO` on an empty 200 MB read-only mount said "output disk full (209.7 MB
+    free of 209.7 MB ...)": free space on RO and run again)."""
+    from vigproc.io.images import write_image
+
+    out = tmpfs("out", 4096)
+    subprocess.run(["mount", "-o", "remount,ro", str(out)], check=True)
+    with pytest.raises(ImageWriteError) as e:
+        write_image(out / "refusing to pose.tif", _img())
+    f = classify_error(e.value, str(out))  # the default room: 256 MiB, more than the mount
+    assert f.kind == OUTPUT and "Read-only file system" in f.reason and "full" not in f.reason, f
+    # and a worker that died writing there (no exception to classify): the same answer
+    t = output_trouble(out)
+    assert t is not None and t.kind == OUTPUT and "read-only" in t.reason, t
+
+
 def test_output_trouble_sees_a_full_a_vanished_and_a_healthy_output(tmp_path, monkeypatch):
     assert output_trouble(tmp_path, 1) is None
     t = output_trouble(tmp_path / "gone", 1)

@@ -356,6 +356,27 @@ def test_check_cli_exit_codes_json_and_report(tmp_path, classes, capsys):
     assert report.is_file() and "plain.tif" in report.read_text()
 
 
+def test_a_report_names_the_files_it_could_not_check(tmp_path, classes, capsys):
+    """A file given to `check --report` that cannot be read is in the report, with why (it
+    was only in the command line: "2 checks: 2 consistent" for three files given); when no
+    file could be checked, stderr says no report was written (it said nothing)."""
+    from vigproc.frontends.cli import main
+
+    plain = _tiff(tmp_path / "plain.tif", frame(classes[4], seed=9))
+    broken = tmp_path / "broken.jpg"
+    broken.write_bytes(b"hello")
+    for name in ("r.html", "r.png"):
+        code = main(["check", str(plain), str(broken), "--no-store", "--report", str(tmp_path / name)])
+        assert code == 1
+    text = (tmp_path / "r.html").read_text()
+    assert "1 file(s) given could not be checked" in text and "broken.jpg" in text
+    assert "not a recognised image format" in text
+    capsys.readouterr()
+    code = main(["check", str(broken), "--no-store", "--report", str(tmp_path / "none.html")])
+    assert code != 0 and not (tmp_path / "none.html").exists()
+    assert "no report written" in capsys.readouterr().err
+
+
 def test_a_check_never_uses_a_profile_that_holds_the_frame_itself(tmp_path, classes, calibration):
     from vigproc.stores.profiles import ProfileKey, ProfileStore
 

@@ -461,3 +461,48 @@ def test_stacked_cfa_gain_maps_multiply_as_the_dng_specification_applies_them() 
         g1, g2 = one.log_gain(w, h, c), two.log_gain(w, h, c)
         assert np.abs(g1).max() > 0.1
         np.testing.assert_allclose(g2, 2 * g1, atol=1e-9)
+
+
+def test_profile_delete_removes_a_profile_the_docs_say_it_removes(tmp_path) -> None:
+    """docs/profiles.md tells the user to `profile delete` a profile (to drop its prior or
+    its applied revision); there was no such command ("invalid choice: 'delete'"), and a
+    profile learned from a bad frame could not be removed from the command line."""
+    from vigproc.core.normalised import denormalise
+    from vigproc.stores.profiles import ProfileStore
+
+    meta = {"EXIF:Make": "Canon", "EXIF:Model": "Canon EOS 6D", "EXIF:LensModel": "EF | 24mm", "EXIF:FocalLength": 24,
+            "EXIF:FNumber": 2.8}
+    theta = np.array([0.02, -0.01, 0.9, 0.02, 0.85, 0.05, 0.1, -0.05, 0.02, 0.0, 0.0, 0.0])
+    db = tmp_path / "a.sqlite"
+    with ProfileStore(db) as store:
+        for focal in (24, 50):
+            key = store.key_for(lens_key_from_metadata({**meta, "EXIF:FocalLength": focal}), 3000, 2000)
+            store.learn(key, denormalise(theta, np.diag(np.full(12, 1e-6)), 3000, 2000, method="robust"))
+        kept = [str(p.key) for p in store.list()][1]
+    gone = _cli("profile", "--profile-db", str(db), "delete", "0")
+    assert gone.returncode == 0 and gone.stdout.startswith("deleted canon|canon eos 6d|ef | 24mm @ "), gone.stderr
+    missing = _cli("profile", "--profile-db", str(db), "delete", "5")
+    assert missing.returncode != 0 and "no stored profile '5'" in missing.stderr
+    with ProfileStore(db) as store:
+        assert [str(p.key) for p in store.list()] == [kept]
+
+
+def test_the_learned_line_names_the_profile_as_profile_list_does(tmp_path) -> None:
+    """`correct --profile-db`, `watch` and `batch` said "learned into profile sigma|...|105mm
+    f1.4 dg hsm %7C art 018 @ f=112.4mm ..." for a frame shot at 105 mm: the storage escape and
+    the focal bin's label; `profile list` shows "... | art 018 @ 105 mm"."""
+    from vigproc.core.normalised import denormalise
+    from vigproc.pipeline.learning import Learned
+    from vigproc.stores.profiles import ProfileStore
+
+    meta = {"EXIF:Make": "Canon", "EXIF:Model": "Canon EOS 6D", "EXIF:LensModel": "EF | 24mm", "EXIF:FocalLength": 24,
+            "EXIF:FNumber": 2.8}
+    theta = np.array([0.02, -0.01, 0.9, 0.02, 0.85, 0.05, 0.1, -0.05, 0.02, 0.0, 0.0, 0.0])
+    lens = lens_key_from_metadata(meta)
+    with ProfileStore(tmp_path / "a.sqlite") as store:
+        key = store.key_for(lens, 3000, 2000)
+        p = store.learn(key, denormalise(theta, np.diag(np.full(12, 1e-6)), 3000, 2000, method="robust"),
+                        lens_key=lens)
+    said = Learned.of(p, pooled=True).describe()
+    assert said.startswith("learned into profile canon|canon eos 6d|ef | 24mm @ 24 mm N=2.8 3:2 (1 frame"), said
+    assert Learned.of(p, pooled=True).to_dict()["profile"] == str(key)  # the record keeps the key

@@ -239,6 +239,22 @@ def test_digikam_adapter_refuses_a_wrong_setup(work, tmp_path):
 
 
 # ------------------------------------------------------------------ rawpy example
+def test_rawpy_pipeline_example_says_what_is_wrong_with_a_file(work, capsys):
+    """A missing name and a text file: each failure says which (both said
+    "failed: b'Input/output error'", LibRaw's words)."""
+    pytest.importorskip("rawpy")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("rawpy_pipeline", PLUGINS / "examples" / "rawpy_pipeline.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    (work / "notes.dng").write_text("hello\n")
+    code = example.main([str(work / "missing.dng"), str(work / "notes.dng"), "-o", str(work / "out")])
+    err = capsys.readouterr().err
+    assert code == 1 and "Input/output error'" not in err, err
+    assert "missing.dng: failed: no such file" in err and "notes.dng: failed: not a RAW file LibRaw can develop" in err
+
+
 def test_rawpy_pipeline_example(work, tmp_path):
     pytest.importorskip("rawpy")
     from dngfixture import make_dng

@@ -92,6 +92,32 @@ def test_preload_takes_numbas_locks_in_numbas_order():
     assert _fresh(code) == "True True"
 
 
+def test_kernels_imported_while_the_preload_imports_numba_leave_numba_whole():
+    """The caller's thread imports the kernels (and so Numba) while the preloader is inside
+    Numba's own imports: the two threads' imports must not interleave (they did: the
+    preloader's import failed on a partially initialised module, was undone, and left a
+    ``numba`` without ``numba.core``; the first `vigproc correct` of a fresh install then
+    failed compiling a kernel: "internal error (AttributeError: module 'numba' has no
+    attribute 'core')")."""
+    code = (
+        "import logging, sys, time\n"
+        "failed = []\n"
+        "class H(logging.Handler):\n"
+        "    def emit(self, r): failed.append(r.getMessage())\n"
+        "lg = logging.getLogger('vigproc.core.preload'); lg.setLevel(logging.DEBUG); lg.addHandler(H())\n"
+        "from vigproc.core.preload import preload_numba\n"
+        "t = preload_numba()\n"
+        "deadline = time.monotonic() + 60\n"
+        "while 'numba.core' not in sys.modules and t.is_alive() and time.monotonic() < deadline:\n"
+        "    time.sleep(0.0005)\n"
+        "import vigproc.core._kernels\n"
+        "t.join(120)\n"
+        "import numba\n"
+        "print(failed, hasattr(numba, 'core'))\n"
+    )
+    assert _fresh(code) == "[] True"
+
+
 @needs_exiftool
 def test_spawned_exiftool_answers_its_first_command():
     from vigproc.io.exiftool_process import ExiftoolProcess

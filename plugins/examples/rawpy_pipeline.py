@@ -33,10 +33,20 @@ from vigproc.io.exif import ExifReader
 
 
 def develop(path: Path) -> np.ndarray:
-    """Linear (gamma 1) camera-white-balanced sRGB-primaries float32 image in [0, 1]."""
-    with rawpy.imread(str(path)) as raw:
-        rgb = raw.postprocess(gamma=(1.0, 1.0), no_auto_bright=True, use_camera_wb=True,
-                              output_bps=16, user_flip=0)
+    """Linear (gamma 1) camera-white-balanced sRGB-primaries float32 image in [0, 1].
+
+    Raises OSError saying what is wrong with the file (LibRaw says b'Input/output error'
+    alike for a missing file, a text file and a truncated RAW)."""
+    if not path.is_file():
+        raise FileNotFoundError("no such file" if not path.exists() else "not a file")
+    try:
+        with rawpy.imread(str(path)) as raw:
+            rgb = raw.postprocess(gamma=(1.0, 1.0), no_auto_bright=True, use_camera_wb=True,
+                                  output_bps=16, user_flip=0)
+    except rawpy.LibRawError as exc:
+        said = exc.args[0] if exc.args else ""
+        said = said.decode("utf-8", "replace") if isinstance(said, bytes) else str(said)
+        raise OSError(f"not a RAW file LibRaw can develop ({type(exc).__name__}: {said})") from None
     return rgb.astype(np.float32) / np.float32(65535.0)
 
 
@@ -81,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
                 # Path(...).name: an output name never leaves the output folder
                 write_exr(args.output / (Path(raw.name).stem + ".exr"), out, res.to_dict())
                 print(f"{raw}: {res.summary}")
-            except (VigprocError, rawpy.LibRawError, OSError) as exc:
+            except (VigprocError, OSError) as exc:
                 failed += 1
                 print(f"{raw}: failed: {exc}", file=sys.stderr)
     return 1 if failed else 0

@@ -29,6 +29,13 @@ _lock = threading.Lock()
 
 def _load() -> None:
     try:
+        # Numba is imported through the kernels' package, the way the caller's thread imports
+        # it: Python's lock on that one module then makes the two threads' imports of Numba
+        # one after the other.  Two threads inside Numba's circular imports at once leave
+        # one a partially initialised module; its failed import is undone, and the process
+        # is left with a ``numba`` lacking ``numba.core`` (the first kernel compiled then
+        # failed with "module 'numba' has no attribute 'core'")
+        import vigproc.core._kernels  # noqa: F401
         from numba.core.compiler_lock import global_compiler_lock
         from numba.core.registry import cpu_target
 

@@ -450,10 +450,11 @@ def report_html(items: Sequence[ReportItem], *, title: str = "vigproc forensic c
     return head + "".join(_html_section(it) for it in items) + "</body></html>\n"
 
 
-def _run_figure(run: dict[str, Any], width: int) -> np.ndarray:
-    """The run record as lines of text, the head of a PNG report."""
+def _run_figure(run: dict[str, Any], width: int, notes: str = "") -> np.ndarray:
+    """The run record (and ``notes``) as lines of text, the head of a PNG report."""
     chars = int((width - 32) / 7.6)
-    lines = [piece for n, v in _run_rows(run) for piece in _wrap(f"{n}: {v}".translate(_PLAIN), chars)]
+    texts = [f"{n}: {v}" for n, v in _run_rows(run)] + ([notes] if notes else [])
+    lines = [piece for t in texts for piece in _wrap(t.translate(_PLAIN), chars)]
     fig = np.full((30 + 19 * len(lines), width, 3), 0.1, dtype=np.float32)
     for i, line in enumerate(lines):
         _text(fig, 16, 24 + 19 * i, line, 14)
@@ -478,8 +479,8 @@ def write_report(path: str | Path, items: Sequence[ReportItem], *, notes: str = 
         data = report_html(items, notes=notes, run=run).encode("utf-8")
     elif suffix == ".png":
         figs = [report_figure(it) for it in items]
-        if run:
-            figs.insert(0, _run_figure(run, max(f.shape[1] for f in figs)))
+        if run or notes:
+            figs.insert(0, _run_figure(run or {}, max(f.shape[1] for f in figs), notes))
         width = max(f.shape[1] for f in figs)
         figs = [np.pad(f, ((0, 4), (0, width - f.shape[1]), (0, 0)), constant_values=0.05) for f in figs]
         data = png_bytes(np.concatenate(figs, axis=0))

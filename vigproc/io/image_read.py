@@ -273,7 +273,9 @@ def _check_regular_file(path: str) -> int:
     except (OSError, ValueError) as exc:  # ValueError: embedded NUL byte
         raise ImageReadError(f"cannot read image {_q(path)}: {exc}") from None
     if stat.S_ISDIR(st.st_mode):
-        raise ImageReadError(f"cannot read image {_q(path)}: is a directory")
+        # `vigproc correct FOLDER`: say how a folder is given (the README's "Correct a folder")
+        raise ImageReadError(f"cannot read image {_q(path)}: is a directory (give its photos, "
+                             f"{os.path.join(str(path), '*')}, or run 'vigproc batch' on it)")
     if not stat.S_ISREG(st.st_mode):
         # FIFOs/devices would block or stream forever.
         raise ImageReadError(f"cannot read image {_q(path)}: not a regular file")

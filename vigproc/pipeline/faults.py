@@ -85,6 +85,9 @@ DEFAULT_MIN_FREE = 256 * 2**20
 
 _TRANSIENT_ERRNOS = frozenset(getattr(errno, n) for n in ("EAGAIN", "EBUSY", "ESTALE", "ETXTBSY", "EINTR", "ETIMEDOUT",
                                                          "EIO", "ENOLCK") if hasattr(errno, n))
+# errno values that name a write's cause other than room: a read-only file system, a
+# permission; a small or nearly full disk that refuses a write for one of these is not full
+_NOT_ROOM_ERRNOS = frozenset(getattr(errno, n) for n in ("EROFS", "EACCES", "EPERM") if hasattr(errno, n))
 # SQLite's result codes (sqlite3 errors carry them as ``sqlite_errorcode``, Python 3.11+)
 _SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_FULL = 5, 6, 13
 
@@ -154,18 +157,23 @@ def output_trouble(out_dir: str | os.PathLike[str], min_free: int = DEFAULT_MIN_
     """
     folder = os.fspath(out_dir)
     found = (space or disk_space)(folder)
+    if os.path.isdir(folder):
+        try:
+            read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+        except (OSError, AttributeError):
+            read_only = False
+        # said before the room left: freeing space makes neither writable
+        if read_only or not os.access(folder, os.W_OK):
+            why = "on a read-only file system" if read_only else "not writable"
+            return Fault(OUTPUT, f"the output folder {folder} is {why}", found)
     if found is not None and found.low(min_free):
         return Fault(DISK_FULL, f"output disk full ({found.describe()} on {folder})", found)
     if not os.path.isdir(folder):
         return Fault(OUTPUT, f"the output folder {folder} is gone", found)
-    try:
-        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
-    except (OSError, AttributeError):
-        read_only = False
-    if read_only or not os.access(folder, os.W_OK):
-        why = "on a read-only file system" if read_only else "not writable"
-        return Fault(OUTPUT, f"the output folder {folder} is {why}", found)
     return None
+    if found is not None and found.low(min_free):
+        return Fault(DISK_FULL, f"output disk full ({found.describe()} on {folder})", found)
+    return gone
 
 
 @dataclass(frozen=True)
@@ -284,7 +292,7 @@ def classify_error(exc: BaseException, out_dir: str | os.PathLike[str] | None = 
     if _output_side(exc, folder):
         found = look(folder) if folder is not None else None
         where = f" on {folder}" if folder is not None else ""
-        if found is not None and found.low(min_free):
+        if found is not None and found.low(min_free) and getattr(exc, "errno", None) not in _NOT_ROOM_ERRNOS:
             return Fault(DISK_FULL, f"output disk full ({found.describe()}{where}): {msg}", found)
         free = f"; {found.describe()}{where}" if found is not None else ""
         return Fault(OUTPUT, f"output write failed (not the photo's fault{free}): {msg}", found)

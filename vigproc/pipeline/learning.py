@@ -99,12 +99,15 @@ class Learned:
     trusted: bool | None = None
     field_sigma_ev: float | None = None
     reason: str | None = None
+    #: the profile as people read it (:meth:`Profile.label`), for :meth:`describe`
+    label: str | None = None
 
     @classmethod
     def of(cls, profile, *, pooled: bool, reason: str | None = None) -> Learned:
         sigma = profile.field_sigma_ev
         return cls(pooled, str(profile.key), int(profile.n_frames), bool(profile.trusted),
-                   None if sigma is None or not math.isfinite(sigma) else round(float(sigma), 5), reason)
+                   None if sigma is None or not math.isfinite(sigma) else round(float(sigma), 5), reason,
+                   profile.label())
 
     def describe(self) -> str:
         """One phrase for the log: ``learned into profile K (5 frames, not yet trusted)``."""
@@ -112,7 +115,7 @@ class Learned:
             return f"not learned: {self.reason}"
         state = "trusted" if self.trusted else "not yet trusted"
         head = "learned into" if self.pooled else f"not learned ({self.reason}):"
-        return f"{head} profile {self.profile} ({self.frames} frame{'' if self.frames == 1 else 's'}, {state})"
+        return f"{head} profile {self.label or self.profile} ({self.frames} frame{'' if self.frames == 1 else 's'}, {state})"
 
     def to_dict(self) -> dict[str, Any]:
         d = {"pooled": self.pooled, "profile": self.profile, "frames": self.frames, "trusted": self.trusted,

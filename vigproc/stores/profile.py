@@ -261,6 +261,18 @@ class Profile:
         """Plain mean of the per-frame θ̃ (Welford), or None."""
         return self._welford.theta_mean.copy() if self._welford is not None and self._welford.n else None
 
+    def label(self) -> str:
+        """The profile as people read it (``profile list``, the log's "learned into profile
+        ..."): the lens unescaped, and the focal lengths its frames were shot at instead of
+        the bin's label once known (``@ 105 mm``, not ``@ f=112.4mm``)."""
+        from vigproc.io.lensident import display_lens_id
+
+        focal = self.shots.describe_focal() if self.shots is not None else None
+        lens = display_lens_id(self.key.lens_id)  # escapes are for storage
+        if focal is None:
+            return str(self.key).replace(self.key.lens_id, lens, 1)
+        return f"{lens} @ {focal} {self.key.aperture_bin} {self.key.aspect}"
+
     def mismatch(self, lens_key: LensKey | None) -> str | None:
         """Why this profile is not of the camera and lens a frame's EXIF names (``None``
         when it is, or when the EXIF names neither): a profile file given by hand may be

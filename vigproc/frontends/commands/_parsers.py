@@ -67,6 +67,10 @@ def profile(sp: argparse.ArgumentParser) -> None:
                         "as stored now, from the next frame on (a new series; docs/watch.md)")
     q.add_argument("id", help="index from 'profile list' or the key text")
     q.set_defaults(fn="profile:cmd_profile")
+    q = psub.add_parser("delete", help="delete a stored profile (its pooled frames, prior and applied revision "
+                        "with it)")
+    q.add_argument("id", help="index from 'profile list' or the key text")
+    q.set_defaults(fn="profile:cmd_profile")
     q = psub.add_parser("import", help="import a profile file (profiles/README.md)")
     q.add_argument("file", help="profile file (JSON) to import")
     q.set_defaults(fn="profile:cmd_profile")

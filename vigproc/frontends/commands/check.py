@@ -245,9 +245,14 @@ def cmd_check(args: argparse.Namespace) -> int:
     if args.report and items:
         from vigproc.forensics.report import write_report
 
-        out = write_report(args.report, items, run=run)
+        # a file given but not checked is part of the record an examiner files, with why
+        unchecked = [r["error"] for r in results if "error" in r]
+        notes = (f"{len(unchecked)} file(s) given could not be checked: " + "; ".join(unchecked)) if unchecked else ""
+        out = write_report(args.report, items, notes=notes, run=run)
         if not args.json:
             print(f"report -> {out}")
+    elif args.report:
+        print(f"vigproc: no report written to {args.report}: no file could be checked", file=sys.stderr)
     if args.json:
         print_json_results(results, code, pooled=pooled, counts=counts, run=run)
     else:

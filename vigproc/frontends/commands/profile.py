@@ -28,11 +28,7 @@ from vigproc.stores.profiles import (Profile, ProfileKey, ProfileStoreError, _as
 def _profile_line(i: int, p) -> str:
     t = "trusted" if p.trusted else "learning"
     sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
-    # the focal lengths the frames were shot at, not the bin's label, once the store knows them
-    focal = p.shots.describe_focal() if p.shots is not None else None
-    lens = display_lens_id(p.key.lens_id)  # escapes are for storage
-    key = str(p.key).replace(p.key.lens_id, lens, 1) if focal is None else f"{lens} @ {focal} {p.key.aperture_bin} {p.key.aspect}"
-    return f"[{i}] {key}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
+    return f"[{i}] {p.label()}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
 
 
 def _pick_profile(store, ident: str):
@@ -188,6 +184,15 @@ def _apply(args: argparse.Namespace, store) -> int:
     return 0
 
 
+def _delete(args: argparse.Namespace, store) -> int:
+    """``profile delete ID``: a stored profile removed, with its pooled frames (they may be
+    learned again), its prior and its applied revision."""
+    p = _pick_profile(store, args.id)
+    store.delete(p.key)
+    print(f"deleted {_profile_line(0, p).split('] ', 1)[1]}")
+    return 0
+
+
 def _export(args: argparse.Namespace, store) -> int:
     """``profile export ID FILE``: a stored profile as a profile file."""
     store.export_file(_pick_profile(store, args.id).key, args.file)  # with its frames' colour casts
@@ -247,6 +252,7 @@ SUBCOMMANDS = {
     "show": _show,
     "learn": _learn,
     "apply": _apply,
+    "delete": _delete,
     "import": _import,
     "export": _export,
     "import-lensfun": _import_lensfun,
