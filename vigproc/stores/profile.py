@@ -24,6 +24,7 @@ from vigproc.core.normalised import (
 )
 from vigproc.errors import ModelError, ProfileStoreError
 from vigproc.io.exif import LensKey
+from vigproc.io.lensident import display_lens_id
 from vigproc.stores.profile_grid import GridPool
 from vigproc.stores.profile_key import (
     ANY,
@@ -265,8 +266,6 @@ class Profile:
         """The profile as people read it (``profile list``, the log's "learned into profile
         ..."): the lens unescaped, and the focal lengths its frames were shot at instead of
         the bin's label once known (``@ 105 mm``, not ``@ f=112.4mm``)."""
-        from vigproc.io.lensident import display_lens_id
-
         focal = self.shots.describe_focal() if self.shots is not None else None
         lens = display_lens_id(self.key.lens_id)  # escapes are for storage
         if focal is None:
