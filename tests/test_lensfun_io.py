@@ -414,6 +414,33 @@ def test_cli_exports_learned_profiles_of_any_aspect_with_their_lens_names(tmp_pa
     assert all(v < 0 for v in k1.values())
 
 
+def test_cli_does_not_export_a_profile_brighter_at_its_corners(tmp_path, capsys):
+    """A learned profile whose field brightens the corners (a frame's own scene pooled)
+    is left out of `profile export-lensfun`, with the rule's reason on stderr: darktable
+    would have darkened the corners of every frame of that lens (k1 > 0), which
+    `correct --profile` refuses to do with the same profile."""
+    import xml.etree.ElementTree as ET
+
+    from vigproc.frontends.cli import main
+    from vigproc.io.exif import LensKey
+    from vigproc.core.model import VignettingModel
+    from vigproc.stores.profiles import Profile, ProfileKey, ProfileStore, normalise
+
+    db = tmp_path / "p.sqlite"
+    w, h = 400, 300
+    with ProfileStore(db) as st:
+        for lens, alpha in (("M.Zuiko 17mm F1.8", (0.0,) * 7), ("M.Zuiko 45mm F1.8", (-0.5,) + (0.0,) * 6)):
+            key = LensKey(make="Olympus", model="E-P3", lens=lens, focal_mm=17.0 if "17" in lens else 45.0,
+                          fnumber=1.8)
+            m = VignettingModel(w, h, p=(1 / (0.8 * w) ** 2, 0.0, 1 / (0.8 * w) ** 2), alpha=alpha)
+            st.put(Profile(key=ProfileKey.from_lens(key, w, h), theta=normalise(m)[0], provenance="learned"))
+    out = tmp_path / "lf.xml"
+    assert main(["profile", "--profile-db", str(db), "export-lensfun", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "45mm" in err.casefold() and "brighter than its centre" in err
+    assert [el.findtext("model") for el in ET.parse(out).getroot().iter("lens")] == ["M.Zuiko 17mm F1.8"]
+
+
 def _d90(**kw):
     from vigproc.io.exif import LensKey
 

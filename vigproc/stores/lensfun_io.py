@@ -61,6 +61,7 @@ from scipy.optimize import least_squares
 from vigproc.errors import ModelError
 from vigproc.stores.lensfun import LensfunLens, find_camera, interpolate_pa, load_lenses, pa_poly
 from vigproc.core.model import N_ALPHA, FitQuality, VignettingModel
+from vigproc.core.plausible import judge
 from vigproc.stores.lensfun_match import calibration_for, corner_rho, covers, crop_of, frame_crop, match_lens
 # the XML writer is its own module; imported here so callers find the whole interop in one place
 from vigproc.stores.lensfun_xml import LENSFUN_DB_VERSION, export_lensfun_xml
@@ -837,7 +838,10 @@ def lensfun_entries(profiles: Iterable[Profile], *, crop_factor: float | None = 
       the corner of an image of the calibration's crop factor (:mod:`vigproc.stores.lensfun`),
       which is the crop factor written;
     * of a profile with a colour field, the luminance part only (a warning is logged:
-      lensfun's vignetting model has no per-channel terms).
+      lensfun's vignetting model has no per-channel terms);
+    * no profile whose field is brighter at a corner than at its centre
+      (:func:`vigproc.core.plausible.judge`'s rule for a calibration): a host would
+      darken that frame's corners.
 
     Parameters
     ----------
@@ -877,8 +881,15 @@ def lensfun_entries(profiles: Iterable[Profile], *, crop_factor: float | None = 
         # frame of the written crop factor, so the coefficients do not depend on which one
         a = p.key.aspect_ratio
         size = (3000, max(1, round(3000 / a))) if a >= 1 else (max(1, round(3000 * a)), 3000)
+        field = p.model(*size)
+        # the rule every correction path applies (a host would darken the frame's corners);
+        # correct --profile refuses such a profile too, but a host reading the file does not
+        refusal = judge(field, calibrated=True)
+        if refusal is not None:
+            skipped.append(f"{p.key}: {refusal.reason}")
+            continue
         try:
-            k1, k2, k3, rms = pa_from_model(p.model(*size))
+            k1, k2, k3, rms = pa_from_model(field)
         except ModelError as exc:  # one profile lensfun's model cannot hold does not stop the others
             skipped.append(f"{p.key}: {exc}")
             continue
