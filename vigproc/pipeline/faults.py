@@ -171,9 +171,6 @@ def output_trouble(out_dir: str | os.PathLike[str], min_free: int = DEFAULT_MIN_
     if not os.path.isdir(folder):
         return Fault(OUTPUT, f"the output folder {folder} is gone", found)
     return None
-    if found is not None and found.low(min_free):
-        return Fault(DISK_FULL, f"output disk full ({found.describe()} on {folder})", found)
-    return gone
 
 
 @dataclass(frozen=True)
