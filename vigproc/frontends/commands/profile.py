@@ -25,10 +25,15 @@ from vigproc.stores.profiles import (Profile, ProfileKey, ProfileStoreError, _as
                                      aperture_bin, aspect_label, focal_bin, normalise)
 
 
-def _profile_line(i: int, p) -> str:
+def _profile_text(p) -> str:
+    """A profile as ``profile list`` describes it, without its index."""
     t = "trusted" if p.trusted else "learning"
     sigma = "±?" if p.field_sigma_ev is None else f"±{p.field_sigma_ev:.3f} EV"
-    return f"[{i}] {p.label()}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
+    return f"{p.label()}  frames={p.n_frames}  {sigma}  {t}  ({p.provenance}, updated {p.updated})"
+
+
+def _profile_line(i: int, p) -> str:
+    return f"[{i}] {_profile_text(p)}"
 
 
 def _pick_profile(store, ident: str):
@@ -38,7 +43,7 @@ def _pick_profile(store, ident: str):
     if ident.isdigit() and int(ident) < len(profiles):
         return profiles[int(ident)]
     for p in profiles:
-        if ident in (str(p.key), _profile_line(0, p).split("] ", 1)[1].split("  ", 1)[0]):
+        if ident in (str(p.key), p.label()):
             return p
     of_lens = [p for p in profiles if ident in (p.key.lens_id, display_lens_id(p.key.lens_id))]
     if len(of_lens) == 1:
@@ -119,7 +124,7 @@ def _show(args: argparse.Namespace, store) -> int:
             **({"colour_cast": {**cast.to_dict(), "corrected": per_channel}} if cast is not None else {})}, indent=1))
     else:
         q = m.quality
-        print(_profile_line(0, p).split("] ", 1)[1])
+        print(_profile_text(p))
         print(f"  frame       {width}x{height}")
         print(f"  centre      ({m.center[0]:.1f}, {m.center[1]:.1f}) px from the frame centre")
         print(f"  fall-off    {m.field_ev_rms():.3f} EV RMS over the frame"
@@ -155,7 +160,7 @@ def _learn(args: argparse.Namespace, store) -> int:
                 done += not known
                 again += known
                 note = "  (this content was already learned: counted once)" if known else ""
-                print(one_line(f"{f} -> {_profile_line(0, p).split('] ', 1)[1]}{note}"))
+                print(one_line(f"{f} -> {_profile_text(p)}{note}"))
             except VigprocError as exc:
                 failed += 1
                 print(one_line(f"vigproc: {str(f)!r}: {exc}"), file=sys.stderr)
@@ -189,7 +194,7 @@ def _delete(args: argparse.Namespace, store) -> int:
     learned again), its prior and its applied revision."""
     p = _pick_profile(store, args.id)
     store.delete(p.key)
-    print(f"deleted {_profile_line(0, p).split('] ', 1)[1]}")
+    print(f"deleted {_profile_text(p)}")
     return 0
 
 
