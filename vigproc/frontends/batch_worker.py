@@ -194,6 +194,11 @@ class _Pending:
     trusted: bool
     field_sigma_ev: float | None = None
 
+    def label(self) -> str:
+        """As :meth:`vigproc.stores.profile.Profile.label` names it, before the client's
+        record does: the key (the frames' focal lengths are the client's to know)."""
+        return str(self.key)
+
 
 class _ClientPooled:
     """Stands in for the profile store of a correct-mode Processor that learns as it

@@ -107,8 +107,7 @@ class Learned:
         sigma = profile.field_sigma_ev
         return cls(pooled, str(profile.key), int(profile.n_frames), bool(profile.trusted),
                    None if sigma is None or not math.isfinite(sigma) else round(float(sigma), 5), reason,
-                   # a cluster worker's stand-in (batch_worker._Pending) has no label: its key then
-                   profile.label() if hasattr(profile, "label") else None)
+                   profile.label())
 
     def describe(self) -> str:
         """One phrase for the log: ``learned into profile K (5 frames, not yet trusted)``."""
