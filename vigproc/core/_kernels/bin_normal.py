@@ -12,7 +12,8 @@ arrays of bins that stay in cache. The sums are the same up to rounding (their o
 differs): the fits agree to about 1e-10 (``tests/test_estimator_kernels.py``).
 
 Numba caches :func:`bin_irls_into` with :func:`vigproc.core._kernels.irls.solved_step`
-compiled into it and checks only this file's time stamp: a change there needs one here.
+compiled into it and checks only this file's time stamp; the package's cache guard
+(:mod:`vigproc.core._kernels`) drops the cache when any kernel source changes.
 """
 
 from __future__ import annotations

@@ -13,7 +13,8 @@ copy), which only the last step's pairs are differenced into (for the jackknife)
 
 Numba caches this kernel with :mod:`~vigproc.core._kernels.geometry`'s and
 :mod:`~vigproc.core._kernels.bin_normal`'s compiled into it, and checks only this file's
-time stamp: a change to either needs a change here too, or the old code stays cached.
+time stamp; the package's cache guard (:mod:`vigproc.core._kernels`) drops the cache when
+any kernel source changes.
 """
 
 from __future__ import annotations
