@@ -439,6 +439,9 @@ def test_cli_does_not_export_a_profile_brighter_at_its_corners(tmp_path, capsys)
     err = capsys.readouterr().err
     assert "45mm" in err.casefold() and "brighter than its centre" in err
     assert [el.findtext("model") for el in ET.parse(out).getroot().iter("lens")] == ["M.Zuiko 17mm F1.8"]
+    # the file as a host's lensfun reads it: the kept lens darkens its corners (k1 < 0)
+    (lens,) = load_lenses([out])
+    assert lens.model == "M.Zuiko 17mm F1.8" and lens.vignetting[0].k1 < 0
 
 
 def _d90(**kw):
